@@ -1,0 +1,121 @@
+"""The `flightsim` command line (SPEC §10). Exit status: 0 success, 2 invalid input, 1 anything else."""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+from pathlib import Path
+
+from flightsim import __version__
+from flightsim.config import RunConfig, load_toml, set_value, validate
+from flightsim.errors import InputError
+
+EXIT_INVALID = 2
+
+# simulate flags that set a config field: (flag, dest, config key, help)
+CONFIG_FLAGS = [
+    ("--scene", "scene", "scene.name", "calibration (default), plane, or PATH.obj / PATH.ply"),
+    ("--altitude", "altitude", "flight.altitude_m", "flying height above ground [m] (default 500)"),
+    ("--array", "array", "sensor.array", "beams per side of the N×N array, 1–64 (default 3)"),
+    ("--spacing-mrad", "spacing_mrad", "sensor.spacing_mrad", "angular spacing of the sub-beams [mrad] (default 2.314)"),
+    ("--duration", "duration", "flight.duration_s", "flight time per line [s] (default 10)"),
+    ("--models", "models", "output.models", "georeferencing models to write: exact,nominal (default both)"),
+    ("--device", "device", "run.device", "cpu (default), cuda or cuda:N"),
+    ("--seed", "seed", "run.seed", "random seed for noise models (default 0)"),
+    ("--trajectory", "trajectory", "flight.trajectory", "CSV trajectory to fly instead of the line plan"),
+]
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports a bad command line in one line with exit status 2."""
+
+    def error(self, message: str):
+        self.exit(EXIT_INVALID, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def build_config(args: argparse.Namespace) -> RunConfig:
+    """Config from --config (TOML), then the flags, then --set overrides; validated and resolved."""
+    cfg = load_toml(args.config) if args.config else RunConfig()
+    for _flag, dest, key, _help in CONFIG_FLAGS:
+        value = getattr(args, dest)
+        if value is not None:
+            set_value(cfg, key, value)
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise InputError("--set", item, "KEY=VALUE, e.g. sensor.refractive_index=1.45")
+        set_value(cfg, key.strip(), value.strip())
+    return validate(cfg)
+
+
+def _add_config_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="run config TOML (a run.toml of an earlier run reproduces it)")
+    for flag, dest, _key, help_text in CONFIG_FLAGS:
+        parser.add_argument(flag, dest=dest, help=help_text)
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="set any config field, e.g. --set sensor.refractive_index=1.45 (repeatable)")
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from flightsim.progress import ProgressBar
+    from flightsim.run import simulate_to_directory
+
+    cfg = build_config(args)
+    summary = simulate_to_directory(cfg, Path(args.out), overwrite=args.overwrite,
+                                    progress=ProgressBar("simulate"))
+    rms = ", ".join(f"{m} {v * 1000:.2f} mm" if v is not None else f"{m} n/a" for m, v in summary["rms_m"].items())
+    print(f"{summary['points']} points from {summary['pulses']} pulses in {summary['wall_s']:.2f} s; "
+          f"plane RMS: {rms}; written to {args.out}")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    import laspy
+    import numpy
+    import pyproj
+    import warp as wp
+
+    from flightsim.warp_runtime import init_warp
+
+    init_warp()
+    info = {
+        "flightsim": __version__,
+        "python": platform.python_version(),
+        "warp": wp.__version__,
+        "numpy": numpy.__version__,
+        "laspy": laspy.__version__,
+        "pyproj": pyproj.__version__,
+        "devices": [{"name": str(d), "description": getattr(d, "name", str(d))} for d in wp.get_devices()],
+        "kernel_cache": wp.config.kernel_cache_dir,
+    }
+    print(json.dumps(info, indent=2))
+    return 0
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="flightsim", description="Simulate airborne array-beam lidar through a Risley prism.")
+    parser.add_argument("--version", action="version", version=f"flightsim {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    sim = sub.add_parser("simulate", help="simulate a flight and write LAS tiles per georeferencing model")
+    _add_config_flags(sim)
+    sim.add_argument("--out", required=True, help="output directory")
+    sim.add_argument("--overwrite", action="store_true", help="replace the run in a non-empty --out")
+    sim.set_defaults(func=cmd_simulate)
+
+    info = sub.add_parser("info", help="versions, devices and the kernel cache")
+    info.set_defaults(func=cmd_info)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as exc:
+        print(f"flightsim: error: {exc}", file=sys.stderr)
+        return EXIT_INVALID
+    except KeyboardInterrupt:
+        print("flightsim: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,327 @@
+"""Run configuration: dataclasses with defaults (SPEC §3–§4), validation, TOML in and out.
+
+A run is fully described by a :class:`RunConfig`. Every numeric field carries its allowed range
+and unit in its dataclass metadata; :func:`validate` checks them all and raises
+:class:`~flightsim.errors.InputError` naming the field. ``to_toml`` / ``load_toml`` round-trip the
+resolved configuration that is stored beside every output.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from flightsim.errors import InputError
+
+MODELS = ("exact", "nominal")
+BUILTIN_SCENES = ("calibration", "plane")
+KMH = 1.0 / 3.6  # [m/s per km/h]
+
+
+def _num(lo: float, hi: float, unit: str = "", *, lo_open: bool = False, integer: bool = False) -> dict:
+    """Field metadata: allowed closed (or left-open) interval and unit."""
+    return {"range": (lo, hi, lo_open), "unit": unit, "integer": integer}
+
+
+@dataclass
+class SceneConfig:
+    """What is scanned: a built-in scene or a mesh file, and where it lies."""
+
+    name: str = "calibration"  # "calibration", "plane", or a path to an .obj/.ply mesh
+    crs: str = "EPSG:32648"
+    origin: tuple[float, float, float] = (409000.0, 3393000.0, 450.0)  # world E, N, H [m]
+    slope: float = field(default=0.0, metadata=_num(-2.0, 2.0, "rise/run"))  # plane scene only
+    margin_m: float = field(default=50.0, metadata=_num(0.0, 10000.0, "m"))
+
+
+@dataclass
+class FlightConfig:
+    """The flight plan: straight parallel lines over the scene centre, or a trajectory file."""
+
+    altitude_m: float = field(default=500.0, metadata=_num(0.0, 50000.0, "m above ground", lo_open=True))
+    speed_kmh: float = field(default=200.0, metadata=_num(0.0, 2000.0, "km/h", lo_open=True))
+    duration_s: float = field(default=10.0, metadata=_num(0.0, 36000.0, "s per line", lo_open=True))
+    heading_deg: float = field(default=0.0, metadata=_num(-360.0, 360.0, "deg"))
+    roll_deg: float = field(default=0.0, metadata=_num(-30.0, 30.0, "deg"))
+    pitch_deg: float = field(default=0.0, metadata=_num(-30.0, 30.0, "deg"))
+    start_gps_time: float = field(default=450_000_000.0, metadata=_num(-1.0e9, 2.0e9, "s, adjusted standard GPS time"))
+    lines: int = field(default=1, metadata=_num(1, 1000, integer=True))
+    line_spacing_m: float = field(default=200.0, metadata=_num(0.0, 1.0e5, "m", lo_open=True))
+    trajectory: str = ""  # CSV trajectory file; when given it replaces the line plan
+
+
+@dataclass
+class SensorConfig:
+    """The instrument as it really is: beam array, prism, scan timing, mounting."""
+
+    array: int = field(default=3, metadata=_num(1, 64, "beams per side", integer=True))
+    spacing_mrad: float = field(default=2.314, metadata=_num(0.0, 200.0, "mrad"))
+    prf_hz: float = field(default=5000.0, metadata=_num(0.0, 1.0e7, "Hz", lo_open=True))
+    rotation_hz: float = field(default=20.0, metadata=_num(0.0, 1000.0, "Hz"))
+    phase0_deg: float = field(default=0.0, metadata=_num(-360.0, 360.0, "deg"))
+    cone_half_angle_deg: float = field(default=15.0, metadata=_num(0.0, 89.0, "deg", lo_open=True))
+    apex_angle_deg: float = field(default=0.0, metadata=_num(0.0, 89.0, "deg; 0 derives it from the cone angle"))
+    refractive_index: float = field(default=1.5066, metadata=_num(1.0, 4.0, "", lo_open=True))
+    thickness_mm: float = field(default=10.0, metadata=_num(0.0, 1000.0, "mm", lo_open=True))
+    boresight_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # roll, pitch, yaw of sensor in body
+    lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # sensor origin in the body frame
+    max_range_m: float = field(default=30000.0, metadata=_num(0.0, 1.0e6, "m", lo_open=True))
+    range_noise_m: float = field(default=0.0, metadata=_num(0.0, 100.0, "m, 1 sigma"))
+
+
+@dataclass
+class ProcessingConfig:
+    """The prism the georeferencing believes in; 0 means "the same as the sensor's"."""
+
+    refractive_index: float = field(default=0.0, metadata=_num(0.0, 4.0, "; 0 = sensor value"))
+    apex_angle_deg: float = field(default=0.0, metadata=_num(0.0, 89.0, "deg; 0 = sensor value"))
+    thickness_mm: float = field(default=0.0, metadata=_num(0.0, 1000.0, "mm; 0 = sensor value"))
+
+
+@dataclass
+class OutputConfig:
+    """What is written."""
+
+    models: tuple[str, ...] = MODELS
+    tile_size_m: int = field(default=500, metadata=_num(1, 100000, "m", integer=True))
+    laz: bool = False
+    position_error: bool = False
+
+
+@dataclass
+class RunSettings:
+    """How the run executes."""
+
+    device: str = "cpu"
+    seed: int = field(default=0, metadata=_num(0, 2**31 - 1, integer=True))
+    chunk_pulses: int = field(default=0, metadata=_num(0, 2**24, "pulses; 0 = automatic", integer=True))
+
+
+@dataclass
+class RunConfig:
+    """Everything that defines a run."""
+
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    flight: FlightConfig = field(default_factory=FlightConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    processing: ProcessingConfig = field(default_factory=ProcessingConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    run: RunSettings = field(default_factory=RunSettings)
+
+
+# ---------------------------------------------------------------------------------------------
+# derived optics
+
+
+def apex_for_cone(cone_half_angle: float, n_glass: float) -> float:
+    """Apex angle α [rad] whose on-axis deviation is the cone half-angle θ [rad].
+
+    The on-axis beam crosses Σ1 undeviated and meets Σ2 at incidence α, leaving at asin(n sin α),
+    so θ = asin(n sin α) − α, i.e. tan α = sin θ / (n − cos θ).
+    """
+    return math.atan2(math.sin(cone_half_angle), n_glass - math.cos(cone_half_angle))
+
+
+def cone_for_apex(apex: float, n_glass: float) -> float:
+    """On-axis deviation θ [rad] of a wedge of apex α [rad]; NaN on total internal reflection."""
+    s = n_glass * math.sin(apex)
+    return math.asin(s) - apex if s < 1.0 else math.nan
+
+
+def resolved_apex_deg(sensor: SensorConfig) -> float:
+    """The sensor's apex angle [deg]: given, or derived from the cone half-angle."""
+    if sensor.apex_angle_deg > 0.0:
+        return sensor.apex_angle_deg
+    return math.degrees(apex_for_cone(math.radians(sensor.cone_half_angle_deg), sensor.refractive_index))
+
+
+def resolve(config: RunConfig) -> RunConfig:
+    """Fill derived values (apex angle, cone angle, believed prism) so the config stands alone."""
+    cfg = dataclasses.replace(
+        config,
+        sensor=dataclasses.replace(config.sensor),
+        processing=dataclasses.replace(config.processing),
+    )
+    s, p = cfg.sensor, cfg.processing
+    if s.apex_angle_deg > 0.0:
+        s.cone_half_angle_deg = math.degrees(cone_for_apex(math.radians(s.apex_angle_deg), s.refractive_index))
+    else:
+        s.apex_angle_deg = resolved_apex_deg(s)
+    p.refractive_index = p.refractive_index or s.refractive_index
+    p.apex_angle_deg = p.apex_angle_deg or s.apex_angle_deg
+    p.thickness_mm = p.thickness_mm or s.thickness_mm
+    return cfg
+
+
+# ---------------------------------------------------------------------------------------------
+# validation
+
+
+def _check_number(name: str, value: Any, meta: dict) -> None:
+    lo, hi, lo_open = meta["range"]
+    unit = f" {meta['unit']}" if meta["unit"] else ""
+    if meta["integer"]:
+        allowed = f"an integer in [{lo}, {hi}]{unit}"
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+            raise InputError(name, value, allowed)
+        return
+    allowed = f"a finite number in {'(' if lo_open else '['}{lo:g}, {hi:g}]{unit}"
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(name, value, allowed)
+    if value < lo or value > hi or (lo_open and value == lo):
+        raise InputError(name, value, allowed)
+
+
+def _check_vector(name: str, value: Any, limit: float, unit: str) -> None:
+    allowed = f"three finite numbers each within ±{limit:g} {unit}"
+    if not isinstance(value, (tuple, list)) or len(value) != 3:
+        raise InputError(name, value, allowed)
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > limit:
+            raise InputError(name, value, allowed)
+
+
+def _check_fields(section_name: str, section: Any) -> None:
+    """Range-check every numeric field that declares a range in its metadata."""
+    for f in dataclasses.fields(section):
+        if "range" in f.metadata:
+            _check_number(f"{section_name}.{f.name}", getattr(section, f.name), f.metadata)
+
+
+def _check_optics(cfg: RunConfig) -> None:
+    s = cfg.sensor
+    critical = math.degrees(math.asin(1.0 / s.refractive_index))
+    if s.apex_angle_deg > 0.0 and s.apex_angle_deg >= critical:
+        raise InputError("sensor.apex_angle_deg", s.apex_angle_deg,
+                         f"an angle below {critical:.3f} deg (total internal reflection of the on-axis beam)")
+    max_cone = 90.0 - critical
+    if s.apex_angle_deg == 0.0 and s.cone_half_angle_deg >= max_cone:
+        raise InputError("sensor.cone_half_angle_deg", s.cone_half_angle_deg,
+                         f"an angle in (0, {max_cone:.3f}) deg for refractive index {s.refractive_index:g}")
+    half_fan = (s.array - 1) / 2 * s.spacing_mrad * 1e-3
+    if half_fan >= math.radians(80.0):
+        limit = math.radians(80.0) / max((s.array - 1) / 2, 0.5) * 1e3
+        raise InputError("sensor.spacing_mrad", s.spacing_mrad,
+                         f"a spacing below {limit:.3f} mrad for a {s.array}x{s.array} array (fan within ±80 deg)")
+    p = cfg.processing
+    if 0.0 < p.refractive_index <= 1.0:
+        raise InputError("processing.refractive_index", p.refractive_index, "0 (sensor value) or a number in (1, 4]")
+    n_believed = p.refractive_index or s.refractive_index
+    if p.apex_angle_deg > 0.0 and math.sin(math.radians(p.apex_angle_deg)) * n_believed >= 1.0:
+        raise InputError("processing.apex_angle_deg", p.apex_angle_deg,
+                         f"an angle below {math.degrees(math.asin(1.0 / n_believed)):.3f} deg")
+
+
+def _check_choices(cfg: RunConfig) -> None:
+    models = tuple(cfg.output.models)
+    if not models or any(m not in MODELS for m in models) or len(set(models)) != len(models):
+        raise InputError("output.models", ",".join(map(str, models)), "a non-empty subset of exact,nominal")
+    if not isinstance(cfg.scene.name, str) or not cfg.scene.name:
+        raise InputError("scene.name", cfg.scene.name, "calibration, plane, or a path to an .obj/.ply mesh")
+    if cfg.scene.name not in BUILTIN_SCENES and Path(cfg.scene.name).suffix.lower() not in (".obj", ".ply"):
+        raise InputError("scene.name", cfg.scene.name, "calibration, plane, or a path to an .obj/.ply mesh")
+    device = cfg.run.device
+    if device != "cpu" and device != "cuda" and not (device.startswith("cuda:") and device[5:].isdigit()):
+        raise InputError("run.device", device, "cpu, cuda or cuda:N")
+    _check_vector("scene.origin", cfg.scene.origin, 1.0e8, "m")
+    _check_vector("sensor.boresight_deg", cfg.sensor.boresight_deg, 10.0, "deg")
+    _check_vector("sensor.lever_arm_m", cfg.sensor.lever_arm_m, 100.0, "m")
+
+
+def validate(cfg: RunConfig) -> RunConfig:
+    """Check every field; return the resolved config or raise InputError naming the field."""
+    for section in dataclasses.fields(cfg):
+        _check_fields(section.name, getattr(cfg, section.name))
+    _check_choices(cfg)
+    _check_optics(cfg)
+    return resolve(cfg)
+
+
+# ---------------------------------------------------------------------------------------------
+# TOML and overrides
+
+
+def _to_bool(value: Any) -> bool:
+    if isinstance(value, str) and value.lower() in ("true", "false"):
+        return value.lower() == "true"
+    if isinstance(value, bool):
+        return value
+    raise ValueError(value)
+
+
+def _to_int(value: Any) -> int:
+    if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+        raise ValueError(value)
+    return int(value)
+
+
+def _to_tuple(value: Any, like: tuple) -> tuple:
+    items = value.split(",") if isinstance(value, str) else list(value)
+    if like and isinstance(like[0], float):
+        return tuple(float(v) for v in items)
+    return tuple(str(v).strip() for v in items if str(v).strip())
+
+
+def _coerce(name: str, current: Any, value: Any) -> Any:
+    """Convert a TOML or command-line value to the type of the field it replaces."""
+    convert = {bool: _to_bool, int: _to_int, float: float, str: str}.get(type(current))
+    try:
+        return _to_tuple(value, current) if isinstance(current, tuple) else convert(value)
+    except (TypeError, ValueError):
+        raise InputError(name, value, f"a value of type {type(current).__name__}") from None
+
+
+def set_value(cfg: RunConfig, dotted: str, value: Any) -> None:
+    """Set ``section.field`` from a string or TOML value, converting to the field's type."""
+    section_name, _, name = dotted.partition(".")
+    section = getattr(cfg, section_name, None)
+    if section is None or not dataclasses.is_dataclass(section) or name not in {f.name for f in dataclasses.fields(section)}:
+        known = ", ".join(f"{s.name}.<field>" for s in dataclasses.fields(cfg))
+        raise InputError(dotted, value, f"a known setting ({known}; see `flightsim simulate --help`)")
+    setattr(section, name, _coerce(dotted, getattr(section, name), value))
+
+
+def from_dict(data: dict) -> RunConfig:
+    """Build a config from nested tables (as read from TOML); unknown keys are errors."""
+    cfg = RunConfig()
+    for section_name, table in data.items():
+        if not isinstance(table, dict):
+            raise InputError(section_name, table, "a table of settings")
+        for key, value in table.items():
+            set_value(cfg, f"{section_name}.{key}", value)
+    return cfg
+
+
+def load_toml(path: str | Path) -> RunConfig:
+    """Read a run config from a TOML file (unvalidated; call :func:`validate`)."""
+    try:
+        with open(path, "rb") as fh:
+            return from_dict(tomllib.load(fh))
+    except OSError as exc:
+        raise InputError("--config", str(path), f"a readable TOML file ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError("--config", str(path), f"valid TOML ({exc})") from None
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, (tuple, list)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def to_toml(cfg: RunConfig) -> str:
+    """The config as TOML text; floats are written with full precision (``repr``)."""
+    lines = []
+    for section in dataclasses.fields(cfg):
+        lines.append(f"[{section.name}]")
+        for f in dataclasses.fields(getattr(cfg, section.name)):
+            lines.append(f"{f.name} = {_toml_value(getattr(getattr(cfg, section.name), f.name))}")
+        lines.append("")
+    return "\n".join(lines)

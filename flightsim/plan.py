@@ -1,0 +1,87 @@
+"""What is flown over what: the scene and the flight trajectories a config asks for."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from flightsim.config import RunConfig
+from flightsim.errors import InputError
+from flightsim.meshio import load_mesh
+from flightsim.scene import (Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene,
+                             required_half_extent)
+from trajectories import Trajectory, TrajectoryError, plan_parallel_lines
+
+MIN_CLEARANCE_M = 1.0  # the sensor must stay at least this far above the terrain [m]
+
+
+def line_length_m(cfg: RunConfig) -> float:
+    """Length of each planned flight line [m]."""
+    return cfg.flight.speed_kmh / 3.6 * cfg.flight.duration_s
+
+
+def scene_half_extent(cfg: RunConfig, altitude_m: float | None = None) -> float:
+    """Half side of the built-in scene's square ground that holds every scan circle [m].
+
+    altitude_m: the highest altitude the scene must serve (defaults to the config's).
+    """
+    altitude = cfg.flight.altitude_m if altitude_m is None else altitude_m
+    along = line_length_m(cfg) / 2.0
+    across = (cfg.flight.lines - 1) / 2.0 * cfg.flight.line_spacing_m
+    return required_half_extent(altitude, math.radians(cfg.sensor.cone_half_angle_deg), max(along, across),
+                                cfg.scene.margin_m)
+
+
+def build_scene(cfg: RunConfig, altitude_m: float | None = None) -> Scene:
+    """The scene named by ``cfg.scene`` (built-in scenes sized for ``altitude_m``)."""
+    crs = parse_crs(cfg.scene.crs, field="scene.crs")
+    origin = np.asarray(cfg.scene.origin, dtype=np.float64)
+    name = cfg.scene.name
+    if name == "plane":
+        return plane_scene(scene_half_extent(cfg, altitude_m), origin, crs, slope=cfg.scene.slope)
+    if name == "calibration":
+        half = max(scene_half_extent(cfg, altitude_m), calibration_min_half_extent() + cfg.scene.margin_m)
+        return calibration_scene(half, origin, crs)
+    if not Path(name).is_file():
+        raise InputError("scene.name", name, "calibration, plane, or the path of an existing .obj/.ply mesh")
+    return load_mesh(name, crs, origin)
+
+
+def _planned_lines(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
+    f = cfg.flight
+    lo, hi = scene.bounds()
+    centre = scene.local_to_world(np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, scene.ground_z]))
+    lines = plan_parallel_lines(
+        centre[0], centre[1], f.heading_deg, line_length_m(cfg), f.altitude_m, f.lines, f.line_spacing_m,
+        speed_mps=f.speed_kmh / 3.6, roll_deg=f.roll_deg, pitch_deg=f.pitch_deg, start_gps_time=f.start_gps_time,
+    )
+    return [line.trajectory(ground_height_m=centre[2]) for line in lines]
+
+
+def _check_clearance(trajectory: Trajectory, scene: Scene, field: str) -> None:
+    """Reject a trajectory that does not stay above the terrain beneath it."""
+    local = scene.world_to_local(trajectory.position)
+    top = scene.terrain_top(local[:, 0].min(), local[:, 1].min(), local[:, 0].max(), local[:, 1].max())
+    lowest = float(local[:, 2].min())
+    if lowest - top < MIN_CLEARANCE_M:
+        raise InputError(field, round(float(trajectory.position[:, 2].min()), 3),
+                         f"a sensor height above the terrain beneath the flight (top at "
+                         f"{top + scene.origin[2]:.3f} m) by at least {MIN_CLEARANCE_M:g} m")
+
+
+def flight_trajectories(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
+    """The trajectories to fly: the trajectory file if one is given, else the line plan."""
+    try:
+        if cfg.flight.trajectory:
+            trajectories = [Trajectory.read_csv(cfg.flight.trajectory)]
+            field = "flight.trajectory"
+        else:
+            trajectories = _planned_lines(cfg, scene)
+            field = "flight.altitude_m"
+    except TrajectoryError as exc:
+        raise InputError(exc.field, exc.value, exc.allowed) from None
+    for trajectory in trajectories:
+        _check_clearance(trajectory, scene, field)
+    return trajectories
+

@@ -1,0 +1,90 @@
+"""Plane fitting: total-least-squares planes from float64 moment sums (SPEC §9).
+
+Points are grouped by plane id and reduced to moment sums about a per-plane reference point
+(count, Σd, Σd·dᵀ with d = p − ref); the fit is the eigen-decomposition of the centred
+covariance. Sums combine by addition, so chunks, processes and devices can each accumulate
+their share and the host finishes the fit.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class PlaneFit:
+    """Total-least-squares plane through a set of points."""
+
+    plane_id: int
+    n: int
+    centroid: np.ndarray  # (3,) [m], in the frame the points were given in
+    normal: np.ndarray  # (3,) unit, z ≥ 0
+    rms_m: float  # RMS of orthogonal residuals [m]
+
+    @property
+    def pitch_deg(self) -> float:
+        """Angle between the plane and the horizontal [deg]."""
+        return float(np.degrees(np.arccos(np.clip(abs(self.normal[2]), 0.0, 1.0))))
+
+    @property
+    def azimuth_deg(self) -> float:
+        """Azimuth of the down-slope direction, clockwise from grid north [deg]; NaN if level."""
+        east, north = self.normal[0], self.normal[1]
+        if np.hypot(east, north) < 1e-12:
+            return float("nan")
+        return float(np.degrees(np.arctan2(east, north)) % 360.0)
+
+
+class PlaneMoments:
+    """Per-plane float64 moment sums: count, Σd and Σd·dᵀ of d = p − reference[plane]."""
+
+    def __init__(self, references: np.ndarray):
+        """references: (P, 3) float64 reference point of each plane id [m]."""
+        self.references = np.asarray(references, dtype=np.float64)
+        n_planes = len(self.references)
+        self.count = np.zeros(n_planes, dtype=np.int64)
+        self.first = np.zeros((n_planes, 3))
+        self.second = np.zeros((n_planes, 3, 3))
+
+    def add(self, points: np.ndarray, plane_id: np.ndarray) -> None:
+        """Accumulate points (m, 3) [m] labelled by plane id (m,)."""
+        if len(points) == 0:
+            return
+        d = np.asarray(points, dtype=np.float64) - self.references[plane_id]
+        n_planes = len(self.references)
+        self.count += np.bincount(plane_id, minlength=n_planes)
+        for a in range(3):
+            self.first[:, a] += np.bincount(plane_id, weights=d[:, a], minlength=n_planes)
+            for b in range(a, 3):
+                s = np.bincount(plane_id, weights=d[:, a] * d[:, b], minlength=n_planes)
+                self.second[:, a, b] += s
+                if b != a:
+                    self.second[:, b, a] += s
+
+    def merge(self, other: "PlaneMoments") -> None:
+        """Add another accumulator's sums (same references)."""
+        self.count += other.count
+        self.first += other.first
+        self.second += other.second
+
+    def fits(self, min_points: int = 3) -> list[PlaneFit]:
+        """A plane fit for every plane with at least ``min_points`` points."""
+        return [self.fit(int(p)) for p in np.flatnonzero(self.count >= min_points)]
+
+    def fit(self, plane_id: int) -> PlaneFit:
+        """Fit one plane from its sums."""
+        n = int(self.count[plane_id])
+        mean = self.first[plane_id] / n
+        covariance = self.second[plane_id] / n - np.outer(mean, mean)
+        values, vectors = np.linalg.eigh(covariance)
+        normal = vectors[:, 0] * (1.0 if vectors[2, 0] >= 0 else -1.0)
+        return PlaneFit(plane_id, n, self.references[plane_id] + mean, normal, float(np.sqrt(max(values[0], 0.0))))
+
+
+def pooled_rms(fits: list[PlaneFit]) -> float:
+    """RMS of the residuals of all planes together: sqrt(Σ n·rms² / Σ n) [m]; NaN if none."""
+    total = sum(f.n for f in fits)
+    if total == 0:
+        return float("nan")
+    return float(np.sqrt(sum(f.n * f.rms_m**2 for f in fits) / total))

@@ -1,0 +1,94 @@
+"""`flightsim simulate`: one run from a config to LAS tiles, run.toml and summary.json."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Callable
+
+from flightsim import __version__
+from flightsim.config import MODELS, RunConfig, to_toml
+from flightsim.errors import InputError
+from flightsim.outputs import LasOutput, PlaneStatistics
+from flightsim.plan import build_scene, flight_trajectories
+from flightsim.simulate import Simulator
+
+RUN_FILES = ("run.toml", "summary.json", *MODELS)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Write a text file under a temporary name, then rename it into place."""
+    tmp = path.with_name(f".{path.name}.part")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def prepare_output(directory: Path, cfg_text: str, overwrite: bool) -> None:
+    """Make ``directory`` ready for a run, refusing to clobber anything that is not ours to replace.
+
+    An existing directory is reused when it is empty, when ``overwrite`` is set, or when it holds
+    an unfinished run of the very same config (run.toml equal, no summary.json): that run is redone.
+    """
+    if directory.exists() and not directory.is_dir():
+        raise InputError("--out", str(directory), "a directory (this path is a file)")
+    if directory.is_dir() and any(directory.iterdir()):
+        previous = directory / "run.toml"
+        unfinished_same = (previous.is_file() and previous.read_text(encoding="utf-8") == cfg_text
+                           and not (directory / "summary.json").exists())
+        if not (overwrite or unfinished_same):
+            raise InputError("--out", str(directory),
+                             "an empty or new directory (pass --overwrite to replace the run in it)")
+        for name in RUN_FILES:
+            target = directory / name
+            if target.is_dir():
+                shutil.rmtree(target)
+            elif target.exists():
+                target.unlink()
+        for leftover in directory.glob(".*.part"):
+            leftover.unlink()
+    directory.mkdir(parents=True, exist_ok=True)
+
+
+def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = False,
+                          progress: Callable[[int, int], None] | None = None) -> dict:
+    """Run a validated config, write its tiles, run.toml and summary.json; return the summary."""
+    scene = build_scene(cfg)
+    trajectories = flight_trajectories(cfg, scene)
+    cfg_text = to_toml(cfg)
+    prepare_output(directory, cfg_text, overwrite)
+    write_atomic(directory / "run.toml", cfg_text)
+    simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error)
+    las = LasOutput(directory, cfg, scene, simulator.timing)
+    stats = PlaneStatistics(scene, simulator.models)
+
+    def consume(chunk):
+        las(chunk)
+        stats(chunk)
+
+    try:
+        counts = simulator.run(consume, progress)
+        tiles = las.close()
+    except BaseException:
+        las.abort()
+        raise
+    summary = {
+        "flightsim": __version__,
+        "scene": cfg.scene.name,
+        "device": simulator.device,
+        "points": {model: counts.returns for model in simulator.models},
+        "pulses": counts.pulses,
+        "beams_fired": counts.beams_fired,
+        "tir_dropped": counts.tir_dropped,
+        "misses": counts.misses,
+        "wall_s": round(counts.wall_s, 4),
+        "rms_m": stats.rms_m(),
+        "apex_angle_deg": cfg.sensor.apex_angle_deg,
+        "lines": {str(k): v for k, v in counts.per_line.items()},
+        "tiles": tiles,
+    }
+    write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary

@@ -1,0 +1,1 @@
+"""Device side of flightsim: every Warp kernel and function that runs per pulse or per beam."""
