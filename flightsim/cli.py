@@ -58,10 +58,10 @@ def _add_config_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    cfg = build_config(args)
     from flightsim.progress import ProgressBar
     from flightsim.run import simulate_to_directory
 
-    cfg = build_config(args)
     summary = simulate_to_directory(cfg, Path(args.out), overwrite=args.overwrite,
                                     progress=ProgressBar("simulate"))
     rms = ", ".join(f"{m} {v * 1000:.2f} mm" if v is not None else f"{m} n/a" for m, v in summary["rms_m"].items())

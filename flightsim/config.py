@@ -147,7 +147,9 @@ def resolve(config: RunConfig) -> RunConfig:
     )
     s, p = cfg.sensor, cfg.processing
     if s.apex_angle_deg > 0.0:
-        s.cone_half_angle_deg = math.degrees(cone_for_apex(math.radians(s.apex_angle_deg), s.refractive_index))
+        cone = math.degrees(cone_for_apex(math.radians(s.apex_angle_deg), s.refractive_index))
+        if abs(cone - s.cone_half_angle_deg) > 1e-9:  # keep a stated cone that the apex already implies
+            s.cone_half_angle_deg = cone
     else:
         s.apex_angle_deg = resolved_apex_deg(s)
     p.refractive_index = p.refractive_index or s.refractive_index

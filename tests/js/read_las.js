@@ -1,4 +1,4 @@
-// Independent LAS/LAZ reader for tests/test_las_independent.py, built on copc.js (npm "copc").
+// Independent LAS/LAZ reader for tests/test_las.py, built on copc.js (npm "copc").
 // Usage: node read_las.js FILE.las|FILE.laz  ->  JSON on stdout:
 //   { header, vlrs, wkt, extraBytes, points: { DimensionName: [values...] } }
 // Coordinates are scaled by copc.js (X * scale + offset); scan angle is in degrees.

@@ -1,0 +1,135 @@
+"""The simulator end to end: config → kernels → LAS tiles → plane RMS (SPEC §5, §6, §8, §10)."""
+import dataclasses
+import json
+import math
+
+import laspy
+import numpy as np
+import pytest
+
+import reference_optics as ref
+from flightsim.config import RunConfig, load_toml, set_value, validate
+from flightsim.run import simulate_to_directory
+
+
+def config(**settings) -> RunConfig:
+    cfg = RunConfig()
+    for key, value in settings.items():
+        set_value(cfg, key.replace("__", "."), value)
+    return validate(cfg)
+
+
+def read_model(directory, model):
+    """All points of one model's tiles, in world coordinates, float64."""
+    files = sorted((directory / model).glob("*.las"))
+    las = [laspy.read(f) for f in files]
+    xyz = np.concatenate([np.column_stack([l.x, l.y, l.z]) for l in las])
+    return xyz, las
+
+
+def tls_rms(xyz: np.ndarray) -> float:
+    """Orthogonal-residual RMS of a total-least-squares plane, two-pass float64."""
+    centred = xyz - xyz.mean(axis=0)
+    return float(np.sqrt(np.linalg.eigvalsh(centred.T @ centred / len(xyz))[0]))
+
+
+def nominal_plane_rms_reference(altitude, n, spacing, duration, prf=5000.0, f_rot=20.0, speed=200 / 3.6):
+    """Independent float64 model of the seed paper's altitude study over flat ground."""
+    n_glass = 1.5066
+    apex = math.atan2(math.sin(math.radians(15)), n_glass - math.cos(math.radians(15)))
+    t = np.arange(int(round(duration * prf)) + 1) / prf
+    points = []
+    s1 = ref.fan_directions(n, spacing)
+    for k, tk in enumerate(t):
+        phi = 2 * np.pi * f_rot * tk
+        s3, _, _ = ref.prism_exit(s1, phi, n_glass, apex, 0.01)
+        nominal = ref.nominal_directions(n, spacing, phi, n_glass, apex)
+        r = altitude / s3[:, 2]  # sensor frame z is down; ground at depth = altitude
+        p = r[:, None] * nominal
+        p[:, 0] += speed * tk
+        points.append(p)
+    return tls_rms(np.concatenate(points))
+
+
+@pytest.mark.parametrize("altitude", [500.0, 5000.0])
+def test_exact_model_is_flat_in_utm_coordinates(tmp_path, device, altitude):
+    cfg = config(scene__name="plane", flight__altitude_m=altitude, flight__duration_s=0.5, run__device=device)
+    summary = simulate_to_directory(cfg, tmp_path)
+    xyz, tiles = read_model(tmp_path, "exact")
+    assert xyz[:, 0].min() > 4.0e5 and xyz[:, 1].min() > 3.3e6  # real UTM values went through the kernels
+    assert len(xyz) == summary["points"]["exact"] == summary["pulses"] * 9
+    assert tls_rms(xyz) < 0.002
+    # ground is at the scene origin height, and points lie on the scan circle of radius h·tan15°
+    assert abs(np.median(xyz[:, 2]) - 450.0) < 0.002
+    radius = np.hypot(xyz[:, 0] - xyz[:, 0].mean(), xyz[:, 1] - xyz[:, 1].mean())
+    assert abs(np.median(radius) - altitude * math.tan(math.radians(15))) < 0.02 * altitude
+
+
+def test_nominal_model_reproduces_the_seed_paper_at_500_m(tmp_path):
+    cfg = config(scene__name="plane", flight__altitude_m=500.0, flight__duration_s=1.0)
+    summary = simulate_to_directory(cfg, tmp_path)
+    xyz, _ = read_model(tmp_path, "nominal")
+    rms = tls_rms(xyz)
+    expected = nominal_plane_rms_reference(500.0, 3, 2.314e-3, 1.0)
+    assert rms == pytest.approx(expected, rel=0.02)
+    assert rms == pytest.approx(0.05, rel=0.10)  # seed paper: 0.0498 m
+    assert summary["rms_m"]["nominal"] == pytest.approx(rms, rel=1e-3)
+    assert summary["rms_m"]["exact"] < 0.001
+
+
+def test_tiles_hold_what_the_summary_says_with_the_las_conventions(tmp_path):
+    cfg = config(flight__duration_s=0.4, output__position_error=True)
+    summary = simulate_to_directory(cfg, tmp_path)
+    for model in ("exact", "nominal"):
+        xyz, tiles = read_model(tmp_path, model)
+        assert len(xyz) == summary["points"][model] == sum(summary["tiles"][model].values())
+        for las in tiles:
+            h = las.header
+            assert (h.version.major, h.version.minor, h.point_format.id) == (1, 4, 6)
+            assert np.allclose(h.scales, 0.001) and h.offsets[0] % 500 == 0 and h.offsets[1] % 500 == 0
+            assert h.parse_crs().to_epsg() == 32648
+            assert set(las.point_format.extra_dimension_names) >= {
+                "beam_row", "beam_col", "prism_angle", "range", "plane_id", "position_error"}
+            t = np.asarray(las.gps_time)
+            assert 450_000_000.0 <= t.min() and t.max() <= 450_000_000.0 + 0.4 + 1e-6
+            assert set(np.unique(las.classification)) <= {2, 6, 11}
+            assert np.asarray(las.point_source_id).max() == 1
+    xyz, tiles = read_model(tmp_path, "exact")
+    error = np.concatenate([np.asarray(t["position_error"]) for t in tiles])
+    assert error.max() < 0.002  # exact model: numerical noise only
+    assert summary["beams_fired"] == 9 * summary["pulses"]
+    assert summary["beams_fired"] == summary["points"]["exact"] + summary["tir_dropped"] + summary["misses"]
+
+
+def test_run_toml_reproduces_the_run(tmp_path):
+    cfg = config(flight__duration_s=0.2, sensor__array=4)
+    first = simulate_to_directory(cfg, tmp_path / "a")
+    again = validate(load_toml(tmp_path / "a" / "run.toml"))
+    assert dataclasses.asdict(again) == dataclasses.asdict(cfg)
+    second = simulate_to_directory(again, tmp_path / "b")
+    assert first["points"] == second["points"] and first["rms_m"] == second["rms_m"]
+    for name in first["tiles"]["nominal"]:
+        assert (tmp_path / "a/nominal" / name).read_bytes() == (tmp_path / "b/nominal" / name).read_bytes()
+
+
+def test_total_internal_reflection_is_counted_and_never_emits_nan(tmp_path):
+    # the apex is 1° short of the critical angle: the wide fan's far side reflects internally
+    apex = math.degrees(math.asin(1 / 1.5066)) - 1.0
+    cfg = config(scene__name="plane", flight__duration_s=0.1, sensor__array=9, sensor__spacing_mrad=30.0,
+                 sensor__apex_angle_deg=apex, flight__altitude_m=300.0)
+    summary = simulate_to_directory(cfg, tmp_path)
+    assert 0 < summary["tir_dropped"] < summary["beams_fired"]
+    xyz, _ = read_model(tmp_path, "nominal")
+    assert np.isfinite(xyz).all() and len(xyz) == summary["points"]["nominal"]
+    assert summary["beams_fired"] == summary["points"]["nominal"] + summary["tir_dropped"] + summary["misses"]
+
+
+def test_beams_that_miss_a_small_mesh_are_counted(tmp_path):
+    mesh = tmp_path / "strip.obj"  # a 200 m wide strip under the line: the 134 m scan circle overhangs it
+    mesh.write_text("v -100 -300 0\nv 100 -300 0\nv 100 300 0\nv -100 300 0\ng ground\nf 1 2 3 4\n")
+    cfg = config(scene__name=str(mesh), flight__duration_s=0.2)
+    summary = simulate_to_directory(cfg, tmp_path / "out")
+    assert summary["misses"] > 0 and summary["points"]["exact"] > 0
+    assert summary["beams_fired"] == summary["points"]["exact"] + summary["misses"]
+    summary_file = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary_file["misses"] == summary["misses"]
