@@ -70,6 +70,7 @@ class SensorConfig:
     lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # sensor origin in the body frame
     max_range_m: float = field(default=30000.0, metadata=_num(0.0, 1.0e6, "m", lo_open=True))
     range_noise_m: float = field(default=0.0, metadata=_num(0.0, 100.0, "m, 1 sigma"))
+    divergence_mrad: float = field(default=0.3, metadata=_num(0.0, 100.0, "mrad, full angle"))
 
 
 @dataclass
@@ -92,6 +93,13 @@ class OutputConfig:
 
 
 @dataclass
+class ScoringConfig:
+    """How plane fits are scored (SPEC §9)."""
+
+    edge_buffer_m: float = field(default=-1.0, metadata=_num(-1.0, 1000.0, "m; -1 = automatic"))
+
+
+@dataclass
 class RunSettings:
     """How the run executes."""
 
@@ -109,6 +117,7 @@ class RunConfig:
     sensor: SensorConfig = field(default_factory=SensorConfig)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    scoring: ScoringConfig = field(default_factory=ScoringConfig)
     run: RunSettings = field(default_factory=RunSettings)
 
 

@@ -65,9 +65,11 @@ _EXTRA_DIMS = (
     ("range", "range_m", np.float32, "one-way range exit->hit [m]"),
     ("plane_id", "plane_id", np.int32, "scene plane id, -1 = none [id]"),
 )
-_POSITION_ERROR_DIM = (
-    "position_error", "position_error_m", np.float32, "true 3-D position error [m]"
-)
+# fields written only when a run asks for them, by LAS extra-bytes name
+OPTIONAL_DIMS = {
+    "position_error": ("position_error", "position_error_m", np.float32, "true 3-D position error [m]"),
+    "edge_distance": ("edge_distance", "edge_distance_m", np.float32, "true hit to plane edge [m]"),
+}
 
 
 @dataclasses.dataclass
@@ -93,6 +95,7 @@ class PointBatch:
     range_m: np.ndarray | None  #: one-way range [m], float32
     plane_id: np.ndarray  #: scene plane id, int32 (-1: none / unknown)
     position_error_m: np.ndarray | None = None  #: true 3-D position error [m], float32
+    edge_distance_m: np.ndarray | None = None  #: true hit to its plane's boundary, capped [m], float32
 
     def __post_init__(self) -> None:
         n = None
@@ -153,9 +156,10 @@ _FIELD_DTYPES = {
     "range_m": np.float32,
     "plane_id": np.int32,
     "position_error_m": np.float32,
+    "edge_distance_m": np.float32,
 }
 _OPTIONAL_FIELDS = frozenset(
-    {"beam_row", "beam_col", "prism_angle_deg", "range_m", "position_error_m"}
+    {"beam_row", "beam_col", "prism_angle_deg", "range_m", "position_error_m", "edge_distance_m"}
 )
 
 
@@ -208,7 +212,8 @@ class TileWriter:
             projected, in metres, and expressible as WKT1.
         tile_size_m: tile edge [m], a whole number of metres in [1, 1e6].
         compress: write LAZ (``.laz``, lazrs backend) instead of LAS.
-        with_position_error: add the ``position_error`` extra-bytes field; batches must carry it.
+        extras: optional extra-bytes fields to add, names from ``OPTIONAL_DIMS``
+            (``position_error``, ``edge_distance``); batches must carry them.
         creation_date: header creation date (e.g. :func:`gps_week_date` of the run's first pulse).
         software: header generating-software string (at most 32 ASCII characters).
         max_open_tiles: bound on simultaneously open tile files (>= 1).
@@ -221,7 +226,7 @@ class TileWriter:
         tile_size_m: float = 500.0,
         *,
         compress: bool = False,
-        with_position_error: bool = False,
+        extras: Sequence[str] = (),
         creation_date: datetime.date,
         software: str = f"flightsim {__version__}",
         max_open_tiles: int = 64,
@@ -232,10 +237,11 @@ class TileWriter:
         self._directory = Path(directory)
         self._directory.mkdir(parents=True, exist_ok=True)
         self._compress = bool(compress)
-        self._with_position_error = bool(with_position_error)
-        self._template = _tile_header_template(
-            _validated_crs(crs), creation_date, software, self._with_position_error
-        )
+        unknown = set(extras) - set(OPTIONAL_DIMS)
+        if unknown:
+            raise InputError("extras", sorted(unknown), f"names among {', '.join(OPTIONAL_DIMS)}")
+        self._dims = _EXTRA_DIMS + tuple(OPTIONAL_DIMS[name] for name in OPTIONAL_DIMS if name in extras)
+        self._template = _tile_header_template(_validated_crs(crs), creation_date, software, self._dims)
         self._max_open = max_open_tiles
         self._open: OrderedDict[tuple[int, int], _TileFile] = OrderedDict()
         self._counts: dict[tuple[int, int], int] = {}
@@ -330,7 +336,7 @@ class TileWriter:
         return self._directory / f".{self.tile_name(key)}.part"
 
     def _extra_dims(self) -> tuple[tuple, ...]:
-        return _EXTRA_DIMS + ((_POSITION_ERROR_DIM,) if self._with_position_error else ())
+        return self._dims
 
     def _tile(self, key: tuple[int, int]) -> _TileFile:
         """The open file of tile ``key``, opening (or reopening) it within the open-file bound."""
@@ -411,7 +417,7 @@ def read_points(
     """All points of one or more LAS/LAZ files (1.2–1.4), and their CRS.
 
     Fields absent from a file are filled in: ``gps_time`` NaN, ``plane_id`` -1, and
-    ``beam_row``/``beam_col``/``prism_angle_deg``/``range_m``/``position_error_m`` None (None
+    ``beam_row``/``beam_col``/``prism_angle_deg``/``range_m``/``position_error_m``/``edge_distance_m`` None (None
     for all files if any file lacks the field). The CRS is the one the files declare (None if
     none does; an unparsable CRS record is ignored with a warning); files declaring different
     CRSs are refused.
@@ -465,6 +471,7 @@ def _batch_from_las(las: laspy.LasData) -> PointBatch:
         range_m=extra("range"),
         plane_id=np.full(n, -1, dtype=np.int32) if plane_id is None else plane_id,
         position_error_m=extra("position_error"),
+        edge_distance_m=extra("edge_distance"),
     )
 
 
@@ -503,7 +510,7 @@ def _validated_crs(crs) -> pyproj.CRS:
 
 
 def _tile_header_template(
-    crs: pyproj.CRS, creation_date: datetime.date, software: str, with_position_error: bool
+    crs: pyproj.CRS, creation_date: datetime.date, software: str, dims: tuple[tuple, ...]
 ) -> laspy.LasHeader:
     """Header shared by every tile (all but the offsets)."""
     if not isinstance(creation_date, datetime.date):
@@ -519,7 +526,6 @@ def _tile_header_template(
     header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
     header.global_encoding.wkt = True
     header.vlrs.append(WktCoordinateSystemVlr(crs.to_wkt(WktVersion.WKT1_GDAL)))
-    dims = _EXTRA_DIMS + ((_POSITION_ERROR_DIM,) if with_position_error else ())
     header.add_extra_dims(
         [laspy.ExtraBytesParams(name, dtype, description) for name, _, dtype, description in dims]
     )

@@ -21,7 +21,7 @@ class LasOutput:
     Intensity is the Lambertian cos(incidence) scaled to 16 bits; gps_time is the pulse time.
     """
 
-    def __init__(self, directory: Path, cfg: RunConfig, scene: Scene, timing: PulseTiming):
+    def __init__(self, directory: Path, cfg: RunConfig, scene: Scene, timing: PulseTiming, edge_distance: bool):
         self.cfg = cfg
         self.scene = scene
         self.timing = timing
@@ -29,7 +29,8 @@ class LasOutput:
         date = gps_week_date(cfg.flight.start_gps_time)
         self.writers = {
             model: TileWriter(Path(directory) / model, scene.crs, tile_size_m=cfg.output.tile_size_m,
-                              compress=cfg.output.laz, with_position_error=cfg.output.position_error,
+                              compress=cfg.output.laz,
+                              extras=("position_error",) * cfg.output.position_error + ("edge_distance",) * edge_distance,
                               creation_date=date, software=f"flightsim {__version__}")
             for model in cfg.output.models
         }
@@ -41,7 +42,8 @@ class LasOutput:
             error = None
             if self.cfg.output.position_error:
                 error = np.linalg.norm(chunk.points[model] - chunk.true_points, axis=1).astype(np.float32)
-            writer.write(PointBatch(x=world[:, 0], y=world[:, 1], z=world[:, 2], position_error_m=error, **shared))
+            writer.write(PointBatch(x=world[:, 0], y=world[:, 1], z=world[:, 2], position_error_m=error,
+                                    edge_distance_m=chunk.edge_distance_m, **shared))
 
     def _shared_fields(self, chunk: ReturnChunk) -> dict:
         """The fields every model's points share: timing, beam, range, labels."""
@@ -71,17 +73,25 @@ class LasOutput:
 
 
 class PlaneStatistics:
-    """Per-plane float64 moments of each model's points, accumulated chunk by chunk on the host."""
+    """Per-plane float64 moments of each model's points, accumulated chunk by chunk on the host.
 
-    def __init__(self, scene: Scene, models: tuple[str, ...]):
+    Returns whose true hit lies within ``edge_buffer_m`` of a plane boundary are left out, the
+    same rule the device statistics apply.
+    """
+
+    def __init__(self, scene: Scene, models: tuple[str, ...], edge_buffer_m: float = 0.0):
         self.scene = scene
+        self.edge_buffer_m = edge_buffer_m
         references = np.array([plane.point for plane in scene.planes], dtype=np.float64)
         self.moments = {model: PlaneMoments(references) for model in models}
 
     def __call__(self, chunk: ReturnChunk) -> None:
-        plane_id = self.scene.plane_id[chunk.face]
+        keep = slice(None)
+        if chunk.edge_distance_m is not None:
+            keep = chunk.edge_distance_m >= self.edge_buffer_m
+        plane_id = self.scene.plane_id[chunk.face[keep]]
         for model, moments in self.moments.items():
-            moments.add(chunk.points[model], plane_id)
+            moments.add(chunk.points[model][keep], plane_id)
 
     def rms_m(self) -> dict[str, float]:
         """Pooled plane-fit RMS of each model over all planes [m]."""

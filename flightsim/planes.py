@@ -62,11 +62,15 @@ class PlaneMoments:
                 if b != a:
                     self.second[:, b, a] += s
 
+    def add_sums(self, count: np.ndarray, first: np.ndarray, second: np.ndarray) -> None:
+        """Add sums accumulated elsewhere: count (P,), Σd (P, 3), Σd·dᵀ (P, 3, 3), same references."""
+        self.count += count.astype(np.int64)
+        self.first += first
+        self.second += second
+
     def merge(self, other: "PlaneMoments") -> None:
         """Add another accumulator's sums (same references)."""
-        self.count += other.count
-        self.first += other.first
-        self.second += other.second
+        self.add_sums(other.count, other.first, other.second)
 
     def fits(self, min_points: int = 3) -> list[PlaneFit]:
         """A plane fit for every plane with at least ``min_points`` points."""

@@ -9,6 +9,7 @@ from typing import Callable
 
 from flightsim import __version__
 from flightsim.config import MODELS, RunConfig, to_toml
+from flightsim.edges import edge_buffer_m
 from flightsim.errors import InputError
 from flightsim.outputs import LasOutput, PlaneStatistics
 from flightsim.plan import build_scene, flight_trajectories
@@ -61,9 +62,10 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     cfg_text = to_toml(cfg)
     prepare_output(directory, cfg_text, overwrite)
     write_atomic(directory / "run.toml", cfg_text)
-    simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error)
-    las = LasOutput(directory, cfg, scene, simulator.timing)
-    stats = PlaneStatistics(scene, simulator.models)
+    buffer = edge_buffer_m(cfg)
+    simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
+    las = LasOutput(directory, cfg, scene, simulator.timing, edge_distance=buffer > 0.0)
+    stats = PlaneStatistics(scene, simulator.models, buffer)
 
     def consume(chunk):
         las(chunk)
@@ -86,6 +88,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         "misses": counts.misses,
         "wall_s": round(counts.wall_s, 4),
         "rms_m": stats.rms_m(),
+        "edge_buffer_m": buffer,
         "apex_angle_deg": cfg.sensor.apex_angle_deg,
         "lines": {str(k): v for k, v in counts.per_line.items()},
         "tiles": tiles,

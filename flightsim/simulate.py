@@ -1,27 +1,30 @@
-"""The simulation driver: per flight line, per chunk of pulses, launch the kernels and hand back returns.
+"""The simulation driver: per flight line, per chunk of pulses, launch the kernels.
 
 Data flow on the device (ARCHITECTURE.md): trajectory samples → pulse poses → per-beam trace and
-georeference → compaction of the slots that returned. Only the compacted returns cross to the
-host, where they go to the consumers the run asked for (LAS tiles, plane statistics).
+georeference → either compaction of the slots that returned (points mode: only the returns
+cross to the host) or per-plane float64 moments (statistics mode: only the sums cross).
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import warp as wp
 from scipy.spatial.transform import Rotation
 
-from flightsim.config import RunConfig
+from flightsim.config import MODELS, RunConfig
+from flightsim.edges import boundary_segments, ribbon_mesh
+from flightsim.planes import PlaneMoments
 from flightsim.scene import Scene
 from flightsim.warp_runtime import resolve_device
 from kernels import frames, trace
 from trajectories import PulseTiming, Trajectory
 
 SLOTS_PER_CHUNK = {"cpu": 1 << 19, "cuda": 1 << 24}  # automatic chunk size, in beam slots
+SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # statistics mode: consecutive slots per thread
 
 
 @dataclass
@@ -36,6 +39,7 @@ class ReturnChunk:
     face: np.ndarray  # (m,) int32 triangle hit
     scan_angle_deg: np.ndarray  # (m,) float32 signed off-nadir angle [deg]
     cos_incidence: np.ndarray  # (m,) float32
+    edge_distance_m: np.ndarray | None  # (m,) float32 true hit to its plane boundary, capped [m]
     points: dict[str, np.ndarray]  # georeferencing model -> (m, 3) float64 local [m]
     true_points: np.ndarray | None  # (m, 3) float64 local [m], when asked for
 
@@ -52,6 +56,7 @@ class RunCounts:
     returns: int = 0
     tir_dropped: int = 0
     misses: int = 0
+    edge_excluded: int = 0  # statistics mode: returns left out for lying within the edge buffer
     wall_s: float = 0.0
     per_line: dict[int, int] = field(default_factory=dict)
 
@@ -67,10 +72,12 @@ def _prism(n_glass: float, apex_deg: float, thickness_mm: float) -> trace.Prism:
 class Simulator:
     """Fly a validated config's trajectories over a scene on one device.
 
-    The scene's BVH and the kernels are built once here and reused by every :meth:`run`.
+    The scene's BVH, the boundary mesh and the kernels are built once here and reused by every
+    run; ``edge_buffer_m`` > 0 turns on the per-return distance to the plane boundaries.
     """
 
-    def __init__(self, cfg: RunConfig, scene: Scene, trajectories: list[Trajectory], with_truth: bool = False):
+    def __init__(self, cfg: RunConfig, scene: Scene, trajectories: list[Trajectory], with_truth: bool = False,
+                 edge_buffer_m: float = 0.0, bvh_constructor: str = "sah"):
         self.cfg = cfg
         self.scene = scene
         self.trajectories = trajectories
@@ -78,62 +85,133 @@ class Simulator:
         s, p = cfg.sensor, cfg.processing
         self.timing = PulseTiming(prf_hz=s.prf_hz, rotation_hz=s.rotation_hz, phase0_rad=math.radians(s.phase0_deg),
                                   field_prefix="sensor")
-        self.beams = trace.BeamArray()
-        self.beams.n = s.array
-        self.beams.spacing = s.spacing_mrad * 1e-3
-        self.truth = _prism(s.refractive_index, s.apex_angle_deg, s.thickness_mm)
-        self.believed = _prism(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
-        believed_is_truth = (p.refractive_index, p.apex_angle_deg, p.thickness_mm) == (
-            s.refractive_index, s.apex_angle_deg, s.thickness_mm)
         self.models = tuple(cfg.output.models)
-        self.with_truth = with_truth
-        self.kernel = trace.trace_kernel("exact" in self.models, "nominal" in self.models, believed_is_truth,
-                                         with_truth, s.range_noise_m > 0.0)
-        self.boresight = wp.quatd(*Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True).as_quat())
-        self.mesh = wp.Mesh(
-            points=wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3f, device=self.device),
-            indices=wp.array(scene.triangles.astype(np.int32).ravel(), dtype=wp.int32, device=self.device),
-            bvh_constructor="sah",
+        self.edge_buffer_m = edge_buffer_m
+        self.features = trace.Features(
+            exact="exact" in self.models, nominal="nominal" in self.models,
+            believed_is_truth=(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
+            == (s.refractive_index, s.apex_angle_deg, s.thickness_mm),
+            with_truth=with_truth, noisy=s.range_noise_m > 0.0, edges=edge_buffer_m > 0.0,
         )
+        self.boresight = wp.quatd(*Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True).as_quat())
+        self.mesh = self._mesh(scene.vertices, scene.triangles, bvh_constructor)
+        self.boundary = self._mesh(*ribbon_mesh(boundary_segments(scene))) if self.features.edges else None
+        self.scan = self._scan()
+
+    def _mesh(self, vertices: np.ndarray, triangles: np.ndarray, bvh_constructor: str = "sah") -> wp.Mesh:
+        return wp.Mesh(points=wp.array(vertices.astype(np.float32), dtype=wp.vec3f, device=self.device),
+                       indices=wp.array(triangles.astype(np.int32).ravel(), dtype=wp.int32, device=self.device),
+                       bvh_constructor=bvh_constructor)
+
+    def _scan(self) -> trace.Scan:
+        s, p = self.cfg.sensor, self.cfg.processing
+        scan = trace.Scan()
+        scan.mesh = self.mesh.id
+        scan.max_range = s.max_range_m
+        scan.beams = trace.BeamArray()
+        scan.beams.n = s.array
+        scan.beams.spacing = s.spacing_mrad * 1e-3
+        scan.truth = _prism(s.refractive_index, s.apex_angle_deg, s.thickness_mm)
+        scan.believed = _prism(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
+        scan.noise_sigma = s.range_noise_m
+        scan.noise_seed = self.cfg.run.seed
+        scan.boundary = self.boundary.id if self.boundary else 0
+        scan.edge_cap = self.edge_buffer_m
+        return scan
 
     @property
     def beams_per_pulse(self) -> int:
         return self.cfg.sensor.array ** 2
 
+    @property
+    def device_kind(self) -> str:
+        return "cpu" if self.device == "cpu" else "cuda"
+
     def chunk_pulses(self) -> int:
         """Pulses per launch: the config's, or enough to fill the device's slot budget."""
         if self.cfg.run.chunk_pulses:
             return self.cfg.run.chunk_pulses
-        slots = SLOTS_PER_CHUNK["cpu" if self.device == "cpu" else "cuda"]
-        return max(1, slots // self.beams_per_pulse)
+        return max(1, SLOTS_PER_CHUNK[self.device_kind] // self.beams_per_pulse)
 
     def pulse_count(self, trajectory: Trajectory) -> int:
         return self.timing.pulse_count(trajectory.start_time, trajectory.end_time)
 
+    # ------------------------------------------------------------------------------------------
+
     def run(self, consume: Callable[[ReturnChunk], None],
             progress: Callable[[int, int], None] | None = None) -> RunCounts:
-        """Fly every trajectory; call ``consume`` with each chunk's returns; return the counts."""
+        """Points mode: call ``consume`` with each chunk's returns; return the counts."""
         started = time.perf_counter()
         counts = RunCounts()
-        buffers = _Buffers(self.chunk_pulses(), self.beams_per_pulse, self.device)
+        buffers = _PointBuffers(self.chunk_pulses(), self.beams_per_pulse, self.device)
+        kernel = trace.points_kernel(self.features)
+        for trajectory, first, n_pulses, rng_offset in self._chunks(buffers.poses, counts, progress):
+            n_slots = n_pulses * self.beams_per_pulse
+            wp.launch(kernel, n_slots, inputs=[buffers.poses, self.scan, rng_offset],
+                      outputs=buffers.slot_outputs(), device=self.device)
+            chunk = self._returns(trajectory, first, n_slots, buffers)
+            counts.returns += len(chunk)
+            counts.per_line[trajectory.line_id] = counts.per_line.get(trajectory.line_id, 0) + len(chunk)
+            if len(chunk):
+                consume(chunk)
+        return self._finish(counts, buffers.counters, started)
+
+    def run_statistics(self, progress: Callable[[int, int], None] | None = None,
+                       slots_per_thread: int | None = None) -> tuple[dict[str, PlaneMoments], RunCounts]:
+        """Statistics mode: per-plane float64 moments of each model, accumulated on the device.
+
+        No point leaves the device; returns within the edge buffer of a plane boundary are left
+        out (``RunCounts.edge_excluded``).
+        """
+        started = time.perf_counter()
+        counts = RunCounts()
+        spt = slots_per_thread or SLOTS_PER_THREAD[self.device_kind]
+        poses = wp.empty(self.chunk_pulses(), dtype=frames.PulsePose, device=self.device)
+        n_planes = len(self.scene.planes)
+        d = self.device
+        sums = [wp.zeros((2, n_planes), dtype=wp.int64, device=d), wp.zeros((2, n_planes), dtype=wp.vec3d, device=d),
+                wp.zeros((2, n_planes), dtype=trace.vec6d, device=d), wp.zeros(3, dtype=wp.int32, device=d)]
+        references = np.array([plane.point for plane in self.scene.planes], dtype=np.float64)
+        face_plane = wp.array(self.scene.plane_id.astype(np.int32), dtype=wp.int32, device=d)
+        kernel = trace.statistics_kernel(self.features)
+        inputs_fixed = [face_plane, wp.array(references, dtype=wp.vec3d, device=d), self.edge_buffer_m]
+        for _trajectory, _first, n_pulses, rng_offset in self._chunks(poses, counts, progress):
+            n_slots = n_pulses * self.beams_per_pulse
+            wp.launch(kernel, (n_slots + spt - 1) // spt,
+                      inputs=[poses, self.scan, rng_offset, n_slots, spt, *inputs_fixed], outputs=sums, device=d)
+        count, first, second, counters = (a.numpy() for a in sums)
+        moments = {}
+        for k, model in enumerate(MODELS):
+            if model in self.models:
+                m = PlaneMoments(references)
+                m.add_sums(count[k], first[k], _symmetric(second[k]))
+                moments[model] = m
+        counts.edge_excluded = int(counters[2])
+        self._finish(counts, sums[3], started)
+        counts.returns = counts.beams_fired - counts.tir_dropped - counts.misses
+        return moments, counts
+
+    # ------------------------------------------------------------------------------------------
+
+    def _chunks(self, poses: wp.array, counts: RunCounts,
+                progress: Callable[[int, int], None] | None) -> Iterator[tuple[Trajectory, int, int, int]]:
+        """Compute each chunk's pulse poses into ``poses``; yield (trajectory, first pulse, pulses, rng offset)."""
         total = sum(self.pulse_count(t) for t in self.trajectories)
-        slot_base = 0
+        rng_offset = 0
         for trajectory in self.trajectories:
             line = self._line_inputs(trajectory)
-            n_pulses = self.pulse_count(trajectory)
-            returns_before = counts.returns
-            for first in range(0, n_pulses, buffers.pulses):
-                chunk_pulses = min(buffers.pulses, n_pulses - first)
-                chunk = self._trace_chunk(trajectory, line, first, chunk_pulses, slot_base, buffers)
-                slot_base = (slot_base + chunk_pulses * self.beams_per_pulse) % (1 << 31)
-                counts.pulses += chunk_pulses
-                counts.returns += len(chunk)
-                if len(chunk):
-                    consume(chunk)
+            n_line = self.pulse_count(trajectory)
+            for first in range(0, n_line, poses.shape[0]):
+                n_pulses = min(poses.shape[0], n_line - first)
+                wp.launch(frames.pulse_poses, n_pulses, inputs=[*line, first], outputs=[poses], device=self.device)
+                yield trajectory, first, n_pulses, rng_offset
+                rng_offset = (rng_offset + n_pulses * self.beams_per_pulse) % (1 << 31)
+                counts.pulses += n_pulses
                 if progress:
                     progress(counts.pulses, total)
-            counts.per_line[trajectory.line_id] = counts.returns - returns_before
-        tir, misses = (int(v) for v in buffers.counters.numpy())
+
+    def _finish(self, counts: RunCounts, counters: wp.array, started: float) -> RunCounts:
+        tir, misses = (int(v) for v in counters.numpy()[:2])
         counts.beams_fired = counts.pulses * self.beams_per_pulse
         counts.tir_dropped, counts.misses = tir, misses
         counts.wall_s = time.perf_counter() - started
@@ -154,24 +232,12 @@ class Simulator:
             self.timing.cycles_per_pulse,
         ]
 
-    def _trace_chunk(self, trajectory: Trajectory, line: list, first: int, n_pulses: int, slot_base: int,
-                     buffers: "_Buffers") -> ReturnChunk:
-        d = self.device
-        n_slots = n_pulses * self.beams_per_pulse
-        wp.launch(frames.pulse_poses, n_pulses, inputs=[*line, first], outputs=[buffers.poses], device=d)
-        s = self.cfg.sensor
-        wp.launch(
-            self.kernel, n_slots,
-            inputs=[self.mesh.id, s.max_range_m, buffers.poses, self.beams, self.truth, self.believed,
-                    s.range_noise_m, self.cfg.run.seed, slot_base],
-            outputs=[buffers.status, buffers.ranges, buffers.faces, buffers.scan_angles, buffers.cos_incidence,
-                     buffers.true_points, buffers.model_points["exact"], buffers.model_points["nominal"],
-                     buffers.counters],
-            device=d,
-        )
+    def _returns(self, trajectory: Trajectory, first: int, n_slots: int, buffers: "_PointBuffers") -> ReturnChunk:
+        """Compact the chunk's returning slots on the device and bring them to the host."""
         n_returns = buffers.compact_index(n_slots)
         slots = buffers.index.numpy()[:n_returns].astype(np.int64)
         gather = buffers.gather
+        f = self.features
         return ReturnChunk(
             line_id=trajectory.line_id,
             start_time=trajectory.start_time,
@@ -181,16 +247,25 @@ class Simulator:
             face=gather(buffers.faces, n_slots, n_returns),
             scan_angle_deg=gather(buffers.scan_angles, n_slots, n_returns),
             cos_incidence=gather(buffers.cos_incidence, n_slots, n_returns),
+            edge_distance_m=gather(buffers.edge_distance, n_slots, n_returns) if f.edges else None,
             points={m: gather(buffers.model_points[m], n_slots, n_returns).astype(np.float64) for m in self.models},
-            true_points=gather(buffers.true_points, n_slots, n_returns).astype(np.float64) if self.with_truth else None,
+            true_points=gather(buffers.true_points, n_slots, n_returns).astype(np.float64) if f.with_truth else None,
         )
 
 
-class _Buffers:
-    """Device arrays for one chunk, allocated once per run and reused chunk after chunk."""
+def _symmetric(upper: np.ndarray) -> np.ndarray:
+    """(P, 6) upper triangles xx, xy, xz, yy, yz, zz → (P, 3, 3) symmetric matrices."""
+    rows, cols = np.triu_indices(3)
+    full = np.zeros((len(upper), 3, 3))
+    full[:, rows, cols] = upper
+    full[:, cols, rows] = upper
+    return full
+
+
+class _PointBuffers:
+    """Device arrays for one chunk in points mode, allocated once per run and reused."""
 
     def __init__(self, pulses: int, beams_per_pulse: int, device: str):
-        self.pulses = pulses
         self.device = device
         slots = pulses * beams_per_pulse
         self.poses = wp.empty(pulses, dtype=frames.PulsePose, device=device)
@@ -199,13 +274,19 @@ class _Buffers:
         self.faces = wp.empty(slots, dtype=wp.int32, device=device)
         self.scan_angles = wp.empty(slots, dtype=wp.float32, device=device)
         self.cos_incidence = wp.empty(slots, dtype=wp.float32, device=device)
+        self.edge_distance = wp.empty(slots, dtype=wp.float32, device=device)
         self.true_points = wp.empty(slots, dtype=wp.vec3f, device=device)
-        self.model_points = {m: wp.empty(slots, dtype=wp.vec3f, device=device) for m in ("exact", "nominal")}
-        self.counters = wp.zeros(2, dtype=wp.int32, device=device)
+        self.model_points = {m: wp.empty(slots, dtype=wp.vec3f, device=device) for m in MODELS}
+        self.counters = wp.zeros(3, dtype=wp.int32, device=device)
         self.flags = wp.empty(slots, dtype=wp.int32, device=device)
         self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
         self.index = wp.empty(slots, dtype=wp.int32, device=device)
-        self.compacted: dict[object, wp.array] = {}
+        self.compacted: dict[int, wp.array] = {}
+
+    def slot_outputs(self) -> list[wp.array]:
+        """The points kernel's outputs, in its argument order."""
+        return [self.status, self.ranges, self.faces, self.scan_angles, self.cos_incidence, self.edge_distance,
+                self.true_points, self.model_points["exact"], self.model_points["nominal"], self.counters]
 
     def compact_index(self, n_slots: int) -> int:
         """Flag and prefix-sum the returning slots; fill ``index``; return the number of returns."""

@@ -1,10 +1,14 @@
-"""Per-beam kernels: fire the fan, refract through the prism, ray-cast the scene, georeference.
+"""Per-beam kernels: fire the fan, deflect it, ray-cast the scene, georeference, and either keep
+each return (points mode) or reduce the returns to per-plane moments (statistics mode).
 
-One thread per (pulse, sub-beam) slot of a chunk. Kernels are specialised at build time for
-the georeferencing models and features a run asks for (``wp.static``), so a feature that is off
-costs nothing per beam.
+Kernels are specialised at build time for the features a run asks for (``wp.static``), so a
+feature that is off costs nothing per beam. The deflector is a parameter of the build: any
+``deflect(s1, phi, prism: Prism) -> (s3, exit_point, ok)`` fits the same kernels (a deflector
+with other parameters adds them to :class:`Scan`); the rotating wedge is the one flightsim ships.
 """
+
 import functools
+from dataclasses import dataclass
 from typing import Any
 
 import warp as wp
@@ -20,6 +24,9 @@ STATUS_TIR = wp.constant(2)
 
 COUNT_TIR = 0
 COUNT_MISS = 1
+COUNT_EDGE = 2  # returns left out of the statistics for lying within the edge buffer
+
+vec6d = wp.types.vector(6, wp.float64)
 
 
 @wp.struct
@@ -31,12 +38,45 @@ class Prism:
     thickness: wp.float32  # d1, centre thickness [m]
 
 
+@wp.func
+def wedge_deflect(s1: wp.vec3f, phi: wp.float32, prism: Prism):
+    """The rotating wedge as a deflector: (exit direction, exit point [m], ok)."""
+    return prism_exit(s1, phi, prism.n_glass, prism.apex, prism.thickness)
+
+
 @wp.struct
 class BeamArray:
     """The DOE fan: n×n sub-beams spaced by ``spacing`` [rad]."""
 
     n: wp.int32
     spacing: wp.float32
+
+
+@wp.struct
+class Scan:
+    """Everything a slot needs besides its pose: scene, instrument, processing, noise."""
+
+    mesh: wp.uint64
+    max_range: wp.float32  # [m]
+    beams: BeamArray
+    truth: Prism
+    believed: Prism  # the prism the georeferencing believes in
+    noise_sigma: wp.float32  # range noise, 1σ [m]
+    noise_seed: wp.int32
+    boundary: wp.uint64  # ribbon mesh along plane boundaries (edge buffer queries)
+    edge_cap: wp.float32  # edge distances are measured up to this [m]
+
+
+@dataclass(frozen=True)
+class Features:
+    """What a kernel build evaluates per beam."""
+
+    exact: bool = True  # georeference by the exact model
+    nominal: bool = True  # georeference by the rigid-array model
+    believed_is_truth: bool = True  # processing prism == simulated prism: reuse the traced ray
+    with_truth: bool = False  # keep the true hit point
+    noisy: bool = False  # Gaussian range noise
+    edges: bool = False  # measure the true hit's distance to its plane boundary
 
 
 @wp.func
@@ -54,89 +94,223 @@ def _gaussian(state: wp.uint32):
     return wp.sqrt(-2.0 * wp.log(wp.max(u1, 1.0e-12))) * wp.cos(6.283185307179586 * u2)
 
 
-@functools.cache
-def trace_kernel(exact: bool, nominal: bool, believed_is_truth: bool, with_truth: bool, noisy: bool):
-    """Build the per-beam kernel for one combination of features.
+@wp.func
+def _edge_distance(boundary: wp.uint64, p: wp.vec3f, cap: wp.float32):
+    """Distance from p to the nearest plane-boundary edge, at most ``cap`` [m]."""
+    query = wp.mesh_query_point_no_sign(boundary, p, cap)
+    if query.result:
+        return wp.min(wp.length(p - wp.mesh_eval_position(boundary, query.face, query.u, query.v)), cap)
+    return cap
 
-    exact / nominal: which georeferencing models to evaluate (SPEC §5); believed_is_truth: the
-    processing's prism equals the simulated one, so the exact model reuses the traced ray;
-    with_truth: also write the true hit point; noisy: add Gaussian range noise.
-    """
+
+@functools.cache
+def _slot_function(f: Features, deflect: wp.Function):
+    """Build the per-slot body shared by the points and the statistics kernels."""
+
+    @wp.func
+    def trace_slot(slot: int, pose: PulsePose, beam: int, scan: Scan, rng_offset: int):
+        """Trace one sub-beam of one pulse.
+
+        Returns (status, range [m], face, direction, exact point, nominal point, true point,
+        edge distance [m]); points in the local frame [m].
+        """
+        zero = wp.vec3f(0.0, 0.0, 0.0)
+        n = scan.beams.n
+        s1 = doe_direction(beam // n, beam % n, n, scan.beams.spacing)
+        s3, exit_point, ok = deflect(s1, pose.phi, scan.truth)
+        if not ok:
+            return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
+        start = pose.origin + pose.rot * exit_point
+        direction = pose.rot * s3
+        hit = wp.mesh_query_ray(scan.mesh, start, direction, scan.max_range)
+        if not hit.result:
+            return STATUS_MISS, 0.0, -1, direction, zero, zero, zero, 0.0
+        true_point = start + hit.t * direction
+        r = hit.t
+        if wp.static(f.noisy):
+            state = wp.rand_init(scan.noise_seed, rng_offset + slot)
+            r = r + scan.noise_sigma * _gaussian(state)
+        # georeference the observation (φ, i, j, r) with the deflector the processing believes in
+        p_exact = zero
+        p_nominal = zero
+        ok_exact = True
+        ok_nominal = True
+        if wp.static(f.exact):
+            if wp.static(f.believed_is_truth):
+                p_exact = start + r * direction
+            else:
+                s3b, exit_b, ok_exact = deflect(s1, pose.phi, scan.believed)
+                p_exact = pose.origin + pose.rot * (exit_b + r * s3b)
+        if wp.static(f.nominal):
+            s3c, exit_c, ok_nominal = deflect(wp.vec3f(0.0, 0.0, 1.0), pose.phi, scan.believed)
+            p_nominal = pose.origin + pose.rot * (exit_c + r * rigid_array_direction(s1, s3c))
+        if not (ok_exact and ok_nominal):
+            # the believed deflector reflects this beam internally: processing cannot place it
+            return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
+        edge = scan.edge_cap
+        if wp.static(f.edges):
+            edge = _edge_distance(scan.boundary, true_point, scan.edge_cap)
+        return STATUS_RETURN, r, hit.face, direction, p_exact, p_nominal, true_point, edge
+
+    return trace_slot
+
+
+@functools.cache
+def points_kernel(f: Features, deflect: wp.Function = wedge_deflect):
+    """Kernel writing every slot's return: one thread per (pulse, sub-beam)."""
+    trace_slot = _slot_function(f, deflect)
 
     @wp.kernel(module="unique")
-    def trace(
-        # In: scene
-        mesh: wp.uint64,
-        max_range: wp.float32,  # [m]
-        # In: instrument
+    def trace_points(
+        # In:
         poses: wp.array(dtype=PulsePose),
-        beams: BeamArray,
-        truth: Prism,
-        believed: Prism,
-        noise_sigma: wp.float32,  # range noise, 1σ [m]
-        noise_seed: wp.int32,
-        slot_base: wp.int32,  # offset of this chunk's slots in the run's noise stream
+        scan: Scan,
+        rng_offset: wp.int32,  # offset of this chunk's slots in the run's noise stream
         # Out: per slot
         status: wp.array(dtype=wp.int32),
         ranges: wp.array(dtype=wp.float32),  # observed one-way range, exit point to hit [m]
         faces: wp.array(dtype=wp.int32),
         scan_angles: wp.array(dtype=wp.float32),  # [deg]
         cos_incidence: wp.array(dtype=wp.float32),
+        edge_distance: wp.array(dtype=wp.float32),  # true hit to plane boundary, capped [m]
         true_points: wp.array(dtype=wp.vec3f),  # [m, local]
         exact_points: wp.array(dtype=wp.vec3f),
         nominal_points: wp.array(dtype=wp.vec3f),
-        counters: wp.array(dtype=wp.int32),  # [TIR, misses]
+        counters: wp.array(dtype=wp.int32),  # [TIR, misses, -]
     ):
         slot = wp.tid()
-        per_pulse = beams.n * beams.n
+        per_pulse = scan.beams.n * scan.beams.n
         pose = poses[slot // per_pulse]
-        beam = slot % per_pulse
-        s1 = doe_direction(beam // beams.n, beam % beams.n, beams.n, beams.spacing)
-
-        s3, exit_point, ok = prism_exit(s1, pose.phi, truth.n_glass, truth.apex, truth.thickness)
-        if not ok:
-            status[slot] = STATUS_TIR
+        code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(
+            slot, pose, slot % per_pulse, scan, rng_offset)
+        status[slot] = code
+        if code == STATUS_TIR:
             wp.atomic_add(counters, COUNT_TIR, 1)
-            return
-        start = pose.origin + pose.rot * exit_point
-        direction = pose.rot * s3
-        hit = wp.mesh_query_ray(mesh, start, direction, max_range)
-        if not hit.result:
-            status[slot] = STATUS_MISS
+        elif code == STATUS_MISS:
             wp.atomic_add(counters, COUNT_MISS, 1)
-            return
+        else:
+            ranges[slot] = r
+            faces[slot] = face
+            scan_angles[slot] = signed_off_nadir(direction, pose.right)
+            cos_incidence[slot] = wp.abs(wp.dot(direction, wp.mesh_eval_face_normal(scan.mesh, face)))
+            if wp.static(f.edges):
+                edge_distance[slot] = edge
+            if wp.static(f.with_truth):
+                true_points[slot] = p_true
+            if wp.static(f.exact):
+                exact_points[slot] = p_exact
+            if wp.static(f.nominal):
+                nominal_points[slot] = p_nominal
 
-        r = hit.t
-        if wp.static(noisy):
-            state = wp.rand_init(noise_seed, slot_base + slot)
-            r = r + noise_sigma * _gaussian(state)
-        # georeference from the observation (φ, i, j, r) with the prism the processing believes in
-        ok_exact = True
-        ok_nominal = True
-        if wp.static(exact):
-            if wp.static(believed_is_truth):
-                exact_points[slot] = start + r * direction
+    return trace_points
+
+
+@wp.func
+def _outer6(d: wp.vec3d):
+    """Upper triangle of d·dᵀ: xx, xy, xz, yy, yz, zz."""
+    return vec6d(d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2])
+
+
+@functools.cache
+def statistics_kernel(f: Features, deflect: wp.Function = wedge_deflect):
+    """Kernel reducing returns to per-plane float64 moments, no per-point output.
+
+    Each thread traces a run of consecutive slots and keeps running sums while the plane stays
+    the same, adding them to the global sums (atomics) only when the plane changes: neighbouring
+    beams mostly hit the same plane, so the atomics are few and rarely contended.
+    """
+    trace_slot = _slot_function(f, deflect)
+
+    @wp.kernel(module="unique")
+    def trace_statistics(
+        # In:
+        poses: wp.array(dtype=PulsePose),
+        scan: Scan,
+        rng_offset: wp.int32,
+        n_slots: wp.int32,
+        slots_per_thread: wp.int32,
+        face_plane: wp.array(dtype=wp.int32),  # plane id of each triangle
+        references: wp.array(dtype=wp.vec3d),  # reference point of each plane [m, local]
+        edge_buffer: wp.float32,  # returns closer than this to a plane boundary are left out [m]
+        # Out: per plane, for the exact [0] and nominal [1] model
+        counts: wp.array2d(dtype=wp.int64),
+        first: wp.array2d(dtype=wp.vec3d),  # Σ (p − ref)
+        second: wp.array2d(dtype=vec6d),  # Σ upper triangle of (p − ref)(p − ref)ᵀ
+        counters: wp.array(dtype=wp.int32),  # [TIR, misses, edge-excluded]
+    ):
+        begin = wp.tid() * slots_per_thread
+        end = wp.min(begin + slots_per_thread, n_slots)
+        per_pulse = scan.beams.n * scan.beams.n
+        plane = int(-1)
+        n = wp.int64(0)
+        s_exact = wp.vec3d()
+        s_nominal = wp.vec3d()
+        ss_exact = vec6d()
+        ss_nominal = vec6d()
+        tir = int(0)
+        miss = int(0)
+        excluded = int(0)
+        for slot in range(begin, end):
+            code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(
+                slot, poses[slot // per_pulse], slot % per_pulse, scan, rng_offset)
+            if code == STATUS_TIR:
+                tir += 1
+            elif code == STATUS_MISS:
+                miss += 1
+            elif edge < edge_buffer:
+                excluded += 1
             else:
-                s3b, exit_b, ok_exact = prism_exit(s1, pose.phi, believed.n_glass, believed.apex, believed.thickness)
-                exact_points[slot] = pose.origin + pose.rot * (exit_b + r * s3b)
-        if wp.static(nominal):
-            axis = wp.vec3f(0.0, 0.0, 1.0)
-            s3c, exit_c, ok_nominal = prism_exit(axis, pose.phi, believed.n_glass, believed.apex, believed.thickness)
-            nominal_points[slot] = pose.origin + pose.rot * (exit_c + r * rigid_array_direction(s1, s3c))
-        if not (ok_exact and ok_nominal):
-            # the believed prism reflects this beam internally: processing cannot place it
-            status[slot] = STATUS_TIR
-            wp.atomic_add(counters, COUNT_TIR, 1)
-            return
-        status[slot] = STATUS_RETURN
-        ranges[slot] = r
-        faces[slot] = hit.face
-        scan_angles[slot] = signed_off_nadir(direction, pose.right)
-        cos_incidence[slot] = wp.abs(wp.dot(direction, hit.normal))
-        if wp.static(with_truth):
-            true_points[slot] = start + hit.t * direction
+                hit_plane = face_plane[face]
+                if hit_plane != plane:
+                    if plane >= 0:
+                        _flush(counts, first, second, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
+                    plane = hit_plane
+                    n = wp.int64(0)
+                    s_exact = wp.vec3d()
+                    s_nominal = wp.vec3d()
+                    ss_exact = vec6d()
+                    ss_nominal = vec6d()
+                n += wp.int64(1)
+                ref = references[plane]
+                if wp.static(f.exact):
+                    d = wp.vec3d(p_exact) - ref
+                    s_exact += d
+                    ss_exact += _outer6(d)
+                if wp.static(f.nominal):
+                    d = wp.vec3d(p_nominal) - ref
+                    s_nominal += d
+                    ss_nominal += _outer6(d)
+        if plane >= 0:
+            _flush(counts, first, second, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
+        if tir > 0:
+            wp.atomic_add(counters, COUNT_TIR, tir)
+        if miss > 0:
+            wp.atomic_add(counters, COUNT_MISS, miss)
+        if excluded > 0:
+            wp.atomic_add(counters, COUNT_EDGE, excluded)
 
-    return trace
+    return trace_statistics
+
+
+@wp.func
+def _flush(
+    counts: wp.array2d(dtype=wp.int64),
+    first: wp.array2d(dtype=wp.vec3d),
+    second: wp.array2d(dtype=vec6d),
+    plane: int,
+    n: wp.int64,
+    s_exact: wp.vec3d,
+    ss_exact: vec6d,
+    s_nominal: wp.vec3d,
+    ss_nominal: vec6d,
+):
+    """Add one thread's running sums for ``plane`` to the global per-plane sums."""
+    wp.atomic_add(counts, 0, plane, n)
+    wp.atomic_add(counts, 1, plane, n)
+    wp.atomic_add(first, 0, plane, s_exact)
+    wp.atomic_add(first, 1, plane, s_nominal)
+    wp.atomic_add(second, 0, plane, ss_exact)
+    wp.atomic_add(second, 1, plane, ss_nominal)
 
 
 @wp.kernel

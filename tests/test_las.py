@@ -185,7 +185,7 @@ def test_compound_crs_round_trips(tmp_path):
 
 def test_position_error_written_only_when_asked(tmp_path):
     batch = random_batch(300, position_error=True)
-    write_tiles(tmp_path / "with", batch, with_position_error=True)
+    write_tiles(tmp_path / "with", batch, extras=("position_error",))
     write_tiles(tmp_path / "without", batch)
     got, _ = read_points(sorted((tmp_path / "with").iterdir()))
     order = np.argsort(got.gps_time)
@@ -193,12 +193,12 @@ def test_position_error_written_only_when_asked(tmp_path):
     got, _ = read_points(sorted((tmp_path / "without").iterdir()))
     assert got.position_error_m is None
     with pytest.raises(ValueError, match="position_error"):
-        write_tiles(tmp_path / "x", random_batch(10), with_position_error=True)
+        write_tiles(tmp_path / "x", random_batch(10), extras=("position_error",))
 
 
 def test_extra_bytes_descriptors_give_units_and_claim_no_wrong_statistics(tmp_path):
     batch = random_batch(500, position_error=True)
-    write_tiles(tmp_path, batch, with_position_error=True)
+    write_tiles(tmp_path, batch, extras=("position_error",))
     header = laspy.read(sorted(tmp_path.iterdir())[0]).header
     descriptors = header.vlrs.get("ExtraBytesVlr")[0].extra_bytes_structs
     assert [d.name.decode() for d in descriptors] == list(EXTRA_SCHEMA)
@@ -259,7 +259,7 @@ def _read_with_laszip(path: Path) -> tuple[dict, dict]:
 @pytest.mark.parametrize("compress", [False, True], ids=["las", "laz"])
 def test_independent_reader_laszip(tmp_path, compress):
     batch = random_batch(1500, position_error=True)
-    write_tiles(tmp_path, batch, compress=compress, with_position_error=True)
+    write_tiles(tmp_path, batch, compress=compress, extras=("position_error",))
     # extra bytes after the 30-byte format-6 record, in the order documented by las_tiles
     extra_dtype = np.dtype(
         [("beam_row", "u1"), ("beam_col", "u1"), ("prism_angle", "<f4"), ("range", "<f4"),
@@ -317,7 +317,7 @@ def _read_with_copcjs(path: Path) -> dict:
 @pytest.mark.parametrize("compress", [False, True], ids=["las", "laz"])
 def test_independent_reader_copcjs(tmp_path, compress):
     batch = random_batch(1200, position_error=True)
-    write_tiles(tmp_path, batch, compress=compress, with_position_error=True)
+    write_tiles(tmp_path, batch, compress=compress, extras=("position_error",))
     seen = 0
     for path in sorted(tmp_path.iterdir()):
         got = _read_with_copcjs(path)
@@ -483,7 +483,7 @@ def test_unfinished_run_has_no_final_names(tmp_path):
 @pytest.mark.parametrize("compress", [False, True], ids=["las", "laz"])
 def test_identical_input_gives_identical_bytes(tmp_path, compress):
     batch = random_batch(5000, seed=7, position_error=True)
-    options = dict(compress=compress, with_position_error=True)
+    options = dict(compress=compress, extras=("position_error",))
     write_tiles(tmp_path / "a", batch, **options)
     pieces = [batch.select(slice(s, s + 999)) for s in range(0, 5000, 999)]
     write_tiles(tmp_path / "b", pieces, **options)
@@ -505,7 +505,7 @@ def test_creation_date_comes_from_the_caller_not_today(tmp_path):
 
 def test_laz_round_trip(tmp_path):
     batch = random_batch(6000, seed=5, position_error=True)
-    counts = write_tiles(tmp_path, batch, compress=True, with_position_error=True)
+    counts = write_tiles(tmp_path, batch, compress=True, extras=("position_error",))
     assert sorted(counts) == sorted(p.name for p in tmp_path.iterdir())
     assert all(name.endswith(".laz") for name in counts)
     for path in sorted(tmp_path.iterdir()):

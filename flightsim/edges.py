@@ -1,0 +1,84 @@
+"""Plane boundaries of a scene and the edge buffer that keeps plane scoring off them (SPEC §9).
+
+A point whose true hit lies within the edge buffer of its plane's boundary is left out of the
+plane fits: near an edge a real footprint straddles two surfaces, and a distorted point may
+land on the neighbouring one. The kernels measure that distance against a mesh of thin ribbons
+laid along every boundary edge, so one BVH query answers it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from flightsim.config import RunConfig
+from flightsim.scene import Scene
+
+RIBBON_WIDTH_M = 1e-3  # width of the sliver triangle laid along each boundary edge [m]
+_VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
+
+
+def boundary_segments(scene: Scene) -> np.ndarray:
+    """(S, 2, 3) local end points [m] of every edge that bounds a plane.
+
+    An edge bounds plane p when exactly one triangle of p uses it (matched by vertex position,
+    so duplicated vertices do not create false boundaries). Degenerate edges are skipped.
+    """
+    keys = np.round(scene.vertices / _VERTEX_KEY_M).astype(np.int64)
+    _, vertex = np.unique(keys, axis=0, return_inverse=True)
+    tri = vertex.ravel()[scene.triangles]
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    plane = np.tile(scene.plane_id, 3)
+    undirected = np.sort(edges, axis=1)
+    keep = undirected[:, 0] != undirected[:, 1]
+    records = np.column_stack([plane, undirected])[keep]
+    unique, counts = np.unique(records, axis=0, return_counts=True)
+    boundary = unique[counts == 1]
+    first_vertex = np.zeros(vertex.max() + 1, dtype=np.int64)
+    first_vertex[vertex.ravel()] = np.arange(len(scene.vertices))
+    return scene.vertices[first_vertex[boundary[:, 1:]]]
+
+
+def ribbon_mesh(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sliver triangles along segments, for nearest-boundary queries: (points (3S,3), indices (S,3)).
+
+    Each segment (a, b) becomes (a, b, b + w·u) with u a unit vector perpendicular to b − a,
+    so the closest point of the triangle is within w of the closest point of the segment.
+    """
+    a, b = segments[:, 0], segments[:, 1]
+    d = b - a
+    helper = np.where(np.abs(d[:, 2:3]) < 0.9 * np.linalg.norm(d, axis=1, keepdims=True), [[0.0, 0.0, 1.0]],
+                      [[1.0, 0.0, 0.0]])
+    u = np.cross(d, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    points = np.stack([a, b, b + RIBBON_WIDTH_M * u], axis=1).reshape(-1, 3)
+    return points, np.arange(len(points), dtype=np.int32).reshape(-1, 3)
+
+
+def max_distortion_rad(cfg: RunConfig, samples: int = 360) -> float:
+    """Largest angle between a sub-beam's true and rigid-array exit directions over a turn [rad]."""
+    from flightsim.fan import trace_fan
+
+    s = cfg.sensor
+    phi = np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False)
+    fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, s.refractive_index, math.radians(s.apex_angle_deg),
+                    s.thickness_mm * 1e-3, precision="float64")
+    cross = np.linalg.norm(np.cross(fan.directions, fan.nominal), axis=-1)
+    angle = np.arctan2(cross, np.sum(fan.directions * fan.nominal, axis=-1))
+    return float(angle[fan.ok].max()) if fan.ok.any() else 0.0
+
+
+def default_edge_buffer_m(cfg: RunConfig) -> float:
+    """Edge buffer covering the footprint and the rigid-array distortion at the altitude flown [m].
+
+    Slant range r = h / cos θ; buffer = r·(divergence/2 + largest distortion angle).
+    """
+    s = cfg.sensor
+    slant = cfg.flight.altitude_m / math.cos(math.radians(s.cone_half_angle_deg))
+    return slant * (0.5 * s.divergence_mrad * 1e-3 + max_distortion_rad(cfg))
+
+
+def edge_buffer_m(cfg: RunConfig) -> float:
+    """The run's edge buffer: the configured one, or the default when it is negative (automatic)."""
+    value = cfg.scoring.edge_buffer_m
+    return default_edge_buffer_m(cfg) if value < 0.0 else value
