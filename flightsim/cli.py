@@ -5,10 +5,11 @@ import argparse
 import json
 import platform
 import sys
+import time
 from pathlib import Path
 
 from flightsim import __version__
-from flightsim.config import RunConfig, load_toml, set_value, validate
+from flightsim.config import RunConfig, get_value, load_toml, set_value, validate
 from flightsim.errors import InputError
 
 EXIT_INVALID = 2
@@ -34,24 +35,65 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_INVALID, f"{self.prog}: error: {message} (see --help)\n")
 
 
-def build_config(args: argparse.Namespace) -> RunConfig:
-    """Config from --config (TOML), then the flags, then --set overrides; validated and resolved."""
-    cfg = load_toml(args.config) if args.config else RunConfig()
-    for _flag, dest, key, _help in CONFIG_FLAGS:
-        value = getattr(args, dest)
-        if value is not None:
-            set_value(cfg, key, value)
+SWEEP_FLAGS = [f for f in CONFIG_FLAGS if f[0] in ("--scene", "--duration", "--models", "--device", "--seed")]
+SWEEP_AXES = [
+    ("--altitudes", "altitudes", "flight.altitude_m", "altitudes above ground [m], e.g. 500,1000,1500"),
+    ("--arrays", "arrays", "sensor.array", "array sizes N, e.g. 2,3,4,5,6"),
+    ("--spacings-mrad", "spacings_mrad", "sensor.spacing_mrad", "sub-beam spacings [mrad], e.g. 2.314,4.628"),
+]
+
+
+def _set_items(args: argparse.Namespace) -> list[tuple[str, str]]:
+    items = []
     for item in args.set or []:
         key, sep, value = item.partition("=")
         if not sep:
             raise InputError("--set", item, "KEY=VALUE, e.g. sensor.refractive_index=1.45")
-        set_value(cfg, key.strip(), value.strip())
+        items.append((key.strip(), value.strip()))
+    return items
+
+
+def base_config(args: argparse.Namespace, flags=CONFIG_FLAGS) -> RunConfig:
+    """Config from --config (TOML), then the flags (unvalidated)."""
+    cfg = load_toml(args.config) if args.config else RunConfig()
+    for _flag, dest, key, _help in flags:
+        value = getattr(args, dest)
+        if value is not None:
+            set_value(cfg, key, value)
+    return cfg
+
+
+def build_config(args: argparse.Namespace) -> RunConfig:
+    """Config from --config, the flags, then --set overrides; validated and resolved."""
+    cfg = base_config(args)
+    for key, value in _set_items(args):
+        set_value(cfg, key, value)
     return validate(cfg)
 
 
-def _add_config_flags(parser: argparse.ArgumentParser) -> None:
+def build_grid(args: argparse.Namespace):
+    """The sweep grid: base config and axes from the axis flags and multi-valued --set items."""
+    from flightsim.sweep import SweepGrid, parse_axis
+
+    cfg = base_config(args, SWEEP_FLAGS)
+    axes = []
+    for flag, dest, key, _help in SWEEP_AXES:
+        if getattr(args, dest) is not None:
+            axes.append((key, parse_axis(flag, getattr(args, dest))))
+    for key, value in _set_items(args):
+        set_value(cfg, key, value.split(",")[0])  # checks the key and the first value's type
+        if "," in value and not isinstance(get_value(cfg, key), tuple):
+            axes.append((key, parse_axis("--set " + key, value)))
+        else:
+            set_value(cfg, key, value)
+    grid = SweepGrid(cfg, axes)
+    grid.configurations()  # validate every configuration before any work starts
+    return grid
+
+
+def _add_config_flags(parser: argparse.ArgumentParser, flags=CONFIG_FLAGS) -> None:
     parser.add_argument("--config", help="run config TOML (a run.toml of an earlier run reproduces it)")
-    for flag, dest, _key, help_text in CONFIG_FLAGS:
+    for flag, dest, _key, help_text in flags:
         parser.add_argument(flag, dest=dest, help=help_text)
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="set any config field, e.g. --set sensor.refractive_index=1.45 (repeatable)")
@@ -67,6 +109,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     rms = ", ".join(f"{m} {v * 1000:.2f} mm" if v is not None else f"{m} n/a" for m, v in summary["rms_m"].items())
     print(f"{summary['points']} points from {summary['pulses']} pulses in {summary['wall_s']:.2f} s; "
           f"plane RMS: {rms}; written to {args.out}")
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    grid = build_grid(args)
+    from flightsim.progress import ProgressBar
+    from flightsim.sweep import plot_sweep, run_sweep
+
+    started = time.perf_counter()
+    table = run_sweep(grid, Path(args.out), overwrite=args.overwrite, progress=ProgressBar("sweep"))
+    plots = plot_sweep(table, Path(args.out))
+    print(f"{len(grid.configurations())} configurations in {time.perf_counter() - started:.1f} s; "
+          f"{table} and {len(plots)} plot(s) written")
     return 0
 
 
@@ -103,6 +158,14 @@ def make_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", required=True, help="output directory")
     sim.add_argument("--overwrite", action="store_true", help="replace the run in a non-empty --out")
     sim.set_defaults(func=cmd_simulate)
+
+    sweep = sub.add_parser("sweep", help="plane-fit RMS over a grid of configurations (no LAS written)")
+    _add_config_flags(sweep, SWEEP_FLAGS)
+    for flag, dest, _key, help_text in SWEEP_AXES:
+        sweep.add_argument(flag, dest=dest, help=help_text)
+    sweep.add_argument("--out", required=True, help="output directory (rerun the same command to resume)")
+    sweep.add_argument("--overwrite", action="store_true", help="discard the finished rows in --out")
+    sweep.set_defaults(func=cmd_sweep)
 
     info = sub.add_parser("info", help="versions, devices and the kernel cache")
     info.set_defaults(func=cmd_info)

@@ -147,13 +147,14 @@ def resolved_apex_deg(sensor: SensorConfig) -> float:
     return math.degrees(apex_for_cone(math.radians(sensor.cone_half_angle_deg), sensor.refractive_index))
 
 
+def copy_config(cfg: RunConfig) -> RunConfig:
+    """An independent copy (every section copied; field values are immutable)."""
+    return RunConfig(**{f.name: dataclasses.replace(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)})
+
+
 def resolve(config: RunConfig) -> RunConfig:
     """Fill derived values (apex angle, cone angle, believed prism) so the config stands alone."""
-    cfg = dataclasses.replace(
-        config,
-        sensor=dataclasses.replace(config.sensor),
-        processing=dataclasses.replace(config.processing),
-    )
+    cfg = copy_config(config)
     s, p = cfg.sensor, cfg.processing
     if s.apex_angle_deg > 0.0:
         cone = math.degrees(cone_for_apex(math.radians(s.apex_angle_deg), s.refractive_index))
@@ -285,9 +286,24 @@ def _coerce(name: str, current: Any, value: Any) -> Any:
         raise InputError(name, value, f"a value of type {type(current).__name__}") from None
 
 
+ALIASES = {"prism": "sensor"}  # section names users may say instead ("prism.refractive_index")
+
+
+def canonical_key(dotted: str) -> str:
+    """``section.field`` with a section alias replaced by the real section name."""
+    section_name, sep, name = dotted.partition(".")
+    return ALIASES.get(section_name, section_name) + sep + name
+
+
+def get_value(cfg: RunConfig, dotted: str) -> Any:
+    """The value of ``section.field`` (aliases allowed)."""
+    section_name, _, name = canonical_key(dotted).partition(".")
+    return getattr(getattr(cfg, section_name), name)
+
+
 def set_value(cfg: RunConfig, dotted: str, value: Any) -> None:
     """Set ``section.field`` from a string or TOML value, converting to the field's type."""
-    section_name, _, name = dotted.partition(".")
+    section_name, _, name = canonical_key(dotted).partition(".")
     section = getattr(cfg, section_name, None)
     if section is None or not dataclasses.is_dataclass(section) or name not in {f.name for f in dataclasses.fields(section)}:
         known = ", ".join(f"{s.name}.<field>" for s in dataclasses.fields(cfg))

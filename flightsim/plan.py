@@ -21,28 +21,26 @@ def line_length_m(cfg: RunConfig) -> float:
     return cfg.flight.speed_kmh / 3.6 * cfg.flight.duration_s
 
 
-def scene_half_extent(cfg: RunConfig, altitude_m: float | None = None) -> float:
-    """Half side of the built-in scene's square ground that holds every scan circle [m].
-
-    altitude_m: the highest altitude the scene must serve (defaults to the config's).
-    """
-    altitude = cfg.flight.altitude_m if altitude_m is None else altitude_m
+def scene_half_extent(cfg: RunConfig) -> float:
+    """Half side of the built-in scene's square ground that holds every scan circle of the flight [m]."""
+    altitude = cfg.flight.altitude_m
     along = line_length_m(cfg) / 2.0
     across = (cfg.flight.lines - 1) / 2.0 * cfg.flight.line_spacing_m
     return required_half_extent(altitude, math.radians(cfg.sensor.cone_half_angle_deg), max(along, across),
                                 cfg.scene.margin_m)
 
 
-def build_scene(cfg: RunConfig, altitude_m: float | None = None) -> Scene:
-    """The scene named by ``cfg.scene`` (built-in scenes sized for ``altitude_m``)."""
+def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
+    """The scene named by ``cfg.scene``; built-in scenes get ground of ``half_extent_m`` (default:
+    just enough for this config's flight, :func:`scene_half_extent`)."""
     crs = parse_crs(cfg.scene.crs, field="scene.crs")
     origin = np.asarray(cfg.scene.origin, dtype=np.float64)
     name = cfg.scene.name
+    half = scene_half_extent(cfg) if half_extent_m is None else half_extent_m
     if name == "plane":
-        return plane_scene(scene_half_extent(cfg, altitude_m), origin, crs, slope=cfg.scene.slope)
+        return plane_scene(half, origin, crs, slope=cfg.scene.slope)
     if name == "calibration":
-        half = max(scene_half_extent(cfg, altitude_m), calibration_min_half_extent() + cfg.scene.margin_m)
-        return calibration_scene(half, origin, crs)
+        return calibration_scene(max(half, calibration_min_half_extent() + cfg.scene.margin_m), origin, crs)
     if not Path(name).is_file():
         raise InputError("scene.name", name, "calibration, plane, or the path of an existing .obj/.ply mesh")
     return load_mesh(name, crs, origin)

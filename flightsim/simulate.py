@@ -61,6 +61,29 @@ class RunCounts:
     per_line: dict[int, int] = field(default_factory=dict)
 
 
+class SceneMeshes:
+    """A scene's BVHs on one device, built once: the triangles, and the ribbons along plane
+    boundaries for edge-buffer queries (built on first use)."""
+
+    def __init__(self, scene: Scene, device: str, bvh_constructor: str = "sah", leaf_size: int | None = None):
+        self.scene = scene
+        self.device = device
+        self.mesh = self._build(scene.vertices, scene.triangles, bvh_constructor, leaf_size)
+        self._boundary: wp.Mesh | None = None
+
+    @property
+    def boundary(self) -> wp.Mesh:
+        if self._boundary is None:
+            self._boundary = self._build(*ribbon_mesh(boundary_segments(self.scene)))
+        return self._boundary
+
+    def _build(self, vertices: np.ndarray, triangles: np.ndarray, bvh_constructor: str = "sah",
+               leaf_size: int | None = None) -> wp.Mesh:
+        return wp.Mesh(points=wp.array(vertices.astype(np.float32), dtype=wp.vec3f, device=self.device),
+                       indices=wp.array(triangles.astype(np.int32).ravel(), dtype=wp.int32, device=self.device),
+                       bvh_constructor=bvh_constructor, bvh_leaf_size=leaf_size)
+
+
 def _prism(n_glass: float, apex_deg: float, thickness_mm: float) -> trace.Prism:
     prism = trace.Prism()
     prism.n_glass = n_glass
@@ -72,12 +95,13 @@ def _prism(n_glass: float, apex_deg: float, thickness_mm: float) -> trace.Prism:
 class Simulator:
     """Fly a validated config's trajectories over a scene on one device.
 
-    The scene's BVH, the boundary mesh and the kernels are built once here and reused by every
-    run; ``edge_buffer_m`` > 0 turns on the per-return distance to the plane boundaries.
+    ``meshes`` (the scene's BVHs on the device) may be shared by many simulators, e.g. all the
+    configurations of a sweep; ``edge_buffer_m`` > 0 turns on the per-return distance to the
+    plane boundaries.
     """
 
     def __init__(self, cfg: RunConfig, scene: Scene, trajectories: list[Trajectory], with_truth: bool = False,
-                 edge_buffer_m: float = 0.0, bvh_constructor: str = "sah"):
+                 edge_buffer_m: float = 0.0, meshes: SceneMeshes | None = None):
         self.cfg = cfg
         self.scene = scene
         self.trajectories = trajectories
@@ -94,19 +118,13 @@ class Simulator:
             with_truth=with_truth, noisy=s.range_noise_m > 0.0, edges=edge_buffer_m > 0.0,
         )
         self.boresight = wp.quatd(*Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True).as_quat())
-        self.mesh = self._mesh(scene.vertices, scene.triangles, bvh_constructor)
-        self.boundary = self._mesh(*ribbon_mesh(boundary_segments(scene))) if self.features.edges else None
+        self.meshes = meshes or SceneMeshes(scene, self.device)
         self.scan = self._scan()
-
-    def _mesh(self, vertices: np.ndarray, triangles: np.ndarray, bvh_constructor: str = "sah") -> wp.Mesh:
-        return wp.Mesh(points=wp.array(vertices.astype(np.float32), dtype=wp.vec3f, device=self.device),
-                       indices=wp.array(triangles.astype(np.int32).ravel(), dtype=wp.int32, device=self.device),
-                       bvh_constructor=bvh_constructor)
 
     def _scan(self) -> trace.Scan:
         s, p = self.cfg.sensor, self.cfg.processing
         scan = trace.Scan()
-        scan.mesh = self.mesh.id
+        scan.mesh = self.meshes.mesh.id
         scan.max_range = s.max_range_m
         scan.beams = trace.BeamArray()
         scan.beams.n = s.array
@@ -115,7 +133,7 @@ class Simulator:
         scan.believed = _prism(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
         scan.noise_sigma = s.range_noise_m
         scan.noise_seed = self.cfg.run.seed
-        scan.boundary = self.boundary.id if self.boundary else 0
+        scan.boundary = self.meshes.boundary.id if self.features.edges else 0
         scan.edge_cap = self.edge_buffer_m
         return scan
 

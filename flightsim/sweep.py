@@ -1,0 +1,253 @@
+"""`flightsim sweep`: plane-fit RMS over a cartesian grid of configurations (the seed paper's study).
+
+A sweep asks only for RMS, so every configuration runs in statistics mode: the kernels reduce
+the returns to per-plane moments on the device, no LAS is written and no per-point array is
+kept. Scenes and their BVHs are built once per distinct scene and shared by all configurations.
+
+Resumable: each finished configuration writes its rows to ``DIR/rows/<key>.json`` atomically and
+``sweep.csv`` / ``planes.csv`` are regenerated from the finished rows, so a crash loses at most the
+configuration in flight and a rerun skips what is done, never duplicating a row.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import io
+import itertools
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+from flightsim.config import RunConfig, canonical_key, copy_config, get_value, set_value, to_toml, validate
+from flightsim.edges import edge_buffer_m
+from flightsim.errors import InputError
+from flightsim.run import write_atomic
+
+SPEC_COLUMNS = ["altitude_m", "array", "spacing_mrad"]
+AXIS_KEYS = {"altitude_m": "flight.altitude_m", "array": "sensor.array", "spacing_mrad": "sensor.spacing_mrad"}
+ROW_CORE = ["model", "rms_m", "points"]  # the SPEC's columns after the axes
+ROW_MORE = ["returns", "planes", "edge_buffer_m", "wall_s"]
+PLANE_TAIL = ["model", "plane_id", "kind", "n", "rms_m", "pitch_deg", "azimuth_deg"]
+
+
+@dataclass
+class SweepGrid:
+    """A base config and the axes swept over it: (dotted config key, values) in order."""
+
+    base: RunConfig
+    axes: list[tuple[str, list]]
+
+    def __post_init__(self):
+        self.axes = [(canonical_key(key), list(values)) for key, values in self.axes]
+
+    @property
+    def columns(self) -> list[str]:
+        """Column names of the axes: the SPEC's three, then any other swept setting."""
+        return SPEC_COLUMNS + self.extra_columns
+
+    @property
+    def extra_columns(self) -> list[str]:
+        return [key for key, _ in self.axes if key not in AXIS_KEYS.values()]
+
+    def configurations(self) -> list[tuple[dict, RunConfig]]:
+        """Every (axis values, validated config) of the grid, the first axis varying slowest."""
+        out = []
+        keys = [key for key, _ in self.axes]
+        for values in itertools.product(*(values for _, values in self.axes)):
+            cfg = copy_config(self.base)
+            for key, value in zip(keys, values):
+                set_value(cfg, key, value)
+            cfg = validate(cfg)
+            out.append((self._labels(cfg), cfg))
+        return out
+
+    def _labels(self, cfg: RunConfig) -> dict:
+        labels = {column: get_value(cfg, AXIS_KEYS[column]) for column in SPEC_COLUMNS}
+        for column in self.columns[len(SPEC_COLUMNS):]:
+            labels[column] = get_value(cfg, column)
+        return labels
+
+
+def config_key(cfg: RunConfig) -> str:
+    """Stable identity of a configuration: a hash of its resolved TOML."""
+    return hashlib.sha256(to_toml(cfg).encode()).hexdigest()[:20]
+
+
+def parse_axis(flag: str, text: str) -> list[str]:
+    """Comma-separated values of a sweep flag; an empty item is an error."""
+    values = [v.strip() for v in str(text).split(",")]
+    if not values or any(not v for v in values):
+        raise InputError(flag, text, "a comma-separated list of values, e.g. 500,1000,1500")
+    return values
+
+
+# ---------------------------------------------------------------------------------------------
+# one configuration
+
+
+class SceneCache:
+    """Scenes and their device BVHs, built once per distinct scene of a sweep."""
+
+    def __init__(self, configs: Iterable[RunConfig]):
+        from flightsim.plan import scene_half_extent
+
+        self.extent: dict[str, float] = {}
+        for cfg in configs:
+            key = self._key(cfg)
+            self.extent[key] = max(self.extent.get(key, 0.0), scene_half_extent(cfg))
+        self.built: dict[tuple[str, str], tuple] = {}
+
+    @staticmethod
+    def _key(cfg: RunConfig) -> str:
+        return json.dumps(dataclasses.asdict(cfg.scene), sort_keys=True)
+
+    def get(self, cfg: RunConfig, device: str):
+        """(Scene, SceneMeshes) for a config's scene on ``device``."""
+        from flightsim.plan import build_scene
+        from flightsim.simulate import SceneMeshes
+
+        key = (self._key(cfg), device)
+        if key not in self.built:
+            scene = build_scene(cfg, self.extent.get(key[0]))
+            self.built[key] = (scene, SceneMeshes(scene, device))
+        return self.built[key]
+
+
+def run_configuration(labels: dict, cfg: RunConfig, scenes: SceneCache) -> dict:
+    """Simulate one configuration in statistics mode; return its sweep and plane rows."""
+    from flightsim.plan import flight_trajectories
+    from flightsim.planes import pooled_rms
+    from flightsim.simulate import Simulator
+    from flightsim.warp_runtime import resolve_device
+
+    started = time.perf_counter()
+    device = resolve_device(cfg.run.device)
+    scene, meshes = scenes.get(cfg, device)
+    buffer = edge_buffer_m(cfg)
+    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer, meshes=meshes)
+    moments, counts = simulator.run_statistics()
+    wall = time.perf_counter() - started
+    rows, planes = [], []
+    for model, m in moments.items():
+        fits = m.fits()
+        used = sum(f.n for f in fits)
+        rms = pooled_rms(fits)
+        rows.append({**labels, "model": model, "rms_m": rms if used else "", "points": used,
+                     "returns": counts.returns, "planes": len(fits), "edge_buffer_m": buffer, "wall_s": wall})
+        for f in fits:
+            planes.append({**labels, "model": model, "plane_id": f.plane_id, "kind": scene.planes[f.plane_id].kind,
+                           "n": f.n, "rms_m": f.rms_m, "pitch_deg": f.pitch_deg, "azimuth_deg": f.azimuth_deg})
+    return {"rows": rows, "planes": planes}
+
+
+# ---------------------------------------------------------------------------------------------
+# the sweep directory
+
+
+class SweepDirectory:
+    """Finished rows of a sweep on disk, and the tables made from them."""
+
+    def __init__(self, path: Path, overwrite: bool = False):
+        self.path = Path(path)
+        if self.path.exists() and not self.path.is_dir():
+            raise InputError("--out", str(self.path), "a directory (this path is a file)")
+        ours = {"rows", "sweep.csv", "planes.csv", "sweep.json"}
+        if self.path.is_dir():
+            present = {p.name for p in self.path.iterdir() if not p.name.endswith(".png")}
+            if overwrite:
+                for name in present & ours:
+                    target = self.path / name
+                    shutil.rmtree(target) if target.is_dir() else target.unlink()
+            elif present - ours:
+                raise InputError("--out", str(self.path),
+                                 "a new directory, or one holding a sweep to resume (pass --overwrite to replace it)")
+        (self.path / "rows").mkdir(parents=True, exist_ok=True)
+
+    def row_file(self, cfg: RunConfig) -> Path:
+        return self.path / "rows" / f"{config_key(cfg)}.json"
+
+    def done(self, cfg: RunConfig) -> bool:
+        return self.row_file(cfg).is_file()
+
+    def record(self, cfg: RunConfig, result: dict) -> None:
+        write_atomic(self.row_file(cfg), json.dumps(result))
+
+    def write_tables(self, grid: SweepGrid, configs: list[tuple[dict, RunConfig]]) -> None:
+        """Regenerate sweep.csv and planes.csv from the finished rows, in grid order."""
+        rows, planes = [], []
+        for _, cfg in configs:
+            if self.done(cfg):
+                result = json.loads(self.row_file(cfg).read_text())
+                rows += result["rows"]
+                planes += result["planes"]
+        write_atomic(self.path / "sweep.csv", _csv(SPEC_COLUMNS + ROW_CORE + grid.extra_columns + ROW_MORE, rows))
+        write_atomic(self.path / "planes.csv", _csv(grid.columns + PLANE_TAIL, planes))
+
+
+def _csv(columns: list[str], rows: list[dict]) -> str:
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=columns, lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: _cell(row.get(k, "")) for k in columns})
+    return text.getvalue()
+
+
+def _cell(value):
+    return repr(value) if isinstance(value, float) else value
+
+
+def run_sweep(grid: SweepGrid, out: Path, overwrite: bool = False,
+              progress: Callable[[int, int], None] | None = None) -> Path:
+    """Run every unfinished configuration of the grid serially; return the path of sweep.csv."""
+    configs = grid.configurations()
+    directory = SweepDirectory(out, overwrite)
+    write_atomic(directory.path / "sweep.json",
+                 json.dumps({"axes": grid.axes, "base": dataclasses.asdict(grid.base)}, indent=2, default=str))
+    scenes = SceneCache(cfg for _, cfg in configs)
+    todo = [(labels, cfg) for labels, cfg in configs if not directory.done(cfg)]
+    for k, (labels, cfg) in enumerate(todo):
+        directory.record(cfg, run_configuration(labels, cfg, scenes))
+        directory.write_tables(grid, configs)
+        if progress:
+            progress(k + 1, len(todo))
+    directory.write_tables(grid, configs)
+    return directory.path / "sweep.csv"
+
+
+def plot_sweep(sweep_csv: Path, out_dir: Path) -> list[Path]:
+    """One PNG per swept axis: RMS against that axis for each model, the other axes at their first value."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(sweep_csv, newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["rms_m"]]
+    if not rows:
+        return []
+    axes = [c for c in rows[0] if c not in ROW_CORE + ROW_MORE]
+    varying = [c for c in axes if len({r[c] for r in rows}) > 1]
+    paths = []
+    for column in varying:
+        fixed = {c: rows[0][c] for c in axes if c != column}
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for model in sorted({r["model"] for r in rows}):
+            sel = [r for r in rows if r["model"] == model and all(r[c] == v for c, v in fixed.items())]
+            sel.sort(key=lambda r: float(r[column]))
+            ax.plot([float(r[column]) for r in sel], [float(r["rms_m"]) for r in sel], "o-", label=model)
+        ax.set_xlabel(column)
+        ax.set_ylabel("plane-fit RMS [m]")
+        ax.set_title(f"RMS vs {column} ({', '.join(f'{c}={v}' for c, v in fixed.items())})", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend()
+        path = Path(out_dir) / f"rms_vs_{column.replace('.', '_')}.png"
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        paths.append(path)
+    return paths

@@ -1,0 +1,130 @@
+"""The parameter sweep: the seed paper's regression numbers, device statistics, resumability."""
+import csv
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from flightsim import sweep as sweep_module
+from flightsim.config import RunConfig, set_value, validate
+from flightsim.edges import edge_buffer_m
+from flightsim.outputs import PlaneStatistics
+from flightsim.plan import build_scene, flight_trajectories
+from flightsim.planes import pooled_rms
+from flightsim.simulate import Simulator
+from flightsim.sweep import SweepGrid, run_sweep
+
+DELTA = "2.314"
+
+
+def read_rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def rms_of(rows, model, **match):
+    return [float(r["rms_m"]) for r in rows if r["model"] == model and all(r[k] == v for k, v in match.items())]
+
+
+def plane_grid(**axes) -> SweepGrid:
+    base = RunConfig()
+    set_value(base, "scene.name", "plane")
+    set_value(base, "flight.duration_s", 1.0)
+    return SweepGrid(base, [(key, values) for key, values in axes.items()])
+
+
+@pytest.fixture(scope="module")
+def altitude_rows(tmp_path_factory):
+    out = tmp_path_factory.mktemp("altitude")
+    altitudes = [str(500 * k) for k in range(1, 11)]
+    run_sweep(plane_grid(**{"flight.altitude_m": altitudes}), out)
+    return read_rows(out / "sweep.csv")
+
+
+def test_rms_at_half_a_kilometre_matches_the_seed_paper(altitude_rows):
+    (rms,) = rms_of(altitude_rows, "nominal", altitude_m="500.0")
+    assert rms == pytest.approx(0.05, rel=0.10)  # paper: 0.0498 m
+
+
+def test_rms_grows_linearly_with_altitude_at_the_papers_slope(altitude_rows):
+    h_km = np.array([float(r["altitude_m"]) for r in altitude_rows if r["model"] == "nominal"]) / 1000
+    rms = np.array(rms_of(altitude_rows, "nominal"))
+    slope, intercept = np.polyfit(h_km, rms, 1)
+    r2 = 1 - np.sum((rms - (slope * h_km + intercept)) ** 2) / np.sum((rms - rms.mean()) ** 2)
+    assert slope == pytest.approx(0.1, rel=0.15)  # paper: ≈ 0.1 m/km
+    assert r2 > 0.99 and abs(intercept) < 0.01
+    assert max(rms_of(altitude_rows, "exact")) < 0.002
+
+
+def test_rms_increases_strictly_with_array_size_and_spacing(tmp_path):
+    run_sweep(plane_grid(**{"sensor.array": ["2", "3", "4", "5", "6"]}), tmp_path / "a")
+    by_array = rms_of(read_rows(tmp_path / "a" / "sweep.csv"), "nominal")
+    spacings = [f"{k * 2.314:.3f}" for k in range(1, 6)]
+    run_sweep(plane_grid(**{"sensor.spacing_mrad": spacings}), tmp_path / "s")
+    rows = read_rows(tmp_path / "s" / "sweep.csv")
+    by_spacing = rms_of(rows, "nominal")
+    assert np.all(np.diff(by_array) > 0) and np.all(np.diff(by_spacing) > 0)
+    assert max(rms_of(rows, "exact")) < 0.002
+
+
+def test_device_statistics_equal_the_point_path(device):
+    cfg = RunConfig()
+    set_value(cfg, "flight.duration_s", 3.0)
+    set_value(cfg, "run.device", device)
+    cfg = validate(cfg)
+    scene = build_scene(cfg)
+    buffer = edge_buffer_m(cfg)
+    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer)
+    host = PlaneStatistics(scene, simulator.models, buffer)
+    point_counts = simulator.run(host)
+    device_moments, device_counts = simulator.run_statistics()
+    assert device_counts.returns == point_counts.returns
+    assert device_counts.edge_excluded == point_counts.returns - int(host.moments["exact"].count.sum()) > 0
+    for model, tolerance in (("nominal", dict(rel=1e-6)), ("exact", dict(abs=1e-7))):
+        a, b = host.moments[model], device_moments[model]
+        assert np.array_equal(a.count, b.count)
+        fits_a, fits_b = a.fits(), b.fits()
+        assert len(fits_a) > 20  # roofs, walls, roads and ground of the calibration field
+        for fa, fb in zip(fits_a, fits_b):
+            assert fb.rms_m == pytest.approx(fa.rms_m, **tolerance)
+        assert pooled_rms(fits_b) == pytest.approx(pooled_rms(fits_a), **tolerance)
+
+
+def test_a_crashed_sweep_resumes_without_losing_or_duplicating_rows(tmp_path, monkeypatch):
+    grid = plane_grid(**{"sensor.array": ["2", "3", "4"], "flight.altitude_m": ["500", "900"]})
+    run_sweep(grid, tmp_path / "clean")
+    real = sweep_module.run_configuration
+    calls = []
+
+    def crash_on_fourth(*args):
+        calls.append(1)
+        if len(calls) == 4:
+            raise RuntimeError("simulated crash")
+        return real(*args)
+
+    monkeypatch.setattr(sweep_module, "run_configuration", crash_on_fourth)
+    with pytest.raises(RuntimeError):
+        run_sweep(grid, tmp_path / "crashed")
+    assert len(read_rows(tmp_path / "crashed" / "sweep.csv")) == 2 * 3  # three finished configurations
+    monkeypatch.setattr(sweep_module, "run_configuration", real)
+    run_sweep(grid, tmp_path / "crashed")
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_s"} for r in rows]
+    assert strip(read_rows(tmp_path / "crashed" / "sweep.csv")) == strip(read_rows(tmp_path / "clean" / "sweep.csv"))
+    assert len(read_rows(tmp_path / "crashed" / "planes.csv")) == len(read_rows(tmp_path / "clean" / "planes.csv"))
+
+
+def test_sweep_command_sweeps_any_setting_and_plots(tmp_path):
+    out = tmp_path / "sweep"
+    result = subprocess.run(
+        [sys.executable, "-m", "flightsim", "sweep", "--scene", "plane", "--duration", "0.5", "--arrays", "2,3",
+         "--set", "prism.refractive_index=1.45,1.5066", "--out", str(out)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    rows = read_rows(out / "sweep.csv")
+    assert list(rows[0])[:6] == ["altitude_m", "array", "spacing_mrad", "model", "rms_m", "points"]
+    assert {(r["array"], r["sensor.refractive_index"]) for r in rows} == {
+        ("2", "1.45"), ("2", "1.5066"), ("3", "1.45"), ("3", "1.5066")}
+    assert len(rows) == 8 and (out / "rms_vs_array.png").stat().st_size > 1000
+    bad = subprocess.run([sys.executable, "-m", "flightsim", "sweep", "--arrays", "2,65", "--out", str(tmp_path / "x")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "sensor.array" in bad.stderr and not (tmp_path / "x").exists()
