@@ -106,6 +106,7 @@ class RunSettings:
     device: str = "cpu"
     seed: int = field(default=0, metadata=_num(0, 2**31 - 1, integer=True))
     chunk_pulses: int = field(default=0, metadata=_num(0, 2**24, "pulses; 0 = automatic", integer=True))
+    cull: bool = True  # skip pulses whose beams cannot reach the scene
 
 
 @dataclass

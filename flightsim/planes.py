@@ -92,3 +92,59 @@ def pooled_rms(fits: list[PlaneFit]) -> float:
     if total == 0:
         return float("nan")
     return float(np.sqrt(sum(f.n * f.rms_m**2 for f in fits) / total))
+
+
+def _fit_from_covariance(plane_id: int, n: int, centroid: np.ndarray, covariance: np.ndarray) -> PlaneFit:
+    """PlaneFit from a centred covariance (3, 3) [m²]: normal = eigenvector of the least eigenvalue."""
+    values, vectors = np.linalg.eigh(covariance)
+    normal = vectors[:, 0] * (1.0 if vectors[2, 0] >= 0 else -1.0)
+    return PlaneFit(int(plane_id), int(n), np.asarray(centroid, dtype=np.float64), normal,
+                    float(np.sqrt(max(values[0], 0.0))))
+
+
+def fit_points(xyz: np.ndarray, plane_id: int = -1) -> PlaneFit:
+    """Exact two-pass total-least-squares plane of points (n, 3) [m], n ≥ 3.
+
+    Pass one takes the float64 centroid, pass two the covariance of the centred points, so large
+    world coordinates cost no precision.
+    """
+    points = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    if len(points) < 3:
+        raise ValueError(f"a plane fit needs at least 3 points, got {len(points)}")
+    centroid = points.mean(axis=0)
+    d = points - centroid
+    return _fit_from_covariance(plane_id, len(points), centroid, d.T @ d / len(points))
+
+
+def fit_groups(xyz: np.ndarray, labels: np.ndarray, min_points: int = 3) -> list[PlaneFit]:
+    """Two-pass TLS fit of every group of points sharing a label ≥ 0 with at least ``min_points``.
+
+    xyz: (n, 3) [m]; labels: (n,) int, negative = no group. The fits come in label order and
+    carry the label as ``plane_id``. Vectorised over groups (per-group centroids, then centred
+    second moments, both by ``np.bincount``).
+    """
+    points = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    labels = np.asarray(labels, dtype=np.int64)
+    keep = labels >= 0
+    points, labels = points[keep], labels[keep]
+    if len(labels) == 0:
+        return []
+    size = int(labels.max()) + 1
+    count = np.bincount(labels, minlength=size)
+    safe = np.maximum(count, 1)
+    centroid = np.stack([np.bincount(labels, weights=points[:, a], minlength=size) for a in range(3)], axis=1)
+    centroid /= safe[:, None]
+    d = points - centroid[labels]
+    covariance = np.empty((size, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            s = np.bincount(labels, weights=d[:, a] * d[:, b], minlength=size) / safe
+            covariance[:, a, b] = s
+            covariance[:, b, a] = s
+    return [_fit_from_covariance(g, count[g], centroid[g], covariance[g])
+            for g in np.flatnonzero(count >= min_points)]
+
+
+def residuals(xyz: np.ndarray, fit: PlaneFit) -> np.ndarray:
+    """Signed orthogonal distances (n,) [m] of points (n, 3) [m] from a fitted plane."""
+    return (np.asarray(xyz, dtype=np.float64) - fit.centroid) @ fit.normal

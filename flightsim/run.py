@@ -83,6 +83,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         "device": simulator.device,
         "points": {model: counts.returns for model in simulator.models},
         "pulses": counts.pulses,
+        "pulses_culled": counts.pulses_culled,
         "beams_fired": counts.beams_fired,
         "tir_dropped": counts.tir_dropped,
         "misses": counts.misses,

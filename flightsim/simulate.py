@@ -16,6 +16,7 @@ import warp as wp
 from scipy.spatial.transform import Rotation
 
 from flightsim.config import MODELS, RunConfig
+from flightsim.coverage import max_off_axis_rad, pulse_windows
 from flightsim.edges import boundary_segments, ribbon_mesh
 from flightsim.planes import PlaneMoments
 from flightsim.scene import Scene
@@ -51,7 +52,8 @@ class ReturnChunk:
 class RunCounts:
     """What happened to every beam of a run."""
 
-    pulses: int = 0
+    pulses: int = 0  # pulses launched
+    pulses_culled: int = 0  # pulses skipped because their beams could not reach the scene
     beams_fired: int = 0
     returns: int = 0
     tir_dropped: int = 0
@@ -117,9 +119,11 @@ class Simulator:
             == (s.refractive_index, s.apex_angle_deg, s.thickness_mm),
             with_truth=with_truth, noisy=s.range_noise_m > 0.0, edges=edge_buffer_m > 0.0,
         )
-        self.boresight = wp.quatd(*Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True).as_quat())
+        self.boresight_rotation = Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True)  # body←sensor
+        self.boresight = wp.quatd(*self.boresight_rotation.as_quat())
         self.meshes = meshes or SceneMeshes(scene, self.device)
         self.scan = self._scan()
+        self._cone_rad: float | None = None
 
     def _scan(self) -> trace.Scan:
         s, p = self.cfg.sensor, self.cfg.processing
@@ -211,22 +215,37 @@ class Simulator:
 
     # ------------------------------------------------------------------------------------------
 
+    def windows(self, trajectory: Trajectory) -> list[tuple[int, int]]:
+        """Pulse index ranges [k0, k1) of a trajectory to launch (all of them unless culling is on)."""
+        n_pulses = self.pulse_count(trajectory)
+        if not self.cfg.run.cull:
+            return [(0, n_pulses)] if n_pulses else []
+        if self._cone_rad is None:
+            self._cone_rad = max_off_axis_rad(self.cfg)
+        return pulse_windows(trajectory, self.scene.world_to_local(trajectory.position), self.scene.bounds(),
+                             self.timing, self._cone_rad, self.boresight_rotation)
+
     def _chunks(self, poses: wp.array, counts: RunCounts,
                 progress: Callable[[int, int], None] | None) -> Iterator[tuple[Trajectory, int, int, int]]:
-        """Compute each chunk's pulse poses into ``poses``; yield (trajectory, first pulse, pulses, rng offset)."""
-        total = sum(self.pulse_count(t) for t in self.trajectories)
-        rng_offset = 0
-        for trajectory in self.trajectories:
+        """Compute each chunk's pulse poses into ``poses``; yield (trajectory, first pulse, pulses, rng offset).
+
+        Range noise is keyed by (seed, line, pulse, beam), so culling and chunking never change it.
+        """
+        plans = [(t, self.windows(t)) for t in self.trajectories]
+        total = sum(k1 - k0 for _, windows in plans for k0, k1 in windows)
+        for trajectory, windows in plans:
             line = self._line_inputs(trajectory)
-            n_line = self.pulse_count(trajectory)
-            for first in range(0, n_line, poses.shape[0]):
-                n_pulses = min(poses.shape[0], n_line - first)
-                wp.launch(frames.pulse_poses, n_pulses, inputs=[*line, first], outputs=[poses], device=self.device)
-                yield trajectory, first, n_pulses, rng_offset
-                rng_offset = (rng_offset + n_pulses * self.beams_per_pulse) % (1 << 31)
-                counts.pulses += n_pulses
-                if progress:
-                    progress(counts.pulses, total)
+            counts.pulses_culled += self.pulse_count(trajectory) - sum(k1 - k0 for k0, k1 in windows)
+            self.scan.noise_seed = (self.cfg.run.seed * 1_000_003 + trajectory.line_id) % (1 << 31)
+            for k0, k1 in windows:
+                for first in range(k0, k1, poses.shape[0]):
+                    n_pulses = min(poses.shape[0], k1 - first)
+                    wp.launch(frames.pulse_poses, n_pulses, inputs=[*line, first], outputs=[poses],
+                              device=self.device)
+                    yield trajectory, first, n_pulses, (first * self.beams_per_pulse) % (1 << 31)
+                    counts.pulses += n_pulses
+                    if progress:
+                        progress(counts.pulses, total)
 
     def _finish(self, counts: RunCounts, counters: wp.array, started: float) -> RunCounts:
         tir, misses = (int(v) for v in counters.numpy()[:2])

@@ -1,0 +1,70 @@
+"""Which pulses can reach the scene: time windows culled on the host before anything is launched.
+
+A pulse's sub-beams all leave within the cone of half-angle θ_max about the sensor axis (the
+largest exit angle of the fan over a prism turn). Over flat-topped ground the cone's footprint
+lies within horizontal distance (height above the scene's lowest point)·tan(tilt + θ_max) of
+the sensor, tilt being the sensor axis' angle from nadir. A trajectory segment whose footprint
+cannot reach the scene's bounding rectangle launches no pulse.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from flightsim.config import RunConfig
+from trajectories import PulseTiming, Trajectory
+
+MARGIN_RAD = math.radians(1.0)  # added to the fan's largest exit angle
+NO_CULLING_RAD = math.radians(80.0)  # cones wider than this reach everywhere: keep every pulse
+
+
+def max_off_axis_rad(cfg: RunConfig, samples: int = 72) -> float:
+    """Largest angle between any exiting sub-beam and the prism axis over a prism turn [rad]."""
+    from flightsim.fan import trace_fan
+
+    s = cfg.sensor
+    phi = np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False)
+    fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, s.refractive_index, math.radians(s.apex_angle_deg),
+                    s.thickness_mm * 1e-3, precision="float64")
+    angle = np.arctan2(np.hypot(fan.directions[..., 0], fan.directions[..., 1]), fan.directions[..., 2])
+    return float(angle[fan.ok].max()) if fan.ok.any() else 0.0
+
+
+def _reach(trajectory: Trajectory, local_position: np.ndarray, boresight: Rotation, cone: float,
+           floor_z: float) -> np.ndarray:
+    """Horizontal reach of each sample's beam cone [m]; inf where the cone is too wide to bound."""
+    axis = (Rotation.from_quat(trajectory.quaternions()) * boresight).apply([0.0, 0.0, 1.0])
+    tilt = np.arccos(np.clip(-axis[:, 2], -1.0, 1.0))
+    half_angle = tilt + cone
+    depth = np.maximum(local_position[:, 2] - floor_z, 0.0)
+    return np.where(half_angle < NO_CULLING_RAD, depth * np.tan(np.minimum(half_angle, NO_CULLING_RAD)), np.inf)
+
+
+def pulse_windows(trajectory: Trajectory, local_position: np.ndarray, bounds: tuple[np.ndarray, np.ndarray],
+                  timing: PulseTiming, cone_rad: float, boresight: Rotation) -> list[tuple[int, int]]:
+    """Ranges [k0, k1) of pulse indices (from the trajectory's first pulse) that can reach the scene.
+
+    local_position: (n, 3) trajectory positions in the scene's local frame [m]; bounds: the
+    scene's local (lo, hi) corners; cone_rad: the fan's largest off-axis angle [rad].
+    """
+    lo, hi = bounds
+    reach = _reach(trajectory, local_position, boresight, cone_rad + MARGIN_RAD, lo[2])
+    dx = np.maximum(np.maximum(lo[0] - local_position[:, 0], local_position[:, 0] - hi[0]), 0.0)
+    dy = np.maximum(np.maximum(lo[1] - local_position[:, 1], local_position[:, 1] - hi[1]), 0.0)
+    gap = np.hypot(dx, dy)  # horizontal distance to the scene's rectangle [m]
+    step = np.linalg.norm(np.diff(local_position[:, :2], axis=0), axis=1)
+    # a segment may come closer than its ends by up to half its length
+    near = np.minimum(gap[:-1] - reach[:-1], gap[1:] - reach[1:]) - 0.5 * step <= 0.0
+    n_pulses = timing.pulse_count(trajectory.start_time, trajectory.end_time)
+    rel = trajectory.gps_time - trajectory.start_time
+    windows: list[tuple[int, int]] = []
+    for i in np.flatnonzero(near):
+        k0 = max(0, math.floor(rel[i] * timing.prf_hz))
+        k1 = min(n_pulses, math.floor(rel[i + 1] * timing.prf_hz) + 2)
+        if windows and k0 <= windows[-1][1]:
+            windows[-1] = (windows[-1][0], max(windows[-1][1], k1))
+        elif k1 > k0:
+            windows.append((k0, k1))
+    return windows
