@@ -18,6 +18,8 @@ from flightsim.errors import InputError
 
 MODELS = ("exact", "nominal")
 BUILTIN_SCENES = ("calibration", "plane")
+OPTICS = ("float32", "float64", "lut")
+BVH_CONSTRUCTORS = ("sah", "median", "lbvh", "cubql")
 KMH = 1.0 / 3.6  # [m/s per km/h]
 
 
@@ -107,6 +109,12 @@ class RunSettings:
     seed: int = field(default=0, metadata=_num(0, 2**31 - 1, integer=True))
     chunk_pulses: int = field(default=0, metadata=_num(0, 2**24, "pulses; 0 = automatic", integer=True))
     cull: bool = True  # skip pulses whose beams cannot reach the scene
+    optics: str = "float64"  # per-beam arithmetic: float64, float32, or lut (float32, exit rays tabulated over φ)
+    lut_samples: int = field(default=4096, metadata=_num(8, 1 << 22, "prism angles per turn", integer=True))
+    bvh: str = "sah"  # BVH constructor: sah, median, lbvh, cubql
+    bvh_leaf_size: int = field(default=0, metadata=_num(0, 64, "triangles; 0 = Warp's default", integer=True))
+    slots_per_thread: int = field(default=0, metadata=_num(0, 4096, "statistics mode; 0 = automatic",
+                                                                integer=True))
 
 
 @dataclass
@@ -236,6 +244,9 @@ def _check_choices(cfg: RunConfig) -> None:
         raise InputError("scene.name", cfg.scene.name, "calibration, plane, or a path to an .obj/.ply mesh")
     if cfg.scene.name not in BUILTIN_SCENES and Path(cfg.scene.name).suffix.lower() not in (".obj", ".ply"):
         raise InputError("scene.name", cfg.scene.name, "calibration, plane, or a path to an .obj/.ply mesh")
+    for name, value, allowed in (("run.optics", cfg.run.optics, OPTICS), ("run.bvh", cfg.run.bvh, BVH_CONSTRUCTORS)):
+        if value not in allowed:
+            raise InputError(name, value, "one of " + ", ".join(allowed))
     device = cfg.run.device
     if device != "cpu" and device != "cuda" and not (device.startswith("cuda:") and device[5:].isdigit()):
         raise InputError("run.device", device, "cpu, cuda or cuda:N")

@@ -162,7 +162,8 @@ def fig5a(out_dir, step_deg: float = 0.25) -> tuple[Path, Path]:
         for beam, color, style in zip(beams, colors, styles):
             ax.plot(phi_deg, d_a[:, beam], style, color=color, lw=1.3, label=_tex(beam, n))
         top = d_a[:, beams].max()
-        ax.axhline(incident, color="tab:olive", lw=1.5, ls=":", label=f"incident spacing {symbol} = {incident:.4f} mrad")
+        ax.axhline(incident, color="tab:olive", lw=1.5, ls=":",
+                   label=f"incident spacing {symbol} = {incident:.4f} mrad")
         ax.axhline(top, color="k", lw=1.0, ls="-.", label=f"largest exit angle {top:.4f} mrad "
                    f"(+{(top - incident) * 1e3:.0f} µrad)")
         ax.axvline(45.0, color="0.6", lw=0.8)
@@ -273,10 +274,10 @@ def fig5c(out_dir, phi_deg: float = 45.0) -> tuple[Path, Path]:
             [-reach * math.sin(azimuth), reach * math.sin(azimuth)], ":", color="tab:blue", lw=1.0)
     ax.plot([], [], "o", mfc="none", mec="0.3", ls="none", ms=12, label="incident fan (dashed circles)")
     ax.plot([], [], "o", color="tab:red", ls="none", ms=7, label="exit fan")
-    ax.plot([], [], ":", color="tab:blue", label=f"deviation plane of $A_{{2-2}}$ (azimuth {math.degrees(azimuth) % 360:.0f}°)")
-    limit = reach
-    ax.set_xlim(-limit, limit)
-    ax.set_ylim(-limit, limit)
+    ax.plot([], [], ":", color="tab:blue",
+            label=f"deviation plane of $A_{{2-2}}$ (azimuth {math.degrees(azimuth) % 360:.0f}°)")
+    ax.set_xlim(-reach, reach)
+    ax.set_ylim(-reach, reach)
     ax.set_aspect("equal")
     ax.grid(alpha=0.3)
     ax.set_xlabel("angle about centre beam, sensor x direction [mrad]")
@@ -398,7 +399,9 @@ def fig8a(planes_csv, out_dir) -> tuple[Path, Path]:
     """
     png, csv_path = _outputs(out_dir, "fig8a_plane_rms")
     table = _read_table(planes_csv, PLANE_COLUMNS)
-    first = {c: table[c][0] for c in ("altitude_m", "array", "spacing_mrad")} if len(table["model"]) else {}
+    if len(table["model"]) == 0:
+        raise InputError(f"{planes_csv}: rows", "0 rows", "one row per plane and model")
+    first = {c: table[c][0] for c in ("altitude_m", "array", "spacing_mrad")}
     table = _select(table, planes_csv, **first)
     wanted = np.isin(table["kind"], ["roof", "road"])
     rms = {m: {int(p): r for p, r, k, mm in zip(table["plane_id"], table["rms_m"], wanted, table["model"])
@@ -458,12 +461,14 @@ def fig8b(sweep_csv, out_dir, array: int = ARRAY, spacing_mrad: float = SPACING_
         slope, intercept, r2 = linear_fit(km, rms)
         line = np.array([0.0, km.max() * 1.05])
         ax.plot(line, slope * line + intercept, "-", color=style["color"], lw=1,
-                label=f"{model} fit: {slope:.4f} m/km × h + {intercept:.4f} m, R² = {r2:.4f}")
+                label=f"{model} fit: {slope:.4g} m/km × h {intercept:+.3g} m, R² = {r2:.4f}")
+        if model == "exact":
+            _exact_inset(ax, km, rms, "h [km]", (line, slope * line + intercept))
         rows += [[model, k, r, slope * k + intercept, slope, intercept, r2] for k, r in zip(km, rms)]
         fits.append(f"{model}: slope {slope:.5f} m/km, intercept {intercept:.5f} m, R² {r2:.5f}")
     _write_csv(csv_path, ["model", "altitude_km", "rms_m", "fit_rms_m", "slope_m_per_km", "intercept_m", "r2"], rows)
     ax.set_xlim(left=0.0)
-    ax.set_ylim(bottom=0.0)
+    ax.set_ylim(bottom=-0.02 * ax.get_ylim()[1])
     ax.set_xlabel("altitude above ground h [km]")
     ax.set_ylabel("plane-fit RMS [m]")
     ax.grid(alpha=0.3)
@@ -482,8 +487,25 @@ def _models(table: dict[str, np.ndarray]) -> list[str]:
     return [m for m in ("nominal", "exact") if m in present] + sorted(present - {"nominal", "exact"})
 
 
-def _rms_versus(table, x: np.ndarray, ax) -> list[list]:
-    """Plot RMS against x for each model; returns rows (model, x, rms, points) sorted by x."""
+def _exact_inset(ax, x, rms, xlabel: str, fit=None, ticks=None) -> None:
+    """The exact model's RMS in mm, too small to read on the main axes, in an inset at the lower right."""
+    inset = ax.inset_axes([0.62, 0.15, 0.35, 0.28])
+    inset.plot(x, rms * 1e3, **{**MODEL_STYLE["exact"], "label": None, "ms": 4})
+    if fit is not None:
+        inset.plot(fit[0], fit[1] * 1e3, "-", color=MODEL_STYLE["exact"]["color"], lw=0.8)
+    inset.set_ylim(0.0, 1.25 * max(rms.max() * 1e3, 1e-6))
+    inset.set_title("exact model", fontsize=7)
+    inset.set_ylabel("RMS [mm]", fontsize=7)
+    inset.set_xlabel(xlabel, fontsize=7)
+    inset.tick_params(labelsize=6)
+    if ticks is not None:
+        inset.set_xticks(ticks[0], [label.split("\n")[0] for label in ticks[1]])
+    inset.grid(alpha=0.3)
+
+
+def _rms_versus(table, x: np.ndarray, ax, xlabel: str, ticks: tuple[np.ndarray, list[str]]) -> list[list]:
+    """Plot RMS against x for each model (ticks: positions and labels); returns rows (model, x, rms, points)."""
+    ax.set_xticks(*ticks)
     rows = []
     for model in _models(table):
         keep = table["model"] == model
@@ -492,7 +514,13 @@ def _rms_versus(table, x: np.ndarray, ax) -> list[list]:
         style = MODEL_STYLE.get(model, dict(color="k", marker="x", label=model))
         ax.plot(xs, rms, "-", **style)
         rows += [[model, a, r, int(p)] for a, r, p in zip(xs, rms, points)]
-    ax.set_ylim(bottom=0.0)
+        if model == "exact":
+            _exact_inset(ax, xs, rms, xlabel, ticks=ticks)
+        else:
+            for a, r in zip(xs, rms):
+                ax.annotate(f"{r:.3f}", (a, r), xytext=(0, 6), textcoords="offset points", ha="center",
+                            fontsize=7, color=style["color"])
+    ax.set_ylim(-0.02 * ax.get_ylim()[1], 1.08 * ax.get_ylim()[1])
     ax.set_ylabel("plane-fit RMS [m]")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=9, loc="upper left")
@@ -505,9 +533,8 @@ def fig9a(sweep_csv, out_dir, altitude_m: float = 500.0, spacing_mrad: float = S
     table = _select(_read_table(sweep_csv, SWEEP_COLUMNS), sweep_csv, altitude_m=altitude_m, spacing_mrad=spacing_mrad)
     fig = _new_figure(8.0, 5.5)
     ax = fig.subplots()
-    rows = _rms_versus(table, table["array"], ax)
     sizes = np.unique(table["array"]).astype(int)
-    ax.set_xticks(sizes, [f"{s}×{s}" for s in sizes])
+    rows = _rms_versus(table, table["array"], ax, "N×N", (sizes, [f"{s}×{s}" for s in sizes]))
     ax.set_xlabel("beam array size N×N")
     ax.set_title(f"Fig. 9(a): plane-fit RMS vs array size (h = {altitude_m:g} m, Δ = {spacing_mrad:g} mrad)")
     fig.tight_layout()
@@ -526,9 +553,9 @@ def fig10a(sweep_csv, out_dir, altitude_m: float = 500.0, array: int = ARRAY) ->
     fig = _new_figure(8.0, 5.5)
     ax = fig.subplots()
     multiple = table["spacing_mrad"] / SPACING_MRAD
-    rows = _rms_versus(table, multiple, ax)
     ticks = np.unique(multiple)
-    ax.set_xticks(ticks, [f"{t:g}Δ\n{t * SPACING_MRAD:.3f}" if t != 1 else f"Δ\n{SPACING_MRAD:.3f}" for t in ticks])
+    labels = [f"{t:g}Δ\n{t * SPACING_MRAD:.3f}" if t != 1 else f"Δ\n{SPACING_MRAD:.3f}" for t in ticks]
+    rows = _rms_versus(table, multiple, ax, "spacing", (ticks, labels))
     ax.set_xlabel(f"sub-beam spacing (Δ = {SPACING_MRAD} mrad) [mrad]")
     ax.set_title(f"Fig. 10(a): plane-fit RMS vs sub-beam spacing (h = {altitude_m:g} m, {array}×{array})")
     fig.tight_layout()

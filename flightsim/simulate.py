@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 from flightsim.config import MODELS, RunConfig
 from flightsim.coverage import max_off_axis_rad, pulse_windows
 from flightsim.edges import boundary_segments, ribbon_mesh
+from flightsim.fan import trace_fan
 from flightsim.planes import PlaneMoments
 from flightsim.scene import Scene
 from flightsim.warp_runtime import resolve_device
@@ -71,6 +72,8 @@ class SceneMeshes:
         self.scene = scene
         self.device = device
         self.mesh = self._build(scene.vertices, scene.triangles, bvh_constructor, leaf_size)
+        self.vertices64 = wp.array(scene.vertices, dtype=wp.vec3d, device=device)
+        self.indices = self.mesh.indices
         self._boundary: wp.Mesh | None = None
 
     @property
@@ -117,11 +120,11 @@ class Simulator:
             exact="exact" in self.models, nominal="nominal" in self.models,
             believed_is_truth=(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
             == (s.refractive_index, s.apex_angle_deg, s.thickness_mm),
-            with_truth=with_truth, noisy=s.range_noise_m > 0.0, edges=edge_buffer_m > 0.0,
+            with_truth=with_truth, noisy=s.range_noise_m > 0.0, edges=edge_buffer_m > 0.0, optics=cfg.run.optics,
         )
         self.boresight_rotation = Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True)  # body←sensor
         self.boresight = wp.quatd(*self.boresight_rotation.as_quat())
-        self.meshes = meshes or SceneMeshes(scene, self.device)
+        self.meshes = meshes or SceneMeshes(scene, self.device, cfg.run.bvh, cfg.run.bvh_leaf_size or None)
         self.scan = self._scan()
         self._cone_rad: float | None = None
 
@@ -139,7 +142,23 @@ class Simulator:
         scan.noise_seed = self.cfg.run.seed
         scan.boundary = self.meshes.boundary.id if self.features.edges else 0
         scan.edge_cap = self.edge_buffer_m
+        scan.lut_directions, scan.lut_exits = self._exit_table()
+        scan.vertices64, scan.indices = self.meshes.vertices64, self.meshes.indices
         return scan
+
+    def _exit_table(self) -> tuple[wp.array, wp.array]:
+        """Exit directions and points of every beam (and the on-axis ray) at M + 1 prism angles over a
+        turn, for ``optics = "lut"``; a 2×1 placeholder otherwise."""
+        s = self.cfg.sensor
+        samples = self.cfg.run.lut_samples if self.features.optics == "lut" else 1
+        phi = np.linspace(0.0, 2.0 * np.pi, samples + 1)
+        args = (s.refractive_index, math.radians(s.apex_angle_deg), s.thickness_mm * 1e-3, "float64")
+        fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, *args)
+        axis = trace_fan(phi, 1, 0.0, *args)
+        directions = np.concatenate([fan.directions * fan.ok[..., None], axis.directions], axis=1)
+        exits = np.concatenate([fan.exit_points, axis.exit_points], axis=1)
+        return (wp.array(directions.astype(np.float32), dtype=wp.vec3f, device=self.device),
+                wp.array(exits.astype(np.float32), dtype=wp.vec3f, device=self.device))
 
     @property
     def beams_per_pulse(self) -> int:
@@ -187,7 +206,7 @@ class Simulator:
         """
         started = time.perf_counter()
         counts = RunCounts()
-        spt = slots_per_thread or SLOTS_PER_THREAD[self.device_kind]
+        spt = slots_per_thread or self.cfg.run.slots_per_thread or SLOTS_PER_THREAD[self.device_kind]
         poses = wp.empty(self.chunk_pulses(), dtype=frames.PulsePose, device=self.device)
         n_planes = len(self.scene.planes)
         d = self.device

@@ -19,6 +19,9 @@ class PulsePose:
     rot: wp.mat33f  # R_local←sensor
     right: wp.vec3f  # aircraft's right wing (body +y) in the local frame, for the scan-angle sign
     phi: wp.float32  # prism angle, reduced to [0, 2π) [rad]
+    origin64: wp.vec3d  # the same in float64, for the float64 optics path
+    rot64: wp.mat33d
+    phi64: wp.float64
 
 
 @wp.func
@@ -46,6 +49,35 @@ def prism_angle(cycles0: wp.float64, cycles_per_pulse: wp.float64, k: wp.int64):
     return TWO_PI * (c - wp.floor(c))
 
 
+@wp.struct
+class PulsePose64:
+    """Sensor pose of one pulse in float64, for the reference path."""
+
+    origin: wp.vec3d  # [m]
+    rot: wp.mat33d  # R_local←sensor
+    phi: wp.float64  # [rad]
+
+
+@wp.func
+def _pose(
+    times: wp.array(dtype=wp.float64),
+    positions: wp.array(dtype=wp.vec3d),
+    attitudes: wp.array(dtype=wp.quatd),
+    boresight: wp.quatd,
+    lever_arm: wp.vec3d,
+    pulse_period: wp.float64,
+    k: wp.int64,
+):
+    """(sensor origin [m], R_local←sensor quaternion, R_local←body quaternion) of pulse k in float64."""
+    t = wp.float64(k) * pulse_period
+    i = _segment(times, t)
+    w = (t - times[i]) / (times[i + 1] - times[i])
+    w = wp.clamp(w, wp.float64(0.0), wp.float64(1.0))
+    position = positions[i] + w * (positions[i + 1] - positions[i])
+    body = wp.quat_slerp(attitudes[i], attitudes[i + 1], w)
+    return position + wp.quat_rotate(body, lever_arm), body * boresight, body
+
+
 @wp.kernel
 def pulse_poses(
     # In: trajectory samples (local frame)
@@ -65,18 +97,40 @@ def pulse_poses(
     """Pose of each pulse of a chunk: position linear, attitude slerped between samples."""
     p = wp.tid()
     k = first_pulse + wp.int64(p)
-    t = wp.float64(k) * pulse_period
-    i = _segment(times, t)
-    w = (t - times[i]) / (times[i + 1] - times[i])
-    w = wp.clamp(w, wp.float64(0.0), wp.float64(1.0))
-    position = positions[i] + w * (positions[i + 1] - positions[i])
-    body = wp.quat_slerp(attitudes[i], attitudes[i + 1], w)
-    sensor = body * boresight
-    origin = position + wp.quat_rotate(body, lever_arm)
-
+    origin, sensor, body = _pose(times, positions, attitudes, boresight, lever_arm, pulse_period, k)
+    rot = wp.quat_to_matrix(sensor)
+    phi = prism_angle(cycles0, cycles_per_pulse, k)
     pose = PulsePose()
     pose.origin = wp.vec3f(origin)
-    pose.rot = wp.mat33f(wp.quat_to_matrix(sensor))
+    pose.rot = wp.mat33f(rot)
     pose.right = wp.vec3f(wp.quat_rotate(body, wp.vec3d(0.0, 1.0, 0.0)))
-    pose.phi = wp.float32(prism_angle(cycles0, cycles_per_pulse, k))
+    pose.phi = wp.float32(phi)
+    pose.origin64 = origin
+    pose.rot64 = rot
+    pose.phi64 = phi
+    poses[p] = pose
+
+
+@wp.kernel
+def pulse_poses64(
+    times: wp.array(dtype=wp.float64),
+    positions: wp.array(dtype=wp.vec3d),
+    attitudes: wp.array(dtype=wp.quatd),
+    boresight: wp.quatd,
+    lever_arm: wp.vec3d,
+    pulse_period: wp.float64,
+    cycles0: wp.float64,
+    cycles_per_pulse: wp.float64,
+    first_pulse: wp.int64,
+    # Out:
+    poses: wp.array(dtype=PulsePose64),
+):
+    """The same poses as :func:`pulse_poses`, kept in float64 (reference path)."""
+    p = wp.tid()
+    k = first_pulse + wp.int64(p)
+    origin, sensor, body = _pose(times, positions, attitudes, boresight, lever_arm, pulse_period, k)
+    pose = PulsePose64()
+    pose.origin = origin
+    pose.rot = wp.quat_to_matrix(sensor)
+    pose.phi = prism_angle(cycles0, cycles_per_pulse, k)
     poses[p] = pose

@@ -33,15 +33,15 @@ vec6d = wp.types.vector(6, wp.float64)
 class Prism:
     """Wedge prism parameters as one side (truth or processing) believes them."""
 
-    n_glass: wp.float32  # refractive index of the glass (air = 1)
-    apex: wp.float32  # apex angle α [rad]
-    thickness: wp.float32  # d1, centre thickness [m]
+    n_glass: wp.float64  # refractive index of the glass (air = 1)
+    apex: wp.float64  # apex angle α [rad]
+    thickness: wp.float64  # d1, centre thickness [m]
 
 
 @wp.func
-def wedge_deflect(s1: wp.vec3f, phi: wp.float32, prism: Prism):
-    """The rotating wedge as a deflector: (exit direction, exit point [m], ok)."""
-    return prism_exit(s1, phi, prism.n_glass, prism.apex, prism.thickness)
+def wedge_deflect(s1: Any, phi: Any, prism: Prism):
+    """The rotating wedge as a deflector, in the precision of ``phi``: (exit direction, exit point [m], ok)."""
+    return prism_exit(s1, phi, type(phi)(prism.n_glass), type(phi)(prism.apex), type(phi)(prism.thickness))
 
 
 @wp.struct
@@ -65,6 +65,10 @@ class Scan:
     noise_seed: wp.int32
     boundary: wp.uint64  # ribbon mesh along plane boundaries (edge buffer queries)
     edge_cap: wp.float32  # edge distances are measured up to this [m]
+    lut_directions: wp.array2d(dtype=wp.vec3f)  # [φ sample, beam (last: on-axis)] exit directions
+    lut_exits: wp.array2d(dtype=wp.vec3f)  # exit points [m]; a zero direction marks reflection
+    vertices64: wp.array(dtype=wp.vec3d)  # scene vertices in float64 (float64 optics path) [m]
+    indices: wp.array(dtype=wp.int32)  # 3 per triangle
 
 
 @dataclass(frozen=True)
@@ -77,6 +81,8 @@ class Features:
     with_truth: bool = False  # keep the true hit point
     noisy: bool = False  # Gaussian range noise
     edges: bool = False  # measure the true hit's distance to its plane boundary
+    optics: str = "float32"  # "float32"; "float64" (optics, hit and georeferencing in float64, the ray
+    # cast itself in float32 then refined on the hit triangle); "lut" (float32, exit rays tabulated over φ)
 
 
 @wp.func
@@ -103,9 +109,37 @@ def _edge_distance(boundary: wp.uint64, p: wp.vec3f, cap: wp.float32):
     return cap
 
 
+@wp.func
+def _refine_hit(vertices: wp.array(dtype=wp.vec3d), indices: wp.array(dtype=wp.int32), face: int,
+                start: wp.vec3d, direction: wp.vec3d):
+    """Distance along a float64 ray to the plane of a triangle given by float64 vertices [m]."""
+    v0 = vertices[indices[3 * face]]
+    normal = wp.cross(vertices[indices[3 * face + 1]] - v0, vertices[indices[3 * face + 2]] - v0)
+    return wp.dot(normal, v0 - start) / wp.dot(normal, direction)
+
+
+@wp.func
+def _lut_lookup(directions: wp.array2d(dtype=wp.vec3f), exits: wp.array2d(dtype=wp.vec3f), column: int,
+                phi: wp.float32):
+    """Exit ray of a beam interpolated linearly in φ from a table of M + 1 samples over [0, 2π]."""
+    m = directions.shape[0] - 1
+    x = wp.clamp(phi * (float(m) / 6.283185307179586), 0.0, float(m))
+    i = wp.min(int(x), m - 1)
+    w = x - float(i)
+    a = directions[i, column]
+    b = directions[i + 1, column]
+    ok = wp.length_sq(a) > 0.5 and wp.length_sq(b) > 0.5
+    s3 = wp.normalize(a + w * (b - a))
+    return s3, exits[i, column] + w * (exits[i + 1, column] - exits[i, column]), ok
+
+
 @functools.cache
 def _slot_function(f: Features, deflect: wp.Function):
     """Build the per-slot body shared by the points and the statistics kernels."""
+
+    precise = f.optics == "float64"
+    real = wp.float64 if precise else wp.float32
+    vec = wp.types.vector(3, real)
 
     @wp.func
     def trace_slot(slot: int, pose: PulsePose, beam: int, scan: Scan, rng_offset: int):
@@ -115,42 +149,62 @@ def _slot_function(f: Features, deflect: wp.Function):
         edge distance [m]); points in the local frame [m].
         """
         zero = wp.vec3f(0.0, 0.0, 0.0)
+        if wp.static(precise):
+            origin = pose.origin64
+            rot = pose.rot64
+            phi = pose.phi64
+        else:
+            origin = pose.origin
+            rot = pose.rot
+            phi = pose.phi
         n = scan.beams.n
-        s1 = doe_direction(beam // n, beam % n, n, scan.beams.spacing)
-        s3, exit_point, ok = deflect(s1, pose.phi, scan.truth)
+        s1 = doe_direction(beam // n, beam % n, n, real(scan.beams.spacing))
+        if wp.static(f.optics == "lut"):
+            s3, exit_point, ok = _lut_lookup(scan.lut_directions, scan.lut_exits, beam, phi)
+        else:
+            s3, exit_point, ok = deflect(s1, phi, scan.truth)
         if not ok:
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
-        start = pose.origin + pose.rot * exit_point
-        direction = pose.rot * s3
-        hit = wp.mesh_query_ray(scan.mesh, start, direction, scan.max_range)
+        start = origin + rot * exit_point
+        direction = rot * s3
+        hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
         if not hit.result:
-            return STATUS_MISS, 0.0, -1, direction, zero, zero, zero, 0.0
-        true_point = start + hit.t * direction
-        r = hit.t
+            return STATUS_MISS, 0.0, -1, wp.vec3f(direction), zero, zero, zero, 0.0
+        if wp.static(precise):
+            t = _refine_hit(scan.vertices64, scan.indices, hit.face, start, direction)
+        else:
+            t = hit.t
+        true_point = start + t * direction
+        r = t
         if wp.static(f.noisy):
             state = wp.rand_init(scan.noise_seed, rng_offset + slot)
-            r = r + scan.noise_sigma * _gaussian(state)
+            r = r + real(scan.noise_sigma * _gaussian(state))
         # georeference the observation (φ, i, j, r) with the deflector the processing believes in
-        p_exact = zero
-        p_nominal = zero
+        p_exact = vec()
+        p_nominal = vec()
         ok_exact = True
         ok_nominal = True
         if wp.static(f.exact):
             if wp.static(f.believed_is_truth):
                 p_exact = start + r * direction
             else:
-                s3b, exit_b, ok_exact = deflect(s1, pose.phi, scan.believed)
-                p_exact = pose.origin + pose.rot * (exit_b + r * s3b)
+                s3b, exit_b, ok_exact = deflect(s1, phi, scan.believed)
+                p_exact = origin + rot * (exit_b + r * s3b)
         if wp.static(f.nominal):
-            s3c, exit_c, ok_nominal = deflect(wp.vec3f(0.0, 0.0, 1.0), pose.phi, scan.believed)
-            p_nominal = pose.origin + pose.rot * (exit_c + r * rigid_array_direction(s1, s3c))
+            if wp.static(f.optics == "lut" and f.believed_is_truth):
+                s3c, exit_c, ok_nominal = _lut_lookup(scan.lut_directions, scan.lut_exits, n * n, phi)
+            else:
+                s3c, exit_c, ok_nominal = deflect(vec(real(0.0), real(0.0), real(1.0)), phi, scan.believed)
+            p_nominal = origin + rot * (exit_c + r * rigid_array_direction(s1, s3c))
         if not (ok_exact and ok_nominal):
             # the believed deflector reflects this beam internally: processing cannot place it
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
+        true32 = wp.vec3f(true_point)
         edge = scan.edge_cap
         if wp.static(f.edges):
-            edge = _edge_distance(scan.boundary, true_point, scan.edge_cap)
-        return STATUS_RETURN, r, hit.face, direction, p_exact, p_nominal, true_point, edge
+            edge = _edge_distance(scan.boundary, true32, scan.edge_cap)
+        return (STATUS_RETURN, wp.float32(r), hit.face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
+                true32, edge)
 
     return trace_slot
 
