@@ -125,6 +125,16 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_paper(args: argparse.Namespace) -> int:
+    from flightsim.paper import reproduce
+    from flightsim.warp_runtime import resolve_device
+
+    resolve_device(args.device)
+    report = reproduce(Path(args.out), device=args.device, overwrite=args.overwrite)
+    print(report.read_text())
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     import laspy
     import numpy
@@ -166,6 +176,12 @@ def make_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--out", required=True, help="output directory (rerun the same command to resume)")
     sweep.add_argument("--overwrite", action="store_true", help="discard the finished rows in --out")
     sweep.set_defaults(func=cmd_sweep)
+
+    paper = sub.add_parser("paper", help="reproduce the seed paper's study: sweeps, figures and a report")
+    paper.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    paper.add_argument("--out", required=True, help="output directory (e.g. results/paper)")
+    paper.add_argument("--overwrite", action="store_true", help="recompute finished sweeps")
+    paper.set_defaults(func=cmd_paper)
 
     info = sub.add_parser("info", help="versions, devices and the kernel cache")
     info.set_defaults(func=cmd_info)
