@@ -1,44 +1,47 @@
 """Blind plane extraction: planar segments found from the points alone (SPEC §9).
 
-This is what a user with real data does, using nothing the simulator knows: no plane ids, no
-true edge distances. The steps, per ASPRS class:
+This is what a user with real data does, using nothing the simulator knows (no plane ids, no
+true edge distances). Per ASPRS class:
 
 1. **Objects.** Vegetation and noise classes are skipped. Ground, water and road points
    (classes 2, 9, 11) are one surface each; points of any other class (buildings, class 6, and
-   unclassified data) are split into objects by horizontal connectivity: a radius graph on
-   (x, y) and its connected components, so each building is processed on its own.
+   unclassified data) are split into objects by horizontal connectivity (touching cells of an
+   (x, y) grid of the link distance), so that each building is processed on its own.
 2. **Local planes.** Each point's normal and planarity residual come from a PCA of its k
-   nearest neighbours of the same object.
-3. **Region growing**, as connected components of a graph: two neighbouring points are
-   linked when both neighbourhoods are planar (residual within a few noise scales), their
-   normals agree and each lies near the other's tangent plane. The noise scale is estimated
-   per object (median planarity residual), so the thresholds follow the point scatter, which
-   grows with altitude and with the georeferencing model's distortion.
-4. **Merging** of neighbouring segments that are coplanar: the pair's joint fit is hardly
-   worse than their separate fits.
-5. **Assignment.** Every point of the object (including the non-planar ones along ridges and
-   eaves) goes to the neighbouring segment whose plane is nearest, if within tolerance; so a
-   ridge splits where the two roof planes are equidistant.
-6. **Edge buffer.** A segment's boundary points are those whose same-segment neighbours leave
-   an angular gap of more than 90° around them in the plane (the point set ends there, at a
-   free edge or against another segment). Boundary points, and points within the edge buffer
-   of one, are left out of the fit.
-7. **Final fit**: two-pass total least squares of the remaining points.
+   nearest neighbours in its object.
+3. **Region growing**, as the connected components of a graph: two neighbouring points are
+   linked when both neighbourhoods are planar (residual within a few times the object's noise
+   scale, the median residual), their normals agree and each lies near the other's tangent
+   plane. The thresholds follow the point scatter, which grows with altitude and with the
+   georeferencing model's distortion.
+4. **Split** by sequential RANSAC of any grown segment whose plane fits much worse than its
+   points' own neighbourhoods (growing leaked across a ridge).
+5. **Merge** of touching segments whose joint plane fits about as well as their separate ones.
+6. **Assignment.** Every point of the object, including the non-planar ones along ridges and
+   eaves, goes to the nearest plane among its neighbours' segments if within a few times that
+   segment's RMS (repeated, so points of another surface are shed); a ridge therefore splits
+   where the two roof planes are equidistant.
+7. **Edge buffer.** Points within the buffer of their segment's boundary are left out: of the
+   intersection line with a touching segment (a ridge, an eave above a wall), or of the edge of
+   the segment's footprint where its points end (:func:`boundary_distance_m`).
+8. **Final fit**: two-pass total least squares of the remaining points.
 
-Everything is vectorised with numpy and scipy (cKDTree, sparse connected components); there is
-no randomness, so results are deterministic.
+Vectorised with numpy and scipy (cKDTree, sparse connected components, Euclidean distance
+transforms); the only sampling (RANSAC) is seeded, so results are deterministic.
 """
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt, label
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from flightsim.planes import PlaneFit, fit_groups, fit_points
+from flightsim.planes import PlaneFit, fit_groups, fit_points, group_moments
 
 SKIPPED_CLASSES = frozenset({3, 4, 5, 7, 18})
 """ASPRS classes never searched for planes: low/medium/high vegetation, low and high noise."""
@@ -46,65 +49,75 @@ SKIPPED_CLASSES = frozenset({3, 4, 5, 7, 18})
 SURFACE_CLASSES = frozenset({2, 9, 11})
 """ASPRS classes taken as one continuous surface (ground, water, road), not split into objects."""
 
-_MAX_GAP_RAD = 0.5 * math.pi  # an angular gap wider than this marks a boundary point
-_CHUNK = 200_000  # points per block of the batched neighbourhood PCA
+_CHUNK = 100_000  # points per block of the batched neighbourhood PCA
+_MAX_CELLS = 4_000_000  # largest raster of one segment's footprint
 
 
 @dataclass(frozen=True)
 class BlindParams:
-    """Tuning of the blind extractor. Lengths in units of the estimated noise are dimensionless."""
+    """Tuning of the blind extractor; factors are in units of the estimated noise scale."""
 
-    k: int = 24  #: neighbours for local normals and for growing
+    k: int = 24  #: neighbours for local normals, footprints and object links
+    k_grow: int = 12  #: neighbours linked when growing and offered when assigning
+    k_noise: int = 8  #: neighbours of the planarity residual, the local noise scale
     max_angle_deg: float = 12.0  #: largest angle between the normals of two linked neighbours [deg]
     smooth_factor: float = 2.5  #: a point grows only if its planarity residual ≤ this × noise
-    distance_factor: float = 4.0  #: tangent-plane and assignment tolerance, × noise
-    merge_factor: float = 1.25  #: merge neighbours if their joint RMS ≤ this × their pooled RMS
+    distance_factor: float = 4.0  #: tangent-plane, RANSAC and assignment tolerance, × noise or RMS
+    planar_factor: float = 2.0  #: a grown segment is planar if its RMS ≤ this × its median residual
+    merge_factor: float = 1.25  #: merge touching segments if their joint RMS ≤ this × pooled RMS
+    ransac_angle_deg: float = 20.0  #: largest angle between a point's normal and a RANSAC plane [deg]
+    ransac_hypotheses: int = 256  #: candidate planes per RANSAC round
+    ransac_rounds: int = 32  #: most planes taken out of one leaked segment
+    ransac_max_points: int = 50_000  #: larger non-planar segments are left whole
+    assign_passes: int = 3  #: passes of nearest-plane assignment
     min_points: int = 30  #: smallest segment kept
     min_noise_m: float = 5e-4  #: floor of the noise scale (mm-quantised LAS coordinates) [m]
-    planar_factor: float = 2.0  #: a grown segment is planar if its fit RMS ≤ this × its points' median residual
-    ransac_angle_deg: float = 20.0  #: largest angle between a point's normal and a RANSAC plane's [deg]
-    ransac_hypotheses: int = 256  #: candidate planes per RANSAC round
-    ransac_max_points: int = 200_000  #: larger non-planar segments are left whole
+    link_factor: float = 3.0  #: object link radius, × the median distance to the k-th neighbour
     seed: int = 0  #: seed of the RANSAC sampling
-    link_spacings: float = 3.0  #: object link radius in units of the neighbourhood radius
-    assign_passes: int = 3  #: passes of nearest-plane assignment
 
 
 @dataclass
 class Segment:
     """One extracted plane."""
 
-    id: int  #: index in BlindResult.segments
+    id: int  #: index in ``BlindResult.segments``
     classification: int  #: ASPRS class of its points
     members: np.ndarray  #: indices of every point assigned to it
-    indices: np.ndarray  #: indices of the points used in the fit (members beyond the edge buffer)
-    fit: PlaneFit  #: fit of ``indices``; ``fit.plane_id`` is the segment id
+    indices: np.ndarray  #: indices of the points fitted: members beyond the edge buffer
+    fit: PlaneFit  #: TLS fit of ``indices``, in the input frame; ``fit.plane_id`` is ``id``
 
 
 @dataclass
 class BlindResult:
-    """Segments, and per point: segment label (-1 none) and whether it was used in a fit."""
+    """Segments, and per point its segment (-1: none) and whether it was fitted."""
 
     segments: list[Segment]
     labels: np.ndarray  #: (n,) segment id of each point, -1 if unassigned
     used: np.ndarray  #: (n,) bool, the point is in some segment's fit
     edge_buffer_m: float  #: edge buffer applied [m]
-    spacing_m: float  #: median nearest-neighbour distance [m]
-    timings_s: dict = field(default_factory=dict)
+    spacing_m: float  #: median nearest-neighbour distance of the points searched [m]
+    timings_s: dict = field(default_factory=dict)  #: wall time of each stage [s]
 
 
-def point_spacing_m(xyz: np.ndarray) -> float:
-    """Median distance from a point to its nearest neighbour [m] (NaN for fewer than 2 points)."""
-    if len(xyz) < 2:
-        return float("nan")
-    distance, _ = cKDTree(xyz).query(xyz, k=2, workers=-1)
-    return float(np.median(distance[:, 1]))
+@dataclass
+class Neighbourhoods:
+    """The k nearest neighbours of each point (itself first) and two of their distances."""
+
+    index: np.ndarray  #: (n, k) int neighbour indices, column 0 the point itself
+    nearest_m: np.ndarray  #: (n,) distance to the nearest other point [m]
+    reach_m: np.ndarray  #: (n,) distance to the k-th nearest other point [m]
+
+
+def neighbourhoods(points: np.ndarray, k: int) -> Neighbourhoods:
+    """k nearest neighbours of every point (n ≥ 2) by a cKDTree on both cores."""
+    k = min(k, len(points) - 1)
+    distance, index = cKDTree(points).query(points, k=k + 1, workers=-1)
+    return Neighbourhoods(index.astype(np.int64), distance[:, 1], distance[:, -1])
 
 
 def auto_edge_buffer_m(spacing_m: float) -> float:
-    """Automatic edge buffer: half the typical point spacing [m] (the edge lies, on average,
-    half a spacing beyond the outermost points)."""
-    return 0.5 * spacing_m
+    """Automatic edge buffer [m] when none is given: half the typical point spacing."""
+    return 0.5 * spacing_m if math.isfinite(spacing_m) else 0.0
 
 
 def extract_planes(xyz: np.ndarray, classification: np.ndarray | None = None, edge_buffer_m: float | None = None,
@@ -112,94 +125,145 @@ def extract_planes(xyz: np.ndarray, classification: np.ndarray | None = None, ed
     """Blind planar segments of a point cloud.
 
     Args:
-        xyz: (n, 3) world or local coordinates [m], float64.
-        classification: (n,) ASPRS classes; None treats all points as one unclassified set.
-        edge_buffer_m: points within this distance of a segment's boundary are left out of its
-            fit [m]; None: :func:`auto_edge_buffer_m` of the point spacing.
+        xyz: (n, 3) world or local coordinates [m].
+        classification: (n,) ASPRS classes; None takes all points as one unclassified set.
+        edge_buffer_m: points within this distance of their segment's boundary are left out of
+            its fit [m]; None: :func:`auto_edge_buffer_m` of the point spacing.
         params: tuning, see :class:`BlindParams`.
     """
+    clock = _Clock()
     points = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     n = len(points)
-    points = points - (points.mean(axis=0) if n else 0.0)
+    origin = points.mean(axis=0) if n else np.zeros(3)
+    points = points - origin  # centred: float64 keeps sub-mm detail of world coordinates
     classes = np.ones(n, dtype=np.int64) if classification is None else np.asarray(classification, dtype=np.int64)
-    spacing = point_spacing_m(points)
+    work = []
+    for cls in np.unique(classes):
+        index = np.flatnonzero(classes == cls)
+        if int(cls) not in SKIPPED_CLASSES and len(index) >= max(params.min_points, 3):
+            work.append((int(cls), index, neighbourhoods(points[index], params.k)))
+    clock("neighbours")
+    spacing = float(np.median(np.concatenate([w[2].nearest_m for w in work]))) if work else float("nan")
     buffer = auto_edge_buffer_m(spacing) if edge_buffer_m is None else float(edge_buffer_m)
-    if not math.isfinite(buffer):
-        buffer = 0.0
     labels = np.full(n, -1, dtype=np.int64)
     used = np.zeros(n, dtype=bool)
     segments: list[Segment] = []
-    for cls in np.unique(classes):
-        if int(cls) in SKIPPED_CLASSES:
-            continue
-        index = np.flatnonzero(classes == cls)
-        groups = [index] if int(cls) in SURFACE_CLASSES else _objects(points[index], index, params)
-        for group in groups:
-            if len(group) < params.min_points:
+    for cls, index, near in work:
+        objects = [np.arange(len(index))] if cls in SURFACE_CLASSES else _objects(points[index], near, params)
+        clock("objects")
+        for obj in objects:
+            if len(obj) < params.min_points:
                 continue
-            local_labels, local_used = _segment_object(points[group], buffer, params)
-            for label in range(local_labels.max() + 1):
-                members = group[local_labels == label]
-                kept = group[(local_labels == label) & local_used]
+            local_labels, local_used = _segment_object(points[index[obj]], _restrict(near, obj), buffer, params,
+                                                       clock)
+            members_of = _group_indices(local_labels)
+            for members in members_of:
+                kept = members[local_used[members]]
                 if len(kept) < 3:
                     continue
                 seg_id = len(segments)
-                fit = fit_points(points[kept], seg_id)
-                segments.append(Segment(seg_id, int(cls), members, kept, fit))
-                labels[members] = seg_id
-                used[kept] = True
-    return BlindResult(segments, labels, used, buffer, spacing)
+                fit = fit_points(points[index[obj[kept]]], seg_id)
+                fit.centroid = fit.centroid + origin
+                segments.append(Segment(seg_id, cls, index[obj[members]], index[obj[kept]], fit))
+                labels[index[obj[members]]] = seg_id
+                used[index[obj[kept]]] = True
+    clock("fit")
+    return BlindResult(segments, labels, used, buffer, spacing, clock.stages)
 
 
-def _objects(points: np.ndarray, index: np.ndarray, params: BlindParams) -> list[np.ndarray]:
-    """Split points into objects by horizontal connectivity; return each object's indices."""
-    if len(points) < params.min_points:
-        return [index]
-    k = min(params.k, len(points))
-    distance, _ = cKDTree(points).query(points, k=k, workers=-1)
-    radius = params.link_spacings * float(np.median(distance[:, -1]))
-    pairs = cKDTree(points[:, :2]).query_pairs(radius, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])),
-                       shape=(len(points), len(points)))
-    count, component = connected_components(graph, directed=False)
-    order = np.argsort(component, kind="stable")
-    bounds = np.searchsorted(component[order], np.arange(count + 1))
-    return [index[order[bounds[c]:bounds[c + 1]]] for c in range(count)]
+class _Clock:
+    """Accumulates wall time per named stage."""
+
+    def __init__(self) -> None:
+        self.stages: dict[str, float] = {}
+        self.last = time.perf_counter()
+
+    def __call__(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.stages[stage] = self.stages.get(stage, 0.0) + now - self.last
+        self.last = now
 
 
-def local_planes(points: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-point PCA of its neighbourhood: unit normals (n, 3) with z ≥ 0, and the RMS distance
-    (n,) [m] of the neighbourhood from its own best plane (the planarity residual)."""
+def _group_indices(labels: np.ndarray) -> list[np.ndarray]:
+    """Indices of each label 0..max (label order), by one stable sort."""
+    if len(labels) == 0 or labels.max() < 0:
+        return []
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(labels.max() + 2))
+    return [order[bounds[g]:bounds[g + 1]] for g in range(labels.max() + 1)]
+
+
+def _objects(points: np.ndarray, near: Neighbourhoods, params: BlindParams) -> list[np.ndarray]:
+    """Split points into objects by horizontal connectivity; return each object's indices.
+
+    The (x, y) plane is cut into square cells of the link distance; occupied cells that touch
+    (8-connectivity) form one object, so points closer than the link distance always share an
+    object and objects are at least that far apart.
+    """
+    link = max(params.link_factor * float(np.median(near.reach_m)), 1e-6)
+    cell = np.floor((points[:, :2] - points[:, :2].min(axis=0)) / link).astype(np.int64)
+    occupied = np.zeros(tuple(cell.max(axis=0) + 1), dtype=bool)
+    occupied[cell[:, 0], cell[:, 1]] = True
+    grid, _ = label(occupied, structure=np.ones((3, 3), dtype=bool))
+    return _group_indices(grid[cell[:, 0], cell[:, 1]] - 1)
+
+
+def _restrict(near: Neighbourhoods, subset: np.ndarray) -> Neighbourhoods:
+    """Neighbourhoods of the points ``subset``, renumbered within it; neighbours outside the subset
+    are replaced by the point itself."""
+    position = np.full(len(near.index), -1, dtype=np.int64)
+    position[subset] = np.arange(len(subset))
+    index = position[near.index[subset]]
+    index = np.where(index >= 0, index, np.arange(len(subset))[:, None])
+    return Neighbourhoods(index, near.nearest_m[subset], near.reach_m[subset])
+
+
+def local_planes(points: np.ndarray, neighbours: np.ndarray, k_noise: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-point PCA of the neighbourhood (n, k), the point itself first.
+
+    Returns unit normals (n, 3) with z ≥ 0, from all k neighbours, and the planarity residual
+    (n,) [m], the RMS distance of the ``k_noise`` nearest from their own best plane: a local
+    noise scale, small enough a neighbourhood not to straddle an edge where the data are dense.
+    """
     normals = np.empty((len(points), 3))
     residual = np.empty(len(points))
     for start in range(0, len(points), _CHUNK):
-        block = points[neighbours[start:start + _CHUNK]]
-        block = block - block.mean(axis=1, keepdims=True)
-        covariance = np.einsum("nki,nkj->nij", block, block) / block.shape[1]
-        values, vectors = np.linalg.eigh(covariance)
-        normal = vectors[:, :, 0]
-        normals[start:start + _CHUNK] = normal * np.where(normal[:, 2:3] >= 0.0, 1.0, -1.0)
-        residual[start:start + _CHUNK] = np.sqrt(np.maximum(values[:, 0], 0.0))
+        rows = slice(start, start + _CHUNK)
+        block = points[neighbours[rows]]
+        normal = _pca(block)[1][:, :, 0]
+        normals[rows] = normal * np.where(normal[:, 2:3] >= 0.0, 1.0, -1.0)
+        residual[rows] = np.sqrt(np.maximum(_pca(block[:, :k_noise + 1])[0][:, 0], 0.0))
     return normals, residual
 
 
-def _segment_object(points: np.ndarray, buffer: float, params: BlindParams) -> tuple[np.ndarray, np.ndarray]:
-    """Segment one object; return per-point labels (-1 none, 0..S-1) and the used-in-fit mask."""
-    n = len(points)
-    k = min(params.k, n)
-    _, neighbours = cKDTree(points).query(points, k=k, workers=-1)
-    normals, residual = local_planes(points, neighbours)
+def _pca(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (ascending) and eigenvectors of the covariance of each neighbourhood (n, k, 3)."""
+    block = block - block.mean(axis=1, keepdims=True)
+    return np.linalg.eigh(np.einsum("nki,nkj->nij", block, block) / block.shape[1])
+
+
+def _segment_object(points: np.ndarray, near: Neighbourhoods, buffer: float, params: BlindParams,
+                    clock: _Clock) -> tuple[np.ndarray, np.ndarray]:
+    """Segment one object; return per-point labels (-1 none, 0..S-1) and the fitted-point mask."""
+    normals, residual = local_planes(points, near.index, params.k_noise)
     noise = max(float(np.median(residual)), params.min_noise_m)
-    labels = _grow(points, neighbours, normals, residual, noise, params)
-    labels = _split_non_planar(points, neighbours, normals, residual, labels, params)
+    growing = near.index[:, :params.k_grow + 1]
+    clock("normals")
+    labels = _grow(points, growing, normals, residual, noise, params)
+    clock("grow")
+    labels = _split_non_planar(points, growing, normals, residual, labels, params)
+    clock("split")
     if labels.max() < 0:
-        return labels, np.zeros(n, dtype=bool)
-    labels = _merge(points, neighbours, labels, params)
+        return labels, np.zeros(len(points), dtype=bool)
+    labels = _merge(points, growing, labels, params)
+    clock("merge")
     for _ in range(params.assign_passes):
-        labels = _assign(points, neighbours, labels, noise, params)
+        labels = _assign(points, growing, labels, params)
     labels = _compact(labels, params.min_points)
-    used = _beyond_edges(points, neighbours, labels, buffer)
-    return labels, used
+    clock("assign")
+    distance = boundary_distance_m(points, labels, near, params.max_angle_deg)
+    clock("edges")
+    return labels, (labels >= 0) & (distance > buffer)
 
 
 def _grow(points, neighbours, normals, residual, noise, params) -> np.ndarray:
@@ -208,7 +272,7 @@ def _grow(points, neighbours, normals, residual, noise, params) -> np.ndarray:
     smooth = residual <= params.smooth_factor * noise
     i = np.repeat(np.arange(n), k - 1)
     j = neighbours[:, 1:].ravel()
-    ok = smooth[i] & smooth[j]
+    ok = smooth[i] & smooth[j] & (i != j)
     i, j = i[ok], j[ok]
     cos_angle = np.abs(np.einsum("ij,ij->i", normals[i], normals[j]))
     offset = points[j] - points[i]
@@ -223,12 +287,14 @@ def _grow(points, neighbours, normals, residual, noise, params) -> np.ndarray:
 
 
 def _split_non_planar(points, neighbours, normals, residual, labels, params) -> np.ndarray:
-    """Re-segment by RANSAC every grown segment whose plane fits much worse than its points'
-    neighbourhoods do (growing leaked across a ridge or a step)."""
+    """Re-segment by RANSAC each grown segment whose plane fits much worse than its points'
+    own neighbourhoods (growing leaked across a ridge or a step)."""
     out = labels.copy()
     next_label = labels.max() + 1
-    for fit in fit_groups(points, labels):
-        member = np.flatnonzero(labels == fit.plane_id)
+    fits = fit_groups(points, labels)
+    members_of = _group_indices(labels)
+    for fit in fits:
+        member = members_of[fit.plane_id]
         scale = max(float(np.median(residual[member])), params.min_noise_m)
         if fit.rms_m <= params.planar_factor * scale or len(member) > params.ransac_max_points:
             continue
@@ -239,74 +305,71 @@ def _split_non_planar(points, neighbours, normals, residual, labels, params) -> 
 
 
 def _ransac(points, neighbours, normals, residual, member, params) -> np.ndarray:
-    """Sequential RANSAC on the points ``member``: labels (len(member),), -1 for none.
+    """Sequential RANSAC on the points ``member``: a label per member (-1: none).
 
-    Candidate planes are the tangent planes of sampled points (seeded, so deterministic). A
-    point is an inlier of a plane when within ``distance_factor`` × its own planarity residual
-    of it and its normal within ``ransac_angle_deg``. The best candidate is refined by a TLS fit
-    of its inliers, cut to their largest connected piece (the neighbour graph), and removed.
+    Candidate planes are the tangent planes of sampled points (seeded: deterministic). A point
+    is an inlier of a plane when within ``distance_factor`` × its own planarity residual of it
+    and its normal within ``ransac_angle_deg``. The best candidate is refined by TLS fits of its
+    inliers, cut to their largest connected piece in the neighbour graph, and taken out.
     """
     rng = np.random.default_rng(params.seed)
-    n = len(points)
-    pieces = np.full(len(member), -1, dtype=np.int64)
-    local = np.full(n, -1, dtype=np.int64)
-    local[member] = np.arange(len(member))
+    position = np.full(len(points), -1, dtype=np.int64)
+    position[member] = np.arange(len(member))
+    p_all, q_all = points[member], normals[member]
     tolerance = params.distance_factor * np.maximum(residual[member], params.min_noise_m)
     cos_max = math.cos(math.radians(params.ransac_angle_deg))
+    pieces = np.full(len(member), -1, dtype=np.int64)
     free = np.ones(len(member), dtype=bool)
-    for label in range(len(member)):
+    label = 0
+    for _ in range(params.ransac_rounds):
         pool = np.flatnonzero(free)
         if len(pool) < params.min_points:
             break
-        seeds = rng.choice(pool, size=min(params.ransac_hypotheses, len(pool)), replace=False)
-        p, q = points[member[pool]], normals[member[pool]]
-        best, best_count = -1, 0
-        for h in seeds:
-            count = int(_inliers(p, q, points[member[h]], normals[member[h]], tolerance[pool], cos_max).sum())
-            if count > best_count:
-                best, best_count = h, count
-        if best_count < params.min_points:
+        p, q, t = p_all[pool], q_all[pool], tolerance[pool]
+        seeds = rng.choice(len(pool), size=min(params.ransac_hypotheses, len(pool)), replace=False)
+        counts = [int(_inliers(p, q, p[h], q[h], t, cos_max).sum()) for h in seeds]
+        best = seeds[int(np.argmax(counts))]
+        if max(counts) < params.min_points:
             break
-        centroid, normal = points[member[best]], normals[member[best]]
-        first = inlier = _inliers(p, q, centroid, normal, tolerance[pool], cos_max)
-        for _ in range(2):  # refine: fit the inliers, collect the inliers of the fit
+        first = inlier = _inliers(p, q, p[best], q[best], t, cos_max)
+        for _ in range(2):  # refine: fit the inliers, take the inliers of the fit
+            fit = fit_points(p[inlier])
+            inlier = _inliers(p, q, fit.centroid, fit.normal, t, cos_max)
             if inlier.sum() < 3:
                 break
-            fit = fit_points(p[inlier])
-            centroid, normal = fit.centroid, fit.normal
-            inlier = _inliers(p, q, centroid, normal, tolerance[pool], cos_max)
-        piece = _largest_piece(pool[inlier], neighbours[member[pool[inlier]]], local) if inlier.any() else pool[:0]
+        piece = _largest_piece(pool[inlier], position[neighbours[member[pool[inlier]]]])
         if len(piece) < params.min_points:
-            free[pool[first]] = False  # no connected plane here: drop these from the pool
+            free[pool[first]] = False  # no connected plane here: leave these points out
             continue
         pieces[piece] = label
         free[piece] = False
+        label += 1
     return pieces
 
 
 def _inliers(p, q, centroid, normal, tolerance, cos_max) -> np.ndarray:
-    """Points p (m, 3) with normals q (m, 3) within tolerance (m,) of the plane and of its normal."""
+    """Points p (m, 3) with normals q (m, 3) within ``tolerance`` (m,) of the plane and whose
+    normal is within the angle of cosine ``cos_max`` of the plane's."""
     return (np.abs((p - centroid) @ normal) <= tolerance) & (np.abs(q @ normal) >= cos_max)
 
 
-def _largest_piece(chosen: np.ndarray, rows: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """The largest connected subset of ``chosen`` (indices into a member list) under the
-    neighbour graph; ``rows`` are the chosen points' neighbour rows (object indices) and
-    ``local`` maps object indices to member positions (-1 outside)."""
-    position = np.full(local.max() + 2, -1, dtype=np.int64)
-    position[chosen] = np.arange(len(chosen))
-    j = local[rows[:, 1:]]
-    j = np.where(j >= 0, position[j], -1)
-    i = np.repeat(np.arange(len(chosen)), rows.shape[1] - 1)
-    ok = j.ravel() >= 0
-    graph = coo_matrix((np.ones(int(ok.sum()), dtype=np.int8), (i[ok], j.ravel()[ok])),
-                       shape=(len(chosen), len(chosen)))
+def _largest_piece(chosen: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The largest connected subset of ``chosen`` (member positions) in the neighbour graph;
+    ``rows`` (len(chosen), k) are their neighbours as member positions (-1 outside)."""
+    if len(chosen) == 0:
+        return chosen
+    slot = np.full(max(int(rows.max()), int(chosen.max())) + 1, -1, dtype=np.int64)
+    slot[chosen] = np.arange(len(chosen))
+    j = np.where(rows >= 0, slot[np.maximum(rows, 0)], -1).ravel()
+    i = np.repeat(np.arange(len(chosen)), rows.shape[1])
+    ok = j >= 0
+    graph = coo_matrix((np.ones(int(ok.sum()), dtype=np.int8), (i[ok], j[ok])), shape=(len(chosen), len(chosen)))
     _, component = connected_components(graph, directed=False)
     return chosen[component == np.bincount(component).argmax()]
 
 
 def _compact(labels: np.ndarray, min_points: int) -> np.ndarray:
-    """Drop labels with fewer than ``min_points`` points and renumber the rest 0..S-1 by size."""
+    """Drop labels with fewer than ``min_points`` points; renumber the rest 0..S-1, largest first."""
     out = np.full(len(labels), -1, dtype=np.int64)
     valid = labels >= 0
     if not valid.any():
@@ -315,52 +378,27 @@ def _compact(labels: np.ndarray, min_points: int) -> np.ndarray:
     order = np.lexsort((values, -counts))  # largest first, ties by old label
     rank = np.empty(len(values), dtype=np.int64)
     rank[order] = np.arange(len(values))
-    new = np.where(counts[inverse] >= min_points, rank[inverse], -1)
-    keep = np.sort(np.unique(new[new >= 0]))
-    remap = np.full(len(values) + 1, -1, dtype=np.int64)
-    remap[keep] = np.arange(len(keep))
-    out[valid] = remap[new]
+    out[valid] = np.where(counts[inverse] >= min_points, rank[inverse], -1)
     return out
 
 
-@dataclass
-class _Moments:
-    """Count, centroid and centred covariance of a segment, combinable exactly."""
-
-    n: int
-    centroid: np.ndarray
-    covariance: np.ndarray
-
-    @staticmethod
-    def of(points: np.ndarray) -> "_Moments":
-        centroid = points.mean(axis=0)
-        d = points - centroid
-        return _Moments(len(points), centroid, d.T @ d / len(points))
-
-    def plus(self, other: "_Moments") -> "_Moments":
-        n = self.n + other.n
-        centroid = (self.n * self.centroid + other.n * other.centroid) / n
-        covariance = np.zeros((3, 3))
-        for m in (self, other):
-            delta = m.centroid - centroid
-            covariance += m.n * (m.covariance + np.outer(delta, delta))
-        return _Moments(n, centroid, covariance / n)
-
-    @property
-    def variance(self) -> float:
-        """Mean squared orthogonal residual of the TLS plane [m²]."""
-        return float(max(np.linalg.eigvalsh(self.covariance)[0], 0.0))
-
-
-def _merge(points, neighbours, labels, params) -> np.ndarray:
-    """Merge neighbouring segments whose joint plane fits about as well as their separate ones."""
-    count = labels.max() + 1
-    moments = [_Moments.of(points[labels == s]) for s in range(count)]
+def _touching_pairs(labels: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct label pairs (a, b), a < b, of neighbouring points, and how many neighbour links
+    join each pair."""
     a = np.repeat(labels, neighbours.shape[1] - 1)
     b = labels[neighbours[:, 1:].ravel()]
     touching = (a >= 0) & (b >= 0) & (a != b)
-    pairs = np.unique(np.sort(np.column_stack([a[touching], b[touching]]), axis=1), axis=0)
-    parent = list(range(count))
+    pairs = np.sort(np.column_stack([a[touching], b[touching]]), axis=1)
+    if len(pairs) == 0:
+        return pairs.reshape(0, 2), np.zeros(0, dtype=np.int64)
+    return np.unique(pairs, axis=0, return_counts=True)
+
+
+def _merge(points, neighbours, labels, params) -> np.ndarray:
+    """Merge touching segments whose joint plane fits about as well as their separate ones."""
+    count, centroid, covariance = group_moments(points, labels)
+    moments = [(int(count[s]), centroid[s], covariance[s]) for s in range(len(count))]
+    parent = list(range(len(count)))
 
     def root(s: int) -> int:
         while parent[s] != s:
@@ -369,77 +407,135 @@ def _merge(points, neighbours, labels, params) -> np.ndarray:
         return s
 
     floor = params.min_noise_m**2
+    pairs, _ = _touching_pairs(labels, neighbours)
     for s, t in pairs:
         rs, rt = root(int(s)), root(int(t))
         if rs == rt:
             continue
-        ms, mt = moments[rs], moments[rt]
-        joint = ms.plus(mt)
-        pooled = (ms.n * ms.variance + mt.n * mt.variance) / joint.n
-        if joint.variance <= params.merge_factor**2 * pooled + floor:
+        joint = _combine(moments[rs], moments[rt])
+        pooled = (moments[rs][0] * _variance(moments[rs]) + moments[rt][0] * _variance(moments[rt])) / joint[0]
+        if _variance(joint) <= params.merge_factor**2 * pooled + floor:
             parent[rt] = rs
             moments[rs] = joint
-    roots = np.array([root(s) for s in range(count)])
-    merged = np.where(labels >= 0, roots[np.maximum(labels, 0)], -1)
-    return _compact(merged, params.min_points)
+    roots = np.array([root(s) for s in range(len(count))])
+    return _compact(np.where(labels >= 0, roots[np.maximum(labels, 0)], -1), params.min_points)
 
 
-def _assign(points, neighbours, labels, noise, params) -> np.ndarray:
+def _combine(a: tuple, b: tuple) -> tuple:
+    """Exact union of two (count, centroid, centred covariance) moment sets."""
+    n = a[0] + b[0]
+    centroid = (a[0] * a[1] + b[0] * b[1]) / n
+    covariance = sum(m[0] * (m[2] + np.outer(m[1] - centroid, m[1] - centroid)) for m in (a, b)) / n
+    return n, centroid, covariance
+
+
+def _variance(m: tuple) -> float:
+    """Mean squared orthogonal residual of the TLS plane of a moment set [m²]."""
+    return float(max(np.linalg.eigvalsh(m[2])[0], 0.0))
+
+
+def _assign(points, neighbours, labels, params) -> np.ndarray:
     """Give each point to the nearest plane among its own and its neighbours' segments, within
-    ``distance_factor`` × the segment's residual RMS (at least × the object's noise)."""
+    ``distance_factor`` × that segment's RMS. Repeated, this sheds points of another surface,
+    however few (each pass re-fits without the points the last one shed)."""
     count = labels.max() + 1
     if count <= 0:
         return labels
-    fits = {f.plane_id: f for f in fit_groups(points, labels)}
     normal = np.zeros((count + 1, 3))
-    centroid = np.zeros((count + 1, 3))
-    tolerance = np.full(count + 1, -1.0)
-    for s, f in fits.items():
-        normal[s], centroid[s] = f.normal, f.centroid
-        tolerance[s] = params.distance_factor * max(f.rms_m, noise)
-    candidates = labels[neighbours]  # (n, k); column 0 is the point itself
-    slot = np.where(candidates >= 0, candidates, count)  # row `count` is a sentinel
-    distance = np.abs(np.einsum("nkj,nkj->nk", points[:, None, :] - centroid[slot], normal[slot]))
-    distance[(candidates < 0) | (distance > tolerance[slot])] = np.inf
+    offset = np.zeros(count + 1)
+    tolerance = np.full(count + 1, -1.0)  # the sentinel row `count` accepts nothing
+    for f in fit_groups(points, labels):
+        s = f.plane_id
+        normal[s], offset[s] = f.normal, f.normal @ f.centroid
+        tolerance[s] = params.distance_factor * max(f.rms_m, params.min_noise_m)
+    candidates = np.where(labels[neighbours] >= 0, labels[neighbours], count)
+    distance = np.empty(candidates.shape)
+    for c in range(candidates.shape[1]):
+        s = candidates[:, c]
+        distance[:, c] = np.abs(np.einsum("ij,ij->i", points, normal[s]) - offset[s])
+        distance[distance[:, c] > tolerance[s], c] = np.inf
     best = np.argmin(distance, axis=1)
     rows = np.arange(len(points))
-    return np.where(np.isfinite(distance[rows, best]), candidates[rows, best], -1)
+    chosen = candidates[rows, best]
+    return np.where(np.isfinite(distance[rows, best]), chosen, -1)
 
 
-def _beyond_edges(points, neighbours, labels, buffer) -> np.ndarray:
-    """Points of a segment that are neither boundary points nor within ``buffer`` of one."""
-    used = np.zeros(len(points), dtype=bool)
+def boundary_distance_m(points: np.ndarray, labels: np.ndarray, near: Neighbourhoods,
+                        min_angle_deg: float = 12.0, min_contacts: int = 3) -> np.ndarray:
+    """Distance [m] of each labelled point from the boundary of its group (label ≥ 0), estimated
+    from the points alone; NaN for unlabelled points.
+
+    Two kinds of boundary:
+
+    - **shared edges**: where a group touches another (at least ``min_contacts`` neighbour links)
+      whose plane meets it at ``min_angle_deg`` or more, the edge is the intersection line of
+      the two planes (a ridge, an eave above a wall);
+    - **free edges**, where the group's points end: the points of the group and of its
+      shared-edge partners are projected on the group's plane and rasterised, the occupied cells
+      closed (dilated, then eroded) by a disc of the group's median distance to its k-th
+      neighbour, which fills the gaps of the scan pattern but not the outside; the outermost
+      points lie on the edge of that footprint.
+
+    The boundary distance is the smaller of the two.
+    """
+    distance = np.full(len(points), np.nan)
     fits = {f.plane_id: f for f in fit_groups(points, labels)}
-    for s, f in fits.items():
-        member = np.flatnonzero(labels == s)
-        boundary = _boundary_points(points, neighbours[member], labels, s, f.normal)
-        near = boundary.copy()
-        if buffer > 0.0 and boundary.any():
-            distance, _ = cKDTree(points[member[boundary]]).query(points[member], k=1,
-                                                                  distance_upper_bound=buffer * (1.0 + 1e-9))
-            near |= distance <= buffer
-        used[member] = ~near
-    return used
+    partners = _partners(labels, near.index, fits, min_angle_deg, min_contacts)
+    members_of = _group_indices(labels)
+    for g, fit in fits.items():
+        member = members_of[g]
+        u, v = _plane_axes(fit.normal)
+        footprint = np.concatenate([member, *(members_of[h] for h in partners.get(g, ()))])
+        d = points[footprint] - fit.centroid
+        uv = np.column_stack([d @ u, d @ v])
+        edge = _footprint_distance(uv, float(np.median(near.reach_m[member])))[:len(member)]
+        for h in partners.get(g, ()):
+            edge = np.minimum(edge, _line_distance(points[member], fit, fits[h]))
+        distance[member] = edge
+    return distance
 
 
-def _boundary_points(points, neighbours, labels, segment, normal) -> np.ndarray:
-    """For the points with these neighbour rows (column 0: the point), whether the directions to
-    their same-segment neighbours, projected on the plane, leave a gap wider than 90°."""
+def _partners(labels, neighbours, fits, min_angle_deg, min_contacts) -> dict[int, list[int]]:
+    """For each group, the groups it shares an edge with (see :func:`boundary_distance_m`)."""
+    pairs, count = _touching_pairs(labels, neighbours)
+    sin_min = math.sin(math.radians(min_angle_deg))
+    partners: dict[int, list[int]] = {}
+    for (g, h), c in zip(pairs.tolist(), count.tolist()):
+        if c >= min_contacts and g in fits and h in fits:
+            if np.linalg.norm(np.cross(fits[g].normal, fits[h].normal)) >= sin_min:
+                partners.setdefault(g, []).append(h)
+                partners.setdefault(h, []).append(g)
+    return partners
+
+
+def _line_distance(points: np.ndarray, a: PlaneFit, b: PlaneFit) -> np.ndarray:
+    """Distance [m] of points (m, 3) from the intersection line of two non-parallel planes."""
+    direction = np.cross(a.normal, b.normal)
+    direction /= np.linalg.norm(direction)
+    matrix = np.array([a.normal, b.normal, direction])
+    origin = np.linalg.solve(matrix, [a.normal @ a.centroid, b.normal @ b.centroid, direction @ a.centroid])
+    return np.linalg.norm(np.cross(points - origin, direction), axis=1)
+
+
+def _footprint_distance(uv: np.ndarray, radius: float) -> np.ndarray:
+    """Distance [m] of 2-D points (m, 2) [m] from the edge of their footprint closed by ``radius``
+    (less half a raster cell, so that the outermost points are at about 0)."""
+    radius = max(radius, 1e-6)
+    extent = uv.max(axis=0) - uv.min(axis=0) + 2.0 * radius
+    cell = max(radius / 8.0, math.sqrt(extent[0] * extent[1] / _MAX_CELLS))
+    pad = int(math.ceil(radius / cell)) + 2
+    index = np.floor((uv - uv.min(axis=0)) / cell).astype(np.int64) + pad
+    occupied = np.zeros(tuple(index.max(axis=0) + pad + 1), dtype=bool)
+    occupied[index[:, 0], index[:, 1]] = True
+    dilated = distance_transform_edt(~occupied, sampling=cell) <= radius
+    closed = (distance_transform_edt(dilated, sampling=cell) > radius) | occupied
+    inside = distance_transform_edt(closed, sampling=cell)
+    return inside[index[:, 0], index[:, 1]] - 0.5 * cell
+
+
+def _plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two orthonormal vectors spanning the plane of this unit normal."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = np.cross(normal, helper)
     u /= np.linalg.norm(u)
-    v = np.cross(normal, u)
-    offset = points[neighbours[:, 1:]] - points[neighbours[:, :1]]
-    angle = np.arctan2(offset @ v, offset @ u)
-    angle[labels[neighbours[:, 1:]] != segment] = np.nan
-    angle = np.sort(angle, axis=1)  # NaN last
-    valid = np.isfinite(angle)
-    count = valid.sum(axis=1)
-    gaps = np.diff(angle, axis=1)
-    gaps[~np.isfinite(gaps)] = 0.0
-    widest = gaps.max(axis=1, initial=0.0)
-    first = angle[:, 0]
-    last = np.take_along_axis(angle, np.maximum(count - 1, 0)[:, None], axis=1)[:, 0]
-    wrap = 2.0 * math.pi - (last - first)
-    widest = np.maximum(widest, np.where(count > 0, wrap, 2.0 * math.pi))
-    return (count < 2) | (widest > _MAX_GAP_RAD)
+    return u, np.cross(normal, u)

@@ -135,6 +135,20 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from flightsim.bench import SECTIONS, run_bench
+    from flightsim.warp_runtime import resolve_device
+
+    resolve_device(args.device)
+    sections = tuple(args.sections.split(",")) if args.sections else SECTIONS
+    unknown = set(sections) - set(SECTIONS)
+    if unknown:
+        raise InputError("--sections", args.sections, "a comma-separated subset of " + ",".join(SECTIONS))
+    run_bench(args.device, args.quick, Path(args.out), sections)
+    print((Path(args.out) / "bench.md").read_text())
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     import laspy
     import numpy
@@ -182,6 +196,13 @@ def make_parser() -> argparse.ArgumentParser:
     paper.add_argument("--out", required=True, help="output directory (e.g. results/paper)")
     paper.add_argument("--overwrite", action="store_true", help="recompute finished sweeps")
     paper.set_defaults(func=cmd_paper)
+
+    bench = sub.add_parser("bench", help="measure throughput, run time against error, and savings")
+    bench.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    bench.add_argument("--quick", action="store_true", help="small sizes (under a minute on a CPU)")
+    bench.add_argument("--sections", help="comma-separated subset of throughput,study,las,skip,pareto")
+    bench.add_argument("--out", required=True, help="directory for bench.json, bench.md, pareto.csv/png")
+    bench.set_defaults(func=cmd_bench)
 
     info = sub.add_parser("info", help="versions, devices and the kernel cache")
     info.set_defaults(func=cmd_info)

@@ -50,7 +50,7 @@ class FlightConfig:
     roll_deg: float = field(default=0.0, metadata=_num(-30.0, 30.0, "deg"))
     pitch_deg: float = field(default=0.0, metadata=_num(-30.0, 30.0, "deg"))
     start_gps_time: float = field(default=450_000_000.0, metadata=_num(-1.0e9, 2.0e9, "s, adjusted standard GPS time"))
-    lines: int = field(default=1, metadata=_num(1, 1000, integer=True))
+    lines: int = field(default=1, metadata=_num(1, 65535, integer=True))
     line_spacing_m: float = field(default=200.0, metadata=_num(0.0, 1.0e5, "m", lo_open=True))
     trajectory: str = ""  # CSV trajectory file; when given it replaces the line plan
 

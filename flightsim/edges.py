@@ -2,8 +2,8 @@
 
 A point whose true hit lies within the edge buffer of its plane's boundary is left out of the
 plane fits: near an edge a real footprint straddles two surfaces, and a distorted point may
-land on the neighbouring one. The kernels measure that distance against a mesh of thin ribbons
-laid along every boundary edge, so one BVH query answers it.
+land on the neighbouring one. The kernels measure that distance exactly, visiting only the
+boundary segments whose boxes (in a BVH) come within the buffer of the point.
 """
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ import numpy as np
 from flightsim.config import RunConfig
 from flightsim.scene import Scene
 
-RIBBON_WIDTH_M = 1e-3  # width of the sliver triangle laid along each boundary edge [m]
 _VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
 
 
@@ -37,22 +36,6 @@ def boundary_segments(scene: Scene) -> np.ndarray:
     first_vertex = np.zeros(vertex.max() + 1, dtype=np.int64)
     first_vertex[vertex.ravel()] = np.arange(len(scene.vertices))
     return scene.vertices[first_vertex[boundary[:, 1:]]]
-
-
-def ribbon_mesh(segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sliver triangles along segments, for nearest-boundary queries: (points (3S,3), indices (S,3)).
-
-    Each segment (a, b) becomes (a, b, b + w·u) with u a unit vector perpendicular to b − a,
-    so the closest point of the triangle is within w of the closest point of the segment.
-    """
-    a, b = segments[:, 0], segments[:, 1]
-    d = b - a
-    helper = np.where(np.abs(d[:, 2:3]) < 0.9 * np.linalg.norm(d, axis=1, keepdims=True), [[0.0, 0.0, 1.0]],
-                      [[1.0, 0.0, 0.0]])
-    u = np.cross(d, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    points = np.stack([a, b, b + RIBBON_WIDTH_M * u], axis=1).reshape(-1, 3)
-    return points, np.arange(len(points), dtype=np.int32).reshape(-1, 3)
 
 
 def max_distortion_rad(cfg: RunConfig, samples: int = 360) -> float:

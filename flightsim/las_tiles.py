@@ -504,9 +504,17 @@ def _validated_crs(crs) -> pyproj.CRS:
     horizontal_units = {axis.unit_name for axis in crs.axis_info[:2]}
     if not crs.is_projected or not horizontal_units <= {"metre", "meter"}:
         raise InputError("crs", crs.name, allowed)
-    if crs.to_wkt(WktVersion.WKT1_GDAL) is None:
+    if wkt1(crs) is None:
         raise InputError("crs", crs.name, allowed)
     return crs
+
+
+def wkt1(crs: pyproj.CRS) -> str | None:
+    """The OGC WKT1 (GDAL flavour) of ``crs``, or None where PROJ has none (pyproj may raise instead)."""
+    try:
+        return crs.to_wkt(WktVersion.WKT1_GDAL)
+    except pyproj.exceptions.CRSError:
+        return None
 
 
 def _tile_header_template(
@@ -525,7 +533,7 @@ def _tile_header_template(
     header.scales = np.array([SCALE_M, SCALE_M, SCALE_M])
     header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
     header.global_encoding.wkt = True
-    header.vlrs.append(WktCoordinateSystemVlr(crs.to_wkt(WktVersion.WKT1_GDAL)))
+    header.vlrs.append(WktCoordinateSystemVlr(wkt1(crs)))
     header.add_extra_dims(
         [laspy.ExtraBytesParams(name, dtype, description) for name, _, dtype, description in dims]
     )

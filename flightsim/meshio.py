@@ -495,11 +495,16 @@ def _triangulate(faces) -> tuple[np.ndarray, np.ndarray]:
 
 def _degenerate(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Mask of zero-area triangles (2·area < DEGENERATE_SINE · longest edge², or repeated corners)."""
-    p = vertices[triangles]
-    e = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 1], p[:, 0] - p[:, 2]], axis=1)
-    longest = np.max(np.sum(e * e, axis=2), axis=1)
-    twice_area = np.linalg.norm(np.cross(e[:, 0], -e[:, 2]), axis=1)
-    return (twice_area <= DEGENERATE_SINE * longest) | (longest == 0.0)
+    p0, p1, p2 = (vertices[triangles[:, k]] for k in range(3))
+    e0, e1, e2 = p1 - p0, p2 - p1, p0 - p2
+    longest = np.maximum(np.maximum(_norm_sq(e0), _norm_sq(e1)), _norm_sq(e2))
+    twice_area_sq = _norm_sq(np.cross(e0, e2))
+    return (twice_area_sq <= DEGENERATE_SINE**2 * longest * longest) | (longest == 0.0)
+
+
+def _norm_sq(v: np.ndarray) -> np.ndarray:
+    """Squared length of each row of (n, 3) ``v``."""
+    return np.einsum("ij,ij->i", v, v)
 
 
 def _renumber(labels: np.ndarray) -> np.ndarray:
@@ -659,13 +664,15 @@ def _plane_infos(vertices, triangles, plane_of, classes) -> tuple[list[PlaneInfo
 
 
 def _majority(plane_of: np.ndarray, labels: np.ndarray, weights: np.ndarray, n_planes: int) -> np.ndarray:
-    """Per plane, the label with the largest summed weight (ties: the smallest label)."""
-    pairs, inverse = np.unique(np.column_stack([plane_of, labels]), axis=0, return_inverse=True)
+    """Per plane, the label (≥ 0) with the largest summed weight (ties: the smallest label)."""
+    span = int(labels.max()) + 1
+    keys, inverse = np.unique(plane_of.astype(np.int64) * span + labels, return_inverse=True)
     totals = np.bincount(inverse.reshape(-1), weights=weights)
-    order = np.lexsort((pairs[:, 1], -totals, pairs[:, 0]))
-    first = np.r_[True, pairs[order[1:], 0] != pairs[order[:-1], 0]]
+    plane, label = keys // span, keys % span
+    order = np.lexsort((label, -totals, plane))
+    first = np.r_[True, plane[order[1:]] != plane[order[:-1]]]
     best = np.empty(n_planes, dtype=np.int64)
-    best[pairs[order[first], 0]] = pairs[order[first], 1]
+    best[plane[order[first]]] = label[order[first]]
     return best
 
 

@@ -14,6 +14,7 @@ from flightsim.scene import (Scene, calibration_min_half_extent, calibration_sce
 from trajectories import Trajectory, TrajectoryError, plan_parallel_lines
 
 MIN_CLEARANCE_M = 1.0  # the sensor must stay at least this far above the terrain [m]
+CLEARANCE_PIECES = 64  # a trajectory's clearance is checked over this many runs of samples
 
 
 def line_length_m(cfg: RunConfig) -> float:
@@ -57,15 +58,41 @@ def _planned_lines(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
     return [line.trajectory(ground_height_m=centre[2]) for line in lines]
 
 
-def _check_clearance(trajectory: Trajectory, scene: Scene, field: str) -> None:
-    """Reject a trajectory that does not stay above the terrain beneath it."""
+def _clearance(trajectory: Trajectory, scene: Scene, pieces: int = CLEARANCE_PIECES) -> tuple[float, float, float]:
+    """(clearance [m], sensor height [m], terrain top [m]) where a trajectory comes closest to the terrain.
+
+    Heights are local [m].
+
+    The trajectory is cut into up to ``pieces`` runs of consecutive samples; over each run's
+    bounding rectangle the terrain's highest point is compared with the run's lowest sample
+    (positions are linear between samples, so the rectangle holds the whole run).
+    """
     local = scene.world_to_local(trajectory.position)
-    top = scene.terrain_top(local[:, 0].min(), local[:, 1].min(), local[:, 0].max(), local[:, 1].max())
-    lowest = float(local[:, 2].min())
-    if lowest - top < MIN_CLEARANCE_M:
-        raise InputError(field, round(float(trajectory.position[:, 2].min()), 3),
-                         f"a sensor height above the terrain beneath the flight (top at "
-                         f"{top + scene.origin[2]:.3f} m) by at least {MIN_CLEARANCE_M:g} m")
+    bounds = np.unique(np.linspace(0, len(local) - 1, min(pieces, len(local) - 1) + 1).round().astype(int))
+    rects, lowest = [], []
+    for i0, i1 in zip(bounds[:-1], bounds[1:]):
+        run = local[i0:i1 + 1]
+        rects.append([run[:, 0].min(), run[:, 1].min(), run[:, 0].max(), run[:, 1].max()])
+        lowest.append(run[:, 2].min())
+    tops = scene.terrain_tops(rects)
+    margin = np.asarray(lowest) - tops
+    k = int(np.argmin(margin))
+    return float(margin[k]), float(lowest[k]), float(tops[k])
+
+
+def _check_clearance(trajectory: Trajectory, scene: Scene, cfg: RunConfig) -> None:
+    """Reject a flight whose sensor does not stay at least MIN_CLEARANCE_M above the terrain beneath it."""
+    margin, height, top = _clearance(trajectory, scene)
+    if margin >= MIN_CLEARANCE_M:
+        return
+    if cfg.flight.trajectory:
+        raise InputError("flight.trajectory", cfg.flight.trajectory,
+                         f"a trajectory at least {MIN_CLEARANCE_M:g} m above the terrain beneath it (it flies at "
+                         f"{height + scene.origin[2]:.3f} m over terrain reaching {top + scene.origin[2]:.3f} m)")
+    rise = top - scene.ground_z
+    raise InputError("flight.altitude_m", cfg.flight.altitude_m,
+                     f"an altitude above {rise + MIN_CLEARANCE_M:.3f} m: the terrain beneath the flight rises "
+                     f"{rise:.3f} m above the scene's ground (to {top + scene.origin[2]:.3f} m)")
 
 
 def flight_trajectories(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
@@ -73,13 +100,11 @@ def flight_trajectories(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
     try:
         if cfg.flight.trajectory:
             trajectories = [Trajectory.read_csv(cfg.flight.trajectory)]
-            field = "flight.trajectory"
         else:
             trajectories = _planned_lines(cfg, scene)
-            field = "flight.altitude_m"
     except TrajectoryError as exc:
         raise InputError(exc.field, exc.value, exc.allowed) from None
     for trajectory in trajectories:
-        _check_clearance(trajectory, scene, field)
+        _check_clearance(trajectory, scene, cfg)
     return trajectories
 

@@ -116,24 +116,22 @@ def fit_points(xyz: np.ndarray, plane_id: int = -1) -> PlaneFit:
     return _fit_from_covariance(plane_id, len(points), centroid, d.T @ d / len(points))
 
 
-def fit_groups(xyz: np.ndarray, labels: np.ndarray, min_points: int = 3) -> list[PlaneFit]:
-    """Two-pass TLS fit of every group of points sharing a label ≥ 0 with at least ``min_points``.
+def group_moments(xyz: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Two-pass moments of the points (n, 3) [m] grouped by label (n,) (negative: no group).
 
-    xyz: (n, 3) [m]; labels: (n,) int, negative = no group. The fits come in label order and
-    carry the label as ``plane_id``. Vectorised over groups (per-group centroids, then centred
-    second moments, both by ``np.bincount``).
+    Returns count (G,), centroid (G, 3) [m] and centred covariance (G, 3, 3) [m²] for labels
+    0..G-1 (G = largest label + 1; empty groups have zeros). Pass one takes per-group centroids,
+    pass two the second moments of the centred points, both by ``np.bincount``.
     """
     points = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     labels = np.asarray(labels, dtype=np.int64)
     keep = labels >= 0
     points, labels = points[keep], labels[keep]
-    if len(labels) == 0:
-        return []
-    size = int(labels.max()) + 1
+    size = int(labels.max()) + 1 if len(labels) else 0
     count = np.bincount(labels, minlength=size)
     safe = np.maximum(count, 1)
-    centroid = np.stack([np.bincount(labels, weights=points[:, a], minlength=size) for a in range(3)], axis=1)
-    centroid /= safe[:, None]
+    centroid = np.stack([np.bincount(labels, weights=points[:, a], minlength=size) for a in range(3)], axis=-1)
+    centroid = centroid.reshape(size, 3) / safe[:, None]
     d = points - centroid[labels]
     covariance = np.empty((size, 3, 3))
     for a in range(3):
@@ -141,8 +139,18 @@ def fit_groups(xyz: np.ndarray, labels: np.ndarray, min_points: int = 3) -> list
             s = np.bincount(labels, weights=d[:, a] * d[:, b], minlength=size) / safe
             covariance[:, a, b] = s
             covariance[:, b, a] = s
+    return count, centroid, covariance
+
+
+def fit_groups(xyz: np.ndarray, labels: np.ndarray, min_points: int = 3) -> list[PlaneFit]:
+    """Two-pass TLS fit of every group of points sharing a label ≥ 0 with at least ``min_points``.
+
+    xyz: (n, 3) [m]; labels: (n,) int, negative = no group. The fits come in label order and
+    carry the label as ``plane_id``; vectorised over groups (:func:`group_moments`).
+    """
+    count, centroid, covariance = group_moments(xyz, labels)
     return [_fit_from_covariance(g, count[g], centroid[g], covariance[g])
-            for g in np.flatnonzero(count >= min_points)]
+            for g in np.flatnonzero(count >= max(min_points, 3))]
 
 
 def residuals(xyz: np.ndarray, fit: PlaneFit) -> np.ndarray:

@@ -11,9 +11,7 @@ from flightsim import __version__
 from flightsim.config import MODELS, RunConfig, to_toml
 from flightsim.edges import edge_buffer_m
 from flightsim.errors import InputError
-from flightsim.outputs import LasOutput, PlaneStatistics
 from flightsim.plan import build_scene, flight_trajectories
-from flightsim.simulate import Simulator
 
 RUN_FILES = ("run.toml", "summary.json", *MODELS)
 
@@ -32,14 +30,18 @@ def prepare_output(directory: Path, cfg_text: str, overwrite: bool) -> None:
     """Make ``directory`` ready for a run, refusing to clobber anything that is not ours to replace.
 
     An existing directory is reused when it is empty, when ``overwrite`` is set, or when it holds
-    an unfinished run of the very same config (run.toml equal, no summary.json): that run is redone.
+    an unfinished run of the very same config (no summary.json, and run.toml equal to this config
+    or, for a run stopped while writing it, nothing but the temporaries of our own files): that
+    run is redone.
     """
     if directory.exists() and not directory.is_dir():
         raise InputError("--out", str(directory), "a directory (this path is a file)")
-    if directory.is_dir() and any(directory.iterdir()):
+    present = {p.name for p in directory.iterdir()} if directory.is_dir() else set()
+    if present:
         previous = directory / "run.toml"
-        unfinished_same = (previous.is_file() and previous.read_text(encoding="utf-8") == cfg_text
-                           and not (directory / "summary.json").exists())
+        same = previous.is_file() and previous.read_text(encoding="utf-8") == cfg_text
+        only_temporaries = present <= {f".{name}.part" for name in ("run.toml", "summary.json")}
+        unfinished_same = "summary.json" not in present and (same or only_temporaries)
         if not (overwrite or unfinished_same):
             raise InputError("--out", str(directory),
                              "an empty or new directory (pass --overwrite to replace the run in it)")
@@ -51,7 +53,10 @@ def prepare_output(directory: Path, cfg_text: str, overwrite: bool) -> None:
                 target.unlink()
         for leftover in directory.glob(".*.part"):
             leftover.unlink()
-    directory.mkdir(parents=True, exist_ok=True)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError("--out", str(directory), f"a directory that can be created ({exc.strerror or exc})") from None
 
 
 def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = False,
@@ -59,6 +64,12 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     """Run a validated config, write its tiles, run.toml and summary.json; return the summary."""
     scene = build_scene(cfg)
     trajectories = flight_trajectories(cfg, scene)
+    # Warp is loaded only for input that passed the checks above, so that bad input fails fast
+    from flightsim.outputs import LasOutput, PlaneStatistics
+    from flightsim.simulate import Simulator
+    from flightsim.warp_runtime import resolve_device
+
+    resolve_device(cfg.run.device)  # every input is checked before the output directory is touched
     cfg_text = to_toml(cfg)
     prepare_output(directory, cfg_text, overwrite)
     write_atomic(directory / "run.toml", cfg_text)

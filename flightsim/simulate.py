@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from flightsim.config import MODELS, RunConfig
 from flightsim.coverage import max_off_axis_rad, pulse_windows
-from flightsim.edges import boundary_segments, ribbon_mesh
+from flightsim.edges import boundary_segments
 from flightsim.fan import trace_fan
 from flightsim.planes import PlaneMoments
 from flightsim.scene import Scene
@@ -65,28 +65,32 @@ class RunCounts:
 
 
 class SceneMeshes:
-    """A scene's BVHs on one device, built once: the triangles, and the ribbons along plane
-    boundaries for edge-buffer queries (built on first use)."""
+    """A scene's acceleration structures on one device, built once: the triangle BVH, and a BVH of
+    the plane-boundary segments for edge-buffer queries (built on first use)."""
 
     def __init__(self, scene: Scene, device: str, bvh_constructor: str = "sah", leaf_size: int | None = None):
         self.scene = scene
         self.device = device
-        self.mesh = self._build(scene.vertices, scene.triangles, bvh_constructor, leaf_size)
+        self.mesh = wp.Mesh(points=wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3f, device=device),
+                            indices=wp.array(scene.triangles.astype(np.int32).ravel(), dtype=wp.int32, device=device),
+                            bvh_constructor=bvh_constructor, bvh_leaf_size=leaf_size)
         self.vertices64 = wp.array(scene.vertices, dtype=wp.vec3d, device=device)
         self.indices = self.mesh.indices
-        self._boundary: wp.Mesh | None = None
+        self._boundary: tuple[wp.Bvh, wp.array, wp.array] | None = None
 
     @property
-    def boundary(self) -> wp.Mesh:
+    def boundary(self) -> tuple[wp.Bvh, wp.array, wp.array]:
+        """(BVH of segment boxes, segment starts, segment ends)."""
         if self._boundary is None:
-            self._boundary = self._build(*ribbon_mesh(boundary_segments(self.scene)))
+            segments = boundary_segments(self.scene).astype(np.float32)
+            if len(segments) == 0:  # a closed surface has no boundary: one far-away dummy segment
+                segments = np.full((1, 2, 3), 1e9, dtype=np.float32)
+            a = wp.array(segments[:, 0], dtype=wp.vec3f, device=self.device)
+            b = wp.array(segments[:, 1], dtype=wp.vec3f, device=self.device)
+            lowers = wp.array(segments.min(axis=1), dtype=wp.vec3f, device=self.device)
+            uppers = wp.array(segments.max(axis=1), dtype=wp.vec3f, device=self.device)
+            self._boundary = (wp.Bvh(lowers, uppers), a, b)
         return self._boundary
-
-    def _build(self, vertices: np.ndarray, triangles: np.ndarray, bvh_constructor: str = "sah",
-               leaf_size: int | None = None) -> wp.Mesh:
-        return wp.Mesh(points=wp.array(vertices.astype(np.float32), dtype=wp.vec3f, device=self.device),
-                       indices=wp.array(triangles.astype(np.int32).ravel(), dtype=wp.int32, device=self.device),
-                       bvh_constructor=bvh_constructor, bvh_leaf_size=leaf_size)
 
 
 def _prism(n_glass: float, apex_deg: float, thickness_mm: float) -> trace.Prism:
@@ -140,7 +144,12 @@ class Simulator:
         scan.believed = _prism(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
         scan.noise_sigma = s.range_noise_m
         scan.noise_seed = self.cfg.run.seed
-        scan.boundary = self.meshes.boundary.id if self.features.edges else 0
+        if self.features.edges:
+            bvh, scan.boundary_a, scan.boundary_b = self.meshes.boundary
+            scan.boundary = bvh.id
+        else:
+            scan.boundary = 0
+            scan.boundary_a = scan.boundary_b = wp.zeros(1, dtype=wp.vec3f, device=self.device)
         scan.edge_cap = self.edge_buffer_m
         scan.lut_directions, scan.lut_exits = self._exit_table()
         scan.vertices64, scan.indices = self.meshes.vertices64, self.meshes.indices
@@ -198,11 +207,13 @@ class Simulator:
         return self._finish(counts, buffers.counters, started)
 
     def run_statistics(self, progress: Callable[[int, int], None] | None = None,
-                       slots_per_thread: int | None = None) -> tuple[dict[str, PlaneMoments], RunCounts]:
+                       slots_per_thread: int | None = None,
+                       share: tuple[int, int] = (0, 1)) -> tuple[dict[str, PlaneMoments], RunCounts]:
         """Statistics mode: per-plane float64 moments of each model, accumulated on the device.
 
         No point leaves the device; returns within the edge buffer of a plane boundary are left
-        out (``RunCounts.edge_excluded``).
+        out (``RunCounts.edge_excluded``). ``share`` = (k, n) runs only every n-th chunk from the
+        k-th, so n processes can split a run and add their sums.
         """
         started = time.perf_counter()
         counts = RunCounts()
@@ -216,7 +227,7 @@ class Simulator:
         face_plane = wp.array(self.scene.plane_id.astype(np.int32), dtype=wp.int32, device=d)
         kernel = trace.statistics_kernel(self.features)
         inputs_fixed = [face_plane, wp.array(references, dtype=wp.vec3d, device=d), self.edge_buffer_m]
-        for _trajectory, _first, n_pulses, rng_offset in self._chunks(poses, counts, progress):
+        for _trajectory, _first, n_pulses, rng_offset in self._chunks(poses, counts, progress, share):
             n_slots = n_pulses * self.beams_per_pulse
             wp.launch(kernel, (n_slots + spt - 1) // spt,
                       inputs=[poses, self.scan, rng_offset, n_slots, spt, *inputs_fixed], outputs=sums, device=d)
@@ -244,27 +255,41 @@ class Simulator:
         return pulse_windows(trajectory, self.scene.world_to_local(trajectory.position), self.scene.bounds(),
                              self.timing, self._cone_rad, self.boresight_rotation)
 
-    def _chunks(self, poses: wp.array, counts: RunCounts,
-                progress: Callable[[int, int], None] | None) -> Iterator[tuple[Trajectory, int, int, int]]:
+    def _chunks(self, poses: wp.array, counts: RunCounts, progress: Callable[[int, int], None] | None,
+                share: tuple[int, int] = (0, 1)) -> Iterator[tuple[Trajectory, int, int, int]]:
         """Compute each chunk's pulse poses into ``poses``; yield (trajectory, first pulse, pulses, rng offset).
 
-        Range noise is keyed by (seed, line, pulse, beam), so culling and chunking never change it.
+        Range noise is keyed by (seed, line, pulse, beam), so culling, chunking and sharing never
+        change it.
         """
         plans = [(t, self.windows(t)) for t in self.trajectories]
-        total = sum(k1 - k0 for _, windows in plans for k0, k1 in windows)
-        for trajectory, windows in plans:
-            line = self._line_inputs(trajectory)
-            counts.pulses_culled += self.pulse_count(trajectory) - sum(k1 - k0 for k0, k1 in windows)
-            self.scan.noise_seed = (self.cfg.run.seed * 1_000_003 + trajectory.line_id) % (1 << 31)
-            for k0, k1 in windows:
-                for first in range(k0, k1, poses.shape[0]):
-                    n_pulses = min(poses.shape[0], k1 - first)
-                    wp.launch(frames.pulse_poses, n_pulses, inputs=[*line, first], outputs=[poses],
-                              device=self.device)
-                    yield trajectory, first, n_pulses, (first * self.beams_per_pulse) % (1 << 31)
-                    counts.pulses += n_pulses
-                    if progress:
-                        progress(counts.pulses, total)
+        chunks = [(t, first, min(poses.shape[0], k1 - first))
+                  for t, windows in plans for k0, k1 in windows for first in range(k0, k1, poses.shape[0])]
+        mine = chunks[share[0]::share[1]]
+        if share[0] == 0:
+            counts.pulses_culled = sum(self.pulse_count(t) - sum(k1 - k0 for k0, k1 in w) for t, w in plans)
+        total = sum(n for _, _, n in mine)
+        lines = {}
+        for trajectory, first, n_pulses in mine:
+            if trajectory.line_id not in lines:
+                lines[trajectory.line_id] = self._line_inputs(trajectory)
+                self.scan.noise_seed = (self.cfg.run.seed * 1_000_003 + trajectory.line_id) % (1 << 31)
+            wp.launch(frames.pulse_poses, n_pulses, inputs=[*lines[trajectory.line_id], first], outputs=[poses],
+                      device=self.device)
+            yield trajectory, first, n_pulses, (first * self.beams_per_pulse) % (1 << 31)
+            counts.pulses += n_pulses
+            if progress:
+                progress(counts.pulses, total)
+
+    def sample_rays(self, max_slots: int) -> tuple[wp.array, wp.array]:
+        """The float32 rays of the run's first slots (up to ``max_slots``), on the device."""
+        poses = wp.empty(max(1, max_slots // self.beams_per_pulse), dtype=frames.PulsePose, device=self.device)
+        _trajectory, _first, n_pulses, _ = next(self._chunks(poses, RunCounts(), None))
+        n = n_pulses * self.beams_per_pulse
+        starts = wp.empty(n, dtype=wp.vec3f, device=self.device)
+        directions = wp.empty(n, dtype=wp.vec3f, device=self.device)
+        wp.launch(trace.emit_rays, n, inputs=[poses, self.scan], outputs=[starts, directions], device=self.device)
+        return starts, directions
 
     def _finish(self, counts: RunCounts, counters: wp.array, started: float) -> RunCounts:
         tir, misses = (int(v) for v in counters.numpy()[:2])

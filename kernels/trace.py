@@ -63,7 +63,9 @@ class Scan:
     believed: Prism  # the prism the georeferencing believes in
     noise_sigma: wp.float32  # range noise, 1σ [m]
     noise_seed: wp.int32
-    boundary: wp.uint64  # ribbon mesh along plane boundaries (edge buffer queries)
+    boundary: wp.uint64  # BVH of the plane-boundary segments (edge buffer queries)
+    boundary_a: wp.array(dtype=wp.vec3f)  # segment end points [m, local]
+    boundary_b: wp.array(dtype=wp.vec3f)
     edge_cap: wp.float32  # edge distances are measured up to this [m]
     lut_directions: wp.array2d(dtype=wp.vec3f)  # [φ sample, beam (last: on-axis)] exit directions
     lut_exits: wp.array2d(dtype=wp.vec3f)  # exit points [m]; a zero direction marks reflection
@@ -101,12 +103,23 @@ def _gaussian(state: wp.uint32):
 
 
 @wp.func
-def _edge_distance(boundary: wp.uint64, p: wp.vec3f, cap: wp.float32):
-    """Distance from p to the nearest plane-boundary edge, at most ``cap`` [m]."""
-    query = wp.mesh_query_point_no_sign(boundary, p, cap)
-    if query.result:
-        return wp.min(wp.length(p - wp.mesh_eval_position(boundary, query.face, query.u, query.v)), cap)
-    return cap
+def _edge_distance(boundary: wp.uint64, seg_a: wp.array(dtype=wp.vec3f), seg_b: wp.array(dtype=wp.vec3f),
+                   p: wp.vec3f, cap: wp.float32):
+    """Distance from p to the nearest plane-boundary segment, at most ``cap`` [m].
+
+    Only segments whose boxes overlap the cube of half side ``cap`` around p are visited (none,
+    for most points), then the exact point–segment distance is taken.
+    """
+    best = cap
+    extent = wp.vec3f(cap, cap, cap)
+    query = wp.bvh_query_aabb(boundary, p - extent, p + extent)
+    k = int(0)
+    while wp.bvh_query_next(query, k):
+        a = seg_a[k]
+        ab = seg_b[k] - a
+        u = wp.clamp(wp.dot(p - a, ab) / wp.max(wp.dot(ab, ab), 1.0e-20), 0.0, 1.0)
+        best = wp.min(best, wp.length(p - (a + u * ab)))
+    return best
 
 
 @wp.func
@@ -202,7 +215,7 @@ def _slot_function(f: Features, deflect: wp.Function):
         true32 = wp.vec3f(true_point)
         edge = scan.edge_cap
         if wp.static(f.edges):
-            edge = _edge_distance(scan.boundary, true32, scan.edge_cap)
+            edge = _edge_distance(scan.boundary, scan.boundary_a, scan.boundary_b, true32, scan.edge_cap)
         return (STATUS_RETURN, wp.float32(r), hit.face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
                 true32, edge)
 
@@ -393,3 +406,37 @@ def slot_indices(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int
     i = wp.tid()
     if flags[i] != 0:
         dst[offsets[i]] = i
+
+
+@wp.kernel
+def emit_rays(
+    poses: wp.array(dtype=PulsePose),
+    scan: Scan,
+    # Out:
+    starts: wp.array(dtype=wp.vec3f),  # [m, local]
+    directions: wp.array(dtype=wp.vec3f),  # unit; zero where the beam is reflected internally
+):
+    """The float32 rays the pipeline casts, one per slot (for timing the bare ray cast)."""
+    slot = wp.tid()
+    per_pulse = scan.beams.n * scan.beams.n
+    pose = poses[slot // per_pulse]
+    beam = slot % per_pulse
+    s1 = doe_direction(beam // scan.beams.n, beam % scan.beams.n, scan.beams.n, scan.beams.spacing)
+    s3, exit_point, ok = wedge_deflect(s1, pose.phi, scan.truth)
+    starts[slot] = pose.origin + pose.rot * exit_point
+    directions[slot] = wp.where(ok, pose.rot * s3, wp.vec3f(0.0, 0.0, 0.0))
+
+
+@wp.kernel
+def cast_rays(
+    mesh: wp.uint64,
+    starts: wp.array(dtype=wp.vec3f),
+    directions: wp.array(dtype=wp.vec3f),
+    max_range: wp.float32,
+    # Out:
+    faces: wp.array(dtype=wp.int32),  # face hit, -1 for none
+):
+    """Nothing but ``wp.mesh_query_ray``: the baseline the pipeline's throughput is compared with."""
+    i = wp.tid()
+    hit = wp.mesh_query_ray(mesh, starts[i], directions[i], max_range)
+    faces[i] = wp.where(hit.result, hit.face, -1)

@@ -1,0 +1,337 @@
+"""`flightsim bench`: measured speed, the cost in accuracy of every speed knob, and what skipping saves.
+
+Every number is measured in the run that reports it. Throughput records compare the end-to-end
+pipeline with bare ``wp.mesh_query_ray`` on the same scene, the same rays and the same number of
+processes, so the ratio holds however busy the machine is. Results merge into DIR/bench.json
+(one entry per device kind) and DIR/bench.md; the knob study goes to DIR/pareto.csv and .png.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from flightsim.config import RunConfig, set_value, validate
+from flightsim.edges import edge_buffer_m
+from flightsim.plan import build_scene, flight_trajectories
+from flightsim.simulate import SceneMeshes, Simulator
+from flightsim.warp_runtime import resolve_device
+from kernels import trace
+
+DELTA = 2.314
+SECTIONS = ("throughput", "study", "las", "skip", "pareto")
+
+
+@dataclasses.dataclass
+class Sizes:
+    """How big each measurement is, per device kind and --quick."""
+
+    returns: float  # returns per throughput record
+    arrays: tuple[int, ...]
+    study_grid: tuple[list[str], list[str], list[str]]  # altitudes, arrays, spacings
+    las_returns: float  # returns per model of the LAS run (points written = 2×)
+    pareto_returns: float
+    quick: bool
+
+
+def sizes(kind: str, quick: bool) -> Sizes:
+    full_grid = ([str(500 * k) for k in range(1, 11)], ["2", "3", "4", "5", "6"],
+                 [f"{k * DELTA:.3f}" for k in range(1, 6)])
+    small_grid = (["500", "5000"], ["2", "6"], [f"{DELTA:.3f}", f"{5 * DELTA:.3f}"])
+    if kind == "cuda":
+        return Sizes(2e9 if not quick else 2e8, (3, 8), small_grid if quick else full_grid,
+                     5e5 if quick else 5e7, 2e8, quick)
+    return Sizes(1e6 if quick else 2e7, (3,) if quick else (3, 8), small_grid if quick else full_grid,
+                 2e5 if quick else 5e7, 5e5 if quick else 5e6, quick)
+
+
+LINE_S = 10.0  # each benchmark line: 10 s (556 m) centred over the calibration field
+
+
+def workload(device: str, array: int, returns: float, **settings) -> RunConfig:
+    """The benchmark flight: passes back and forth over the calibration field at 500 m, each a 10 s
+    line over the same ground track, as many as it takes for ``returns`` beams."""
+    cfg = RunConfig()
+    per_line = 5000.0 * array * array * LINE_S
+    base = {"flight.altitude_m": 500.0, "sensor.array": array, "run.device": device,
+            "flight.duration_s": min(LINE_S, max(0.2, returns / per_line * LINE_S)),
+            "flight.lines": max(1, round(returns / per_line)), "flight.line_spacing_m": 0.01}
+    for key, value in {**base, **settings}.items():
+        set_value(cfg, key, value)
+    return validate(cfg)
+
+
+def simulator(cfg: RunConfig, meshes: SceneMeshes | None = None, **kw) -> Simulator:
+    scene = meshes.scene if meshes else build_scene(cfg)
+    return Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=edge_buffer_m(cfg), meshes=meshes,
+                     **kw)
+
+
+def timed_statistics(sim: Simulator, repeats: int = 2):
+    """(best wall [s], counts) of run_statistics after a first run that compiles and warms up."""
+    sim.run_statistics()
+    best, counts = float("inf"), None
+    for _ in range(repeats):
+        wp.synchronize_device(sim.device)
+        _, counts = sim.run_statistics()
+        best = min(best, counts.wall_s)
+    return best, counts
+
+
+def bare_raycast(sim: Simulator, rays: int, repeats: int) -> tuple[float, int]:
+    """(wall [s], hits) of casting the run's first ``rays`` rays ``repeats`` times with nothing else."""
+    starts, directions = sim.sample_rays(rays)
+    faces = wp.empty(starts.shape[0], dtype=wp.int32, device=sim.device)
+    args = dict(dim=starts.shape[0], inputs=[sim.meshes.mesh.id, starts, directions, sim.cfg.sensor.max_range_m],
+                outputs=[faces], device=sim.device)
+    wp.launch(trace.cast_rays, **args)
+    wp.synchronize_device(sim.device)
+    started = time.perf_counter()
+    for _ in range(repeats):
+        wp.launch(trace.cast_rays, **args)
+    wp.synchronize_device(sim.device)
+    wall = time.perf_counter() - started
+    return wall, int((faces.numpy() >= 0).sum()) * repeats
+
+
+def _bare_in_process(cfg_toml: str, rays: int, repeats: int) -> tuple[float, int]:
+    from flightsim.parallel import _simulator
+
+    return bare_raycast(_simulator(cfg_toml), rays, repeats)
+
+
+# ---------------------------------------------------------------------------------------------
+# sections
+
+
+def throughput(device: str, s: Sizes) -> list[dict]:
+    """End-to-end returns/s vs bare ray-cast returns/s on the same rays, per array size."""
+    records = []
+    for array in s.arrays:
+        cfg = workload(device, array, s.returns)
+        sim = simulator(cfg)
+        wall, counts = timed_statistics(sim)
+        sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
+        repeats = max(1, round(counts.beams_fired / sample))
+        bare_wall, hits = bare_raycast(sim, sample, repeats)
+        records.append(_record(sim, cfg, counts, wall, hits / bare_wall, processes=1))
+        if sim.device_kind == "cpu":
+            records.append(_two_process_record(cfg, sample, repeats))
+    return records
+
+
+def _two_process_record(cfg: RunConfig, sample: int, repeats: int) -> dict:
+    from flightsim.config import to_toml
+    from flightsim.parallel import ProcessPool
+
+    pool = ProcessPool(2)
+    try:
+        pool.warm(cfg)
+        sim = simulator(cfg)
+        references = np.array([p.point for p in sim.scene.planes])
+        _, counts, wall = pool.run_statistics(cfg, references)
+        _, counts, wall = pool.run_statistics(cfg, references)
+        text = to_toml(cfg)
+        parts = list(pool.pool.map(_bare_in_process, [text] * 2, [sample] * 2, [max(1, repeats // 2)] * 2))
+        bare_wall = max(w for w, _ in parts)  # the two casts run at the same time
+        hits = sum(h for _, h in parts)
+        return _record(sim, cfg, counts, wall, hits / bare_wall, processes=2)
+    finally:
+        pool.close()
+
+
+def _record(sim: Simulator, cfg: RunConfig, counts, wall: float, raycast_rate: float, processes: int) -> dict:
+    rate = counts.returns / wall
+    return {
+        "device": sim.device, "gpu_name": gpu_name(sim.device), "scene": cfg.scene.name,
+        "triangles": int(len(sim.scene.triangles)), "array": cfg.sensor.array, "processes": processes,
+        "optics": cfg.run.optics, "pulses": counts.pulses, "returns": counts.returns, "wall_s": wall,
+        "returns_per_s": rate, "raycast_returns_per_s": raycast_rate, "ratio": rate / raycast_rate,
+        "git_commit": git_commit(),
+    }
+
+
+def study(device: str, s: Sizes) -> dict:
+    """Wall time of the seed paper's grid over the calibration field, kernel compile included."""
+    altitudes, arrays, spacings = s.study_grid
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, WARP_CACHE_PATH=str(Path(tmp) / "kernels"))
+        command = [sys.executable, "-m", "flightsim", "sweep", "--scene", "calibration", "--device", device,
+                   "--altitudes", ",".join(altitudes), "--arrays", ",".join(arrays),
+                   "--spacings-mrad", ",".join(spacings), "--out", str(Path(tmp) / "sweep")]
+        started = time.perf_counter()
+        subprocess.run(command, check=True, env=env, capture_output=True)
+        wall = time.perf_counter() - started
+        rows = (Path(tmp) / "sweep" / "sweep.csv").read_text().splitlines()[1:]
+    configs = len(altitudes) * len(arrays) * len(spacings)
+    return {"device": resolve_device(device), "gpu_name": gpu_name(resolve_device(device)), "configurations": configs,
+            "rows": len(rows), "wall_s": wall, "kernel_compile_included": True, "command": " ".join(command[1:])}
+
+
+def las_output(device: str, s: Sizes) -> list[dict]:
+    """Points/s and peak memory of LAS runs of two lengths (memory must not grow with length)."""
+    return [_las_run(device, s.las_returns / scale) for scale in (10, 1)]
+
+
+def _las_run(device: str, returns: float) -> dict:
+    array = 8
+    duration = returns / (5000.0 * array * array)
+    with tempfile.TemporaryDirectory() as tmp:
+        command = [sys.executable, "-m", "flightsim", "simulate", "--scene", "plane", "--array", str(array),
+                   "--duration", f"{duration:.3f}", "--device", device, "--out", str(Path(tmp) / "run")]
+        started = time.perf_counter()
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        _, status, usage = os.wait4(process.pid, 0)
+        wall = time.perf_counter() - started
+        process.returncode = os.waitstatus_to_exitcode(status)
+        if process.returncode != 0:
+            raise RuntimeError(f"LAS benchmark run failed: {' '.join(command)}")
+        summary = json.loads((Path(tmp) / "run" / "summary.json").read_text())
+    points = sum(summary["points"].values())
+    return {"device": resolve_device(device), "points_written": points, "wall_s": wall,
+            "points_per_s": points / wall, "peak_rss_mib": usage.ru_maxrss / 1024.0}
+
+
+def skipping(device: str, s: Sizes) -> list[dict]:
+    """Measured savings of each kind of skipped work."""
+    cfg = workload(device, 3, s.pareto_returns)
+    rows = [_culling_saving(cfg), _mode_saving(cfg), _build_once_saving(cfg)]
+    both = timed_statistics(simulator(cfg))[0]
+    for label, settings in (("exact model only", {"output.models": "exact"}),
+                            ("nominal model only", {"output.models": "nominal"}),
+                            ("edge buffer off", {"scoring.edge_buffer_m": 0.0}),
+                            ("range noise on (0.02 m)", {"sensor.range_noise_m": 0.02})):
+        wall = timed_statistics(simulator(workload(device, 3, s.pareto_returns, **settings)))[0]
+        rows.append({"what": label, "baseline_s": both, "variant_s": wall, "saving": 1 - wall / both})
+    return rows
+
+
+def _culling_saving(cfg: RunConfig) -> dict:
+    scene = build_scene(cfg)  # sized for the nominal flight
+    long = validate(dataclasses.replace(cfg, flight=dataclasses.replace(cfg.flight, duration_s=4 * cfg.flight.duration_s)))
+    walls = {}
+    for cull in (True, False):
+        run_cfg = validate(dataclasses.replace(long, run=dataclasses.replace(long.run, cull=cull)))
+        sim = Simulator(run_cfg, scene, flight_trajectories(run_cfg, scene), edge_buffer_m=edge_buffer_m(run_cfg))
+        walls[cull], counts = timed_statistics(sim, repeats=1)
+        if cull:
+            culled = counts.pulses_culled / (counts.pulses + counts.pulses_culled)
+    return {"what": f"culling a line 4x longer than the scene ({100 * culled:.0f}% of pulses culled)",
+            "baseline_s": walls[False], "variant_s": walls[True], "saving": 1 - walls[True] / walls[False]}
+
+
+def _mode_saving(cfg: RunConfig) -> dict:
+    sim = simulator(cfg)
+    sim.run(lambda chunk: None)
+    started = time.perf_counter()
+    counts = sim.run(lambda chunk: None)
+    points_wall = time.perf_counter() - started
+    stats_wall, _ = timed_statistics(sim, repeats=1)
+    per_return = 8 + 4 * 4 + 4 + 12 * len(sim.models) + 4  # slot, range, face, angle, cos, edge, points, flags
+    return {"what": f"statistics mode instead of points mode ({per_return} B/return to the host vs "
+                    f"{len(sim.scene.planes) * 2 * 80} B per run)",
+            "baseline_s": points_wall, "variant_s": stats_wall, "saving": 1 - stats_wall / points_wall,
+            "returns": counts.returns}
+
+
+def _build_once_saving(cfg: RunConfig) -> dict:
+    """A 5-configuration sweep with the scene, BVH and kernels built once vs per configuration."""
+    configs = [validate(dataclasses.replace(cfg, flight=dataclasses.replace(cfg.flight, altitude_m=a)))
+               for a in (500.0, 600.0, 700.0, 800.0, 900.0)]
+    extent_cfg = configs[-1]
+    started = time.perf_counter()
+    meshes = SceneMeshes(build_scene(extent_cfg), resolve_device(cfg.run.device))
+    for c in configs:
+        simulator(c, meshes).run_statistics()
+    shared = time.perf_counter() - started
+    started = time.perf_counter()
+    for c in configs:
+        scene = build_scene(extent_cfg)
+        Simulator(c, scene, flight_trajectories(c, scene), edge_buffer_m=edge_buffer_m(c)).run_statistics()
+    rebuilt = time.perf_counter() - started
+    return {"what": "scene + BVH built once for a 5-configuration sweep (kernels are cached per process)",
+            "baseline_s": rebuilt, "variant_s": shared, "saving": 1 - shared / rebuilt}
+
+
+# ---------------------------------------------------------------------------------------------
+# run time against error
+
+
+def knob_variants(kind: str, quick: bool) -> list[tuple[str, str, dict]]:
+    """(knob, value, config settings) for the run-time-against-error study."""
+    variants = [("optics", v, {"run.optics": v}) for v in ("float64", "float32")]
+    variants += [("optics", f"lut{m}", {"run.optics": "lut", "run.lut_samples": m})
+                 for m in ((1024,) if quick else (256, 1024, 4096, 16384))]
+    if quick:
+        return variants
+    constructors = ("sah", "median") + (("lbvh", "cubql") if kind == "cuda" else ())  # lbvh/cubql: GPU only
+    variants += [("bvh", f"{c}/leaf{leaf or 'default'}", {"run.bvh": c, "run.bvh_leaf_size": leaf})
+                 for c in constructors for leaf in (0, 1, 4)]
+    slots = (1 << 16, 1 << 18, 1 << 20) + ((1 << 22, 1 << 24) if kind == "cuda" else ())
+    variants += [("chunk", f"{n} slots", {"run.chunk_pulses": n // 9}) for n in slots]
+    variants += [("slots_per_thread", f"{n}", {"run.slots_per_thread": n}) for n in (1, 4, 16, 64, 256)]
+    return variants
+
+
+def pareto(device: str, s: Sizes) -> list[dict]:
+    """Wall time and largest errors against the float64 reference for each knob setting."""
+    from flightsim.accuracy import measure_errors
+
+    rows = []
+    kind = "cpu" if resolve_device(device) == "cpu" else "cuda"
+    for knob, value, settings in knob_variants(kind, s.quick):
+        cfg = workload(device, 3, s.pareto_returns, **settings)
+        wall, counts = timed_statistics(simulator(cfg))
+        pointing, point = 0.0, 0.0
+        for altitude in (500.0, 5000.0):
+            check_cfg = workload(device, 3, 5e4 if s.quick else 2e5, **{**settings, "flight.altitude_m": altitude})
+            errors = measure_errors(simulator(check_cfg, with_truth=True))
+            pointing = max(pointing, errors.max_pointing_rad)
+            point = max([point, *errors.max_point_error_m.values()])
+        rows.append({"device": resolve_device(device), "knob": knob, "value": value, "wall_s": wall,
+                     "returns_per_s": counts.returns / wall, "max_pointing_urad": pointing * 1e6,
+                     "max_point_error_mm": point * 1e3})
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# reporting
+
+
+def gpu_name(device: str) -> str:
+    return wp.get_device(device).name if device != "cpu" else platform.processor() or "cpu"
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
+        return out.stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return os.environ.get("FLIGHTSIM_COMMIT", "unknown")
+
+
+def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
+    """Run the asked sections and merge the results into out/bench.json, bench.md, pareto.csv/png."""
+    from flightsim.bench_report import merge_and_write
+
+    dev = resolve_device(device)
+    kind = "cpu" if dev == "cpu" else "cuda"
+    s = sizes(kind, quick)
+    results = {"device": dev, "gpu_name": gpu_name(dev), "quick": quick, "git_commit": git_commit(),
+               "cpu_count": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
+    runners = {"throughput": throughput, "study": study, "las": las_output, "skip": skipping, "pareto": pareto}
+    for name in sections:
+        started = time.perf_counter()
+        results[name] = runners[name](device, s)
+        results.setdefault("section_wall_s", {})[name] = time.perf_counter() - started
+    merge_and_write(Path(out), kind, results)
+    return results

@@ -1,0 +1,142 @@
+"""Writing benchmark results: bench.json (one entry per device kind), bench.md, pareto.csv and .png."""
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+from flightsim.run import write_atomic
+
+TARGETS = {  # (returns/s, ratio) the issue sets per device kind
+    "cuda": (1e9, 0.4),
+    "cpu": (1e6, 0.5),
+}
+PARETO_COLUMNS = ["device", "knob", "value", "wall_s", "returns_per_s", "max_pointing_urad", "max_point_error_mm"]
+
+
+def merge_and_write(out: Path, kind: str, results: dict) -> None:
+    """Replace this device kind's sections in out/bench.json (keeping the others) and rewrite the reports."""
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "bench.json"
+    merged = json.loads(path.read_text()) if path.exists() else {}
+    entry = merged.get(kind, {})
+    entry.update(results)
+    merged[kind] = entry
+    write_atomic(path, json.dumps(merged, indent=2) + "\n")
+    write_atomic(out / "bench.md", markdown(merged))
+    rows = [row for k in sorted(merged) for row in merged[k].get("pareto", [])]
+    if rows:
+        write_atomic(out / "pareto.csv", _csv(rows))
+        plot_pareto(rows, out / "pareto.png")
+
+
+def _csv(rows: list[dict]) -> str:
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=PARETO_COLUMNS, lineterminator="\n", extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    return text.getvalue()
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.3g}"
+
+
+def markdown(merged: dict) -> str:
+    """bench.md: every section of every device kind as tables."""
+    lines = ["# flightsim benchmarks", "", "Regenerate: `flightsim bench --device cpu --out results` "
+             "(and `--device cuda` on a GPU machine). Ratios compare numbers measured in the same run.", ""]
+    for kind in sorted(merged):
+        r = merged[kind]
+        lines += [f"## {kind}: {r['gpu_name']} ({r['device']}, {r.get('cpu_count')} CPU cores, commit "
+                  f"{r['git_commit']}, {r['date']}{', quick' if r.get('quick') else ''})", ""]
+        lines += _throughput(r, kind) + _study(r) + _las(r) + _skip(r) + _pareto(r)
+    return "\n".join(lines) + "\n"
+
+
+def _throughput(r: dict, kind: str) -> list[str]:
+    if "throughput" not in r:
+        return []
+    rate_target, ratio_target = TARGETS[kind]
+    lines = ["### Throughput: calibration field, 500 m, both models, per-plane statistics", "",
+             f"Targets: ≥ {rate_target:.0e} returns/s and ratio ≥ {ratio_target} (end-to-end ÷ bare ray cast "
+             "on the same rays with the same processes).", "",
+             "| array | processes | optics | returns | wall [s] | returns/s | bare ray cast returns/s | ratio |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines += [f"| {t['array']}×{t['array']} | {t['processes']} | {t['optics']} | {t['returns']:.3g} | {_fmt(t['wall_s'])} "
+              f"| {_fmt(t['returns_per_s'])} | {_fmt(t['raycast_returns_per_s'])} | {t['ratio']:.2f} |"
+              for t in r["throughput"]]
+    return lines + [""]
+
+
+def _study(r: dict) -> list[str]:
+    if "study" not in r:
+        return []
+    s = r["study"]
+    return ["### The seed paper's study over the calibration field", "",
+            f"{s['configurations']} configurations × both models ({s['rows']} rows) in **{s['wall_s']:.1f} s** "
+            f"including kernel compilation (empty kernel cache): `flightsim {s['command']}`.", ""]
+
+
+def _las(r: dict) -> list[str]:
+    if "las" not in r:
+        return []
+    lines = ["### LAS output path (plane scene, 8×8 array, both models)", "",
+             "| points written | wall [s] | points/s | peak RSS [MiB] |", "| --- | --- | --- | --- |"]
+    lines += [f"| {x['points_written']:.3g} | {x['wall_s']:.1f} | {_fmt(x['points_per_s'])} | {x['peak_rss_mib']:.0f} |"
+              for x in r["las"]]
+    return lines + ["", "Memory is bounded by the chunk size and open tiles, not by the run length.", ""]
+
+
+def _skip(r: dict) -> list[str]:
+    if "skip" not in r:
+        return []
+    lines = ["### Work skipped and what it saves", "", "| what | without [s] | with [s] | saving |",
+             "| --- | --- | --- | --- |"]
+    lines += [f"| {x['what']} | {_fmt(x['baseline_s'])} | {_fmt(x['variant_s'])} | {100 * x['saving']:.0f}% |"
+              for x in r["skip"]]
+    return lines + ["", "(For the feature rows, 'without' is the default run and 'with' the variant; a negative "
+                    "saving is the variant's cost.)", ""]
+
+
+def _pareto(r: dict) -> list[str]:
+    if "pareto" not in r:
+        return []
+    lines = ["### Run time against error (float64 reference of the same pipeline)", "",
+             "| knob | value | wall [s] | returns/s | max pointing error [µrad] | max point error [mm] |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    lines += [f"| {x['knob']} | {x['value']} | {_fmt(x['wall_s'])} | {_fmt(x['returns_per_s'])} "
+              f"| {_fmt(x['max_pointing_urad'])} | {_fmt(x['max_point_error_mm'])} |" for x in r["pareto"]]
+    return lines + [""]
+
+
+def plot_pareto(rows: list[dict], path: Path) -> None:
+    """Wall time against largest pointing and point error, one colour per device, one marker per knob."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    markers = {"optics": "o", "bvh": "s", "chunk": "^", "slots_per_thread": "D"}
+    for device in sorted({r["device"] for r in rows}):
+        for knob, marker in markers.items():
+            sel = [r for r in rows if r["device"] == device and r["knob"] == knob]
+            for ax, key in zip(axes, ("max_pointing_urad", "max_point_error_mm")):
+                ax.scatter([float(r[key]) for r in sel], [float(r["wall_s"]) for r in sel], marker=marker,
+                           label=f"{device} {knob}")
+                for r in sel:
+                    if knob == "optics":
+                        ax.annotate(r["value"], (float(r[key]), float(r["wall_s"])), fontsize=7)
+    for ax, label in zip(axes, ("max pointing error [µrad]", "max point error [mm]")):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(label)
+        ax.set_ylabel("wall time of the throughput run [s]")
+        ax.grid(alpha=0.3, which="both")
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Run time against error of each speed knob (lower left is better)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

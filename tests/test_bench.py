@@ -1,0 +1,34 @@
+"""Benchmark plumbing and the float64 reference path (no timing is asserted: machines are noisy)."""
+import json
+
+import pytest
+
+from flightsim.accuracy import measure_errors
+from flightsim.bench import run_bench, simulator, workload
+
+
+@pytest.mark.parametrize("altitude", [500.0, 5000.0])
+def test_float64_pipeline_matches_the_reference_to_a_tenth_of_a_millimetre(device, altitude):
+    errors = measure_errors(simulator(workload(device, 3, 1e5, **{"flight.altitude_m": altitude}), with_truth=True))
+    assert errors.returns > 50_000
+    assert errors.max_pointing_rad < 1e-7
+    assert max(errors.max_point_error_m.values()) < 1e-4
+
+
+def test_the_reference_sees_what_a_coarse_exit_table_costs(device):
+    coarse = workload(device, 3, 5e4, **{"run.optics": "lut", "run.lut_samples": 64})
+    errors = measure_errors(simulator(coarse, with_truth=True))
+    # linear interpolation over 5.6° steps of φ: the chord error of a 15° cone, ~0.26·(Δφ)²/8 rad
+    assert 2e-4 < errors.max_pointing_rad < 4e-4
+
+
+def test_bench_writes_records_with_the_fields_the_issue_names(tmp_path):
+    run_bench("cpu", quick=True, out=tmp_path, sections=("throughput",))
+    bench = json.loads((tmp_path / "bench.json").read_text())
+    record = bench["cpu"]["throughput"][0]
+    for key in ("device", "gpu_name", "scene", "triangles", "array", "pulses", "returns", "wall_s", "returns_per_s",
+                "raycast_returns_per_s", "ratio", "git_commit"):
+        assert key in record
+    assert record["returns_per_s"] == pytest.approx(record["returns"] / record["wall_s"])
+    assert record["ratio"] == pytest.approx(record["returns_per_s"] / record["raycast_returns_per_s"])
+    assert "| 3×3 | 1 |" in (tmp_path / "bench.md").read_text()
