@@ -106,12 +106,15 @@ class Simulator:
 
     ``meshes`` (the scene's BVHs on the device) may be shared by many simulators, e.g. all the
     configurations of a sweep; ``edge_buffer_m`` > 0 turns on the per-return distance to the
-    plane boundaries.
+    plane boundaries; ``pulse_limits`` {line id: (k0, k1)} restricts a line to the pulses
+    k0 ≤ k < k1 (a survey split into tasks gives each task its own pulses).
     """
 
     def __init__(self, cfg: RunConfig, scene: Scene, trajectories: list[Trajectory], with_truth: bool = False,
-                 edge_buffer_m: float = 0.0, meshes: SceneMeshes | None = None):
+                 edge_buffer_m: float = 0.0, meshes: SceneMeshes | None = None,
+                 pulse_limits: dict[int, tuple[int, int]] | None = None):
         self.cfg = cfg
+        self.pulse_limits = pulse_limits or {}
         self.scene = scene
         self.trajectories = trajectories
         self.device = resolve_device(cfg.run.device)
@@ -246,14 +249,18 @@ class Simulator:
     # ------------------------------------------------------------------------------------------
 
     def windows(self, trajectory: Trajectory) -> list[tuple[int, int]]:
-        """Pulse index ranges [k0, k1) of a trajectory to launch (all of them unless culling is on)."""
-        n_pulses = self.pulse_count(trajectory)
+        """Pulse index ranges [k0, k1) of a trajectory to launch: within the line's pulse limits, and
+        (with culling on) only those whose beams can reach the scene."""
+        lo, hi = self.pulse_limits.get(trajectory.line_id, (0, self.pulse_count(trajectory)))
+        hi = min(hi, self.pulse_count(trajectory))
         if not self.cfg.run.cull:
-            return [(0, n_pulses)] if n_pulses else []
-        if self._cone_rad is None:
-            self._cone_rad = max_off_axis_rad(self.cfg)
-        return pulse_windows(trajectory, self.scene.world_to_local(trajectory.position), self.scene.bounds(),
-                             self.timing, self._cone_rad, self.boresight_rotation)
+            windows = [(0, hi)]
+        else:
+            if self._cone_rad is None:
+                self._cone_rad = max_off_axis_rad(self.cfg)
+            windows = pulse_windows(trajectory, self.scene.world_to_local(trajectory.position), self.scene.bounds(),
+                                    self.timing, self._cone_rad, self.boresight_rotation)
+        return [(max(k0, lo), min(k1, hi)) for k0, k1 in windows if min(k1, hi) > max(k0, lo)]
 
     def _chunks(self, poses: wp.array, counts: RunCounts, progress: Callable[[int, int], None] | None,
                 share: tuple[int, int] = (0, 1)) -> Iterator[tuple[Trajectory, int, int, int]]:
@@ -267,7 +274,7 @@ class Simulator:
                   for t, windows in plans for k0, k1 in windows for first in range(k0, k1, poses.shape[0])]
         mine = chunks[share[0]::share[1]]
         if share[0] == 0:
-            counts.pulses_culled = sum(self.pulse_count(t) - sum(k1 - k0 for k0, k1 in w) for t, w in plans)
+            counts.pulses_culled = sum(self._limited_count(t) - sum(k1 - k0 for k0, k1 in w) for t, w in plans)
         total = sum(n for _, _, n in mine)
         lines = {}
         for trajectory, first, n_pulses in mine:
@@ -280,6 +287,11 @@ class Simulator:
             counts.pulses += n_pulses
             if progress:
                 progress(counts.pulses, total)
+
+    def _limited_count(self, trajectory: Trajectory) -> int:
+        """Pulses of a trajectory within its pulse limits."""
+        lo, hi = self.pulse_limits.get(trajectory.line_id, (0, self.pulse_count(trajectory)))
+        return max(0, min(hi, self.pulse_count(trajectory)) - lo)
 
     def sample_rays(self, max_slots: int) -> tuple[wp.array, wp.array]:
         """The float32 rays of the run's first slots (up to ``max_slots``), on the device."""
