@@ -6,7 +6,6 @@ reference's, per model [m]. Noise must be off (the reference has none).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,14 +30,6 @@ class ErrorStats:
             self.max_point_error_m[model] = max(self.max_point_error_m.get(model, 0.0), float(e.max(initial=0.0)))
 
 
-def _prism64(n_glass: float, apex_deg: float, thickness_mm: float) -> reference.Prism64:
-    prism = reference.Prism64()
-    prism.n_glass = n_glass
-    prism.apex = math.radians(apex_deg)
-    prism.thickness = thickness_mm * 1e-3
-    return prism
-
-
 class ReferenceCheck:
     """A consumer for :meth:`Simulator.run` that compares every return with the float64 reference.
 
@@ -47,13 +38,7 @@ class ReferenceCheck:
 
     def __init__(self, simulator: Simulator):
         self.sim = simulator
-        d = simulator.device
-        scene = simulator.scene
-        s, p = simulator.cfg.sensor, simulator.cfg.processing
-        self.vertices = wp.array(scene.vertices, dtype=wp.vec3d, device=d)
-        self.indices = wp.array(scene.triangles.astype(np.int32).ravel(), dtype=wp.int32, device=d)
-        self.truth = _prism64(s.refractive_index, s.apex_angle_deg, s.thickness_mm)
-        self.believed = _prism64(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
+        self.truth, self.believed = simulator.scan.truth, simulator.scan.believed
         self.lines = {t.line_id: simulator._line_inputs(t) for t in simulator.trajectories}
         self.stats = ErrorStats()
 
@@ -70,7 +55,7 @@ class ReferenceCheck:
         wp.launch(reference.reference_returns, m, device=d, outputs=outputs, inputs=[
             poses, wp.array((chunk.pulse - first).astype(np.int32), dtype=wp.int32, device=d),
             wp.array(chunk.beam, dtype=wp.int32, device=d), wp.array(chunk.face, dtype=wp.int32, device=d),
-            self.vertices, self.indices, s.array, s.spacing_mrad * 1e-3, self.truth, self.believed])
+            self.sim.meshes.vertices64, self.sim.meshes.indices, s.array, s.spacing_mrad * 1e-3, self.truth, self.believed])
         true_ref, exact_ref, nominal_ref, origin = (a.numpy() for a in outputs)
         a = chunk.true_points - origin
         b = true_ref - origin

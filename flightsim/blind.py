@@ -6,7 +6,8 @@ true edge distances). Per ASPRS class:
 1. **Objects.** Vegetation and noise classes are skipped. Ground, water and road points
    (classes 2, 9, 11) are one surface each; points of any other class (buildings, class 6, and
    unclassified data) are split into objects by horizontal connectivity (touching cells of an
-   (x, y) grid of the link distance), so that each building is processed on its own.
+   (x, y) grid of the link distance), so that each building is processed on its own. Objects
+   of fewer than 2k points are skipped: their neighbourhoods would span the whole object.
 2. **Local planes.** Each point's normal and planarity residual come from a PCA of its k
    nearest neighbours in its object.
 3. **Region growing**, as the connected components of a graph: two neighbouring points are
@@ -16,11 +17,13 @@ true edge distances). Per ASPRS class:
    georeferencing model's distortion.
 4. **Split** by sequential RANSAC of any grown segment whose plane fits much worse than its
    points' own neighbourhoods (growing leaked across a ridge).
-5. **Merge** of touching segments whose joint plane fits about as well as their separate ones.
+5. **Merge** of neighbouring segments whose joint plane fits about as well as their separate
+   ones, or within the object's noise scale.
 6. **Assignment.** Every point of the object, including the non-planar ones along ridges and
    eaves, goes to the nearest plane among its neighbours' segments if within a few times that
    segment's RMS (repeated, so points of another surface are shed); a ridge therefore splits
-   where the two roof planes are equidistant.
+   where the two roof planes are equidistant. Points still unassigned are searched once more
+   for planes by RANSAC alone (sparse data, where every neighbourhood straddles an edge).
 7. **Edge buffer.** Points within the buffer of their segment's boundary are left out: of the
    intersection line with a touching segment (a ridge, an eave above a wall), or of the edge of
    the segment's footprint where its points end (:func:`boundary_distance_m`).
@@ -59,20 +62,21 @@ class BlindParams:
 
     k: int = 24  #: neighbours for local normals, footprints and object links
     k_grow: int = 12  #: neighbours linked when growing and offered when assigning
-    k_noise: int = 8  #: neighbours of the planarity residual, the local noise scale
+    k_noise: int = 12  #: neighbours of the planarity residual, the local noise scale
     max_angle_deg: float = 12.0  #: largest angle between the normals of two linked neighbours [deg]
     smooth_factor: float = 2.5  #: a point grows only if its planarity residual ≤ this × noise
     distance_factor: float = 4.0  #: tangent-plane, RANSAC and assignment tolerance, × noise or RMS
     planar_factor: float = 2.0  #: a grown segment is planar if its RMS ≤ this × its median residual
-    merge_factor: float = 1.25  #: merge touching segments if their joint RMS ≤ this × pooled RMS
+    merge_factor: float = 1.25  #: merge touching segments if joint RMS ≤ this × max(pooled RMS, noise)
     ransac_angle_deg: float = 20.0  #: largest angle between a point's normal and a RANSAC plane [deg]
     ransac_hypotheses: int = 256  #: candidate planes per RANSAC round
     ransac_rounds: int = 32  #: most planes taken out of one leaked segment
-    ransac_max_points: int = 50_000  #: larger non-planar segments are left whole
+    ransac_max_points: int = 50_000  #: RANSAC only in segments (and objects) up to this size
     assign_passes: int = 3  #: passes of nearest-plane assignment
     min_points: int = 30  #: smallest segment kept
     min_noise_m: float = 5e-4  #: floor of the noise scale (mm-quantised LAS coordinates) [m]
     link_factor: float = 3.0  #: object link radius, × the median distance to the k-th neighbour
+    closing_factor: float = 2.0  #: footprint closing radius, × the median distance to the k-th neighbour
     seed: int = 0  #: seed of the RANSAC sampling
 
 
@@ -152,8 +156,8 @@ def extract_planes(xyz: np.ndarray, classification: np.ndarray | None = None, ed
         objects = [np.arange(len(index))] if cls in SURFACE_CLASSES else _objects(points[index], near, params)
         clock("objects")
         for obj in objects:
-            if len(obj) < params.min_points:
-                continue
+            if len(obj) < max(params.min_points, 2 * params.k):
+                continue  # neighbourhoods would span the whole object: no local noise scale to go by
             local_labels, local_used = _segment_object(points[index[obj]], _restrict(near, obj), buffer, params,
                                                        clock)
             members_of = _group_indices(local_labels)
@@ -248,22 +252,53 @@ def _segment_object(points: np.ndarray, near: Neighbourhoods, buffer: float, par
     normals, residual = local_planes(points, near.index, params.k_noise)
     noise = max(float(np.median(residual)), params.min_noise_m)
     growing = near.index[:, :params.k_grow + 1]
+    gap = params.link_factor * float(np.median(near.reach_m))  # widest gap of the scan pattern [m]
     clock("normals")
     labels = _grow(points, growing, normals, residual, noise, params)
     clock("grow")
     labels = _split_non_planar(points, growing, normals, residual, labels, params)
     clock("split")
+    for _ in range(2):  # merge the grown cores, then again once every point is assigned
+        labels = _merge_and_assign(points, near.index, growing, labels, noise, gap, params, clock)
+    if _leftover_planes(points, growing, normals, labels, noise, params):
+        labels = _merge_and_assign(points, near.index, growing, labels, noise, gap, params, clock)
+    clock("split")
     if labels.max() < 0:
         return labels, np.zeros(len(points), dtype=bool)
-    labels = _merge(points, growing, labels, params)
+    closing = params.closing_factor * float(np.median(near.reach_m))
+    distance = boundary_distance_m(points, labels, near, params.max_angle_deg, closing_m=closing)
+    clock("edges")
+    return labels, (labels >= 0) & (distance > buffer)
+
+
+def _leftover_planes(points, neighbours, normals, labels, noise, params) -> bool:
+    """Planes among the points still unlabelled, by RANSAC alone (where the data are so sparse
+    that every neighbourhood straddles an edge, nothing grows); labels them in place and says
+    whether it found any. Only pieces as flat as the object's noise scale are kept."""
+    leftover = np.flatnonzero(labels < 0)
+    if len(leftover) < params.min_points or len(points) > params.ransac_max_points:
+        return False
+    tolerance = np.full(len(leftover), params.distance_factor * noise)
+    pieces = _ransac(points, neighbours, normals, leftover, tolerance, 0.0, params)
+    for fit in fit_groups(points[leftover], pieces):
+        if fit.rms_m > params.planar_factor * noise:
+            pieces[pieces == fit.plane_id] = -1
+    pieces = _compact(pieces, params.min_points)
+    labels[leftover[pieces >= 0]] = pieces[pieces >= 0] + labels.max() + 1
+    return bool(pieces.max(initial=-1) >= 0)
+
+
+def _merge_and_assign(points, neighbours, growing, labels, noise, gap, params, clock) -> np.ndarray:
+    """Merge coplanar neighbours, then assign every point to its nearest plane (repeatedly)."""
+    if labels.max() < 0:
+        return labels
+    labels = _merge(points, neighbours, labels, noise, gap, params)
     clock("merge")
     for _ in range(params.assign_passes):
         labels = _assign(points, growing, labels, params)
     labels = _compact(labels, params.min_points)
     clock("assign")
-    distance = boundary_distance_m(points, labels, near, params.max_angle_deg)
-    clock("edges")
-    return labels, (labels >= 0) & (distance > buffer)
+    return labels
 
 
 def _grow(points, neighbours, normals, residual, noise, params) -> np.ndarray:
@@ -298,26 +333,29 @@ def _split_non_planar(points, neighbours, normals, residual, labels, params) -> 
         scale = max(float(np.median(residual[member])), params.min_noise_m)
         if fit.rms_m <= params.planar_factor * scale or len(member) > params.ransac_max_points:
             continue
-        pieces = _ransac(points, neighbours, normals, residual, member, params)
+        tolerance = params.distance_factor * np.maximum(residual[member], params.min_noise_m)
+        pieces = _ransac(points, neighbours, normals, member, tolerance,
+                         math.cos(math.radians(params.ransac_angle_deg)), params)
         out[member] = np.where(pieces >= 0, pieces + next_label, -1)
         next_label += max(pieces.max() + 1, 0)
     return _compact(out, params.min_points)
 
 
-def _ransac(points, neighbours, normals, residual, member, params) -> np.ndarray:
+def _ransac(points, neighbours, normals, member, tolerance, cos_max, params) -> np.ndarray:
     """Sequential RANSAC on the points ``member``: a label per member (-1: none).
 
-    Candidate planes are the tangent planes of sampled points (seeded: deterministic). A point
-    is an inlier of a plane when within ``distance_factor`` × its own planarity residual of it
-    and its normal within ``ransac_angle_deg``. The best candidate is refined by TLS fits of its
-    inliers, cut to their largest connected piece in the neighbour graph, and taken out.
+    Candidate planes, from seeded samples (deterministic): the tangent plane of a point and the
+    plane through it and two of its neighbours. A member is an inlier of a plane when within
+    its ``tolerance`` [m] of it and its normal within the angle of cosine ``cos_max`` of the
+    plane's. The best candidate is refined by TLS fits of its inliers, cut to their largest
+    connected piece in the neighbour graph, and taken out; then the next, for up to
+    ``ransac_rounds`` planes.
     """
     rng = np.random.default_rng(params.seed)
     position = np.full(len(points), -1, dtype=np.int64)
     position[member] = np.arange(len(member))
+    rows = position[neighbours[member]]  # neighbours as member positions, -1 outside
     p_all, q_all = points[member], normals[member]
-    tolerance = params.distance_factor * np.maximum(residual[member], params.min_noise_m)
-    cos_max = math.cos(math.radians(params.ransac_angle_deg))
     pieces = np.full(len(member), -1, dtype=np.int64)
     free = np.ones(len(member), dtype=bool)
     label = 0
@@ -326,18 +364,21 @@ def _ransac(points, neighbours, normals, residual, member, params) -> np.ndarray
         if len(pool) < params.min_points:
             break
         p, q, t = p_all[pool], q_all[pool], tolerance[pool]
-        seeds = rng.choice(len(pool), size=min(params.ransac_hypotheses, len(pool)), replace=False)
-        counts = [int(_inliers(p, q, p[h], q[h], t, cos_max).sum()) for h in seeds]
-        best = seeds[int(np.argmax(counts))]
-        if max(counts) < params.min_points:
+        best, best_count = None, 0
+        for h in rng.choice(pool, size=min(params.ransac_hypotheses, len(pool)), replace=False):
+            for centroid, normal in _hypotheses(p_all, q_all, h, rows[h], free, rng):
+                count = int(_inliers(p, q, centroid, normal, t, cos_max).sum())
+                if count > best_count:
+                    best, best_count = (centroid, normal), count
+        if best is None or best_count < params.min_points:
             break
-        first = inlier = _inliers(p, q, p[best], q[best], t, cos_max)
+        first = inlier = _inliers(p, q, *best, t, cos_max)
         for _ in range(2):  # refine: fit the inliers, take the inliers of the fit
             fit = fit_points(p[inlier])
             inlier = _inliers(p, q, fit.centroid, fit.normal, t, cos_max)
             if inlier.sum() < 3:
                 break
-        piece = _largest_piece(pool[inlier], position[neighbours[member[pool[inlier]]]])
+        piece = _largest_piece(pool[inlier], rows[pool[inlier]])
         if len(piece) < params.min_points:
             free[pool[first]] = False  # no connected plane here: leave these points out
             continue
@@ -345,6 +386,21 @@ def _ransac(points, neighbours, normals, residual, member, params) -> np.ndarray
         free[piece] = False
         label += 1
     return pieces
+
+
+def _hypotheses(p, q, h, row, free, rng) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Candidate planes (point, unit normal) at member h: its tangent plane, and the plane
+    through it and two random free neighbours when those are not collinear with it."""
+    planes = [(p[h], q[h])]
+    others = row[(row >= 0) & (row != h)]
+    others = others[free[others]]
+    if len(others) >= 2:
+        i, j = rng.choice(others, size=2, replace=False)
+        normal = np.cross(p[i] - p[h], p[j] - p[h])
+        length = np.linalg.norm(normal)
+        if length > 1e-12 * max(np.linalg.norm(p[i] - p[h]) * np.linalg.norm(p[j] - p[h]), 1e-300):
+            planes.append((p[h], normal / length))
+    return planes
 
 
 def _inliers(p, q, centroid, normal, tolerance, cos_max) -> np.ndarray:
@@ -394,8 +450,14 @@ def _touching_pairs(labels: np.ndarray, neighbours: np.ndarray) -> tuple[np.ndar
     return np.unique(pairs, axis=0, return_counts=True)
 
 
-def _merge(points, neighbours, labels, params) -> np.ndarray:
-    """Merge touching segments whose joint plane fits about as well as their separate ones."""
+def _merge(points, neighbours, labels, noise, gap, params) -> np.ndarray:
+    """Merge neighbouring segments whose joint plane fits about as well as their separate ones,
+    or as well as the object's noise scale (the distortion can offset or tilt the parts of one
+    plane seen from different scan positions by that much).
+
+    Neighbouring: touching (neighbour links) or with bounding boxes less than ``gap`` [m] apart,
+    which bridges the gaps of the scan pattern. Candidate pairs are tried best fit first.
+    """
     count, centroid, covariance = group_moments(points, labels)
     moments = [(int(count[s]), centroid[s], covariance[s]) for s in range(len(count))]
     parent = list(range(len(count)))
@@ -407,18 +469,31 @@ def _merge(points, neighbours, labels, params) -> np.ndarray:
         return s
 
     floor = params.min_noise_m**2
-    pairs, _ = _touching_pairs(labels, neighbours)
-    for s, t in pairs:
+    touching, _ = _touching_pairs(labels, neighbours)
+    pairs = np.unique(np.concatenate([touching, _close_pairs(points, labels, gap)]), axis=0)
+    ratio = [_variance(_combine(moments[s], moments[t])) / max(_variance(moments[s]), _variance(moments[t]), floor)
+             for s, t in pairs.tolist()]
+    for s, t in pairs[np.argsort(ratio, kind="stable")]:
         rs, rt = root(int(s)), root(int(t))
         if rs == rt:
             continue
         joint = _combine(moments[rs], moments[rt])
         pooled = (moments[rs][0] * _variance(moments[rs]) + moments[rt][0] * _variance(moments[rt])) / joint[0]
-        if _variance(joint) <= params.merge_factor**2 * pooled + floor:
+        if _variance(joint) <= params.merge_factor**2 * max(pooled, noise**2) + floor:
             parent[rt] = rs
             moments[rs] = joint
     roots = np.array([root(s) for s in range(len(count))])
     return _compact(np.where(labels >= 0, roots[np.maximum(labels, 0)], -1), params.min_points)
+
+
+def _close_pairs(points: np.ndarray, labels: np.ndarray, gap: float) -> np.ndarray:
+    """Label pairs (a, b), a < b, whose bounding boxes are less than ``gap`` [m] apart."""
+    members_of = _group_indices(labels)
+    lo = np.array([points[m].min(axis=0) if len(m) else [np.inf] * 3 for m in members_of]).reshape(-1, 3) - 0.5 * gap
+    hi = np.array([points[m].max(axis=0) if len(m) else [-np.inf] * 3 for m in members_of]).reshape(-1, 3) + 0.5 * gap
+    overlap = np.all((lo[:, None, :] <= hi[None, :, :]) & (lo[None, :, :] <= hi[:, None, :]), axis=2)
+    a, b = np.nonzero(np.triu(overlap, k=1))
+    return np.column_stack([a, b]).astype(np.int64)
 
 
 def _combine(a: tuple, b: tuple) -> tuple:
@@ -461,7 +536,8 @@ def _assign(points, neighbours, labels, params) -> np.ndarray:
 
 
 def boundary_distance_m(points: np.ndarray, labels: np.ndarray, near: Neighbourhoods,
-                        min_angle_deg: float = 12.0, min_contacts: int = 3) -> np.ndarray:
+                        min_angle_deg: float = 12.0, min_contacts: int = 3,
+                        closing_m: float | None = None) -> np.ndarray:
     """Distance [m] of each labelled point from the boundary of its group (label ≥ 0), estimated
     from the points alone; NaN for unlabelled points.
 
@@ -488,7 +564,8 @@ def boundary_distance_m(points: np.ndarray, labels: np.ndarray, near: Neighbourh
         footprint = np.concatenate([member, *(members_of[h] for h in partners.get(g, ()))])
         d = points[footprint] - fit.centroid
         uv = np.column_stack([d @ u, d @ v])
-        edge = _footprint_distance(uv, float(np.median(near.reach_m[member])))[:len(member)]
+        closing = float(np.median(near.reach_m[member])) if closing_m is None else closing_m
+        edge = _footprint_distance(uv, closing)[:len(member)]
         for h in partners.get(g, ()):
             edge = np.minimum(edge, _line_distance(points[member], fit, fits[h]))
         distance[member] = edge

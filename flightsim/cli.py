@@ -10,6 +10,7 @@ from pathlib import Path
 
 from flightsim import __version__
 from flightsim.config import RunConfig, get_value, load_toml, set_value, validate
+from flightsim import score
 from flightsim.errors import InputError
 
 EXIT_INVALID = 2
@@ -190,6 +191,8 @@ def make_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--out", required=True, help="output directory (rerun the same command to resume)")
     sweep.add_argument("--overwrite", action="store_true", help="discard the finished rows in --out")
     sweep.set_defaults(func=cmd_sweep)
+
+    score.register(sub)
 
     paper = sub.add_parser("paper", help="reproduce the seed paper's study: sweeps, figures and a report")
     paper.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")

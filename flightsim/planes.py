@@ -106,14 +106,17 @@ def fit_points(xyz: np.ndarray, plane_id: int = -1) -> PlaneFit:
     """Exact two-pass total-least-squares plane of points (n, 3) [m], n ≥ 3.
 
     Pass one takes the float64 centroid, pass two the covariance of the centred points, so large
-    world coordinates cost no precision.
+    world coordinates cost no precision; the RMS is that of the residuals themselves (not the
+    square root of an eigenvalue, which would bottom out near sqrt(ε)·extent).
     """
     points = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     if len(points) < 3:
         raise ValueError(f"a plane fit needs at least 3 points, got {len(points)}")
     centroid = points.mean(axis=0)
     d = points - centroid
-    return _fit_from_covariance(plane_id, len(points), centroid, d.T @ d / len(points))
+    fit = _fit_from_covariance(plane_id, len(points), centroid, d.T @ d / len(points))
+    fit.rms_m = float(np.sqrt(np.mean((d @ fit.normal) ** 2)))
+    return fit
 
 
 def group_moments(xyz: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -146,11 +149,25 @@ def fit_groups(xyz: np.ndarray, labels: np.ndarray, min_points: int = 3) -> list
     """Two-pass TLS fit of every group of points sharing a label ≥ 0 with at least ``min_points``.
 
     xyz: (n, 3) [m]; labels: (n,) int, negative = no group. The fits come in label order and
-    carry the label as ``plane_id``; vectorised over groups (:func:`group_moments`).
+    carry the label as ``plane_id``; vectorised over groups (:func:`group_moments`), with each
+    RMS taken from the residuals themselves, as in :func:`fit_points`.
     """
-    count, centroid, covariance = group_moments(xyz, labels)
-    return [_fit_from_covariance(g, count[g], centroid[g], covariance[g])
-            for g in np.flatnonzero(count >= max(min_points, 3))]
+    points = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    labels = np.asarray(labels, dtype=np.int64)
+    count, centroid, covariance = group_moments(points, labels)
+    fits = {g: _fit_from_covariance(g, count[g], centroid[g], covariance[g])
+            for g in np.flatnonzero(count >= max(min_points, 3))}
+    if not fits:
+        return []
+    normal = np.zeros((len(count), 3))
+    for g, fit in fits.items():
+        normal[g] = fit.normal
+    keep = labels >= 0
+    residual = np.einsum("ij,ij->i", points[keep] - centroid[labels[keep]], normal[labels[keep]])
+    mean_square = np.bincount(labels[keep], weights=residual**2, minlength=len(count)) / np.maximum(count, 1)
+    for g, fit in fits.items():
+        fit.rms_m = float(np.sqrt(mean_square[g]))
+    return list(fits.values())
 
 
 def residuals(xyz: np.ndarray, fit: PlaneFit) -> np.ndarray:

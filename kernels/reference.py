@@ -8,17 +8,9 @@ import warp as wp
 
 from kernels.frames import PulsePose64
 from kernels.optics import doe_direction, prism_exit, rigid_array_direction
+from kernels.trace import Prism
 
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.struct
-class Prism64:
-    """Wedge parameters in float64."""
-
-    n_glass: wp.float64
-    apex: wp.float64  # [rad]
-    thickness: wp.float64  # [m]
 
 
 @wp.kernel
@@ -33,8 +25,8 @@ def reference_returns(
     indices: wp.array(dtype=wp.int32),  # 3 per triangle
     n: int,
     spacing: wp.float64,  # [rad]
-    truth: Prism64,
-    believed: Prism64,
+    truth: Prism,
+    believed: Prism,
     # Out:
     true_points: wp.array(dtype=wp.vec3d),  # [m, local]
     exact_points: wp.array(dtype=wp.vec3d),
