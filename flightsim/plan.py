@@ -14,6 +14,7 @@ from flightsim.scene import (Scene, calibration_min_half_extent, calibration_sce
 from trajectories import Trajectory, TrajectoryError, plan_parallel_lines
 
 MIN_CLEARANCE_M = 1.0  # the sensor must stay at least this far above the terrain [m]
+MAX_REACH_DEG = 80.0  # built-in scenes are sized for beams up to this far from nadir [deg]
 CLEARANCE_PIECES = 64  # a trajectory's clearance is checked over this many runs of samples
 
 
@@ -23,12 +24,21 @@ def line_length_m(cfg: RunConfig) -> float:
 
 
 def scene_half_extent(cfg: RunConfig) -> float:
-    """Half side of the built-in scene's square ground that holds every scan circle of the flight [m]."""
-    altitude = cfg.flight.altitude_m
+    """Half side of the built-in scene's square ground that holds every scan circle of the flight [m].
+
+    The lines' rectangle (any heading) grows by the reach of the widest beam: the cone
+    half-angle, plus the fan's half-diagonal, plus the sensor axis' largest lean from nadir
+    (roll and pitch of the plan and of the boresight), at most MAX_REACH_DEG.
+    """
+    f, s = cfg.flight, cfg.sensor
     along = line_length_m(cfg) / 2.0
-    across = (cfg.flight.lines - 1) / 2.0 * cfg.flight.line_spacing_m
-    return required_half_extent(altitude, math.radians(cfg.sensor.cone_half_angle_deg), max(along, across),
-                                cfg.scene.margin_m)
+    across = (f.lines - 1) / 2.0 * f.line_spacing_m
+    sin_h, cos_h = abs(math.sin(math.radians(f.heading_deg))), abs(math.cos(math.radians(f.heading_deg)))
+    reach = max(along * sin_h + across * cos_h, along * cos_h + across * sin_h)
+    tilt = abs(f.roll_deg) + abs(f.pitch_deg) + abs(s.boresight_deg[0]) + abs(s.boresight_deg[1])
+    fan = math.degrees(math.sqrt(2.0) * (s.array - 1) / 2.0 * s.spacing_mrad * 1e-3)
+    angle = min(s.cone_half_angle_deg + fan + tilt, MAX_REACH_DEG)
+    return required_half_extent(f.altitude_m, math.radians(angle), reach, cfg.scene.margin_m)
 
 
 def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
@@ -59,9 +69,8 @@ def _planned_lines(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
 
 
 def _clearance(trajectory: Trajectory, scene: Scene, pieces: int = CLEARANCE_PIECES) -> tuple[float, float, float]:
-    """(clearance [m], sensor height [m], terrain top [m]) where a trajectory comes closest to the terrain.
-
-    Heights are local [m].
+    """(clearance, sensor height, terrain top) [m, local heights] where a trajectory comes closest
+    to the terrain.
 
     The trajectory is cut into up to ``pieces`` runs of consecutive samples; over each run's
     bounding rectangle the terrain's highest point is compared with the run's lowest sample

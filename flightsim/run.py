@@ -13,8 +13,6 @@ from flightsim.edges import edge_buffer_m
 from flightsim.errors import InputError
 from flightsim.plan import build_scene, flight_trajectories
 
-RUN_FILES = ("run.toml", "summary.json", *MODELS)
-
 
 def write_atomic(path: Path, text: str) -> None:
     """Write a text file under a temporary name, then rename it into place."""
@@ -45,18 +43,26 @@ def prepare_output(directory: Path, cfg_text: str, overwrite: bool) -> None:
         if not (overwrite or unfinished_same):
             raise InputError("--out", str(directory),
                              "an empty or new directory (pass --overwrite to replace the run in it)")
-        for name in RUN_FILES:
-            target = directory / name
-            if target.is_dir():
-                shutil.rmtree(target)
-            elif target.exists():
-                target.unlink()
-        for leftover in directory.glob(".*.part"):
-            leftover.unlink()
+        _remove_run(directory)
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError("--out", str(directory), f"a directory that can be created ({exc.strerror or exc})") from None
+
+
+def _remove_run(directory: Path) -> None:
+    """Delete a run's files in an order that a kill at any moment leaves resumable: the completion
+    marker summary.json first, the tiles and temporaries next, and run.toml, which names the
+    config of the unfinished run, last."""
+    for name in ("summary.json", *MODELS):
+        target = directory / name
+        if target.is_dir():
+            shutil.rmtree(target)
+        elif target.exists():
+            target.unlink()
+    for leftover in directory.glob(".*.part"):
+        leftover.unlink()
+    (directory / "run.toml").unlink(missing_ok=True)
 
 
 def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = False,

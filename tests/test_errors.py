@@ -111,7 +111,18 @@ CASES = [
     ("sweep_array_zero", ["sweep", "--arrays", "0,3"], "sensor.array", "0"),
     ("sweep_out_is_a_file", ["sweep", "--scene", "plane", "--duration", "0.1", "--out", "DIR/afile"], "--out",
      "afile"),
+    ("sweep_out_under_a_file", ["sweep", "--scene", "plane", "--duration", "0.1", "--out", "DIR/afile/sub"],
+     "--out", "afile/sub"),
 ]
+
+
+KNOWN_BUGS = {  # case: the fix it waits for
+    "sweep_out_under_a_file": "flightsim/sweep.py SweepDirectory.__init__: mkdir of DIR/rows under a file raises "
+                              "NotADirectoryError (traceback, exit 1) instead of InputError('--out', ...)",
+}
+PARAMS = [pytest.param(*case, id=case[0], marks=[pytest.mark.xfail(strict=True, raises=AssertionError,
+                                                                   reason=KNOWN_BUGS[case[0]])]
+                       if case[0] in KNOWN_BUGS else []) for case in CASES]
 
 
 def _command(args: list[str], files: Path, out: Path) -> list[str]:
@@ -144,7 +155,7 @@ def error_lines(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if not line.startswith(WARP_NO_DRIVER)]
 
 
-@pytest.mark.parametrize("name, args, field, value", CASES, ids=[c[0] for c in CASES])
+@pytest.mark.parametrize("name, args, field, value", PARAMS)
 def test_bad_input_exits_2_with_one_line_naming_field_value_and_what_is_allowed(results, name, args, field, value):
     command, done, out = results[name]
     lines = error_lines(done.stderr)
