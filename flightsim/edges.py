@@ -17,25 +17,31 @@ from flightsim.scene import Scene
 _VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
 
 
+def _row_groups(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Group equal rows of an integer table: (group id of each row, size of each group), by lexsort."""
+    order = np.lexsort(rows.T[::-1])
+    ordered = rows[order]
+    starts = np.ones(len(rows), dtype=bool)
+    starts[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    group = np.empty(len(rows), dtype=np.int64)
+    group[order] = np.cumsum(starts) - 1
+    return group, np.bincount(group)
+
+
 def boundary_segments(scene: Scene) -> np.ndarray:
     """(S, 2, 3) local end points [m] of every edge that bounds a plane.
 
     An edge bounds plane p when exactly one triangle of p uses it (matched by vertex position,
     so duplicated vertices do not create false boundaries). Degenerate edges are skipped.
     """
-    keys = np.round(scene.vertices / _VERTEX_KEY_M).astype(np.int64)
-    _, vertex = np.unique(keys, axis=0, return_inverse=True)
-    tri = vertex.ravel()[scene.triangles]
-    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-    plane = np.tile(scene.plane_id, 3)
-    undirected = np.sort(edges, axis=1)
-    keep = undirected[:, 0] != undirected[:, 1]
-    records = np.column_stack([plane, undirected])[keep]
-    unique, counts = np.unique(records, axis=0, return_counts=True)
-    boundary = unique[counts == 1]
-    first_vertex = np.zeros(vertex.max() + 1, dtype=np.int64)
-    first_vertex[vertex.ravel()] = np.arange(len(scene.vertices))
-    return scene.vertices[first_vertex[boundary[:, 1:]]]
+    vertex, _ = _row_groups(np.round(scene.vertices / _VERTEX_KEY_M).astype(np.int64))
+    corners = np.concatenate([scene.triangles[:, [0, 1]], scene.triangles[:, [1, 2]], scene.triangles[:, [2, 0]]])
+    ids = np.sort(vertex[corners], axis=1)
+    keep = ids[:, 0] != ids[:, 1]
+    records = np.column_stack([np.tile(scene.plane_id, 3), ids])[keep]
+    group, size = _row_groups(records)
+    single = size[group] == 1
+    return scene.vertices[corners[keep][single]]
 
 
 def max_distortion_rad(cfg: RunConfig, samples: int = 360) -> float:

@@ -76,6 +76,11 @@ class SceneMeshes:
                             bvh_constructor=bvh_constructor, bvh_leaf_size=leaf_size)
         self.vertices64 = wp.array(scene.vertices, dtype=wp.vec3d, device=device)
         self.indices = self.mesh.indices
+        corners = scene.vertices[scene.triangles].astype(np.float32)
+        pad = np.float32(1e-6 * (1.0 + np.abs(corners).max()))
+        self._padded_boxes = (wp.array(corners.min(axis=1) - pad, dtype=wp.vec3f, device=device),
+                              wp.array(corners.max(axis=1) + pad, dtype=wp.vec3f, device=device))
+        self.padded = wp.Bvh(*self._padded_boxes)
         self._boundary: tuple[wp.Bvh, wp.array, wp.array] | None = None
 
     @property
@@ -156,6 +161,7 @@ class Simulator:
         scan.edge_cap = self.edge_buffer_m
         scan.lut_directions, scan.lut_exits = self._exit_table()
         scan.vertices64, scan.indices = self.meshes.vertices64, self.meshes.indices
+        scan.padded = self.meshes.padded.id
         return scan
 
     def _exit_table(self) -> tuple[wp.array, wp.array]:

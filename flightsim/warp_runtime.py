@@ -1,18 +1,44 @@
 """Warp start-up and device selection, done once per process."""
 from __future__ import annotations
 
+import contextlib
 import functools
+import os
+import sys
+import tempfile
 
 import warp as wp
 
 from flightsim.errors import InputError
 
 
+NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"  # expected on CPU-only machines
+
+
+@contextlib.contextmanager
+def _native_stderr_without(noise: str):
+    """Hold back what native code writes to stderr (fd 2) and pass on every line but ``noise``."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            kept = [line for line in held.read().decode(errors="replace").splitlines(True) if noise not in line]
+            sys.stderr.write("".join(kept))
+
+
 @functools.cache
 def init_warp() -> None:
-    """Initialise Warp quietly (the kernel cache is Warp's default or ``WARP_CACHE_PATH``)."""
+    """Initialise Warp quietly (the kernel cache is Warp's default or ``WARP_CACHE_PATH``); the
+    missing-driver notice of a machine without a GPU is dropped, anything else is shown."""
     wp.config.log_level = wp.LOG_WARNING
-    wp.init()
+    with _native_stderr_without(NO_DRIVER):
+        wp.init()
 
 
 def resolve_device(name: str) -> str:

@@ -71,6 +71,7 @@ class Scan:
     lut_exits: wp.array2d(dtype=wp.vec3f)  # exit points [m]; a zero direction marks reflection
     vertices64: wp.array(dtype=wp.vec3d)  # scene vertices in float64 (float64 optics path) [m]
     indices: wp.array(dtype=wp.int32)  # 3 per triangle
+    padded: wp.uint64  # BVH of slightly padded triangle boxes, for rays the mesh query misses
 
 
 @dataclass(frozen=True)
@@ -120,6 +121,40 @@ def _edge_distance(boundary: wp.uint64, seg_a: wp.array(dtype=wp.vec3f), seg_b: 
         u = wp.clamp(wp.dot(p - a, ab) / wp.max(wp.dot(ab, ab), 1.0e-20), 0.0, 1.0)
         best = wp.min(best, wp.length(p - (a + u * ab)))
     return best
+
+
+@wp.func
+def _fallback_hit(bvh: wp.uint64, vertices: wp.array(dtype=wp.vec3d), indices: wp.array(dtype=wp.int32),
+                  start: wp.vec3d, direction: wp.vec3d, max_range: wp.float32):
+    """(face, t [m]) of the closest triangle on the ray, or (-1, max_range): a second look for rays the
+    mesh query reports as misses.
+
+    Warp's mesh BVH tests boxes without a margin, so a ray through an edge or vertex shared by
+    flat triangles (boxes of zero thickness) can slip between them. Here the boxes are padded and
+    each candidate gets an exact float64 ray–triangle test (Möller–Trumbore) that keeps the edges.
+    """
+    best_face = int(-1)
+    best_t = wp.float64(max_range)
+    query = wp.bvh_query_ray(bvh, wp.vec3f(start), wp.vec3f(direction))
+    tri = int(0)
+    while wp.bvh_query_next(query, tri, wp.float32(best_t) + 1.0):
+        v0 = vertices[indices[3 * tri]]
+        e1 = vertices[indices[3 * tri + 1]] - v0
+        e2 = vertices[indices[3 * tri + 2]] - v0
+        p = wp.cross(direction, e2)
+        det = wp.dot(e1, p)
+        if det != wp.float64(0.0):
+            inv = wp.float64(1.0) / det
+            d = start - v0
+            u = wp.dot(d, p) * inv
+            q = wp.cross(d, e1)
+            v = wp.dot(direction, q) * inv
+            t = wp.dot(e2, q) * inv
+            eps = wp.float64(-1.0e-9)
+            if u >= eps and v >= eps and u + v <= wp.float64(1.0) - eps and t >= wp.float64(0.0) and t < best_t:
+                best_face = tri
+                best_t = t
+    return best_face, best_t
 
 
 @wp.func
@@ -181,12 +216,18 @@ def _slot_function(f: Features, deflect: wp.Function):
         start = origin + rot * exit_point
         direction = rot * s3
         hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
+        face = hit.face
+        t_hit = hit.t
         if not hit.result:
-            return STATUS_MISS, 0.0, -1, wp.vec3f(direction), zero, zero, zero, 0.0
+            face, t_second = _fallback_hit(scan.padded, scan.vertices64, scan.indices, wp.vec3d(start),
+                                           wp.vec3d(direction), scan.max_range)
+            if face < 0:
+                return STATUS_MISS, 0.0, -1, wp.vec3f(direction), zero, zero, zero, 0.0
+            t_hit = wp.float32(t_second)
         if wp.static(precise):
-            t = _refine_hit(scan.vertices64, scan.indices, hit.face, start, direction)
+            t = _refine_hit(scan.vertices64, scan.indices, face, start, direction)
         else:
-            t = hit.t
+            t = t_hit
         true_point = start + t * direction
         r = t
         if wp.static(f.noisy):
@@ -216,7 +257,7 @@ def _slot_function(f: Features, deflect: wp.Function):
         edge = scan.edge_cap
         if wp.static(f.edges):
             edge = _edge_distance(scan.boundary, scan.boundary_a, scan.boundary_b, true32, scan.edge_cap)
-        return (STATUS_RETURN, wp.float32(r), hit.face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
+        return (STATUS_RETURN, wp.float32(r), face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
                 true32, edge)
 
     return trace_slot

@@ -88,10 +88,6 @@ def diamonds(scene: Scene, centres: np.ndarray, shared: str, half_width: float =
                  planes=[plane_info(0, "ground", CLASS_GROUND, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))], ground_z=0.0)
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "kernels/trace.py trace_slot: wp.mesh_query_ray (Warp 1.19) tests BVH boxes without a conservative "
-    "margin, so a ray through a vertex or edge lying on a box boundary can be rejected by both boxes; "
-    "needs a fallback query on a miss (see the hardening report)"))
 @pytest.mark.parametrize("shared", ["vertex", "edge"])
 def test_beams_aimed_exactly_at_shared_vertices_and_edges_all_return(device, shared):
     cfg = config(scene__name="plane", sensor__array=8, flight__duration_s=0.1, run__device=device)
