@@ -37,6 +37,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 SWEEP_FLAGS = [f for f in CONFIG_FLAGS if f[0] in ("--scene", "--duration", "--models", "--device", "--seed")]
+SURVEY_FLAGS = [("--scene", "scene", "scene.name", "what every scene tile holds: calibration (default) or plane")] + [
+    f for f in CONFIG_FLAGS if f[0] not in ("--scene", "--duration", "--trajectory")]
 SWEEP_AXES = [
     ("--altitudes", "altitudes", "flight.altitude_m", "altitudes above ground [m], e.g. 500,1000,1500"),
     ("--arrays", "arrays", "sensor.array", "array sizes N, e.g. 2,3,4,5,6"),
@@ -100,6 +102,12 @@ def _add_config_flags(parser: argparse.ArgumentParser, flags=CONFIG_FLAGS) -> No
                         help="set any config field, e.g. --set sensor.refractive_index=1.45 (repeatable)")
 
 
+def _add_cluster_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--workers", type=int, help="run on a local Dask cluster of N worker processes (N > 1)")
+    parser.add_argument("--scheduler", help="run on the Dask cluster of this scheduler address, e.g. tcp://host:8786")
+    parser.add_argument("--gpus", help="Dask workers pinned to GPUs, one per GPU (or --workers of them): all, or 0,1")
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     cfg = build_config(args)
     from flightsim.progress import ProgressBar
@@ -113,16 +121,56 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cluster(args: argparse.Namespace, tasks: int):
+    """The Dask client of --workers / --scheduler / --gpus (None: run serially), for ``tasks`` tasks."""
+    from flightsim.distributed import open_client
+
+    if args.gpus and args.device not in (None, "cuda"):
+        raise InputError("--device", args.device, "cuda or nothing with --gpus (each worker runs on its own GPU)")
+    if tasks <= 1:  # a single configuration runs serially, here
+        return open_client()
+    return open_client(args.workers, args.scheduler, args.gpus)
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
+    if args.gpus and args.device is None:
+        args.device = "cuda"
     grid = build_grid(args)
     from flightsim.progress import ProgressBar
     from flightsim.sweep import plot_sweep, run_sweep
 
     started = time.perf_counter()
-    table = run_sweep(grid, Path(args.out), overwrite=args.overwrite, progress=ProgressBar("sweep"))
+    with _cluster(args, len(grid.configurations())) as client:
+        table = run_sweep(grid, Path(args.out), overwrite=args.overwrite, progress=ProgressBar("sweep"), client=client,
+                          batch=args.batch)
     plots = plot_sweep(table, Path(args.out))
     print(f"{len(grid.configurations())} configurations in {time.perf_counter() - started:.1f} s; "
           f"{table} and {len(plots)} plot(s) written")
+    return 0
+
+
+def cmd_survey(args: argparse.Namespace) -> int:
+    if args.gpus and args.device is None:
+        args.device = "cuda"
+    cfg = base_config(args, SURVEY_FLAGS)
+    for key, value in _set_items(args):
+        set_value(cfg, key, value)
+    cfg = validate(cfg)
+    from flightsim.progress import ProgressBar
+    from flightsim.survey import SurveySpec, plan_survey, run_survey
+
+    spec = SurveySpec(size_km=args.size_km, tile_m=args.tile_m, sidelap=args.sidelap, lines=args.lines,
+                      segment_m=args.segment_m)
+    plan = plan_survey(cfg, spec)
+    print(f"survey: {plan.grid.side_m / 1000:g} km × {plan.grid.side_m / 1000:g} km in {plan.grid.n ** 2} tiles, "
+          f"{plan.cfg.flight.lines} lines {plan.cfg.flight.line_spacing_m:.1f} m apart, {len(plan.tasks)} tasks, "
+          f"{plan.pulses * cfg.sensor.array ** 2:,} beams", file=sys.stderr)
+    with _cluster(args, len(plan.tasks)) as client:
+        summary = run_survey(cfg, spec, Path(args.out), client=client, overwrite=args.overwrite,
+                             progress=ProgressBar("survey"))
+    memory = ", ".join(f"{name} {w['peak_rss_mb']:.0f} MiB" for name, w in summary["workers"].items())
+    print(f"{summary['points_written']:,} points {summary['points']} in {summary['wall_s']:.1f} s "
+          f"({summary['points_per_s']:,} points/s); peak RSS per worker: {memory}; written to {args.out}")
     return 0
 
 
@@ -190,7 +238,22 @@ def make_parser() -> argparse.ArgumentParser:
         sweep.add_argument(flag, dest=dest, help=help_text)
     sweep.add_argument("--out", required=True, help="output directory (rerun the same command to resume)")
     sweep.add_argument("--overwrite", action="store_true", help="discard the finished rows in --out")
+    _add_cluster_flags(sweep)
+    sweep.add_argument("--batch", type=int, default=1, help="configurations per task on a cluster (default 1)")
     sweep.set_defaults(func=cmd_sweep)
+
+    survey = sub.add_parser("survey", help="a large survey over a tiled scene, split into tasks (on a Dask cluster)")
+    _add_config_flags(survey, SURVEY_FLAGS)
+    survey.add_argument("--size-km", type=float, default=5.0, help="side of the square survey area [km] (default 5)")
+    survey.add_argument("--tile-m", type=int, default=1000, help="side of a scene tile [m] (default 1000)")
+    survey.add_argument("--sidelap", type=float, default=0.3, help="swath overlap of neighbouring lines (default 0.3)")
+    survey.add_argument("--lines", type=int, default=0, help="flight lines (default 0: enough to cover the area)")
+    survey.add_argument("--segment-m", type=float, default=1000.0,
+                        help="along-track length of a task [m] (default 1000)")
+    survey.add_argument("--out", required=True, help="output directory: <model>/<tile>.las, run.toml, survey.json")
+    survey.add_argument("--overwrite", action="store_true", help="replace the survey in a non-empty --out")
+    _add_cluster_flags(survey)
+    survey.set_defaults(func=cmd_survey)
 
     score.register(sub)
 

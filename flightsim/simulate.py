@@ -25,7 +25,7 @@ from flightsim.warp_runtime import resolve_device
 from kernels import frames, trace
 from trajectories import PulseTiming, Trajectory
 
-SLOTS_PER_CHUNK = {"cpu": 1 << 19, "cuda": 1 << 24}  # automatic chunk size, in beam slots
+SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
 SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # statistics mode: consecutive slots per thread
 
 

@@ -5,8 +5,12 @@ the returns to per-plane moments on the device, no LAS is written and no per-poi
 kept. Scenes and their BVHs are built once per distinct scene and shared by all configurations.
 
 Resumable: each finished configuration writes its rows to ``DIR/rows/<key>.json`` atomically and
-``sweep.csv`` / ``planes.csv`` are regenerated from the finished rows, so a crash loses at most the
-configuration in flight and a rerun skips what is done, never duplicating a row.
+``sweep.csv`` / ``planes.csv`` are regenerated from the finished rows (every few seconds while the
+sweep runs, and when it ends, also by an error), so a crash loses at most the configurations in
+flight and a rerun skips what is done, never duplicating a row.
+
+Given a Dask client, the configurations run as tasks on its workers (:mod:`flightsim.distributed`)
+and the client records each one's rows as it finishes, exactly as the serial loop does.
 """
 from __future__ import annotations
 
@@ -32,6 +36,7 @@ AXIS_KEYS = {"altitude_m": "flight.altitude_m", "array": "sensor.array", "spacin
 ROW_CORE = ["model", "rms_m", "points"]  # the SPEC's columns after the axes
 ROW_MORE = ["returns", "planes", "edge_buffer_m", "wall_s"]
 PLANE_TAIL = ["model", "plane_id", "kind", "n", "rms_m", "pitch_deg", "azimuth_deg"]
+TABLES_INTERVAL_S = 2.0  # sweep.csv and planes.csv are regenerated at most this often while a sweep runs [s]
 
 
 @dataclass
@@ -90,19 +95,25 @@ def parse_axis(flag: str, text: str) -> list[str]:
 
 
 class SceneCache:
-    """Scenes and their device BVHs, built once per distinct scene of a sweep."""
+    """Scenes and their device BVHs, built once per distinct scene of a sweep.
 
-    def __init__(self, configs: Iterable[RunConfig]):
+    Each scene's ground is as wide as the widest flight of ``configs`` needs (``extent``, by scene
+    key), so that every configuration of a sweep flies over the same scene. A worker process of a
+    distributed sweep keeps one cache for all its tasks and is given the extents with each task.
+    """
+
+    def __init__(self, configs: Iterable[RunConfig] = ()):
         from flightsim.plan import scene_half_extent
 
         self.extent: dict[str, float] = {}
         for cfg in configs:
-            key = self._key(cfg)
+            key = self.scene_key(cfg)
             self.extent[key] = max(self.extent.get(key, 0.0), scene_half_extent(cfg))
-        self.built: dict[tuple[str, str], tuple] = {}
+        self.built: dict[tuple[str, float | None, str], tuple] = {}
 
     @staticmethod
-    def _key(cfg: RunConfig) -> str:
+    def scene_key(cfg: RunConfig) -> str:
+        """Identity of a config's scene (its ``scene`` section)."""
         return json.dumps(dataclasses.asdict(cfg.scene), sort_keys=True)
 
     def get(self, cfg: RunConfig, device: str):
@@ -110,9 +121,10 @@ class SceneCache:
         from flightsim.plan import build_scene
         from flightsim.simulate import SceneMeshes
 
-        key = (self._key(cfg), device)
+        scene_key = self.scene_key(cfg)
+        key = (scene_key, self.extent.get(scene_key), device)
         if key not in self.built:
-            scene = build_scene(cfg, self.extent.get(key[0]))
+            scene = build_scene(cfg, key[1])
             self.built[key] = (scene, SceneMeshes(scene, device))
         return self.built[key]
 
@@ -166,6 +178,7 @@ class SweepDirectory:
                 raise InputError("--out", str(self.path),
                                  "a new directory, or one holding a sweep to resume (pass --overwrite to replace it)")
         (self.path / "rows").mkdir(parents=True, exist_ok=True)
+        self._results: dict[Path, dict] = {}  # finished rows read or recorded by this process
 
     def row_file(self, cfg: RunConfig) -> Path:
         return self.path / "rows" / f"{config_key(cfg)}.json"
@@ -174,14 +187,22 @@ class SweepDirectory:
         return self.row_file(cfg).is_file()
 
     def record(self, cfg: RunConfig, result: dict) -> None:
-        write_atomic(self.row_file(cfg), json.dumps(result))
+        path = self.row_file(cfg)
+        write_atomic(path, json.dumps(result))
+        self._results[path] = json.loads(json.dumps(result))  # as a reader of the file would see it
+
+    def _result(self, path: Path) -> dict:
+        if path not in self._results:
+            self._results[path] = json.loads(path.read_text())
+        return self._results[path]
 
     def write_tables(self, grid: SweepGrid, configs: list[tuple[dict, RunConfig]]) -> None:
         """Regenerate sweep.csv and planes.csv from the finished rows, in grid order."""
         rows, planes = [], []
         for _, cfg in configs:
-            if self.done(cfg):
-                result = json.loads(self.row_file(cfg).read_text())
+            path = self.row_file(cfg)
+            if path.is_file():
+                result = self._result(path)
                 rows += result["rows"]
                 planes += result["planes"]
         write_atomic(self.path / "sweep.csv", _csv(SPEC_COLUMNS + ROW_CORE + grid.extra_columns + ROW_MORE, rows))
@@ -202,21 +223,42 @@ def _cell(value):
 
 
 def run_sweep(grid: SweepGrid, out: Path, overwrite: bool = False,
-              progress: Callable[[int, int], None] | None = None) -> Path:
-    """Run every unfinished configuration of the grid serially; return the path of sweep.csv."""
+              progress: Callable[[int, int], None] | None = None, client=None, batch: int = 1) -> Path:
+    """Run every unfinished configuration of the grid; return the path of sweep.csv.
+
+    Serially in this process by default; with a Dask ``client`` (and more than one configuration
+    to run) as tasks of ``batch`` configurations each on its workers, recording each finished
+    configuration as its result streams back.
+    """
     configs = grid.configurations()
     directory = SweepDirectory(out, overwrite)
     write_atomic(directory.path / "sweep.json",
                  json.dumps({"axes": grid.axes, "base": dataclasses.asdict(grid.base)}, indent=2, default=str))
     scenes = SceneCache(cfg for _, cfg in configs)
     todo = [(labels, cfg) for labels, cfg in configs if not directory.done(cfg)]
-    for k, (labels, cfg) in enumerate(todo):
-        directory.record(cfg, run_configuration(labels, cfg, scenes))
+    last_tables = time.perf_counter()
+    try:
+        for k, (cfg, result) in enumerate(_results(todo, scenes, client, batch)):
+            directory.record(cfg, result)
+            if time.perf_counter() - last_tables >= TABLES_INTERVAL_S:
+                directory.write_tables(grid, configs)
+                last_tables = time.perf_counter()
+            if progress:
+                progress(k + 1, len(todo))
+    finally:
         directory.write_tables(grid, configs)
-        if progress:
-            progress(k + 1, len(todo))
-    directory.write_tables(grid, configs)
     return directory.path / "sweep.csv"
+
+
+def _results(todo: list[tuple[dict, RunConfig]], scenes: SceneCache, client, batch: int):
+    """(config, result) of each configuration to run, as each finishes."""
+    if client is None or len(todo) <= 1:
+        for labels, cfg in todo:
+            yield cfg, run_configuration(labels, cfg, scenes)
+    else:
+        from flightsim.distributed import run_configurations
+
+        yield from run_configurations(client, todo, scenes.extent, batch)
 
 
 def plot_sweep(sweep_csv: Path, out_dir: Path) -> list[Path]:

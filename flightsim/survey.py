@@ -1,0 +1,516 @@
+"""`flightsim survey`: a large survey over a tiled scene, split into tasks that can run anywhere.
+
+The scene is a square grid of scene tiles of ``tile_m`` — each a copy of the calibration field
+(or flat ground, for ``scene.name = "plane"``) with its own float64 origin at its centre (SPEC §2) —
+flown by parallel north–south lines whose spacing is the swath width (the scan circle's diameter
+2·h·tan θ) less the sidelap.
+
+Each line is cut along track into segments of ``segment_m``. One task simulates one segment: its
+pulses only (``Simulator(pulse_limits=...)``, so every pulse belongs to exactly one task), over a
+scene assembled from just the tiles its beams can reach (the reach radius h·tan(θ_max + tilt + 1°)
+plus the scene margin around its ground track, the local origin being the tile under the middle
+of the segment). It writes its points per LAS tile into part files in a directory of its own,
+renamed into place when complete. One merge task per (model, LAS tile) then concatenates that
+tile's parts in task order (line, then segment) into the final tile, atomically, and deletes the
+parts. The tiles are byte-identical whether the tasks run in this process or on any number of
+Dask workers, and whether or not a worker died on the way (a task or merge run twice writes the
+same bytes under names of its own).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import os
+import shutil
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from flightsim import __version__
+from flightsim.config import MODELS, RunConfig, copy_config, to_toml, validate
+from flightsim.errors import InputError
+from flightsim.outputs import LasOutput
+from flightsim.plan import MIN_CLEARANCE_M
+from flightsim.run import write_atomic
+from flightsim.scene import Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene
+from flightsim.simulate import Simulator
+from trajectories import FlightLine, PulseTiming, TrajectoryError, plan_parallel_lines
+
+PARTS = ".parts"  # per-task part files, under the output directory
+SURVEY_FILES = ("run.toml", "survey.toml", "survey.json", PARTS)
+REACH_MARGIN_DEG = 1.0  # added to the widest beam's angle from nadir when finding the tiles a task can reach
+MAX_REACH_DEG = 80.0
+MERGE_CHUNK_POINTS = 500_000  # points read and written at a time when merging parts
+
+
+@dataclass(frozen=True)
+class SurveySpec:
+    """The extent of a survey and how it is cut into tasks."""
+
+    size_km: float = 5.0  # side of the square survey area [km] (rounded up to whole tiles)
+    tile_m: int = 1000  # side of a scene tile [m]
+    sidelap: float = 0.3  # overlap of neighbouring swaths, as a fraction of the swath width
+    lines: int = 0  # flight lines; 0: enough to cover the area
+    segment_m: float = 1000.0  # along-track length of one task [m]
+
+    def validated(self) -> SurveySpec:
+        """This spec, if every field is in range; else InputError naming the field."""
+        for name, lo, hi, unit in (("size_km", 0.0, 10000.0, "km"), ("sidelap", 0.0, 0.9, "of the swath width"),
+                                   ("segment_m", 1.0, 1.0e6, "m")):
+            value = getattr(self, name)
+            number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not (number and lo <= value <= hi) or (name == "size_km" and value == lo):
+                interval = f"({lo:g}, {hi:g}]" if name == "size_km" else f"[{lo:g}, {hi:g}]"
+                raise InputError(f"survey.{name}", value, f"a number in {interval} {unit}")
+        for name, lo, hi in (("tile_m", 1, 100_000), ("lines", 0, 65535)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+                raise InputError(f"survey.{name}", value, f"an integer in [{lo}, {hi}]")
+        return self
+
+    def to_toml(self) -> str:
+        return "[survey]\n" + "".join(f"{f.name} = {getattr(self, f.name)!r}\n" for f in dataclasses.fields(self))
+
+
+# ---------------------------------------------------------------------------------------------
+# the tiled scene
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    """n × n scene tiles of ``tile_m`` centred on ``centre``; tile (i, j) is column i (east), row j (north)."""
+
+    kind: str  # "calibration" or "plane"
+    crs: str
+    centre: tuple[float, float, float]  # world E, N, H of the grid's centre [m]; H is the ground
+    tile_m: int
+    n: int
+
+    @property
+    def side_m(self) -> float:
+        return self.n * self.tile_m
+
+    def tile_origin(self, i: int, j: int) -> np.ndarray:
+        """World E, N, H of tile (i, j)'s centre, its local origin [m]."""
+        half = 0.5 * self.side_m
+        return np.array([self.centre[0] - half + (i + 0.5) * self.tile_m,
+                         self.centre[1] - half + (j + 0.5) * self.tile_m, self.centre[2]])
+
+    def tile_at(self, east: float, north: float) -> tuple[int, int]:
+        """The tile under a world position (the nearest edge tile outside the grid)."""
+        half = 0.5 * self.side_m
+        return tuple(int(np.clip(math.floor((v - c + half) / self.tile_m), 0, self.n - 1))
+                     for v, c in ((east, self.centre[0]), (north, self.centre[1])))
+
+    def tiles_within(self, lo: np.ndarray, hi: np.ndarray) -> list[tuple[int, int]]:
+        """Tiles whose square meets the world rectangle [lo, hi] (E, N) [m], row by row."""
+        half = 0.5 * self.side_m
+        first = [max(0, math.floor((lo[a] - self.centre[a] + half) / self.tile_m)) for a in range(2)]
+        last = [min(self.n - 1, math.floor((hi[a] - self.centre[a] + half) / self.tile_m)) for a in range(2)]
+        return [(i, j) for j in range(first[1], last[1] + 1) for i in range(first[0], last[0] + 1)]
+
+    def template(self) -> Scene:
+        """One tile's scene about its own origin (every tile is a copy)."""
+        return _template(self.kind, self.tile_m, self.crs)
+
+    def assemble(self, tiles: list[tuple[int, int]], origin_tile: tuple[int, int]) -> tuple[Scene, np.ndarray]:
+        """The scene of ``tiles`` in the local frame of ``origin_tile``, and the survey-wide plane id of
+        each of its triangles (tile (i, j)'s plane p is j·n·P + i·P + p, P planes per tile)."""
+        template = self.template()
+        origin = self.tile_origin(*origin_tile)
+        n_planes = len(template.planes)
+        vertices, triangles, plane_id, planes, global_plane = [], [], [], [], []
+        for k, (i, j) in enumerate(tiles):
+            shift = self.tile_origin(i, j) - origin  # whole tiles: exact in float64
+            vertices.append(template.vertices + shift)
+            triangles.append(template.triangles + k * len(template.vertices))
+            plane_id.append(template.plane_id + k * n_planes)
+            planes += [dataclasses.replace(p, id=k * n_planes + p.id, point=p.point + shift) for p in template.planes]
+            global_plane.append(template.plane_id + (j * self.n + i) * n_planes)
+        scene = Scene(name="survey", crs=template.crs, origin=origin, vertices=np.concatenate(vertices),
+                      triangles=np.concatenate(triangles), plane_id=np.concatenate(plane_id),
+                      classification=np.tile(template.classification, len(tiles)), planes=planes,
+                      ground_z=template.ground_z)
+        return scene, np.concatenate(global_plane).astype(np.int32)
+
+
+@functools.lru_cache(maxsize=4)
+def _template(kind: str, tile_m: int, crs: str) -> Scene:
+    half = 0.5 * tile_m
+    if kind == "plane":
+        return plane_scene(half, (0.0, 0.0, 0.0), parse_crs(crs))
+    return calibration_scene(half, (0.0, 0.0, 0.0), parse_crs(crs))
+
+
+# ---------------------------------------------------------------------------------------------
+# the plan: lines, tasks and merges
+
+
+@dataclass(frozen=True)
+class SegmentTask:
+    """One task: pulses [k0, k1) of one flight line, over the tiles they can reach."""
+
+    name: str  # "L<line>-S<segment>", in task order
+    line: FlightLine
+    pulses: tuple[int, int]
+    tiles: tuple[tuple[int, int], ...]  # scene tiles within reach
+    origin_tile: tuple[int, int]  # the tile whose origin is the task's local origin
+    las_tiles: tuple[str, ...]  # LAS tiles (file names) its points can fall in
+
+
+@dataclass
+class SurveyPlan:
+    """Everything decided before any task runs."""
+
+    cfg: RunConfig  # resolved; flight.lines, line_spacing_m and duration_s as flown
+    spec: SurveySpec
+    grid: TileGrid
+    swath_m: float
+    reach_m: float
+    tasks: list[SegmentTask]
+
+    @property
+    def merges(self) -> dict[tuple[str, str], list[str]]:
+        """{(model, LAS tile): names of the tasks that can write points into it, in task order}."""
+        merges: dict[tuple[str, str], list[str]] = {}
+        for task in self.tasks:
+            for tile in task.las_tiles:
+                for model in self.cfg.output.models:
+                    merges.setdefault((model, tile), []).append(task.name)
+        return dict(sorted(merges.items()))
+
+    @property
+    def pulses(self) -> int:
+        return sum(t.pulses[1] - t.pulses[0] for t in self.tasks)
+
+
+def plan_survey(cfg: RunConfig, spec: SurveySpec) -> SurveyPlan:
+    """Lay out the tile grid, the flight lines and the tasks of a survey (validated config and spec)."""
+    from flightsim.coverage import max_off_axis_rad
+
+    spec = spec.validated()
+    f, s = cfg.flight, cfg.sensor
+    _check_survey_config(cfg, spec)
+    n = max(1, math.ceil(spec.size_km * 1000.0 / spec.tile_m - 1e-9))
+    grid = TileGrid(cfg.scene.name, cfg.scene.crs, tuple(cfg.scene.origin), spec.tile_m, n)
+    template = grid.template()
+    top = float(template.vertices[:, 2].max())
+    if f.altitude_m <= top + MIN_CLEARANCE_M:
+        raise InputError("flight.altitude_m", f.altitude_m,
+                         f"an altitude above {top + MIN_CLEARANCE_M:g} m (the tiles' roofs reach {top:g} m)")
+    swath = 2.0 * f.altitude_m * math.tan(math.radians(s.cone_half_angle_deg))
+    spacing = swath * (1.0 - spec.sidelap)
+    lines = spec.lines or max(1, math.ceil(grid.side_m / spacing - 1e-9))
+    flown = copy_config(cfg)
+    flown.flight.lines, flown.flight.line_spacing_m = lines, spacing
+    flown.flight.duration_s = grid.side_m / (f.speed_kmh / 3.6)
+    flown = validate(flown)
+    tilt = abs(f.roll_deg) + abs(f.pitch_deg) + abs(s.boresight_deg[0]) + abs(s.boresight_deg[1])
+    angle = math.degrees(max_off_axis_rad(cfg)) + tilt + REACH_MARGIN_DEG
+    if angle >= MAX_REACH_DEG:
+        raise InputError("sensor.cone_half_angle_deg", s.cone_half_angle_deg,
+                         f"a scan whose beams stay within {MAX_REACH_DEG:g} deg of nadir (with tilt and fan)")
+    reach = f.altitude_m * math.tan(math.radians(angle)) + cfg.scene.margin_m
+    try:
+        planned = plan_parallel_lines(grid.centre[0], grid.centre[1], f.heading_deg, grid.side_m, f.altitude_m,
+                                      lines, spacing, speed_mps=f.speed_kmh / 3.6, roll_deg=f.roll_deg,
+                                      pitch_deg=f.pitch_deg, start_gps_time=f.start_gps_time)
+    except TrajectoryError as exc:
+        raise InputError(exc.field, exc.value, exc.allowed) from None
+    timing = _timing(flown)
+    tasks = [task for line in planned for task in _segments(line, grid, flown, spec, timing, reach)]
+    return SurveyPlan(flown, spec, grid, swath, reach, tasks)
+
+
+def _check_survey_config(cfg: RunConfig, spec: SurveySpec) -> None:
+    f = cfg.flight
+    if cfg.scene.name not in ("calibration", "plane"):
+        raise InputError("scene.name", cfg.scene.name, "calibration or plane (the content of every survey tile)")
+    if cfg.scene.slope != 0.0:
+        raise InputError("scene.slope", cfg.scene.slope, "0 for a survey (tiles of flat ground join up)")
+    if f.trajectory:
+        raise InputError("flight.trajectory", f.trajectory, "no trajectory file for a survey (it plans its lines)")
+    if f.heading_deg % 180.0 != 0.0:
+        raise InputError("flight.heading_deg", f.heading_deg, "0 or 180 for a survey (lines run north-south)")
+    if cfg.scene.name == "calibration" and spec.tile_m <= 2 * calibration_min_half_extent():
+        raise InputError("survey.tile_m", spec.tile_m,
+                         f"more than {2 * calibration_min_half_extent():g} m (the calibration block and a margin)")
+
+
+def _timing(cfg: RunConfig) -> PulseTiming:
+    s = cfg.sensor
+    return PulseTiming(prf_hz=s.prf_hz, rotation_hz=s.rotation_hz, phase0_rad=math.radians(s.phase0_deg),
+                       field_prefix="sensor")
+
+
+def _segments(line: FlightLine, grid: TileGrid, cfg: RunConfig, spec: SurveySpec, timing: PulseTiming,
+              reach: float) -> list[SegmentTask]:
+    """The tasks of one line: consecutive pulse ranges of ``segment_m`` along track."""
+    trajectory = line.trajectory(ground_height_m=grid.centre[2])
+    n_pulses = timing.pulse_count(trajectory.start_time, trajectory.end_time)
+    per_task = max(1, round(spec.segment_m / line.speed_mps * timing.prf_hz))
+    size = cfg.output.tile_size_m
+    tasks = []
+    for k, k0 in enumerate(range(0, n_pulses, per_task)):
+        k1 = min(k0 + per_task, n_pulses)
+        ends, _ = trajectory.interpolate(timing.pulse_times(trajectory.start_time, [k0, k1 - 1]))
+        lo, hi = ends[:, :2].min(axis=0) - reach, ends[:, :2].max(axis=0) + reach
+        middle = ends[:, :2].mean(axis=0)
+        las = [f"{i * size}_{j * size}.las" for j in range(math.floor(lo[1] / size), math.floor(hi[1] / size) + 1)
+               for i in range(math.floor(lo[0] / size), math.floor(hi[0] / size) + 1)]
+        tasks.append(SegmentTask(f"L{line.line_id:05d}-S{k:05d}", line, (k0, k1), tuple(grid.tiles_within(lo, hi)),
+                                 grid.tile_at(*middle), tuple(las)))
+    return tasks
+
+
+# ---------------------------------------------------------------------------------------------
+# the tasks
+
+
+def segment_task(cfg: RunConfig, grid: TileGrid, task: SegmentTask, out: str) -> dict:
+    """Simulate one segment into ``out/.parts/<task>/<model>/<tile>.las``; return what it wrote.
+
+    Idempotent: a task finished by an earlier attempt is not run again; an attempt writes into a
+    directory of its own and renames it into place, so attempts never share a file.
+    """
+    from flightsim.distributed import worker_device, worker_stats
+
+    parts = Path(out) / PARTS
+    final = parts / task.name
+    cfg = worker_device(cfg)
+    if not (final / "task.json").is_file():
+        started = time.perf_counter()
+        attempt = parts / f".{task.name}.{uuid.uuid4().hex}"
+        attempt.mkdir(parents=True)
+        result = _simulate_segment(cfg, grid, task, attempt)
+        result["wall_s"] = time.perf_counter() - started
+        (attempt / "task.json").write_text(json.dumps(result))
+        try:
+            os.rename(attempt, final)
+        except OSError:  # another attempt finished first: its output is the same
+            shutil.rmtree(attempt)
+    return {**json.loads((final / "task.json").read_text()), **worker_stats(), "device": cfg.run.device}
+
+
+def _simulate_segment(cfg: RunConfig, grid: TileGrid, task: SegmentTask, directory: Path) -> dict:
+    scene, global_plane = grid.assemble(list(task.tiles), task.origin_tile)
+    trajectory = task.line.trajectory(ground_height_m=grid.centre[2])
+    simulator = Simulator(cfg, scene, [trajectory], with_truth=cfg.output.position_error,
+                          pulse_limits={task.line.line_id: task.pulses})
+    parts_cfg = copy_config(cfg)
+    parts_cfg.output.laz = False  # parts are plain LAS; the merge writes the final format
+    las = SurveyLas(directory, parts_cfg, scene, simulator.timing, global_plane)
+    try:
+        counts = simulator.run(las)
+        tiles = las.close()
+    except BaseException:
+        las.abort()
+        raise
+    stray = {t for written in tiles.values() for t in written} - set(task.las_tiles)
+    if stray:
+        raise RuntimeError(f"task {task.name} wrote LAS tiles outside its planned reach: {sorted(stray)}")
+    return {"name": task.name, "tiles": tiles,
+            "counts": {k: getattr(counts, k) for k in ("pulses", "pulses_culled", "beams_fired", "returns",
+                                                       "tir_dropped", "misses")}}
+
+
+class SurveyLas(LasOutput):
+    """LAS output whose plane ids are the survey-wide ids of the triangles hit (no edge distances)."""
+
+    def __init__(self, directory: Path, cfg: RunConfig, scene: Scene, timing: PulseTiming, global_plane: np.ndarray):
+        super().__init__(directory, cfg, scene, timing, edge_distance=False)
+        self.global_plane = global_plane
+
+    def _shared_fields(self, chunk) -> dict:
+        fields = super()._shared_fields(chunk)
+        fields["plane_id"] = self.global_plane[chunk.face]
+        return fields
+
+
+def merge_task(out: str, model: str, tile: str, compress: bool, *results: dict) -> dict:
+    """Concatenate a LAS tile's parts, in task order, into ``out/<model>/<tile>``; delete the parts.
+
+    ``results`` are the results of the tasks that could write into the tile. Idempotent: a tile
+    already merged (its parts partly deleted) is only counted.
+    """
+    from flightsim.distributed import worker_stats
+
+    mine = sorted((r for r in results if tile in r["tiles"].get(model, {})), key=lambda r: r["name"])
+    expected = sum(r["tiles"][model][tile] for r in mine)
+    if not mine:
+        return {"model": model, "tile": None, "points": 0, **worker_stats()}
+    parts = [Path(out) / PARTS / r["name"] / model / tile for r in mine]
+    target = Path(out) / model / (tile[:-4] + (".laz" if compress else ".las"))
+    if target.is_file() and not all(p.is_file() for p in parts):
+        import laspy
+
+        with laspy.open(target) as reader:
+            points = reader.header.point_count
+    else:
+        points = merge_tile(parts, target, compress)
+        for part in parts:
+            part.unlink(missing_ok=True)
+    if points != expected:
+        raise RuntimeError(f"{target}: {points} points merged, the tasks wrote {expected}")
+    return {"model": model, "tile": target.name, "points": points, **worker_stats()}
+
+
+def merge_tile(parts: list[Path], target: Path, compress: bool) -> int:
+    """Write the points of ``parts`` (LAS tiles of one tile key, same header) in order into
+    ``target``, through a temporary name of its own; return the number of points."""
+    import laspy
+
+    target.parent.mkdir(parents=True, exist_ok=True)
+    temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
+    with laspy.open(parts[0]) as first:
+        header = first.header
+    try:
+        with open(temporary, "wb") as fh:
+            backend = laspy.LazBackend.Lazrs if compress else None
+            with laspy.open(fh, mode="w", header=header, do_compress=compress, laz_backend=backend,
+                            closefd=False) as writer:
+                for part in parts:
+                    with laspy.open(part) as reader:
+                        for points in reader.chunk_iterator(MERGE_CHUNK_POINTS):
+                            writer.write_points(points)
+                points = writer.header.point_count
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(temporary, target)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+    return points
+
+
+# ---------------------------------------------------------------------------------------------
+# the survey
+
+
+def prepare_survey_output(directory: Path, texts: dict[str, str], overwrite: bool) -> None:
+    """Make ``directory`` ready: empty, new, ``overwrite``, or an unfinished survey of the same config
+    (run.toml and survey.toml equal to ``texts``, no survey.json), which is redone."""
+    if directory.exists() and not directory.is_dir():
+        raise InputError("--out", str(directory), "a directory (this path is a file)")
+    present = {p.name for p in directory.iterdir()} if directory.is_dir() else set()
+    if present:
+        same = all((directory / name).is_file() and (directory / name).read_text() == text
+                   for name, text in texts.items())
+        ours = {*SURVEY_FILES, *MODELS, *(f".{name}.part" for name in SURVEY_FILES)}
+        if not (overwrite or (same and "survey.json" not in present and present <= ours)):
+            raise InputError("--out", str(directory),
+                             "an empty or new directory (pass --overwrite to replace the survey in it)")
+        for name in ("survey.json", *MODELS, PARTS, *(f".{name}.part" for name in SURVEY_FILES), "survey.toml",
+                     "run.toml"):
+            target = directory / name
+            if target.is_dir():
+                shutil.rmtree(target)
+            else:
+                target.unlink(missing_ok=True)
+    directory.mkdir(parents=True, exist_ok=True)
+
+
+def run_survey(cfg: RunConfig, spec: SurveySpec, out: Path, client=None, overwrite: bool = False,
+               progress: Callable[[int, int], None] | None = None) -> dict:
+    """Run a survey into ``out`` (in this process, or on a Dask ``client``); write and return survey.json."""
+    from flightsim.warp_runtime import resolve_device
+
+    plan = plan_survey(cfg, spec)
+    resolve_device(plan.cfg.run.device)
+    out = Path(out)
+    texts = {"run.toml": to_toml(plan.cfg), "survey.toml": plan.spec.to_toml()}
+    prepare_survey_output(out, texts, overwrite)
+    for name, text in texts.items():
+        write_atomic(out / name, text)
+    started = time.perf_counter()
+    if client is None:
+        segments, merges = _run_here(plan, str(out), progress)
+    else:
+        segments, merges = _run_on(client, plan, str(out), progress)
+    wall = time.perf_counter() - started
+    shutil.rmtree(out / PARTS, ignore_errors=True)  # what attempts that died left behind
+    for model in plan.cfg.output.models:
+        for leftover in (out / model).glob(".*.part"):
+            leftover.unlink()
+    summary = _summary(plan, segments, merges, wall)
+    write_atomic(out / "survey.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _run_here(plan: SurveyPlan, out: str, progress) -> tuple[list[dict], list[dict]]:
+    """Every task in order in this process, each merge as soon as the last task it needs is done."""
+    waiting: dict[str, list[tuple[str, str, list[str]]]] = {}
+    for (model, tile), names in plan.merges.items():
+        waiting.setdefault(names[-1], []).append((model, tile, names))
+    total = len(plan.tasks) + len(plan.merges)
+    segments, merges = {}, []
+    for task in plan.tasks:
+        segments[task.name] = segment_task(plan.cfg, plan.grid, task, out)
+        for model, tile, names in waiting.get(task.name, []):
+            merges.append(merge_task(out, model, tile, plan.cfg.output.laz, *(segments[n] for n in names)))
+        if progress:
+            progress(len(segments) + len(merges), total)
+    return list(segments.values()), merges
+
+
+def _run_on(client, plan: SurveyPlan, out: str, progress) -> tuple[list[dict], list[dict]]:
+    """The same tasks and merges on a Dask cluster; each merge runs once the tasks it needs are done
+    (merges go before waiting tasks, so parts are consumed as soon as they are complete)."""
+    from flightsim.distributed import run_futures
+
+    token = uuid.uuid4().hex[:8]
+    tasks = {task.name: client.submit(segment_task, plan.cfg, plan.grid, task, out,
+                                      key=f"segment-{token}-{task.name}") for task in plan.tasks}
+    merges = [client.submit(merge_task, out, model, tile, plan.cfg.output.laz, *(tasks[n] for n in names),
+                            key=f"merge-{token}-{model}-{tile}", priority=1)
+              for (model, tile), names in plan.merges.items()]
+    kinds = {f.key: kind for kind, futures in (("segment", tasks.values()), ("merge", merges)) for f in futures}
+    done: dict[str, list[dict]] = {"segment": [], "merge": []}
+    total = len(kinds)
+    for future, result in run_futures(client, [*tasks.values(), *merges]):
+        done[kinds[future.key]].append(result)
+        if progress:
+            progress(len(done["segment"]) + len(done["merge"]), total)
+    return sorted(done["segment"], key=lambda r: r["name"]), done["merge"]
+
+
+def _summary(plan: SurveyPlan, segments: list[dict], merges: list[dict], wall_s: float) -> dict:
+    models = plan.cfg.output.models
+    counts = {k: sum(r["counts"][k] for r in segments) for k in segments[0]["counts"]} if segments else {}
+    tiles = {m: dict(sorted((r["tile"], r["points"]) for r in merges if r["model"] == m and r["tile"])) for m in models}
+    points = {m: sum(tiles[m].values()) for m in models}
+    written = sum(points.values())
+    workers: dict[str, dict] = {}
+    for r in [*segments, *merges]:
+        w = workers.setdefault(r["worker"], {"tasks": 0, "peak_rss_mb": 0.0, "devices": [], "pids": []})
+        w["tasks"] += 1
+        w["peak_rss_mb"] = round(max(w["peak_rss_mb"], r["peak_rss_mb"]), 1)
+        for key, value in (("devices", r.get("device")), ("pids", r["pid"])):
+            if value is not None and value not in w[key]:
+                w[key].append(value)
+    return {
+        "flightsim": __version__,
+        "scene": plan.cfg.scene.name,
+        "area_km2": plan.grid.side_m ** 2 / 1e6,
+        "scene_tiles": plan.grid.n ** 2,
+        "tile_m": plan.grid.tile_m,
+        "lines": plan.cfg.flight.lines,
+        "line_spacing_m": plan.cfg.flight.line_spacing_m,
+        "swath_m": plan.swath_m,
+        "reach_m": plan.reach_m,
+        "tasks": len(plan.tasks),
+        "merges": len(plan.merges),
+        "points": points,
+        "points_written": written,
+        **counts,
+        "wall_s": round(wall_s, 3),
+        "points_per_s": round(written / wall_s) if wall_s > 0 else None,
+        "workers": dict(sorted(workers.items())),
+        "tiles": tiles,
+    }

@@ -1,0 +1,177 @@
+"""Surveys over a tiled scene: the plan, the task split against one undivided simulation, and the
+same bytes on a Dask cluster whose workers die mid-write."""
+import functools
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cloudpickle
+import numpy as np
+import pytest
+
+from flightsim import distributed, survey
+from flightsim.config import RunConfig, set_value, validate
+from flightsim.errors import InputError
+from flightsim.las_tiles import read_points
+from flightsim.simulate import Simulator
+from flightsim.survey import SurveySpec, plan_survey, run_survey
+
+cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import this test module
+
+SPEC = SurveySpec(size_km=0.8, tile_m=400, lines=3, segment_m=300)
+
+
+def small_config(**settings) -> RunConfig:
+    cfg = RunConfig()
+    for key, value in {"flight.altitude_m": 300, "sensor.prf_hz": 1000, "output.tile_size_m": 200, **settings}.items():
+        set_value(cfg, key, value)
+    return validate(cfg)
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    out = tmp_path_factory.mktemp("serial")
+    return out, run_survey(small_config(), SPEC, out)
+
+
+def tiles(out: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.glob("*/*.la[sz]"))}
+
+
+def by_pulse_and_beam(points):
+    order = np.lexsort((points.beam_col, points.beam_row, points.gps_time, points.point_source_id))
+    return points.select(order)
+
+
+def test_lines_are_spaced_by_the_swath_less_the_sidelap_and_every_pulse_has_one_task():
+    cfg = small_config(**{"flight.altitude_m": 500})
+    plan = plan_survey(cfg, SurveySpec(size_km=2.0, tile_m=500, sidelap=0.3, segment_m=450))
+    swath = 2 * 500 * math.tan(math.radians(15.0))
+    assert plan.cfg.flight.line_spacing_m == pytest.approx(0.7 * swath)
+    assert plan.cfg.flight.lines == math.ceil(2000 / (0.7 * swath)) and plan.grid.n == 4
+    pulses_per_line = math.floor(2000 / (200 / 3.6) * 1000 + 1e-6) + 1  # t_k = k / PRF ≤ 36 s
+    for line_id in range(1, plan.cfg.flight.lines + 1):
+        ranges = [t.pulses for t in plan.tasks if t.line.line_id == line_id]
+        assert ranges[0][0] == 0 and ranges[-1][1] == pulses_per_line
+        assert all(a[1] == b[0] for a, b in zip(ranges, ranges[1:]))  # contiguous, disjoint
+    radius = 500 * math.tan(math.radians(15.0))  # the scan circle about the nadir point
+    for task in plan.tasks:  # the tiles under the scan circle at both ends of a segment are loaded
+        north = math.cos(math.radians(task.line.heading_deg))  # +1 or -1
+        for k in (task.pulses[0], task.pulses[1] - 1):
+            y = task.line.start_northing + north * task.line.speed_mps * k / 1000.0
+            for dx, dy in ((-radius, 0), (radius, 0), (0, -radius), (0, radius)):
+                i = math.floor((task.line.start_easting + dx - (409000 - 1000)) / 500)
+                j = math.floor((y + dy - (3393000 - 1000)) / 500)
+                if 0 <= i < 4 and 0 <= j < 4:
+                    assert (i, j) in task.tiles
+
+
+def test_tasks_give_the_points_of_one_undivided_simulation(serial, tmp_path):
+    out, summary = serial
+    plan = plan_survey(small_config(), SPEC)
+    grid = plan.grid
+    everything = [(i, j) for j in range(grid.n) for i in range(grid.n)]
+    scene, global_plane = grid.assemble(everything, (1, 1))
+    lines = {t.line.line_id: t.line for t in plan.tasks}
+    trajectories = [line.trajectory(ground_height_m=grid.centre[2]) for line in lines.values()]
+    simulator = Simulator(plan.cfg, scene, trajectories)
+    las = survey.SurveyLas(tmp_path, plan.cfg, scene, simulator.timing, global_plane)
+    counts = simulator.run(las)
+    las.close()
+    assert summary["pulses"] == counts.pulses and summary["points"]["exact"] == counts.returns > 300_000
+    n_planes = len(grid.template().planes)
+    for model in ("exact", "nominal"):
+        tasks, _ = read_points(sorted((out / model).glob("*.las")))
+        whole, _ = read_points(sorted((tmp_path / model).glob("*.las")))
+        tasks, whole = by_pulse_and_beam(tasks), by_pulse_and_beam(whole)
+        assert len(tasks) == len(whole) == counts.returns
+        for field in ("gps_time", "point_source_id", "beam_row", "beam_col", "plane_id", "classification"):
+            assert np.array_equal(getattr(tasks, field), getattr(whole, field)), field
+        for axis in "xyz":  # float32 in different local frames: within the 1 mm grid
+            assert np.abs(getattr(tasks, axis) - getattr(whole, axis)).max() <= 0.0015
+    # a point's plane belongs to the tile under it: tile (i, j)'s planes are (j·n + i)·P ... (j·n + i + 1)·P − 1
+    east, north = tasks.x - (409000 - 400), tasks.y - (3393000 - 400)  # from the grid's south-west corner
+    i, j = np.floor(east / 400).astype(int), np.floor(north / 400).astype(int)
+    seam = np.minimum(np.minimum(east % 400, 400 - east % 400), np.minimum(north % 400, 400 - north % 400))
+    inside = (i >= 0) & (i < 2) & (j >= 0) & (j < 2) & (seam > 1.0)
+    assert inside.sum() > 100_000 and np.array_equal((tasks.plane_id // n_planes)[inside], (j * 2 + i)[inside])
+
+
+def die_once(marker: str, how: str, name: str, *args):
+    """Run the survey task ``name``; the first time anywhere, kill the worker in the middle of it:
+    ``write``: when the first part tile is written but not yet renamed; ``rename``: when a merged
+    tile is complete but not yet renamed."""
+    from flightsim import survey  # on a worker: the module as it is, not as the test patched it
+
+    if how == "rename":
+        _out, model, tile, _compress, *results = args
+        writes = any(tile in r["tiles"].get(model, {}) for r in results)
+    if (how == "write" or writes) and claim(marker):
+        if how == "write":
+            from flightsim.las_tiles import TileWriter
+
+            TileWriter.close = lambda self: os._exit(1)
+        else:
+            survey.os.replace = lambda *a: os._exit(1)
+    return getattr(survey, name)(*args)
+
+
+def claim(marker: str) -> bool:
+    """True for exactly one caller across processes: the one that creates ``marker``."""
+    try:
+        fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        return False
+    os.write(fd, str(os.getpid()).encode())
+    os.close(fd)
+    return True
+
+
+def test_a_survey_on_a_cluster_whose_workers_die_mid_write_gives_the_same_bytes(serial, tmp_path, monkeypatch):
+    out, summary = serial
+    killed = {"write": tmp_path / "killed-writing", "rename": tmp_path / "killed-merging"}
+    for name, how in (("segment_task", "write"), ("merge_task", "rename")):
+        monkeypatch.setattr(survey, name, functools.partial(die_once, str(killed[how]), how, name))
+    with distributed.open_client(workers=2) as client:
+        dask_summary = run_survey(small_config(), SPEC, tmp_path / "dask", client=client)
+        client.wait_for_workers(2)
+        alive = set(client.run(os.getpid).values())
+    dead = {int(marker.read_text()) for marker in killed.values()}
+    assert len(dead) == 2 and not dead & alive  # two worker processes died (and were replaced)
+    assert tiles(tmp_path / "dask") == tiles(out) and len(tiles(out)) == 20
+    assert dask_summary["tiles"] == summary["tiles"] and set(dask_summary["workers"]) == {"cpu0", "cpu1"}
+    left = sorted(p.name for p in (tmp_path / "dask").rglob("*") if p.is_file())
+    assert [n for n in left if n.startswith(".")] == []  # no part file or temporary is left
+    shared = [t for t in plan_survey(small_config(), SPEC).merges.values() if len(t) > 1]
+    assert len(shared) > 10  # tiles that several tasks wrote parts of
+
+
+def test_survey_command_on_two_workers_reports_points_per_second_and_memory(tmp_path):
+    out = tmp_path / "survey"
+    args = [sys.executable, "-m", "flightsim", "survey", "--size-km", "0.8", "--tile-m", "400", "--altitude", "300",
+            "--models", "nominal", "--set", "sensor.prf_hz=500", "--workers", "2", "--out", str(out)]
+    done = subprocess.run(args, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "survey.json").read_text())
+    points = sum(len(read_points(p)[0]) for p in (out / "nominal").glob("*.las"))
+    assert summary["points"] == {"nominal": points} and summary["points_written"] == points > 0
+    assert summary["points_per_s"] == pytest.approx(points / summary["wall_s"], rel=0.01)
+    assert set(summary["workers"]) == {"cpu0", "cpu1"}
+    assert all(0 < w["peak_rss_mb"] < 2048 for w in summary["workers"].values())
+    again = subprocess.run(args, capture_output=True, text=True)  # a finished survey is not replaced
+    assert again.returncode == 2 and "--overwrite" in again.stderr
+
+
+@pytest.mark.parametrize("settings, spec, field", [
+    ({}, SurveySpec(size_km=0.0), "survey.size_km"),
+    ({}, SurveySpec(sidelap=0.95), "survey.sidelap"),
+    ({}, SurveySpec(tile_m=300), "survey.tile_m"),  # the calibration block does not fit
+    ({"flight.heading_deg": 45.0}, SPEC, "flight.heading_deg"),
+    ({"flight.altitude_m": 20.0}, SPEC, "flight.altitude_m"),  # below the roofs
+])
+def test_bad_survey_input_names_the_field(settings, spec, field):
+    with pytest.raises(InputError, match=field):
+        plan_survey(small_config(**settings), spec)
