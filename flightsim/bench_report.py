@@ -6,7 +6,7 @@ import io
 import json
 from pathlib import Path
 
-from flightsim.run import write_atomic
+from flightsim.atomic import save_figure, write_atomic
 
 TARGETS = {  # (returns/s, ratio) the issue sets per device kind
     "cuda": (1e9, 0.4),
@@ -138,5 +138,5 @@ def plot_pareto(rows: list[dict], path: Path) -> None:
     axes[0].legend(fontsize=7)
     fig.suptitle("Run time against error of each speed knob (lower left is better)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)

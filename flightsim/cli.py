@@ -116,7 +116,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     summary = simulate_to_directory(cfg, Path(args.out), overwrite=args.overwrite,
                                     progress=ProgressBar("simulate"))
     rms = ", ".join(f"{m} {v * 1000:.2f} mm" if v is not None else f"{m} n/a" for m, v in summary["rms_m"].items())
-    print(f"{summary['points']} points from {summary['pulses']} pulses in {summary['wall_s']:.2f} s; "
+    points = ", ".join(f"{n} {m}" for m, n in summary["points"].items())
+    print(f"{points} points from {summary['pulses']} pulses in {summary['wall_s']:.2f} s; "
           f"plane RMS: {rms}; written to {args.out}")
     return 0
 

@@ -18,6 +18,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
+from flightsim.atomic import save_figure
 from flightsim.config import SensorConfig, apex_for_cone
 from flightsim.errors import InputError
 from flightsim.fan import ExitFan, trace_fan
@@ -182,7 +183,7 @@ def fig5a(out_dir, step_deg: float = 0.25) -> tuple[Path, Path]:
     fig.suptitle(r"Fig. 5(a): angle $\Delta A_{i-j}$ between exit sub-beam $A_{i-j}$ and centre beam $A_{2-2}$"
                  f"\n{n}×{n} fan, Δ = {SPACING_MRAD} mrad, n = {N_GLASS}, cone {math.degrees(CONE_RAD):g}°")
     fig.tight_layout()
-    fig.savefig(png)
+    save_figure(fig, png)
     print("fig5a: " + "; ".join(summary))
     return png, csv_path
 
@@ -290,7 +291,7 @@ def fig5c(out_dir, phi_deg: float = 45.0) -> tuple[Path, Path]:
     ax.set_title(rf"Fig. 5(c): exit vs incident fan at $\varphi$ = {phi_deg:g}°" + "\n"
                  f"{n}×{n}, Δ = {SPACING_MRAD} mrad, angles in a plane normal to the centre beam", fontsize=11)
     fig.tight_layout()
-    fig.savefig(png)
+    save_figure(fig, png)
     print(f"fig5c: φ = {phi_deg:g}°: largest beam shift {shift.max():.1f} µrad, "
           f"largest change of a beam-pair angle {change:.1f} µrad")
     return png, csv_path
@@ -363,7 +364,7 @@ def fig6b(out_dir, altitude_m: float = 500.0) -> tuple[Path, Path]:
                  f"\nzoomed panels: positions relative to the exact centre beam $A_{{2-2}}$ [m] "
                  f"(y right across, x forward up)")
     fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(png)
+    save_figure(fig, png)
     size = np.ptp(rel_exact[..., :2], axis=1).max()
     print(f"fig6b: h = {altitude_m:g} m: scan radius {radius:.3f} m, footprint up to {size:.3f} m across, "
           f"exact vs nominal up to {gap.max():.3f} m apart")
@@ -434,7 +435,7 @@ def fig8a(planes_csv, out_dir) -> tuple[Path, Path]:
     ax.set_title(f"Fig. 8(a): plane-fit RMS per plane, h = {first['altitude_m'] / 1000:g} km, "
                  f"{int(first['array'])}×{int(first['array'])} fan, Δ = {first['spacing_mrad']:g} mrad")
     fig.tight_layout()
-    fig.savefig(png)
+    save_figure(fig, png)
     print(f"fig8a: {len(ids)} planes, mean RMS difference nominal − exact = {difference.mean():.4f} m")
     return png, csv_path
 
@@ -476,7 +477,7 @@ def fig8b(sweep_csv, out_dir, array: int = ARRAY, spacing_mrad: float = SPACING_
     ax.set_title(f"Fig. 8(b): plane-fit RMS vs altitude ({array}×{array}, Δ = {spacing_mrad:g} mrad)"
                  "\npaper: linear, slope ≈ 0.1 m/km")
     fig.tight_layout()
-    fig.savefig(png)
+    save_figure(fig, png)
     print("fig8b: " + "; ".join(fits))
     return png, csv_path
 
@@ -538,7 +539,7 @@ def fig9a(sweep_csv, out_dir, altitude_m: float = 500.0, spacing_mrad: float = S
     ax.set_xlabel("beam array size N×N")
     ax.set_title(f"Fig. 9(a): plane-fit RMS vs array size (h = {altitude_m:g} m, Δ = {spacing_mrad:g} mrad)")
     fig.tight_layout()
-    fig.savefig(png)
+    save_figure(fig, png)
     _write_csv(csv_path, ["model", "array", "rms_m", "points"], [[m, int(a), r, p] for m, a, r, p in rows])
     return png, csv_path
 
@@ -559,7 +560,7 @@ def fig10a(sweep_csv, out_dir, altitude_m: float = 500.0, array: int = ARRAY) ->
     ax.set_xlabel(f"sub-beam spacing (Δ = {SPACING_MRAD} mrad) [mrad]")
     ax.set_title(f"Fig. 10(a): plane-fit RMS vs sub-beam spacing (h = {altitude_m:g} m, {array}×{array})")
     fig.tight_layout()
-    fig.savefig(png)
+    save_figure(fig, png)
     _write_csv(csv_path, ["model", "spacing_mrad", "spacing_multiple", "rms_m", "points"],
                [[m, x * SPACING_MRAD, x, r, p] for m, x, r, p in rows])
     return png, csv_path

@@ -21,8 +21,11 @@ class LasOutput:
     Intensity is the Lambertian cos(incidence) scaled to 16 bits; gps_time is the pulse time.
     """
 
-    def __init__(self, directory: Path, cfg: RunConfig, scene: Scene, timing: PulseTiming, edge_distance: bool):
+    def __init__(self, directory: Path, cfg: RunConfig, scene: Scene, timing: PulseTiming, edge_distance: bool,
+                 plane_ids: np.ndarray | None = None):
+        """plane_ids: the plane id written for each triangle (default: the scene's own)."""
         self.cfg = cfg
+        self.plane_ids = scene.plane_id if plane_ids is None else plane_ids
         self.scene = scene
         self.timing = timing
         self.n = cfg.sensor.array
@@ -59,7 +62,7 @@ class LasOutput:
             beam_col=(chunk.beam % self.n).astype(np.uint8),
             prism_angle_deg=np.degrees(angles).astype(np.float32),
             range_m=chunk.range_m,
-            plane_id=self.scene.plane_id[chunk.face],
+            plane_id=self.plane_ids[chunk.face],
         )
 
     def close(self) -> dict[str, dict[str, int]]:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from flightsim import figures
 from flightsim.config import RunConfig, set_value
-from flightsim.run import write_atomic
+from flightsim.atomic import write_atomic
 from flightsim.sweep import SweepGrid, run_sweep
 
 DELTA_MRAD = 2.314

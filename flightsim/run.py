@@ -2,26 +2,16 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 from typing import Callable
 
 from flightsim import __version__
+from flightsim.atomic import write_atomic
 from flightsim.config import MODELS, RunConfig, to_toml
 from flightsim.edges import edge_buffer_m
 from flightsim.errors import InputError
 from flightsim.plan import build_scene, flight_trajectories
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Write a text file under a temporary name, then rename it into place."""
-    tmp = path.with_name(f".{path.name}.part")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def prepare_output(directory: Path, cfg_text: str, overwrite: bool) -> None:

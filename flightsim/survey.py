@@ -37,7 +37,7 @@ from flightsim.config import MODELS, RunConfig, copy_config, to_toml, validate
 from flightsim.errors import InputError
 from flightsim.outputs import LasOutput
 from flightsim.plan import MIN_CLEARANCE_M
-from flightsim.run import write_atomic
+from flightsim.atomic import write_atomic
 from flightsim.scene import Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene
 from flightsim.simulate import Simulator
 from trajectories import FlightLine, PulseTiming, TrajectoryError, plan_parallel_lines
@@ -305,7 +305,7 @@ def _simulate_segment(cfg: RunConfig, grid: TileGrid, task: SegmentTask, directo
                           pulse_limits={task.line.line_id: task.pulses})
     parts_cfg = copy_config(cfg)
     parts_cfg.output.laz = False  # parts are plain LAS; the merge writes the final format
-    las = SurveyLas(directory, parts_cfg, scene, simulator.timing, global_plane)
+    las = LasOutput(directory, parts_cfg, scene, simulator.timing, edge_distance=False, plane_ids=global_plane)
     try:
         counts = simulator.run(las)
         tiles = las.close()
@@ -318,19 +318,6 @@ def _simulate_segment(cfg: RunConfig, grid: TileGrid, task: SegmentTask, directo
     return {"name": task.name, "tiles": tiles,
             "counts": {k: getattr(counts, k) for k in ("pulses", "pulses_culled", "beams_fired", "returns",
                                                        "tir_dropped", "misses")}}
-
-
-class SurveyLas(LasOutput):
-    """LAS output whose plane ids are the survey-wide ids of the triangles hit (no edge distances)."""
-
-    def __init__(self, directory: Path, cfg: RunConfig, scene: Scene, timing: PulseTiming, global_plane: np.ndarray):
-        super().__init__(directory, cfg, scene, timing, edge_distance=False)
-        self.global_plane = global_plane
-
-    def _shared_fields(self, chunk) -> dict:
-        fields = super()._shared_fields(chunk)
-        fields["plane_id"] = self.global_plane[chunk.face]
-        return fields
 
 
 def merge_task(out: str, model: str, tile: str, compress: bool, *results: dict) -> dict:

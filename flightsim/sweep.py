@@ -29,7 +29,7 @@ from typing import Callable, Iterable
 from flightsim.config import RunConfig, canonical_key, copy_config, get_value, set_value, to_toml, validate
 from flightsim.edges import edge_buffer_m
 from flightsim.errors import InputError
-from flightsim.run import write_atomic
+from flightsim.atomic import save_figure, write_atomic
 
 SPEC_COLUMNS = ["altitude_m", "array", "spacing_mrad"]
 AXIS_KEYS = {"altitude_m": "flight.altitude_m", "array": "sensor.array", "spacing_mrad": "sensor.spacing_mrad"}
@@ -163,21 +163,34 @@ def run_configuration(labels: dict, cfg: RunConfig, scenes: SceneCache) -> dict:
 class SweepDirectory:
     """Finished rows of a sweep on disk, and the tables made from them."""
 
-    def __init__(self, path: Path, overwrite: bool = False):
+    def __init__(self, path: Path, description: str, overwrite: bool = False):
+        """Open ``path`` for the sweep described by ``description`` (its sweep.json text).
+
+        A directory is reused when it is new or empty, holds this same sweep (resume), or when
+        ``overwrite`` is given; one holding other files or another sweep is refused.
+        """
         self.path = Path(path)
         if self.path.exists() and not self.path.is_dir():
             raise InputError("--out", str(self.path), "a directory (this path is a file)")
         ours = {"rows", "sweep.csv", "planes.csv", "sweep.json"}
         if self.path.is_dir():
+            for leftover in self.path.glob(".*.part"):  # temporaries of a killed run
+                leftover.unlink()
             present = {p.name for p in self.path.iterdir() if not p.name.endswith(".png")}
+            previous = self.path / "sweep.json"
+            other_sweep = previous.is_file() and previous.read_text(encoding="utf-8") != description
             if overwrite:
                 for name in present & ours:
                     target = self.path / name
                     shutil.rmtree(target) if target.is_dir() else target.unlink()
-            elif present - ours:
+            elif present - ours or other_sweep:
                 raise InputError("--out", str(self.path),
-                                 "a new directory, or one holding a sweep to resume (pass --overwrite to replace it)")
-        (self.path / "rows").mkdir(parents=True, exist_ok=True)
+                                 "a new directory, or one holding this sweep to resume (pass --overwrite to replace it)")
+        try:
+            (self.path / "rows").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError("--out", str(self.path), f"a directory that can be created ({exc.strerror})") from None
+        write_atomic(self.path / "sweep.json", description)
         self._results: dict[Path, dict] = {}  # finished rows read or recorded by this process
 
     def row_file(self, cfg: RunConfig) -> Path:
@@ -231,9 +244,8 @@ def run_sweep(grid: SweepGrid, out: Path, overwrite: bool = False,
     configuration as its result streams back.
     """
     configs = grid.configurations()
-    directory = SweepDirectory(out, overwrite)
-    write_atomic(directory.path / "sweep.json",
-                 json.dumps({"axes": grid.axes, "base": dataclasses.asdict(grid.base)}, indent=2, default=str))
+    description = json.dumps({"axes": grid.axes, "base": dataclasses.asdict(grid.base)}, indent=2, default=str)
+    directory = SweepDirectory(out, description, overwrite)
     scenes = SceneCache(cfg for _, cfg in configs)
     todo = [(labels, cfg) for labels, cfg in configs if not directory.done(cfg)]
     last_tables = time.perf_counter()
@@ -289,7 +301,7 @@ def plot_sweep(sweep_csv: Path, out_dir: Path) -> list[Path]:
         ax.legend()
         path = Path(out_dir) / f"rms_vs_{column.replace('.', '_')}.png"
         fig.tight_layout()
-        fig.savefig(path, dpi=120)
+        save_figure(fig, path, dpi=120)
         plt.close(fig)
         paths.append(path)
     return paths

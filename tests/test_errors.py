@@ -116,13 +116,7 @@ CASES = [
 ]
 
 
-KNOWN_BUGS = {  # case: the fix it waits for
-    "sweep_out_under_a_file": "flightsim/sweep.py SweepDirectory.__init__: mkdir of DIR/rows under a file raises "
-                              "NotADirectoryError (traceback, exit 1) instead of InputError('--out', ...)",
-}
-PARAMS = [pytest.param(*case, id=case[0], marks=[pytest.mark.xfail(strict=True, raises=AssertionError,
-                                                                   reason=KNOWN_BUGS[case[0]])]
-                       if case[0] in KNOWN_BUGS else []) for case in CASES]
+PARAMS = [pytest.param(*case, id=case[0]) for case in CASES]
 
 
 def _command(args: list[str], files: Path, out: Path) -> list[str]:

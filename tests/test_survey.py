@@ -16,6 +16,7 @@ from flightsim import distributed, survey
 from flightsim.config import RunConfig, set_value, validate
 from flightsim.errors import InputError
 from flightsim.las_tiles import read_points
+from flightsim.outputs import LasOutput
 from flightsim.simulate import Simulator
 from flightsim.survey import SurveySpec, plan_survey, run_survey
 
@@ -78,7 +79,7 @@ def test_tasks_give_the_points_of_one_undivided_simulation(serial, tmp_path):
     lines = {t.line.line_id: t.line for t in plan.tasks}
     trajectories = [line.trajectory(ground_height_m=grid.centre[2]) for line in lines.values()]
     simulator = Simulator(plan.cfg, scene, trajectories)
-    las = survey.SurveyLas(tmp_path, plan.cfg, scene, simulator.timing, global_plane)
+    las = LasOutput(tmp_path, plan.cfg, scene, simulator.timing, edge_distance=False, plane_ids=global_plane)
     counts = simulator.run(las)
     las.close()
     assert summary["pulses"] == counts.pulses and summary["points"]["exact"] == counts.returns > 300_000
