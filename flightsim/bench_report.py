@@ -12,7 +12,8 @@ TARGETS = {  # (returns/s, ratio) the issue sets per device kind
     "cuda": (1e9, 0.4),
     "cpu": (1e6, 0.5),
 }
-PARETO_COLUMNS = ["device", "knob", "value", "wall_s", "returns_per_s", "max_pointing_urad", "max_point_error_mm"]
+PARETO_COLUMNS = ["device", "knob", "value", "wall_s", "returns_per_s", "max_pointing_urad", "max_point_error_mm",
+                  "error"]
 
 
 def merge_and_write(out: Path, kind: str, results: dict) -> None:
@@ -107,7 +108,8 @@ def _pareto(r: dict) -> list[str]:
              "| knob | value | wall [s] | returns/s | max pointing error [µrad] | max point error [mm] |",
              "| --- | --- | --- | --- | --- | --- |"]
     lines += [f"| {x['knob']} | {x['value']} | {_fmt(x['wall_s'])} | {_fmt(x['returns_per_s'])} "
-              f"| {_fmt(x['max_pointing_urad'])} | {_fmt(x['max_point_error_mm'])} |" for x in r["pareto"]]
+              f"| {_fmt(x['max_pointing_urad'])} | {_fmt(x['max_point_error_mm'])} |" if "error" not in x else
+              f"| {x['knob']} | {x['value']} | not available here: {x['error']} | | | |" for x in r["pareto"]]
     return lines + [""]
 
 
@@ -118,6 +120,7 @@ def plot_pareto(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rows = [r for r in rows if not r.get("error")]
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
     markers = {"optics": "o", "bvh": "s", "chunk": "^", "slots_per_thread": "D"}
     for device in sorted({r["device"] for r in rows}):

@@ -282,11 +282,11 @@ class Simulator:
         if share[0] == 0:
             counts.pulses_culled = sum(self._limited_count(t) - sum(k1 - k0 for k0, k1 in w) for t, w in plans)
         total = sum(n for _, _, n in mine)
-        lines = {}
+        # every line's inputs go to the device before the first launch, so the loop below only queues
+        # kernels (copies in between would make the host wait for the device)
+        lines = {t.line_id: self._line_inputs(t) for t in {t.line_id: t for t, _, _ in mine}.values()}
         for trajectory, first, n_pulses in mine:
-            if trajectory.line_id not in lines:
-                lines[trajectory.line_id] = self._line_inputs(trajectory)
-                self.scan.noise_seed = (self.cfg.run.seed * 1_000_003 + trajectory.line_id) % (1 << 31)
+            self.scan.noise_seed = (self.cfg.run.seed * 1_000_003 + trajectory.line_id) % (1 << 31)
             wp.launch(frames.pulse_poses, n_pulses, inputs=[*lines[trajectory.line_id], first], outputs=[poses],
                       device=self.device)
             yield trajectory, first, n_pulses, (first * self.beams_per_pulse) % (1 << 31)
