@@ -12,7 +12,7 @@ import numpy as np
 import warp as wp
 
 from flightsim.simulate import ReturnChunk, Simulator
-from kernels import frames, reference
+from kernels import reference
 
 
 @dataclass
@@ -39,16 +39,13 @@ class ReferenceCheck:
     def __init__(self, simulator: Simulator):
         self.sim = simulator
         self.truth, self.believed = simulator.scan.truth, simulator.scan.believed
-        self.lines = {t.line_id: simulator._line_inputs(t) for t in simulator.trajectories}
         self.stats = ErrorStats()
 
     def __call__(self, chunk: ReturnChunk) -> None:
         d = self.sim.device
         first = int(chunk.pulse.min())
         n_pulses = int(chunk.pulse.max()) - first + 1
-        poses = wp.empty(n_pulses, dtype=frames.PulsePose64, device=d)
-        wp.launch(frames.pulse_poses64, n_pulses, inputs=[*self.lines[chunk.line_id], first], outputs=[poses],
-                  device=d)
+        poses = self.sim.poses64(chunk.line_id, first, n_pulses)
         m = len(chunk)
         outputs = [wp.empty(m, dtype=wp.vec3d, device=d) for _ in range(4)]
         s = self.sim.cfg.sensor

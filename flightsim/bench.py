@@ -338,9 +338,9 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
     results = {"device": dev, "gpu_name": gpu_name(dev), "quick": quick, "git_commit": git_commit(),
                "cpu_count": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
     runners = {"throughput": throughput, "study": study, "las": las_output, "skip": skipping, "pareto": pareto}
-    for name in sections:
+    for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)
         results.setdefault("section_wall_s", {})[name] = time.perf_counter() - started
-    merge_and_write(Path(out), kind, results)
+        merge_and_write(Path(out), kind, results)
     return results

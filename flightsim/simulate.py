@@ -6,6 +6,7 @@ cross to the host) or per-plane float64 moments (statistics mode: only the sums 
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -15,6 +16,7 @@ import numpy as np
 import warp as wp
 from scipy.spatial.transform import Rotation
 
+from flightsim.chunks import Segment, line_table, pack, segment_tables
 from flightsim.config import MODELS, RunConfig
 from flightsim.coverage import max_off_axis_rad, pulse_windows
 from flightsim.edges import boundary_segments
@@ -26,6 +28,7 @@ from kernels import frames, trace
 from trajectories import PulseTiming, Trajectory
 
 SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
+POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # points mode: host memory grows with it
 SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # statistics mode: consecutive slots per thread
 
 
@@ -151,7 +154,6 @@ class Simulator:
         scan.truth = _prism(s.refractive_index, s.apex_angle_deg, s.thickness_mm)
         scan.believed = _prism(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
         scan.noise_sigma = s.range_noise_m
-        scan.noise_seed = self.cfg.run.seed
         if self.features.edges:
             bvh, scan.boundary_a, scan.boundary_b = self.meshes.boundary
             scan.boundary = bvh.id
@@ -162,19 +164,22 @@ class Simulator:
         scan.lut_directions, scan.lut_exits = self._exit_table()
         scan.vertices64, scan.indices = self.meshes.vertices64, self.meshes.indices
         scan.padded = self.meshes.padded.id
+        n_beams = self.beams_per_pulse
+        scan.beam_truth, scan.beam_believed = (wp.empty(n_beams, dtype=wp.vec3d, device=self.device) for _ in range(2))
+        scan.beam_rigid = wp.empty(n_beams, dtype=wp.quatd, device=self.device)
+        wp.launch(trace.beam_table_kernel(trace.WEDGE), n_beams, inputs=[scan.beams, scan.truth, scan.believed],
+                  outputs=[scan.beam_truth, scan.beam_believed, scan.beam_rigid], device=self.device)
         return scan
 
     def _exit_table(self) -> tuple[wp.array, wp.array]:
-        """Exit directions and points of every beam (and the on-axis ray) at M + 1 prism angles over a
-        turn, for ``optics = "lut"``; a 2×1 placeholder otherwise."""
+        """Exit directions and points of every beam at M + 1 prism angles over a turn, for
+        ``optics = "lut"``; a 2×n² placeholder otherwise."""
         s = self.cfg.sensor
         samples = self.cfg.run.lut_samples if self.features.optics == "lut" else 1
         phi = np.linspace(0.0, 2.0 * np.pi, samples + 1)
-        args = (s.refractive_index, math.radians(s.apex_angle_deg), s.thickness_mm * 1e-3, "float64")
-        fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, *args)
-        axis = trace_fan(phi, 1, 0.0, *args)
-        directions = np.concatenate([fan.directions * fan.ok[..., None], axis.directions], axis=1)
-        exits = np.concatenate([fan.exit_points, axis.exit_points], axis=1)
+        fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, s.refractive_index, math.radians(s.apex_angle_deg),
+                        s.thickness_mm * 1e-3, "float64")
+        directions, exits = fan.directions * fan.ok[..., None], fan.exit_points
         return (wp.array(directions.astype(np.float32), dtype=wp.vec3f, device=self.device),
                 wp.array(exits.astype(np.float32), dtype=wp.vec3f, device=self.device))
 
@@ -186,11 +191,12 @@ class Simulator:
     def device_kind(self) -> str:
         return "cpu" if self.device == "cpu" else "cuda"
 
-    def chunk_pulses(self) -> int:
-        """Pulses per launch: the config's, or enough to fill the device's slot budget."""
+    def chunk_pulses(self, points: bool = False) -> int:
+        """Pulses per launch: the config's, or enough to fill the device's slot budget for the mode."""
         if self.cfg.run.chunk_pulses:
             return self.cfg.run.chunk_pulses
-        return max(1, SLOTS_PER_CHUNK[self.device_kind] // self.beams_per_pulse)
+        budget = (POINT_SLOTS_PER_CHUNK if points else SLOTS_PER_CHUNK)[self.device_kind]
+        return max(1, budget // self.beams_per_pulse)
 
     def pulse_count(self, trajectory: Trajectory) -> int:
         return self.timing.pulse_count(trajectory.start_time, trajectory.end_time)
@@ -199,20 +205,19 @@ class Simulator:
 
     def run(self, consume: Callable[[ReturnChunk], None],
             progress: Callable[[int, int], None] | None = None) -> RunCounts:
-        """Points mode: call ``consume`` with each chunk's returns; return the counts."""
+        """Points mode: call ``consume`` with the returns of each line's part of each chunk; return the counts."""
         started = time.perf_counter()
         counts = RunCounts()
-        buffers = _PointBuffers(self.chunk_pulses(), self.beams_per_pulse, self.device)
+        buffers = _PointBuffers(self.chunk_pulses(points=True), self.beams_per_pulse, self.device)
         kernel = trace.points_kernel(self.features)
-        for trajectory, first, n_pulses, rng_offset in self._chunks(buffers.poses, counts, progress):
-            n_slots = n_pulses * self.beams_per_pulse
-            wp.launch(kernel, n_slots, inputs=[buffers.poses, self.scan, rng_offset],
-                      outputs=buffers.slot_outputs(), device=self.device)
-            chunk = self._returns(trajectory, first, n_slots, buffers)
-            counts.returns += len(chunk)
-            counts.per_line[trajectory.line_id] = counts.per_line.get(trajectory.line_id, 0) + len(chunk)
-            if len(chunk):
-                consume(chunk)
+        for chunk in self._chunks(buffers.poses, counts, progress):
+            n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
+            wp.launch(kernel, n_slots, inputs=[buffers.poses, self.scan], outputs=buffers.slot_outputs(),
+                      device=self.device)
+            for part in self._returns(chunk, n_slots, buffers):
+                counts.returns += len(part)
+                counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
+                consume(part)
         return self._finish(counts, buffers.counters, started)
 
     def run_statistics(self, progress: Callable[[int, int], None] | None = None,
@@ -236,10 +241,10 @@ class Simulator:
         face_plane = wp.array(self.scene.plane_id.astype(np.int32), dtype=wp.int32, device=d)
         kernel = trace.statistics_kernel(self.features)
         inputs_fixed = [face_plane, wp.array(references, dtype=wp.vec3d, device=d), self.edge_buffer_m]
-        for _trajectory, _first, n_pulses, rng_offset in self._chunks(poses, counts, progress, share):
-            n_slots = n_pulses * self.beams_per_pulse
+        for chunk in self._chunks(poses, counts, progress, share):
+            n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
             wp.launch(kernel, (n_slots + spt - 1) // spt,
-                      inputs=[poses, self.scan, rng_offset, n_slots, spt, *inputs_fixed], outputs=sums, device=d)
+                      inputs=[poses, self.scan, n_slots, spt, *inputs_fixed], outputs=sums, device=d)
         count, first, second, counters = (a.numpy() for a in sums)
         moments = {}
         for k, model in enumerate(MODELS):
@@ -269,30 +274,41 @@ class Simulator:
         return [(max(k0, lo), min(k1, hi)) for k0, k1 in windows if min(k1, hi) > max(k0, lo)]
 
     def _chunks(self, poses: wp.array, counts: RunCounts, progress: Callable[[int, int], None] | None,
-                share: tuple[int, int] = (0, 1)) -> Iterator[tuple[Trajectory, int, int, int]]:
-        """Compute each chunk's pulse poses into ``poses``; yield (trajectory, first pulse, pulses, rng offset).
+                share: tuple[int, int] = (0, 1)) -> Iterator[list[Segment]]:
+        """Compute each chunk's pulse poses into ``poses`` and yield the chunk's segments.
 
-        Range noise is keyed by (seed, line, pulse, beam), so culling, chunking and sharing never
-        change it.
+        ``share`` = (k, n) keeps every n-th chunk from the k-th. Range noise is keyed by (seed,
+        line, pulse, beam), so culling, chunking and sharing never change it.
         """
-        plans = [(t, self.windows(t)) for t in self.trajectories]
-        chunks = [(t, first, min(poses.shape[0], k1 - first))
-                  for t, windows in plans for k0, k1 in windows for first in range(k0, k1, poses.shape[0])]
-        mine = chunks[share[0]::share[1]]
+        plans = [self.windows(t) for t in self.trajectories]
+        pieces = [(line, k0, k1) for line, windows in enumerate(plans) for k0, k1 in windows]
+        mine = pack(pieces, poses.shape[0])[share[0]::share[1]]
         if share[0] == 0:
-            counts.pulses_culled = sum(self._limited_count(t) - sum(k1 - k0 for k0, k1 in w) for t, w in plans)
-        total = sum(n for _, _, n in mine)
-        # every line's inputs go to the device before the first launch, so the loop below only queues
-        # kernels (copies in between would make the host wait for the device)
-        lines = {t.line_id: self._line_inputs(t) for t in {t.line_id: t for t, _, _ in mine}.values()}
-        for trajectory, first, n_pulses in mine:
-            self.scan.noise_seed = (self.cfg.run.seed * 1_000_003 + trajectory.line_id) % (1 << 31)
-            wp.launch(frames.pulse_poses, n_pulses, inputs=[*lines[trajectory.line_id], first], outputs=[poses],
+            counts.pulses_culled = sum(self._limited_count(t) - sum(k1 - k0 for k0, k1 in w)
+                                       for t, w in zip(self.trajectories, plans))
+        total = sum(s.count for chunk in mine for s in chunk)
+        for chunk, table in zip(mine, segment_tables(mine, self.device)):
+            n_pulses = sum(s.count for s in chunk)
+            wp.launch(frames.pulse_poses, n_pulses, inputs=[self.lines, table, len(chunk)], outputs=[poses],
                       device=self.device)
-            yield trajectory, first, n_pulses, (first * self.beams_per_pulse) % (1 << 31)
+            yield chunk
             counts.pulses += n_pulses
             if progress:
                 progress(counts.pulses, total)
+
+    @functools.cached_property
+    def lines(self) -> frames.Lines:
+        """Every line's samples on the device (built on first use, then kept)."""
+        return line_table(self.trajectories, self.scene, self.timing, self.boresight, self.cfg.sensor.lever_arm_m,
+                          self.cfg.run.seed, self.device)
+
+    def poses64(self, line_id: int, first: int, count: int) -> wp.array:
+        """Float64 poses of pulses first ≤ k < first + count of a line (the reference path)."""
+        line = next(i for i, t in enumerate(self.trajectories) if t.line_id == line_id)
+        (table,) = segment_tables([[Segment(line, first, count)]], self.device)
+        poses = wp.empty(count, dtype=frames.PulsePose64, device=self.device)
+        wp.launch(frames.pulse_poses64, count, inputs=[self.lines, table, 1], outputs=[poses], device=self.device)
+        return poses
 
     def _limited_count(self, trajectory: Trajectory) -> int:
         """Pulses of a trajectory within its pulse limits."""
@@ -302,8 +318,8 @@ class Simulator:
     def sample_rays(self, max_slots: int) -> tuple[wp.array, wp.array]:
         """The float32 rays of the run's first slots (up to ``max_slots``), on the device."""
         poses = wp.empty(max(1, max_slots // self.beams_per_pulse), dtype=frames.PulsePose, device=self.device)
-        _trajectory, _first, n_pulses, _ = next(self._chunks(poses, RunCounts(), None))
-        n = n_pulses * self.beams_per_pulse
+        chunk = next(self._chunks(poses, RunCounts(), None))
+        n = sum(s.count for s in chunk) * self.beams_per_pulse
         starts = wp.empty(n, dtype=wp.vec3f, device=self.device)
         directions = wp.empty(n, dtype=wp.vec3f, device=self.device)
         wp.launch(trace.emit_rays, n, inputs=[poses, self.scan], outputs=[starts, directions], device=self.device)
@@ -316,32 +332,13 @@ class Simulator:
         counts.wall_s = time.perf_counter() - started
         return counts
 
-    def _line_inputs(self, trajectory: Trajectory) -> list:
-        """Device-side inputs of ``pulse_poses`` that are fixed for a line."""
-        t0 = trajectory.start_time
-        d = self.device
-        return [
-            wp.array(trajectory.gps_time - t0, dtype=wp.float64, device=d),
-            wp.array(self.scene.world_to_local(trajectory.position), dtype=wp.vec3d, device=d),
-            wp.array(trajectory.quaternions(), dtype=wp.quatd, device=d),
-            self.boresight,
-            wp.vec3d(*self.cfg.sensor.lever_arm_m),
-            self.timing.pulse_period_s,
-            self.timing.phase_cycles_at(t0),
-            self.timing.cycles_per_pulse,
-        ]
-
-    def _returns(self, trajectory: Trajectory, first: int, n_slots: int, buffers: "_PointBuffers") -> ReturnChunk:
-        """Compact the chunk's returning slots on the device and bring them to the host."""
+    def _returns(self, chunk: list[Segment], n_slots: int, buffers: "_PointBuffers") -> list[ReturnChunk]:
+        """Compact the chunk's returning slots on the device, bring them to the host, split by line."""
         n_returns = buffers.compact_index(n_slots)
         slots = buffers.index.numpy()[:n_returns].astype(np.int64)
         gather = buffers.gather
         f = self.features
-        return ReturnChunk(
-            line_id=trajectory.line_id,
-            start_time=trajectory.start_time,
-            pulse=first + slots // self.beams_per_pulse,
-            beam=(slots % self.beams_per_pulse).astype(np.int32),
+        fields = dict(
             range_m=gather(buffers.ranges, n_slots, n_returns),
             face=gather(buffers.faces, n_slots, n_returns),
             scan_angle_deg=gather(buffers.scan_angles, n_slots, n_returns),
@@ -350,6 +347,27 @@ class Simulator:
             points={m: gather(buffers.model_points[m], n_slots, n_returns).astype(np.float64) for m in self.models},
             true_points=gather(buffers.true_points, n_slots, n_returns).astype(np.float64) if f.with_truth else None,
         )
+        pulse = slots // self.beams_per_pulse  # within the chunk
+        starts = np.cumsum([0] + [s.count for s in chunk])
+        bounds = np.searchsorted(pulse, starts)
+        parts = []
+        for segment, a, b, offset in zip(chunk, bounds[:-1], bounds[1:], starts[:-1]):
+            if b > a:
+                trajectory = self.trajectories[segment.line]
+                parts.append(ReturnChunk(
+                    line_id=trajectory.line_id, start_time=trajectory.start_time,
+                    pulse=segment.first + pulse[a:b] - offset, beam=(slots[a:b] % self.beams_per_pulse).astype(np.int32),
+                    **_sliced(fields, a, b)))
+        return parts
+
+
+def _sliced(fields: dict, a: int, b: int) -> dict:
+    """Rows a:b of every array in a dict of arrays, dicts of arrays and Nones."""
+    def cut(v):
+        if v is None:
+            return None
+        return {k: x[a:b] for k, x in v.items()} if isinstance(v, dict) else v[a:b]
+    return {k: cut(v) for k, v in fields.items()}
 
 
 def _symmetric(upper: np.ndarray) -> np.ndarray:

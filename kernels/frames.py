@@ -1,9 +1,12 @@
 """Per-pulse sensor pose on the device: trajectory interpolation, prism phase, frame rotations.
 
-One thread per pulse. The trajectory arrives as float64 samples in the scene's local frame
-(world minus the scene origin, subtracted on the host in float64); the pose leaves as float32,
-ready for the per-beam kernels (SPEC §2).
+One thread per pulse. The trajectories of every line of a run arrive once, concatenated, as
+float64 samples in the scene's local frame (world minus the scene origin, subtracted on the host
+in float64). A chunk of pulses may hold pieces (segments) of several lines, so short lines do not
+cost a launch each. Poses leave in float32 and float64, ready for the per-beam kernels (SPEC §2).
 """
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -12,8 +15,34 @@ TWO_PI = wp.constant(wp.float64(6.283185307179586))
 
 
 @wp.struct
+class Lines:
+    """Every flight line of a run, samples concatenated (local frame)."""
+
+    times: wp.array(dtype=wp.float64)  # sample times relative to the line's pulse 0 [s]
+    positions: wp.array(dtype=wp.vec3d)  # body origin [m]
+    attitudes: wp.array(dtype=wp.quatd)  # R_local←body, sign-continuous within a line
+    sample_start: wp.array(dtype=wp.int32)  # first sample of each line
+    sample_count: wp.array(dtype=wp.int32)  # samples of each line (≥ 2)
+    cycles0: wp.array(dtype=wp.float64)  # prism phase of each line's pulse 0 [turns]
+    seed: wp.array(dtype=wp.int32)  # noise seed of each line
+    boresight: wp.quatd  # R_body←sensor
+    lever_arm: wp.vec3d  # sensor origin in the body frame [m]
+    pulse_period: wp.float64  # 1 / PRF [s]
+    cycles_per_pulse: wp.float64  # f_rot / PRF [turns]
+
+
+@wp.struct
+class Segments:
+    """The pieces of lines one chunk of pulses holds, in chunk order."""
+
+    pulse_start: wp.array(dtype=wp.int32)  # first chunk pulse of each segment, ascending
+    line: wp.array(dtype=wp.int32)  # index of the segment's line in Lines
+    first_pulse: wp.array(dtype=wp.int64)  # line pulse index of the segment's first pulse
+
+
+@wp.struct
 class PulsePose:
-    """Sensor pose of one pulse, in the scene's local frame (float32)."""
+    """Sensor pose of one pulse, in the scene's local frame."""
 
     origin: wp.vec3f  # sensor origin (centre of the prism's front face) [m]
     rot: wp.mat33f  # R_local←sensor
@@ -22,16 +51,27 @@ class PulsePose:
     origin64: wp.vec3d  # the same in float64, for the float64 optics path
     rot64: wp.mat33d
     phi64: wp.float64
+    pulse: wp.int64  # pulse index within its line
+    seed: wp.int32  # noise seed of its line
+
+
+@wp.struct
+class PulsePose64:
+    """Sensor pose of one pulse in float64, for the reference path."""
+
+    origin: wp.vec3d  # [m]
+    rot: wp.mat33d  # R_local←sensor
+    phi: wp.float64  # [rad]
 
 
 @wp.func
-def _segment(times: wp.array(dtype=wp.float64), t: wp.float64):
-    """Index i of the trajectory segment [times[i], times[i+1]] that holds t (binary search)."""
-    lo = int(0)
-    hi = times.shape[0] - 1
+def _last_at_or_below(values: wp.array(dtype=Any), begin: int, count: int, x: Any):
+    """Largest i in [begin, begin + count − 1) with values[i] ≤ x (binary search; ascending values)."""
+    lo = begin
+    hi = begin + count - 1
     while hi - lo > 1:
         mid = (lo + hi) // 2
-        if times[mid] <= t:
+        if values[mid] <= x:
             lo = mid
         else:
             hi = mid
@@ -49,57 +89,37 @@ def prism_angle(cycles0: wp.float64, cycles_per_pulse: wp.float64, k: wp.int64):
     return TWO_PI * (c - wp.floor(c))
 
 
-@wp.struct
-class PulsePose64:
-    """Sensor pose of one pulse in float64, for the reference path."""
-
-    origin: wp.vec3d  # [m]
-    rot: wp.mat33d  # R_local←sensor
-    phi: wp.float64  # [rad]
-
-
 @wp.func
-def _pose(
-    times: wp.array(dtype=wp.float64),
-    positions: wp.array(dtype=wp.vec3d),
-    attitudes: wp.array(dtype=wp.quatd),
-    boresight: wp.quatd,
-    lever_arm: wp.vec3d,
-    pulse_period: wp.float64,
-    k: wp.int64,
-):
-    """(sensor origin [m], R_local←sensor quaternion, R_local←body quaternion) of pulse k in float64."""
-    t = wp.float64(k) * pulse_period
-    i = _segment(times, t)
-    w = (t - times[i]) / (times[i + 1] - times[i])
+def _pose(lines: Lines, segments: Segments, n_segments: int, p: int):
+    """(line, pulse k, sensor origin [m], R_local←sensor, R_local←body) of chunk pulse p, in float64."""
+    s = _last_at_or_below(segments.pulse_start, 0, n_segments + 1, p)
+    line = segments.line[s]
+    k = segments.first_pulse[s] + wp.int64(p - segments.pulse_start[s])
+    t = wp.float64(k) * lines.pulse_period
+    begin = lines.sample_start[line]
+    i = _last_at_or_below(lines.times, begin, lines.sample_count[line], t)
+    w = (t - lines.times[i]) / (lines.times[i + 1] - lines.times[i])
     w = wp.clamp(w, wp.float64(0.0), wp.float64(1.0))
-    position = positions[i] + w * (positions[i + 1] - positions[i])
-    body = wp.quat_slerp(attitudes[i], attitudes[i + 1], w)
-    return position + wp.quat_rotate(body, lever_arm), body * boresight, body
+    position = lines.positions[i] + w * (lines.positions[i + 1] - lines.positions[i])
+    body = wp.quat_slerp(lines.attitudes[i], lines.attitudes[i + 1], w)
+    origin = position + wp.quat_rotate(body, lines.lever_arm)
+    return line, k, origin, body * lines.boresight, body
 
 
 @wp.kernel
 def pulse_poses(
-    # In: trajectory samples (local frame)
-    times: wp.array(dtype=wp.float64),  # sample times relative to the line's first pulse [s]
-    positions: wp.array(dtype=wp.vec3d),  # body origin [m]
-    attitudes: wp.array(dtype=wp.quatd),  # R_local←body, sign-continuous
-    # In: mounting and timing
-    boresight: wp.quatd,  # R_body←sensor
-    lever_arm: wp.vec3d,  # sensor origin in the body frame [m]
-    pulse_period: wp.float64,  # 1 / PRF [s]
-    cycles0: wp.float64,  # prism phase of pulse 0 [turns]
-    cycles_per_pulse: wp.float64,  # f_rot / PRF [turns]
-    first_pulse: wp.int64,  # index of this chunk's first pulse within the line
+    # In:
+    lines: Lines,
+    segments: Segments,
+    n_segments: int,
     # Out:
     poses: wp.array(dtype=PulsePose),
 ):
     """Pose of each pulse of a chunk: position linear, attitude slerped between samples."""
     p = wp.tid()
-    k = first_pulse + wp.int64(p)
-    origin, sensor, body = _pose(times, positions, attitudes, boresight, lever_arm, pulse_period, k)
+    line, k, origin, sensor, body = _pose(lines, segments, n_segments, p)
     rot = wp.quat_to_matrix(sensor)
-    phi = prism_angle(cycles0, cycles_per_pulse, k)
+    phi = prism_angle(lines.cycles0[line], lines.cycles_per_pulse, k)
     pose = PulsePose()
     pose.origin = wp.vec3f(origin)
     pose.rot = wp.mat33f(rot)
@@ -108,29 +128,24 @@ def pulse_poses(
     pose.origin64 = origin
     pose.rot64 = rot
     pose.phi64 = phi
+    pose.pulse = k
+    pose.seed = lines.seed[line]
     poses[p] = pose
 
 
 @wp.kernel
 def pulse_poses64(
-    times: wp.array(dtype=wp.float64),
-    positions: wp.array(dtype=wp.vec3d),
-    attitudes: wp.array(dtype=wp.quatd),
-    boresight: wp.quatd,
-    lever_arm: wp.vec3d,
-    pulse_period: wp.float64,
-    cycles0: wp.float64,
-    cycles_per_pulse: wp.float64,
-    first_pulse: wp.int64,
+    lines: Lines,
+    segments: Segments,
+    n_segments: int,
     # Out:
     poses: wp.array(dtype=PulsePose64),
 ):
-    """The same poses as :func:`pulse_poses`, kept in float64 (reference path)."""
+    """The same poses as :func:`pulse_poses`, kept in float64 only (reference path)."""
     p = wp.tid()
-    k = first_pulse + wp.int64(p)
-    origin, sensor, body = _pose(times, positions, attitudes, boresight, lever_arm, pulse_period, k)
+    line, k, origin, sensor, body = _pose(lines, segments, n_segments, p)
     pose = PulsePose64()
     pose.origin = origin
     pose.rot = wp.quat_to_matrix(sensor)
-    pose.phi = prism_angle(cycles0, cycles_per_pulse, k)
+    pose.phi = prism_angle(lines.cycles0[line], lines.cycles_per_pulse, k)
     poses[p] = pose

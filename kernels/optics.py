@@ -52,6 +52,28 @@ def back_face_normal(phi: Any, apex: Any):
 
 
 @wp.func
+def enter_prism(s1: Any, n_glass: Any):
+    """Direction S2 inside the glass after the front face Σ1 (z = 0); never reflects (n_glass > 1)."""
+    zero = type(n_glass)(0.0)
+    one = type(n_glass)(1.0)
+    s2, ok = refract(s1, wp.vector(zero, zero, one), one / n_glass)
+    return s2
+
+
+@wp.func
+def leave_prism(s2: Any, n2: Any, n_glass: Any, thickness: Any):
+    """Leave the glass through Σ2 of normal n2: (exit direction S3, exit point [m], ok).
+
+    The ray runs from the origin of Σ1 along s2 to Σ2, the plane through (0, 0, thickness) of
+    normal n2: N2·(t·s2 − (0, 0, d1)) = 0 (seed paper eqs. 1–4); ok is False on total internal
+    reflection.
+    """
+    t = thickness * n2[2] / wp.dot(n2, s2)
+    s3, ok = refract(s2, n2, n_glass)
+    return s3, t * s2, ok
+
+
+@wp.func
 def prism_exit(s1: Any, phi: Any, n_glass: Any, apex: Any, thickness: Any):
     """Trace an incident direction through the wedge prism (SPEC §4, seed paper eqs. 1–7).
 
@@ -60,29 +82,23 @@ def prism_exit(s1: Any, phi: Any, n_glass: Any, apex: Any, thickness: Any):
     Returns (s3, exit_point, ok): exit direction, the point where the ray leaves Σ2 [m],
     and False on total internal reflection at Σ2.
     """
-    zero = type(n_glass)(0.0)
-    one = type(n_glass)(1.0)
-    z_axis = wp.vector(zero, zero, one)
-    s2, ok_front = refract(s1, z_axis, one / n_glass)
-    n2 = back_face_normal(phi, apex)
-    # ray from the origin of Σ1 to Σ2: N2·(t·s2 − (0, 0, d1)) = 0
-    t = thickness * n2[2] / wp.dot(n2, s2)
-    exit_point = t * s2
-    s3, ok_back = refract(s2, n2, n_glass)
-    return s3, exit_point, ok_front and ok_back
+    return leave_prism(enter_prism(s1, n_glass), back_face_normal(phi, apex), n_glass, thickness)
+
+
+@wp.func
+def rigid_array_rotation(s1: Any):
+    """Q, the smallest rotation taking ẑ to the unit vector s1 (quaternion (ẑ × s1, 1 + ẑ·s1), normalised)."""
+    one = type(s1[0])(1.0)
+    return wp.normalize(wp.quaternion(-s1[1], s1[0], type(s1[0])(0.0), one + s1[2]))
 
 
 @wp.func
 def rigid_array_direction(s1: Any, s3_center: Any):
-    """Exit direction of sub-beam S1 under the nominal rigid-array model (SPEC §5).
+    """Exit direction of sub-beam S1 under the nominal rigid-array model (SPEC §5): Q·S3_center.
 
-    Applies Q, the smallest rotation taking ẑ to s1, to the on-axis exit direction s3_center:
-    the processing assumes the fan leaves the prism with its incident shape.
+    The processing assumes the fan leaves the prism with its incident shape.
     """
-    one = type(s1[0])(1.0)
-    # quaternion of the shortest arc from ẑ to s1: (ẑ × s1, 1 + ẑ·s1), normalised
-    q = wp.normalize(wp.quaternion(-s1[1], s1[0], type(s1[0])(0.0), one + s1[2]))
-    return wp.quat_rotate(q, s3_center)
+    return wp.quat_rotate(rigid_array_rotation(s1), s3_center)
 
 
 @functools.cache

@@ -2,9 +2,11 @@
 each return (points mode) or reduce the returns to per-plane moments (statistics mode).
 
 Kernels are specialised at build time for the features a run asks for (``wp.static``), so a
-feature that is off costs nothing per beam. The deflector is a parameter of the build: any
-``deflect(s1, phi, prism: Prism) -> (s3, exit_point, ok)`` fits the same kernels (a deflector
-with other parameters adds them to :class:`Scan`); the rotating wedge is the one flightsim ships.
+feature that is off costs nothing per beam. Work is done where it varies: what depends only on
+the sub-beam (its entry into the prism, its rigid-array rotation) once per run in a table, what
+depends only on the prism angle (the back-face normal, the on-axis ray of the nominal model) once
+per pulse, and only the rest per beam. The deflector is a parameter of the build (:class:`Deflector`);
+the rotating wedge is the one flightsim ships.
 """
 
 import functools
@@ -14,7 +16,7 @@ from typing import Any
 import warp as wp
 
 from kernels.frames import PulsePose
-from kernels.optics import doe_direction, prism_exit, rigid_array_direction
+from kernels.optics import back_face_normal, doe_direction, enter_prism, leave_prism, rigid_array_rotation
 
 wp.set_module_options({"enable_backward": False})
 
@@ -39,9 +41,38 @@ class Prism:
 
 
 @wp.func
-def wedge_deflect(s1: Any, phi: Any, prism: Prism):
-    """The rotating wedge as a deflector, in the precision of ``phi``: (exit direction, exit point [m], ok)."""
-    return prism_exit(s1, phi, type(phi)(prism.n_glass), type(phi)(prism.apex), type(phi)(prism.thickness))
+def wedge_beam_stage(s1: Any, prism: Prism):
+    """Per-beam part of the wedge: the direction inside the glass after the front face."""
+    return enter_prism(s1, type(s1[0])(prism.n_glass))
+
+
+@wp.func
+def wedge_pulse_stage(phi: Any, prism: Prism):
+    """Per-pulse part of the wedge: the back face's normal at prism angle phi [rad]."""
+    return back_face_normal(phi, type(phi)(prism.apex))
+
+
+@wp.func
+def wedge_finish(inside: Any, normal: Any, prism: Prism):
+    """Per-beam, per-pulse rest of the wedge: (exit direction, exit point [m], ok) in the inputs' precision."""
+    return leave_prism(inside, normal, type(inside[0])(prism.n_glass), type(inside[0])(prism.thickness))
+
+
+@dataclass(frozen=True)
+class Deflector:
+    """A beam deflector split by what each part depends on.
+
+    beam_stage(s1, prism) -> vector: depends on the sub-beam only (tabulated once per run, float64);
+    pulse_stage(phi, prism) -> vector: depends on the scan angle only (once per pulse, float64);
+    finish(beam_state, pulse_state, prism) -> (s3, exit point [m], ok): the rest, per beam.
+    """
+
+    beam_stage: wp.Function
+    pulse_stage: wp.Function
+    finish: wp.Function
+
+
+WEDGE = Deflector(wedge_beam_stage, wedge_pulse_stage, wedge_finish)
 
 
 @wp.struct
@@ -62,13 +93,15 @@ class Scan:
     truth: Prism
     believed: Prism  # the prism the georeferencing believes in
     noise_sigma: wp.float32  # range noise, 1σ [m]
-    noise_seed: wp.int32
     boundary: wp.uint64  # BVH of the plane-boundary segments (edge buffer queries)
     boundary_a: wp.array(dtype=wp.vec3f)  # segment end points [m, local]
     boundary_b: wp.array(dtype=wp.vec3f)
     edge_cap: wp.float32  # edge distances are measured up to this [m]
-    lut_directions: wp.array2d(dtype=wp.vec3f)  # [φ sample, beam (last: on-axis)] exit directions
+    lut_directions: wp.array2d(dtype=wp.vec3f)  # [φ sample, beam] exit directions (optics "lut")
     lut_exits: wp.array2d(dtype=wp.vec3f)  # exit points [m]; a zero direction marks reflection
+    beam_truth: wp.array(dtype=wp.vec3d)  # per-beam deflector state of the true prism
+    beam_believed: wp.array(dtype=wp.vec3d)  # ... of the prism the processing believes in
+    beam_rigid: wp.array(dtype=wp.quatd)  # rigid-array rotation Q of each beam
     vertices64: wp.array(dtype=wp.vec3d)  # scene vertices in float64 (float64 optics path) [m]
     indices: wp.array(dtype=wp.int32)  # 3 per triangle
     padded: wp.uint64  # BVH of slightly padded triangle boxes, for rays the mesh query misses
@@ -86,6 +119,59 @@ class Features:
     edges: bool = False  # measure the true hit's distance to its plane boundary
     optics: str = "float32"  # "float32"; "float64" (optics, hit and georeferencing in float64, the ray
     # cast itself in float32 then refined on the hit triangle); "lut" (float32, exit rays tabulated over φ)
+
+
+@wp.struct
+class PulseOptics:
+    """What the optics of one pulse share across its beams (float64)."""
+
+    truth: wp.vec3d  # per-pulse deflector state of the true prism
+    believed: wp.vec3d  # ... of the prism the processing believes in
+    axis_direction: wp.vec3d  # exit direction of the on-axis ray through the believed prism
+    axis_exit: wp.vec3d  # its exit point [m]
+    axis_ok: wp.int32
+
+
+@functools.cache
+def beam_table_kernel(deflector: Deflector):
+    """Kernel tabulating the per-beam part of the optics, in float64, once per run."""
+
+    @wp.kernel(module="unique")
+    def beam_table(
+        beams: BeamArray,
+        truth: Prism,
+        believed: Prism,
+        # Out: per beam i·n + j
+        beam_truth: wp.array(dtype=wp.vec3d),
+        beam_believed: wp.array(dtype=wp.vec3d),
+        beam_rigid: wp.array(dtype=wp.quatd),
+    ):
+        b = wp.tid()
+        s1 = doe_direction(b // beams.n, b % beams.n, beams.n, wp.float64(beams.spacing))
+        beam_truth[b] = deflector.beam_stage(s1, truth)
+        beam_believed[b] = deflector.beam_stage(s1, believed)
+        beam_rigid[b] = rigid_array_rotation(s1)
+
+    return beam_table
+
+
+@functools.cache
+def _pulse_function(deflector: Deflector):
+    @wp.func
+    def pulse_optics(phi: wp.float64, scan: Scan):
+        """The per-pulse part of the optics at prism angle phi [rad]."""
+        po = PulseOptics()
+        po.truth = deflector.pulse_stage(phi, scan.truth)
+        po.believed = deflector.pulse_stage(phi, scan.believed)
+        axis = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+        direction, exit_point, ok = deflector.finish(deflector.beam_stage(axis, scan.believed), po.believed,
+                                                     scan.believed)
+        po.axis_direction = direction
+        po.axis_exit = exit_point
+        po.axis_ok = wp.where(ok, 1, 0)
+        return po
+
+    return pulse_optics
 
 
 @wp.func
@@ -182,15 +268,16 @@ def _lut_lookup(directions: wp.array2d(dtype=wp.vec3f), exits: wp.array2d(dtype=
 
 
 @functools.cache
-def _slot_function(f: Features, deflect: wp.Function):
+def _slot_function(f: Features, deflector: Deflector):
     """Build the per-slot body shared by the points and the statistics kernels."""
 
     precise = f.optics == "float64"
     real = wp.float64 if precise else wp.float32
     vec = wp.types.vector(3, real)
+    quat = wp.types.quaternion(real)
 
     @wp.func
-    def trace_slot(slot: int, pose: PulsePose, beam: int, scan: Scan, rng_offset: int):
+    def trace_slot(pose: PulsePose, po: PulseOptics, beam: int, scan: Scan):
         """Trace one sub-beam of one pulse.
 
         Returns (status, range [m], face, direction, exact point, nominal point, true point,
@@ -200,17 +287,13 @@ def _slot_function(f: Features, deflect: wp.Function):
         if wp.static(precise):
             origin = pose.origin64
             rot = pose.rot64
-            phi = pose.phi64
         else:
             origin = pose.origin
             rot = pose.rot
-            phi = pose.phi
-        n = scan.beams.n
-        s1 = doe_direction(beam // n, beam % n, n, real(scan.beams.spacing))
         if wp.static(f.optics == "lut"):
-            s3, exit_point, ok = _lut_lookup(scan.lut_directions, scan.lut_exits, beam, phi)
+            s3, exit_point, ok = _lut_lookup(scan.lut_directions, scan.lut_exits, beam, pose.phi)
         else:
-            s3, exit_point, ok = deflect(s1, phi, scan.truth)
+            s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), vec(po.truth), scan.truth)
         if not ok:
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
         start = origin + rot * exit_point
@@ -230,27 +313,26 @@ def _slot_function(f: Features, deflect: wp.Function):
             t = t_hit
         true_point = start + t * direction
         r = t
-        if wp.static(f.noisy):
-            state = wp.rand_init(scan.noise_seed, rng_offset + slot)
+        if wp.static(f.noisy):  # keyed by (seed, line, pulse, beam): chunking never changes it
+            per_pulse = wp.int64(scan.beams.n * scan.beams.n)
+            state = wp.rand_init(pose.seed, int((pose.pulse * per_pulse + wp.int64(beam)) % wp.int64(2147483647)))
             r = r + real(scan.noise_sigma * _gaussian(state))
         # georeference the observation (φ, i, j, r) with the deflector the processing believes in
         p_exact = vec()
         p_nominal = vec()
         ok_exact = True
-        ok_nominal = True
         if wp.static(f.exact):
             if wp.static(f.believed_is_truth):
                 p_exact = start + r * direction
             else:
-                s3b, exit_b, ok_exact = deflect(s1, phi, scan.believed)
+                s3b, exit_b, ok_exact = deflector.finish(vec(scan.beam_believed[beam]), vec(po.believed),
+                                                         scan.believed)
                 p_exact = origin + rot * (exit_b + r * s3b)
         if wp.static(f.nominal):
-            if wp.static(f.optics == "lut" and f.believed_is_truth):
-                s3c, exit_c, ok_nominal = _lut_lookup(scan.lut_directions, scan.lut_exits, n * n, phi)
-            else:
-                s3c, exit_c, ok_nominal = deflect(vec(real(0.0), real(0.0), real(1.0)), phi, scan.believed)
-            p_nominal = origin + rot * (exit_c + r * rigid_array_direction(s1, s3c))
-        if not (ok_exact and ok_nominal):
+            q = scan.beam_rigid[beam]
+            rigid = quat(real(q[0]), real(q[1]), real(q[2]), real(q[3]))
+            p_nominal = origin + rot * (vec(po.axis_exit) + r * wp.quat_rotate(rigid, vec(po.axis_direction)))
+        if not (ok_exact and po.axis_ok != 0):
             # the believed deflector reflects this beam internally: processing cannot place it
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
         true32 = wp.vec3f(true_point)
@@ -264,16 +346,16 @@ def _slot_function(f: Features, deflect: wp.Function):
 
 
 @functools.cache
-def points_kernel(f: Features, deflect: wp.Function = wedge_deflect):
+def points_kernel(f: Features, deflector: Deflector = WEDGE):
     """Kernel writing every slot's return: one thread per (pulse, sub-beam)."""
-    trace_slot = _slot_function(f, deflect)
+    trace_slot = _slot_function(f, deflector)
+    pulse_optics = _pulse_function(deflector)
 
     @wp.kernel(module="unique")
     def trace_points(
         # In:
         poses: wp.array(dtype=PulsePose),
         scan: Scan,
-        rng_offset: wp.int32,  # offset of this chunk's slots in the run's noise stream
         # Out: per slot
         status: wp.array(dtype=wp.int32),
         ranges: wp.array(dtype=wp.float32),  # observed one-way range, exit point to hit [m]
@@ -290,7 +372,7 @@ def points_kernel(f: Features, deflect: wp.Function = wedge_deflect):
         per_pulse = scan.beams.n * scan.beams.n
         pose = poses[slot // per_pulse]
         code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(
-            slot, pose, slot % per_pulse, scan, rng_offset)
+            pose, pulse_optics(pose.phi64, scan), slot % per_pulse, scan)
         status[slot] = code
         if code == STATUS_TIR:
             wp.atomic_add(counters, COUNT_TIR, 1)
@@ -320,21 +402,22 @@ def _outer6(d: wp.vec3d):
 
 
 @functools.cache
-def statistics_kernel(f: Features, deflect: wp.Function = wedge_deflect):
+def statistics_kernel(f: Features, deflector: Deflector = WEDGE):
     """Kernel reducing returns to per-plane float64 moments, no per-point output.
 
-    Each thread traces a run of consecutive slots and keeps running sums while the plane stays
-    the same, adding them to the global sums (atomics) only when the plane changes: neighbouring
-    beams mostly hit the same plane, so the atomics are few and rarely contended.
+    Each thread traces a run of consecutive slots: it computes a pulse's shared optics once for
+    all the pulse's beams it holds, and keeps running sums while the plane stays the same,
+    adding them to the global sums (atomics) only when the plane changes — neighbouring beams
+    mostly hit the same plane, so the atomics are few and rarely contended.
     """
-    trace_slot = _slot_function(f, deflect)
+    trace_slot = _slot_function(f, deflector)
+    pulse_optics = _pulse_function(deflector)
 
     @wp.kernel(module="unique")
     def trace_statistics(
         # In:
         poses: wp.array(dtype=PulsePose),
         scan: Scan,
-        rng_offset: wp.int32,
         n_slots: wp.int32,
         slots_per_thread: wp.int32,
         face_plane: wp.array(dtype=wp.int32),  # plane id of each triangle
@@ -349,6 +432,9 @@ def statistics_kernel(f: Features, deflect: wp.Function = wedge_deflect):
         begin = wp.tid() * slots_per_thread
         end = wp.min(begin + slots_per_thread, n_slots)
         per_pulse = scan.beams.n * scan.beams.n
+        pulse = begin // per_pulse
+        pose = poses[pulse]
+        po = pulse_optics(pose.phi64, scan)
         plane = int(-1)
         n = wp.int64(0)
         s_exact = wp.vec3d()
@@ -359,8 +445,11 @@ def statistics_kernel(f: Features, deflect: wp.Function = wedge_deflect):
         miss = int(0)
         excluded = int(0)
         for slot in range(begin, end):
-            code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(
-                slot, poses[slot // per_pulse], slot % per_pulse, scan, rng_offset)
+            if slot // per_pulse != pulse:
+                pulse = slot // per_pulse
+                pose = poses[pulse]
+                po = pulse_optics(pose.phi64, scan)
+            code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(pose, po, slot % per_pulse, scan)
             if code == STATUS_TIR:
                 tir += 1
             elif code == STATUS_MISS:
@@ -457,15 +546,15 @@ def emit_rays(
     starts: wp.array(dtype=wp.vec3f),  # [m, local]
     directions: wp.array(dtype=wp.vec3f),  # unit; zero where the beam is reflected internally
 ):
-    """The float32 rays the pipeline casts, one per slot (for timing the bare ray cast)."""
+    """The rays the pipeline casts, one per slot, rounded to float32 as the ray cast takes them
+    (for timing the bare ray cast)."""
     slot = wp.tid()
     per_pulse = scan.beams.n * scan.beams.n
     pose = poses[slot // per_pulse]
-    beam = slot % per_pulse
-    s1 = doe_direction(beam // scan.beams.n, beam % scan.beams.n, scan.beams.n, scan.beams.spacing)
-    s3, exit_point, ok = wedge_deflect(s1, pose.phi, scan.truth)
-    starts[slot] = pose.origin + pose.rot * exit_point
-    directions[slot] = wp.where(ok, pose.rot * s3, wp.vec3f(0.0, 0.0, 0.0))
+    s3, exit_point, ok = wedge_finish(scan.beam_truth[slot % per_pulse], wedge_pulse_stage(pose.phi64, scan.truth),
+                                      scan.truth)
+    starts[slot] = wp.vec3f(pose.origin64 + pose.rot64 * exit_point)
+    directions[slot] = wp.where(ok, wp.vec3f(pose.rot64 * s3), wp.vec3f(0.0, 0.0, 0.0))
 
 
 @wp.kernel

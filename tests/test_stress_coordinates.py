@@ -150,14 +150,24 @@ def test_device_prism_phase_stays_exact_at_the_end_of_an_hour(device):
     hour = int(3600 * prf)
     first = hour - 4095
     d = device
-    times = wp.array([0.0, 3601.0], dtype=wp.float64, device=d)
-    positions = wp.array(np.zeros((2, 3)), dtype=wp.vec3d, device=d)
-    attitudes = wp.array(np.tile([0.0, 0.0, 0.0, 1.0], (2, 1)), dtype=wp.quatd, device=d)
+    lines = frames.Lines()
+    lines.times = wp.array([0.0, 3601.0], dtype=wp.float64, device=d)
+    lines.positions = wp.array(np.zeros((2, 3)), dtype=wp.vec3d, device=d)
+    lines.attitudes = wp.array(np.tile([0.0, 0.0, 0.0, 1.0], (2, 1)), dtype=wp.quatd, device=d)
+    lines.sample_start = wp.array([0], dtype=wp.int32, device=d)
+    lines.sample_count = wp.array([2], dtype=wp.int32, device=d)
+    lines.cycles0 = wp.array([timing.phase_cycles_at(t0)], dtype=wp.float64, device=d)
+    lines.seed = wp.array([0], dtype=wp.int32, device=d)
+    lines.boresight = wp.quatd(0.0, 0.0, 0.0, 1.0)
+    lines.lever_arm = wp.vec3d(0.0, 0.0, 0.0)
+    lines.pulse_period = timing.pulse_period_s
+    lines.cycles_per_pulse = timing.cycles_per_pulse
+    segments = frames.Segments()  # one segment: pulses first … first + 4095 of line 0
+    segments.pulse_start = wp.array([0, 4096], dtype=wp.int32, device=d)
+    segments.line = wp.array([0, 0], dtype=wp.int32, device=d)
+    segments.first_pulse = wp.array([first, first], dtype=wp.int64, device=d)
     poses = wp.empty(4096, dtype=frames.PulsePose, device=d)
-    wp.launch(frames.pulse_poses, 4096, inputs=[times, positions, attitudes, wp.quatd(0.0, 0.0, 0.0, 1.0),
-                                                wp.vec3d(0.0, 0.0, 0.0), timing.pulse_period_s,
-                                                timing.phase_cycles_at(t0), timing.cycles_per_pulse, first],
-              outputs=[poses], device=d)
+    wp.launch(frames.pulse_poses, 4096, inputs=[lines, segments, 1], outputs=[poses], device=d)
     got = poses.numpy()
     k = first + np.arange(4096)
     # exact: φ0 + 2π·f_rot·(t0 + k/PRF), every product and sum in rationals, reduced mod 2π only at the end
