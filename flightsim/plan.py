@@ -89,8 +89,21 @@ def _clearance(trajectory: Trajectory, scene: Scene, pieces: int = CLEARANCE_PIE
     return float(margin[k]), float(lowest[k]), float(tops[k])
 
 
+def _clear_at_a_glance(trajectory: Trajectory, scene: Scene) -> bool:
+    """True when the lowest sample is clear of every triangle box under the trajectory's rectangle (a
+    cheap sufficient test; the exact one runs only when this fails)."""
+    local = scene.world_to_local(trajectory.position)
+    boxes = scene.vertices[scene.triangles]
+    lo, hi = boxes.min(axis=1), boxes.max(axis=1)
+    under = ((hi[:, 0] >= local[:, 0].min()) & (lo[:, 0] <= local[:, 0].max())
+             & (hi[:, 1] >= local[:, 1].min()) & (lo[:, 1] <= local[:, 1].max()))
+    return not under.any() or local[:, 2].min() - hi[under, 2].max() >= MIN_CLEARANCE_M
+
+
 def _check_clearance(trajectory: Trajectory, scene: Scene, cfg: RunConfig) -> None:
     """Reject a flight whose sensor does not stay at least MIN_CLEARANCE_M above the terrain beneath it."""
+    if _clear_at_a_glance(trajectory, scene):
+        return
     margin, height, top = _clearance(trajectory, scene)
     if margin >= MIN_CLEARANCE_M:
         return

@@ -29,7 +29,7 @@ from trajectories import PulseTiming, Trajectory
 
 SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
 POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # points mode: host memory grows with it
-SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # statistics mode: consecutive slots per thread
+SLOTS_PER_THREAD = {"cpu": 256, "cuda": 64}  # statistics mode: consecutive slots per thread
 
 
 @dataclass
@@ -142,6 +142,7 @@ class Simulator:
         self.meshes = meshes or SceneMeshes(scene, self.device, cfg.run.bvh, cfg.run.bvh_leaf_size or None)
         self.scan = self._scan()
         self._cone_rad: float | None = None
+        self._windows: dict[int, list[tuple[int, int]]] = {}
 
     def _scan(self) -> trace.Scan:
         s, p = self.cfg.sensor, self.cfg.processing
@@ -261,7 +262,12 @@ class Simulator:
 
     def windows(self, trajectory: Trajectory) -> list[tuple[int, int]]:
         """Pulse index ranges [k0, k1) of a trajectory to launch: within the line's pulse limits, and
-        (with culling on) only those whose beams can reach the scene."""
+        (with culling on) only those whose beams can reach the scene. Worked out once per line."""
+        if trajectory.line_id not in self._windows:
+            self._windows[trajectory.line_id] = self._plan_windows(trajectory)
+        return self._windows[trajectory.line_id]
+
+    def _plan_windows(self, trajectory: Trajectory) -> list[tuple[int, int]]:
         lo, hi = self.pulse_limits.get(trajectory.line_id, (0, self.pulse_count(trajectory)))
         hi = min(hi, self.pulse_count(trajectory))
         if not self.cfg.run.cull:
