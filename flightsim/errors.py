@@ -4,19 +4,14 @@ The command line turns an :class:`InputError` into one line on stderr and exit s
 """
 from __future__ import annotations
 
-import math
+from trajectories.errors import TrajectoryError
 
 
-def describe_value(value: object) -> str:
-    """Short, readable form of an offending value for an error message."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
-
-
-class InputError(ValueError):
+class InputError(TrajectoryError):
     """Bad input, named by its field, its value and what is allowed.
+
+    The same form as the trajectories package's error (which cannot import flightsim), so both
+    read alike: ``invalid {field} = {value}: expected {allowed}``.
 
     Args:
         field: dotted name of the offending setting, e.g. ``"flight.altitude_m"`` or ``"--scene"``.
@@ -24,8 +19,3 @@ class InputError(ValueError):
         allowed: what would have been accepted, e.g. ``"a finite number in (0, 50000] m"``.
     """
 
-    def __init__(self, field: str, value: object, allowed: str):
-        self.field = field
-        self.value = value
-        self.allowed = allowed
-        super().__init__(f"invalid {field} = {describe_value(value)}: expected {allowed}")
