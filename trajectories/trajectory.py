@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import math
 import os
 from dataclasses import dataclass
 from functools import cached_property
