@@ -28,7 +28,7 @@ from flightsim.warp_runtime import resolve_device
 from kernels import trace
 
 DELTA = 2.314
-SECTIONS = ("throughput", "study", "las", "skip", "pareto")
+SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto")
 
 
 @dataclasses.dataclass
@@ -127,6 +127,38 @@ def throughput(device: str, s: Sizes) -> list[dict]:
         if sim.device_kind == "cpu":
             records.append(_two_process_record(cfg, sample, repeats))
     return records
+
+
+def stages(device: str, s: Sizes) -> list[dict]:
+    """Where a throughput run's time goes: GPU time of each kernel (Warp's CUDA activity timing),
+    the rest of the wall time (host work and gaps), and the bare ray cast of as many rays.
+
+    CUDA only: a CPU launch runs on the calling thread, so there the wall time is the kernels'.
+    """
+    if resolve_device(device) == "cpu":
+        return []
+    rows = []
+    for array in s.arrays:
+        sim = simulator(workload(device, array, s.returns / 4))
+        wall, counts = timed_statistics(sim, repeats=1)
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+        sim.run_statistics()
+        kernels: dict[str, float] = {}
+        for result in wp.timing_end():
+            name = kernel_name(result.name)
+            kernels[name] = kernels.get(name, 0.0) + result.elapsed * 1e-3
+        sample = min(counts.beams_fired, 1 << 24)
+        bare_wall, _ = bare_raycast(sim, sample, max(1, round(counts.beams_fired / sample)))
+        rows.append({"array": array, "slots": counts.beams_fired, "returns": counts.returns, "wall_s": wall,
+                     "kernels_s": kernels, "bare_raycast_s": bare_wall})
+    return rows
+
+
+def kernel_name(timing_name: str) -> str:
+    """'forward kernel trace_records_1a2b3c4' → 'trace_records'."""
+    name = timing_name.removeprefix("forward kernel ")
+    stem, _, suffix = name.rpartition("_")
+    return stem if stem and all(c in "0123456789abcdef" for c in suffix) else name
 
 
 def _two_process_record(cfg: RunConfig, sample: int, repeats: int) -> dict:
@@ -279,6 +311,8 @@ def knob_variants(kind: str, quick: bool) -> list[tuple[str, str, dict]]:
     slots = (1 << 16, 1 << 18, 1 << 20) + ((1 << 22, 1 << 24) if kind == "cuda" else ())
     variants += [("chunk", f"{n} slots", {"run.chunk_pulses": n // 9}) for n in slots]
     variants += [("slots_per_thread", f"{n}", {"run.slots_per_thread": n}) for n in (1, 4, 16, 64, 256)]
+    if kind == "cuda":  # a register cap only exists for CUDA kernels; 255 = no cap
+        variants += [("max_registers", f"{n}", {"run.max_registers": n}) for n in (48, 64, 96, 255)]
     return variants
 
 
@@ -337,7 +371,8 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
     s = sizes(kind, quick)
     results = {"device": dev, "gpu_name": gpu_name(dev), "quick": quick, "git_commit": git_commit(),
                "cpu_count": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
-    runners = {"throughput": throughput, "study": study, "las": las_output, "skip": skipping, "pareto": pareto}
+    runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
+               "pareto": pareto}
     for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)

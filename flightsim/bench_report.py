@@ -52,7 +52,7 @@ def markdown(merged: dict) -> str:
         r = merged[kind]
         lines += [f"## {kind}: {r['gpu_name']} ({r['device']}, {r.get('cpu_count')} CPU cores, commit "
                   f"{r['git_commit']}, {r['date']}{', quick' if r.get('quick') else ''})", ""]
-        lines += _throughput(r, kind) + _study(r) + _las(r) + _skip(r) + _pareto(r)
+        lines += _throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r)
     return "\n".join(lines) + "\n"
 
 
@@ -68,6 +68,21 @@ def _throughput(r: dict, kind: str) -> list[str]:
     lines += [f"| {t['array']}×{t['array']} | {t['processes']} | {t['optics']} | {t['returns']:.3g} | {_fmt(t['wall_s'])} "
               f"| {_fmt(t['returns_per_s'])} | {_fmt(t['raycast_returns_per_s'])} | {t['ratio']:.2f} |"
               for t in r["throughput"]]
+    return lines + [""]
+
+
+def _stages(r: dict) -> list[str]:
+    if not r.get("stages"):
+        return []
+    lines = ["### Where the time goes (GPU time per kernel, same workload at a quarter of the size)", "",
+             "| array | stage | time [s] | ns per beam slot | share of wall |", "| --- | --- | --- | --- | --- |"]
+    for x in r["stages"]:
+        rows = sorted(x["kernels_s"].items(), key=lambda kv: -kv[1])
+        rows.append(("host work and gaps (wall − kernels)", x["wall_s"] - sum(x["kernels_s"].values())))
+        rows.append(("wall", x["wall_s"]))
+        rows.append(("for scale: bare ray cast of as many rays", x["bare_raycast_s"]))
+        lines += [f"| {x['array']}×{x['array']} | {name} | {_fmt(t)} | {1e9 * t / x['slots']:.3f} "
+                  f"| {100 * t / x['wall_s']:.0f}% |" for name, t in rows]
     return lines + [""]
 
 
@@ -122,7 +137,7 @@ def plot_pareto(rows: list[dict], path: Path) -> None:
 
     rows = [r for r in rows if not r.get("error")]
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
-    markers = {"optics": "o", "bvh": "s", "chunk": "^", "slots_per_thread": "D"}
+    markers = {"optics": "o", "bvh": "s", "chunk": "^", "slots_per_thread": "D", "max_registers": "v"}
     for device in sorted({r["device"] for r in rows}):
         for knob, marker in markers.items():
             sel = [r for r in rows if r["device"] == device and r["knob"] == knob]

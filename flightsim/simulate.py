@@ -29,7 +29,12 @@ from trajectories import PulseTiming, Trajectory
 
 SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
 POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # points mode: host memory grows with it
-SLOTS_PER_THREAD = {"cpu": 256, "cuda": 64}  # statistics mode: consecutive slots per thread
+SLOTS_PER_THREAD = {"cpu": 256, "cuda": 64}  # statistics mode: slots per reducing thread
+MAX_REGISTERS = {"cpu": None, "cuda": 64}  # registers per thread of the trace kernels (None: the compiler's choice)
+SUM_REPLICAS = 64  # statistics mode on a GPU: copies of the per-plane sums, so busy planes' atomics spread
+SUM_REPLICA_BYTES = 1 << 26  # ... within this much device memory
+EDGE_GRID_CELLS = 4096  # the edge grid has at most this many cells along a side
+EDGE_GRIDS_KEPT = 4  # edge grids (one per edge cap) a SceneMeshes keeps
 
 
 @dataclass
@@ -85,6 +90,7 @@ class SceneMeshes:
                               wp.array(corners.max(axis=1) + pad, dtype=wp.vec3f, device=device))
         self.padded = wp.Bvh(*self._padded_boxes)
         self._boundary: tuple[wp.Bvh, wp.array, wp.array] | None = None
+        self._grids: dict[float, trace.EdgeGrid] = {}
 
     @property
     def boundary(self) -> tuple[wp.Bvh, wp.array, wp.array]:
@@ -99,6 +105,28 @@ class SceneMeshes:
             uppers = wp.array(segments.max(axis=1), dtype=wp.vec3f, device=self.device)
             self._boundary = (wp.Bvh(lowers, uppers), a, b)
         return self._boundary
+
+    def edge_grid(self, cap_m: float) -> trace.EdgeGrid:
+        """The grid of cells a plane boundary may come within ``cap_m`` of (built on first use per cap;
+        the last few are kept, as a sweep's configurations share few caps)."""
+        if cap_m not in self._grids:
+            if len(self._grids) >= EDGE_GRIDS_KEPT:
+                self._grids.pop(next(iter(self._grids)))
+            self._grids[cap_m] = self._build_edge_grid(cap_m)
+        return self._grids[cap_m]
+
+    def _build_edge_grid(self, cap_m: float) -> trace.EdgeGrid:
+        lower, upper = self.scene.bounds()
+        extent = float(max(upper[0] - lower[0], upper[1] - lower[1])) + 2.0 * cap_m
+        cell = max(cap_m, extent / EDGE_GRID_CELLS, 1e-6)
+        shape = tuple(int(math.ceil((upper[k] - lower[k] + 2.0 * cap_m) / cell)) + 1 for k in (0, 1))
+        grid = trace.EdgeGrid()
+        grid.near = wp.zeros(shape, dtype=wp.uint8, device=self.device)
+        grid.origin = wp.vec2f(float(lower[0]) - cap_m, float(lower[1]) - cap_m)
+        grid.inv_cell = 1.0 / cell
+        _, a, b = self.boundary
+        wp.launch(trace.mark_near_cells, a.shape[0], inputs=[a, b, cap_m], outputs=[grid], device=self.device)
+        return grid
 
 
 def _prism(n_glass: float, apex_deg: float, thickness_mm: float) -> trace.Prism:
@@ -158,9 +186,12 @@ class Simulator:
         if self.features.edges:
             bvh, scan.boundary_a, scan.boundary_b = self.meshes.boundary
             scan.boundary = bvh.id
+            scan.edge_grid = self.meshes.edge_grid(self.edge_buffer_m)
         else:
             scan.boundary = 0
             scan.boundary_a = scan.boundary_b = wp.zeros(1, dtype=wp.vec3f, device=self.device)
+            scan.edge_grid = trace.EdgeGrid()
+            scan.edge_grid.near = wp.zeros((1, 1), dtype=wp.uint8, device=self.device)
         scan.edge_cap = self.edge_buffer_m
         scan.lut_directions, scan.lut_exits = self._exit_table()
         scan.vertices64, scan.indices = self.meshes.vertices64, self.meshes.indices
@@ -183,6 +214,11 @@ class Simulator:
         directions, exits = fan.directions * fan.ok[..., None], fan.exit_points
         return (wp.array(directions.astype(np.float32), dtype=wp.vec3f, device=self.device),
                 wp.array(exits.astype(np.float32), dtype=wp.vec3f, device=self.device))
+
+    @property
+    def max_registers(self) -> int | None:
+        """Register cap of the trace kernels on a GPU: the config's, else the measured default."""
+        return self.cfg.run.max_registers or MAX_REGISTERS[self.device_kind]
 
     @property
     def beams_per_pulse(self) -> int:
@@ -210,10 +246,10 @@ class Simulator:
         started = time.perf_counter()
         counts = RunCounts()
         buffers = _PointBuffers(self.chunk_pulses(points=True), self.beams_per_pulse, self.device)
-        kernel = trace.points_kernel(self.features)
-        for chunk in self._chunks(buffers.poses, counts, progress):
+        kernel = trace.points_kernel(self.features, max_registers=self.max_registers)
+        for chunk in self._chunks(buffers.pulses, counts, progress):
             n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
-            wp.launch(kernel, n_slots, inputs=[buffers.poses, self.scan], outputs=buffers.slot_outputs(),
+            wp.launch(kernel, n_slots, inputs=[buffers.pulses, self.scan], outputs=buffers.slot_outputs(),
                       device=self.device)
             for part in self._returns(chunk, n_slots, buffers):
                 counts.returns += len(part)
@@ -226,27 +262,39 @@ class Simulator:
                        share: tuple[int, int] = (0, 1)) -> tuple[dict[str, PlaneMoments], RunCounts]:
         """Statistics mode: per-plane float64 moments of each model, accumulated on the device.
 
-        No point leaves the device; returns within the edge buffer of a plane boundary are left
-        out (``RunCounts.edge_excluded``). ``share`` = (k, n) runs only every n-th chunk from the
-        k-th, so n processes can split a run and add their sums.
+        No point leaves the device: one kernel writes each slot's plane and points to a record
+        buffer on the device, a second reduces the records, ``slots_per_thread`` per thread.
+        Returns within the edge buffer of a plane boundary are left out (``RunCounts.edge_excluded``).
+        ``share`` = (k, n) runs only every n-th chunk from the k-th, so n processes can split a run
+        and add their sums.
         """
         started = time.perf_counter()
         counts = RunCounts()
         spt = slots_per_thread or self.cfg.run.slots_per_thread or SLOTS_PER_THREAD[self.device_kind]
-        poses = wp.empty(self.chunk_pulses(), dtype=frames.PulsePose, device=self.device)
-        n_planes = len(self.scene.planes)
         d = self.device
-        sums = [wp.zeros((2, n_planes), dtype=wp.int64, device=d), wp.zeros((2, n_planes), dtype=wp.vec3d, device=d),
-                wp.zeros((2, n_planes), dtype=trace.vec6d, device=d), wp.zeros(3, dtype=wp.int32, device=d)]
+        pulses = _pulse_table(self.chunk_pulses(), d)
+        slots = self.chunk_pulses() * self.beams_per_pulse
+        records = [wp.empty(slots, dtype=wp.int32, device=d)] + [
+            wp.empty(slots if model in self.models else 1, dtype=wp.vec3f, device=d) for model in MODELS]
+        n_planes = len(self.scene.planes)
+        shape = (self.sum_replicas(), 2, n_planes)
+        sums = [wp.zeros(shape, dtype=wp.int64, device=d), wp.zeros(shape, dtype=wp.vec3d, device=d),
+                wp.zeros(shape, dtype=trace.vec6d, device=d), wp.zeros(3, dtype=wp.int32, device=d)]
         references = np.array([plane.point for plane in self.scene.planes], dtype=np.float64)
         face_plane = wp.array(self.scene.plane_id.astype(np.int32), dtype=wp.int32, device=d)
-        kernel = trace.statistics_kernel(self.features)
-        inputs_fixed = [face_plane, wp.array(references, dtype=wp.vec3d, device=d), self.edge_buffer_m]
-        for chunk in self._chunks(poses, counts, progress, share):
+        references_d = wp.array(references, dtype=wp.vec3d, device=d)
+        trace_records = trace.records_kernel(self.features, max_registers=self.max_registers)
+        reduce_records = trace.reduce_kernel(self.features)
+        for chunk in self._chunks(pulses, counts, progress, share):
             n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
-            wp.launch(kernel, (n_slots + spt - 1) // spt,
-                      inputs=[poses, self.scan, n_slots, spt, *inputs_fixed], outputs=sums, device=d)
-        count, first, second, counters = (a.numpy() for a in sums)
+            wp.launch(trace_records, n_slots, inputs=[pulses, self.scan, face_plane, self.edge_buffer_m],
+                      outputs=records, device=d)
+            run = trace.LANES * spt
+            wp.launch(reduce_records, (n_slots + run - 1) // run * trace.LANES,
+                      inputs=[*records, n_slots, spt, references_d],
+                      outputs=sums, device=d)
+        count, first, second = (a.numpy().sum(axis=0) for a in sums[:3])
+        counters = sums[3].numpy()
         moments = {}
         for k, model in enumerate(MODELS):
             if model in self.models:
@@ -257,6 +305,14 @@ class Simulator:
         self._finish(counts, sums[3], started)
         counts.returns = counts.beams_fired - counts.tir_dropped - counts.misses
         return moments, counts
+
+    def sum_replicas(self) -> int:
+        """Copies of the per-plane sums the reducing threads spread their atomics over: one on the
+        CPU (one thread per launch), up to SUM_REPLICAS on a GPU within SUM_REPLICA_BYTES."""
+        if self.device_kind == "cpu":
+            return 1
+        per_copy = 2 * len(self.scene.planes) * (8 + 24 + 48)
+        return max(1, min(SUM_REPLICAS, SUM_REPLICA_BYTES // per_copy))
 
     # ------------------------------------------------------------------------------------------
 
@@ -279,24 +335,26 @@ class Simulator:
                                     self.timing, self._cone_rad, self.boresight_rotation)
         return [(max(k0, lo), min(k1, hi)) for k0, k1 in windows if min(k1, hi) > max(k0, lo)]
 
-    def _chunks(self, poses: wp.array, counts: RunCounts, progress: Callable[[int, int], None] | None,
+    def _chunks(self, pulses: wp.array, counts: RunCounts, progress: Callable[[int, int], None] | None,
                 share: tuple[int, int] = (0, 1)) -> Iterator[list[Segment]]:
-        """Compute each chunk's pulse poses into ``poses`` and yield the chunk's segments.
+        """Compute each chunk's pulse poses and per-pulse optics into the pulse table ``pulses`` and
+        yield the chunk's segments.
 
         ``share`` = (k, n) keeps every n-th chunk from the k-th. Range noise is keyed by (seed,
         line, pulse, beam), so culling, chunking and sharing never change it.
         """
         plans = [self.windows(t) for t in self.trajectories]
         pieces = [(line, k0, k1) for line, windows in enumerate(plans) for k0, k1 in windows]
-        mine = pack(pieces, poses.shape[0])[share[0]::share[1]]
+        mine = pack(pieces, pulses.shape[1])[share[0]::share[1]]
         if share[0] == 0:
             counts.pulses_culled = sum(self._limited_count(t) - sum(k1 - k0 for k0, k1 in w)
                                        for t, w in zip(self.trajectories, plans))
         total = sum(s.count for chunk in mine for s in chunk)
         for chunk, table in zip(mine, segment_tables(mine, self.device)):
             n_pulses = sum(s.count for s in chunk)
-            wp.launch(frames.pulse_poses, n_pulses, inputs=[self.lines, table, len(chunk)], outputs=[poses],
+            wp.launch(frames.pulse_poses, n_pulses, inputs=[self.lines, table, len(chunk)], outputs=[pulses],
                       device=self.device)
+            wp.launch(trace.pulse_optics_kernel(trace.WEDGE), n_pulses, inputs=[self.scan, pulses], device=self.device)
             yield chunk
             counts.pulses += n_pulses
             if progress:
@@ -323,12 +381,12 @@ class Simulator:
 
     def sample_rays(self, max_slots: int) -> tuple[wp.array, wp.array]:
         """The float32 rays of the run's first slots (up to ``max_slots``), on the device."""
-        poses = wp.empty(max(1, max_slots // self.beams_per_pulse), dtype=frames.PulsePose, device=self.device)
-        chunk = next(self._chunks(poses, RunCounts(), None))
+        pulses = _pulse_table(max(1, max_slots // self.beams_per_pulse), self.device)
+        chunk = next(self._chunks(pulses, RunCounts(), None))
         n = sum(s.count for s in chunk) * self.beams_per_pulse
         starts = wp.empty(n, dtype=wp.vec3f, device=self.device)
         directions = wp.empty(n, dtype=wp.vec3f, device=self.device)
-        wp.launch(trace.emit_rays, n, inputs=[poses, self.scan], outputs=[starts, directions], device=self.device)
+        wp.launch(trace.emit_rays, n, inputs=[pulses, self.scan], outputs=[starts, directions], device=self.device)
         return starts, directions
 
     def _finish(self, counts: RunCounts, counters: wp.array, started: float) -> RunCounts:
@@ -367,6 +425,11 @@ class Simulator:
         return parts
 
 
+def _pulse_table(pulses: int, device: str) -> wp.array:
+    """A chunk's per-pulse table: trace.PULSE_ROWS float64 rows (pose, then optics), one column per pulse."""
+    return wp.empty((trace.PULSE_ROWS, pulses), dtype=wp.float64, device=device)
+
+
 def _sliced(fields: dict, a: int, b: int) -> dict:
     """Rows a:b of every array in a dict of arrays, dicts of arrays and Nones."""
     def cut(v):
@@ -391,7 +454,7 @@ class _PointBuffers:
     def __init__(self, pulses: int, beams_per_pulse: int, device: str):
         self.device = device
         slots = pulses * beams_per_pulse
-        self.poses = wp.empty(pulses, dtype=frames.PulsePose, device=device)
+        self.pulses = _pulse_table(pulses, device)
         self.status = wp.empty(slots, dtype=wp.int32, device=device)
         self.ranges = wp.empty(slots, dtype=wp.float32, device=device)
         self.faces = wp.empty(slots, dtype=wp.int32, device=device)

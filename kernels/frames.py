@@ -3,7 +3,7 @@
 One thread per pulse. The trajectories of every line of a run arrive once, concatenated, as
 float64 samples in the scene's local frame (world minus the scene origin, subtracted on the host
 in float64). A chunk of pulses may hold pieces (segments) of several lines, so short lines do not
-cost a launch each. Poses leave in float32 and float64, ready for the per-beam kernels (SPEC §2).
+cost a launch each. Poses leave in float64, in a table of rows the per-beam kernels read (SPEC §2).
 """
 from typing import Any
 
@@ -40,19 +40,43 @@ class Segments:
     first_pulse: wp.array(dtype=wp.int64)  # line pulse index of the segment's first pulse
 
 
-@wp.struct
-class PulsePose:
-    """Sensor pose of one pulse, in the scene's local frame."""
+# The per-pulse table of a chunk: one float64 row per quantity, one column per pulse (a structure of
+# arrays, so the stores of neighbouring pulses coalesce and the per-beam kernels read only what they
+# use). Rows from POSE_ROWS on belong to the beam deflector (kernels.trace).
+ROW_ORIGIN = wp.constant(0)  # 3 rows: sensor origin (centre of the prism's front face) [m, local]
+ROW_ROT = wp.constant(3)  # 9 rows: R_local←sensor, row-major
+ROW_RIGHT = wp.constant(12)  # 3 rows: the aircraft's right wing (body +y), for the scan-angle sign
+ROW_PHI = wp.constant(15)  # prism angle, reduced to [0, 2π) [rad]
+ROW_PULSE = wp.constant(16)  # pulse index within its line (exact: below 2^53)
+ROW_SEED = wp.constant(17)  # noise seed of its line
+POSE_ROWS = 18
 
-    origin: wp.vec3f  # sensor origin (centre of the prism's front face) [m]
-    rot: wp.mat33f  # R_local←sensor
-    right: wp.vec3f  # aircraft's right wing (body +y) in the local frame, for the scan-angle sign
-    phi: wp.float32  # prism angle, reduced to [0, 2π) [rad]
-    origin64: wp.vec3d  # the same in float64, for the float64 optics path
-    rot64: wp.mat33d
-    phi64: wp.float64
-    pulse: wp.int64  # pulse index within its line
-    seed: wp.int32  # noise seed of its line
+
+@wp.func
+def get3(table: wp.array2d(dtype=wp.float64), row: int, p: int):
+    """The 3-vector in rows row … row + 2 of column p."""
+    return wp.vec3d(table[row, p], table[row + 1, p], table[row + 2, p])
+
+
+@wp.func
+def put3(table: wp.array2d(dtype=wp.float64), row: int, p: int, v: wp.vec3d):
+    for k in range(3):
+        table[row + k, p] = v[k]
+
+
+@wp.func
+def get33(table: wp.array2d(dtype=wp.float64), row: int, p: int):
+    """The row-major 3×3 matrix in rows row … row + 8 of column p."""
+    return wp.mat33d(table[row, p], table[row + 1, p], table[row + 2, p],
+                     table[row + 3, p], table[row + 4, p], table[row + 5, p],
+                     table[row + 6, p], table[row + 7, p], table[row + 8, p])
+
+
+@wp.func
+def put33(table: wp.array2d(dtype=wp.float64), row: int, p: int, m: wp.mat33d):
+    for i in range(3):
+        for j in range(3):
+            table[row + 3 * i + j, p] = m[i, j]
 
 
 @wp.struct
@@ -112,25 +136,18 @@ def pulse_poses(
     lines: Lines,
     segments: Segments,
     n_segments: int,
-    # Out:
-    poses: wp.array(dtype=PulsePose),
+    # Out: rows ROW_ORIGIN … POSE_ROWS − 1 of the chunk's pulse table
+    table: wp.array2d(dtype=wp.float64),
 ):
     """Pose of each pulse of a chunk: position linear, attitude slerped between samples."""
     p = wp.tid()
     line, k, origin, sensor, body = _pose(lines, segments, n_segments, p)
-    rot = wp.quat_to_matrix(sensor)
-    phi = prism_angle(lines.cycles0[line], lines.cycles_per_pulse, k)
-    pose = PulsePose()
-    pose.origin = wp.vec3f(origin)
-    pose.rot = wp.mat33f(rot)
-    pose.right = wp.vec3f(wp.quat_rotate(body, wp.vec3d(0.0, 1.0, 0.0)))
-    pose.phi = wp.float32(phi)
-    pose.origin64 = origin
-    pose.rot64 = rot
-    pose.phi64 = phi
-    pose.pulse = k
-    pose.seed = lines.seed[line]
-    poses[p] = pose
+    put3(table, ROW_ORIGIN, p, origin)
+    put33(table, ROW_ROT, p, wp.quat_to_matrix(sensor))
+    put3(table, ROW_RIGHT, p, wp.quat_rotate(body, wp.vec3d(0.0, 1.0, 0.0)))
+    table[ROW_PHI, p] = prism_angle(lines.cycles0[line], lines.cycles_per_pulse, k)
+    table[ROW_PULSE, p] = wp.float64(k)
+    table[ROW_SEED, p] = wp.float64(lines.seed[line])
 
 
 @wp.kernel

@@ -15,7 +15,7 @@ from typing import Any
 
 import warp as wp
 
-from kernels.frames import PulsePose
+from kernels.frames import POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT, ROW_ROT, ROW_SEED, get3, get33, put3
 from kernels.optics import back_face_normal, doe_direction, enter_prism, leave_prism, rigid_array_rotation
 
 wp.set_module_options({"enable_backward": False})
@@ -27,6 +27,13 @@ STATUS_TIR = wp.constant(2)
 COUNT_TIR = 0
 COUNT_MISS = 1
 COUNT_EDGE = 2  # returns left out of the statistics for lying within the edge buffer
+
+LANES = wp.constant(32)  # threads of a GPU warp: the reducing threads that share a run of slots
+
+# statistics-mode record codes of slots that do not count (a plane id otherwise)
+CODE_MISS = wp.constant(-1)
+CODE_TIR = wp.constant(-2)
+CODE_EDGE = wp.constant(-3)  # a return within the edge buffer of its plane's boundary
 
 vec6d = wp.types.vector(6, wp.float64)
 
@@ -84,6 +91,17 @@ class BeamArray:
 
 
 @wp.struct
+class EdgeGrid:
+    """A grid over the scene's x–y extent marking the cells a plane boundary may come within the
+    edge cap of; a return in an unmarked cell is at least the cap from every boundary, so the
+    boundary query is skipped for it."""
+
+    near: wp.array2d(dtype=wp.uint8)  # [ix, iy]: 1 where a boundary may be within the cap
+    origin: wp.vec2f  # lower corner of cell (0, 0) [m, local]
+    inv_cell: wp.float32  # 1 / cell side [1/m]
+
+
+@wp.struct
 class Scan:
     """Everything a slot needs besides its pose: scene, instrument, processing, noise."""
 
@@ -97,6 +115,7 @@ class Scan:
     boundary_a: wp.array(dtype=wp.vec3f)  # segment end points [m, local]
     boundary_b: wp.array(dtype=wp.vec3f)
     edge_cap: wp.float32  # edge distances are measured up to this [m]
+    edge_grid: EdgeGrid  # where the boundary query can be skipped
     lut_directions: wp.array2d(dtype=wp.vec3f)  # [φ sample, beam] exit directions (optics "lut")
     lut_exits: wp.array2d(dtype=wp.vec3f)  # exit points [m]; a zero direction marks reflection
     beam_truth: wp.array(dtype=wp.vec3d)  # per-beam deflector state of the true prism
@@ -121,15 +140,14 @@ class Features:
     # cast itself in float32 then refined on the hit triangle); "lut" (float32, exit rays tabulated over φ)
 
 
-@wp.struct
-class PulseOptics:
-    """What the optics of one pulse share across its beams (float64)."""
-
-    truth: wp.vec3d  # per-pulse deflector state of the true prism
-    believed: wp.vec3d  # ... of the prism the processing believes in
-    axis_direction: wp.vec3d  # exit direction of the on-axis ray through the believed prism
-    axis_exit: wp.vec3d  # its exit point [m]
-    axis_ok: wp.int32
+# Rows of the per-pulse table (kernels.frames) that hold what the optics of one pulse share across
+# its beams, in float64:
+ROW_TRUTH = wp.constant(POSE_ROWS)  # 3 rows: per-pulse deflector state of the true prism
+ROW_BELIEVED = wp.constant(POSE_ROWS + 3)  # 3 rows: ... of the prism the processing believes in
+ROW_AXIS_DIRECTION = wp.constant(POSE_ROWS + 6)  # 3 rows: exit direction of the on-axis ray (believed prism)
+ROW_AXIS_EXIT = wp.constant(POSE_ROWS + 9)  # 3 rows: its exit point [m]
+ROW_AXIS_OK = wp.constant(POSE_ROWS + 12)  # 1 where the on-axis ray leaves the believed prism
+PULSE_ROWS = POSE_ROWS + 13
 
 
 @functools.cache
@@ -156,20 +174,26 @@ def beam_table_kernel(deflector: Deflector):
 
 
 @functools.cache
-def _pulse_function(deflector: Deflector):
-    @wp.func
-    def pulse_optics(phi: wp.float64, scan: Scan):
-        """The per-pulse part of the optics at prism angle phi [rad]."""
-        po = PulseOptics()
-        po.truth = deflector.pulse_stage(phi, scan.truth)
-        po.believed = deflector.pulse_stage(phi, scan.believed)
+def pulse_optics_kernel(deflector: Deflector):
+    """Kernel filling the per-pulse optics rows of a chunk's pulse table (float64), one thread per pulse."""
+
+    @wp.kernel(module="unique")
+    def pulse_optics(
+        scan: Scan,
+        # In: the pose rows; out: the optics rows
+        table: wp.array2d(dtype=wp.float64),
+    ):
+        p = wp.tid()
+        phi = table[ROW_PHI, p]
+        believed = deflector.pulse_stage(phi, scan.believed)
+        put3(table, ROW_TRUTH, p, deflector.pulse_stage(phi, scan.truth))
+        put3(table, ROW_BELIEVED, p, believed)
         axis = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
-        direction, exit_point, ok = deflector.finish(deflector.beam_stage(axis, scan.believed), po.believed,
+        direction, exit_point, ok = deflector.finish(deflector.beam_stage(axis, scan.believed), believed,
                                                      scan.believed)
-        po.axis_direction = direction
-        po.axis_exit = exit_point
-        po.axis_ok = wp.where(ok, 1, 0)
-        return po
+        put3(table, ROW_AXIS_DIRECTION, p, direction)
+        put3(table, ROW_AXIS_EXIT, p, exit_point)
+        table[ROW_AXIS_OK, p] = wp.where(ok, wp.float64(1.0), wp.float64(0.0))
 
     return pulse_optics
 
@@ -190,22 +214,66 @@ def _gaussian(state: wp.uint32):
 
 
 @wp.func
+def _segment_distance(p: Any, a: Any, b: Any):
+    """Distance from point p to the segment a–b (2-D or 3-D) [m]."""
+    ab = b - a
+    u = wp.clamp(wp.dot(p - a, ab) / wp.max(wp.dot(ab, ab), type(ab[0])(1.0e-20)), type(ab[0])(0.0),
+                 type(ab[0])(1.0))
+    return wp.length(p - (a + u * ab))
+
+
+@wp.kernel
+def mark_near_cells(
+    seg_a: wp.array(dtype=wp.vec3f),  # boundary segments [m, local]
+    seg_b: wp.array(dtype=wp.vec3f),
+    cap: wp.float32,  # [m]
+    # Out:
+    grid: EdgeGrid,
+):
+    """Mark every cell a boundary segment may come within ``cap`` of, one thread per segment.
+
+    The x–y distance never exceeds the 3-D one, and no point of a cell is farther than half its
+    diagonal from its centre, so a cell whose centre is at least cap + half a diagonal (and a
+    rounding margin) from the segment's x–y projection is at least ``cap`` from the segment.
+    """
+    k = wp.tid()
+    a = wp.vec2f(seg_a[k][0], seg_a[k][1])
+    b = wp.vec2f(seg_b[k][0], seg_b[k][1])
+    cell = 1.0 / grid.inv_cell
+    reach = cap + 0.7072 * cell + 1.0e-3 * (cap + cell)
+    nx = grid.near.shape[0]
+    ny = grid.near.shape[1]
+    x0 = wp.max(int(wp.floor((wp.min(a[0], b[0]) - reach - grid.origin[0]) * grid.inv_cell)), 0)
+    x1 = wp.min(int(wp.floor((wp.max(a[0], b[0]) + reach - grid.origin[0]) * grid.inv_cell)), nx - 1)
+    y0 = wp.max(int(wp.floor((wp.min(a[1], b[1]) - reach - grid.origin[1]) * grid.inv_cell)), 0)
+    y1 = wp.min(int(wp.floor((wp.max(a[1], b[1]) + reach - grid.origin[1]) * grid.inv_cell)), ny - 1)
+    for ix in range(x0, x1 + 1):
+        for iy in range(y0, y1 + 1):
+            centre = grid.origin + wp.vec2f((float(ix) + 0.5) * cell, (float(iy) + 0.5) * cell)
+            if _segment_distance(centre, a, b) < reach:
+                grid.near[ix, iy] = wp.uint8(1)
+
+
+@wp.func
 def _edge_distance(boundary: wp.uint64, seg_a: wp.array(dtype=wp.vec3f), seg_b: wp.array(dtype=wp.vec3f),
-                   p: wp.vec3f, cap: wp.float32):
+                   grid: EdgeGrid, p: wp.vec3f, cap: wp.float32):
     """Distance from p to the nearest plane-boundary segment, at most ``cap`` [m].
 
-    Only segments whose boxes overlap the cube of half side ``cap`` around p are visited (none,
-    for most points), then the exact point–segment distance is taken.
+    A point in a cell the grid leaves unmarked is at least ``cap`` from every segment. Otherwise
+    only segments whose boxes overlap the cube of half side ``cap`` around p are visited, then
+    the exact point–segment distance is taken.
     """
+    ix = int(wp.floor((p[0] - grid.origin[0]) * grid.inv_cell))
+    iy = int(wp.floor((p[1] - grid.origin[1]) * grid.inv_cell))
+    if ix >= 0 and iy >= 0 and ix < grid.near.shape[0] and iy < grid.near.shape[1]:
+        if grid.near[ix, iy] == wp.uint8(0):
+            return cap
     best = cap
     extent = wp.vec3f(cap, cap, cap)
     query = wp.bvh_query_aabb(boundary, p - extent, p + extent)
     k = int(0)
     while wp.bvh_query_next(query, k):
-        a = seg_a[k]
-        ab = seg_b[k] - a
-        u = wp.clamp(wp.dot(p - a, ab) / wp.max(wp.dot(ab, ab), 1.0e-20), 0.0, 1.0)
-        best = wp.min(best, wp.length(p - (a + u * ab)))
+        best = wp.min(best, _segment_distance(p, seg_a[k], seg_b[k]))
     return best
 
 
@@ -274,26 +342,25 @@ def _slot_function(f: Features, deflector: Deflector):
     precise = f.optics == "float64"
     real = wp.float64 if precise else wp.float32
     vec = wp.types.vector(3, real)
+    mat = wp.types.matrix((3, 3), real)
     quat = wp.types.quaternion(real)
 
     @wp.func
-    def trace_slot(pose: PulsePose, po: PulseOptics, beam: int, scan: Scan):
-        """Trace one sub-beam of one pulse.
+    def trace_slot(pulses: wp.array2d(dtype=wp.float64), p: int, beam: int, scan: Scan):
+        """Trace sub-beam ``beam`` of pulse ``p`` (a column of the chunk's pulse table).
 
         Returns (status, range [m], face, direction, exact point, nominal point, true point,
         edge distance [m]); points in the local frame [m].
         """
         zero = wp.vec3f(0.0, 0.0, 0.0)
-        if wp.static(precise):
-            origin = pose.origin64
-            rot = pose.rot64
-        else:
-            origin = pose.origin
-            rot = pose.rot
+        origin = vec(get3(pulses, ROW_ORIGIN, p))
+        rot = mat(get33(pulses, ROW_ROT, p))
         if wp.static(f.optics == "lut"):
-            s3, exit_point, ok = _lut_lookup(scan.lut_directions, scan.lut_exits, beam, pose.phi)
+            s3, exit_point, ok = _lut_lookup(scan.lut_directions, scan.lut_exits, beam,
+                                             wp.float32(pulses[ROW_PHI, p]))
         else:
-            s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), vec(po.truth), scan.truth)
+            s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), vec(get3(pulses, ROW_TRUTH, p)),
+                                                  scan.truth)
         if not ok:
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
         start = origin + rot * exit_point
@@ -315,7 +382,8 @@ def _slot_function(f: Features, deflector: Deflector):
         r = t
         if wp.static(f.noisy):  # keyed by (seed, line, pulse, beam): chunking never changes it
             per_pulse = wp.int64(scan.beams.n * scan.beams.n)
-            state = wp.rand_init(pose.seed, int((pose.pulse * per_pulse + wp.int64(beam)) % wp.int64(2147483647)))
+            pulse = wp.int64(pulses[ROW_PULSE, p])
+            state = wp.rand_init(int(pulses[ROW_SEED, p]), int((pulse * per_pulse + wp.int64(beam)) % wp.int64(2147483647)))
             r = r + real(scan.noise_sigma * _gaussian(state))
         # georeference the observation (φ, i, j, r) with the deflector the processing believes in
         p_exact = vec()
@@ -325,20 +393,22 @@ def _slot_function(f: Features, deflector: Deflector):
             if wp.static(f.believed_is_truth):
                 p_exact = start + r * direction
             else:
-                s3b, exit_b, ok_exact = deflector.finish(vec(scan.beam_believed[beam]), vec(po.believed),
-                                                         scan.believed)
+                s3b, exit_b, ok_exact = deflector.finish(vec(scan.beam_believed[beam]),
+                                                         vec(get3(pulses, ROW_BELIEVED, p)), scan.believed)
                 p_exact = origin + rot * (exit_b + r * s3b)
         if wp.static(f.nominal):
             q = scan.beam_rigid[beam]
             rigid = quat(real(q[0]), real(q[1]), real(q[2]), real(q[3]))
-            p_nominal = origin + rot * (vec(po.axis_exit) + r * wp.quat_rotate(rigid, vec(po.axis_direction)))
-        if not (ok_exact and po.axis_ok != 0):
+            p_nominal = origin + rot * (vec(get3(pulses, ROW_AXIS_EXIT, p))
+                                        + r * wp.quat_rotate(rigid, vec(get3(pulses, ROW_AXIS_DIRECTION, p))))
+        if not (ok_exact and pulses[ROW_AXIS_OK, p] != wp.float64(0.0)):
             # the believed deflector reflects this beam internally: processing cannot place it
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
         true32 = wp.vec3f(true_point)
         edge = scan.edge_cap
         if wp.static(f.edges):
-            edge = _edge_distance(scan.boundary, scan.boundary_a, scan.boundary_b, true32, scan.edge_cap)
+            edge = _edge_distance(scan.boundary, scan.boundary_a, scan.boundary_b, scan.edge_grid, true32,
+                                  scan.edge_cap)
         return (STATUS_RETURN, wp.float32(r), face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
                 true32, edge)
 
@@ -346,15 +416,14 @@ def _slot_function(f: Features, deflector: Deflector):
 
 
 @functools.cache
-def points_kernel(f: Features, deflector: Deflector = WEDGE):
+def points_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int | None = None):
     """Kernel writing every slot's return: one thread per (pulse, sub-beam)."""
     trace_slot = _slot_function(f, deflector)
-    pulse_optics = _pulse_function(deflector)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", cuda_max_registers=max_registers)
     def trace_points(
         # In:
-        poses: wp.array(dtype=PulsePose),
+        pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,
         # Out: per slot
         status: wp.array(dtype=wp.int32),
@@ -370,9 +439,8 @@ def points_kernel(f: Features, deflector: Deflector = WEDGE):
     ):
         slot = wp.tid()
         per_pulse = scan.beams.n * scan.beams.n
-        pose = poses[slot // per_pulse]
-        code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(
-            pose, pulse_optics(pose.phi64, scan), slot % per_pulse, scan)
+        pulse = slot // per_pulse
+        code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(pulses, pulse, slot % per_pulse, scan)
         status[slot] = code
         if code == STATUS_TIR:
             wp.atomic_add(counters, COUNT_TIR, 1)
@@ -381,7 +449,7 @@ def points_kernel(f: Features, deflector: Deflector = WEDGE):
         else:
             ranges[slot] = r
             faces[slot] = face
-            scan_angles[slot] = signed_off_nadir(direction, pose.right)
+            scan_angles[slot] = signed_off_nadir(direction, wp.vec3f(get3(pulses, ROW_RIGHT, pulse)))
             cos_incidence[slot] = wp.abs(wp.dot(direction, wp.mesh_eval_face_normal(scan.mesh, face)))
             if wp.static(f.edges):
                 edge_distance[slot] = edge
@@ -402,39 +470,79 @@ def _outer6(d: wp.vec3d):
 
 
 @functools.cache
-def statistics_kernel(f: Features, deflector: Deflector = WEDGE):
-    """Kernel reducing returns to per-plane float64 moments, no per-point output.
+def records_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int | None = None):
+    """Statistics mode, step 1: one thread per slot traces and georeferences its beam and writes a
+    compact record: the plane it hit (or why it does not count) and its points.
 
-    Each thread traces a run of consecutive slots: it computes a pulse's shared optics once for
-    all the pulse's beams it holds, and keeps running sums while the plane stays the same,
-    adding them to the global sums (atomics) only when the plane changes — neighbouring beams
-    mostly hit the same plane, so the atomics are few and rarely contended.
+    One slot per thread keeps a warp's rays as coherent as the bare ray cast's and the per-thread
+    state small; the per-plane sums are left to :func:`reduce_kernel`.
     """
     trace_slot = _slot_function(f, deflector)
-    pulse_optics = _pulse_function(deflector)
+
+    @wp.kernel(module="unique", cuda_max_registers=max_registers)
+    def trace_records(
+        # In:
+        pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
+        scan: Scan,
+        face_plane: wp.array(dtype=wp.int32),  # plane id of each triangle
+        edge_buffer: wp.float32,  # returns closer than this to a plane boundary do not count [m]
+        # Out: per slot
+        codes: wp.array(dtype=wp.int32),  # plane id, or CODE_MISS / CODE_TIR / CODE_EDGE
+        exact_points: wp.array(dtype=wp.vec3f),  # [m, local]
+        nominal_points: wp.array(dtype=wp.vec3f),
+    ):
+        slot = wp.tid()
+        per_pulse = scan.beams.n * scan.beams.n
+        pulse = slot // per_pulse
+        code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(pulses, pulse, slot % per_pulse, scan)
+        if code == STATUS_TIR:
+            codes[slot] = CODE_TIR
+        elif code == STATUS_MISS:
+            codes[slot] = CODE_MISS
+        elif edge < edge_buffer:
+            codes[slot] = CODE_EDGE
+        else:
+            codes[slot] = face_plane[face]
+            if wp.static(f.exact):
+                exact_points[slot] = p_exact
+            if wp.static(f.nominal):
+                nominal_points[slot] = p_nominal
+
+    return trace_records
+
+
+@functools.cache
+def reduce_kernel(f: Features):
+    """Statistics mode, step 2: per-plane float64 moments of the records of a chunk.
+
+    Each group of LANES threads takes a run of LANES·S consecutive slots (S = slots_per_thread),
+    thread k of the group every LANES-th slot from the k-th, so the group's loads coalesce. A thread
+    keeps running sums while the plane stays the same, adding them to the global sums (atomics)
+    only when the plane changes — nearby beams mostly hit the same plane, so the atomics are few.
+    Neighbouring threads mostly hold the same plane too, so thread t adds to replica t mod R of the
+    sums (R = the sums' first dimension), spreading the atomics on a busy plane over R addresses;
+    the host adds the replicas.
+    """
 
     @wp.kernel(module="unique")
-    def trace_statistics(
+    def reduce_records(
         # In:
-        poses: wp.array(dtype=PulsePose),
-        scan: Scan,
+        codes: wp.array(dtype=wp.int32),
+        exact_points: wp.array(dtype=wp.vec3f),
+        nominal_points: wp.array(dtype=wp.vec3f),
         n_slots: wp.int32,
         slots_per_thread: wp.int32,
-        face_plane: wp.array(dtype=wp.int32),  # plane id of each triangle
         references: wp.array(dtype=wp.vec3d),  # reference point of each plane [m, local]
-        edge_buffer: wp.float32,  # returns closer than this to a plane boundary are left out [m]
-        # Out: per plane, for the exact [0] and nominal [1] model
-        counts: wp.array2d(dtype=wp.int64),
-        first: wp.array2d(dtype=wp.vec3d),  # Σ (p − ref)
-        second: wp.array2d(dtype=vec6d),  # Σ upper triangle of (p − ref)(p − ref)ᵀ
+        # Out: per replica, per model (exact [0], nominal [1]), per plane
+        counts: wp.array3d(dtype=wp.int64),
+        first: wp.array3d(dtype=wp.vec3d),  # Σ (p − ref)
+        second: wp.array3d(dtype=vec6d),  # Σ upper triangle of (p − ref)(p − ref)ᵀ
         counters: wp.array(dtype=wp.int32),  # [TIR, misses, edge-excluded]
     ):
-        begin = wp.tid() * slots_per_thread
-        end = wp.min(begin + slots_per_thread, n_slots)
-        per_pulse = scan.beams.n * scan.beams.n
-        pulse = begin // per_pulse
-        pose = poses[pulse]
-        po = pulse_optics(pose.phi64, scan)
+        t = wp.tid()
+        begin = (t // LANES) * LANES * slots_per_thread + t % LANES
+        end = wp.min(begin + LANES * slots_per_thread, n_slots)
+        replica = t % counts.shape[0]
         plane = int(-1)
         n = wp.int64(0)
         s_exact = wp.vec3d()
@@ -444,24 +552,19 @@ def statistics_kernel(f: Features, deflector: Deflector = WEDGE):
         tir = int(0)
         miss = int(0)
         excluded = int(0)
-        for slot in range(begin, end):
-            if slot // per_pulse != pulse:
-                pulse = slot // per_pulse
-                pose = poses[pulse]
-                po = pulse_optics(pose.phi64, scan)
-            code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(pose, po, slot % per_pulse, scan)
-            if code == STATUS_TIR:
+        for slot in range(begin, end, LANES):
+            code = codes[slot]
+            if code == CODE_TIR:
                 tir += 1
-            elif code == STATUS_MISS:
+            elif code == CODE_MISS:
                 miss += 1
-            elif edge < edge_buffer:
+            elif code == CODE_EDGE:
                 excluded += 1
             else:
-                hit_plane = face_plane[face]
-                if hit_plane != plane:
+                if code != plane:
                     if plane >= 0:
-                        _flush(counts, first, second, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
-                    plane = hit_plane
+                        _flush(counts, first, second, replica, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
+                    plane = code
                     n = wp.int64(0)
                     s_exact = wp.vec3d()
                     s_nominal = wp.vec3d()
@@ -470,15 +573,15 @@ def statistics_kernel(f: Features, deflector: Deflector = WEDGE):
                 n += wp.int64(1)
                 ref = references[plane]
                 if wp.static(f.exact):
-                    d = wp.vec3d(p_exact) - ref
+                    d = wp.vec3d(exact_points[slot]) - ref
                     s_exact += d
                     ss_exact += _outer6(d)
                 if wp.static(f.nominal):
-                    d = wp.vec3d(p_nominal) - ref
+                    d = wp.vec3d(nominal_points[slot]) - ref
                     s_nominal += d
                     ss_nominal += _outer6(d)
         if plane >= 0:
-            _flush(counts, first, second, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
+            _flush(counts, first, second, replica, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
         if tir > 0:
             wp.atomic_add(counters, COUNT_TIR, tir)
         if miss > 0:
@@ -486,14 +589,15 @@ def statistics_kernel(f: Features, deflector: Deflector = WEDGE):
         if excluded > 0:
             wp.atomic_add(counters, COUNT_EDGE, excluded)
 
-    return trace_statistics
+    return reduce_records
 
 
 @wp.func
 def _flush(
-    counts: wp.array2d(dtype=wp.int64),
-    first: wp.array2d(dtype=wp.vec3d),
-    second: wp.array2d(dtype=vec6d),
+    counts: wp.array3d(dtype=wp.int64),
+    first: wp.array3d(dtype=wp.vec3d),
+    second: wp.array3d(dtype=vec6d),
+    replica: int,
     plane: int,
     n: wp.int64,
     s_exact: wp.vec3d,
@@ -501,13 +605,13 @@ def _flush(
     s_nominal: wp.vec3d,
     ss_nominal: vec6d,
 ):
-    """Add one thread's running sums for ``plane`` to the global per-plane sums."""
-    wp.atomic_add(counts, 0, plane, n)
-    wp.atomic_add(counts, 1, plane, n)
-    wp.atomic_add(first, 0, plane, s_exact)
-    wp.atomic_add(first, 1, plane, s_nominal)
-    wp.atomic_add(second, 0, plane, ss_exact)
-    wp.atomic_add(second, 1, plane, ss_nominal)
+    """Add one thread's running sums for ``plane`` to a replica of the global per-plane sums."""
+    wp.atomic_add(counts, replica, 0, plane, n)
+    wp.atomic_add(counts, replica, 1, plane, n)
+    wp.atomic_add(first, replica, 0, plane, s_exact)
+    wp.atomic_add(first, replica, 1, plane, s_nominal)
+    wp.atomic_add(second, replica, 0, plane, ss_exact)
+    wp.atomic_add(second, replica, 1, plane, ss_nominal)
 
 
 @wp.kernel
@@ -540,7 +644,7 @@ def slot_indices(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int
 
 @wp.kernel
 def emit_rays(
-    poses: wp.array(dtype=PulsePose),
+    pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
     scan: Scan,
     # Out:
     starts: wp.array(dtype=wp.vec3f),  # [m, local]
@@ -550,11 +654,11 @@ def emit_rays(
     (for timing the bare ray cast)."""
     slot = wp.tid()
     per_pulse = scan.beams.n * scan.beams.n
-    pose = poses[slot // per_pulse]
-    s3, exit_point, ok = wedge_finish(scan.beam_truth[slot % per_pulse], wedge_pulse_stage(pose.phi64, scan.truth),
-                                      scan.truth)
-    starts[slot] = wp.vec3f(pose.origin64 + pose.rot64 * exit_point)
-    directions[slot] = wp.where(ok, wp.vec3f(pose.rot64 * s3), wp.vec3f(0.0, 0.0, 0.0))
+    p = slot // per_pulse
+    rot = get33(pulses, ROW_ROT, p)
+    s3, exit_point, ok = wedge_finish(scan.beam_truth[slot % per_pulse], get3(pulses, ROW_TRUTH, p), scan.truth)
+    starts[slot] = wp.vec3f(get3(pulses, ROW_ORIGIN, p) + rot * exit_point)
+    directions[slot] = wp.where(ok, wp.vec3f(rot * s3), wp.vec3f(0.0, 0.0, 0.0))
 
 
 @wp.kernel
