@@ -29,7 +29,7 @@ from trajectories import PulseTiming, Trajectory
 
 SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
 POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # points mode: host memory grows with it
-SLOTS_PER_THREAD = {"cpu": 256, "cuda": 64}  # statistics mode: slots per reducing thread
+SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # statistics mode: consecutive slots per reducing thread
 MAX_REGISTERS = {"cpu": None, "cuda": 64}  # registers per thread of the trace kernels (None: the compiler's choice)
 SUM_REPLICAS = 64  # statistics mode on a GPU: copies of the per-plane sums, so busy planes' atomics spread
 SUM_REPLICA_BYTES = 1 << 26  # ... within this much device memory
@@ -171,6 +171,7 @@ class Simulator:
         self.scan = self._scan()
         self._cone_rad: float | None = None
         self._windows: dict[int, list[tuple[int, int]]] = {}
+        self._statistics: _StatisticsBuffers | None = None  # statistics-mode device buffers, kept between runs
 
     def _scan(self) -> trace.Scan:
         s, p = self.cfg.sensor, self.cfg.processing
@@ -235,6 +236,11 @@ class Simulator:
         budget = (POINT_SLOTS_PER_CHUNK if points else SLOTS_PER_CHUNK)[self.device_kind]
         return max(1, budget // self.beams_per_pulse)
 
+    def pulses_per_launch(self, points: bool = False) -> int:
+        """Pulses the device buffers hold: a chunk, or all the run's pulses where they are fewer."""
+        planned = sum(k1 - k0 for t in self.trajectories for k0, k1 in self.windows(t))
+        return max(1, min(self.chunk_pulses(points), planned))
+
     def pulse_count(self, trajectory: Trajectory) -> int:
         return self.timing.pulse_count(trajectory.start_time, trajectory.end_time)
 
@@ -245,7 +251,7 @@ class Simulator:
         """Points mode: call ``consume`` with the returns of each line's part of each chunk; return the counts."""
         started = time.perf_counter()
         counts = RunCounts()
-        buffers = _PointBuffers(self.chunk_pulses(points=True), self.beams_per_pulse, self.device)
+        buffers = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.device)
         kernel = trace.points_kernel(self.features, max_registers=self.max_registers)
         for chunk in self._chunks(buffers.pulses, counts, progress):
             n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
@@ -263,7 +269,8 @@ class Simulator:
         """Statistics mode: per-plane float64 moments of each model, accumulated on the device.
 
         No point leaves the device: one kernel writes each slot's plane and points to a record
-        buffer on the device, a second reduces the records, ``slots_per_thread`` per thread.
+        buffer on the device (a second settles the returns near plane boundaries), a third reduces
+        the records, ``slots_per_thread`` consecutive ones per thread.
         Returns within the edge buffer of a plane boundary are left out (``RunCounts.edge_excluded``).
         ``share`` = (k, n) runs only every n-th chunk from the k-th, so n processes can split a run
         and add their sums.
@@ -271,34 +278,29 @@ class Simulator:
         started = time.perf_counter()
         counts = RunCounts()
         spt = slots_per_thread or self.cfg.run.slots_per_thread or SLOTS_PER_THREAD[self.device_kind]
-        d = self.device
-        pulses = _pulse_table(self.chunk_pulses(), d)
-        slots = self.chunk_pulses() * self.beams_per_pulse
-        records = [wp.empty(slots, dtype=wp.int32, device=d)] + [
-            wp.empty(slots if model in self.models else 1, dtype=wp.vec3f, device=d) for model in MODELS]
-        n_planes = len(self.scene.planes)
-        shape = (self.sum_replicas(), 2, n_planes)
-        sums = [wp.zeros(shape, dtype=wp.int64, device=d), wp.zeros(shape, dtype=wp.vec3d, device=d),
-                wp.zeros(shape, dtype=trace.vec6d, device=d), wp.zeros(3, dtype=wp.int32, device=d)]
-        references = np.array([plane.point for plane in self.scene.planes], dtype=np.float64)
-        face_plane = wp.array(self.scene.plane_id.astype(np.int32), dtype=wp.int32, device=d)
-        references_d = wp.array(references, dtype=wp.vec3d, device=d)
+        if self._statistics is None:
+            self._statistics = _StatisticsBuffers(self, self.pulses_per_launch())
+        b = self._statistics
+        sums = b.zeroed_sums()
         trace_records = trace.records_kernel(self.features, max_registers=self.max_registers)
         reduce_records = trace.reduce_kernel(self.features)
-        for chunk in self._chunks(pulses, counts, progress, share):
+        d = self.device
+        for chunk in self._chunks(b.pulses, counts, progress, share):
             n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
-            wp.launch(trace_records, n_slots, inputs=[pulses, self.scan, face_plane, self.edge_buffer_m],
-                      outputs=records, device=d)
-            run = trace.LANES * spt
-            wp.launch(reduce_records, (n_slots + run - 1) // run * trace.LANES,
-                      inputs=[*records, n_slots, spt, references_d],
-                      outputs=sums, device=d)
+            wp.launch(trace_records, n_slots, inputs=[b.pulses, self.scan, b.face_plane],
+                      outputs=[*b.records, *b.near], device=d)
+            if self.features.edges:
+                wp.launch(trace.check_edges, n_slots, inputs=[self.scan, self.edge_buffer_m, *b.near],
+                          outputs=[b.records[0]], device=d)
+                b.near[0].zero_()
+            wp.launch(reduce_records, (n_slots + spt - 1) // spt,
+                      inputs=[*b.records, n_slots, spt, b.references], outputs=sums, device=d)
         count, first, second = (a.numpy().sum(axis=0) for a in sums[:3])
         counters = sums[3].numpy()
         moments = {}
         for k, model in enumerate(MODELS):
             if model in self.models:
-                m = PlaneMoments(references)
+                m = PlaneMoments(b.reference_points)
                 m.add_sums(count[k], first[k], _symmetric(second[k]))
                 moments[model] = m
         counts.edge_excluded = int(counters[2])
@@ -446,6 +448,30 @@ def _symmetric(upper: np.ndarray) -> np.ndarray:
     full[:, rows, cols] = upper
     full[:, cols, rows] = upper
     return full
+
+
+class _StatisticsBuffers:
+    """Device arrays of statistics mode for one simulator, allocated once and reused by its runs."""
+
+    def __init__(self, sim: Simulator, pulses: int):
+        d, slots, f = sim.device, pulses * sim.beams_per_pulse, sim.features
+        self.device = d
+        self.pulses = _pulse_table(pulses, d)
+        self.records = [wp.empty(slots, dtype=wp.int32, device=d)] + [
+            wp.empty(slots if model in sim.models else 1, dtype=wp.vec3f, device=d) for model in MODELS]
+        listed = slots if f.edges else 1  # returns the edge grid leaves to the boundary query
+        self.near = [wp.zeros(1, dtype=wp.int32, device=d), wp.empty(listed, dtype=wp.int32, device=d),
+                     wp.empty(listed, dtype=wp.vec3f, device=d)]
+        self.face_plane = wp.array(sim.scene.plane_id.astype(np.int32), dtype=wp.int32, device=d)
+        self.reference_points = np.array([plane.point for plane in sim.scene.planes], dtype=np.float64)  # [m, local]
+        self.references = wp.array(self.reference_points, dtype=wp.vec3d, device=d)
+        self.sum_shape = (sim.sum_replicas(), 2, len(sim.scene.planes))
+
+    def zeroed_sums(self) -> list[wp.array]:
+        """Fresh per-plane sums (count, Σd, Σddᵀ per replica, model and plane) and counters."""
+        d, shape = self.device, self.sum_shape
+        return [wp.zeros(shape, dtype=wp.int64, device=d), wp.zeros(shape, dtype=wp.vec3d, device=d),
+                wp.zeros(shape, dtype=trace.vec6d, device=d), wp.zeros(3, dtype=wp.int32, device=d)]
 
 
 class _PointBuffers:

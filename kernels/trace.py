@@ -28,12 +28,11 @@ COUNT_TIR = 0
 COUNT_MISS = 1
 COUNT_EDGE = 2  # returns left out of the statistics for lying within the edge buffer
 
-LANES = wp.constant(32)  # threads of a GPU warp: the reducing threads that share a run of slots
-
 # statistics-mode record codes of slots that do not count (a plane id otherwise)
 CODE_MISS = wp.constant(-1)
 CODE_TIR = wp.constant(-2)
 CODE_EDGE = wp.constant(-3)  # a return within the edge buffer of its plane's boundary
+CODE_NEAR = wp.constant(-4)  # CODE_NEAR − plane id: a return on that plane still to be checked against the buffer
 
 vec6d = wp.types.vector(6, wp.float64)
 
@@ -255,19 +254,23 @@ def mark_near_cells(
 
 
 @wp.func
-def _edge_distance(boundary: wp.uint64, seg_a: wp.array(dtype=wp.vec3f), seg_b: wp.array(dtype=wp.vec3f),
-                   grid: EdgeGrid, p: wp.vec3f, cap: wp.float32):
-    """Distance from p to the nearest plane-boundary segment, at most ``cap`` [m].
-
-    A point in a cell the grid leaves unmarked is at least ``cap`` from every segment. Otherwise
-    only segments whose boxes overlap the cube of half side ``cap`` around p are visited, then
-    the exact point–segment distance is taken.
-    """
+def _near_boundary(grid: EdgeGrid, p: wp.vec3f):
+    """False where the edge grid shows p at least the edge cap from every plane boundary."""
     ix = int(wp.floor((p[0] - grid.origin[0]) * grid.inv_cell))
     iy = int(wp.floor((p[1] - grid.origin[1]) * grid.inv_cell))
     if ix >= 0 and iy >= 0 and ix < grid.near.shape[0] and iy < grid.near.shape[1]:
-        if grid.near[ix, iy] == wp.uint8(0):
-            return cap
+        return grid.near[ix, iy] != wp.uint8(0)
+    return True
+
+
+@wp.func
+def _boundary_distance(boundary: wp.uint64, seg_a: wp.array(dtype=wp.vec3f), seg_b: wp.array(dtype=wp.vec3f),
+                       p: wp.vec3f, cap: wp.float32):
+    """Distance from p to the nearest plane-boundary segment, at most ``cap`` [m].
+
+    Only segments whose boxes overlap the cube of half side ``cap`` around p are visited, then
+    the exact point–segment distance is taken.
+    """
     best = cap
     extent = wp.vec3f(cap, cap, cap)
     query = wp.bvh_query_aabb(boundary, p - extent, p + extent)
@@ -349,8 +352,8 @@ def _slot_function(f: Features, deflector: Deflector):
     def trace_slot(pulses: wp.array2d(dtype=wp.float64), p: int, beam: int, scan: Scan):
         """Trace sub-beam ``beam`` of pulse ``p`` (a column of the chunk's pulse table).
 
-        Returns (status, range [m], face, direction, exact point, nominal point, true point,
-        edge distance [m]); points in the local frame [m].
+        Returns (status, range [m], face, direction, exact point, nominal point, true point);
+        points in the local frame [m].
         """
         zero = wp.vec3f(0.0, 0.0, 0.0)
         origin = vec(get3(pulses, ROW_ORIGIN, p))
@@ -362,7 +365,7 @@ def _slot_function(f: Features, deflector: Deflector):
             s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), vec(get3(pulses, ROW_TRUTH, p)),
                                                   scan.truth)
         if not ok:
-            return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
+            return STATUS_TIR, 0.0, -1, zero, zero, zero, zero
         start = origin + rot * exit_point
         direction = rot * s3
         hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
@@ -372,7 +375,7 @@ def _slot_function(f: Features, deflector: Deflector):
             face, t_second = _fallback_hit(scan.padded, scan.vertices64, scan.indices, wp.vec3d(start),
                                            wp.vec3d(direction), scan.max_range)
             if face < 0:
-                return STATUS_MISS, 0.0, -1, wp.vec3f(direction), zero, zero, zero, 0.0
+                return STATUS_MISS, 0.0, -1, wp.vec3f(direction), zero, zero, zero
             t_hit = wp.float32(t_second)
         if wp.static(precise):
             t = _refine_hit(scan.vertices64, scan.indices, face, start, direction)
@@ -403,14 +406,9 @@ def _slot_function(f: Features, deflector: Deflector):
                                         + r * wp.quat_rotate(rigid, vec(get3(pulses, ROW_AXIS_DIRECTION, p))))
         if not (ok_exact and pulses[ROW_AXIS_OK, p] != wp.float64(0.0)):
             # the believed deflector reflects this beam internally: processing cannot place it
-            return STATUS_TIR, 0.0, -1, zero, zero, zero, zero, 0.0
-        true32 = wp.vec3f(true_point)
-        edge = scan.edge_cap
-        if wp.static(f.edges):
-            edge = _edge_distance(scan.boundary, scan.boundary_a, scan.boundary_b, scan.edge_grid, true32,
-                                  scan.edge_cap)
+            return STATUS_TIR, 0.0, -1, zero, zero, zero, zero
         return (STATUS_RETURN, wp.float32(r), face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
-                true32, edge)
+                wp.vec3f(true_point))
 
     return trace_slot
 
@@ -440,7 +438,7 @@ def points_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int 
         slot = wp.tid()
         per_pulse = scan.beams.n * scan.beams.n
         pulse = slot // per_pulse
-        code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(pulses, pulse, slot % per_pulse, scan)
+        code, r, face, direction, p_exact, p_nominal, p_true = trace_slot(pulses, pulse, slot % per_pulse, scan)
         status[slot] = code
         if code == STATUS_TIR:
             wp.atomic_add(counters, COUNT_TIR, 1)
@@ -452,6 +450,9 @@ def points_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int 
             scan_angles[slot] = signed_off_nadir(direction, wp.vec3f(get3(pulses, ROW_RIGHT, pulse)))
             cos_incidence[slot] = wp.abs(wp.dot(direction, wp.mesh_eval_face_normal(scan.mesh, face)))
             if wp.static(f.edges):
+                edge = scan.edge_cap
+                if _near_boundary(scan.edge_grid, p_true):
+                    edge = _boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, p_true, scan.edge_cap)
                 edge_distance[slot] = edge
             if wp.static(f.with_truth):
                 true_points[slot] = p_true
@@ -475,7 +476,10 @@ def records_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int
     compact record: the plane it hit (or why it does not count) and its points.
 
     One slot per thread keeps a warp's rays as coherent as the bare ray cast's and the per-thread
-    state small; the per-plane sums are left to :func:`reduce_kernel`.
+    state small. A return the edge grid cannot place clear of the plane boundaries is written as
+    CODE_NEAR − plane and listed, with its true point, for :data:`check_edges` to settle (a short
+    dense list, so the boundary queries do not hold up whole warps of returns that need none); the
+    per-plane sums are left to :func:`reduce_kernel`.
     """
     trace_slot = _slot_function(f, deflector)
 
@@ -485,24 +489,32 @@ def records_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,
         face_plane: wp.array(dtype=wp.int32),  # plane id of each triangle
-        edge_buffer: wp.float32,  # returns closer than this to a plane boundary do not count [m]
         # Out: per slot
-        codes: wp.array(dtype=wp.int32),  # plane id, or CODE_MISS / CODE_TIR / CODE_EDGE
+        codes: wp.array(dtype=wp.int32),  # plane id, CODE_MISS, CODE_TIR, or CODE_NEAR − plane id
         exact_points: wp.array(dtype=wp.vec3f),  # [m, local]
         nominal_points: wp.array(dtype=wp.vec3f),
+        # Out: the list of CODE_NEAR slots (append only; near_count[0] holds its length)
+        near_count: wp.array(dtype=wp.int32),
+        near_slots: wp.array(dtype=wp.int32),
+        near_points: wp.array(dtype=wp.vec3f),  # their true points [m, local]
     ):
         slot = wp.tid()
         per_pulse = scan.beams.n * scan.beams.n
-        pulse = slot // per_pulse
-        code, r, face, direction, p_exact, p_nominal, p_true, edge = trace_slot(pulses, pulse, slot % per_pulse, scan)
+        code, r, face, direction, p_exact, p_nominal, p_true = trace_slot(pulses, slot // per_pulse,
+                                                                          slot % per_pulse, scan)
         if code == STATUS_TIR:
             codes[slot] = CODE_TIR
         elif code == STATUS_MISS:
             codes[slot] = CODE_MISS
-        elif edge < edge_buffer:
-            codes[slot] = CODE_EDGE
         else:
-            codes[slot] = face_plane[face]
+            plane = face_plane[face]
+            if wp.static(f.edges):
+                if _near_boundary(scan.edge_grid, p_true):
+                    plane = CODE_NEAR - plane
+                    k = wp.atomic_add(near_count, 0, 1)
+                    near_slots[k] = slot
+                    near_points[k] = p_true
+            codes[slot] = plane
             if wp.static(f.exact):
                 exact_points[slot] = p_exact
             if wp.static(f.nominal):
@@ -511,14 +523,33 @@ def records_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int
     return trace_records
 
 
+@wp.kernel
+def check_edges(
+    scan: Scan,
+    edge_buffer: wp.float32,  # returns closer than this to a plane boundary do not count [m]
+    near_count: wp.array(dtype=wp.int32),
+    near_slots: wp.array(dtype=wp.int32),
+    near_points: wp.array(dtype=wp.vec3f),  # [m, local]
+    # In and out:
+    codes: wp.array(dtype=wp.int32),
+):
+    """Settle the records the edge grid could not: CODE_NEAR − plane becomes the plane, or CODE_EDGE
+    where the true hit lies within the edge buffer of a plane boundary. One thread per listed slot
+    (threads past the list's length do nothing)."""
+    k = wp.tid()
+    if k < near_count[0]:
+        slot = near_slots[k]
+        distance = _boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, near_points[k], scan.edge_cap)
+        codes[slot] = wp.where(distance < edge_buffer, CODE_EDGE, CODE_NEAR - codes[slot])
+
+
 @functools.cache
 def reduce_kernel(f: Features):
     """Statistics mode, step 2: per-plane float64 moments of the records of a chunk.
 
-    Each group of LANES threads takes a run of LANES·S consecutive slots (S = slots_per_thread),
-    thread k of the group every LANES-th slot from the k-th, so the group's loads coalesce. A thread
-    keeps running sums while the plane stays the same, adding them to the global sums (atomics)
-    only when the plane changes — nearby beams mostly hit the same plane, so the atomics are few.
+    Each thread takes a run of consecutive slots (consecutive beams of a pulse, then the next
+    pulse: the order in which the beams' footprints lie closest) and keeps running sums while the
+    plane stays the same, adding them to the global sums (atomics) only when the plane changes.
     Neighbouring threads mostly hold the same plane too, so thread t adds to replica t mod R of the
     sums (R = the sums' first dimension), spreading the atomics on a busy plane over R addresses;
     the host adds the replicas.
@@ -539,10 +570,9 @@ def reduce_kernel(f: Features):
         second: wp.array3d(dtype=vec6d),  # Σ upper triangle of (p − ref)(p − ref)ᵀ
         counters: wp.array(dtype=wp.int32),  # [TIR, misses, edge-excluded]
     ):
-        t = wp.tid()
-        begin = (t // LANES) * LANES * slots_per_thread + t % LANES
-        end = wp.min(begin + LANES * slots_per_thread, n_slots)
-        replica = t % counts.shape[0]
+        begin = wp.tid() * slots_per_thread
+        end = wp.min(begin + slots_per_thread, n_slots)
+        replica = wp.tid() % counts.shape[0]
         plane = int(-1)
         n = wp.int64(0)
         s_exact = wp.vec3d()
@@ -552,7 +582,7 @@ def reduce_kernel(f: Features):
         tir = int(0)
         miss = int(0)
         excluded = int(0)
-        for slot in range(begin, end, LANES):
+        for slot in range(begin, end):
             code = codes[slot]
             if code == CODE_TIR:
                 tir += 1
