@@ -201,8 +201,10 @@ def study(device: str, s: Sizes) -> dict:
                    "--altitudes", ",".join(altitudes), "--arrays", ",".join(arrays),
                    "--spacings-mrad", ",".join(spacings), "--out", str(Path(tmp) / "sweep")]
         started = time.perf_counter()
-        subprocess.run(command, check=True, env=env, capture_output=True)
+        done = subprocess.run(command, env=env, capture_output=True, text=True)
         wall = time.perf_counter() - started
+        if done.returncode != 0:
+            raise RuntimeError(f"study sweep failed: {' '.join(command)}\n{done.stderr[-4000:]}")
         rows = (Path(tmp) / "sweep" / "sweep.csv").read_text().splitlines()[1:]
     configs = len(altitudes) * len(arrays) * len(spacings)
     return {"device": resolve_device(device), "gpu_name": gpu_name(resolve_device(device)), "configurations": configs,
