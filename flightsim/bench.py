@@ -155,10 +155,12 @@ def stages(device: str, s: Sizes) -> list[dict]:
 
 
 def kernel_name(timing_name: str) -> str:
-    """'forward kernel trace_records_1a2b3c4' → 'trace_records'."""
+    """'forward kernel records_kernel__locals__trace_records_1a2b3c4' → 'trace_records'."""
     name = timing_name.removeprefix("forward kernel ")
     stem, _, suffix = name.rpartition("_")
-    return stem if stem and all(c in "0123456789abcdef" for c in suffix) else name
+    if stem and all(c in "0123456789abcdef" for c in suffix):
+        name = stem
+    return name.split("__")[-1]  # a kernel built by a factory function: the kernel's own name
 
 
 def _two_process_record(cfg: RunConfig, sample: int, repeats: int) -> dict:
@@ -357,11 +359,15 @@ def gpu_name(device: str) -> str:
 
 
 def git_commit() -> str:
+    """The measured code's commit: FLIGHTSIM_COMMIT where set (a copied working tree, as on the GPU
+    machine, may carry stale git metadata), else git's HEAD."""
+    if os.environ.get("FLIGHTSIM_COMMIT"):
+        return os.environ["FLIGHTSIM_COMMIT"]
     try:
         out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True)
         return out.stdout.strip()
     except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("FLIGHTSIM_COMMIT", "unknown")
+        return "unknown"
 
 
 def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:

@@ -77,7 +77,7 @@ def _stages(r: dict) -> list[str]:
     lines = ["### Where the time goes (GPU time per kernel, same workload at a quarter of the size)", "",
              "| array | stage | time [s] | ns per beam slot | share of wall |", "| --- | --- | --- | --- | --- |"]
     for x in r["stages"]:
-        rows = sorted(x["kernels_s"].items(), key=lambda kv: -kv[1])
+        rows = sorted(((name.split("__")[-1], t) for name, t in x["kernels_s"].items()), key=lambda kv: -kv[1])
         rows.append(("host work and gaps (wall − kernels)", x["wall_s"] - sum(x["kernels_s"].values())))
         rows.append(("wall", x["wall_s"]))
         rows.append(("for scale: bare ray cast of as many rays", x["bare_raycast_s"]))

@@ -32,3 +32,19 @@ def test_bench_writes_records_with_the_fields_the_issue_names(tmp_path):
     assert record["returns_per_s"] == pytest.approx(record["returns"] / record["wall_s"])
     assert record["ratio"] == pytest.approx(record["returns_per_s"] / record["raycast_returns_per_s"])
     assert "| 3×3 | 1 |" in (tmp_path / "bench.md").read_text()
+
+
+def test_stage_report_names_each_kernel_and_accounts_for_the_wall_time():
+    from flightsim.bench import kernel_name
+    from flightsim.bench_report import markdown
+
+    assert kernel_name("forward kernel records_kernel__locals__trace_records_1a2b3c4") == "trace_records"
+    assert kernel_name("forward kernel pulse_poses_0f3a9e1") == "pulse_poses"
+    stage = {"array": 3, "slots": 1000, "returns": 990, "wall_s": 1e-6, "bare_raycast_s": 2e-7,
+             "kernels_s": {"trace_records": 6e-7, "reduce_records": 2e-7}}
+    text = markdown({"cuda": {"gpu_name": "GPU", "device": "cuda:0", "git_commit": "x", "date": "d",
+                              "stages": [stage]}})
+    rows = {line.split(" | ")[1]: line.split(" | ")[2:] for line in text.splitlines() if line.startswith("| 3×3 |")}
+    assert rows["trace_records"][:2] == ["6e-07", "0.600"]  # seconds, ns per slot
+    assert rows["host work and gaps (wall − kernels)"][0] == "2e-07"  # 1e-6 − 6e-7 − 2e-7
+    assert rows["wall"][2].strip(" |") == "100%"
