@@ -96,15 +96,15 @@ def open_client(workers: int | None = None, scheduler: str | None = None, gpus: 
 
     ``scheduler`` connects to a running cluster; ``gpus`` starts one worker per GPU (or ``workers`` of
     them, an equal number per GPU); ``workers`` > 1 alone starts that many workers; otherwise there
-    is no cluster.
+    is no cluster (and Dask is not imported).
     """
-    from distributed import Client
-
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise InputError("--workers", workers, "an integer >= 1")
     if scheduler and (gpus or workers):
         raise InputError("--scheduler", scheduler, "no --workers or --gpus with it (the cluster has its own workers)")
     if scheduler:
+        from distributed import Client
+
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError) as exc:
@@ -123,6 +123,8 @@ def open_client(workers: int | None = None, scheduler: str | None = None, gpus: 
     if not ordinals and (workers or 1) <= 1:
         yield None
         return
+    from distributed import Client
+
     with local_cluster(workers or 0, ordinals) as cluster, Client(cluster) as client:
         client.wait_for_workers(len(cluster.worker_spec))
         yield client
