@@ -68,8 +68,9 @@ def wedge_finish(inside: Any, normal: Any, prism: Prism):
 class Deflector:
     """A beam deflector split by what each part depends on.
 
-    beam_stage(s1, prism) -> vector: depends on the sub-beam only (tabulated once per run, float64);
-    pulse_stage(phi, prism) -> vector: depends on the scan angle only (once per pulse, float64);
+    beam_stage(s1, prism) -> 3-vector: depends on the sub-beam only (tabulated once per run, float64);
+    pulse_stage(phi, prism) -> 3-vector: depends on the scan angle only (once per pulse, float64, in three
+    rows of the pulse table);
     finish(beam_state, pulse_state, prism) -> (s3, exit point [m], ok): the rest, per beam.
     """
 
