@@ -9,9 +9,9 @@ import time
 from pathlib import Path
 
 from flightsim import __version__
-from flightsim.config import RunConfig, get_value, load_toml, set_value, validate
-from flightsim import score
-from flightsim.errors import InputError
+from flightsim.core.config import RunConfig, get_value, load_toml, set_value, validate
+from flightsim.scoring import score
+from flightsim.core.errors import InputError
 
 EXIT_INVALID = 2
 
@@ -76,7 +76,7 @@ def build_config(args: argparse.Namespace) -> RunConfig:
 
 def build_grid(args: argparse.Namespace):
     """The sweep grid: base config and axes from the axis flags and multi-valued --set items."""
-    from flightsim.sweep import SweepGrid, parse_axis
+    from flightsim.studies.sweep import SweepGrid, parse_axis
 
     cfg = base_config(args, SWEEP_FLAGS)
     axes = []
@@ -110,8 +110,8 @@ def _add_cluster_flags(parser: argparse.ArgumentParser) -> None:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     cfg = build_config(args)
-    from flightsim.progress import ProgressBar
-    from flightsim.run import simulate_to_directory
+    from flightsim.core.progress import ProgressBar
+    from flightsim.engine.run import simulate_to_directory
 
     summary = simulate_to_directory(cfg, Path(args.out), overwrite=args.overwrite,
                                     progress=ProgressBar("simulate"))
@@ -124,7 +124,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def _cluster(args: argparse.Namespace, tasks: int):
     """The Dask client of --workers / --scheduler / --gpus (None: run serially), for ``tasks`` tasks."""
-    from flightsim.distributed import open_client
+    from flightsim.engine.distributed import open_client
 
     if args.gpus and args.device not in (None, "cuda"):
         raise InputError("--device", args.device, "cuda or nothing with --gpus (each worker runs on its own GPU)")
@@ -137,8 +137,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if args.gpus and args.device is None:
         args.device = "cuda"
     grid = build_grid(args)
-    from flightsim.progress import ProgressBar
-    from flightsim.sweep import plot_sweep, run_sweep
+    from flightsim.core.progress import ProgressBar
+    from flightsim.studies.sweep import plot_sweep, run_sweep
 
     started = time.perf_counter()
     with _cluster(args, len(grid.configurations())) as client:
@@ -157,8 +157,8 @@ def cmd_survey(args: argparse.Namespace) -> int:
     for key, value in _set_items(args):
         set_value(cfg, key, value)
     cfg = validate(cfg)
-    from flightsim.progress import ProgressBar
-    from flightsim.survey import SurveySpec, plan_survey, run_survey
+    from flightsim.core.progress import ProgressBar
+    from flightsim.studies.survey import SurveySpec, plan_survey, run_survey
 
     spec = SurveySpec(size_km=args.size_km, tile_m=args.tile_m, sidelap=args.sidelap, lines=args.lines,
                       segment_m=args.segment_m)
@@ -176,8 +176,8 @@ def cmd_survey(args: argparse.Namespace) -> int:
 
 
 def cmd_paper(args: argparse.Namespace) -> int:
-    from flightsim.paper import reproduce
-    from flightsim.warp_runtime import resolve_device
+    from flightsim.studies.paper import reproduce
+    from flightsim.core.warp_runtime import resolve_device
 
     resolve_device(args.device)
     report = reproduce(Path(args.out), device=args.device, overwrite=args.overwrite)
@@ -186,8 +186,8 @@ def cmd_paper(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from flightsim.bench import SECTIONS, run_bench
-    from flightsim.warp_runtime import resolve_device
+    from flightsim.studies.bench import SECTIONS, run_bench
+    from flightsim.core.warp_runtime import resolve_device
 
     resolve_device(args.device)
     sections = tuple(args.sections.split(",")) if args.sections else SECTIONS
@@ -205,7 +205,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     import pyproj
     import warp as wp
 
-    from flightsim.warp_runtime import init_warp
+    from flightsim.core.warp_runtime import init_warp
 
     init_warp()
     info = {

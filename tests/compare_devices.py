@@ -24,10 +24,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flightsim.config import RunConfig, set_value, validate  # noqa: E402
-from flightsim.plan import build_scene, flight_trajectories  # noqa: E402
-from flightsim.simulate import Simulator  # noqa: E402
-from flightsim.warp_runtime import init_warp  # noqa: E402
+from flightsim.core.config import RunConfig, set_value, validate  # noqa: E402
+from flightsim.platforms.plan import build_scene, flight_trajectories  # noqa: E402
+from flightsim.engine.simulate import Simulator  # noqa: E402
+from flightsim.core.warp_runtime import init_warp  # noqa: E402
 
 TOLERANCE_M = 1e-3
 CASES = {  # name: settings; the quick set is the first two at a tenth of the duration

@@ -7,7 +7,7 @@ os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.dirname(__file__),
 
 
 def _devices() -> list[str]:
-    from flightsim.warp_runtime import init_warp
+    from flightsim.core.warp_runtime import init_warp
     import warp as wp
 
     init_warp()

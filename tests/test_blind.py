@@ -6,11 +6,11 @@ import time
 import numpy as np
 import pytest
 
-from flightsim.blind import extract_planes
-from flightsim.config import RunConfig, validate
-from flightsim.las_tiles import read_points
-from flightsim.planes import fit_points
-from flightsim.plan import build_scene
+from flightsim.scoring.blind import extract_planes
+from flightsim.core.config import RunConfig, validate
+from flightsim.outputs.las_tiles import read_points
+from flightsim.scoring.planes import fit_points
+from flightsim.platforms.plan import build_scene
 
 ORIGIN = np.array([409_000.0, 3_393_000.0, 450.0])
 
@@ -129,7 +129,7 @@ ROOF_MIN_POINTS = 200  # roofs with fewer truth points are too thinly sampled to
 @pytest.fixture(scope="module")
 def calibration_run(tmp_path_factory):
     """A 3 s flight at 500 m over the calibration field (both georeferencing models)."""
-    from flightsim.run import simulate_to_directory
+    from flightsim.engine.run import simulate_to_directory
 
     cfg = RunConfig()
     cfg.flight.duration_s = 3.0

@@ -1,8 +1,8 @@
 """Host-side culling: pulses that cannot reach the scene are never launched, and nothing is lost."""
 import numpy as np
 
-from flightsim.config import RunConfig, set_value, validate
-from flightsim.run import simulate_to_directory
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.run import simulate_to_directory
 
 
 def pad_config(tmp_path, cull: bool, **settings):

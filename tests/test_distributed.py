@@ -7,10 +7,10 @@ import sys
 import cloudpickle
 import pytest
 
-from flightsim import distributed
-from flightsim.config import RunConfig, set_value
-from flightsim.errors import InputError
-from flightsim.sweep import SweepGrid, run_sweep
+from flightsim.engine import distributed
+from flightsim.core.config import RunConfig, set_value
+from flightsim.core.errors import InputError
+from flightsim.studies.sweep import SweepGrid, run_sweep
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import this test module
 

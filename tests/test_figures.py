@@ -1,13 +1,13 @@
-"""Paper figures (flightsim/figures.py): the data they write, against closed forms and symmetry."""
+"""Paper figures (flightsim/studies/figures.py): the data they write, against closed forms and symmetry."""
 import csv
 import math
 
 import numpy as np
 import pytest
 
-from flightsim import figures
-from flightsim.config import apex_for_cone
-from flightsim.errors import InputError
+from flightsim.studies import figures
+from flightsim.core.config import apex_for_cone
+from flightsim.core.errors import InputError
 
 DELTA = 2.314e-3  # [rad]
 N_GLASS = 1.5066

@@ -1,4 +1,4 @@
-"""LAS tile output (flightsim.las_tiles): format, tiling, atomicity, determinism, readers.
+"""LAS tile output (flightsim.outputs.las_tiles): format, tiling, atomicity, determinism, readers.
 
 Every check compares what a reader gets back with the input batch (the truth), or with facts
 from the LAS 1.4 R15 specification; two readers that share no code with laspy (rapidlasso
@@ -17,8 +17,8 @@ import numpy as np
 import pyproj
 import pytest
 
-from flightsim.errors import InputError
-from flightsim.las_tiles import PointBatch, TileWriter, gps_week_date, read_points
+from flightsim.core.errors import InputError
+from flightsim.outputs.las_tiles import PointBatch, TileWriter, gps_week_date, read_points
 
 UTM48N = pyproj.CRS.from_epsg(32648)
 CREATED = datetime.date(2021, 3, 17)

@@ -19,8 +19,8 @@ import laspy
 import numpy as np
 import pytest
 
-from flightsim.config import RunConfig, set_value, validate
-from flightsim.run import simulate_to_directory
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.run import simulate_to_directory
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from flightsim.planes import PlaneMoments, fit_groups, fit_points, group_moments, pooled_rms, residuals
+from flightsim.scoring.planes import PlaneMoments, fit_groups, fit_points, group_moments, pooled_rms, residuals
 
 WORLD = np.array([409_000.0, 3_393_000.0, 450.0])  # UTM-sized offsets: precision must survive them
 

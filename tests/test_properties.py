@@ -1,7 +1,7 @@
 """Properties of the device optics over random prisms, fans and prism angles (hypothesis), and of
 the terrain clearance the flight plan relies on.
 
-System under test: ``flightsim.fan.trace_fan`` (the Warp optics of kernels/optics.py). Each property
+System under test: ``flightsim.instrument.fan.trace_fan`` (the Warp optics of kernels/optics.py). Each property
 is checked against a law, not against stored output: refracted directions are unit vectors,
 coplanar with the incident ray and the face normal and obey Snell's law at each face; tracing the
 exit ray backwards (a Warp kernel here, built from ``kernels.optics.refract``) recovers the
@@ -17,8 +17,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import reference_optics as ref
-from flightsim.fan import trace_fan
-from flightsim.scene import CLASS_GROUND, Scene, parse_crs, plane_info
+from flightsim.instrument.fan import trace_fan
+from flightsim.scenes.scene import CLASS_GROUND, Scene, parse_crs, plane_info
 from kernels.optics import back_face_normal, refract
 
 Z = np.array([0.0, 0.0, 1.0])

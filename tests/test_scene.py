@@ -1,4 +1,4 @@
-"""Tests of flightsim.scene and flightsim.meshio.
+"""Tests of flightsim.scenes.scene and flightsim.scenes.meshio.
 
 Geometry is checked against independent math: normals recomputed from the triangles, areas
 and volumes from closed forms, mesh files written here with struct (not with the code under test).
@@ -13,9 +13,9 @@ import numpy as np
 import pyproj
 import pytest
 
-from flightsim.errors import InputError
-from flightsim.meshio import load_mesh, save_obj
-from flightsim.scene import (
+from flightsim.core.errors import InputError
+from flightsim.scenes.meshio import load_mesh, save_obj
+from flightsim.scenes.scene import (
     DEFAULT_CRS, DEFAULT_ORIGIN, Scene, calibration_houses, calibration_min_half_extent,
     calibration_scene, parse_crs, plane_info, plane_scene, required_half_extent,
     triangulate_polygon_with_holes,

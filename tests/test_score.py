@@ -12,11 +12,11 @@ import laspy
 import numpy as np
 import pytest
 
-from flightsim.config import RunConfig, validate
-from flightsim.errors import InputError
-from flightsim.las_tiles import read_points
-from flightsim.planes import fit_points
-from flightsim.score import TABLE_COLUMNS, score_points
+from flightsim.core.config import RunConfig, validate
+from flightsim.core.errors import InputError
+from flightsim.outputs.las_tiles import read_points
+from flightsim.scoring.planes import fit_points
+from flightsim.scoring.score import TABLE_COLUMNS, score_points
 
 ROOT = Path(__file__).resolve().parents[1]
 ORIGIN = np.array([409_000.0, 3_393_000.0, 450.0])
@@ -35,7 +35,7 @@ def error_lines(result) -> list[str]:
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     """A 1.5 s flight at 500 m over the calibration field, both georeferencing models."""
-    from flightsim.run import simulate_to_directory
+    from flightsim.engine.run import simulate_to_directory
 
     cfg = RunConfig()
     cfg.flight.duration_s = 1.5
@@ -209,7 +209,7 @@ def test_truth_mode_without_edge_distances_estimates_the_boundary(tmp_path):
 def test_truth_mode_needs_plane_ids():
     rng = np.random.default_rng(0)
     xyz = tilted_plane(100, 0.1, 0.0, 0.01, rng)
-    from flightsim.las_tiles import PointBatch
+    from flightsim.outputs.las_tiles import PointBatch
 
     n = len(xyz)
     batch = PointBatch(x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], gps_time=np.zeros(n), point_source_id=np.zeros(n, int),

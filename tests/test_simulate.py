@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import reference_optics as ref
-from flightsim.config import RunConfig, load_toml, set_value, validate
-from flightsim.run import simulate_to_directory
+from flightsim.core.config import RunConfig, load_toml, set_value, validate
+from flightsim.engine.run import simulate_to_directory
 
 
 def config(**settings) -> RunConfig:
@@ -138,8 +138,8 @@ def test_beams_that_miss_a_small_mesh_are_counted(tmp_path):
 def test_edge_distances_equal_a_brute_force_over_every_boundary_segment():
     """The kernels' capped distance to the nearest plane boundary (edge grid + segment BVH) against
     an exhaustive float64 search over every boundary segment of the calibration field."""
-    from flightsim.bench import simulator, workload
-    from flightsim.edges import boundary_segments
+    from flightsim.studies.bench import simulator, workload
+    from flightsim.scenes.edges import boundary_segments
 
     sim = simulator(workload("cpu", 3, 6e4), with_truth=True)
     cap = sim.edge_buffer_m

@@ -15,10 +15,10 @@ import pytest
 import warp as wp
 
 import reference_optics as ref
-from flightsim.config import RunConfig, set_value, validate
-from flightsim.plan import build_scene, flight_trajectories
-from flightsim.run import simulate_to_directory
-from flightsim.simulate import Simulator
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.run import simulate_to_directory
+from flightsim.engine.simulate import Simulator
 from kernels import frames
 from trajectories import PulseTiming
 from trajectories.attitude import rotation_body_to_enu

@@ -8,12 +8,12 @@ the surface does not have.
 import numpy as np
 import pytest
 
-from flightsim.config import RunConfig, set_value, validate
-from flightsim.meshio import load_mesh
-from flightsim.plan import build_scene, flight_trajectories
-from flightsim.run import simulate_to_directory
-from flightsim.scene import CLASS_GROUND, Scene, plane_info
-from flightsim.simulate import Simulator
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.scenes.meshio import load_mesh
+from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.run import simulate_to_directory
+from flightsim.scenes.scene import CLASS_GROUND, Scene, plane_info
+from flightsim.engine.simulate import Simulator
 
 MM = 1e-3
 

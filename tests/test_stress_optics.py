@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import reference_optics as ref
-from flightsim.config import RunConfig, set_value, validate
-from flightsim.plan import build_scene, flight_trajectories
-from flightsim.run import simulate_to_directory
-from flightsim.simulate import Simulator
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.run import simulate_to_directory
+from flightsim.engine.simulate import Simulator
 
 MM = 1e-3
 N_BK7 = 1.5066

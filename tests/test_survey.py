@@ -12,13 +12,14 @@ import cloudpickle
 import numpy as np
 import pytest
 
-from flightsim import distributed, survey
-from flightsim.config import RunConfig, set_value, validate
-from flightsim.errors import InputError
-from flightsim.las_tiles import read_points
-from flightsim.outputs import LasOutput
-from flightsim.simulate import Simulator
-from flightsim.survey import SurveySpec, plan_survey, run_survey
+from flightsim.engine import distributed
+from flightsim.studies import survey
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.core.errors import InputError
+from flightsim.outputs.las_tiles import read_points
+from flightsim.outputs.consumers import LasOutput
+from flightsim.engine.simulate import Simulator
+from flightsim.studies.survey import SurveySpec, plan_survey, run_survey
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import this test module
 
@@ -105,14 +106,14 @@ def die_once(marker: str, how: str, name: str, *args):
     """Run the survey task ``name``; the first time anywhere, kill the worker in the middle of it:
     ``write``: when the first part tile is written but not yet renamed; ``rename``: when a merged
     tile is complete but not yet renamed."""
-    from flightsim import survey  # on a worker: the module as it is, not as the test patched it
+    from flightsim.studies import survey  # on a worker: the module as it is, not as the test patched it
 
     if how == "rename":
         _out, model, tile, _compress, *results = args
         writes = any(tile in r["tiles"].get(model, {}) for r in results)
     if (how == "write" or writes) and claim(marker):
         if how == "write":
-            from flightsim.las_tiles import TileWriter
+            from flightsim.outputs.las_tiles import TileWriter
 
             TileWriter.close = lambda self: os._exit(1)
         else:

@@ -6,14 +6,14 @@ import sys
 import numpy as np
 import pytest
 
-from flightsim import sweep as sweep_module
-from flightsim.config import RunConfig, set_value, validate
-from flightsim.edges import edge_buffer_m
-from flightsim.outputs import PlaneStatistics
-from flightsim.plan import build_scene, flight_trajectories
-from flightsim.planes import pooled_rms
-from flightsim.simulate import Simulator
-from flightsim.sweep import SweepGrid, run_sweep
+from flightsim.studies import sweep as sweep_module
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.scenes.edges import edge_buffer_m
+from flightsim.outputs.consumers import PlaneStatistics
+from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.scoring.planes import pooled_rms
+from flightsim.engine.simulate import Simulator
+from flightsim.studies.sweep import SweepGrid, run_sweep
 
 DELTA = "2.314"
 

@@ -1,6 +1,6 @@
 """Errors raised for invalid trajectory input (flight-line plans, timing, trajectory files).
 
-Same signature and message format as ``flightsim.errors.InputError``; this package does not
+Same signature and message format as ``flightsim.core.errors.InputError``; this package does not
 import flightsim, so the caller may catch :class:`TrajectoryError` (a ``ValueError``) and
 report it the same way.
 """

@@ -10,10 +10,10 @@ import csv
 import time
 from pathlib import Path
 
-from flightsim import figures
-from flightsim.config import RunConfig, set_value
-from flightsim.atomic import write_atomic
-from flightsim.sweep import SweepGrid, run_sweep
+from flightsim.studies import figures
+from flightsim.core.config import RunConfig, set_value
+from flightsim.core.atomic import write_atomic
+from flightsim.studies.sweep import SweepGrid, run_sweep
 
 DELTA_MRAD = 2.314
 ALTITUDES = [str(500 * k) for k in range(1, 11)]

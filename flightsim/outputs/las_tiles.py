@@ -44,7 +44,7 @@ from laspy.vlrs.known import WktCoordinateSystemVlr
 from pyproj.enums import WktVersion
 
 from flightsim import __version__
-from flightsim.errors import InputError
+from flightsim.core.errors import InputError
 
 SCALE_M = 0.001
 """Coordinate resolution of every tile [m]."""

@@ -6,7 +6,7 @@ import io
 import json
 from pathlib import Path
 
-from flightsim.atomic import save_figure, write_atomic
+from flightsim.core.atomic import save_figure, write_atomic
 
 TARGETS = {  # (returns/s, ratio) the issue sets per device kind
     "cuda": (1e9, 0.4),

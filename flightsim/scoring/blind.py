@@ -44,7 +44,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from flightsim.planes import PlaneFit, fit_groups, fit_points, group_moments
+from flightsim.scoring.planes import PlaneFit, fit_groups, fit_points, group_moments
 
 SKIPPED_CLASSES = frozenset({3, 4, 5, 7, 18})
 """ASPRS classes never searched for planes: low/medium/high vegetation, low and high noise."""

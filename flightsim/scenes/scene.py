@@ -11,7 +11,7 @@ Scene builders:
   perpendicular roads and 24 closed gable-roof houses of every ridge orientation, several
   eave heights and roof pitches.
 
-Real meshes are read by :mod:`flightsim.meshio`.
+Real meshes are read by :mod:`flightsim.scenes.meshio`.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ import numpy as np
 import pyproj
 from pyproj.enums import WktVersion
 
-from flightsim.errors import InputError
+from flightsim.core.errors import InputError
 
 DEFAULT_ORIGIN: tuple[float, float, float] = (409000.0, 3393000.0, 450.0)
 DEFAULT_CRS = "EPSG:32648"

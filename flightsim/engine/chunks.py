@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from flightsim.scene import Scene
+from flightsim.scenes.scene import Scene
 from kernels import frames
 from trajectories import PulseTiming, Trajectory
 

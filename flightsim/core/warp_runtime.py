@@ -9,7 +9,7 @@ import tempfile
 
 import warp as wp
 
-from flightsim.errors import InputError
+from flightsim.core.errors import InputError
 
 
 NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"  # expected on CPU-only machines

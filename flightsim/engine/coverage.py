@@ -13,7 +13,7 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flightsim.config import RunConfig
+from flightsim.core.config import RunConfig
 from trajectories import PulseTiming, Trajectory
 
 MARGIN_RAD = math.radians(1.0)  # added to the fan's largest exit angle
@@ -22,7 +22,7 @@ NO_CULLING_RAD = math.radians(80.0)  # cones wider than this reach everywhere: k
 
 def max_off_axis_rad(cfg: RunConfig, samples: int = 72) -> float:
     """Largest angle between any exiting sub-beam and the prism axis over a prism turn [rad]."""
-    from flightsim.fan import trace_fan
+    from flightsim.instrument.fan import trace_fan
 
     s = cfg.sensor
     phi = np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False)

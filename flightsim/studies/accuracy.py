@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from flightsim.simulate import ReturnChunk, Simulator
+from flightsim.engine.simulate import ReturnChunk, Simulator
 from kernels import reference
 
 

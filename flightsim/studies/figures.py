@@ -1,7 +1,7 @@
 """Figures of the seed paper's §4 (Figs. 5a, 5c, 6b, 8a, 8b, 9a, 10a), each a PNG beside the CSV it plots.
 
-The optics figures (5a, 5c, 6b) trace the fan in float64 with :func:`flightsim.fan.trace_fan`,
-using the default instrument of :class:`flightsim.config.SensorConfig` (3×3 fan, Δ = 2.314 mrad,
+The optics figures (5a, 5c, 6b) trace the fan in float64 with :func:`flightsim.instrument.fan.trace_fan`,
+using the default instrument of :class:`flightsim.core.config.SensorConfig` (3×3 fan, Δ = 2.314 mrad,
 n = 1.5066, 15° cone, d1 = 10 mm). The accuracy figures (8a, 8b, 9a, 10a) plot plane-fit RMS
 tables written by the simulator's scoring and sweep commands. Every function returns
 ``(png_path, csv_path)``; beams are labelled 1-based like the paper, A_{i-j} for sub-beam
@@ -18,10 +18,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from flightsim.atomic import save_figure
-from flightsim.config import SensorConfig, apex_for_cone
-from flightsim.errors import InputError
-from flightsim.fan import ExitFan, trace_fan
+from flightsim.core.atomic import save_figure
+from flightsim.core.config import SensorConfig, apex_for_cone
+from flightsim.core.errors import InputError
+from flightsim.instrument.fan import ExitFan, trace_fan
 
 _SENSOR = SensorConfig()
 ARRAY = _SENSOR.array

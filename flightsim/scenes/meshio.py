@@ -1,4 +1,4 @@
-"""Read triangle meshes (OBJ, PLY) into a :class:`~flightsim.scene.Scene`, and write OBJ.
+"""Read triangle meshes (OBJ, PLY) into a :class:`~flightsim.scenes.scene.Scene`, and write OBJ.
 
 File coordinates + the user's ``origin`` are world coordinates in the user's CRS. The scene's
 own origin is the centre of the world bounding box rounded to whole metres, so that local
@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.errors import InputError
-from flightsim.scene import (
+from flightsim.core.errors import InputError
+from flightsim.scenes.scene import (
     CLASS_BUILDING, CLASS_GROUND, CLASS_ROAD, CLASS_UNCLASSIFIED, PlaneInfo, Scene, parse_crs,
     pitch_azimuth_deg, plane_info,
 )
@@ -51,7 +51,7 @@ def load_mesh(path, crs, origin=(0.0, 0.0, 0.0), name: str | None = None) -> Sce
 
     Args:
         path: the .obj or .ply file.
-        crs: the CRS of the world coordinates (anything :func:`flightsim.scene.parse_crs` takes).
+        crs: the CRS of the world coordinates (anything :func:`flightsim.scenes.scene.parse_crs` takes).
         origin: (3,) world E, N, H [m] added to the file coordinates.
         name: scene name; the file stem by default.
 

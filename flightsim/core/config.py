@@ -2,7 +2,7 @@
 
 A run is fully described by a :class:`RunConfig`. Every numeric field carries its allowed range
 and unit in its dataclass metadata; :func:`validate` checks them all and raises
-:class:`~flightsim.errors.InputError` naming the field. ``to_toml`` / ``load_toml`` round-trip the
+:class:`~flightsim.core.errors.InputError` naming the field. ``to_toml`` / ``load_toml`` round-trip the
 resolved configuration that is stored beside every output.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from flightsim.errors import InputError
+from flightsim.core.errors import InputError
 
 MODELS = ("exact", "nominal")
 BUILTIN_SCENES = ("calibration", "plane")

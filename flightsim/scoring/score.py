@@ -6,7 +6,7 @@ Two modes:
   isolates the measurement error. Points whose true hit lies within the edge buffer of its
   plane's boundary (the ``edge_distance`` extra, when written) are left out; without that extra
   the boundary is estimated from the points, as in blind mode.
-- **blind**: planes are extracted from the points alone (:mod:`flightsim.blind`), as a user
+- **blind**: planes are extracted from the points alone (:mod:`flightsim.scoring.blind`), as a user
   with real data would do; this works on any LAS 1.2–1.4 file. When the file carries
   ``plane_id``, each extracted plane is matched to the plane most of its points come from.
 
@@ -29,11 +29,11 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from flightsim.errors import InputError
-from flightsim.planes import PlaneFit, fit_groups, pooled_rms
+from flightsim.core.errors import InputError
+from flightsim.scoring.planes import PlaneFit, fit_groups, pooled_rms
 
 if TYPE_CHECKING:
-    from flightsim.las_tiles import PointBatch
+    from flightsim.outputs.las_tiles import PointBatch
 
 # laspy, pyproj and scipy are imported where used, so that registering the command costs nothing
 
@@ -124,7 +124,7 @@ def score_points(batch: PointBatch, mode: str = "truth", edge_buffer_m: float | 
 
 
 def _score_truth(batch: PointBatch, xyz: np.ndarray, buffer: float | None, source: str) -> ScoreResult:
-    from flightsim.blind import auto_edge_buffer_m, boundary_distance_m, neighbourhoods
+    from flightsim.scoring.blind import auto_edge_buffer_m, boundary_distance_m, neighbourhoods
 
     labels = batch.plane_id.astype(np.int64)
     member = labels >= 0
@@ -160,7 +160,7 @@ def _score_truth(batch: PointBatch, xyz: np.ndarray, buffer: float | None, sourc
 
 
 def _score_blind(batch: PointBatch, xyz: np.ndarray, buffer: float | None, source: str) -> ScoreResult:
-    from flightsim.blind import extract_planes
+    from flightsim.scoring.blind import extract_planes
 
     result = extract_planes(xyz, batch.classification, edge_buffer_m=buffer)
     fits = [s.fit for s in result.segments]
@@ -258,7 +258,7 @@ def score_paths(paths: Sequence[str | os.PathLike], mode: str = "truth", out: st
                 edge_buffer_m: float | None = None) -> list[ScoreResult]:
     """Score LAS files and run directories (see :func:`find_sources`); write DIR/planes.csv and
     DIR/score.json when ``out`` is given."""
-    from flightsim.las_tiles import read_points
+    from flightsim.outputs.las_tiles import read_points
 
     if mode not in MODES:
         raise InputError("--mode", mode, " or ".join(MODES))

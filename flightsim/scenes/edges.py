@@ -11,8 +11,8 @@ import math
 
 import numpy as np
 
-from flightsim.config import RunConfig
-from flightsim.scene import Scene
+from flightsim.core.config import RunConfig
+from flightsim.scenes.scene import Scene
 
 _VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
 
@@ -46,7 +46,7 @@ def boundary_segments(scene: Scene) -> np.ndarray:
 
 def max_distortion_rad(cfg: RunConfig, samples: int = 360) -> float:
     """Largest angle between a sub-beam's true and rigid-array exit directions over a turn [rad]."""
-    from flightsim.fan import trace_fan
+    from flightsim.instrument.fan import trace_fan
 
     s = cfg.sensor
     phi = np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False)

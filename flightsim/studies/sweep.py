@@ -9,7 +9,7 @@ Resumable: each finished configuration writes its rows to ``DIR/rows/<key>.json`
 sweep runs, and when it ends, also by an error), so a crash loses at most the configurations in
 flight and a rerun skips what is done, never duplicating a row.
 
-Given a Dask client, the configurations run as tasks on its workers (:mod:`flightsim.distributed`)
+Given a Dask client, the configurations run as tasks on its workers (:mod:`flightsim.engine.distributed`)
 and the client records each one's rows as it finishes, exactly as the serial loop does.
 """
 from __future__ import annotations
@@ -26,10 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
 
-from flightsim.config import RunConfig, canonical_key, copy_config, get_value, set_value, to_toml, validate
-from flightsim.edges import edge_buffer_m
-from flightsim.errors import InputError
-from flightsim.atomic import save_figure, write_atomic
+from flightsim.core.config import RunConfig, canonical_key, copy_config, get_value, set_value, to_toml, validate
+from flightsim.scenes.edges import edge_buffer_m
+from flightsim.core.errors import InputError
+from flightsim.core.atomic import save_figure, write_atomic
 
 SPEC_COLUMNS = ["altitude_m", "array", "spacing_mrad"]
 AXIS_KEYS = {"altitude_m": "flight.altitude_m", "array": "sensor.array", "spacing_mrad": "sensor.spacing_mrad"}
@@ -103,7 +103,7 @@ class SceneCache:
     """
 
     def __init__(self, configs: Iterable[RunConfig] = ()):
-        from flightsim.plan import scene_half_extent
+        from flightsim.platforms.plan import scene_half_extent
 
         self.extent: dict[str, float] = {}
         for cfg in configs:
@@ -118,8 +118,8 @@ class SceneCache:
 
     def get(self, cfg: RunConfig, device: str):
         """(Scene, SceneMeshes) for a config's scene on ``device``."""
-        from flightsim.plan import build_scene
-        from flightsim.simulate import SceneMeshes
+        from flightsim.platforms.plan import build_scene
+        from flightsim.engine.simulate import SceneMeshes
 
         scene_key = self.scene_key(cfg)
         key = (scene_key, self.extent.get(scene_key), device)
@@ -131,10 +131,10 @@ class SceneCache:
 
 def run_configuration(labels: dict, cfg: RunConfig, scenes: SceneCache) -> dict:
     """Simulate one configuration in statistics mode; return its sweep and plane rows."""
-    from flightsim.plan import flight_trajectories
-    from flightsim.planes import pooled_rms
-    from flightsim.simulate import Simulator
-    from flightsim.warp_runtime import resolve_device
+    from flightsim.platforms.plan import flight_trajectories
+    from flightsim.scoring.planes import pooled_rms
+    from flightsim.engine.simulate import Simulator
+    from flightsim.core.warp_runtime import resolve_device
 
     started = time.perf_counter()
     device = resolve_device(cfg.run.device)
@@ -268,7 +268,7 @@ def _results(todo: list[tuple[dict, RunConfig]], scenes: SceneCache, client, bat
         for labels, cfg in todo:
             yield cfg, run_configuration(labels, cfg, scenes)
     else:
-        from flightsim.distributed import run_configurations
+        from flightsim.engine.distributed import run_configurations
 
         yield from run_configurations(client, todo, scenes.extent, batch)
 

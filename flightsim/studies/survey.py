@@ -33,13 +33,13 @@ from typing import Callable
 import numpy as np
 
 from flightsim import __version__
-from flightsim.config import MODELS, RunConfig, copy_config, to_toml, validate
-from flightsim.errors import InputError
-from flightsim.outputs import LasOutput
-from flightsim.plan import MIN_CLEARANCE_M
-from flightsim.atomic import write_atomic
-from flightsim.scene import Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene
-from flightsim.simulate import Simulator
+from flightsim.core.config import MODELS, RunConfig, copy_config, to_toml, validate
+from flightsim.core.errors import InputError
+from flightsim.outputs.consumers import LasOutput
+from flightsim.platforms.plan import MIN_CLEARANCE_M
+from flightsim.core.atomic import write_atomic
+from flightsim.scenes.scene import Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene
+from flightsim.engine.simulate import Simulator
 from trajectories import FlightLine, PulseTiming, TrajectoryError, plan_parallel_lines
 
 PARTS = ".parts"  # per-task part files, under the output directory
@@ -192,7 +192,7 @@ class SurveyPlan:
 
 def plan_survey(cfg: RunConfig, spec: SurveySpec) -> SurveyPlan:
     """Lay out the tile grid, the flight lines and the tasks of a survey (validated config and spec)."""
-    from flightsim.coverage import max_off_axis_rad
+    from flightsim.engine.coverage import max_off_axis_rad
 
     spec = spec.validated()
     f, s = cfg.flight, cfg.sensor
@@ -279,7 +279,7 @@ def segment_task(cfg: RunConfig, grid: TileGrid, task: SegmentTask, out: str) ->
     Idempotent: a task finished by an earlier attempt is not run again; an attempt writes into a
     directory of its own and renames it into place, so attempts never share a file.
     """
-    from flightsim.distributed import worker_device, worker_stats
+    from flightsim.engine.distributed import worker_device, worker_stats
 
     parts = Path(out) / PARTS
     final = parts / task.name
@@ -326,7 +326,7 @@ def merge_task(out: str, model: str, tile: str, compress: bool, *results: dict) 
     ``results`` are the results of the tasks that could write into the tile. Idempotent: a tile
     already merged (its parts partly deleted) is only counted.
     """
-    from flightsim.distributed import worker_stats
+    from flightsim.engine.distributed import worker_stats
 
     mine = sorted((r for r in results if tile in r["tiles"].get(model, {})), key=lambda r: r["name"])
     expected = sum(r["tiles"][model][tile] for r in mine)
@@ -406,7 +406,7 @@ def prepare_survey_output(directory: Path, texts: dict[str, str], overwrite: boo
 def run_survey(cfg: RunConfig, spec: SurveySpec, out: Path, client=None, overwrite: bool = False,
                progress: Callable[[int, int], None] | None = None) -> dict:
     """Run a survey into ``out`` (in this process, or on a Dask ``client``); write and return survey.json."""
-    from flightsim.warp_runtime import resolve_device
+    from flightsim.core.warp_runtime import resolve_device
 
     plan = plan_survey(cfg, spec)
     resolve_device(plan.cfg.run.device)
@@ -449,7 +449,7 @@ def _run_here(plan: SurveyPlan, out: str, progress) -> tuple[list[dict], list[di
 def _run_on(client, plan: SurveyPlan, out: str, progress) -> tuple[list[dict], list[dict]]:
     """The same tasks and merges on a Dask cluster; each merge runs once the tasks it needs are done
     (merges go before waiting tasks, so parts are consumed as soon as they are complete)."""
-    from flightsim.distributed import run_futures
+    from flightsim.engine.distributed import run_futures
 
     token = uuid.uuid4().hex[:8]
     tasks = {task.name: client.submit(segment_task, plan.cfg, plan.grid, task, out,

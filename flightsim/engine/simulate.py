@@ -16,14 +16,14 @@ import numpy as np
 import warp as wp
 from scipy.spatial.transform import Rotation
 
-from flightsim.chunks import Segment, line_table, pack, segment_tables
-from flightsim.config import MODELS, RunConfig
-from flightsim.coverage import max_off_axis_rad, pulse_windows
-from flightsim.edges import boundary_segments
-from flightsim.fan import trace_fan
-from flightsim.planes import PlaneMoments
-from flightsim.scene import Scene
-from flightsim.warp_runtime import resolve_device
+from flightsim.engine.chunks import Segment, line_table, pack, segment_tables
+from flightsim.core.config import MODELS, RunConfig
+from flightsim.engine.coverage import max_off_axis_rad, pulse_windows
+from flightsim.scenes.edges import boundary_segments
+from flightsim.instrument.fan import trace_fan
+from flightsim.scoring.planes import PlaneMoments
+from flightsim.scenes.scene import Scene
+from flightsim.core.warp_runtime import resolve_device
 from kernels import frames, trace
 from trajectories import PulseTiming, Trajectory
 

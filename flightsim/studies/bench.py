@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from flightsim.config import RunConfig, set_value, validate
-from flightsim.edges import edge_buffer_m
-from flightsim.plan import build_scene, flight_trajectories
-from flightsim.simulate import SceneMeshes, Simulator
-from flightsim.warp_runtime import resolve_device
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.scenes.edges import edge_buffer_m
+from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.simulate import SceneMeshes, Simulator
+from flightsim.core.warp_runtime import resolve_device
 from kernels import trace
 
 DELTA = 2.314
@@ -104,7 +104,7 @@ def bare_raycast(sim: Simulator, rays: int, repeats: int) -> tuple[float, int]:
 
 
 def _bare_in_process(cfg_toml: str, rays: int, repeats: int) -> tuple[float, int]:
-    from flightsim.parallel import _simulator
+    from flightsim.engine.parallel import _simulator
 
     return bare_raycast(_simulator(cfg_toml), rays, repeats)
 
@@ -164,8 +164,8 @@ def kernel_name(timing_name: str) -> str:
 
 
 def _two_process_record(cfg: RunConfig, sample: int, repeats: int) -> dict:
-    from flightsim.config import to_toml
-    from flightsim.parallel import ProcessPool
+    from flightsim.core.config import to_toml
+    from flightsim.engine.parallel import ProcessPool
 
     pool = ProcessPool(2)
     try:
@@ -322,7 +322,7 @@ def knob_variants(kind: str, quick: bool) -> list[tuple[str, str, dict]]:
 
 def _knob_costs(device: str, s: Sizes, settings: dict) -> dict:
     """Wall time of the throughput workload and largest errors at 0.5 and 5 km for one knob setting."""
-    from flightsim.accuracy import measure_errors
+    from flightsim.studies.accuracy import measure_errors
 
     cfg = workload(device, 3, s.pareto_returns, **settings)
     wall, counts = timed_statistics(simulator(cfg))
@@ -372,7 +372,7 @@ def git_commit() -> str:
 
 def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
     """Run the asked sections and merge the results into out/bench.json, bench.md, pareto.csv/png."""
-    from flightsim.bench_report import merge_and_write
+    from flightsim.studies.bench_report import merge_and_write
 
     dev = resolve_device(device)
     kind = "cpu" if dev == "cpu" else "cuda"

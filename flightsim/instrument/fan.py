@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from flightsim.warp_runtime import resolve_device
+from flightsim.core.warp_runtime import resolve_device
 from kernels.optics import exit_fan_kernel
 
 

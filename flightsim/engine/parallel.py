@@ -9,9 +9,9 @@ from __future__ import annotations
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 
-from flightsim.config import RunConfig, from_dict, to_toml, validate
-from flightsim.planes import PlaneMoments
-from flightsim.simulate import RunCounts
+from flightsim.core.config import RunConfig, from_dict, to_toml, validate
+from flightsim.scoring.planes import PlaneMoments
+from flightsim.engine.simulate import RunCounts
 
 _worker_state: dict = {}
 
@@ -20,9 +20,9 @@ def _simulator(cfg_toml: str):
     """This process's simulator for a config, built on first use and kept."""
     import tomllib
 
-    from flightsim.edges import edge_buffer_m
-    from flightsim.plan import build_scene, flight_trajectories
-    from flightsim.simulate import Simulator
+    from flightsim.scenes.edges import edge_buffer_m
+    from flightsim.platforms.plan import build_scene, flight_trajectories
+    from flightsim.engine.simulate import Simulator
 
     if _worker_state.get("key") != cfg_toml:
         cfg = validate(from_dict(tomllib.loads(cfg_toml)))

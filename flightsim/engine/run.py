@@ -7,11 +7,11 @@ from pathlib import Path
 from typing import Callable
 
 from flightsim import __version__
-from flightsim.atomic import write_atomic
-from flightsim.config import MODELS, RunConfig, to_toml
-from flightsim.edges import edge_buffer_m
-from flightsim.errors import InputError
-from flightsim.plan import build_scene, flight_trajectories
+from flightsim.core.atomic import write_atomic
+from flightsim.core.config import MODELS, RunConfig, to_toml
+from flightsim.scenes.edges import edge_buffer_m
+from flightsim.core.errors import InputError
+from flightsim.platforms.plan import build_scene, flight_trajectories
 
 
 def prepare_output(directory: Path, cfg_text: str, overwrite: bool) -> None:
@@ -61,9 +61,9 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     scene = build_scene(cfg)
     trajectories = flight_trajectories(cfg, scene)
     # Warp is loaded only for input that passed the checks above, so that bad input fails fast
-    from flightsim.outputs import LasOutput, PlaneStatistics
-    from flightsim.simulate import Simulator
-    from flightsim.warp_runtime import resolve_device
+    from flightsim.outputs.consumers import LasOutput, PlaneStatistics
+    from flightsim.engine.simulate import Simulator
+    from flightsim.core.warp_runtime import resolve_device
 
     resolve_device(cfg.run.device)  # every input is checked before the output directory is touched
     cfg_text = to_toml(cfg)

@@ -20,8 +20,8 @@ import resource
 import uuid
 from collections.abc import Iterator
 
-from flightsim.config import RunConfig, copy_config
-from flightsim.errors import InputError
+from flightsim.core.config import RunConfig, copy_config
+from flightsim.core.errors import InputError
 
 DEVICE_ENV = "FLIGHTSIM_DEVICE"  # a worker's device, set per worker process
 CONNECT_TIMEOUT_S = 30.0
@@ -41,7 +41,7 @@ _scenes = None  # this worker process's SceneCache, kept across tasks
 
 def parse_gpus(text: str) -> list[int]:
     """GPU ordinals of ``--gpus``: "all" (every CUDA device here) or a comma-separated list."""
-    from flightsim.warp_runtime import init_warp
+    from flightsim.core.warp_runtime import init_warp
     import warp as wp
 
     init_warp()
@@ -171,7 +171,7 @@ def run_futures(client, submitted: list) -> Iterator[tuple[object, object]]:
 
 def configuration_task(items: list[tuple[dict, RunConfig]], extents: dict[str, float]) -> list[dict]:
     """Worker side: run a batch of sweep configurations with this process's scenes."""
-    from flightsim.sweep import SceneCache, run_configuration
+    from flightsim.studies.sweep import SceneCache, run_configuration
 
     global _scenes
     if _scenes is None:
@@ -185,7 +185,7 @@ def run_configurations(client, todo: list[tuple[dict, RunConfig]], extents: dict
     """(config, result) of every configuration of ``todo`` as it finishes on the cluster.
 
     One task per ``batch`` consecutive configurations; ``extents`` are the sweep's scene extents
-    (:class:`flightsim.sweep.SceneCache`), so that workers build the scenes the serial path builds.
+    (:class:`flightsim.studies.sweep.SceneCache`), so that workers build the scenes the serial path builds.
     """
     if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
         raise InputError("--batch", batch, "an integer >= 1")

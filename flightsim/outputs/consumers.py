@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 
 from flightsim import __version__
-from flightsim.config import RunConfig
-from flightsim.las_tiles import PointBatch, TileWriter, gps_week_date
-from flightsim.planes import PlaneMoments, pooled_rms
-from flightsim.scene import Scene
-from flightsim.simulate import ReturnChunk
+from flightsim.core.config import RunConfig
+from flightsim.outputs.las_tiles import PointBatch, TileWriter, gps_week_date
+from flightsim.scoring.planes import PlaneMoments, pooled_rms
+from flightsim.scenes.scene import Scene
+from flightsim.engine.simulate import ReturnChunk
 from trajectories import PulseTiming
 
 

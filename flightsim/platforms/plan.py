@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.config import RunConfig
-from flightsim.errors import InputError
-from flightsim.meshio import load_mesh
-from flightsim.scene import (Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene,
+from flightsim.core.config import RunConfig
+from flightsim.core.errors import InputError
+from flightsim.scenes.meshio import load_mesh
+from flightsim.scenes.scene import (Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene,
                              required_half_extent)
 from trajectories import Trajectory, TrajectoryError, plan_parallel_lines
 
