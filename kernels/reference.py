@@ -8,7 +8,7 @@ import warp as wp
 
 from kernels.frames import PulsePose64
 from kernels.optics import doe_direction, prism_exit, rigid_array_direction
-from kernels.trace import Prism
+from kernels.wedge import Prism
 
 wp.set_module_options({"enable_backward": False})
 

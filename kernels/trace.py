@@ -1,12 +1,14 @@
-"""Per-beam kernels: fire the fan, deflect it, ray-cast the scene, georeference, and either keep
-each return (points mode) or reduce the returns to per-plane moments (statistics mode).
+"""Per-beam kernels: fire the emitter's beams, deflect them, ray-cast the scene, add the ranging
+errors, georeference, and either keep each return (points mode) or reduce the returns to per-plane
+moments (statistics mode).
 
-Kernels are specialised at build time for the features a run asks for (``wp.static``), so a
-feature that is off costs nothing per beam. Work is done where it varies: what depends only on
-the sub-beam (its entry into the prism, its rigid-array rotation) once per run in a table, what
-depends only on the prism angle (the back-face normal, the on-axis ray of the nominal model) once
-per pulse, and only the rest per beam. The deflector is a parameter of the build (:class:`Deflector`);
-the rotating wedge is the one flightsim ships.
+Kernels are built for one instrument (:class:`kernels.parts.Instrument`: its emitter and deflector
+functions and parameter structs) and specialised for the features a run asks for (``wp.static``),
+so a part or feature that is off costs nothing per beam. Work is done where it varies: what
+depends only on the beam (the emitter's direction, the deflector's beam stage, the rigid-array
+rotation) once per run in a table, what depends only on the pulse (the deflector's pulse stage:
+the wedge's back-face normal, the galvo's mirror normals; the on-axis ray of the nominal model)
+once per pulse in the pulse table, and only the rest per beam.
 """
 
 import functools
@@ -16,7 +18,8 @@ from typing import Any
 import warp as wp
 
 from kernels.frames import POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT, ROW_ROT, ROW_SEED, get3, get33, put3
-from kernels.optics import back_face_normal, doe_direction, enter_prism, leave_prism, rigid_array_rotation
+from kernels.optics import rigid_array_rotation
+from kernels.parts import Instrument
 
 wp.set_module_options({"enable_backward": False})
 
@@ -38,59 +41,6 @@ vec6d = wp.types.vector(6, wp.float64)
 
 
 @wp.struct
-class Prism:
-    """Wedge prism parameters as one side (truth or processing) believes them."""
-
-    n_glass: wp.float64  # refractive index of the glass (air = 1)
-    apex: wp.float64  # apex angle α [rad]
-    thickness: wp.float64  # d1, centre thickness [m]
-
-
-@wp.func
-def wedge_beam_stage(s1: Any, prism: Prism):
-    """Per-beam part of the wedge: the direction inside the glass after the front face."""
-    return enter_prism(s1, type(s1[0])(prism.n_glass))
-
-
-@wp.func
-def wedge_pulse_stage(phi: Any, prism: Prism):
-    """Per-pulse part of the wedge: the back face's normal at prism angle phi [rad]."""
-    return back_face_normal(phi, type(phi)(prism.apex))
-
-
-@wp.func
-def wedge_finish(inside: Any, normal: Any, prism: Prism):
-    """Per-beam, per-pulse rest of the wedge: (exit direction, exit point [m], ok) in the inputs' precision."""
-    return leave_prism(inside, normal, type(inside[0])(prism.n_glass), type(inside[0])(prism.thickness))
-
-
-@dataclass(frozen=True)
-class Deflector:
-    """A beam deflector split by what each part depends on.
-
-    beam_stage(s1, prism) -> 3-vector: depends on the sub-beam only (tabulated once per run, float64);
-    pulse_stage(phi, prism) -> 3-vector: depends on the scan angle only (once per pulse, float64, in three
-    rows of the pulse table);
-    finish(beam_state, pulse_state, prism) -> (s3, exit point [m], ok): the rest, per beam.
-    """
-
-    beam_stage: wp.Function
-    pulse_stage: wp.Function
-    finish: wp.Function
-
-
-WEDGE = Deflector(wedge_beam_stage, wedge_pulse_stage, wedge_finish)
-
-
-@wp.struct
-class BeamArray:
-    """The DOE fan: n×n sub-beams spaced by ``spacing`` [rad]."""
-
-    n: wp.int32
-    spacing: wp.float32
-
-
-@wp.struct
 class EdgeGrid:
     """A grid over the scene's x–y extent marking the cells a plane boundary may come within the
     edge cap of; a return in an unmarked cell is at least the cap from every boundary, so the
@@ -102,28 +52,43 @@ class EdgeGrid:
 
 
 @wp.struct
-class Scan:
-    """Everything a slot needs besides its pose: scene, instrument, processing, noise."""
+class RangeErrors:
+    """The ranging chain's systematic and quantisation errors (seed paper §2.1), applied to the truth."""
 
-    mesh: wp.uint64
-    max_range: wp.float32  # [m]
-    beams: BeamArray
-    truth: Prism
-    believed: Prism  # the prism the georeferencing believes in
-    noise_sigma: wp.float32  # range noise, 1σ [m]
-    boundary: wp.uint64  # BVH of the plane-boundary segments (edge buffer queries)
-    boundary_a: wp.array(dtype=wp.vec3f)  # segment end points [m, local]
-    boundary_b: wp.array(dtype=wp.vec3f)
-    edge_cap: wp.float32  # edge distances are measured up to this [m]
-    edge_grid: EdgeGrid  # where the boundary query can be skipped
-    lut_directions: wp.array2d(dtype=wp.vec3f)  # [φ sample, beam] exit directions (optics "lut")
-    lut_exits: wp.array2d(dtype=wp.vec3f)  # exit points [m]; a zero direction marks reflection
-    beam_truth: wp.array(dtype=wp.vec3d)  # per-beam deflector state of the true prism
-    beam_believed: wp.array(dtype=wp.vec3d)  # ... of the prism the processing believes in
-    beam_rigid: wp.array(dtype=wp.quatd)  # rigid-array rotation Q of each beam
-    vertices64: wp.array(dtype=wp.vec3d)  # scene vertices in float64 (float64 optics path) [m]
-    indices: wp.array(dtype=wp.int32)  # 3 per triangle
-    padded: wp.uint64  # BVH of slightly padded triangle boxes, for rays the mesh query misses
+    tdc_bin: wp.float32  # TDC bin as one-way range, c·τ/2 [m]; start and stop each rounded on its own clock phase
+    drift: wp.float32  # clock frequency drift e_df: the range reads R·(1 + e_df)
+    delays: wp.array(dtype=wp.float32)  # fixed delay of each beam's channel, as one-way range [m]
+
+
+@functools.cache
+def scan_struct(instrument: Instrument) -> type:
+    """The struct of everything a slot needs besides its pose, for one instrument's parts."""
+
+    @wp.struct
+    class Scan:
+        mesh: wp.uint64
+        max_range: wp.float32  # [m]
+        per_pulse: wp.int32  # beams per pulse
+        emitter: instrument.emitter.params
+        truth: instrument.deflector.params
+        believed: instrument.deflector.params  # the deflector the georeferencing believes in
+        noise_sigma: wp.float32  # Gaussian range noise, 1σ [m]
+        ranging: RangeErrors
+        boundary: wp.uint64  # BVH of the plane-boundary segments (edge buffer queries)
+        boundary_a: wp.array(dtype=wp.vec3f)  # segment end points [m, local]
+        boundary_b: wp.array(dtype=wp.vec3f)
+        edge_cap: wp.float32  # edge distances are measured up to this [m]
+        edge_grid: EdgeGrid  # where the boundary query can be skipped
+        lut_directions: wp.array2d(dtype=wp.vec3f)  # [φ sample, beam] exit directions (optics "lut")
+        lut_exits: wp.array2d(dtype=wp.vec3f)  # exit points [m]; a zero direction marks reflection
+        beam_truth: wp.array(dtype=wp.vec3d)  # per-beam deflector state of the true deflector
+        beam_believed: wp.array(dtype=wp.vec3d)  # ... of the deflector the processing believes in
+        beam_rigid: wp.array(dtype=wp.quatd)  # rigid-array rotation Q of each beam
+        vertices64: wp.array(dtype=wp.vec3d)  # scene vertices in float64 (float64 optics path) [m]
+        indices: wp.array(dtype=wp.int32)  # 3 per triangle
+        padded: wp.uint64  # BVH of slightly padded triangle boxes, for rays the mesh query misses
+
+    return Scan
 
 
 @dataclass(frozen=True)
@@ -135,47 +100,59 @@ class Features:
     believed_is_truth: bool = True  # processing prism == simulated prism: reuse the traced ray
     with_truth: bool = False  # keep the true hit point
     noisy: bool = False  # Gaussian range noise
+    ranging: bool = False  # ranging-chain errors: channel delays, clock drift, TDC quantisation
     edges: bool = False  # measure the true hit's distance to its plane boundary
     optics: str = "float32"  # "float32"; "float64" (optics, hit and georeferencing in float64, the ray
     # cast itself in float32 then refined on the hit triangle); "lut" (float32, exit rays tabulated over φ)
 
 
-# Rows of the per-pulse table (kernels.frames) that hold what the optics of one pulse share across
-# its beams, in float64:
-ROW_TRUTH = wp.constant(POSE_ROWS)  # 3 rows: per-pulse deflector state of the true prism
-ROW_BELIEVED = wp.constant(POSE_ROWS + 3)  # 3 rows: ... of the prism the processing believes in
-ROW_AXIS_DIRECTION = wp.constant(POSE_ROWS + 6)  # 3 rows: exit direction of the on-axis ray (believed prism)
-ROW_AXIS_EXIT = wp.constant(POSE_ROWS + 9)  # 3 rows: its exit point [m]
-ROW_AXIS_OK = wp.constant(POSE_ROWS + 12)  # 1 where the on-axis ray leaves the believed prism
-PULSE_ROWS = POSE_ROWS + 13
+@dataclass(frozen=True)
+class Rows:
+    """Rows of the per-pulse table (kernels.frames) that hold, in float64, what the optics of one
+    pulse share across its beams: the true deflector's pulse stage, the believed one's, and (for a
+    deflector with the rigid-array model) the believed on-axis ray."""
+
+    truth: int  # deflector.pulse_rows rows
+    believed: int  # deflector.pulse_rows rows
+    axis_direction: int  # 3 rows: exit direction of the on-axis ray (believed deflector)
+    axis_exit: int  # 3 rows: its exit point [m]
+    axis_ok: int  # 1 where the on-axis ray leaves the believed deflector
+    total: int  # rows of the table
+
+
+def pulse_rows(instrument: Instrument) -> Rows:
+    """The pulse-table row layout of an instrument."""
+    n = instrument.deflector.pulse_rows
+    nominal = 7 if instrument.deflector.rigid_nominal else 0
+    return Rows(POSE_ROWS, POSE_ROWS + n, POSE_ROWS + 2 * n, POSE_ROWS + 2 * n + 3, POSE_ROWS + 2 * n + 6,
+                POSE_ROWS + 2 * n + nominal)
 
 
 @functools.cache
-def beam_table_kernel(deflector: Deflector):
-    """Kernel tabulating the per-beam part of the optics, in float64, once per run."""
+def beam_table_kernel(instrument: Instrument):
+    """Kernel tabulating the per-beam part of the optics, in float64, once per run (one thread per beam)."""
+    deflector = instrument.deflector
+    Scan = scan_struct(instrument)
 
     @wp.kernel(module="unique")
-    def beam_table(
-        beams: BeamArray,
-        truth: Prism,
-        believed: Prism,
-        # Out: per beam i·n + j
-        beam_truth: wp.array(dtype=wp.vec3d),
-        beam_believed: wp.array(dtype=wp.vec3d),
-        beam_rigid: wp.array(dtype=wp.quatd),
-    ):
+    def beam_table(scan: Scan):  # Out: scan.beam_truth, beam_believed, beam_rigid
         b = wp.tid()
-        s1 = doe_direction(b // beams.n, b % beams.n, beams.n, wp.float64(beams.spacing))
-        beam_truth[b] = deflector.beam_stage(s1, truth)
-        beam_believed[b] = deflector.beam_stage(s1, believed)
-        beam_rigid[b] = rigid_array_rotation(s1)
+        s1 = instrument.emitter.direction(b, scan.emitter)
+        scan.beam_truth[b] = deflector.beam_stage(s1, scan.truth)
+        scan.beam_believed[b] = deflector.beam_stage(s1, scan.believed)
+        scan.beam_rigid[b] = rigid_array_rotation(s1)
 
     return beam_table
 
 
 @functools.cache
-def pulse_optics_kernel(deflector: Deflector):
+def pulse_optics_kernel(instrument: Instrument):
     """Kernel filling the per-pulse optics rows of a chunk's pulse table (float64), one thread per pulse."""
+    deflector = instrument.deflector
+    Scan = scan_struct(instrument)
+    rows = pulse_rows(instrument)
+    row_truth, row_believed = rows.truth, rows.believed
+    row_direction, row_exit, row_ok = rows.axis_direction, rows.axis_exit, rows.axis_ok
 
     @wp.kernel(module="unique")
     def pulse_optics(
@@ -184,16 +161,15 @@ def pulse_optics_kernel(deflector: Deflector):
         table: wp.array2d(dtype=wp.float64),
     ):
         p = wp.tid()
-        phi = table[ROW_PHI, p]
-        believed = deflector.pulse_stage(phi, scan.believed)
-        put3(table, ROW_TRUTH, p, deflector.pulse_stage(phi, scan.truth))
-        put3(table, ROW_BELIEVED, p, believed)
-        axis = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
-        direction, exit_point, ok = deflector.finish(deflector.beam_stage(axis, scan.believed), believed,
-                                                     scan.believed)
-        put3(table, ROW_AXIS_DIRECTION, p, direction)
-        put3(table, ROW_AXIS_EXIT, p, exit_point)
-        table[ROW_AXIS_OK, p] = wp.where(ok, wp.float64(1.0), wp.float64(0.0))
+        deflector.pulse_stage(table, row_truth, p, scan.truth)
+        deflector.pulse_stage(table, row_believed, p, scan.believed)
+        if wp.static(deflector.rigid_nominal):
+            axis = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0))
+            direction, exit_point, ok = deflector.finish(deflector.beam_stage(axis, scan.believed), table,
+                                                         row_believed, p, scan.believed)
+            put3(table, row_direction, p, direction)
+            put3(table, row_exit, p, exit_point)
+            table[row_ok, p] = wp.where(ok, wp.float64(1.0), wp.float64(0.0))
 
     return pulse_optics
 
@@ -340,9 +316,14 @@ def _lut_lookup(directions: wp.array2d(dtype=wp.vec3f), exits: wp.array2d(dtype=
 
 
 @functools.cache
-def _slot_function(f: Features, deflector: Deflector):
+def _slot_function(f: Features, instrument: Instrument):
     """Build the per-slot body shared by the points and the statistics kernels."""
 
+    deflector = instrument.deflector
+    Scan = scan_struct(instrument)
+    rows = pulse_rows(instrument)
+    row_truth, row_believed = rows.truth, rows.believed
+    row_direction, row_exit, row_ok = rows.axis_direction, rows.axis_exit, rows.axis_ok
     precise = f.optics == "float64"
     real = wp.float64 if precise else wp.float32
     vec = wp.types.vector(3, real)
@@ -351,7 +332,7 @@ def _slot_function(f: Features, deflector: Deflector):
 
     @wp.func
     def trace_slot(pulses: wp.array2d(dtype=wp.float64), p: int, beam: int, scan: Scan):
-        """Trace sub-beam ``beam`` of pulse ``p`` (a column of the chunk's pulse table).
+        """Trace beam ``beam`` of pulse ``p`` (a column of the chunk's pulse table).
 
         Returns (status, range [m], face, direction, exact point, nominal point, true point);
         points in the local frame [m].
@@ -363,8 +344,7 @@ def _slot_function(f: Features, deflector: Deflector):
             s3, exit_point, ok = _lut_lookup(scan.lut_directions, scan.lut_exits, beam,
                                              wp.float32(pulses[ROW_PHI, p]))
         else:
-            s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), vec(get3(pulses, ROW_TRUTH, p)),
-                                                  scan.truth)
+            s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), pulses, row_truth, p, scan.truth)
         if not ok:
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero
         start = origin + rot * exit_point
@@ -384,12 +364,18 @@ def _slot_function(f: Features, deflector: Deflector):
             t = t_hit
         true_point = start + t * direction
         r = t
-        if wp.static(f.noisy):  # keyed by (seed, line, pulse, beam): chunking never changes it
-            per_pulse = wp.int64(scan.beams.n * scan.beams.n)
+        if wp.static(f.noisy or f.ranging):  # keyed by (seed, line, pulse, beam): chunking never changes it
+            per_pulse = wp.int64(scan.per_pulse)
             pulse = wp.int64(pulses[ROW_PULSE, p])
             state = wp.rand_init(int(pulses[ROW_SEED, p]), int((pulse * per_pulse + wp.int64(beam)) % wp.int64(2147483647)))
-            r = r + real(scan.noise_sigma * _gaussian(state))
-        # georeference the observation (φ, i, j, r) with the deflector the processing believes in
+            if wp.static(f.noisy):
+                r = r + real(scan.noise_sigma * _gaussian(state))
+            if wp.static(f.ranging):
+                g = scan.ranging
+                u1 = wp.randf(state)
+                u2 = wp.randf(state)
+                r = r + real(g.drift) * t + real(g.delays[beam]) + real(g.tdc_bin * (u1 - u2))
+        # georeference the observation (scan state, beam, r) with the deflector the processing believes in
         p_exact = vec()
         p_nominal = vec()
         ok_exact = True
@@ -397,16 +383,18 @@ def _slot_function(f: Features, deflector: Deflector):
             if wp.static(f.believed_is_truth):
                 p_exact = start + r * direction
             else:
-                s3b, exit_b, ok_exact = deflector.finish(vec(scan.beam_believed[beam]),
-                                                         vec(get3(pulses, ROW_BELIEVED, p)), scan.believed)
+                s3b, exit_b, ok_exact = deflector.finish(vec(scan.beam_believed[beam]), pulses, row_believed, p,
+                                                         scan.believed)
                 p_exact = origin + rot * (exit_b + r * s3b)
         if wp.static(f.nominal):
             q = scan.beam_rigid[beam]
             rigid = quat(real(q[0]), real(q[1]), real(q[2]), real(q[3]))
-            p_nominal = origin + rot * (vec(get3(pulses, ROW_AXIS_EXIT, p))
-                                        + r * wp.quat_rotate(rigid, vec(get3(pulses, ROW_AXIS_DIRECTION, p))))
-        if not (ok_exact and pulses[ROW_AXIS_OK, p] != wp.float64(0.0)):
-            # the believed deflector reflects this beam internally: processing cannot place it
+            p_nominal = origin + rot * (vec(get3(pulses, row_exit, p))
+                                        + r * wp.quat_rotate(rigid, vec(get3(pulses, row_direction, p))))
+        if wp.static(deflector.rigid_nominal):
+            ok_exact = ok_exact and pulses[row_ok, p] != wp.float64(0.0)
+        if not ok_exact:
+            # the believed deflector cannot send this beam out: processing cannot place it
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero
         return (STATUS_RETURN, wp.float32(r), face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
                 wp.vec3f(true_point))
@@ -415,9 +403,10 @@ def _slot_function(f: Features, deflector: Deflector):
 
 
 @functools.cache
-def points_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int | None = None):
-    """Kernel writing every slot's return: one thread per (pulse, sub-beam)."""
-    trace_slot = _slot_function(f, deflector)
+def points_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
+    """Kernel writing every slot's return: one thread per (pulse, beam)."""
+    trace_slot = _slot_function(f, instrument)
+    Scan = scan_struct(instrument)
 
     @wp.kernel(module="unique", cuda_max_registers=max_registers)
     def trace_points(
@@ -437,7 +426,7 @@ def points_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int 
         counters: wp.array(dtype=wp.int32),  # [TIR, misses, -]
     ):
         slot = wp.tid()
-        per_pulse = scan.beams.n * scan.beams.n
+        per_pulse = scan.per_pulse
         pulse = slot // per_pulse
         code, r, face, direction, p_exact, p_nominal, p_true = trace_slot(pulses, pulse, slot % per_pulse, scan)
         status[slot] = code
@@ -472,7 +461,7 @@ def _outer6(d: wp.vec3d):
 
 
 @functools.cache
-def records_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int | None = None):
+def records_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
     """Statistics mode, step 1: one thread per slot traces and georeferences its beam and writes a
     compact record: the plane it hit (or why it does not count) and its points.
 
@@ -482,7 +471,8 @@ def records_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int
     dense list, so the boundary queries do not hold up whole warps of returns that need none); the
     per-plane sums are left to :func:`reduce_kernel`.
     """
-    trace_slot = _slot_function(f, deflector)
+    trace_slot = _slot_function(f, instrument)
+    Scan = scan_struct(instrument)
 
     @wp.kernel(module="unique", cuda_max_registers=max_registers)
     def trace_records(
@@ -500,7 +490,7 @@ def records_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int
         near_points: wp.array(dtype=wp.vec3f),  # their true points [m, local]
     ):
         slot = wp.tid()
-        per_pulse = scan.beams.n * scan.beams.n
+        per_pulse = scan.per_pulse
         code, r, face, direction, p_exact, p_nominal, p_true = trace_slot(pulses, slot // per_pulse,
                                                                           slot % per_pulse, scan)
         if code == STATUS_TIR:
@@ -524,24 +514,32 @@ def records_kernel(f: Features, deflector: Deflector = WEDGE, max_registers: int
     return trace_records
 
 
-@wp.kernel
-def check_edges(
-    scan: Scan,
-    edge_buffer: wp.float32,  # returns closer than this to a plane boundary do not count [m]
-    near_count: wp.array(dtype=wp.int32),
-    near_slots: wp.array(dtype=wp.int32),
-    near_points: wp.array(dtype=wp.vec3f),  # [m, local]
-    # In and out:
-    codes: wp.array(dtype=wp.int32),
-):
-    """Settle the records the edge grid could not: CODE_NEAR − plane becomes the plane, or CODE_EDGE
-    where the true hit lies within the edge buffer of a plane boundary. One thread per listed slot
-    (threads past the list's length do nothing)."""
-    k = wp.tid()
-    if k < near_count[0]:
-        slot = near_slots[k]
-        distance = _boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, near_points[k], scan.edge_cap)
-        codes[slot] = wp.where(distance < edge_buffer, CODE_EDGE, CODE_NEAR - codes[slot])
+@functools.cache
+def check_edges_kernel(instrument: Instrument):
+    """The kernel settling near-boundary records (:func:`_check_edges`) for one instrument's scan struct."""
+    Scan = scan_struct(instrument)
+
+    @wp.kernel(module="unique")
+    def check_edges(
+        scan: Scan,
+        edge_buffer: wp.float32,  # returns closer than this to a plane boundary do not count [m]
+        near_count: wp.array(dtype=wp.int32),
+        near_slots: wp.array(dtype=wp.int32),
+        near_points: wp.array(dtype=wp.vec3f),  # [m, local]
+        # In and out:
+        codes: wp.array(dtype=wp.int32),
+    ):
+        """Settle the records the edge grid could not: CODE_NEAR − plane becomes the plane, or CODE_EDGE
+        where the true hit lies within the edge buffer of a plane boundary. One thread per listed slot
+        (threads past the list's length do nothing)."""
+        k = wp.tid()
+        if k < near_count[0]:
+            slot = near_slots[k]
+            distance = _boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, near_points[k],
+                                          scan.edge_cap)
+            codes[slot] = wp.where(distance < edge_buffer, CODE_EDGE, CODE_NEAR - codes[slot])
+
+    return check_edges
 
 
 @functools.cache
@@ -673,23 +671,31 @@ def slot_indices(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int
         dst[offsets[i]] = i
 
 
-@wp.kernel
-def emit_rays(
-    pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
-    scan: Scan,
-    # Out:
-    starts: wp.array(dtype=wp.vec3f),  # [m, local]
-    directions: wp.array(dtype=wp.vec3f),  # unit; zero where the beam is reflected internally
-):
-    """The rays the pipeline casts, one per slot, rounded to float32 as the ray cast takes them
-    (for timing the bare ray cast)."""
-    slot = wp.tid()
-    per_pulse = scan.beams.n * scan.beams.n
-    p = slot // per_pulse
-    rot = get33(pulses, ROW_ROT, p)
-    s3, exit_point, ok = wedge_finish(scan.beam_truth[slot % per_pulse], get3(pulses, ROW_TRUTH, p), scan.truth)
-    starts[slot] = wp.vec3f(get3(pulses, ROW_ORIGIN, p) + rot * exit_point)
-    directions[slot] = wp.where(ok, wp.vec3f(rot * s3), wp.vec3f(0.0, 0.0, 0.0))
+@functools.cache
+def emit_rays_kernel(instrument: Instrument):
+    """Kernel writing the rays the pipeline casts, one per slot, rounded to float32 as the ray cast
+    takes them (for timing the bare ray cast)."""
+    deflector = instrument.deflector
+    Scan = scan_struct(instrument)
+    row_truth = pulse_rows(instrument).truth
+
+    @wp.kernel(module="unique")
+    def emit_rays(
+        pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
+        scan: Scan,
+        # Out:
+        starts: wp.array(dtype=wp.vec3f),  # [m, local]
+        directions: wp.array(dtype=wp.vec3f),  # unit; zero where the beam does not leave the deflector
+    ):
+        slot = wp.tid()
+        per_pulse = scan.per_pulse
+        p = slot // per_pulse
+        rot = get33(pulses, ROW_ROT, p)
+        s3, exit_point, ok = deflector.finish(scan.beam_truth[slot % per_pulse], pulses, row_truth, p, scan.truth)
+        starts[slot] = wp.vec3f(get3(pulses, ROW_ORIGIN, p) + rot * exit_point)
+        directions[slot] = wp.where(ok, wp.vec3f(rot * s3), wp.vec3f(0.0, 0.0, 0.0))
+
+    return emit_rays
 
 
 @wp.kernel

@@ -17,7 +17,13 @@ from typing import Any
 from flightsim.core.errors import InputError
 
 MODELS = ("exact", "nominal")
-BUILTIN_SCENES = ("calibration", "plane")
+BUILTIN_SCENES = ("calibration", "plane", "lunar")
+EMITTERS = ("fan", "channels")
+DEFLECTORS = ("risley", "galvo", "fixed")
+DETECTORS = ("discrete",)
+PLATFORMS = ("lines", "hover")
+ARCSEC = math.pi / (180.0 * 3600.0)  # [rad per arcsecond]
+CHANGE3_CHANNELS_MRAD = tuple(float(17 - 2 * i) for i in range(1, 17))  # θ_i = 17 − 2i (seed paper §2.3)
 OPTICS = ("float32", "float64", "lut")
 BVH_CONSTRUCTORS = ("sah", "median", "lbvh", "cubql")
 KMH = 1.0 / 3.6  # [m/s per km/h]
@@ -53,6 +59,8 @@ class FlightConfig:
     lines: int = field(default=1, metadata=_num(1, 65535, integer=True))
     line_spacing_m: float = field(default=200.0, metadata=_num(0.0, 1.0e5, "m", lo_open=True))
     trajectory: str = ""  # CSV trajectory file; when given it replaces the line plan
+    platform: str = "lines"  # "lines": flight lines (or the trajectory file); "hover": a lander or tripod over the scene centre
+    descent_mps: float = field(default=0.0, metadata=_num(-100.0, 100.0, "m/s, hover platform (positive: descending)"))
 
 
 @dataclass
@@ -76,12 +84,65 @@ class SensorConfig:
 
 
 @dataclass
+class InstrumentConfig:
+    """Which parts make the instrument (ARCHITECTURE.md, "Instruments as parts")."""
+
+    emitter: str = "fan"  # "fan": the N×N DOE fan of [sensor]; "channels": the linear array of [channels]
+    deflector: str = "risley"  # "risley": the wedge of [sensor]; "galvo": the two mirrors of [galvo]; "fixed"
+    detector: str = "discrete"  # discrete returns
+
+
+@dataclass
+class ChannelsConfig:
+    """A linear array of channels fanned along the emitter's y axis (a vertical fan behind a galvo)."""
+
+    angles_mrad: tuple[float, ...] = CHANGE3_CHANNELS_MRAD  # angle of each channel from the beam axis [mrad]
+
+
+@dataclass
+class GalvoConfig:
+    """The two-mirror galvanometer scanner (kernels.galvo) and its raster."""
+
+    b_mm: float = field(default=50.0, metadata=_num(0.0, 1000.0, "mm, source to mirror 1", lo_open=True))
+    e_mm: float = field(default=20.0, metadata=_num(0.0, 1000.0, "mm, mirror 1 to mirror 2", lo_open=True))
+    aperture_mm: float = field(default=15.0, metadata=_num(0.0, 1000.0, "mm, half size of each mirror",
+                                                           lo_open=True))
+    field_deg: tuple[float, float] = (30.0, 30.0)  # full field of the central ray: horizontal, vertical [deg]
+    strips: int = field(default=17, metadata=_num(1, 4096, "horizontal strips per frame", integer=True))
+    columns: int = field(default=256, metadata=_num(1, 65536, "pulses per strip", integer=True))
+    frame_s: float = field(default=0.1, metadata=_num(0.0, 3600.0, "s per frame", lo_open=True))
+
+
+@dataclass
+class ErrorsConfig:
+    """Error sources applied to the truth while the processing believes the nominal instrument
+    (seed paper §2); all off by default."""
+
+    b1_arcsec: float = field(default=0.0, metadata=_num(-3600.0, 3600.0, "arcsec, horizontal encoder zero error"))
+    b2_arcsec: float = field(default=0.0, metadata=_num(-3600.0, 3600.0, "arcsec, collimation-axis error"))
+    b3_arcsec: float = field(default=0.0, metadata=_num(-3600.0, 3600.0, "arcsec, horizontal-axis error"))
+    c1_arcsec: float = field(default=0.0, metadata=_num(-3600.0, 3600.0, "arcsec, vertical encoder zero error"))
+    h_noise_arcsec: float = field(default=0.0, metadata=_num(0.0, 3600.0, "arcsec, horizontal mirror angle, 1 sigma"))
+    v_noise_arcsec: float = field(default=0.0, metadata=_num(0.0, 3600.0, "arcsec, vertical mirror angle, 1 sigma"))
+    channel_delay_m: float = field(default=0.0, metadata=_num(0.0, 10.0, "m, 1 sigma of each channel's fixed delay"))
+    clock_drift: float = field(default=0.0, metadata=_num(-1.0e-3, 1.0e-3, "clock frequency drift e_df"))
+    tdc_bin_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, TDC resolution"))
+    jitter_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, rising-edge jitter of each stamp, 1 sigma"))
+    rise_time_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, echo rise time (constant-fraction "
+                                                                       "timing noise; 0 = off)"))
+    cfd_fraction: float = field(default=0.3, metadata=_num(0.0, 1.0, "constant fraction k"))
+    snr: float = field(default=31.0, metadata=_num(0.0, 1.0e6, "echo signal-to-noise ratio", lo_open=True))
+
+
+@dataclass
 class ProcessingConfig:
-    """The prism the georeferencing believes in; 0 means "the same as the sensor's"."""
+    """The deflector the georeferencing believes in; 0 means "the same as the sensor's"."""
 
     refractive_index: float = field(default=0.0, metadata=_num(0.0, 4.0, "; 0 = sensor value"))
     apex_angle_deg: float = field(default=0.0, metadata=_num(0.0, 89.0, "deg; 0 = sensor value"))
     thickness_mm: float = field(default=0.0, metadata=_num(0.0, 1000.0, "mm; 0 = sensor value"))
+    b_mm: float = field(default=0.0, metadata=_num(0.0, 1000.0, "mm; 0 = galvo value"))
+    e_mm: float = field(default=0.0, metadata=_num(0.0, 1000.0, "mm; 0 = galvo value"))
 
 
 @dataclass
@@ -125,7 +186,11 @@ class RunConfig:
 
     scene: SceneConfig = field(default_factory=SceneConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
+    instrument: InstrumentConfig = field(default_factory=InstrumentConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
+    channels: ChannelsConfig = field(default_factory=ChannelsConfig)
+    galvo: GalvoConfig = field(default_factory=GalvoConfig)
+    errors: ErrorsConfig = field(default_factory=ErrorsConfig)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
@@ -176,6 +241,8 @@ def resolve(config: RunConfig) -> RunConfig:
     p.refractive_index = p.refractive_index or s.refractive_index
     p.apex_angle_deg = p.apex_angle_deg or s.apex_angle_deg
     p.thickness_mm = p.thickness_mm or s.thickness_mm
+    p.b_mm = p.b_mm or cfg.galvo.b_mm
+    p.e_mm = p.e_mm or cfg.galvo.e_mm
     return cfg
 
 
@@ -215,6 +282,7 @@ def _check_fields(section_name: str, section: Any) -> None:
 
 
 def _check_optics(cfg: RunConfig) -> None:
+    """The wedge's optics (the default fan and prism are checked whichever parts a run uses)."""
     s = cfg.sensor
     critical = math.degrees(math.asin(1.0 / s.refractive_index))
     if s.apex_angle_deg > 0.0 and s.apex_angle_deg >= critical:
@@ -243,10 +311,17 @@ def _check_choices(cfg: RunConfig) -> None:
     if not models or any(m not in MODELS for m in models) or len(set(models)) != len(models):
         raise InputError("output.models", ",".join(map(str, models)), "a non-empty subset of exact,nominal")
     if not isinstance(cfg.scene.name, str) or not cfg.scene.name:
-        raise InputError("scene.name", cfg.scene.name, "calibration, plane, or a path to an .obj/.ply mesh")
+        raise InputError("scene.name", cfg.scene.name, "calibration, plane, lunar, or a path to an .obj/.ply mesh")
     if cfg.scene.name not in BUILTIN_SCENES and Path(cfg.scene.name).suffix.lower() not in (".obj", ".ply"):
-        raise InputError("scene.name", cfg.scene.name, "calibration, plane, or a path to an .obj/.ply mesh")
-    for name, value, allowed in (("run.optics", cfg.run.optics, OPTICS), ("run.bvh", cfg.run.bvh, BVH_CONSTRUCTORS)):
+        raise InputError("scene.name", cfg.scene.name, "calibration, plane, lunar, or a path to an .obj/.ply mesh")
+    if cfg.flight.platform == "hover" and cfg.flight.trajectory:
+        raise InputError("flight.trajectory", cfg.flight.trajectory, "empty with flight.platform = hover")
+    choices = (("run.optics", cfg.run.optics, OPTICS), ("run.bvh", cfg.run.bvh, BVH_CONSTRUCTORS),
+               ("instrument.emitter", cfg.instrument.emitter, EMITTERS),
+               ("instrument.deflector", cfg.instrument.deflector, DEFLECTORS),
+               ("instrument.detector", cfg.instrument.detector, DETECTORS),
+               ("flight.platform", cfg.flight.platform, PLATFORMS))
+    for name, value, allowed in choices:
         if value not in allowed:
             raise InputError(name, value, "one of " + ", ".join(allowed))
     device = cfg.run.device
@@ -263,7 +338,11 @@ def validate(cfg: RunConfig) -> RunConfig:
         _check_fields(section.name, getattr(cfg, section.name))
     _check_choices(cfg)
     _check_optics(cfg)
-    return resolve(cfg)
+    resolved = resolve(cfg)
+    from flightsim.instrument.parts import HostInstrument  # the parts check their own sections
+
+    HostInstrument(resolved).check()
+    return resolved
 
 
 # ---------------------------------------------------------------------------------------------
@@ -325,9 +404,10 @@ def set_value(cfg: RunConfig, dotted: str, value: Any) -> None:
     setattr(section, name, _coerce(dotted, getattr(section, name), value))
 
 
-def from_dict(data: dict) -> RunConfig:
-    """Build a config from nested tables (as read from TOML); unknown keys are errors."""
-    cfg = RunConfig()
+def from_dict(data: dict, base: RunConfig | None = None) -> RunConfig:
+    """Build a config from nested tables (as read from TOML) over ``base`` (default: the defaults);
+    unknown keys are errors."""
+    cfg = copy_config(base) if base is not None else RunConfig()
     for section_name, table in data.items():
         if not isinstance(table, dict):
             raise InputError(section_name, table, "a table of settings")
@@ -336,11 +416,11 @@ def from_dict(data: dict) -> RunConfig:
     return cfg
 
 
-def load_toml(path: str | Path) -> RunConfig:
-    """Read a run config from a TOML file (unvalidated; call :func:`validate`)."""
+def load_toml(path: str | Path, base: RunConfig | None = None) -> RunConfig:
+    """Read a run config from a TOML file over ``base`` (unvalidated; call :func:`validate`)."""
     try:
         with open(path, "rb") as fh:
-            return from_dict(tomllib.load(fh))
+            return from_dict(tomllib.load(fh), base)
     except OSError as exc:
         raise InputError("--config", str(path), f"a readable TOML file ({exc.strerror})") from None
     except tomllib.TOMLDecodeError as exc:
@@ -357,12 +437,29 @@ def _toml_value(value: Any) -> str:
     return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
+PART_SECTIONS = {"channels": ("emitter", "channels"), "galvo": ("deflector", "galvo")}  # written when chosen
+
+
 def to_toml(cfg: RunConfig) -> str:
-    """The config as TOML text; floats are written with full precision (``repr``)."""
+    """The config as TOML text; floats are written with full precision (``repr``). The sections of
+    parts the instrument does not use are left out."""
     lines = []
     for section in dataclasses.fields(cfg):
+        part = PART_SECTIONS.get(section.name)
+        if part and getattr(cfg.instrument, part[0]) != part[1]:
+            continue
         lines.append(f"[{section.name}]")
         for f in dataclasses.fields(getattr(cfg, section.name)):
             lines.append(f"{f.name} = {_toml_value(getattr(getattr(cfg, section.name), f.name))}")
         lines.append("")
     return "\n".join(lines)
+
+
+def preset_config(name: str) -> RunConfig:
+    """The config of a built-in instrument (``flightsim.instrument.presets``), unvalidated."""
+    from flightsim.instrument.presets import PRESETS, preset_path
+
+    if name not in PRESETS:
+        raise InputError("--instrument", name, "one of " + ", ".join(PRESETS))
+    path = preset_path(name)
+    return load_toml(path) if path else RunConfig()

@@ -97,7 +97,8 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         "wall_s": round(counts.wall_s, 4),
         "rms_m": stats.rms_m(),
         "edge_buffer_m": buffer,
-        "apex_angle_deg": cfg.sensor.apex_angle_deg,
+        "instrument": {"emitter": cfg.instrument.emitter, "deflector": cfg.instrument.deflector},
+        **({"apex_angle_deg": cfg.sensor.apex_angle_deg} if cfg.instrument.deflector == "risley" else {}),
         "lines": {str(k): v for k, v in counts.per_line.items()},
         "tiles": tiles,
     }

@@ -18,14 +18,16 @@ from scipy.spatial.transform import Rotation
 
 from flightsim.engine.chunks import Segment, line_table, pack, segment_tables
 from flightsim.core.config import MODELS, RunConfig
-from flightsim.engine.coverage import max_off_axis_rad, pulse_windows
+from flightsim.engine.coverage import pulse_windows
 from flightsim.scenes.edges import boundary_segments
 from flightsim.instrument.fan import trace_fan
+from flightsim.instrument.parts import HostInstrument
+from flightsim.instrument.ranging import has_systematics, range_errors, sigmas
 from flightsim.scoring.planes import PlaneMoments
 from flightsim.scenes.scene import Scene
 from flightsim.core.warp_runtime import resolve_device
 from kernels import frames, trace
-from trajectories import PulseTiming, Trajectory
+from trajectories import Trajectory
 
 SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
 POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # points mode: host memory grows with it
@@ -129,14 +131,6 @@ class SceneMeshes:
         return grid
 
 
-def _prism(n_glass: float, apex_deg: float, thickness_mm: float) -> trace.Prism:
-    prism = trace.Prism()
-    prism.n_glass = n_glass
-    prism.apex = math.radians(apex_deg)
-    prism.thickness = thickness_mm * 1e-3
-    return prism
-
-
 class Simulator:
     """Fly a validated config's trajectories over a scene on one device.
 
@@ -154,17 +148,18 @@ class Simulator:
         self.scene = scene
         self.trajectories = trajectories
         self.device = resolve_device(cfg.run.device)
-        s, p = cfg.sensor, cfg.processing
-        self.timing = PulseTiming(prf_hz=s.prf_hz, rotation_hz=s.rotation_hz, phase0_rad=math.radians(s.phase0_deg),
-                                  field_prefix="sensor")
+        s = cfg.sensor
+        self.instrument = HostInstrument(cfg)
+        self.timing = self.instrument.deflector.timing()
         self.models = tuple(cfg.output.models)
         self.edge_buffer_m = edge_buffer_m
         self.features = trace.Features(
             exact="exact" in self.models, nominal="nominal" in self.models,
-            believed_is_truth=(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
-            == (s.refractive_index, s.apex_angle_deg, s.thickness_mm),
-            with_truth=with_truth, noisy=s.range_noise_m > 0.0, edges=edge_buffer_m > 0.0, optics=cfg.run.optics,
+            believed_is_truth=self.instrument.deflector.believed_is_truth,
+            with_truth=with_truth, noisy=sigmas(cfg).gaussian > 0.0, ranging=has_systematics(cfg),
+            edges=edge_buffer_m > 0.0, optics=cfg.run.optics,
         )
+        self.rows = trace.pulse_rows(self.instrument.kernel)
         self.boresight_rotation = Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True)  # body←sensor
         self.boresight = wp.quatd(*self.boresight_rotation.as_quat())
         self.meshes = meshes or SceneMeshes(scene, self.device, cfg.run.bvh, cfg.run.bvh_leaf_size or None)
@@ -172,18 +167,20 @@ class Simulator:
         self._cone_rad: float | None = None
         self._windows: dict[int, list[tuple[int, int]]] = {}
         self._statistics: _StatisticsBuffers | None = None  # statistics-mode device buffers, kept between runs
+        self._points: _PointBuffers | None = None  # budget-mode device buffers, kept between draws
 
-    def _scan(self) -> trace.Scan:
-        s, p = self.cfg.sensor, self.cfg.processing
-        scan = trace.Scan()
+    def _scan(self):
+        """The instrument's scan struct (kernels.trace.scan_struct) with its per-beam table filled."""
+        instrument, d = self.instrument, self.device
+        scan = trace.scan_struct(instrument.kernel)()
         scan.mesh = self.meshes.mesh.id
-        scan.max_range = s.max_range_m
-        scan.beams = trace.BeamArray()
-        scan.beams.n = s.array
-        scan.beams.spacing = s.spacing_mrad * 1e-3
-        scan.truth = _prism(s.refractive_index, s.apex_angle_deg, s.thickness_mm)
-        scan.believed = _prism(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
-        scan.noise_sigma = s.range_noise_m
+        scan.max_range = self.cfg.sensor.max_range_m
+        scan.per_pulse = self.beams_per_pulse
+        scan.emitter = instrument.emitter.params(d)
+        scan.truth = instrument.deflector.params(believed=False)
+        scan.believed = instrument.deflector.params(believed=True)
+        scan.noise_sigma = sigmas(self.cfg).gaussian
+        scan.ranging = range_errors(self.cfg, self.beams_per_pulse, d)
         if self.features.edges:
             bvh, scan.boundary_a, scan.boundary_b = self.meshes.boundary
             scan.boundary = bvh.id
@@ -200,14 +197,17 @@ class Simulator:
         n_beams = self.beams_per_pulse
         scan.beam_truth, scan.beam_believed = (wp.empty(n_beams, dtype=wp.vec3d, device=self.device) for _ in range(2))
         scan.beam_rigid = wp.empty(n_beams, dtype=wp.quatd, device=self.device)
-        wp.launch(trace.beam_table_kernel(trace.WEDGE), n_beams, inputs=[scan.beams, scan.truth, scan.believed],
-                  outputs=[scan.beam_truth, scan.beam_believed, scan.beam_rigid], device=self.device)
+        wp.launch(trace.beam_table_kernel(instrument.kernel), n_beams, inputs=[scan], device=self.device)
         return scan
 
     def _exit_table(self) -> tuple[wp.array, wp.array]:
         """Exit directions and points of every beam at M + 1 prism angles over a turn, for
         ``optics = "lut"``; a 2×n² placeholder otherwise."""
         s = self.cfg.sensor
+        if self.cfg.instrument.deflector != "risley":
+            placeholder = np.zeros((2, self.beams_per_pulse, 3), dtype=np.float32)
+            return (wp.array(placeholder, dtype=wp.vec3f, device=self.device),
+                    wp.array(placeholder, dtype=wp.vec3f, device=self.device))
         samples = self.cfg.run.lut_samples if self.features.optics == "lut" else 1
         phi = np.linspace(0.0, 2.0 * np.pi, samples + 1)
         fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, s.refractive_index, math.radians(s.apex_angle_deg),
@@ -223,7 +223,7 @@ class Simulator:
 
     @property
     def beams_per_pulse(self) -> int:
-        return self.cfg.sensor.array ** 2
+        return self.instrument.beams_per_pulse
 
     @property
     def device_kind(self) -> str:
@@ -251,8 +251,9 @@ class Simulator:
         """Points mode: call ``consume`` with the returns of each line's part of each chunk; return the counts."""
         started = time.perf_counter()
         counts = RunCounts()
-        buffers = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.device)
-        kernel = trace.points_kernel(self.features, max_registers=self.max_registers)
+        buffers = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.rows.total,
+                                self.device)
+        kernel = trace.points_kernel(self.features, self.instrument.kernel, max_registers=self.max_registers)
         for chunk in self._chunks(buffers.pulses, counts, progress):
             n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
             wp.launch(kernel, n_slots, inputs=[buffers.pulses, self.scan], outputs=buffers.slot_outputs(),
@@ -261,6 +262,32 @@ class Simulator:
                 counts.returns += len(part)
                 counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
                 consume(part)
+        return self._finish(counts, buffers.counters, started)
+
+    def accumulate_deviations(self, sums: wp.array, squares: wp.array, hits: wp.array) -> RunCounts:
+        """Budget mode: add each slot's believed − true point [m, local] and its square to float64 sums on
+        the device, indexed by run slot (pulse of the run · beams per pulse + beam). Nothing else leaves
+        the device; needs ``with_truth`` and the exact model."""
+        from kernels.budget import accumulate_deviations
+
+        if not (self.features.with_truth and self.features.exact):
+            raise ValueError("accumulate_deviations needs with_truth=True and the exact model")
+        started = time.perf_counter()
+        counts = RunCounts()
+        if self._points is None:
+            self._points = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.rows.total,
+                                         self.device)
+        buffers = self._points
+        buffers.counters.zero_()
+        kernel = trace.points_kernel(self.features, self.instrument.kernel, max_registers=self.max_registers)
+        for chunk in self._chunks(buffers.pulses, counts, None):
+            base = counts.pulses * self.beams_per_pulse
+            n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
+            wp.launch(kernel, n_slots, inputs=[buffers.pulses, self.scan], outputs=buffers.slot_outputs(),
+                      device=self.device)
+            wp.launch(accumulate_deviations, n_slots, inputs=[buffers.status, buffers.model_points["exact"],
+                                                               buffers.true_points, base],
+                      outputs=[sums, squares, hits], device=self.device)
         return self._finish(counts, buffers.counters, started)
 
     def run_statistics(self, progress: Callable[[int, int], None] | None = None,
@@ -282,7 +309,7 @@ class Simulator:
             self._statistics = _StatisticsBuffers(self, self.pulses_per_launch())
         b = self._statistics
         sums = b.zeroed_sums()
-        trace_records = trace.records_kernel(self.features, max_registers=self.max_registers)
+        trace_records = trace.records_kernel(self.features, self.instrument.kernel, max_registers=self.max_registers)
         reduce_records = trace.reduce_kernel(self.features)
         d = self.device
         for chunk in self._chunks(b.pulses, counts, progress, share):
@@ -290,7 +317,7 @@ class Simulator:
             wp.launch(trace_records, n_slots, inputs=[b.pulses, self.scan, b.face_plane],
                       outputs=[*b.records, *b.near], device=d)
             if self.features.edges:
-                wp.launch(trace.check_edges, n_slots, inputs=[self.scan, self.edge_buffer_m, *b.near],
+                wp.launch(trace.check_edges_kernel(self.instrument.kernel), n_slots, inputs=[self.scan, self.edge_buffer_m, *b.near],
                           outputs=[b.records[0]], device=d)
                 b.near[0].zero_()
             wp.launch(reduce_records, (n_slots + spt - 1) // spt,
@@ -332,7 +359,7 @@ class Simulator:
             windows = [(0, hi)]
         else:
             if self._cone_rad is None:
-                self._cone_rad = max_off_axis_rad(self.cfg)
+                self._cone_rad = self.instrument.max_off_axis_rad()
             windows = pulse_windows(trajectory, self.scene.world_to_local(trajectory.position), self.scene.bounds(),
                                     self.timing, self._cone_rad, self.boresight_rotation)
         return [(max(k0, lo), min(k1, hi)) for k0, k1 in windows if min(k1, hi) > max(k0, lo)]
@@ -356,7 +383,8 @@ class Simulator:
             n_pulses = sum(s.count for s in chunk)
             wp.launch(frames.pulse_poses, n_pulses, inputs=[self.lines, table, len(chunk)], outputs=[pulses],
                       device=self.device)
-            wp.launch(trace.pulse_optics_kernel(trace.WEDGE), n_pulses, inputs=[self.scan, pulses], device=self.device)
+            wp.launch(trace.pulse_optics_kernel(self.instrument.kernel), n_pulses, inputs=[self.scan, pulses],
+                      device=self.device)
             yield chunk
             counts.pulses += n_pulses
             if progress:
@@ -383,12 +411,12 @@ class Simulator:
 
     def sample_rays(self, max_slots: int) -> tuple[wp.array, wp.array]:
         """The float32 rays of the run's first slots (up to ``max_slots``), on the device."""
-        pulses = _pulse_table(max(1, max_slots // self.beams_per_pulse), self.device)
+        pulses = _pulse_table(max(1, max_slots // self.beams_per_pulse), self.rows.total, self.device)
         chunk = next(self._chunks(pulses, RunCounts(), None))
         n = sum(s.count for s in chunk) * self.beams_per_pulse
         starts = wp.empty(n, dtype=wp.vec3f, device=self.device)
         directions = wp.empty(n, dtype=wp.vec3f, device=self.device)
-        wp.launch(trace.emit_rays, n, inputs=[pulses, self.scan], outputs=[starts, directions], device=self.device)
+        wp.launch(trace.emit_rays_kernel(self.instrument.kernel), n, inputs=[pulses, self.scan], outputs=[starts, directions], device=self.device)
         return starts, directions
 
     def _finish(self, counts: RunCounts, counters: wp.array, started: float) -> RunCounts:
@@ -427,9 +455,9 @@ class Simulator:
         return parts
 
 
-def _pulse_table(pulses: int, device: str) -> wp.array:
-    """A chunk's per-pulse table: trace.PULSE_ROWS float64 rows (pose, then optics), one column per pulse."""
-    return wp.empty((trace.PULSE_ROWS, pulses), dtype=wp.float64, device=device)
+def _pulse_table(pulses: int, rows: int, device: str) -> wp.array:
+    """A chunk's per-pulse table: ``rows`` float64 rows (pose, then optics; trace.pulse_rows), one column per pulse."""
+    return wp.empty((rows, pulses), dtype=wp.float64, device=device)
 
 
 def _sliced(fields: dict, a: int, b: int) -> dict:
@@ -456,7 +484,7 @@ class _StatisticsBuffers:
     def __init__(self, sim: Simulator, pulses: int):
         d, slots, f = sim.device, pulses * sim.beams_per_pulse, sim.features
         self.device = d
-        self.pulses = _pulse_table(pulses, d)
+        self.pulses = _pulse_table(pulses, sim.rows.total, d)
         self.records = [wp.empty(slots, dtype=wp.int32, device=d)] + [
             wp.empty(slots if model in sim.models else 1, dtype=wp.vec3f, device=d) for model in MODELS]
         listed = slots if f.edges else 1  # returns the edge grid leaves to the boundary query
@@ -477,10 +505,10 @@ class _StatisticsBuffers:
 class _PointBuffers:
     """Device arrays for one chunk in points mode, allocated once per run and reused."""
 
-    def __init__(self, pulses: int, beams_per_pulse: int, device: str):
+    def __init__(self, pulses: int, beams_per_pulse: int, rows: int, device: str):
         self.device = device
         slots = pulses * beams_per_pulse
-        self.pulses = _pulse_table(pulses, device)
+        self.pulses = _pulse_table(pulses, rows, device)
         self.status = wp.empty(slots, dtype=wp.int32, device=device)
         self.ranges = wp.empty(slots, dtype=wp.float32, device=device)
         self.faces = wp.empty(slots, dtype=wp.int32, device=device)

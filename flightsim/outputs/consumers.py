@@ -28,7 +28,7 @@ class LasOutput:
         self.plane_ids = scene.plane_id if plane_ids is None else plane_ids
         self.scene = scene
         self.timing = timing
-        self.n = cfg.sensor.array
+        self.n = cfg.sensor.array if cfg.instrument.emitter == "fan" else 256  # channel c: beam_row 0, beam_col c
         date = gps_week_date(cfg.flight.start_gps_time)
         self.writers = {
             model: TileWriter(Path(directory) / model, scene.crs, tile_size_m=cfg.output.tile_size_m,

@@ -30,14 +30,15 @@ def scene_half_extent(cfg: RunConfig) -> float:
     half-angle, plus the fan's half-diagonal, plus the sensor axis' largest lean from nadir
     (roll and pitch of the plan and of the boresight), at most MAX_REACH_DEG.
     """
+    from flightsim.instrument.parts import HostInstrument
+
     f, s = cfg.flight, cfg.sensor
-    along = line_length_m(cfg) / 2.0
-    across = (f.lines - 1) / 2.0 * f.line_spacing_m
+    along = line_length_m(cfg) / 2.0 if f.platform == "lines" else 0.0
+    across = (f.lines - 1) / 2.0 * f.line_spacing_m if f.platform == "lines" else 0.0
     sin_h, cos_h = abs(math.sin(math.radians(f.heading_deg))), abs(math.cos(math.radians(f.heading_deg)))
     reach = max(along * sin_h + across * cos_h, along * cos_h + across * sin_h)
     tilt = abs(f.roll_deg) + abs(f.pitch_deg) + abs(s.boresight_deg[0]) + abs(s.boresight_deg[1])
-    fan = math.degrees(math.sqrt(2.0) * (s.array - 1) / 2.0 * s.spacing_mrad * 1e-3)
-    angle = min(s.cone_half_angle_deg + fan + tilt, MAX_REACH_DEG)
+    angle = min(HostInstrument(cfg).reach_deg() + tilt, MAX_REACH_DEG)
     return required_half_extent(f.altitude_m, math.radians(angle), reach, cfg.scene.margin_m)
 
 
@@ -52,6 +53,10 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
         return plane_scene(half, origin, crs, slope=cfg.scene.slope)
     if name == "calibration":
         return calibration_scene(max(half, calibration_min_half_extent() + cfg.scene.margin_m), origin, crs)
+    if name == "lunar":
+        from flightsim.scenes.lunar import lunar_scene
+
+        return lunar_scene(half, origin, crs, seed=cfg.run.seed, slope=cfg.scene.slope)
     if not Path(name).is_file():
         raise InputError("scene.name", name, "calibration, plane, or the path of an existing .obj/.ply mesh")
     return load_mesh(name, crs, origin)
@@ -117,10 +122,25 @@ def _check_clearance(trajectory: Trajectory, scene: Scene, cfg: RunConfig) -> No
                      f"{rise:.3f} m above the scene's ground (to {top + scene.origin[2]:.3f} m)")
 
 
+def _hover(cfg: RunConfig, scene: Scene) -> Trajectory:
+    """A lander (or tripod) over the scene centre: flight.altitude_m above the ground at the start,
+    sinking at flight.descent_mps, level, its sensor axis (body z) down; heading flight.heading_deg."""
+    f = cfg.flight
+    lo, hi = scene.bounds()
+    centre = scene.local_to_world(np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, scene.ground_z]))
+    times = f.start_gps_time + np.array([0.0, f.duration_s])
+    heights = centre[2] + f.altitude_m - f.descent_mps * (times - f.start_gps_time)
+    position = np.column_stack([np.full(2, centre[0]), np.full(2, centre[1]), heights])
+    attitude = np.tile(np.radians([f.roll_deg, f.pitch_deg, f.heading_deg % 360.0]), (2, 1))
+    return Trajectory(times, position, attitude, 1)
+
+
 def flight_trajectories(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
-    """The trajectories to fly: the trajectory file if one is given, else the line plan."""
+    """The trajectories to fly: the trajectory file if one is given, a hover, else the line plan."""
     try:
-        if cfg.flight.trajectory:
+        if cfg.flight.platform == "hover":
+            trajectories = [_hover(cfg, scene)]
+        elif cfg.flight.trajectory:
             trajectories = [Trajectory.read_csv(cfg.flight.trajectory)]
         else:
             trajectories = _planned_lines(cfg, scene)

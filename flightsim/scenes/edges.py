@@ -63,6 +63,11 @@ def default_edge_buffer_m(cfg: RunConfig) -> float:
     Slant range r = h / cos θ; buffer = r·(divergence/2 + largest distortion angle).
     """
     s = cfg.sensor
+    if cfg.instrument.deflector != "risley":  # no rigid-array model: the footprint only
+        from flightsim.instrument.parts import HostInstrument
+
+        slant = cfg.flight.altitude_m / math.cos(min(HostInstrument(cfg).max_off_axis_rad(), math.radians(80.0)))
+        return slant * 0.5 * s.divergence_mrad * 1e-3
     slant = cfg.flight.altitude_m / math.cos(math.radians(s.cone_half_angle_deg))
     return slant * (0.5 * s.divergence_mrad * 1e-3 + max_distortion_rad(cfg))
 

@@ -1,0 +1,49 @@
+"""The registry of instrument parts and the composed instrument a run uses.
+
+A new kind of part is one kernel module (``kernels/<kind>.py``: its ``@wp.struct`` and
+``@wp.func``s) plus one host class here: ``check()`` (raise InputError naming the field),
+``params(...)`` (fill the struct) and what the pipeline asks of that kind of part.
+"""
+from __future__ import annotations
+
+import functools
+
+from flightsim.core.config import RunConfig
+from flightsim.instrument.emitters import ChannelEmitter, FanEmitter
+from flightsim.instrument.fixed import FixedDeflector
+from flightsim.instrument.galvo import GalvoDeflector
+from flightsim.instrument.risley import RisleyDeflector
+from kernels.parts import Instrument
+
+EMITTERS = {"fan": FanEmitter, "channels": ChannelEmitter}
+DEFLECTORS = {"risley": RisleyDeflector, "galvo": GalvoDeflector, "fixed": FixedDeflector}
+
+
+class HostInstrument:
+    """The parts a config chooses, validated: what the simulator needs of them."""
+
+    def __init__(self, cfg: RunConfig):
+        self.cfg = cfg
+        self.emitter = EMITTERS[cfg.instrument.emitter](cfg)
+        self.deflector = DEFLECTORS[cfg.instrument.deflector](cfg)
+
+    def check(self) -> None:
+        self.emitter.check()
+        self.deflector.check()
+
+    @functools.cached_property
+    def kernel(self) -> Instrument:
+        """The kernels' key: the emitter's and the deflector's device functions and structs."""
+        return Instrument(self.emitter.kernel, self.deflector.kernel)
+
+    @property
+    def beams_per_pulse(self) -> int:
+        return self.emitter.beams_per_pulse
+
+    def reach_deg(self) -> float:
+        """A bound on any beam's angle from the sensor axis (sizes built-in scenes) [deg]."""
+        return self.deflector.reach_deg(self.emitter)
+
+    def max_off_axis_rad(self) -> float:
+        """Largest angle of any beam from the sensor axis over the scan (culls pulses) [rad]."""
+        return self.deflector.max_off_axis_rad(self.emitter)

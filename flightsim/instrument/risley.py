@@ -1,0 +1,60 @@
+"""Host side of the rotating-wedge (Risley) deflector: prism structs, timing, reach."""
+from __future__ import annotations
+
+import math
+
+from flightsim.core.config import RunConfig
+from flightsim.core.errors import InputError
+from kernels import wedge
+from trajectories import PulseTiming
+
+GALVO_ONLY = ("b1_arcsec", "b2_arcsec", "b3_arcsec", "c1_arcsec", "h_noise_arcsec", "v_noise_arcsec")
+
+
+def _prism(n_glass: float, apex_deg: float, thickness_mm: float) -> wedge.Prism:
+    prism = wedge.Prism()
+    prism.n_glass = n_glass
+    prism.apex = math.radians(apex_deg)
+    prism.thickness = thickness_mm * 1e-3
+    return prism
+
+
+class RisleyDeflector:
+    """The wedge of ``[sensor]`` turning at ``sensor.rotation_hz``; the processing believes ``[processing]``."""
+
+    kernel = wedge.WEDGE
+
+    def __init__(self, cfg: RunConfig):
+        self.cfg = cfg
+
+    def check(self) -> None:
+        """The wedge's optics are checked in config._check_optics; the galvo's error sources do not apply."""
+        for name in GALVO_ONLY:
+            if getattr(self.cfg.errors, name) != 0.0:
+                raise InputError(f"errors.{name}", getattr(self.cfg.errors, name),
+                                 "0 unless instrument.deflector = galvo")
+
+    def timing(self) -> PulseTiming:
+        s = self.cfg.sensor
+        return PulseTiming(prf_hz=s.prf_hz, rotation_hz=s.rotation_hz, phase0_rad=math.radians(s.phase0_deg),
+                           field_prefix="sensor")
+
+    def params(self, believed: bool) -> wedge.Prism:
+        side = self.cfg.processing if believed else self.cfg.sensor
+        return _prism(side.refractive_index, side.apex_angle_deg, side.thickness_mm)
+
+    @property
+    def believed_is_truth(self) -> bool:
+        s, p = self.cfg.sensor, self.cfg.processing
+        return (p.refractive_index, p.apex_angle_deg, p.thickness_mm) == (s.refractive_index, s.apex_angle_deg,
+                                                                          s.thickness_mm)
+
+    def reach_deg(self, emitter) -> float:
+        """A bound on any beam's angle from the sensor axis, to first order [deg]."""
+        return self.cfg.sensor.cone_half_angle_deg + math.degrees(emitter.half_diagonal_rad)
+
+    def max_off_axis_rad(self, emitter) -> float:
+        """Largest exit angle of the fan over a prism turn [rad] (traced)."""
+        from flightsim.engine.coverage import max_off_axis_rad
+
+        return max_off_axis_rad(self.cfg)
