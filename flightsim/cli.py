@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from flightsim import __version__
-from flightsim.core.config import RunConfig, get_value, load_toml, set_value, validate
+from flightsim.core.config import RunConfig, get_value, load_toml, preset_config, set_value, validate
 from flightsim.scoring import score
 from flightsim.core.errors import InputError
 
@@ -17,7 +17,7 @@ EXIT_INVALID = 2
 
 # simulate flags that set a config field: (flag, dest, config key, help)
 CONFIG_FLAGS = [
-    ("--scene", "scene", "scene.name", "calibration (default), plane, or PATH.obj / PATH.ply"),
+    ("--scene", "scene", "scene.name", "calibration (default), plane, lunar, or PATH.obj / PATH.ply"),
     ("--altitude", "altitude", "flight.altitude_m", "flying height above ground [m] (default 500)"),
     ("--array", "array", "sensor.array", "beams per side of the N×N array, 1–64 (default 3)"),
     ("--spacing-mrad", "spacing_mrad", "sensor.spacing_mrad", "angular spacing of the sub-beams [mrad] (default 2.314)"),
@@ -58,7 +58,9 @@ def _set_items(args: argparse.Namespace) -> list[tuple[str, str]]:
 
 def base_config(args: argparse.Namespace, flags=CONFIG_FLAGS) -> RunConfig:
     """Config from --config (TOML), then the flags (unvalidated)."""
-    cfg = load_toml(args.config) if args.config else RunConfig()
+    cfg = preset_config(args.instrument) if getattr(args, "instrument", None) else RunConfig()
+    if args.config:
+        cfg = load_toml(args.config, cfg)
     for _flag, dest, key, _help in flags:
         value = getattr(args, dest)
         if value is not None:
@@ -95,7 +97,9 @@ def build_grid(args: argparse.Namespace):
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, flags=CONFIG_FLAGS) -> None:
-    parser.add_argument("--config", help="run config TOML (a run.toml of an earlier run reproduces it)")
+    parser.add_argument("--instrument", help="built-in instrument to start from: risley (default) or change3")
+    parser.add_argument("--config", help="run config TOML over the instrument (a run.toml of an earlier run "
+                                         "reproduces it)")
     for flag, dest, _key, help_text in flags:
         parser.add_argument(flag, dest=dest, help=help_text)
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
@@ -199,6 +203,20 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_budget(args: argparse.Namespace) -> int:
+    from flightsim.core.warp_runtime import resolve_device
+    from flightsim.studies.budget_report import run_budget
+
+    resolve_device(args.device)
+    if not 2 <= args.draws <= 10_000_000:
+        raise InputError("--draws", args.draws, "an integer in [2, 10000000]")
+    if args.columns is not None and not 2 <= args.columns <= 65536:
+        raise InputError("--columns", args.columns, "an integer in [2, 65536]")
+    run_budget(Path(args.out), device=args.device, draws=args.draws, columns=args.columns, seed=args.seed)
+    print((Path(args.out) / "REPORT.md").read_text())
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     import laspy
     import numpy
@@ -223,7 +241,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def make_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="flightsim", description="Simulate airborne array-beam lidar through a Risley prism.")
+    parser = _Parser(prog="flightsim",
+                     description="GPU-first lidar simulator: instruments as parts, scenes, outputs, studies.")
     parser.add_argument("--version", action="version", version=f"flightsim {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
@@ -267,9 +286,17 @@ def make_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="measure throughput, run time against error, and savings")
     bench.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     bench.add_argument("--quick", action="store_true", help="small sizes (under a minute on a CPU)")
-    bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto")
+    bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto,galvo")
     bench.add_argument("--out", required=True, help="directory for bench.json, bench.md, pareto.csv/png")
     bench.set_defaults(func=cmd_bench)
+
+    budget = sub.add_parser("budget", help="full-link error budget of the Chang'e-3 galvo imager (seed paper §2-§3)")
+    budget.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    budget.add_argument("--draws", type=int, default=200, help="Monte Carlo draws (default 200)")
+    budget.add_argument("--columns", type=int, help="pulses per strip (default: the instrument's 256)")
+    budget.add_argument("--seed", type=int, default=0, help="random seed of the draws (default 0)")
+    budget.add_argument("--out", required=True, help="directory for REPORT.md, budget.json, deviation_maps.png")
+    budget.set_defaults(func=cmd_budget)
 
     info = sub.add_parser("info", help="versions, devices and the kernel cache")
     info.set_defaults(func=cmd_info)
