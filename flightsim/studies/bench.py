@@ -28,7 +28,7 @@ from flightsim.core.warp_runtime import resolve_device
 from kernels import trace
 
 DELTA = 2.314
-SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto")
+SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo")
 
 
 @dataclasses.dataclass
@@ -127,6 +127,32 @@ def throughput(device: str, s: Sizes) -> list[dict]:
         if sim.device_kind == "cpu":
             records.append(_two_process_record(cfg, sample, repeats))
     return records
+
+
+def galvo(device: str, s: Sizes) -> dict:
+    """The Chang'e-3 galvo imager (its preset, ranging errors on) over the 100 m plane in statistics mode,
+    against the bare ray cast of the same rays; and a Monte Carlo budget of full 30°×30° frames."""
+    from flightsim.core.config import preset_config
+    from flightsim.studies.budget import Frame, frame_config, monte_carlo
+
+    cfg = preset_config("change3")
+    frames = max(1, round(s.returns / (17 * 256 * 16)))
+    for key, value in {"run.device": device, "flight.duration_s": frames * cfg.galvo.frame_s}.items():
+        set_value(cfg, key, value)
+    cfg = validate(cfg)
+    sim = simulator(cfg)
+    wall, counts = timed_statistics(sim)
+    sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
+    repeats = max(1, round(counts.beams_fired / sample))
+    bare_wall, hits = bare_raycast(sim, sample, repeats)
+    record = _record(sim, cfg, counts, wall, hits / bare_wall, processes=1)
+    record["instrument"] = "change3"
+    draws = 1000 if sim.device_kind == "cuda" and not s.quick else 20
+    frame = Frame(frame_config(device=device))
+    monte_carlo(frame, 2)  # compile and warm up
+    mc = monte_carlo(frame, draws)
+    return {"throughput": record, "budget": {"draws": draws, "slots_per_draw": frame.pulses * frame.beams,
+                                             "wall_s": mc.wall_s, "draws_per_s": draws / mc.wall_s}}
 
 
 def stages(device: str, s: Sizes) -> list[dict]:
@@ -380,7 +406,7 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
     results = {"device": dev, "gpu_name": gpu_name(dev), "quick": quick, "git_commit": git_commit(),
                "cpu_count": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
     runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
-               "pareto": pareto}
+               "pareto": pareto, "galvo": galvo}
     for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)

@@ -52,7 +52,7 @@ def markdown(merged: dict) -> str:
         r = merged[kind]
         lines += [f"## {kind}: {r['gpu_name']} ({r['device']}, {r.get('cpu_count')} CPU cores, commit "
                   f"{r['git_commit']}, {r['date']}{', quick' if r.get('quick') else ''})", ""]
-        lines += _throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r)
+        lines += _throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r)
     return "\n".join(lines) + "\n"
 
 
@@ -69,6 +69,18 @@ def _throughput(r: dict, kind: str) -> list[str]:
               f"| {_fmt(t['returns_per_s'])} | {_fmt(t['raycast_returns_per_s'])} | {t['ratio']:.2f} |"
               for t in r["throughput"]]
     return lines + [""]
+
+
+def _galvo(r: dict) -> list[str]:
+    if "galvo" not in r:
+        return []
+    t, b = r["galvo"]["throughput"], r["galvo"]["budget"]
+    return ["", "### Chang'e-3 galvo imager (statistics mode, ranging errors on; 100 m plane)", "",
+            "| returns | wall [s] | returns/s | bare ray cast returns/s | ratio |", "| --- | --- | --- | --- | --- |",
+            f"| {t['returns']:,} | {t['wall_s']:.3f} | {_fmt(t['returns_per_s'])} | {_fmt(t['raycast_returns_per_s'])} "
+            f"| {t['ratio']:.2f} |", "",
+            f"Monte Carlo budget: {b['draws']} draws of a full frame ({b['slots_per_draw']:,} beams each) in "
+            f"{b['wall_s']:.2f} s ({b['draws_per_s']:.1f} draws/s), compile excluded.", ""]
 
 
 def _stages(r: dict) -> list[str]:
