@@ -21,7 +21,7 @@ from typing import Any
 import warp as wp
 
 from kernels.frames import ROW_PULSE, ROW_SEED, put3
-from kernels.parts import Deflector, get3_as
+from kernels.parts import Deflector, get3_as, standard_normal64
 
 wp.set_module_options({"enable_backward": False})
 
@@ -45,15 +45,6 @@ class Galvo:
     c1: wp.float64  # vertical encoder zero error [rad]
     sigma_h: wp.float64  # horizontal mirror-angle noise, 1σ [rad]
     sigma_v: wp.float64  # vertical mirror-angle noise, 1σ [rad]
-
-
-@wp.func
-def _standard_normal(state: wp.uint32):
-    """Float64 standard normal deviate (Box–Muller, the uniforms drawn in separate statements)."""
-    u1 = wp.float64(wp.randf(state))
-    u2 = wp.float64(wp.randf(state))
-    return wp.sqrt(wp.float64(-2.0) * wp.log(wp.max(u1, wp.float64(1.0e-12)))) * wp.cos(
-        wp.float64(6.283185307179586) * u2)
 
 
 @wp.func
@@ -96,8 +87,8 @@ def galvo_pulse_stage(table: wp.array2d(dtype=wp.float64), row: int, p: int, g: 
     true_gamma = gamma + g.c1
     if g.sigma_h > wp.float64(0.0) or g.sigma_v > wp.float64(0.0):
         state = wp.rand_init(int(table[ROW_SEED, p]), int((k * wp.int64(2)) % wp.int64(2147483647)))
-        true_delta += g.sigma_h * _standard_normal(state)
-        true_gamma += g.sigma_v * _standard_normal(state)
+        true_delta += g.sigma_h * standard_normal64(state)
+        true_gamma += g.sigma_v * standard_normal64(state)
     n1, n2 = mirror_normals(true_delta, true_gamma)
     put3(table, row, p, n1)
     put3(table, row + 3, p, n2)

@@ -66,3 +66,12 @@ def get3_as(table: wp.array2d(dtype=wp.float64), row: int, p: int, like: Any):
     """The 3-vector in rows row … row + 2 of column p, in the precision of ``like``."""
     return type(like)(type(like[0])(table[row, p]), type(like[0])(table[row + 1, p]),
                       type(like[0])(table[row + 2, p]))
+
+
+@wp.func
+def standard_normal64(state: wp.uint32):
+    """Float64 standard normal deviate (Box–Muller, the uniforms drawn in separate statements)."""
+    u1 = wp.float64(wp.randf(state))
+    u2 = wp.float64(wp.randf(state))
+    return wp.sqrt(wp.float64(-2.0) * wp.log(wp.max(u1, wp.float64(1.0e-12)))) * wp.cos(
+        wp.float64(6.283185307179586) * u2)

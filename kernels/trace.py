@@ -19,7 +19,7 @@ import warp as wp
 
 from kernels.frames import POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT, ROW_ROT, ROW_SEED, get3, get33, put3
 from kernels.optics import rigid_array_rotation
-from kernels.parts import Instrument
+from kernels.parts import Instrument, standard_normal64
 
 wp.set_module_options({"enable_backward": False})
 
@@ -60,6 +60,50 @@ class RangeErrors:
     delays: wp.array(dtype=wp.float32)  # fixed delay of each beam's channel, as one-way range [m]
 
 
+@wp.struct
+class PoseErrors:
+    """Errors of the pose the processing believes (platform and mounting), applied to the truth."""
+
+    mount: wp.mat33d  # boresight error: the true sensor axes in the believed sensor frame
+    position_sigma: wp.float64  # POS position noise per local axis and pulse, 1σ [m]
+    attitude_sigma: wp.float64  # POS attitude noise about each sensor axis per pulse, 1σ [rad]
+
+
+POSE_STREAM = wp.constant(0x2545F491)  # seed key of the pose-noise random stream
+
+
+@wp.func
+def _small_rotation(a: wp.vec3d):
+    """The rotation matrix of rotation vector ``a`` [rad] (Rodrigues)."""
+    angle = wp.length(a)
+    eye = wp.identity(n=3, dtype=wp.float64)
+    if angle == wp.float64(0.0):
+        return eye
+    k = a / angle
+    skew = wp.mat33d(wp.float64(0.0), -k[2], k[1], k[2], wp.float64(0.0), -k[0], -k[1], k[0], wp.float64(0.0))
+    return eye + wp.sin(angle) * skew + (wp.float64(1.0) - wp.cos(angle)) * (skew * skew)
+
+
+@wp.func
+def _true_pose(pulses: wp.array2d(dtype=wp.float64), p: int, pose: PoseErrors):
+    """(position offset [m, local], rotation true sensor ← believed sensor) of pulse p: the boresight
+    error, then the POS noise keyed by (seed, pulse), shared by the pulse's beams."""
+    shift = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    turn = pose.mount
+    if pose.position_sigma > wp.float64(0.0) or pose.attitude_sigma > wp.float64(0.0):
+        state = wp.rand_init(int(pulses[ROW_SEED, p]) ^ POSE_STREAM,
+                             int(wp.int64(pulses[ROW_PULSE, p]) % wp.int64(2147483647)))
+        x = standard_normal64(state)
+        y = standard_normal64(state)
+        z = standard_normal64(state)
+        shift = pose.position_sigma * wp.vec3d(x, y, z)
+        rx = standard_normal64(state)
+        ry = standard_normal64(state)
+        rz = standard_normal64(state)
+        turn = turn * _small_rotation(pose.attitude_sigma * wp.vec3d(rx, ry, rz))
+    return shift, turn
+
+
 @functools.cache
 def scan_struct(instrument: Instrument) -> type:
     """The struct of everything a slot needs besides its pose, for one instrument's parts."""
@@ -74,6 +118,7 @@ def scan_struct(instrument: Instrument) -> type:
         believed: instrument.deflector.params  # the deflector the georeferencing believes in
         noise_sigma: wp.float32  # Gaussian range noise, 1σ [m]
         ranging: RangeErrors
+        pose: PoseErrors
         boundary: wp.uint64  # BVH of the plane-boundary segments (edge buffer queries)
         boundary_a: wp.array(dtype=wp.vec3f)  # segment end points [m, local]
         boundary_b: wp.array(dtype=wp.vec3f)
@@ -101,6 +146,7 @@ class Features:
     with_truth: bool = False  # keep the true hit point
     noisy: bool = False  # Gaussian range noise
     ranging: bool = False  # ranging-chain errors: channel delays, clock drift, TDC quantisation
+    pose: bool = False  # pose errors on the truth: boresight error, POS position and attitude noise
     edges: bool = False  # measure the true hit's distance to its plane boundary
     optics: str = "float32"  # "float32"; "float64" (optics, hit and georeferencing in float64, the ray
     # cast itself in float32 then refined on the hit triangle); "lut" (float32, exit rays tabulated over φ)
@@ -347,8 +393,14 @@ def _slot_function(f: Features, instrument: Instrument):
             s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), pulses, row_truth, p, scan.truth)
         if not ok:
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero
-        start = origin + rot * exit_point
-        direction = rot * s3
+        true_origin = origin
+        true_rot = rot
+        if wp.static(f.pose):
+            shift, turn = _true_pose(pulses, p, scan.pose)
+            true_origin = origin + vec(shift)
+            true_rot = rot * mat(turn)
+        start = true_origin + true_rot * exit_point
+        direction = true_rot * s3
         hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
         face = hit.face
         t_hit = hit.t

@@ -8,11 +8,13 @@ from typing import Any
 
 import warp as wp
 
-from kernels.frames import ROW_PHI, put3
+from kernels.frames import ROW_PHI, ROW_PULSE, ROW_SEED, put3
 from kernels.optics import back_face_normal, enter_prism, leave_prism
-from kernels.parts import Deflector, get3_as
+from kernels.parts import Deflector, get3_as, standard_normal64
 
 wp.set_module_options({"enable_backward": False})
+
+ENCODER_STREAM = wp.constant(0x1B873593)  # seed key of the encoder-noise random stream
 
 
 @wp.struct
@@ -22,6 +24,8 @@ class Prism:
     n_glass: wp.float64  # refractive index of the glass (air = 1)
     apex: wp.float64  # apex angle α [rad]
     thickness: wp.float64  # d1, centre thickness [m]
+    encoder: wp.float64  # prism-angle encoder zero error: the wedge stands this far past its reading [rad]
+    encoder_sigma: wp.float64  # prism-angle noise per pulse, 1σ [rad]
 
 
 @wp.func
@@ -32,8 +36,15 @@ def wedge_beam_stage(s1: Any, prism: Prism):
 
 @wp.func
 def wedge_pulse_stage(table: wp.array2d(dtype=wp.float64), row: int, p: int, prism: Prism):
-    """Per-pulse part of the wedge: the back face's normal at the pulse's prism angle, into rows row … row + 2."""
-    put3(table, row, p, back_face_normal(table[ROW_PHI, p], prism.apex))
+    """Per-pulse part of the wedge: the back face's normal at the pulse's prism angle, into rows row … row + 2.
+
+    The angle is the encoder's reading plus the side's encoder error and noise (keyed by seed and pulse)."""
+    phi = table[ROW_PHI, p] + prism.encoder
+    if prism.encoder_sigma > wp.float64(0.0):
+        state = wp.rand_init(int(table[ROW_SEED, p]) ^ ENCODER_STREAM,
+                             int(wp.int64(table[ROW_PULSE, p]) % wp.int64(2147483647)))
+        phi += prism.encoder_sigma * standard_normal64(state)
+    put3(table, row, p, back_face_normal(phi, prism.apex))
 
 
 @wp.func

@@ -130,6 +130,16 @@ class ErrorsConfig:
     jitter_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, rising-edge jitter of each stamp, 1 sigma"))
     rise_time_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, echo rise time (constant-fraction "
                                                                        "timing noise; 0 = off)"))
+    encoder_arcsec: float = field(default=0.0, metadata=_num(-3600.0, 3600.0, "arcsec, prism-angle encoder zero "
+                                                                            "error (risley)"))
+    encoder_noise_arcsec: float = field(default=0.0, metadata=_num(0.0, 3600.0, "arcsec, prism angle per pulse, "
+                                                                                "1 sigma (risley)"))
+    boresight_arcsec: tuple[float, float, float] = (0.0, 0.0, 0.0)  # roll, pitch, yaw of the true sensor axes in
+    # the believed ones (residual boresight calibration error) [arcsec]
+    position_noise_m: float = field(default=0.0, metadata=_num(0.0, 100.0, "m, POS position per axis and pulse, "
+                                                                           "1 sigma"))
+    attitude_noise_arcsec: float = field(default=0.0, metadata=_num(0.0, 3600.0, "arcsec, POS attitude about each "
+                                                                                 "sensor axis per pulse, 1 sigma"))
     cfd_fraction: float = field(default=0.3, metadata=_num(0.0, 1.0, "constant fraction k"))
     snr: float = field(default=31.0, metadata=_num(0.0, 1.0e6, "echo signal-to-noise ratio", lo_open=True))
 
@@ -330,6 +340,7 @@ def _check_choices(cfg: RunConfig) -> None:
     _check_vector("scene.origin", cfg.scene.origin, 1.0e8, "m")
     _check_vector("sensor.boresight_deg", cfg.sensor.boresight_deg, 10.0, "deg")
     _check_vector("sensor.lever_arm_m", cfg.sensor.lever_arm_m, 100.0, "m")
+    _check_vector("errors.boresight_arcsec", cfg.errors.boresight_arcsec, 3600.0, "arcsec")
 
 
 def validate(cfg: RunConfig) -> RunConfig:

@@ -23,6 +23,7 @@ from flightsim.scenes.edges import boundary_segments
 from flightsim.instrument.fan import trace_fan
 from flightsim.instrument.parts import HostInstrument
 from flightsim.instrument.ranging import has_systematics, range_errors, sigmas
+from flightsim.platforms.pose_errors import has_pose_errors, pose_errors
 from flightsim.scoring.planes import PlaneMoments
 from flightsim.scenes.scene import Scene
 from flightsim.core.warp_runtime import resolve_device
@@ -155,8 +156,9 @@ class Simulator:
         self.edge_buffer_m = edge_buffer_m
         self.features = trace.Features(
             exact="exact" in self.models, nominal="nominal" in self.models,
-            believed_is_truth=self.instrument.deflector.believed_is_truth,
+            believed_is_truth=self.instrument.deflector.believed_is_truth and not has_pose_errors(cfg),
             with_truth=with_truth, noisy=sigmas(cfg).gaussian > 0.0, ranging=has_systematics(cfg),
+            pose=has_pose_errors(cfg),
             edges=edge_buffer_m > 0.0, optics=cfg.run.optics,
         )
         self.rows = trace.pulse_rows(self.instrument.kernel)
@@ -181,6 +183,7 @@ class Simulator:
         scan.believed = instrument.deflector.params(believed=True)
         scan.noise_sigma = sigmas(self.cfg).gaussian
         scan.ranging = range_errors(self.cfg, self.beams_per_pulse, d)
+        scan.pose = pose_errors(self.cfg)
         if self.features.edges:
             bvh, scan.boundary_a, scan.boundary_b = self.meshes.boundary
             scan.boundary = bvh.id
@@ -199,6 +202,16 @@ class Simulator:
         scan.beam_rigid = wp.empty(n_beams, dtype=wp.quatd, device=self.device)
         wp.launch(trace.beam_table_kernel(instrument.kernel), n_beams, inputs=[scan], device=self.device)
         return scan
+
+    def set_errors(self, cfg: RunConfig) -> None:
+        """Swap in the true and believed deflectors and the pose errors of ``cfg`` (same parts, same
+        compiled features: a Monte Carlo draw) and rebuild the per-beam tables."""
+        instrument = HostInstrument(cfg)
+        self.scan.truth = instrument.deflector.params(believed=False)
+        self.scan.believed = instrument.deflector.params(believed=True)
+        self.scan.pose = pose_errors(cfg)
+        wp.launch(trace.beam_table_kernel(instrument.kernel), self.beams_per_pulse, inputs=[self.scan],
+                  device=self.device)
 
     def _exit_table(self) -> tuple[wp.array, wp.array]:
         """Exit directions and points of every beam at M + 1 prism angles over a turn, for

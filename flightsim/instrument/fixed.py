@@ -6,8 +6,7 @@ import math
 import numpy as np
 
 from flightsim.core.config import RunConfig
-from flightsim.core.errors import InputError
-from flightsim.instrument.risley import GALVO_ONLY
+from flightsim.instrument.risley import GALVO_ONLY, RISLEY_ONLY, refuse_errors
 from kernels import fixed
 from trajectories import PulseTiming
 
@@ -21,10 +20,8 @@ class FixedDeflector:
         self.cfg = cfg
 
     def check(self) -> None:
-        for name in GALVO_ONLY:
-            if getattr(self.cfg.errors, name) != 0.0:
-                raise InputError(f"errors.{name}", getattr(self.cfg.errors, name),
-                                 "0 unless instrument.deflector = galvo")
+        refuse_errors(self.cfg, GALVO_ONLY, "galvo")
+        refuse_errors(self.cfg, RISLEY_ONLY, "risley")
 
     def timing(self) -> PulseTiming:
         return PulseTiming(prf_hz=self.cfg.sensor.prf_hz, rotation_hz=0.0, phase0_rad=0.0, field_prefix="sensor")

@@ -8,6 +8,7 @@ import numpy as np
 from flightsim.core.config import ARCSEC, RunConfig
 from flightsim.core.errors import InputError
 from flightsim.instrument import galvo_model
+from flightsim.instrument.risley import RISLEY_ONLY, refuse_errors
 from kernels import galvo
 from trajectories import PulseTiming
 
@@ -43,6 +44,7 @@ class GalvoDeflector:
                              "exact (the rigid-array nominal model is defined for the risley deflector only)")
         if cfg.run.optics == "lut":
             raise InputError("run.optics", cfg.run.optics, "float32 or float64 (lut tabulates the risley wedge only)")
+        refuse_errors(cfg, RISLEY_ONLY, "risley")
         if cfg.instrument.emitter != "channels":
             raise InputError("instrument.emitter", cfg.instrument.emitter, "channels with the galvo deflector")
         for believed in (False, True):

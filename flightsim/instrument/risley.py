@@ -3,19 +3,30 @@ from __future__ import annotations
 
 import math
 
-from flightsim.core.config import RunConfig
+from flightsim.core.config import ARCSEC, RunConfig
 from flightsim.core.errors import InputError
 from kernels import wedge
 from trajectories import PulseTiming
 
 GALVO_ONLY = ("b1_arcsec", "b2_arcsec", "b3_arcsec", "c1_arcsec", "h_noise_arcsec", "v_noise_arcsec")
+RISLEY_ONLY = ("encoder_arcsec", "encoder_noise_arcsec")
 
 
-def _prism(n_glass: float, apex_deg: float, thickness_mm: float) -> wedge.Prism:
+def refuse_errors(cfg: RunConfig, names: tuple[str, ...], owner: str) -> None:
+    """InputError for the first of ``errors.<names>`` that is set: they belong to deflector ``owner``."""
+    for name in names:
+        if getattr(cfg.errors, name) != 0.0:
+            raise InputError(f"errors.{name}", getattr(cfg.errors, name), f"0 unless instrument.deflector = {owner}")
+
+
+def _prism(n_glass: float, apex_deg: float, thickness_mm: float, encoder_arcsec: float = 0.0,
+           encoder_noise_arcsec: float = 0.0) -> wedge.Prism:
     prism = wedge.Prism()
     prism.n_glass = n_glass
     prism.apex = math.radians(apex_deg)
     prism.thickness = thickness_mm * 1e-3
+    prism.encoder = encoder_arcsec * ARCSEC
+    prism.encoder_sigma = encoder_noise_arcsec * ARCSEC
     return prism
 
 
@@ -28,11 +39,13 @@ class RisleyDeflector:
         self.cfg = cfg
 
     def check(self) -> None:
-        """The wedge's optics are checked in config._check_optics; the galvo's error sources do not apply."""
-        for name in GALVO_ONLY:
-            if getattr(self.cfg.errors, name) != 0.0:
-                raise InputError(f"errors.{name}", getattr(self.cfg.errors, name),
-                                 "0 unless instrument.deflector = galvo")
+        """The wedge's optics are checked in config._check_optics; the galvo's error sources do not apply,
+        and the exit-ray table (run.optics = lut) tabulates the wedge without encoder errors."""
+        refuse_errors(self.cfg, GALVO_ONLY, "galvo")
+        e = self.cfg.errors
+        if self.cfg.run.optics == "lut" and (e.encoder_arcsec or e.encoder_noise_arcsec):
+            raise InputError("run.optics", "lut", "float32 or float64 with prism-encoder errors "
+                                                  "(the table tabulates the error-free wedge)")
 
     def timing(self) -> PulseTiming:
         s = self.cfg.sensor
@@ -40,13 +53,16 @@ class RisleyDeflector:
                            field_prefix="sensor")
 
     def params(self, believed: bool) -> wedge.Prism:
-        side = self.cfg.processing if believed else self.cfg.sensor
-        return _prism(side.refractive_index, side.apex_angle_deg, side.thickness_mm)
+        if believed:
+            p = self.cfg.processing
+            return _prism(p.refractive_index, p.apex_angle_deg, p.thickness_mm)
+        s, e = self.cfg.sensor, self.cfg.errors
+        return _prism(s.refractive_index, s.apex_angle_deg, s.thickness_mm, e.encoder_arcsec, e.encoder_noise_arcsec)
 
     @property
     def believed_is_truth(self) -> bool:
-        s, p = self.cfg.sensor, self.cfg.processing
-        return (p.refractive_index, p.apex_angle_deg, p.thickness_mm) == (s.refractive_index, s.apex_angle_deg,
+        s, p, e = self.cfg.sensor, self.cfg.processing, self.cfg.errors
+        return not (e.encoder_arcsec or e.encoder_noise_arcsec) and (p.refractive_index, p.apex_angle_deg, p.thickness_mm) == (s.refractive_index, s.apex_angle_deg,
                                                                           s.thickness_mm)
 
     def reach_deg(self, emitter) -> float:
