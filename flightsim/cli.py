@@ -205,14 +205,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def cmd_budget(args: argparse.Namespace) -> int:
     from flightsim.core.warp_runtime import resolve_device
-    from flightsim.studies.budget_report import run_budget
+    from flightsim.studies.budget_report import run_budget, run_risley_budget
 
     resolve_device(args.device)
     if not 2 <= args.draws <= 10_000_000:
         raise InputError("--draws", args.draws, "an integer in [2, 10000000]")
     if args.columns is not None and not 2 <= args.columns <= 65536:
         raise InputError("--columns", args.columns, "an integer in [2, 65536]")
-    run_budget(Path(args.out), device=args.device, draws=args.draws, columns=args.columns, seed=args.seed)
+    if args.instrument == "risley":
+        run_risley_budget(Path(args.out), device=args.device, draws=args.draws, seed=args.seed)
+    elif args.instrument == "change3":
+        run_budget(Path(args.out), device=args.device, draws=args.draws, columns=args.columns, seed=args.seed)
+    else:
+        raise InputError("--instrument", args.instrument, "change3 or risley")
     print((Path(args.out) / "REPORT.md").read_text())
     return 0
 
@@ -290,7 +295,9 @@ def make_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", required=True, help="directory for bench.json, bench.md, pareto.csv/png")
     bench.set_defaults(func=cmd_bench)
 
-    budget = sub.add_parser("budget", help="full-link error budget of the Chang'e-3 galvo imager (seed paper §2-§3)")
+    budget = sub.add_parser("budget", help="full-link error budget of an instrument: change3 (the galvo imager, "
+                                           "seed paper §2-§3) or risley (the airborne DOE-array instrument)")
+    budget.add_argument("--instrument", default="change3", help="change3 (default) or risley")
     budget.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     budget.add_argument("--draws", type=int, default=200, help="Monte Carlo draws (default 200)")
     budget.add_argument("--columns", type=int, help="pulses per strip (default: the instrument's 256)")

@@ -51,9 +51,7 @@ def frame_config(base: RunConfig | None = None, distance_m: float = 100.0, colum
     cfg.flight.duration_s = cfg.galvo.frame_s
     cfg.output.models = ("exact",)
     cfg.run.device = device
-    cfg.errors = type(cfg.errors)(**{f.name: 0.0 for f in dataclasses.fields(cfg.errors)
-                                     if f.name not in ("cfd_fraction", "snr")},
-                                  cfd_fraction=cfg.errors.cfd_fraction, snr=cfg.errors.snr)
+    cfg.errors = type(cfg.errors)(cfd_fraction=cfg.errors.cfd_fraction, snr=cfg.errors.snr)  # every source off
     return cfg
 
 
@@ -65,9 +63,10 @@ def with_errors(cfg: RunConfig, **errors: float) -> RunConfig:
 
 
 class Frame:
-    """One frame of an instrument on the device: the scene, the hover and a simulator with truth."""
+    """The first ``pulses`` pulses of an instrument's first line on the device (default: one galvo
+    frame): the scene, the trajectory and simulators with truth."""
 
-    def __init__(self, cfg: RunConfig):
+    def __init__(self, cfg: RunConfig, pulses: int | None = None):
         from flightsim.engine.simulate import SceneMeshes
         from flightsim.platforms.plan import build_scene, flight_trajectories
         from flightsim.core.warp_runtime import resolve_device
@@ -75,11 +74,12 @@ class Frame:
         self.cfg = validate(cfg)
         self.scene = build_scene(self.cfg)
         self.trajectories = flight_trajectories(self.cfg, self.scene)
+        instrument = HostInstrument(self.cfg)
         g = self.cfg.galvo
-        self.pulses = g.strips * g.columns
-        self.beams = HostInstrument(self.cfg).beams_per_pulse
+        self.pulses = pulses or g.strips * g.columns
+        self.beams = instrument.beams_per_pulse
         self.meshes = SceneMeshes(self.scene, resolve_device(self.cfg.run.device))
-        self.geometry = HostInstrument(self.cfg).deflector.geometry()
+        self.geometry = instrument.deflector.geometry() if self.cfg.instrument.deflector == "galvo" else None
 
     def simulator(self, cfg: RunConfig):
         from flightsim.engine.simulate import Simulator
@@ -87,13 +87,19 @@ class Frame:
         return Simulator(cfg, self.scene, self.trajectories, with_truth=True, meshes=self.meshes,
                          pulse_limits={self.trajectories[0].line_id: (0, self.pulses)})
 
-    def sensor_rotation(self, sim) -> np.ndarray:
-        """R_local←sensor of the hover (constant), as a float64 3×3 matrix."""
-        pose = sim.poses64(self.trajectories[0].line_id, 0, 1).numpy()[0]
-        return np.asarray(pose["rot"], dtype=np.float64).reshape(3, 3)
+    def poses(self, sim) -> tuple[np.ndarray, np.ndarray]:
+        """(origin (pulses, 3) [m, local], R_local←sensor (pulses, 3, 3)) of the frame's pulses, float64."""
+        pose = sim.poses64(self.trajectories[0].line_id, 0, self.pulses).numpy()
+        return (np.asarray(pose["origin"], dtype=np.float64),
+                np.asarray(pose["rot"], dtype=np.float64).reshape(-1, 3, 3))
 
-    def deviations(self, cfg: RunConfig) -> tuple[np.ndarray, np.ndarray]:
-        """(deviation, true point), each (slots, 3) in the sensor frame [m]; NaN where a slot did not return."""
+    def sensor_rotation(self, sim) -> np.ndarray:
+        """R_local←sensor of the first pulse, as a float64 3×3 matrix (constant for a hover)."""
+        return self.poses(sim)[1][0]
+
+    def local_deviations(self, cfg: RunConfig):
+        """(deviation, true point, simulator): the points (slots, 3) in the local frame [m], NaN where a
+        slot did not return."""
         sim = self.simulator(cfg)
         slots = self.pulses * self.beams
         deviation = np.full((slots, 3), np.nan)
@@ -105,9 +111,13 @@ class Frame:
             truth[index] = chunk.true_points
 
         sim.run(consume)
-        rot = self.sensor_rotation(sim)
-        origin = sim.poses64(self.trajectories[0].line_id, 0, 1).numpy()[0]["origin"]
-        return deviation @ rot, (truth - np.asarray(origin, dtype=np.float64)) @ rot
+        return deviation, truth, sim
+
+    def deviations(self, cfg: RunConfig) -> tuple[np.ndarray, np.ndarray]:
+        """(deviation, true point − sensor origin), each (slots, 3) in the first pulse's sensor frame [m]."""
+        deviation, truth, sim = self.local_deviations(cfg)
+        origin, rot = self.poses(sim)
+        return deviation @ rot[0], (truth - origin[0]) @ rot[0]
 
 
 def table(deviation: np.ndarray) -> dict[str, tuple[float, float]]:

@@ -220,3 +220,115 @@ X {mc['max_analytic_cm'][0]:.2f}, Y {mc['max_analytic_cm'][1]:.2f}, Z {mc['max_a
 Maps: `deviation_maps.png` (rows: each source alone, all together, MC σ, analytic σ; columns ΔX, ΔY, ΔZ
 over the field's horizontal and vertical angles).
 """
+
+
+RISLEY_COMMAND = "flightsim budget --instrument risley --out results/paper/budget --draws {draws} --device {device}"
+
+
+def run_risley_budget(out: Path, device: str = "cpu", draws: int = 200, seed: int = 0, turns: int = 5) -> dict:
+    """The seed paper's Risley instrument's budget (``studies.risley_budget``) written under ``out``."""
+    from flightsim.studies import risley_budget as rb
+
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = rb.frame_config(device=device, turns=turns)
+    frame = Frame(cfg, pulses=round(cfg.flight.duration_s * cfg.sensor.prf_hz))
+    det = rb.deterministic(frame)
+    mc = rb.monte_carlo(frame, draws, seed=seed)
+    numbers = rb.budget_numbers(frame, det, mc, device)
+    write_atomic(out / "budget.json", json.dumps(numbers, indent=2) + "\n")
+    _risley_maps(frame, det, mc, rb, out)
+    write_atomic(out / "REPORT.md", _risley_report(numbers, rb))
+    return numbers
+
+
+def _risley_maps(frame, det, mc, rb, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    _, truth, _ = frame.local_deviations(frame.cfg)
+    panels = [(f"{name} +1σ", det[name]["deviation"]) for name, s in rb.SOURCES.items() if s.systematic]
+    panels += [(f"Monte Carlo σ, {mc.draws} draws", mc.std), ("linearised σ", rb.linearised_sigma(det))]
+    fig, axes = plt.subplots(len(panels), 3, figsize=(12, 2.6 * len(panels)), constrained_layout=True)
+    for row, (title, values) in enumerate(panels):
+        for k, axis in enumerate(rb.ENU):
+            ax = axes[row, k]
+            sc = ax.scatter(truth[:, 0], truth[:, 1], c=values[:, k] * 100, s=0.5,
+                            cmap="viridis" if "σ" in title[-12:] else "coolwarm")
+            fig.colorbar(sc, ax=ax, label=f"Δ{axis} [cm]")
+            ax.set_title(f"{title}: Δ{axis}", fontsize=9)
+            ax.set_aspect("equal")
+    fig.savefig(out / "deviation_maps.png", dpi=80)
+    plt.close(fig)
+
+
+def _risley_report(n: dict, rb) -> str:
+    f, mc = n["frame"], n["monte_carlo"]
+    sources = "\n".join(f"| {name} | {s['sigma']:g} {s['unit']} | {'per run' if s['systematic'] else 'per pulse'} | "
+                        f"{s['basis']} |" for name, s in n["sources"].items())
+    rows = "\n".join(f"| {r['source']} | {r['E'][0]:.2f} / {r['E'][1]:.2f} | {r['N'][0]:.2f} / {r['N'][1]:.2f} | "
+                     f"{r['U'][0]:.2f} / {r['U'][1]:.2f} | {r['horizontal_max_cm']:.2f} |"
+                     for r in n["deterministic_cm"])
+    shares = "\n".join(f"| {name} | " + " | ".join(f"{100 * v:.1f} %" for v in s) + " |"
+                       for name, s in n["linearised_share_of_variance"].items())
+    return f"""# Error budget of the airborne Risley instrument (seed 001)
+
+Regenerate: `{RISLEY_COMMAND.format(draws=mc['draws'], device=n['device'])}`.
+No paper has this budget: it is new. The instrument is the default (3×3 DOE fan through one
+rotating wedge, cone {f['cone_half_angle_deg']:g}°, apex {f['apex_angle_deg']:.4f}°), flying level at 200 km/h,
+{f['altitude_m']:g} m over a flat plane, {f['pulses']:,} pulses × {f['beams']} beams (five prism turns).
+Deviation = processed point − true hit, local frame: E (across track), N (along track), U (up).
+
+## Sources and their 1σ
+
+| source | 1σ | drawn | basis |
+| --- | --- | --- | --- |
+{sources}
+
+The processing believes the catalogue wedge (apex, index), the encoder's reading, the calibrated
+boresight and the POS trajectory; the truth carries the errors (`errors.encoder_arcsec`,
+`encoder_noise_arcsec`, `boresight_arcsec`, `position_noise_m`, `attitude_noise_arcsec`,
+`sensor.range_noise_m`, and `processing.apex_angle_deg`, `processing.refractive_index` off the sensor's).
+
+## Each systematic source alone at +1σ: max / min |deviation| [cm]
+
+| source | E | N | U | horizontal max |
+| --- | --- | --- | --- | --- |
+{rows}
+
+Checks against closed forms (tests/test_pose_errors.py): a boresight error turns every ray about the
+sensor origin, believed − true = R (Mᵀ − I) Rᵀ (T − O) to float32 rounding; an encoder zero error
+turns the on-axis beam about the vertical by exactly the error (no height change in level flight);
+the noise sources have their σ.
+
+## Every source at once
+
+Share of the frame-mean variance, first order (E, N, U):
+
+| source | E | N | U |
+| --- | --- | --- | --- |
+{shares}
+
+Monte Carlo: {mc['draws']} draws on `{n['device']}` in {mc['wall_s']:.2f} s. RMS over the frame of the per-point σ:
+E {mc['rms_cm'][0]:.2f}, N {mc['rms_cm'][1]:.2f}, U {mc['rms_cm'][2]:.2f} cm (linearised: E {mc['linearised_rms_cm'][0]:.2f},
+N {mc['linearised_rms_cm'][1]:.2f}, U {mc['linearised_rms_cm'][2]:.2f} cm); largest σ E {mc['max_cm'][0]:.2f}, N {mc['max_cm'][1]:.2f},
+U {mc['max_cm'][2]:.2f} cm. Per point, Monte Carlo σ ÷ linearised σ: median E {mc['std_over_linearised_median'][0]:.3f},
+N {mc['std_over_linearised_median'][1]:.3f}, U {mc['std_over_linearised_median'][2]:.3f} (5–95 %: E {mc['std_over_linearised_p05'][0]:.3f}–{mc['std_over_linearised_p95'][0]:.3f},
+N {mc['std_over_linearised_p05'][1]:.3f}–{mc['std_over_linearised_p95'][1]:.3f}, U {mc['std_over_linearised_p05'][2]:.3f}–{mc['std_over_linearised_p95'][2]:.3f}); the expected relative
+error of a σ from {mc['draws']} draws is {mc['expected_relative_error']:.3f}, and the systematic sources are drawn
+once per draw for every point, so the per-point ratios move together.
+
+The linearisation is the device's own (central differences at ±1σ of each systematic source; the
+noise sources reuse the Jacobians of their systematic twins; position and range noise exactly), so
+this comparison checks linearity and the Monte Carlo, not the optics: those are checked against
+independent float64 math in the tests.
+
+Reading: the refractive-index tolerance dominates (it changes the cone angle: Δn = 5×10⁻⁴ moves a
+point by about {next(r for r in n['deterministic_cm'] if r['source'] == 'index')['horizontal_max_cm']:.0f} cm at 500 m), then the IMU's attitude, the boresight
+residual and the apex tolerance; the encoder's 20″ step costs about a centimetre. A wedge whose
+index is measured to 1×10⁻⁴ removes most of the budget.
+
+Maps: `deviation_maps.png` (rows: each systematic source at +1σ, the Monte Carlo σ and the linearised σ;
+columns ΔE, ΔN, ΔU over the true hit positions).
+"""
