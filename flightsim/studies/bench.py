@@ -130,29 +130,34 @@ def throughput(device: str, s: Sizes) -> list[dict]:
 
 
 def galvo(device: str, s: Sizes) -> dict:
-    """The Chang'e-3 galvo imager (its preset, ranging errors on) over the 100 m plane in statistics mode,
-    against the bare ray cast of the same rays; and a Monte Carlo budget of full 30°×30° frames."""
+    """The Chang'e-3 galvo imager (its preset, ranging errors on) hovering 100 m over the plane and over
+    the lunar landing zone in statistics mode, each against the bare ray cast of the same rays; and a
+    Monte Carlo budget of full 30°×30° frames."""
     from flightsim.core.config import preset_config
     from flightsim.studies.budget import Frame, frame_config, monte_carlo
 
-    cfg = preset_config("change3")
-    frames = max(1, round(s.returns / (17 * 256 * 16)))
-    for key, value in {"run.device": device, "flight.duration_s": frames * cfg.galvo.frame_s}.items():
-        set_value(cfg, key, value)
-    cfg = validate(cfg)
-    sim = simulator(cfg)
-    wall, counts = timed_statistics(sim)
-    sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
-    repeats = max(1, round(counts.beams_fired / sample))
-    bare_wall, hits = bare_raycast(sim, sample, repeats)
-    record = _record(sim, cfg, counts, wall, hits / bare_wall, processes=1)
-    record["instrument"] = "change3"
-    draws = 1000 if sim.device_kind == "cuda" and not s.quick else 20
+    records = []
+    for scene in ("plane", "lunar"):
+        cfg = preset_config("change3")
+        frames = max(1, round(s.returns / (17 * 256 * 16)))
+        for key, value in {"run.device": device, "flight.duration_s": frames * cfg.galvo.frame_s,
+                           "scene.name": scene}.items():
+            set_value(cfg, key, value)
+        cfg = validate(cfg)
+        sim = simulator(cfg)
+        wall, counts = timed_statistics(sim)
+        sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
+        repeats = max(1, round(counts.beams_fired / sample))
+        bare_wall, hits = bare_raycast(sim, sample, repeats)
+        record = _record(sim, cfg, counts, wall, hits / bare_wall, processes=1)
+        record.update(instrument="change3", scene=scene, triangles=len(sim.scene.triangles))
+        records.append(record)
+    draws = 1000 if device != "cpu" and not s.quick else 20
     frame = Frame(frame_config(device=device))
     monte_carlo(frame, 2)  # compile and warm up
     mc = monte_carlo(frame, draws)
-    return {"throughput": record, "budget": {"draws": draws, "slots_per_draw": frame.pulses * frame.beams,
-                                             "wall_s": mc.wall_s, "draws_per_s": draws / mc.wall_s}}
+    return {"throughput": records, "budget": {"draws": draws, "slots_per_draw": frame.pulses * frame.beams,
+                                              "wall_s": mc.wall_s, "draws_per_s": draws / mc.wall_s}}
 
 
 def stages(device: str, s: Sizes) -> list[dict]:

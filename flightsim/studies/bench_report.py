@@ -74,11 +74,12 @@ def _throughput(r: dict, kind: str) -> list[str]:
 def _galvo(r: dict) -> list[str]:
     if "galvo" not in r:
         return []
-    t, b = r["galvo"]["throughput"], r["galvo"]["budget"]
-    return ["", "### Chang'e-3 galvo imager (statistics mode, ranging errors on; 100 m plane)", "",
-            "| returns | wall [s] | returns/s | bare ray cast returns/s | ratio |", "| --- | --- | --- | --- | --- |",
-            f"| {t['returns']:,} | {t['wall_s']:.3f} | {_fmt(t['returns_per_s'])} | {_fmt(t['raycast_returns_per_s'])} "
-            f"| {t['ratio']:.2f} |", "",
+    records, b = r["galvo"]["throughput"], r["galvo"]["budget"]
+    rows = [f"| {t['scene']} | {t['triangles']:,} | {t['returns']:,} | {t['wall_s']:.3f} | {_fmt(t['returns_per_s'])} | "
+            f"{_fmt(t['raycast_returns_per_s'])} | {t['ratio']:.2f} |" for t in records]
+    return ["", "### Chang'e-3 galvo imager (statistics mode, ranging errors on, hovering at 100 m)", "",
+            "| scene | triangles | returns | wall [s] | returns/s | bare ray cast returns/s | ratio |",
+            "| --- | --- | --- | --- | --- | --- | --- |", *rows, "",
             f"Monte Carlo budget: {b['draws']} draws of a full frame ({b['slots_per_draw']:,} beams each) in "
             f"{b['wall_s']:.2f} s ({b['draws_per_s']:.1f} draws/s), compile excluded.", ""]
 
