@@ -87,8 +87,10 @@ def galvo_pulse_stage(table: wp.array2d(dtype=wp.float64), row: int, p: int, g: 
     true_gamma = gamma + g.c1
     if g.sigma_h > wp.float64(0.0) or g.sigma_v > wp.float64(0.0):
         state = wp.rand_init(int(table[ROW_SEED, p]), int((k * wp.int64(2)) % wp.int64(2147483647)))
-        true_delta += g.sigma_h * standard_normal64(state)
-        true_gamma += g.sigma_v * standard_normal64(state)
+        n_h, state = standard_normal64(state)
+        n_v, state = standard_normal64(state)
+        true_delta += g.sigma_h * n_h
+        true_gamma += g.sigma_v * n_v
     n1, n2 = mirror_normals(true_delta, true_gamma)
     put3(table, row, p, n1)
     put3(table, row + 3, p, n2)

@@ -70,8 +70,11 @@ def get3_as(table: wp.array2d(dtype=wp.float64), row: int, p: int, like: Any):
 
 @wp.func
 def standard_normal64(state: wp.uint32):
-    """Float64 standard normal deviate (Box–Muller, the uniforms drawn in separate statements)."""
+    """(float64 standard normal deviate, advanced state): Box–Muller, the uniforms drawn in separate
+    statements. A Warp function gets the state by value, so the caller must carry on with the
+    returned state or its next draw repeats this one."""
     u1 = wp.float64(wp.randf(state))
     u2 = wp.float64(wp.randf(state))
-    return wp.sqrt(wp.float64(-2.0) * wp.log(wp.max(u1, wp.float64(1.0e-12)))) * wp.cos(
+    value = wp.sqrt(wp.float64(-2.0) * wp.log(wp.max(u1, wp.float64(1.0e-12)))) * wp.cos(
         wp.float64(6.283185307179586) * u2)
+    return value, state

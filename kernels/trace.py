@@ -93,13 +93,13 @@ def _true_pose(pulses: wp.array2d(dtype=wp.float64), p: int, pose: PoseErrors):
     if pose.position_sigma > wp.float64(0.0) or pose.attitude_sigma > wp.float64(0.0):
         state = wp.rand_init(int(pulses[ROW_SEED, p]) ^ POSE_STREAM,
                              int(wp.int64(pulses[ROW_PULSE, p]) % wp.int64(2147483647)))
-        x = standard_normal64(state)
-        y = standard_normal64(state)
-        z = standard_normal64(state)
+        x, state = standard_normal64(state)
+        y, state = standard_normal64(state)
+        z, state = standard_normal64(state)
         shift = pose.position_sigma * wp.vec3d(x, y, z)
-        rx = standard_normal64(state)
-        ry = standard_normal64(state)
-        rz = standard_normal64(state)
+        rx, state = standard_normal64(state)
+        ry, state = standard_normal64(state)
+        rz, state = standard_normal64(state)
         turn = turn * _small_rotation(pose.attitude_sigma * wp.vec3d(rx, ry, rz))
     return shift, turn
 
@@ -229,10 +229,11 @@ def signed_off_nadir(direction: wp.vec3f, right: wp.vec3f):
 
 @wp.func
 def _gaussian(state: wp.uint32):
-    """Standard normal deviate by Box–Muller, the two uniforms drawn in separate statements."""
+    """(standard normal deviate, advanced state) by Box–Muller, the two uniforms drawn in separate
+    statements; the caller carries on with the returned state (Warp passes it by value)."""
     u1 = wp.randf(state)
     u2 = wp.randf(state)
-    return wp.sqrt(-2.0 * wp.log(wp.max(u1, 1.0e-12))) * wp.cos(6.283185307179586 * u2)
+    return wp.sqrt(-2.0 * wp.log(wp.max(u1, 1.0e-12))) * wp.cos(6.283185307179586 * u2), state
 
 
 @wp.func
@@ -421,7 +422,8 @@ def _slot_function(f: Features, instrument: Instrument):
             pulse = wp.int64(pulses[ROW_PULSE, p])
             state = wp.rand_init(int(pulses[ROW_SEED, p]), int((pulse * per_pulse + wp.int64(beam)) % wp.int64(2147483647)))
             if wp.static(f.noisy):
-                r = r + real(scan.noise_sigma * _gaussian(state))
+                gauss, state = _gaussian(state)
+                r = r + real(scan.noise_sigma * gauss)
             if wp.static(f.ranging):
                 g = scan.ranging
                 u1 = wp.randf(state)

@@ -43,7 +43,8 @@ def wedge_pulse_stage(table: wp.array2d(dtype=wp.float64), row: int, p: int, pri
     if prism.encoder_sigma > wp.float64(0.0):
         state = wp.rand_init(int(table[ROW_SEED, p]) ^ ENCODER_STREAM,
                              int(wp.int64(table[ROW_PULSE, p]) % wp.int64(2147483647)))
-        phi += prism.encoder_sigma * standard_normal64(state)
+        noise, state = standard_normal64(state)
+        phi += prism.encoder_sigma * noise
     put3(table, row, p, back_face_normal(phi, prism.apex))
 
 

@@ -89,12 +89,24 @@ def _range_errors(frame, **errors):
     ({"tdc_bin_s": 1.25e-10}, C / 2 * 1.25e-10 / math.sqrt(6)),  # σ_n ≈ 0.77 cm
     ({"jitter_s": 2e-11}, C / 2 * math.sqrt(2) * 2e-11),  # σ_j ≈ 0.42 cm
     ({"rise_time_s": 7e-9, "snr": 31.0, "cfd_fraction": 0.3}, C / 2 * 7e-9 / 31 * math.sqrt(1.09)),  # σ_ie
+    ({"tdc_bin_s": 1.25e-10, "jitter_s": 2e-11}, C / 2 * math.sqrt(1.25e-10 ** 2 / 6 + 2 * 2e-11 ** 2)),
 ])
 def test_each_random_ranging_error_has_its_formula_sigma(frame, errors, sigma):
     error, _ = _range_errors(frame, **errors)
     n = error.size
     assert abs(error.mean()) < 4 * sigma / math.sqrt(n)
     assert error.std() == pytest.approx(sigma, rel=4 / math.sqrt(2 * n) + 2e-3)  # + float32 points (~10 µm)
+
+
+def test_mirror_angle_noises_are_independent_with_their_sigma(frame):
+    sigma = 60.0 * ARCSEC
+    deviation, _ = frame.deviations(with_errors(frame.cfg, h_noise_arcsec=60.0, v_noise_arcsec=60.0))
+    centre = deviation.reshape(frame.pulses, frame.beams, 3)[:, 8]  # one channel: one draw per pulse
+    n = len(centre)
+    assert abs(np.corrcoef(centre[:, 0], centre[:, 1])[0, 1]) < 4 / math.sqrt(n)
+    # a mirror turned by ε turns the beam by 2ε: about 2·σ·100 m on the plane, near the centre of the field
+    assert centre[:, 0].std() == pytest.approx(2 * sigma * 100.0, rel=0.2)
+    assert centre[:, 1].std() == pytest.approx(2 * sigma * 100.0, rel=0.2)
 
 
 def test_clock_drift_and_channel_delays_are_systematic(frame):

@@ -66,6 +66,16 @@ def test_attitude_noise_rotates_about_the_sensor_origin(frame):
     assert np.abs(scaled.mean(axis=0)).max() < 5 * sigma / math.sqrt(PULSES)
 
 
+def test_position_and_attitude_noise_are_independent(frame):
+    deviation, truth, origin, _ = _run(frame, position_noise_m=0.05, attitude_noise_arcsec=60.0)
+    v = truth - origin
+    expected = np.sqrt(0.05 ** 2 + (60.0 * ARCSEC) ** 2 * (np.sum(v * v, axis=1, keepdims=True) - v * v))
+    scaled = deviation / expected  # unit normal on every axis when the six draws are independent
+    assert scaled.std(axis=0) == pytest.approx([1.0] * 3, rel=5 / math.sqrt(2 * PULSES))
+    shifts = _run(frame, position_noise_m=0.05)[0][::frame.beams]
+    assert np.abs(np.corrcoef(shifts.T)[np.triu_indices(3, 1)]).max() < 4 / math.sqrt(PULSES)
+
+
 def _azimuth_turn(deviation, truth, origin):
     """Signed turn [rad] about the vertical through the sensor from the true to the processed point."""
     a = (truth - origin)[:, :2]
