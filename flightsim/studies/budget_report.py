@@ -36,6 +36,7 @@ def run_budget(out: Path, device: str = "cpu", draws: int = 200, columns: int | 
 
     preset = preset_config("change3")
     ranging_cfg.errors = preset.errors
+    monte_carlo(frame, 2, seed=seed, ranging=ranging_cfg)  # compiles its kernels: the timing below excludes it
     mc = monte_carlo(frame, draws, seed=seed, ranging=ranging_cfg)
     sig = draw_sigmas(ranging_cfg, PAPER_ALLOWED_ARCSEC)
     analytic = galvo_model.analytic_sigma(frame.geometry, sig, frame.cfg.flight.altitude_m)
@@ -207,7 +208,7 @@ binding corner's 7.9°.
 ## Monte Carlo (device) against first-order propagation (float64)
 
 {mc['draws']} draws of every source at once (B1, B2, B3, C1 ~ N(0, allowed σ); each channel's
-delay ~ N(0, 5 cm); TDC, jitter and constant-fraction noise per return) in {mc['wall_s']:.2f} s
+delay ~ N(0, 5 cm); TDC, jitter and constant-fraction noise per return) in {mc['wall_s']:.2f} s (compilation excluded)
 ({mc['draws_per_s']:.1f} draws/s, {mc['slot_draws_per_s']:,} beam-draws/s) on `{n['device']}`.
 Per slot, Monte Carlo σ ÷ analytic σ (J Σ Jᵀ of the NumPy model): median X {mc['std_over_analytic_median'][0]:.3f},
 Y {mc['std_over_analytic_median'][1]:.3f}, Z {mc['std_over_analytic_median'][2]:.3f}; 5–95 % range
@@ -233,6 +234,7 @@ def run_risley_budget(out: Path, device: str = "cpu", draws: int = 200, seed: in
     cfg = rb.frame_config(device=device, turns=turns)
     frame = Frame(cfg, pulses=round(cfg.flight.duration_s * cfg.sensor.prf_hz))
     det = rb.deterministic(frame)
+    rb.monte_carlo(frame, 2, seed=seed)  # compiles its kernels: the timing below excludes it
     mc = rb.monte_carlo(frame, draws, seed=seed)
     numbers = rb.budget_numbers(frame, det, mc, device)
     write_atomic(out / "budget.json", json.dumps(numbers, indent=2) + "\n")
@@ -310,7 +312,7 @@ Share of the frame-mean variance, first order (E, N, U):
 | --- | --- | --- | --- |
 {shares}
 
-Monte Carlo: {mc['draws']} draws on `{n['device']}` in {mc['wall_s']:.2f} s. RMS over the frame of the per-point σ:
+Monte Carlo: {mc['draws']} draws on `{n['device']}` in {mc['wall_s']:.2f} s (compilation excluded). RMS over the frame of the per-point σ:
 E {mc['rms_cm'][0]:.2f}, N {mc['rms_cm'][1]:.2f}, U {mc['rms_cm'][2]:.2f} cm (linearised: E {mc['linearised_rms_cm'][0]:.2f},
 N {mc['linearised_rms_cm'][1]:.2f}, U {mc['linearised_rms_cm'][2]:.2f} cm); largest σ E {mc['max_cm'][0]:.2f}, N {mc['max_cm'][1]:.2f},
 U {mc['max_cm'][2]:.2f} cm. Per point, Monte Carlo σ ÷ linearised σ: median E {mc['std_over_linearised_median'][0]:.3f},
