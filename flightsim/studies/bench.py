@@ -416,5 +416,6 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
         started = time.perf_counter()
         results[name] = runners[name](device, s)
         results.setdefault("section_wall_s", {})[name] = time.perf_counter() - started
+        results.setdefault("section_measured", {})[name] = f"{results['git_commit']} {results['date']}"
         merge_and_write(Path(out), kind, results)
     return results

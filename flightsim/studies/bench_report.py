@@ -22,7 +22,9 @@ def merge_and_write(out: Path, kind: str, results: dict) -> None:
     path = out / "bench.json"
     merged = json.loads(path.read_text()) if path.exists() else {}
     entry = merged.get(kind, {})
+    per_section = {key: {**entry.get(key, {}), **results.get(key, {})} for key in ("section_wall_s", "section_measured")}
     entry.update(results)
+    entry.update(per_section)  # the sections of earlier runs keep their wall times and commits
     merged[kind] = entry
     write_atomic(path, json.dumps(merged, indent=2) + "\n")
     write_atomic(out / "bench.md", markdown(merged))
@@ -52,6 +54,9 @@ def markdown(merged: dict) -> str:
         r = merged[kind]
         lines += [f"## {kind}: {r['gpu_name']} ({r['device']}, {r.get('cpu_count')} CPU cores, commit "
                   f"{r['git_commit']}, {r['date']}{', quick' if r.get('quick') else ''})", ""]
+        if r.get("section_measured"):
+            lines += ["Sections measured at (commit, date): " + ", ".join(
+                f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
         lines += _throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r)
     return "\n".join(lines) + "\n"
 
