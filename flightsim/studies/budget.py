@@ -162,6 +162,7 @@ class MonteCarlo:
     std: np.ndarray  # (slots, 3), sample standard deviation
     hits: np.ndarray  # (slots,) draws in which the slot returned
     wall_s: float  # the draws' wall time (device work and host loop) [s]
+    drawn: np.ndarray | None = None  # (draws, sources) systematic values drawn [arcsec or as the source's unit]
 
 
 def draw_sigmas(cfg: RunConfig, allowed_arcsec: dict[str, float]) -> dict[str, float]:
@@ -197,8 +198,10 @@ def monte_carlo(frame: Frame, draws: int, allowed_arcsec: dict[str, float] | Non
     rng = np.random.default_rng(seed)
     delay_sigma = base.errors.channel_delay_m
     started = time.perf_counter()
+    drawn_values = np.empty((draws, len(ANGLE_SOURCES)))
     for i in range(draws):
         drawn = {ANGLE_SOURCES[s]: float(rng.normal(0.0, allowed[s])) for s in ANGLE_SOURCES}
+        drawn_values[i] = list(drawn.values())
         sim.scan.truth = HostInstrument(dataclasses.replace(base, errors=dataclasses.replace(base.errors, **drawn))
                                         ).deflector.params(believed=False)
         sim.scan.ranging.delays.assign(rng.normal(0.0, delay_sigma, frame.beams).astype(np.float32))
@@ -215,4 +218,4 @@ def monte_carlo(frame: Frame, draws: int, allowed_arcsec: dict[str, float] | Non
     if not np.allclose(np.abs(rot), np.round(np.abs(rot)), atol=1e-12):
         raise ValueError("the budget frame's sensor axes must be the local axes up to sign")
     perm = np.abs(rot)  # local axis of each sensor axis
-    return MonteCarlo(draws, mean @ rot, np.sqrt(np.maximum(var, 0.0)) @ perm, n.astype(np.int64), wall)
+    return MonteCarlo(draws, mean @ rot, np.sqrt(np.maximum(var, 0.0)) @ perm, n.astype(np.int64), wall, drawn_values)

@@ -15,9 +15,10 @@ from flightsim.core.atomic import write_atomic
 from flightsim.core.config import ARCSEC
 from flightsim.instrument import galvo_model
 from flightsim.instrument.ranging import sigmas
-from flightsim.studies.budget import (AXES, PAPER_ALLOWED_ARCSEC, PAPER_TABLE1_CM, Frame, deterministic,
+from flightsim.studies.budget import (ANGLE_SOURCES, AXES, PAPER_ALLOWED_ARCSEC, PAPER_TABLE1_CM, Frame, deterministic,
                                       draw_sigmas, frame_config, monte_carlo)
 
+ANGLE_NAMES = tuple(ANGLE_SOURCES)
 PAPER_IMPLIED_FIELD_DEG = 34.0  # horizontal beam field that reproduces the paper's Y, Z columns of B2, B3 [deg]
 PAPER_RANGING_CM = {"tdc": 0.77, "jitter": 0.4, "cfd": 3.3, "random": 3.4, "sigma_r": 6.04}
 PAPER_SIGMA_R_M = PAPER_RANGING_CM["sigma_r"] / 100.0
@@ -80,6 +81,8 @@ def _numbers(frame, det, mc, analytic, allowed, ranging_cfg, device, det_s) -> d
                         "std_over_analytic_p05": [float(np.nanpercentile(ratio[:, k], 5)) for k in range(3)],
                         "std_over_analytic_p95": [float(np.nanpercentile(ratio[:, k], 95)) for k in range(3)],
                         "expected_relative_error": 1.0 / math.sqrt(2.0 * (mc.draws - 1)),
+                        "drawn_sigma_arcsec": dict(zip(ANGLE_NAMES, np.std(mc.drawn, axis=0, ddof=1).round(2).tolist())),
+                        "drawn_b1_b2_correlation": round(float(np.corrcoef(mc.drawn[:, 0], mc.drawn[:, 1])[0, 1]), 3),
                         "max_std_cm": [float(np.nanmax(mc.std[ok][:, k]) * 100) for k in range(3)],
                         "max_analytic_cm": [float(np.max(analytic[ok][:, k]) * 100) for k in range(3)]},
     }
@@ -137,6 +140,7 @@ def _report(n: dict) -> str:
     mc = n["monte_carlo"]
     f = n["frame"]
     w = n["table1_cm_34deg_model"]
+    ds = mc["drawn_sigma_arcsec"]
     return f"""# Chang'e-3 laser 3D imager: full-link error budget
 
 Regenerate: `{COMMAND.format(draws=mc['draws'], device=n['device'])}` (device `{n['device']}`).
@@ -160,7 +164,8 @@ Differences, explained:
 - **B1**: the paper's Table 1 row for B1 repeats its C1 row (Y 9.17 cm constant, X 0), while its own
   text (§3.2, Fig. 5) says B1 moves the points mostly along X, odd and even strips in opposite
   directions, with small Y and Z effects. A horizontal encoder zero error turns the horizontal
-  mirror, so it moves points along X: we get |ΔX| = 2·B1·R/cos 2γ′ (4.16–4.33 cm), the sign flipping
+  mirror, so it moves points along X: we get |ΔX| = 2·B1·D / cos 2γ (D = 100 m along the axis, 2γ the
+  beam's vertical angle: 4.16–4.33 cm), the sign flipping
   strip by strip (tests/test_galvo.py checks the flip), small Y and Z. We read the table row as a
   copy of the C1 row.
 - **B2, B3: Y and Z**: ours are 12–16 % below the paper's. These columns grow as tan 2δ with the
@@ -187,7 +192,7 @@ Differences, explained:
 - Constant-fraction timing: the paper's eq. (5) is not in the text we have; our standard
   leading-edge form gives {r['cfd']:.2f} cm against its 3.3 cm ({(r['cfd'] / 3.3 - 1) * 100:+.0f} %).
 - Clock drift e_df = 2×10⁻⁶: {r['clock_drift_at_100m_mm']:.2f} mm at 100 m (R·e_df). The paper calls it
-  negligible; its "1×10⁻⁷ m" figure does not follow from its own formula (R·e_df = 0.2 mm at 100 m).
+  negligible; its "order of 10⁻⁷ m" does not follow from its own formula (R·e_df = 0.2 mm at 100 m).
 
 ## Allowed errors (§3.3)
 
@@ -214,7 +219,11 @@ Per slot, Monte Carlo σ ÷ analytic σ (J Σ Jᵀ of the NumPy model): median X
 Y {mc['std_over_analytic_median'][1]:.3f}, Z {mc['std_over_analytic_median'][2]:.3f}; 5–95 % range
 X {mc['std_over_analytic_p05'][0]:.3f}–{mc['std_over_analytic_p95'][0]:.3f}, Y {mc['std_over_analytic_p05'][1]:.3f}–{mc['std_over_analytic_p95'][1]:.3f},
 Z {mc['std_over_analytic_p05'][2]:.3f}–{mc['std_over_analytic_p95'][2]:.3f}; the expected relative error of a σ from
-{mc['draws']} draws is {mc['expected_relative_error']:.3f}. Largest σ over the field: MC
+{mc['draws']} draws is {mc['expected_relative_error']:.3f}. The angle errors are drawn once per draw for every slot, so
+the per-slot ratios move together: the drawn values' sample σ are B1 {ds['B1']:.1f}″, B2 {ds['B2']:.1f}″, B3 {ds['B3']:.1f}″,
+C1 {ds['C1']:.1f}″ (Y follows C1's), and the drawn B1 and B2 correlate by {mc['drawn_b1_b2_correlation']:+.3f}, which
+bands the Monte Carlo ΔX σ strip by strip (B1's sign flips between strips; first-order propagation
+takes them as uncorrelated). Largest σ over the field: MC
 X {mc['max_std_cm'][0]:.2f}, Y {mc['max_std_cm'][1]:.2f}, Z {mc['max_std_cm'][2]:.2f} cm; analytic
 X {mc['max_analytic_cm'][0]:.2f}, Y {mc['max_analytic_cm'][1]:.2f}, Z {mc['max_analytic_cm'][2]:.2f} cm.
 
@@ -250,14 +259,14 @@ def _risley_maps(frame, det, mc, rb, out: Path) -> None:
     import matplotlib.pyplot as plt
 
     _, truth, _ = frame.local_deviations(frame.cfg)
-    panels = [(f"{name} +1σ", det[name]["deviation"]) for name, s in rb.SOURCES.items() if s.systematic]
-    panels += [(f"Monte Carlo σ, {mc.draws} draws", mc.std), ("linearised σ", rb.linearised_sigma(det))]
+    panels = [(f"{name} +1σ", det[name]["deviation"], "coolwarm") for name, s in rb.SOURCES.items() if s.systematic]
+    panels += [(f"Monte Carlo σ, {mc.draws} draws", mc.std, "viridis"),
+               ("linearised σ", rb.linearised_sigma(det), "viridis")]
     fig, axes = plt.subplots(len(panels), 3, figsize=(12, 2.6 * len(panels)), constrained_layout=True)
-    for row, (title, values) in enumerate(panels):
+    for row, (title, values, cmap) in enumerate(panels):
         for k, axis in enumerate(rb.ENU):
             ax = axes[row, k]
-            sc = ax.scatter(truth[:, 0], truth[:, 1], c=values[:, k] * 100, s=0.5,
-                            cmap="viridis" if "σ" in title[-12:] else "coolwarm")
+            sc = ax.scatter(truth[:, 0], truth[:, 1], c=values[:, k] * 100, s=0.5, cmap=cmap)
             fig.colorbar(sc, ax=ax, label=f"Δ{axis} [cm]")
             ax.set_title(f"{title}: Δ{axis}", fontsize=9)
             ax.set_aspect("equal")
