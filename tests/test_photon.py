@@ -1,0 +1,118 @@
+"""The photon-counting detector on the device against Poisson statistics, the dead-time closed form
+and the lidar equation in float64."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+from scipy.special import gammainc
+
+from flightsim.core.errors import InputError
+from flightsim.instrument.photon import PhotonSettings, detect
+from kernels import photon
+
+C = 299_792_458.0
+SLOTS = 20_000
+GATE = (5.0, 305.0)  # [m]: a 2 µs gate
+T0 = 2 * 150.0 / C  # echo from 150 m
+
+
+def _settings(**kw) -> PhotonSettings:
+    return dataclasses.replace(PhotonSettings(gate_m=GATE, noise_hz=0.0, dead_time_s=0.0, max_events=64), **kw)
+
+
+def test_signal_counts_are_poisson_with_the_expected_mean():
+    n = 3.0
+    d = detect(_settings(), np.full(SLOTS, n), np.full(SLOTS, T0), seed=1)
+    counts = d.counts.astype(float)
+    assert abs(counts.mean() - n) < 4 * math.sqrt(n / SLOTS)
+    assert counts.var(ddof=1) / counts.mean() == pytest.approx(1.0, abs=4 * math.sqrt(2 / SLOTS))
+    times = d.times[d.times > 0]
+    sigma = _settings().sigma_t
+    assert abs(times.mean() - T0) < 4 * sigma / math.sqrt(times.size)
+    assert times.std() == pytest.approx(sigma, rel=4 / math.sqrt(2 * times.size))
+    assert d.signal[d.times > 0].all()
+
+
+def test_dead_time_saturation_matches_the_closed_form():
+    """Background only, rate r over a gate T, non-paralyzable dead time τ, live at the gate's opening:
+    the k-th detection comes at (k − 1)τ + Gamma(k, r), so E[N] = Σ_k P(k, r (T − (k − 1)τ))."""
+    rate, tau = 2e7, 5e-8
+    s = _settings(noise_hz=rate, dead_time_s=tau)
+    gate = 2 * (GATE[1] - GATE[0]) / C
+    d = detect(s, np.zeros(SLOTS), np.full(SLOTS, T0), seed=2)
+    k = np.arange(1, 200)
+    room = np.maximum(gate - (k - 1) * tau, 0.0)
+    expected = float(np.sum(np.where(room > 0, gammainc(k, rate * room), 0.0)))
+    assert rate * gate == pytest.approx(40.0, rel=1e-3) and expected < 25.0  # deep in saturation
+    counts = d.counts.astype(float)
+    assert abs(counts.mean() - expected) < 4 * counts.std() / math.sqrt(SLOTS)
+    gaps = np.diff(d.times, axis=1)[(d.times[:, 1:] > 0)]
+    assert gaps.min() >= tau * (1 - 1e-12)
+
+
+def test_background_only_histogram_is_flat():
+    s = _settings(noise_hz=2e6)
+    d = detect(s, np.zeros(SLOTS), np.full(SLOTS, T0), seed=3)
+    times = d.times[np.arange(64)[None, :] < d.counts[:, None]]
+    lo, hi = (2 * g / C for g in GATE)
+    observed, _ = np.histogram(times, bins=50, range=(lo, hi))
+    expected = times.size / 50
+    chi2 = float(np.sum((observed - expected) ** 2 / expected))
+    assert chi2 < 49 + 5 * math.sqrt(2 * 49)
+    assert times.size / SLOTS == pytest.approx(2e6 * (hi - lo), rel=4 / math.sqrt(times.size))
+    assert not d.signal.any()
+
+
+def test_signal_flag_follows_the_intensities():
+    n, rate = 2.0, 1e6
+    d = detect(_settings(noise_hz=rate), np.full(SLOTS, n), np.full(SLOTS, T0), seed=4)
+    kept = np.arange(64)[None, :] < d.counts[:, None]
+    gate = 2 * (GATE[1] - GATE[0]) / C
+    share = n / (n + rate * gate)
+    flags = d.signal[kept].astype(float)
+    assert flags.mean() == pytest.approx(share, abs=4 * math.sqrt(share * (1 - share) / flags.size))
+
+
+def test_same_seed_same_photons_and_launch_splits_change_nothing():
+    s = _settings(noise_hz=1e6, dead_time_s=2e-8)
+    n, t0 = np.full(1000, 1.5), np.full(1000, T0)
+    a, b = detect(s, n, t0, seed=9), detect(s, n, t0, seed=9)
+    assert np.array_equal(a.times, b.times) and np.array_equal(a.counts, b.counts)
+    half = detect(s, n[500:], t0[500:], seed=9, first_slot=500)
+    assert np.array_equal(a.times[500:], half.times)
+    assert not np.array_equal(a.times, detect(s, n, t0, seed=10).times)
+    if wp.is_cuda_available():
+        g = detect(s, n, t0, seed=9, device="cuda")
+        assert np.array_equal(a.counts, g.counts) and np.allclose(a.times, g.times, rtol=0, atol=1e-15)
+
+
+@wp.kernel
+def _expected(det: photon.PhotonDetector, r: wp.array(dtype=wp.float64), cos_i: wp.array(dtype=wp.float64),
+              rho: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    out[i] = photon.expected_signal(det, r[i], cos_i[i], rho[i])
+
+
+def test_expected_signal_is_the_lidar_equation():
+    s = PhotonSettings(wavelength_nm=532.0, pulse_energy_j=2e-6, aperture_m=0.1, optics_transmission=0.6, pde=0.25)
+    r = np.array([34.0, 100.0, 600.0])
+    cos_i = np.array([1.0, 0.5, 0.9])
+    rho = np.array([0.2, 0.2, 0.05])
+    out = wp.zeros(3, dtype=wp.float64, device="cpu")
+    wp.launch(_expected, 3, inputs=[s.struct(), *(wp.array(a, dtype=wp.float64, device="cpu") for a in (r, cos_i, rho))],
+              outputs=[out], device="cpu")
+    photons = 2e-6 / (6.62607015e-34 * C / 532e-9)  # photons in the pulse
+    area = math.pi * 0.05 ** 2
+    expected = photons * rho * cos_i / math.pi * area / r ** 2 * 0.6 * 0.25
+    assert out.numpy() == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("field, value", [("pde", 0.0), ("pde", 1.2), ("noise_hz", -1.0), ("dead_time_s", float("nan")),
+                                          ("gate_m", (600.0, 5.0)), ("max_events", 0)])
+def test_bad_detector_settings_name_the_field(field, value):
+    with pytest.raises(InputError, match=f"photon.{field}"):
+        dataclasses.replace(PhotonSettings(), **{field: value}).check()
