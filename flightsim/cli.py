@@ -17,7 +17,7 @@ EXIT_INVALID = 2
 
 # simulate flags that set a config field: (flag, dest, config key, help)
 CONFIG_FLAGS = [
-    ("--scene", "scene", "scene.name", "calibration (default), plane, lunar, or PATH.obj / PATH.ply"),
+    ("--scene", "scene", "scene.name", "calibration (default), plane, lunar, sandbox, ellipsoid, or PATH.obj / PATH.ply"),
     ("--altitude", "altitude", "flight.altitude_m", "flying height above ground [m] (default 500)"),
     ("--array", "array", "sensor.array", "beams per side of the N×N array, 1–64 (default 3)"),
     ("--spacing-mrad", "spacing_mrad", "sensor.spacing_mrad", "angular spacing of the sub-beams [mrad] (default 2.314)"),
@@ -119,6 +119,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     summary = simulate_to_directory(cfg, Path(args.out), overwrite=args.overwrite,
                                     progress=ProgressBar("simulate"))
+    if "photons" in summary:
+        print(f"{summary['photons']} photons ({summary['signal_photons']} signal) from {summary['pulses']} pulses "
+              f"in {summary['wall_s']:.2f} s; written to {args.out}")
+        return 0
     rms = ", ".join(f"{m} {v * 1000:.2f} mm" if v is not None else f"{m} n/a" for m, v in summary["rms_m"].items())
     points = ", ".join(f"{n} {m}" for m, n in summary["points"].items())
     print(f"{points} points from {summary['pulses']} pulses in {summary['wall_s']:.2f} s; "

@@ -16,10 +16,15 @@ same seed gives the same photons on the CPU and the GPU.
 """
 import warp as wp
 
+from kernels.frames import ROW_PULSE, ROW_SEED
+from kernels.trace import STATUS_RETURN
+
 wp.set_module_options({"enable_backward": False})
 
 SQRT1_2 = wp.constant(wp.float64(0.7071067811865476))
 INV_SQRT_2PI = wp.constant(wp.float64(0.3989422804014327))
+LIGHT_SPEED = wp.constant(wp.float64(299792458.0))  # [m/s]
+PHOTON_STREAM = wp.constant(0x68E31DA4)  # seed key of the photon streams of traced runs
 BISECTIONS = wp.constant(64)  # halvings of the gate when inverting Λ: below 1e-15 of the gate
 
 
@@ -81,20 +86,11 @@ def _uniform64(state: wp.uint32):
     return (wp.float64(bits) + wp.float64(0.5)) / wp.float64(4294967296.0), state
 
 
-@wp.kernel
-def photon_events(det: PhotonDetector, seed: int, first_slot: wp.int64, n_signal: wp.array(dtype=wp.float64),
-                  t0: wp.array(dtype=wp.float64), times: wp.array2d(dtype=wp.float64),
-                  signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
-    """Detections of each slot (a pixel of a pulse): times of flight [s] in order, signal flag, count.
-
-    Slot i draws from the stream keyed by (seed, first_slot + i), so splitting a run into launches
-    never changes a photon.
-    """
-    i = wp.tid()
-    key = (first_slot + wp.int64(i)) % wp.int64(2147483647)
-    state = wp.rand_init(seed, int(key))
-    n = n_signal[i]
-    echo = t0[i]
+@wp.func
+def detect(det: PhotonDetector, state: wp.uint32, n: wp.float64, echo: wp.float64, row: int,
+           times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8)):
+    """Sample one pixel's detections of one pulse (expected signal ``n`` echoing at time of flight
+    ``echo`` [s]) into row ``row`` of ``times`` [s] and ``signal``, in time order; return their count."""
     live = det.gate_open
     total = integrated_intensity(det, det.gate_close, echo, n)
     count = int(0)
@@ -107,11 +103,57 @@ def photon_events(det: PhotonDetector, seed: int, first_slot: wp.int64, n_signal
         z = (t - echo) / det.sigma_t
         signal_rate = n * INV_SQRT_2PI * wp.exp(wp.float64(-0.5) * z * z) / det.sigma_t
         v, state = _uniform64(state)
-        times[i, count] = t
+        times[row, count] = t
         flag = wp.int8(0)
         if v * (signal_rate + det.noise_rate) < signal_rate:
             flag = wp.int8(1)
-        signal[i, count] = flag
+        signal[row, count] = flag
         count += 1
         live = t + det.dead_time
-    counts[i] = count
+    return count
+
+
+@wp.kernel
+def photon_events(det: PhotonDetector, seed: int, first_slot: wp.int64, n_signal: wp.array(dtype=wp.float64),
+                  t0: wp.array(dtype=wp.float64), times: wp.array2d(dtype=wp.float64),
+                  signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
+    """Detections of slots given their expected signal and echo time (slot i keyed by (seed, first_slot + i),
+    so splitting a run into launches never changes a photon)."""
+    i = wp.tid()
+    state = wp.rand_init(seed, int((first_slot + wp.int64(i)) % wp.int64(2147483647)))
+    counts[i] = detect(det, state, n_signal[i], t0[i], i, times, signal)
+
+
+@wp.kernel
+def photon_slots(det: PhotonDetector, reflectance: wp.float64, pulses: wp.array2d(dtype=wp.float64), per_pulse: int,
+                 status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),
+                 cos_incidence: wp.array(dtype=wp.float32), times: wp.array2d(dtype=wp.float64),
+                 signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
+    """The detections of each slot of a traced chunk: its return (if any) through the lidar equation,
+    background and dark counts over the whole gate. Keyed by (line seed, pulse · beams + beam)."""
+    slot = wp.tid()
+    p = slot // per_pulse
+    beam = slot % per_pulse
+    n = wp.float64(0.0)
+    echo = det.gate_open
+    if status[slot] == STATUS_RETURN:
+        r = wp.float64(ranges[slot])
+        n = expected_signal(det, r, wp.float64(cos_incidence[slot]), reflectance)
+        echo = wp.float64(2.0) * r / LIGHT_SPEED
+    key = (wp.int64(pulses[ROW_PULSE, p]) * wp.int64(per_pulse) + wp.int64(beam)) % wp.int64(2147483647)
+    state = wp.rand_init(int(pulses[ROW_SEED, p]) ^ PHOTON_STREAM, int(key))
+    counts[slot] = detect(det, state, n, echo, slot, times, signal)
+
+
+@wp.kernel
+def gather_events(counts: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                  times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8),
+                  out_slot: wp.array(dtype=wp.int32), out_time: wp.array(dtype=wp.float64),
+                  out_signal: wp.array(dtype=wp.int8)):
+    """Compact the detections of every slot into flat arrays at the slot's offset (exclusive scan of counts)."""
+    slot = wp.tid()
+    base = offsets[slot]
+    for k in range(counts[slot]):
+        out_slot[base + k] = slot
+        out_time[base + k] = times[slot, k]
+        out_signal[base + k] = signal[slot, k]

@@ -11,7 +11,8 @@ import warp as wp
 from scipy.special import gammainc
 
 from flightsim.core.errors import InputError
-from flightsim.instrument.photon import PhotonSettings, detect
+from flightsim.core.config import PhotonConfig
+from flightsim.instrument.photon import check_settings, detect, detector_struct, sigma_t
 from kernels import photon
 
 C = 299_792_458.0
@@ -20,8 +21,8 @@ GATE = (5.0, 305.0)  # [m]: a 2 µs gate
 T0 = 2 * 150.0 / C  # echo from 150 m
 
 
-def _settings(**kw) -> PhotonSettings:
-    return dataclasses.replace(PhotonSettings(gate_m=GATE, noise_hz=0.0, dead_time_s=0.0, max_events=64), **kw)
+def _settings(**kw) -> PhotonConfig:
+    return dataclasses.replace(PhotonConfig(gate_m=GATE, noise_hz=0.0, dead_time_s=0.0, max_events=64), **kw)
 
 
 def test_signal_counts_are_poisson_with_the_expected_mean():
@@ -31,7 +32,7 @@ def test_signal_counts_are_poisson_with_the_expected_mean():
     assert abs(counts.mean() - n) < 4 * math.sqrt(n / SLOTS)
     assert counts.var(ddof=1) / counts.mean() == pytest.approx(1.0, abs=4 * math.sqrt(2 / SLOTS))
     times = d.times[d.times > 0]
-    sigma = _settings().sigma_t
+    sigma = sigma_t(_settings())
     assert abs(times.mean() - T0) < 4 * sigma / math.sqrt(times.size)
     assert times.std() == pytest.approx(sigma, rel=4 / math.sqrt(2 * times.size))
     assert d.signal[d.times > 0].all()
@@ -98,12 +99,12 @@ def _expected(det: photon.PhotonDetector, r: wp.array(dtype=wp.float64), cos_i: 
 
 
 def test_expected_signal_is_the_lidar_equation():
-    s = PhotonSettings(wavelength_nm=532.0, pulse_energy_j=2e-6, aperture_m=0.1, optics_transmission=0.6, pde=0.25)
+    s = PhotonConfig(wavelength_nm=532.0, pulse_energy_j=2e-6, aperture_m=0.1, optics_transmission=0.6, pde=0.25)
     r = np.array([34.0, 100.0, 600.0])
     cos_i = np.array([1.0, 0.5, 0.9])
     rho = np.array([0.2, 0.2, 0.05])
     out = wp.zeros(3, dtype=wp.float64, device="cpu")
-    wp.launch(_expected, 3, inputs=[s.struct(), *(wp.array(a, dtype=wp.float64, device="cpu") for a in (r, cos_i, rho))],
+    wp.launch(_expected, 3, inputs=[detector_struct(s), *(wp.array(a, dtype=wp.float64, device="cpu") for a in (r, cos_i, rho))],
               outputs=[out], device="cpu")
     photons = 2e-6 / (6.62607015e-34 * C / 532e-9)  # photons in the pulse
     area = math.pi * 0.05 ** 2
@@ -115,4 +116,65 @@ def test_expected_signal_is_the_lidar_equation():
                                           ("gate_m", (600.0, 5.0)), ("max_events", 0)])
 def test_bad_detector_settings_name_the_field(field, value):
     with pytest.raises(InputError, match=f"photon.{field}"):
-        dataclasses.replace(PhotonSettings(), **{field: value}).check()
+        check_settings(dataclasses.replace(PhotonConfig(), **{field: value}))
+
+
+def test_traced_run_counts_the_lidar_equation_of_every_beam(tmp_path):
+    """The galvo imager hovering 100 m over the plane, no background, no dead time: the signal photons
+    of all beams are Poisson with mean Σ n_b, n_b the lidar equation at each beam's own range and
+    incidence from the float64 reference trace; signal times of flight sit at 2R/c."""
+    import h5py
+    import subprocess
+    import sys
+
+    from flightsim.instrument import galvo_model
+    from flightsim.instrument.galvo_model import GalvoGeometry
+
+    frames, columns = 4, 8
+    settings = ["instrument.detector=photon", f"galvo.columns={columns}", f"flight.duration_s={0.1 * frames}",
+                "photon.noise_hz=0", "photon.dead_time_s=0", "photon.max_events=64", "photon.pulse_energy_j=2e-9",
+                "errors.channel_delay_m=0", "errors.jitter_s=0", "errors.tdc_bin_s=0", "errors.rise_time_s=0",
+                "errors.clock_drift=0"]
+    run = subprocess.run([sys.executable, "-m", "flightsim", "simulate", "--instrument", "change3", "--out",
+                          str(tmp_path / "run"), *[a for s in settings for a in ("--set", s)]],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    with h5py.File(tmp_path / "run" / "photons.h5") as f:
+        g = {k: v[:] for k, v in f["photons"].items()}
+    assert (g["signal"] == 1).all()  # no background: every photon is signal
+    assert np.allclose(g["range_m"], g["time_of_flight_s"] * C / 2, rtol=1e-15)
+
+    geom = GalvoGeometry(strips=17, columns=columns)
+    delta, gamma, _ = galvo_model.raster_angles(geom)
+    start, ray = galvo_model.trace(geom, delta[:, None], gamma[:, None], np.arange(16)[None, :])
+    r = (100.0 - start[..., 2]) / ray[..., 2]  # the plane lies 100 m down the optical axis
+    photons = 2e-9 / (6.62607015e-34 * C / 532e-9)
+    n = photons * 0.2 * ray[..., 2] / math.pi * (math.pi * 0.025 ** 2) / r ** 2 * 0.5 * 0.2
+    import json
+
+    pulses = json.loads((tmp_path / "run" / "summary.json").read_text())["pulses"]
+    expected = n.sum(axis=1)[np.arange(pulses) % (17 * columns)].sum()
+    assert abs(len(g["pulse"]) - expected) < 4 * math.sqrt(expected)
+    frame_slot = (g["pulse"] % (17 * columns)) * 16 + g["pixel"]
+    bias = g["range_m"] - r.reshape(-1)[frame_slot]
+    sigma_r = sigma_t(PhotonConfig()) * C / 2
+    assert abs(bias.mean()) < 4 * sigma_r / math.sqrt(bias.size) + 2e-5  # + float32 ranges of the trace
+    assert bias.std() == pytest.approx(sigma_r, rel=0.05)
+
+
+@pytest.mark.parametrize("args, field", [
+    (["simulate", "--set", "instrument.detector=photon", "--set", "photon.pde=1.5"], "photon.pde"),
+    (["simulate", "--set", "instrument.detector=photon", "--set", "photon.noise_hz=-5"], "photon.noise_hz"),
+    (["simulate", "--set", "instrument.detector=photon", "--set", "photon.gate_m=600,5"], "photon.gate_m"),
+    (["simulate", "--set", "instrument.detector=spad9"], "instrument.detector"),
+    (["sweep", "--set", "instrument.detector=photon", "--altitudes", "500"], "instrument.detector"),
+])
+def test_bad_photon_input_exits_2_naming_the_field(tmp_path, args, field):
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "flightsim", *args, "--out", str(tmp_path / "o")],
+                         capture_output=True, text=True)
+    assert run.returncode == 2, run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and field in lines[0], run.stderr

@@ -17,10 +17,10 @@ from typing import Any
 from flightsim.core.errors import InputError
 
 MODELS = ("exact", "nominal")
-BUILTIN_SCENES = ("calibration", "plane", "lunar")
+BUILTIN_SCENES = ("calibration", "plane", "lunar", "sandbox", "ellipsoid")
 EMITTERS = ("fan", "channels")
 DEFLECTORS = ("risley", "galvo", "fixed")
-DETECTORS = ("discrete",)
+DETECTORS = ("discrete", "photon")
 PLATFORMS = ("lines", "hover")
 ARCSEC = math.pi / (180.0 * 3600.0)  # [rad per arcsecond]
 CHANGE3_CHANNELS_MRAD = tuple(float(17 - 2 * i) for i in range(1, 17))  # θ_i = 17 − 2i (seed paper §2.3)
@@ -89,7 +89,7 @@ class InstrumentConfig:
 
     emitter: str = "fan"  # "fan": the N×N DOE fan of [sensor]; "channels": the linear array of [channels]
     deflector: str = "risley"  # "risley": the wedge of [sensor]; "galvo": the two mirrors of [galvo]; "fixed"
-    detector: str = "discrete"  # discrete returns
+    detector: str = "discrete"  # "discrete": one return per beam; "photon": photon events of a SPAD pixel ([photon])
 
 
 @dataclass
@@ -142,6 +142,24 @@ class ErrorsConfig:
                                                                                  "sensor axis per pulse, 1 sigma"))
     cfd_fraction: float = field(default=0.3, metadata=_num(0.0, 1.0, "constant fraction k"))
     snr: float = field(default=31.0, metadata=_num(0.0, 1.0e6, "echo signal-to-noise ratio", lo_open=True))
+
+
+@dataclass
+class PhotonConfig:
+    """The photon-counting detector (kernels.photon): one SPAD pixel with its own TDC per beam."""
+
+    wavelength_nm: float = field(default=532.0, metadata=_num(100.0, 20000.0, "nm"))
+    pulse_energy_j: float = field(default=1.0e-9, metadata=_num(0.0, 10.0, "J per beam", lo_open=True))
+    aperture_m: float = field(default=0.05, metadata=_num(0.0, 10.0, "m, receiver diameter", lo_open=True))
+    optics_transmission: float = field(default=0.5, metadata=_num(0.0, 1.0, "receiver optics", lo_open=True))
+    pde: float = field(default=0.2, metadata=_num(0.0, 1.0, "photon detection efficiency", lo_open=True))
+    pulse_fwhm_s: float = field(default=1.0e-9, metadata=_num(0.0, 1.0e-6, "s", lo_open=True))
+    jitter_s: float = field(default=1.0e-10, metadata=_num(0.0, 1.0e-6, "s, timing jitter, 1 sigma"))
+    gate_m: tuple[float, float] = (5.0, 600.0)  # range gate, one-way [m]
+    noise_hz: float = field(default=1.0e5, metadata=_num(0.0, 1.0e10, "Hz, background and dark counts per pixel"))
+    dead_time_s: float = field(default=5.0e-8, metadata=_num(0.0, 1.0e-3, "s, non-paralyzable"))
+    max_events: int = field(default=8, metadata=_num(1, 256, "detections per pixel and pulse", integer=True))
+    reflectance: float = field(default=0.2, metadata=_num(0.0, 1.0, "Lambertian, every face", lo_open=True))
 
 
 @dataclass
@@ -201,6 +219,7 @@ class RunConfig:
     channels: ChannelsConfig = field(default_factory=ChannelsConfig)
     galvo: GalvoConfig = field(default_factory=GalvoConfig)
     errors: ErrorsConfig = field(default_factory=ErrorsConfig)
+    photon: PhotonConfig = field(default_factory=PhotonConfig)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
@@ -284,7 +303,7 @@ def _check_vector(name: str, value: Any, limit: float, unit: str) -> None:
             raise InputError(name, value, allowed)
 
 
-def _check_fields(section_name: str, section: Any) -> None:
+def check_fields(section_name: str, section: Any) -> None:
     """Range-check every numeric field that declares a range in its metadata."""
     for f in dataclasses.fields(section):
         if "range" in f.metadata:
@@ -346,7 +365,7 @@ def _check_choices(cfg: RunConfig) -> None:
 def validate(cfg: RunConfig) -> RunConfig:
     """Check every field; return the resolved config or raise InputError naming the field."""
     for section in dataclasses.fields(cfg):
-        _check_fields(section.name, getattr(cfg, section.name))
+        check_fields(section.name, getattr(cfg, section.name))
     _check_choices(cfg)
     _check_optics(cfg)
     resolved = resolve(cfg)
@@ -448,7 +467,8 @@ def _toml_value(value: Any) -> str:
     return '"' + str(value).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-PART_SECTIONS = {"channels": ("emitter", "channels"), "galvo": ("deflector", "galvo")}  # written when chosen
+PART_SECTIONS = {"channels": ("emitter", "channels"), "galvo": ("deflector", "galvo"),  # written when chosen
+                 "photon": ("detector", "photon")}
 
 
 def to_toml(cfg: RunConfig) -> str:

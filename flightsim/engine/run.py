@@ -28,7 +28,7 @@ def prepare_output(directory: Path, cfg_text: str, overwrite: bool) -> None:
     if present:
         previous = directory / "run.toml"
         same = previous.is_file() and previous.read_text(encoding="utf-8") == cfg_text
-        only_temporaries = present <= {f".{name}.part" for name in ("run.toml", "summary.json")}
+        only_temporaries = present <= {f".{name}.part" for name in ("run.toml", "summary.json", "photons.h5")}
         unfinished_same = "summary.json" not in present and (same or only_temporaries)
         if not (overwrite or unfinished_same):
             raise InputError("--out", str(directory),
@@ -44,7 +44,7 @@ def _remove_run(directory: Path) -> None:
     """Delete a run's files in an order that a kill at any moment leaves resumable: the completion
     marker summary.json first, the tiles and temporaries next, and run.toml, which names the
     config of the unfinished run, last."""
-    for name in ("summary.json", *MODELS):
+    for name in ("summary.json", "photons.h5", *MODELS):
         target = directory / name
         if target.is_dir():
             shutil.rmtree(target)
@@ -69,6 +69,8 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     cfg_text = to_toml(cfg)
     prepare_output(directory, cfg_text, overwrite)
     write_atomic(directory / "run.toml", cfg_text)
+    if cfg.instrument.detector == "photon":
+        return _photons_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
     buffer = edge_buffer_m(cfg)
     simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
     las = LasOutput(directory, cfg, scene, simulator.timing, edge_distance=buffer > 0.0)
@@ -97,10 +99,44 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         "wall_s": round(counts.wall_s, 4),
         "rms_m": stats.rms_m(),
         "edge_buffer_m": buffer,
-        "instrument": {"emitter": cfg.instrument.emitter, "deflector": cfg.instrument.deflector},
+        "instrument": {"emitter": cfg.instrument.emitter, "deflector": cfg.instrument.deflector,
+                       "detector": cfg.instrument.detector},
         **({"apex_angle_deg": cfg.sensor.apex_angle_deg} if cfg.instrument.deflector == "risley" else {}),
         "lines": {str(k): v for k, v in counts.per_line.items()},
         "tiles": tiles,
+    }
+    write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, cfg_text: str,
+                          progress: Callable[[int, int], None] | None) -> dict:
+    """Photon mode: every detection into photons.h5, then summary.json."""
+    from flightsim.engine.simulate import Simulator
+    from flightsim.outputs.photons_h5 import PhotonWriter
+
+    simulator = Simulator(cfg, scene, trajectories)
+    writer = PhotonWriter(directory, cfg_text, simulator.timing.prf_hz)
+    try:
+        counts = simulator.run_photons(writer, progress)
+        name = writer.close()
+    except BaseException:
+        writer.abort()
+        raise
+    summary = {
+        "flightsim": __version__,
+        "scene": cfg.scene.name,
+        "device": simulator.device,
+        "instrument": {"emitter": cfg.instrument.emitter, "deflector": cfg.instrument.deflector,
+                       "detector": cfg.instrument.detector},
+        "pulses": counts.pulses,
+        "pulses_culled": counts.pulses_culled,
+        "beams_fired": counts.beams_fired,
+        "photons": writer.count,
+        "signal_photons": writer.signal,
+        "wall_s": round(counts.wall_s, 4),
+        "lines": {str(k): v for k, v in counts.per_line.items()},
+        "files": [name],
     }
     write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary

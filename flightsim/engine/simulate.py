@@ -6,6 +6,8 @@ cross to the host) or per-plane float64 moments (statistics mode: only the sums 
 """
 from __future__ import annotations
 
+import dataclasses
+
 import functools
 import math
 import time
@@ -18,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from flightsim.engine.chunks import Segment, line_table, pack, segment_tables
 from flightsim.core.config import MODELS, RunConfig
+from flightsim.core.errors import InputError
 from flightsim.engine.coverage import pulse_windows
 from flightsim.scenes.edges import boundary_segments
 from flightsim.instrument.fan import trace_fan
@@ -55,6 +58,21 @@ class ReturnChunk:
     edge_distance_m: np.ndarray | None  # (m,) float32 true hit to its plane boundary, capped [m]
     points: dict[str, np.ndarray]  # georeferencing model -> (m, 3) float64 local [m]
     true_points: np.ndarray | None  # (m, 3) float64 local [m], when asked for
+
+    def __len__(self) -> int:
+        return len(self.pulse)
+
+
+@dataclass
+class PhotonChunk:
+    """The photon detections of one chunk of pulses of one flight line (host arrays, one row per photon)."""
+
+    line_id: int
+    start_time: float  # adjusted standard GPS time of the line's pulse 0 [s]
+    pulse: np.ndarray  # (m,) int64 pulse index within the line
+    pixel: np.ndarray  # (m,) int32 beam (pixel) index
+    time_of_flight_s: np.ndarray  # (m,) float64 [s]
+    signal: np.ndarray  # (m,) bool: the photon came from the pulse (truth), else background or dark count
 
     def __len__(self) -> int:
         return len(self.pulse)
@@ -262,6 +280,7 @@ class Simulator:
     def run(self, consume: Callable[[ReturnChunk], None],
             progress: Callable[[int, int], None] | None = None) -> RunCounts:
         """Points mode: call ``consume`` with the returns of each line's part of each chunk; return the counts."""
+        self._require_discrete("points")
         started = time.perf_counter()
         counts = RunCounts()
         buffers = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.rows.total,
@@ -276,6 +295,57 @@ class Simulator:
                 counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
                 consume(part)
         return self._finish(counts, buffers.counters, started)
+
+    def _require_discrete(self, mode: str) -> None:
+        if self.cfg.instrument.detector != "discrete":
+            raise InputError("instrument.detector", self.cfg.instrument.detector,
+                             f"discrete for {mode} mode (sweeps, surveys, studies); photon runs go through "
+                             "flightsim simulate")
+
+    def run_photons(self, consume: Callable[[PhotonChunk], None],
+                    progress: Callable[[int, int], None] | None = None) -> RunCounts:
+        """Photon mode (``instrument.detector = "photon"``): trace every beam, turn its return into the
+        detections of its SPAD pixel on the device, and call ``consume`` with each line's part of each
+        chunk's detections; ``RunCounts.returns`` counts the photons."""
+        from kernels import photon
+
+        started = time.perf_counter()
+        counts = RunCounts()
+        buffers = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.rows.total,
+                                self.device)
+        events = _PhotonBuffers(len(buffers.status), self.cfg.photon.max_events, self.device)
+        det = self.instrument.detector.struct()
+        ranges_only = dataclasses.replace(self.features, exact=False, nominal=False, edges=False)  # no georeferencing
+        kernel = trace.points_kernel(ranges_only, self.instrument.kernel, max_registers=self.max_registers)
+        for chunk in self._chunks(buffers.pulses, counts, progress):
+            n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
+            wp.launch(kernel, n_slots, inputs=[buffers.pulses, self.scan], outputs=buffers.slot_outputs(),
+                      device=self.device)
+            wp.launch(photon.photon_slots, n_slots,
+                      inputs=[det, self.cfg.photon.reflectance, buffers.pulses, self.beams_per_pulse, buffers.status,
+                              buffers.ranges, buffers.cos_incidence],
+                      outputs=[events.times, events.signal, events.counts], device=self.device)
+            slot, tof, signal = events.gather(n_slots)
+            counts.returns += len(slot)
+            for part in self._photon_parts(chunk, slot, tof, signal):
+                counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
+                consume(part)
+        return self._finish(counts, buffers.counters, started)
+
+    def _photon_parts(self, chunk: list[Segment], slot: np.ndarray, tof: np.ndarray,
+                      signal: np.ndarray) -> list[PhotonChunk]:
+        """Split a chunk's detections (ordered by slot) by flight line."""
+        pulse = slot // self.beams_per_pulse  # within the chunk
+        starts = np.cumsum([0] + [s.count for s in chunk])
+        bounds = np.searchsorted(pulse, starts)
+        parts = []
+        for segment, a, b, offset in zip(chunk, bounds[:-1], bounds[1:], starts[:-1]):
+            if b > a:
+                trajectory = self.trajectories[segment.line]
+                parts.append(PhotonChunk(trajectory.line_id, trajectory.start_time, segment.first + pulse[a:b] - offset,
+                                         (slot[a:b] % self.beams_per_pulse).astype(np.int32), tof[a:b],
+                                         signal[a:b].astype(bool)))
+        return parts
 
     def accumulate_deviations(self, sums: wp.array, squares: wp.array, hits: wp.array) -> RunCounts:
         """Budget mode: add each slot's believed − true point [m, local] and its square to float64 sums on
@@ -315,6 +385,7 @@ class Simulator:
         ``share`` = (k, n) runs only every n-th chunk from the k-th, so n processes can split a run
         and add their sums.
         """
+        self._require_discrete("statistics")
         started = time.perf_counter()
         counts = RunCounts()
         spt = slots_per_thread or self.cfg.run.slots_per_thread or SLOTS_PER_THREAD[self.device_kind]
@@ -466,6 +537,31 @@ class Simulator:
                     pulse=segment.first + pulse[a:b] - offset, beam=(slots[a:b] % self.beams_per_pulse).astype(np.int32),
                     **_sliced(fields, a, b)))
         return parts
+
+
+class _PhotonBuffers:
+    """Device arrays of photon mode: each slot's detections, and the flat compacted events."""
+
+    def __init__(self, slots: int, max_events: int, device: str):
+        self.device = device
+        self.times = wp.empty((slots, max_events), dtype=wp.float64, device=device)
+        self.signal = wp.empty((slots, max_events), dtype=wp.int8, device=device)
+        self.counts = wp.empty(slots, dtype=wp.int32, device=device)
+        self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
+        self.slot = wp.empty(slots * max_events, dtype=wp.int32, device=device)
+        self.tof = wp.empty(slots * max_events, dtype=wp.float64, device=device)
+        self.flag = wp.empty(slots * max_events, dtype=wp.int8, device=device)
+
+    def gather(self, n_slots: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(slot within the chunk, time of flight [s], signal flag) of every detection, ordered by slot."""
+        from kernels import photon
+
+        counts, offsets = self.counts[:n_slots], self.offsets[:n_slots]
+        wp.utils.array_scan(counts, offsets, inclusive=False)
+        n = int(offsets[n_slots - 1:].numpy()[0] + counts[n_slots - 1:].numpy()[0])
+        wp.launch(photon.gather_events, n_slots, inputs=[counts, offsets, self.times, self.signal],
+                  outputs=[self.slot, self.tof, self.flag], device=self.device)
+        return (self.slot[:n].numpy().astype(np.int64), self.tof[:n].numpy().copy(), self.flag[:n].numpy().copy())
 
 
 def _pulse_table(pulses: int, rows: int, device: str) -> wp.array:

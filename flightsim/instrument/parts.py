@@ -12,11 +12,13 @@ from flightsim.core.config import RunConfig
 from flightsim.instrument.emitters import ChannelEmitter, FanEmitter
 from flightsim.instrument.fixed import FixedDeflector
 from flightsim.instrument.galvo import GalvoDeflector
+from flightsim.instrument.photon import DiscreteDetector, PhotonDetector
 from flightsim.instrument.risley import RisleyDeflector
 from kernels.parts import Instrument
 
 EMITTERS = {"fan": FanEmitter, "channels": ChannelEmitter}
 DEFLECTORS = {"risley": RisleyDeflector, "galvo": GalvoDeflector, "fixed": FixedDeflector}
+DETECTORS = {"discrete": DiscreteDetector, "photon": PhotonDetector}
 
 
 class HostInstrument:
@@ -26,10 +28,12 @@ class HostInstrument:
         self.cfg = cfg
         self.emitter = EMITTERS[cfg.instrument.emitter](cfg)
         self.deflector = DEFLECTORS[cfg.instrument.deflector](cfg)
+        self.detector = DETECTORS[cfg.instrument.detector](cfg)
 
     def check(self) -> None:
         self.emitter.check()
         self.deflector.check()
+        self.detector.check()
 
     @functools.cached_property
     def kernel(self) -> Instrument:

@@ -1,0 +1,68 @@
+"""Photon events to HDF5 (h5py): one row per detection, the way photon-counting products (e.g. ICESat-2
+ATL03) keep them. ``photons.h5``:
+
+/photons/line_id            int32    flight line
+/photons/pulse              int64    pulse index within its line
+/photons/pixel              int32    detector pixel (beam) index
+/photons/delta_time         float64  adjusted standard GPS time of the pulse [s]
+/photons/time_of_flight_s   float64  round-trip time of flight from the exit point [s]
+/photons/range_m            float64  one-way range, c·t/2 [m]
+/photons/signal             uint8    truth: 1 the photon came from the pulse's echo, 0 background or dark count
+
+The file's attributes hold the run's config (TOML) and the flightsim version. It is written under a
+temporary name and renamed when complete.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from flightsim import __version__
+
+C = 299_792_458.0
+FIELDS = {"line_id": np.int32, "pulse": np.int64, "pixel": np.int32, "delta_time": np.float64,
+          "time_of_flight_s": np.float64, "range_m": np.float64, "signal": np.uint8}
+
+
+class PhotonWriter:
+    """Appends PhotonChunks to ``directory/photons.h5``; ``close()`` renames it into place."""
+
+    def __init__(self, directory: Path, cfg_text: str, prf_hz: float):
+        self.path = directory / "photons.h5"
+        self.part = directory / ".photons.h5.part"
+        self.prf_hz = prf_hz
+        self.file = h5py.File(self.part, "w")
+        self.file.attrs["flightsim"] = __version__
+        self.file.attrs["config_toml"] = cfg_text
+        group = self.file.create_group("photons")
+        self.data = {name: group.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(1 << 16,))
+                     for name, dtype in FIELDS.items()}
+        self.count = 0
+        self.signal = 0
+
+    def __call__(self, chunk) -> None:
+        n = len(chunk)
+        if n == 0:
+            return
+        columns = {"line_id": np.full(n, chunk.line_id), "pulse": chunk.pulse, "pixel": chunk.pixel,
+                   "delta_time": chunk.start_time + chunk.pulse / self.prf_hz,
+                   "time_of_flight_s": chunk.time_of_flight_s, "range_m": chunk.time_of_flight_s * (C / 2.0),
+                   "signal": chunk.signal}
+        for name, values in columns.items():
+            dataset = self.data[name]
+            dataset.resize((self.count + n,))
+            dataset[self.count:] = values
+        self.count += n
+        self.signal += int(np.count_nonzero(chunk.signal))
+
+    def close(self) -> str:
+        self.file.close()
+        os.replace(self.part, self.path)
+        return self.path.name
+
+    def abort(self) -> None:
+        self.file.close()
+        self.part.unlink(missing_ok=True)
