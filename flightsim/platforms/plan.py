@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.core.config import RunConfig
+from flightsim.core.config import BUILTIN_SCENES, RunConfig
 from flightsim.core.errors import InputError
 from flightsim.scenes.meshio import load_mesh
 from flightsim.scenes.scene import (Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene,
@@ -57,8 +57,12 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
         from flightsim.scenes.lunar import lunar_scene
 
         return lunar_scene(half, origin, crs, seed=cfg.run.seed, slope=cfg.scene.slope)
+    if name in ("sandbox", "ellipsoid"):  # fixed-size small-body scenes
+        from flightsim.scenes import smallbody
+
+        return getattr(smallbody, f"{name}_scene")(origin, crs, seed=cfg.run.seed)
     if not Path(name).is_file():
-        raise InputError("scene.name", name, "calibration, plane, or the path of an existing .obj/.ply mesh")
+        raise InputError("scene.name", name, f"{', '.join(BUILTIN_SCENES)}, or the path of an existing .obj/.ply mesh")
     return load_mesh(name, crs, origin)
 
 
