@@ -19,7 +19,7 @@ from flightsim.core.errors import InputError
 MODELS = ("exact", "nominal")
 BUILTIN_SCENES = ("calibration", "plane", "lunar", "sandbox", "ellipsoid")
 EMITTERS = ("fan", "channels")
-DEFLECTORS = ("risley", "galvo", "fixed")
+DEFLECTORS = ("risley", "galvo", "fsm", "fixed")
 DETECTORS = ("discrete", "photon")
 PLATFORMS = ("lines", "hover")
 ARCSEC = math.pi / (180.0 * 3600.0)  # [rad per arcsecond]
@@ -88,7 +88,8 @@ class InstrumentConfig:
     """Which parts make the instrument (ARCHITECTURE.md, "Instruments as parts")."""
 
     emitter: str = "fan"  # "fan": the N×N DOE fan of [sensor]; "channels": the linear array of [channels]
-    deflector: str = "risley"  # "risley": the wedge of [sensor]; "galvo": the two mirrors of [galvo]; "fixed"
+    deflector: str = "risley"  # "risley": the wedge of [sensor]; "galvo": the two mirrors of [galvo];
+    # "fsm": the 45° mirror and fast steering mirror of [fsm]; "fixed"
     detector: str = "discrete"  # "discrete": one return per beam; "photon": photon events of a SPAD pixel ([photon])
 
 
@@ -114,6 +115,21 @@ class GalvoConfig:
 
 
 @dataclass
+class FsmConfig:
+    """The fast-steering-mirror path and its scan (kernels.fsm): MODE-A or MODE-B."""
+
+    b2_mm: float = field(default=30.0, metadata=_num(0.0, 1000.0, "mm, grating to the 45° mirror", lo_open=True))
+    d_mm: float = field(default=40.0, metadata=_num(0.0, 1000.0, "mm, 45° mirror to the FSM", lo_open=True))
+    aperture_mm: float = field(default=25.0, metadata=_num(0.0, 1000.0, "mm, half size of each mirror", lo_open=True))
+    mode: str = "A"  # "A": triangle-wave sweeps in x, steps in y (sub-pixel interleave); "B": a steps × steps grid
+    span_mrad: tuple[float, float] = (2.62, 1.80)  # full FSM tilt span of the pattern (θx, θy) [mrad]
+    lines: int = field(default=40, metadata=_num(1, 65536, "MODE-A sweeps per frame, MODE-B steps per axis",
+                                                  integer=True))
+    frame_s: float = field(default=0.86, metadata=_num(0.0, 3600.0, "s per frame", lo_open=True))
+    prf_hz: float = field(default=50000.0, metadata=_num(0.0, 1.0e7, "Hz", lo_open=True))
+
+
+@dataclass
 class ErrorsConfig:
     """Error sources applied to the truth while the processing believes the nominal instrument
     (seed paper §2); all off by default."""
@@ -134,6 +150,9 @@ class ErrorsConfig:
                                                                             "error (risley)"))
     encoder_noise_arcsec: float = field(default=0.0, metadata=_num(0.0, 3600.0, "arcsec, prism angle per pulse, "
                                                                                 "1 sigma (risley)"))
+    fsm_zero_arcsec: tuple[float, float] = (0.0, 0.0)  # FSM encoder zero errors of θx, θy on the truth [arcsec]
+    fsm_noise_arcsec: float = field(default=0.0, metadata=_num(0.0, 3600.0, "arcsec, FSM tilt noise per axis and "
+                                                                            "pulse, 1 sigma"))
     boresight_arcsec: tuple[float, float, float] = (0.0, 0.0, 0.0)  # roll, pitch, yaw of the true sensor axes in
     # the believed ones (residual boresight calibration error) [arcsec]
     position_noise_m: float = field(default=0.0, metadata=_num(0.0, 100.0, "m, POS position per axis and pulse, "
@@ -218,6 +237,7 @@ class RunConfig:
     sensor: SensorConfig = field(default_factory=SensorConfig)
     channels: ChannelsConfig = field(default_factory=ChannelsConfig)
     galvo: GalvoConfig = field(default_factory=GalvoConfig)
+    fsm: FsmConfig = field(default_factory=FsmConfig)
     errors: ErrorsConfig = field(default_factory=ErrorsConfig)
     photon: PhotonConfig = field(default_factory=PhotonConfig)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
@@ -468,6 +488,7 @@ def _toml_value(value: Any) -> str:
 
 
 PART_SECTIONS = {"channels": ("emitter", "channels"), "galvo": ("deflector", "galvo"),  # written when chosen
+                 "fsm": ("deflector", "fsm"),
                  "photon": ("detector", "photon")}
 
 

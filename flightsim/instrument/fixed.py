@@ -6,7 +6,7 @@ import math
 import numpy as np
 
 from flightsim.core.config import RunConfig
-from flightsim.instrument.risley import GALVO_ONLY, RISLEY_ONLY, refuse_errors
+from flightsim.instrument.risley import FSM_ONLY, GALVO_ONLY, RISLEY_ONLY, refuse_errors
 from kernels import fixed
 from trajectories import PulseTiming
 
@@ -22,6 +22,7 @@ class FixedDeflector:
     def check(self) -> None:
         refuse_errors(self.cfg, GALVO_ONLY, "galvo")
         refuse_errors(self.cfg, RISLEY_ONLY, "risley")
+        refuse_errors(self.cfg, FSM_ONLY, "fsm")
 
     def timing(self) -> PulseTiming:
         return PulseTiming(prf_hz=self.cfg.sensor.prf_hz, rotation_hz=0.0, phase0_rad=0.0, field_prefix="sensor")

@@ -8,7 +8,7 @@ import numpy as np
 from flightsim.core.config import ARCSEC, RunConfig
 from flightsim.core.errors import InputError
 from flightsim.instrument import galvo_model
-from flightsim.instrument.risley import RISLEY_ONLY, refuse_errors
+from flightsim.instrument.risley import FSM_ONLY, RISLEY_ONLY, refuse_errors
 from kernels import galvo
 from trajectories import PulseTiming
 
@@ -45,6 +45,7 @@ class GalvoDeflector:
         if cfg.run.optics == "lut":
             raise InputError("run.optics", cfg.run.optics, "float32 or float64 (lut tabulates the risley wedge only)")
         refuse_errors(cfg, RISLEY_ONLY, "risley")
+        refuse_errors(cfg, FSM_ONLY, "fsm")
         if cfg.instrument.emitter != "channels":
             raise InputError("instrument.emitter", cfg.instrument.emitter, "channels with the galvo deflector")
         for believed in (False, True):

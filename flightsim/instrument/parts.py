@@ -11,13 +11,14 @@ import functools
 from flightsim.core.config import RunConfig
 from flightsim.instrument.emitters import ChannelEmitter, FanEmitter
 from flightsim.instrument.fixed import FixedDeflector
+from flightsim.instrument.fsm import FsmDeflector
 from flightsim.instrument.galvo import GalvoDeflector
 from flightsim.instrument.photon import DiscreteDetector, PhotonDetector
 from flightsim.instrument.risley import RisleyDeflector
 from kernels.parts import Instrument
 
 EMITTERS = {"fan": FanEmitter, "channels": ChannelEmitter}
-DEFLECTORS = {"risley": RisleyDeflector, "galvo": GalvoDeflector, "fixed": FixedDeflector}
+DEFLECTORS = {"risley": RisleyDeflector, "galvo": GalvoDeflector, "fsm": FsmDeflector, "fixed": FixedDeflector}
 DETECTORS = {"discrete": DiscreteDetector, "photon": PhotonDetector}
 
 

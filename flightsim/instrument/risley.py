@@ -10,13 +10,15 @@ from trajectories import PulseTiming
 
 GALVO_ONLY = ("b1_arcsec", "b2_arcsec", "b3_arcsec", "c1_arcsec", "h_noise_arcsec", "v_noise_arcsec")
 RISLEY_ONLY = ("encoder_arcsec", "encoder_noise_arcsec")
+FSM_ONLY = ("fsm_zero_arcsec", "fsm_noise_arcsec")
 
 
 def refuse_errors(cfg: RunConfig, names: tuple[str, ...], owner: str) -> None:
     """InputError for the first of ``errors.<names>`` that is set: they belong to deflector ``owner``."""
     for name in names:
-        if getattr(cfg.errors, name) != 0.0:
-            raise InputError(f"errors.{name}", getattr(cfg.errors, name), f"0 unless instrument.deflector = {owner}")
+        value = getattr(cfg.errors, name)
+        if any(value) if isinstance(value, tuple) else value != 0.0:
+            raise InputError(f"errors.{name}", value, f"0 unless instrument.deflector = {owner}")
 
 
 def _prism(n_glass: float, apex_deg: float, thickness_mm: float, encoder_arcsec: float = 0.0,
@@ -42,6 +44,7 @@ class RisleyDeflector:
         """The wedge's optics are checked in config._check_optics; the galvo's error sources do not apply,
         and the exit-ray table (run.optics = lut) tabulates the wedge without encoder errors."""
         refuse_errors(self.cfg, GALVO_ONLY, "galvo")
+        refuse_errors(self.cfg, FSM_ONLY, "fsm")
         e = self.cfg.errors
         if self.cfg.run.optics == "lut" and (e.encoder_arcsec or e.encoder_noise_arcsec):
             raise InputError("run.optics", "lut", "float32 or float64 with prism-encoder errors "
