@@ -752,6 +752,36 @@ def emit_rays_kernel(instrument: Instrument):
     return emit_rays
 
 
+@functools.cache
+def photon_points_kernel(instrument: Instrument):
+    """Kernel placing each photon detection: its beam as the processing believes it (float64), at the
+    photon's range — the georeferencing of the exact model, per photon."""
+    deflector = instrument.deflector
+    Scan = scan_struct(instrument)
+    row_believed = pulse_rows(instrument).believed
+
+    @wp.kernel(module="unique")
+    def photon_points(
+        pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
+        scan: Scan,
+        slots: wp.array(dtype=wp.int32),  # slot within the chunk of each photon
+        ranges: wp.array(dtype=wp.float64),  # one-way range of each photon [m]
+        # Out:
+        points: wp.array(dtype=wp.vec3d),  # [m, local]; NaN where the believed deflector cannot send the beam out
+    ):
+        i = wp.tid()
+        slot = slots[i]
+        per_pulse = scan.per_pulse
+        p = slot // per_pulse
+        s3, exit_point, ok = deflector.finish(scan.beam_believed[slot % per_pulse], pulses, row_believed, p,
+                                              scan.believed)
+        point = get3(pulses, ROW_ORIGIN, p) + get33(pulses, ROW_ROT, p) * (exit_point + ranges[i] * s3)
+        nan = wp.float64(wp.nan)
+        points[i] = wp.where(ok, point, wp.vec3d(nan, nan, nan))
+
+    return photon_points
+
+
 @wp.kernel
 def cast_rays(
     mesh: wp.uint64,

@@ -160,6 +160,10 @@ def test_traced_run_counts_the_lidar_equation_of_every_beam(tmp_path):
     sigma_r = sigma_t(PhotonConfig()) * C / 2
     assert abs(bias.mean()) < 4 * sigma_r / math.sqrt(bias.size) + 2e-5  # + float32 ranges of the trace
     assert bias.std() == pytest.approx(sigma_r, rel=0.05)
+    # each photon placed on its believed beam at c·t/2 lies on the plane (z = scene origin H = 450 m)
+    height = g["z"] - 450.0
+    assert abs(height.mean()) < 4 * sigma_r / math.sqrt(height.size) + 2e-5
+    assert height.std() < sigma_r
 
 
 @pytest.mark.parametrize("args, field", [

@@ -116,7 +116,7 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
     from flightsim.outputs.photons_h5 import PhotonWriter
 
     simulator = Simulator(cfg, scene, trajectories)
-    writer = PhotonWriter(directory, cfg_text, simulator.timing.prf_hz)
+    writer = PhotonWriter(directory, cfg_text, simulator.timing.prf_hz, scene.origin, scene.crs.to_wkt())
     try:
         counts = simulator.run_photons(writer, progress)
         name = writer.close()

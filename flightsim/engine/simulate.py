@@ -73,6 +73,7 @@ class PhotonChunk:
     pixel: np.ndarray  # (m,) int32 beam (pixel) index
     time_of_flight_s: np.ndarray  # (m,) float64 [s]
     signal: np.ndarray  # (m,) bool: the photon came from the pulse (truth), else background or dark count
+    points: np.ndarray  # (m, 3) float64 local [m]: the photon placed on its believed beam at c·t/2
 
     def __len__(self) -> int:
         return len(self.pulse)
@@ -326,14 +327,15 @@ class Simulator:
                               buffers.ranges, buffers.cos_incidence],
                       outputs=[events.times, events.signal, events.counts], device=self.device)
             slot, tof, signal = events.gather(n_slots)
+            points = events.place(buffers.pulses, self.scan, self.instrument.kernel, len(slot))
             counts.returns += len(slot)
-            for part in self._photon_parts(chunk, slot, tof, signal):
+            for part in self._photon_parts(chunk, slot, tof, signal, points):
                 counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
                 consume(part)
         return self._finish(counts, buffers.counters, started)
 
-    def _photon_parts(self, chunk: list[Segment], slot: np.ndarray, tof: np.ndarray,
-                      signal: np.ndarray) -> list[PhotonChunk]:
+    def _photon_parts(self, chunk: list[Segment], slot: np.ndarray, tof: np.ndarray, signal: np.ndarray,
+                      points: np.ndarray) -> list[PhotonChunk]:
         """Split a chunk's detections (ordered by slot) by flight line."""
         pulse = slot // self.beams_per_pulse  # within the chunk
         starts = np.cumsum([0] + [s.count for s in chunk])
@@ -344,7 +346,7 @@ class Simulator:
                 trajectory = self.trajectories[segment.line]
                 parts.append(PhotonChunk(trajectory.line_id, trajectory.start_time, segment.first + pulse[a:b] - offset,
                                          (slot[a:b] % self.beams_per_pulse).astype(np.int32), tof[a:b],
-                                         signal[a:b].astype(bool)))
+                                         signal[a:b].astype(bool), points[a:b]))
         return parts
 
     def accumulate_deviations(self, sums: wp.array, squares: wp.array, hits: wp.array) -> RunCounts:
@@ -539,6 +541,13 @@ class Simulator:
         return parts
 
 
+@wp.kernel
+def _half_light_path(tof: wp.array(dtype=wp.float64), ranges: wp.array(dtype=wp.float64)):
+    """One-way range c·t/2 of each time of flight [m]."""
+    i = wp.tid()
+    ranges[i] = tof[i] * wp.float64(149896229.0)
+
+
 class _PhotonBuffers:
     """Device arrays of photon mode: each slot's detections, and the flat compacted events."""
 
@@ -561,7 +570,19 @@ class _PhotonBuffers:
         n = int(offsets[n_slots - 1:].numpy()[0] + counts[n_slots - 1:].numpy()[0])
         wp.launch(photon.gather_events, n_slots, inputs=[counts, offsets, self.times, self.signal],
                   outputs=[self.slot, self.tof, self.flag], device=self.device)
+        self.n = n
         return (self.slot[:n].numpy().astype(np.int64), self.tof[:n].numpy().copy(), self.flag[:n].numpy().copy())
+
+    def place(self, pulses: wp.array, scan, instrument, n: int) -> np.ndarray:
+        """(n, 3) float64 local points of the gathered detections (georeferenced on the device)."""
+        if n == 0:
+            return np.zeros((0, 3))
+        ranges = wp.empty(n, dtype=wp.float64, device=self.device)
+        wp.launch(_half_light_path, n, inputs=[self.tof[:n]], outputs=[ranges], device=self.device)
+        points = wp.empty(n, dtype=wp.vec3d, device=self.device)
+        wp.launch(trace.photon_points_kernel(instrument), n, inputs=[pulses, scan, self.slot[:n], ranges],
+                  outputs=[points], device=self.device)
+        return points.numpy()
 
 
 def _pulse_table(pulses: int, rows: int, device: str) -> wp.array:

@@ -8,6 +8,7 @@ ATL03) keep them. ``photons.h5``:
 /photons/time_of_flight_s   float64  round-trip time of flight from the exit point [s]
 /photons/range_m            float64  one-way range, c·t/2 [m]
 /photons/signal             uint8    truth: 1 the photon came from the pulse's echo, 0 background or dark count
+/photons/x, y, z            float64  the photon on its believed beam at range_m, world E, N, H of the scene CRS [m]
 
 The file's attributes hold the run's config (TOML) and the flightsim version. It is written under a
 temporary name and renamed when complete.
@@ -24,19 +25,22 @@ from flightsim import __version__
 
 C = 299_792_458.0
 FIELDS = {"line_id": np.int32, "pulse": np.int64, "pixel": np.int32, "delta_time": np.float64,
-          "time_of_flight_s": np.float64, "range_m": np.float64, "signal": np.uint8}
+          "time_of_flight_s": np.float64, "range_m": np.float64, "signal": np.uint8,
+          "x": np.float64, "y": np.float64, "z": np.float64}
 
 
 class PhotonWriter:
     """Appends PhotonChunks to ``directory/photons.h5``; ``close()`` renames it into place."""
 
-    def __init__(self, directory: Path, cfg_text: str, prf_hz: float):
+    def __init__(self, directory: Path, cfg_text: str, prf_hz: float, origin: np.ndarray, crs_wkt: str):
         self.path = directory / "photons.h5"
         self.part = directory / ".photons.h5.part"
         self.prf_hz = prf_hz
         self.file = h5py.File(self.part, "w")
         self.file.attrs["flightsim"] = __version__
         self.file.attrs["config_toml"] = cfg_text
+        self.file.attrs["crs_wkt"] = crs_wkt
+        self.origin = np.asarray(origin, dtype=np.float64)
         group = self.file.create_group("photons")
         self.data = {name: group.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(1 << 16,))
                      for name, dtype in FIELDS.items()}
@@ -51,6 +55,8 @@ class PhotonWriter:
                    "delta_time": chunk.start_time + chunk.pulse / self.prf_hz,
                    "time_of_flight_s": chunk.time_of_flight_s, "range_m": chunk.time_of_flight_s * (C / 2.0),
                    "signal": chunk.signal}
+        world = chunk.points + self.origin
+        columns.update(x=world[:, 0], y=world[:, 1], z=world[:, 2])
         for name, values in columns.items():
             dataset = self.data[name]
             dataset.resize((self.count + n,))

@@ -1,0 +1,58 @@
+"""Photons to points (per-cell height histograms) and point-to-truth distances, against synthetic
+photons of known surfaces."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from flightsim.scoring.photon_grid import grid_points
+from flightsim.scoring.surface import signed_distances
+from flightsim.scenes.scene import plane_scene
+
+
+def _photons(rng, cells=40, signal=8, noise=30, sigma=0.05, slope=0.1):
+    """Signal photons on z = slope·x + N(0, σ) and uniform noise over ±50 m, in cells of 1 m."""
+    x = rng.uniform(0, cells, (cells * cells * signal))
+    y = rng.uniform(0, cells, x.size)
+    z = slope * x + rng.normal(0, sigma, x.size)
+    nx, ny = rng.uniform(0, cells, cells * cells * noise), rng.uniform(0, cells, cells * cells * noise)
+    nz = rng.uniform(-50, 50, nx.size)
+    return np.column_stack([np.concatenate([x, nx]), np.concatenate([y, ny]), np.concatenate([z, nz])])
+
+
+def test_peak_of_each_cell_recovers_the_surface():
+    rng = np.random.default_rng(0)
+    sigma, slope = 0.05, 0.1
+    grid = grid_points(_photons(rng, sigma=sigma, slope=slope), cell_m=1.0, bin_m=0.2, min_count=4, window_m=0.2)
+    from scipy.stats import poisson
+
+    found = poisson.sf(3, 8)  # a cell's 8 expected signal photons reach the 4 needed (noise only adds)
+    assert len(grid.points) / 1600 > found - 4 * math.sqrt(found * (1 - found) / 1600)
+    residual = grid.points[:, 2] - slope * grid.points[:, 0]
+    wrong = np.abs(residual) > 0.2  # a background pile-up beat a weak echo
+    assert wrong.mean() < 0.005
+    residual = residual[~wrong]
+    # each point averages ~8 signal photons (and ~0.1 noise photons in its 0.4 m window)
+    assert abs(residual.mean()) < 4 * sigma / math.sqrt(len(residual) * 6)
+    assert residual.std() < 1.5 * sigma / math.sqrt(6)
+    assert (grid.photons >= 4).all()
+
+
+def test_background_alone_is_rejected():
+    rng = np.random.default_rng(1)
+    noise = np.column_stack([rng.uniform(0, 40, 48000), rng.uniform(0, 40, 48000), rng.uniform(-50, 50, 48000)])
+    grid = grid_points(noise, cell_m=1.0, bin_m=0.2, min_count=4, window_m=0.2)
+    # 30 photons over 500 bins per cell: P(a bin holds ≥ 4) ≈ 500 · P(Poisson(0.06) ≥ 4) ≈ 2e-3 per cell
+    assert len(grid.points) <= 10
+    assert grid.cells == 1600
+
+
+def test_signed_distance_to_a_plane():
+    scene = plane_scene(50.0)
+    pts = np.array([[0.0, 0.0, 1.5], [10.0, -3.0, -0.25], [-20.0, 7.0, 0.0]])
+    assert signed_distances(scene, pts) == pytest.approx([1.5, -0.25, 0.0], abs=1e-5)
+    tilted = plane_scene(50.0, slope=0.5)  # z = −0.5·y
+    d = signed_distances(tilted, np.array([[0.0, 0.0, 1.0]]))
+    assert d[0] == pytest.approx(1.0 / math.sqrt(1.25), abs=1e-5)
