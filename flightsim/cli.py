@@ -97,7 +97,7 @@ def build_grid(args: argparse.Namespace):
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, flags=CONFIG_FLAGS) -> None:
-    parser.add_argument("--instrument", help="built-in instrument to start from: risley (default) or change3")
+    parser.add_argument("--instrument", help="built-in instrument to start from: risley (default), change3 or spad")
     parser.add_argument("--config", help="run config TOML over the instrument (a run.toml of an earlier run "
                                          "reproduces it)")
     for flag, dest, _key, help_text in flags:
@@ -226,6 +226,18 @@ def cmd_budget(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_spad(args: argparse.Namespace) -> int:
+    from flightsim.core.warp_runtime import resolve_device
+    from flightsim.studies.spad import run_spad
+
+    resolve_device(args.device)
+    if args.pulses is not None and not 100 <= args.pulses <= 43000:
+        raise InputError("--pulses", args.pulses, "an integer in [100, 43000]")
+    run_spad(Path(args.out), device=args.device, pulses=args.pulses)
+    print((Path(args.out) / "REPORT.md").read_text())
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     import laspy
     import numpy
@@ -308,6 +320,12 @@ def make_parser() -> argparse.ArgumentParser:
     budget.add_argument("--seed", type=int, default=0, help="random seed of the draws (default 0)")
     budget.add_argument("--out", required=True, help="directory for REPORT.md, budget.json, deviation_maps.png")
     budget.set_defaults(func=cmd_budget)
+
+    spad = sub.add_parser("spad", help="the small-body SPAD lidar's experiments: MODE-A, MODE-B, laser power")
+    spad.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    spad.add_argument("--pulses", type=int, help="pulses per frame (default: the paper's 43,000; fewer for a quick run)")
+    spad.add_argument("--out", required=True, help="directory for REPORT.md and spad.json")
+    spad.set_defaults(func=cmd_spad)
 
     info = sub.add_parser("info", help="versions, devices and the kernel cache")
     info.set_defaults(func=cmd_info)

@@ -12,7 +12,8 @@ Sampling is exact and costs one step per detection: with Λ the integrated inten
 arrival after the pixel turns live at t is Λ⁻¹(Λ(t) + E), E ~ Exp(1) (time rescaling; the process
 is memoryless, so the dead time only moves t). Each detection is signal with probability
 n_s φ/σ ÷ λ at its time. Random numbers are Warp's counter-based PCG keyed by (seed, slot): the
-same seed gives the same photons on the CPU and the GPU.
+same seed gives the same photons on the CPU and the GPU. The TDC reads each detection as the centre
+of its bin (the dead time runs from the true time).
 """
 import warp as wp
 
@@ -42,6 +43,7 @@ class PhotonDetector:
     noise_rate: wp.float64  # background and dark counts [Hz]
     dead_time: wp.float64  # non-paralyzable dead time after a detection [s]
     max_events: wp.int32  # detections kept per pixel and pulse (the TDC's stop registers)
+    tdc_bin: wp.float64  # TDC resolution: a detection reads the centre of its bin [s]; 0 = exact times
 
 
 @wp.func
@@ -103,7 +105,10 @@ def detect(det: PhotonDetector, state: wp.uint32, n: wp.float64, echo: wp.float6
         z = (t - echo) / det.sigma_t
         signal_rate = n * INV_SQRT_2PI * wp.exp(wp.float64(-0.5) * z * z) / det.sigma_t
         v, state = _uniform64(state)
-        times[row, count] = t
+        if det.tdc_bin > wp.float64(0.0):
+            times[row, count] = (wp.floor(t / det.tdc_bin) + wp.float64(0.5)) * det.tdc_bin
+        else:
+            times[row, count] = t
         flag = wp.int8(0)
         if v * (signal_rate + det.noise_rate) < signal_rate:
             flag = wp.int8(1)

@@ -768,6 +768,7 @@ def photon_points_kernel(instrument: Instrument):
         ranges: wp.array(dtype=wp.float64),  # one-way range of each photon [m]
         # Out:
         points: wp.array(dtype=wp.vec3d),  # [m, local]; NaN where the believed deflector cannot send the beam out
+        directions: wp.array(dtype=wp.vec3f),  # the believed beam's unit direction, local
     ):
         i = wp.tid()
         slot = slots[i]
@@ -778,6 +779,7 @@ def photon_points_kernel(instrument: Instrument):
         point = get3(pulses, ROW_ORIGIN, p) + get33(pulses, ROW_ROT, p) * (exit_point + ranges[i] * s3)
         nan = wp.float64(wp.nan)
         points[i] = wp.where(ok, point, wp.vec3d(nan, nan, nan))
+        directions[i] = wp.vec3f(get33(pulses, ROW_ROT, p) * s3)
 
     return photon_points
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from flightsim.scoring.photon_grid import grid_points
+from flightsim.scoring.photon_grid import angle_cells, grid_points, xy_cells
 from flightsim.scoring.surface import signed_distances
 from flightsim.scenes.scene import plane_scene
 
@@ -25,7 +25,8 @@ def _photons(rng, cells=40, signal=8, noise=30, sigma=0.05, slope=0.1):
 def test_peak_of_each_cell_recovers_the_surface():
     rng = np.random.default_rng(0)
     sigma, slope = 0.05, 0.1
-    grid = grid_points(_photons(rng, sigma=sigma, slope=slope), cell_m=1.0, bin_m=0.2, min_count=4, window_m=0.2)
+    xyz = _photons(rng, sigma=sigma, slope=slope)
+    grid = grid_points(xyz, xy_cells(xyz, 1.0), bin_m=0.2, min_count=4, window_m=0.2)
     from scipy.stats import poisson
 
     found = poisson.sf(3, 8)  # a cell's 8 expected signal photons reach the 4 needed (noise only adds)
@@ -43,7 +44,7 @@ def test_peak_of_each_cell_recovers_the_surface():
 def test_background_alone_is_rejected():
     rng = np.random.default_rng(1)
     noise = np.column_stack([rng.uniform(0, 40, 48000), rng.uniform(0, 40, 48000), rng.uniform(-50, 50, 48000)])
-    grid = grid_points(noise, cell_m=1.0, bin_m=0.2, min_count=4, window_m=0.2)
+    grid = grid_points(noise, xy_cells(noise, 1.0), bin_m=0.2, min_count=4, window_m=0.2)
     # 30 photons over 500 bins per cell: P(a bin holds ≥ 4) ≈ 500 · P(Poisson(0.06) ≥ 4) ≈ 2e-3 per cell
     assert len(grid.points) <= 10
     assert grid.cells == 1600
@@ -56,3 +57,14 @@ def test_signed_distance_to_a_plane():
     tilted = plane_scene(50.0, slope=0.5)  # z = −0.5·y
     d = signed_distances(tilted, np.array([[0.0, 0.0, 1.0]]))
     assert d[0] == pytest.approx(1.0 / math.sqrt(1.25), abs=1e-5)
+
+
+def test_angle_cells_follow_the_beam_not_the_range():
+    a = np.radians(np.array([[-3.0, 0.0], [0.0, 0.0], [3.2, -3.2], [3.3, 0.0]]))
+    d = np.column_stack([np.tan(a[:, 0]), np.tan(a[:, 1]), -np.ones(4)])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    cells = angle_cells(np.concatenate([d, d * 7.0]), math.radians(3.25), 1100)  # any length along the beam
+    assert (cells[:4] == cells[4:]).all()
+    assert cells[1].tolist() == [550, 550]
+    assert cells[0, 0] == math.floor((3.25 - 3.0) / 6.5 * 1100)
+    assert (cells[3] == -1).all()  # outside the field

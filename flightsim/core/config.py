@@ -174,6 +174,7 @@ class PhotonConfig:
     pde: float = field(default=0.2, metadata=_num(0.0, 1.0, "photon detection efficiency", lo_open=True))
     pulse_fwhm_s: float = field(default=1.0e-9, metadata=_num(0.0, 1.0e-6, "s", lo_open=True))
     jitter_s: float = field(default=1.0e-10, metadata=_num(0.0, 1.0e-6, "s, timing jitter, 1 sigma"))
+    tdc_bin_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, TDC resolution; 0 = exact times"))
     gate_m: tuple[float, float] = (5.0, 600.0)  # range gate, one-way [m]
     noise_hz: float = field(default=1.0e5, metadata=_num(0.0, 1.0e10, "Hz, background and dark counts per pixel"))
     dead_time_s: float = field(default=5.0e-8, metadata=_num(0.0, 1.0e-3, "s, non-paralyzable"))

@@ -74,6 +74,7 @@ class PhotonChunk:
     time_of_flight_s: np.ndarray  # (m,) float64 [s]
     signal: np.ndarray  # (m,) bool: the photon came from the pulse (truth), else background or dark count
     points: np.ndarray  # (m, 3) float64 local [m]: the photon placed on its believed beam at c·t/2
+    directions: np.ndarray  # (m, 3) float32 local unit direction of the photon's believed beam
 
     def __len__(self) -> int:
         return len(self.pulse)
@@ -327,15 +328,15 @@ class Simulator:
                               buffers.ranges, buffers.cos_incidence],
                       outputs=[events.times, events.signal, events.counts], device=self.device)
             slot, tof, signal = events.gather(n_slots)
-            points = events.place(buffers.pulses, self.scan, self.instrument.kernel, len(slot))
+            points, directions = events.place(buffers.pulses, self.scan, self.instrument.kernel, len(slot))
             counts.returns += len(slot)
-            for part in self._photon_parts(chunk, slot, tof, signal, points):
+            for part in self._photon_parts(chunk, slot, tof, signal, points, directions):
                 counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
                 consume(part)
         return self._finish(counts, buffers.counters, started)
 
     def _photon_parts(self, chunk: list[Segment], slot: np.ndarray, tof: np.ndarray, signal: np.ndarray,
-                      points: np.ndarray) -> list[PhotonChunk]:
+                      points: np.ndarray, directions: np.ndarray) -> list[PhotonChunk]:
         """Split a chunk's detections (ordered by slot) by flight line."""
         pulse = slot // self.beams_per_pulse  # within the chunk
         starts = np.cumsum([0] + [s.count for s in chunk])
@@ -346,7 +347,7 @@ class Simulator:
                 trajectory = self.trajectories[segment.line]
                 parts.append(PhotonChunk(trajectory.line_id, trajectory.start_time, segment.first + pulse[a:b] - offset,
                                          (slot[a:b] % self.beams_per_pulse).astype(np.int32), tof[a:b],
-                                         signal[a:b].astype(bool), points[a:b]))
+                                         signal[a:b].astype(bool), points[a:b], directions[a:b]))
         return parts
 
     def accumulate_deviations(self, sums: wp.array, squares: wp.array, hits: wp.array) -> RunCounts:
@@ -573,16 +574,18 @@ class _PhotonBuffers:
         self.n = n
         return (self.slot[:n].numpy().astype(np.int64), self.tof[:n].numpy().copy(), self.flag[:n].numpy().copy())
 
-    def place(self, pulses: wp.array, scan, instrument, n: int) -> np.ndarray:
-        """(n, 3) float64 local points of the gathered detections (georeferenced on the device)."""
+    def place(self, pulses: wp.array, scan, instrument, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(points (n, 3) float64 local [m], beam directions (n, 3) float32 local) of the gathered detections,
+        georeferenced on the device."""
         if n == 0:
-            return np.zeros((0, 3))
+            return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
         ranges = wp.empty(n, dtype=wp.float64, device=self.device)
         wp.launch(_half_light_path, n, inputs=[self.tof[:n]], outputs=[ranges], device=self.device)
         points = wp.empty(n, dtype=wp.vec3d, device=self.device)
+        directions = wp.empty(n, dtype=wp.vec3f, device=self.device)
         wp.launch(trace.photon_points_kernel(instrument), n, inputs=[pulses, scan, self.slot[:n], ranges],
-                  outputs=[points], device=self.device)
-        return points.numpy()
+                  outputs=[points, directions], device=self.device)
+        return points.numpy(), directions.numpy()
 
 
 def _pulse_table(pulses: int, rows: int, device: str) -> wp.array:

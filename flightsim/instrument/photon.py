@@ -68,6 +68,7 @@ def detector_struct(s: PhotonConfig) -> photon.PhotonDetector:
     d.noise_rate = s.noise_hz
     d.dead_time = s.dead_time_s
     d.max_events = s.max_events
+    d.tdc_bin = s.tdc_bin_s
     return d
 
 
@@ -96,3 +97,14 @@ def detect(s: PhotonConfig, n_signal, t0, seed: int = 0, first_slot: int = 0, de
                       wp.array(np.ascontiguousarray(t0, dtype=np.float64), dtype=wp.float64, device=device)],
               outputs=[times, signal, counts], device=device)
     return Detections(times.numpy(), signal.numpy(), counts.numpy())
+
+
+def first_photon_bias_s(n_signal: float, sigma_s: float) -> float:
+    """Mean time of the first of the echo's photo-electrons minus the echo's centre [s] (negative: early),
+    for a Gaussian echo of spread ``sigma_s`` with Poisson(``n_signal``) photo-electrons, given one was
+    detected and the dead time outlasts the echo: the density is n φ(z) e^{−n Φ(z)} / (1 − e^{−n})."""
+    from scipy.stats import norm
+
+    z = np.linspace(-10.0, 10.0, 200_001)
+    density = n_signal * norm.pdf(z) * np.exp(-n_signal * norm.cdf(z))
+    return float(np.trapezoid(z * density, z) / np.trapezoid(density, z)) * sigma_s

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-PRESETS = {"risley": None, "change3": Path(__file__).with_name("change3.toml")}  # risley: the defaults
+PRESETS = {"risley": None,  # the defaults
+           "change3": Path(__file__).with_name("change3.toml"),
+           "spad": Path(__file__).with_name("spad.toml")}
 
 
 def preset_path(name: str) -> Path | None:
