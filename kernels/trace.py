@@ -17,7 +17,7 @@ from typing import Any
 
 import warp as wp
 
-from kernels.frames import POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT, ROW_ROT, ROW_SEED, get3, get33, put3
+from kernels.frames import POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT, ROW_ROT, ROW_SEED, get3, get33, put3, put33
 from kernels.optics import rigid_array_rotation
 from kernels.parts import Instrument, standard_normal64
 
@@ -87,7 +87,7 @@ def _small_rotation(a: wp.vec3d):
 @wp.func
 def _true_pose(pulses: wp.array2d(dtype=wp.float64), p: int, pose: PoseErrors):
     """(position offset [m, local], rotation true sensor ← believed sensor) of pulse p: the boresight
-    error, then the POS noise keyed by (seed, pulse), shared by the pulse's beams."""
+    error, then the POS noise keyed by (seed, pulse); pulse_optics writes it once for the pulse's beams."""
     shift = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
     turn = pose.mount
     if pose.position_sigma > wp.float64(0.0) or pose.attitude_sigma > wp.float64(0.0):
@@ -163,15 +163,17 @@ class Rows:
     axis_direction: int  # 3 rows: exit direction of the on-axis ray (believed deflector)
     axis_exit: int  # 3 rows: its exit point [m]
     axis_ok: int  # 1 where the on-axis ray leaves the believed deflector
+    true_pose: int  # 12 rows with pose errors: the truth's position offset [m, local], then R_true←believed; else -1
     total: int  # rows of the table
 
 
-def pulse_rows(instrument: Instrument) -> Rows:
-    """The pulse-table row layout of an instrument."""
+def pulse_rows(instrument: Instrument, pose: bool = False) -> Rows:
+    """The pulse-table row layout of an instrument (with the true-pose rows when ``pose``)."""
     n = instrument.deflector.pulse_rows
     nominal = 7 if instrument.deflector.rigid_nominal else 0
+    end = POSE_ROWS + 2 * n + nominal
     return Rows(POSE_ROWS, POSE_ROWS + n, POSE_ROWS + 2 * n, POSE_ROWS + 2 * n + 3, POSE_ROWS + 2 * n + 6,
-                POSE_ROWS + 2 * n + nominal)
+                end if pose else -1, end + 12 if pose else end)
 
 
 @functools.cache
@@ -192,11 +194,13 @@ def beam_table_kernel(instrument: Instrument):
 
 
 @functools.cache
-def pulse_optics_kernel(instrument: Instrument):
-    """Kernel filling the per-pulse optics rows of a chunk's pulse table (float64), one thread per pulse."""
+def pulse_optics_kernel(instrument: Instrument, pose: bool = False):
+    """Kernel filling the per-pulse optics rows of a chunk's pulse table (float64), one thread per pulse,
+    and with ``pose`` the pulse's true pose (boresight error and POS noise, shared by its beams)."""
     deflector = instrument.deflector
     Scan = scan_struct(instrument)
-    rows = pulse_rows(instrument)
+    rows = pulse_rows(instrument, pose)
+    row_pose = rows.true_pose
     row_truth, row_believed = rows.truth, rows.believed
     row_direction, row_exit, row_ok = rows.axis_direction, rows.axis_exit, rows.axis_ok
 
@@ -216,6 +220,10 @@ def pulse_optics_kernel(instrument: Instrument):
             put3(table, row_direction, p, direction)
             put3(table, row_exit, p, exit_point)
             table[row_ok, p] = wp.where(ok, wp.float64(1.0), wp.float64(0.0))
+        if wp.static(pose):
+            shift, turn = _true_pose(table, p, scan.pose)
+            put3(table, row_pose, p, shift)
+            put33(table, row_pose + 3, p, turn)
 
     return pulse_optics
 
@@ -368,9 +376,10 @@ def _slot_function(f: Features, instrument: Instrument):
 
     deflector = instrument.deflector
     Scan = scan_struct(instrument)
-    rows = pulse_rows(instrument)
+    rows = pulse_rows(instrument, f.pose)
     row_truth, row_believed = rows.truth, rows.believed
     row_direction, row_exit, row_ok = rows.axis_direction, rows.axis_exit, rows.axis_ok
+    row_pose = rows.true_pose
     precise = f.optics == "float64"
     real = wp.float64 if precise else wp.float32
     vec = wp.types.vector(3, real)
@@ -396,10 +405,9 @@ def _slot_function(f: Features, instrument: Instrument):
             return STATUS_TIR, 0.0, -1, zero, zero, zero, zero
         true_origin = origin
         true_rot = rot
-        if wp.static(f.pose):
-            shift, turn = _true_pose(pulses, p, scan.pose)
-            true_origin = origin + vec(shift)
-            true_rot = rot * mat(turn)
+        if wp.static(f.pose):  # the pulse's true pose, drawn once per pulse by pulse_optics
+            true_origin = origin + vec(get3(pulses, row_pose, p))
+            true_rot = rot * mat(get33(pulses, row_pose + 3, p))
         start = true_origin + true_rot * exit_point
         direction = true_rot * s3
         hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)

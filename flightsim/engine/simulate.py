@@ -181,7 +181,7 @@ class Simulator:
             pose=has_pose_errors(cfg),
             edges=edge_buffer_m > 0.0, optics=cfg.run.optics,
         )
-        self.rows = trace.pulse_rows(self.instrument.kernel)
+        self.rows = trace.pulse_rows(self.instrument.kernel, self.features.pose)
         self.boresight_rotation = Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True)  # body←sensor
         self.boresight = wp.quatd(*self.boresight_rotation.as_quat())
         self.meshes = meshes or SceneMeshes(scene, self.device, cfg.run.bvh, cfg.run.bvh_leaf_size or None)
@@ -470,7 +470,7 @@ class Simulator:
             n_pulses = sum(s.count for s in chunk)
             wp.launch(frames.pulse_poses, n_pulses, inputs=[self.lines, table, len(chunk)], outputs=[pulses],
                       device=self.device)
-            wp.launch(trace.pulse_optics_kernel(self.instrument.kernel), n_pulses, inputs=[self.scan, pulses],
+            wp.launch(trace.pulse_optics_kernel(self.instrument.kernel, self.features.pose), n_pulses, inputs=[self.scan, pulses],
                       device=self.device)
             yield chunk
             counts.pulses += n_pulses
