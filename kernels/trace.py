@@ -17,7 +17,8 @@ from typing import Any
 
 import warp as wp
 
-from kernels.frames import POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT, ROW_ROT, ROW_SEED, get3, get33, put3, put33
+from kernels.frames import (POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT, ROW_ROT, ROW_SEED, get3, get33, put3,
+                            put33)
 from kernels.optics import rigid_array_rotation
 from kernels.parts import Instrument, standard_normal64
 

@@ -338,17 +338,20 @@ class Simulator:
     def _photon_parts(self, chunk: list[Segment], slot: np.ndarray, tof: np.ndarray, signal: np.ndarray,
                       points: np.ndarray, directions: np.ndarray) -> list[PhotonChunk]:
         """Split a chunk's detections (ordered by slot) by flight line."""
-        pulse = slot // self.beams_per_pulse  # within the chunk
+        return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], signal[a:b].astype(bool),
+                            points[a:b], directions[a:b])
+                for trajectory, pulse, beam, a, b in self._by_line(chunk, slot)]
+
+    def _by_line(self, chunk: list[Segment], slots: np.ndarray):
+        """Split a chunk's slot indices (ascending) by flight line: (trajectory, pulse within the line,
+        beam, a, b) for each line holding any, the slots being ``slots[a:b]``."""
+        pulse = slots // self.beams_per_pulse  # within the chunk
         starts = np.cumsum([0] + [s.count for s in chunk])
         bounds = np.searchsorted(pulse, starts)
-        parts = []
         for segment, a, b, offset in zip(chunk, bounds[:-1], bounds[1:], starts[:-1]):
             if b > a:
-                trajectory = self.trajectories[segment.line]
-                parts.append(PhotonChunk(trajectory.line_id, trajectory.start_time, segment.first + pulse[a:b] - offset,
-                                         (slot[a:b] % self.beams_per_pulse).astype(np.int32), tof[a:b],
-                                         signal[a:b].astype(bool), points[a:b], directions[a:b]))
-        return parts
+                yield (self.trajectories[segment.line], segment.first + pulse[a:b] - offset,
+                       (slots[a:b] % self.beams_per_pulse).astype(np.int32), a, b)
 
     def accumulate_deviations(self, sums: wp.array, squares: wp.array, hits: wp.array) -> RunCounts:
         """Budget mode: add each slot's believed − true point [m, local] and its square to float64 sums on
@@ -528,18 +531,9 @@ class Simulator:
             points={m: gather(buffers.model_points[m], n_slots, n_returns).astype(np.float64) for m in self.models},
             true_points=gather(buffers.true_points, n_slots, n_returns).astype(np.float64) if f.with_truth else None,
         )
-        pulse = slots // self.beams_per_pulse  # within the chunk
-        starts = np.cumsum([0] + [s.count for s in chunk])
-        bounds = np.searchsorted(pulse, starts)
-        parts = []
-        for segment, a, b, offset in zip(chunk, bounds[:-1], bounds[1:], starts[:-1]):
-            if b > a:
-                trajectory = self.trajectories[segment.line]
-                parts.append(ReturnChunk(
-                    line_id=trajectory.line_id, start_time=trajectory.start_time,
-                    pulse=segment.first + pulse[a:b] - offset, beam=(slots[a:b] % self.beams_per_pulse).astype(np.int32),
-                    **_sliced(fields, a, b)))
-        return parts
+        return [ReturnChunk(line_id=trajectory.line_id, start_time=trajectory.start_time, pulse=pulse, beam=beam,
+                            **_sliced(fields, a, b))
+                for trajectory, pulse, beam, a, b in self._by_line(chunk, slots)]
 
 
 @wp.kernel
