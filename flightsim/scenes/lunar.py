@@ -45,21 +45,34 @@ def lunar_scene(half_extent_m: float = 60.0, origin=DEFAULT_ORIGIN, crs=DEFAULT_
     x, y = np.meshgrid(axis, axis, indexing="xy")
     rng = np.random.default_rng([int(seed), 0x10A4])
     z = -slope * y + _roughness(rng, nodes, 2.0 * half / (nodes - 1))
-    step = 2.0 * half / (nodes - 1)
-    for cx, cy, diameter in _craters(rng, half):
-        window = _window(cx, cy, EJECTA_REACH * diameter / 2.0, half, step, nodes)
-        z[window] += _crater(np.hypot(x[window] - cx, y[window] - cy), diameter)
-    for cx, cy, diameter in _boulders(rng, half):
-        window = _window(cx, cy, diameter / 2.0, half, step, nodes)
-        z[window] = np.maximum(z[window], _boulder(x[window] - cx, y[window] - cy, diameter, z[window]))
+    stamp_terrain(x, y, z, _craters(rng, half), _boulders(rng, half), half)
     centre = nodes // 2
     vertices = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
-    triangles = _grid_triangles(nodes)
-    ground = plane_info(0, "surface", CLASS_GROUND, (0.0, slope, 1.0), (0.0, 0.0, float(z[centre, centre])))
-    return Scene(name="lunar", crs=parse_crs(crs), origin=origin, vertices=vertices, triangles=triangles,
+    return surface_scene("lunar", crs, origin, vertices, _grid_triangles(nodes), float(z[centre, centre]),
+                         normal=(0.0, slope, 1.0))
+
+
+def stamp_terrain(x: np.ndarray, y: np.ndarray, z: np.ndarray, craters, boulders, half: float) -> None:
+    """Add each crater (x, y, D) [m] to the square grid of heights ``z`` (nodes × nodes over ±``half``),
+    then rest each boulder (x, y, D) on it; each touches only the nodes within its reach."""
+    nodes = len(z)
+    step = 2.0 * half / (nodes - 1)
+    for cx, cy, diameter in craters:
+        window = _window(cx, cy, EJECTA_REACH * diameter / 2.0, half, step, nodes)
+        z[window] += _crater(np.hypot(x[window] - cx, y[window] - cy), diameter)
+    for cx, cy, diameter in boulders:
+        window = _window(cx, cy, diameter / 2.0, half, step, nodes)
+        z[window] = np.maximum(z[window], _boulder(x[window] - cx, y[window] - cy, diameter, z[window]))
+
+
+def surface_scene(name: str, crs, origin, vertices: np.ndarray, triangles: np.ndarray, ground_z: float,
+                  normal=(0.0, 0.0, 1.0)) -> Scene:
+    """A Scene of one "surface" face label (class 2; its plane through (0, 0, ground_z) with ``normal``)."""
+    plane = plane_info(0, "surface", CLASS_GROUND, normal, (0.0, 0.0, ground_z))
+    return Scene(name=name, crs=parse_crs(crs), origin=origin, vertices=vertices, triangles=triangles,
                  plane_id=np.zeros(len(triangles), dtype=np.int32),
                  classification=np.full(len(triangles), CLASS_GROUND, dtype=np.uint8),
-                 planes=[ground], ground_z=float(z[centre, centre]))
+                 planes=[plane], ground_z=ground_z)
 
 
 def _power_law(rng: np.random.Generator, count: int, low: float, high: float, exponent: float) -> np.ndarray:

@@ -27,9 +27,9 @@ import numpy as np
 
 from flightsim.core.errors import InputError
 from flightsim.scenes import lunar
-from flightsim.scenes.lunar import (EJECTA_REACH, MAX_NODES, _boulder, _crater, _grid_triangles, _power_law,
-                                    _roughness, _window)
-from flightsim.scenes.scene import CLASS_GROUND, DEFAULT_CRS, DEFAULT_ORIGIN, Scene, parse_crs, plane_info
+from flightsim.scenes.lunar import (MAX_NODES, _grid_triangles, _power_law, _roughness, stamp_terrain,
+                                    surface_scene)
+from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN, Scene
 
 SANDBOX_REFLECTANCE = 0.2
 """Lambertian reflectance of the sandbox surface (the paper's sandbox reflectance, 0.2); the
@@ -64,15 +64,10 @@ def sandbox_scene(origin=DEFAULT_ORIGIN, crs=DEFAULT_CRS, seed: int = 0, size_m:
     step = size / (nodes - 1)
     rng = np.random.default_rng([int(seed), 0x5A4D])
     z = _roughness(rng, nodes, step) * (SANDBOX_ROUGHNESS_RMS_M / lunar.ROUGHNESS_RMS_M)
-    for cx, cy, diameter in _sandbox_craters(rng, half):
-        window = _window(cx, cy, EJECTA_REACH * diameter / 2.0, half, step, nodes)
-        z[window] += _crater(np.hypot(x[window] - cx, y[window] - cy), diameter)
-    for cx, cy, diameter in _sandbox_boulders(rng, half):
-        window = _window(cx, cy, diameter / 2.0, half, step, nodes)
-        z[window] = np.maximum(z[window], _boulder(x[window] - cx, y[window] - cy, diameter, z[window]))
+    stamp_terrain(x, y, z, _sandbox_craters(rng, half), _sandbox_boulders(rng, half), half)
     ground_z = float(z[nodes // 2, nodes // 2])
     vertices = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
-    return _one_surface_scene("sandbox", crs, origin, vertices, _grid_triangles(nodes), ground_z)
+    return surface_scene("sandbox", crs, origin, vertices, _grid_triangles(nodes), ground_z)
 
 
 def _sandbox_craters(rng: np.random.Generator, half: float) -> list[tuple[float, float, float]]:
@@ -116,7 +111,7 @@ def ellipsoid_scene(origin=DEFAULT_ORIGIN, crs=DEFAULT_CRS, seed: int = 0, a_m: 
         rng = np.random.default_rng([int(seed), 0xE111])
         radius = np.linalg.norm(points, axis=1, keepdims=True)
         points = points * (1.0 + _radial_noise(rng, points / radius, rough)[:, None] / radius)
-    return _one_surface_scene("ellipsoid", crs, origin, points, triangles, float(axes[2]))
+    return surface_scene("ellipsoid", crs, origin, points, triangles, float(axes[2]))
 
 
 def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
@@ -167,16 +162,6 @@ def _radial_noise(rng: np.random.Generator, direction: np.ndarray, rms: float) -
     field = np.cos((direction @ k.T) * omega + phase) @ (1.0 / omega)
     field -= field.mean()
     return field * (rms / math.sqrt(np.mean(field * field)))
-
-
-def _one_surface_scene(name: str, crs, origin, vertices: np.ndarray, triangles: np.ndarray,
-                       ground_z: float) -> Scene:
-    """A Scene of one "surface" face label (class 2, normal +z through (0, 0, ground_z))."""
-    plane = plane_info(0, "surface", CLASS_GROUND, (0.0, 0.0, 1.0), (0.0, 0.0, ground_z))
-    return Scene(name=name, crs=parse_crs(crs), origin=origin, vertices=vertices, triangles=triangles,
-                 plane_id=np.zeros(len(triangles), dtype=np.int32),
-                 classification=np.full(len(triangles), CLASS_GROUND, dtype=np.uint8),
-                 planes=[plane], ground_z=ground_z)
 
 
 def _number(field: str, value, low: float, high: float, allowed: str, low_open: bool = False) -> float:
