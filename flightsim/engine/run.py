@@ -87,20 +87,13 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         las.abort()
         raise
     summary = {
-        "flightsim": __version__,
-        "scene": cfg.scene.name,
-        "device": simulator.device,
+        **_summary_head(cfg, simulator, counts),
         "points": {model: counts.returns for model in simulator.models},
-        "pulses": counts.pulses,
-        "pulses_culled": counts.pulses_culled,
-        "beams_fired": counts.beams_fired,
         "tir_dropped": counts.tir_dropped,
         "misses": counts.misses,
         "wall_s": round(counts.wall_s, 4),
         "rms_m": stats.rms_m(),
         "edge_buffer_m": buffer,
-        "instrument": {"emitter": cfg.instrument.emitter, "deflector": cfg.instrument.deflector,
-                       "detector": cfg.instrument.detector},
         **({"apex_angle_deg": cfg.sensor.apex_angle_deg} if cfg.instrument.deflector == "risley" else {}),
         "lines": {str(k): v for k, v in counts.per_line.items()},
         "tiles": tiles,
@@ -124,14 +117,7 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
         writer.abort()
         raise
     summary = {
-        "flightsim": __version__,
-        "scene": cfg.scene.name,
-        "device": simulator.device,
-        "instrument": {"emitter": cfg.instrument.emitter, "deflector": cfg.instrument.deflector,
-                       "detector": cfg.instrument.detector},
-        "pulses": counts.pulses,
-        "pulses_culled": counts.pulses_culled,
-        "beams_fired": counts.beams_fired,
+        **_summary_head(cfg, simulator, counts),
         "photons": writer.count,
         "signal_photons": writer.signal,
         "wall_s": round(counts.wall_s, 4),
@@ -140,3 +126,17 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
     }
     write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def _summary_head(cfg: RunConfig, simulator, counts) -> dict:
+    """The summary.json fields every run has: versions, scene, device, instrument and pulse counts."""
+    return {
+        "flightsim": __version__,
+        "scene": cfg.scene.name,
+        "device": simulator.device,
+        "instrument": {"emitter": cfg.instrument.emitter, "deflector": cfg.instrument.deflector,
+                       "detector": cfg.instrument.detector},
+        "pulses": counts.pulses,
+        "pulses_culled": counts.pulses_culled,
+        "beams_fired": counts.beams_fired,
+    }
