@@ -10,11 +10,16 @@ detection it is dead for τ_d and does not extend it (non-paralyzable; arrivals 
 
 Sampling is exact and costs one step per detection: with Λ the integrated intensity, the next
 arrival after the pixel turns live at t is Λ⁻¹(Λ(t) + E), E ~ Exp(1) (time rescaling; the process
-is memoryless, so the dead time only moves t). Each detection is signal with probability
+is memoryless, so the dead time only moves t). Λ⁻¹ is Newton's method on Λ' = λ > 0, kept inside a
+shrinking bracket (a step that leaves it bisects instead) until a step moves less than
+INVERSION_TOL_S, started from the inverse of Λ's dominant part: the noise line before and after
+the echo (beyond ECHO_SIGMAS σ), the echo's normal CDF within. Each detection is signal with probability
 n_s φ/σ ÷ λ at its time. Random numbers are Warp's counter-based PCG keyed by (seed, slot): the
 same seed gives the same photons on the CPU and the GPU. The TDC reads each detection as the centre
 of its bin (the dead time runs from the true time).
 """
+import math
+
 import warp as wp
 
 from kernels.frames import ROW_PULSE, ROW_SEED
@@ -26,7 +31,10 @@ SQRT1_2 = wp.constant(wp.float64(0.7071067811865476))
 INV_SQRT_2PI = wp.constant(wp.float64(0.3989422804014327))
 LIGHT_SPEED = wp.constant(wp.float64(299792458.0))  # [m/s]
 PHOTON_STREAM = wp.constant(0x68E31DA4)  # seed key of the photon streams of traced runs
-BISECTIONS = wp.constant(64)  # halvings of the gate when inverting Λ: below 1e-15 of the gate
+INVERSION_TOL_S = wp.constant(wp.float64(1.0e-15))  # Λ⁻¹ to 1 fs (0.15 µm of range)
+ECHO_SIGMAS = 6.0  # the echo's extent for the starting guess of Λ⁻¹ [σ]
+ECHO_CDF_LOW = wp.constant(wp.float64(0.5 * math.erfc(ECHO_SIGMAS / math.sqrt(2.0))))  # Φ(−ECHO_SIGMAS)
+INVERSION_STEPS = wp.constant(80)  # at most: the bracket alone would shrink below 1e-24 of the gate
 
 
 @wp.struct
@@ -61,24 +69,64 @@ def _normal_cdf(x: wp.float64):
 
 
 @wp.func
-def integrated_intensity(det: PhotonDetector, t: wp.float64, t0: wp.float64, n_signal: wp.float64):
-    """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]."""
-    noise = det.noise_rate * (t - det.gate_open)
-    signal = n_signal * (_normal_cdf((t - t0) / det.sigma_t) - _normal_cdf((det.gate_open - t0) / det.sigma_t))
-    return noise + signal
+def integrated_intensity(det: PhotonDetector, t: wp.float64, t0: wp.float64, n_signal: wp.float64,
+                         cdf_open: wp.float64):
+    """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]
+    (``cdf_open``: the echo's normal CDF at the gate's opening)."""
+    return det.noise_rate * (t - det.gate_open) + n_signal * (_normal_cdf((t - t0) / det.sigma_t) - cdf_open)
 
 
 @wp.func
-def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, t0: wp.float64, n_signal: wp.float64):
-    """The time of flight t ≥ lo at which Λ(t) = target (bisection; Λ is non-decreasing)."""
+def echo_rate(det: PhotonDetector, t: wp.float64, t0: wp.float64, n_signal: wp.float64):
+    """The echo's part of λ(t) = Λ'(t) at time of flight t [1/s] (λ = noise rate + echo rate)."""
+    z = (t - t0) / det.sigma_t
+    return n_signal * INV_SQRT_2PI * wp.exp(wp.float64(-0.5) * z * z) / det.sigma_t
+
+
+@wp.func
+def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, t0: wp.float64, n_signal: wp.float64,
+                 cdf_open: wp.float64):
+    """Λ⁻¹(target) for Λ's dominant part: the noise line where the target lies before or after the echo
+    (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to the echo's centre."""
+    reach = wp.float64(ECHO_SIGMAS) * det.sigma_t
+    start = wp.max(lo, t0 - reach)
+    before = integrated_intensity(det, lo, t0, n_signal, cdf_open) + det.noise_rate * (start - lo)
+    if target <= before or n_signal <= wp.float64(0.0):
+        return lo + (target - integrated_intensity(det, lo, t0, n_signal, cdf_open)) / det.noise_rate
+    after = det.noise_rate * (t0 + reach - det.gate_open) + n_signal * (wp.float64(1.0) - ECHO_CDF_LOW - cdf_open)
+    if target >= after:
+        return t0 + reach + (target - after) / det.noise_rate
+    p = (target - det.noise_rate * (t0 - det.gate_open)) / n_signal + cdf_open
+    p = wp.min(wp.max(p, wp.float64(1.0e-15)), wp.float64(1.0 - 1.0e-15))
+    return t0 + det.sigma_t * wp.float64(1.4142135623730951) * wp.erfinv(wp.float64(2.0) * p - wp.float64(1.0))
+
+
+@wp.func
+def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, t0: wp.float64, n_signal: wp.float64,
+            cdf_open: wp.float64):
+    """The time of flight t ≥ lo at which Λ(t) = target ≤ Λ(gate close) (safeguarded Newton)."""
     hi = det.gate_close
-    for _ in range(BISECTIONS):
-        mid = wp.float64(0.5) * (lo + hi)
-        if integrated_intensity(det, mid, t0, n_signal) < target:
-            lo = mid
+    t = _first_guess(det, target, lo, t0, n_signal, cdf_open)
+    if not (t > lo and t < hi):
+        t = lo
+    for _ in range(INVERSION_STEPS):
+        f = integrated_intensity(det, t, t0, n_signal, cdf_open) - target
+        if f == wp.float64(0.0):
+            return t
+        if f < wp.float64(0.0):
+            lo = t
         else:
-            hi = mid
-    return wp.float64(0.5) * (lo + hi)
+            hi = t
+        rate = det.noise_rate + echo_rate(det, t, t0, n_signal)
+        step = wp.float64(0.5) * (lo + hi)
+        if rate > wp.float64(0.0):
+            newton = t - f / rate
+            if newton > lo and newton < hi:
+                step = newton
+        if wp.abs(step - t) <= INVERSION_TOL_S:
+            return step
+        t = step
+    return t
 
 
 @wp.func
@@ -94,16 +142,16 @@ def detect(det: PhotonDetector, state: wp.uint32, n: wp.float64, echo: wp.float6
     """Sample one pixel's detections of one pulse (expected signal ``n`` echoing at time of flight
     ``echo`` [s]) into row ``row`` of ``times`` [s] and ``signal``, in time order; return their count."""
     live = det.gate_open
-    total = integrated_intensity(det, det.gate_close, echo, n)
+    cdf_open = _normal_cdf((det.gate_open - echo) / det.sigma_t)
+    total = integrated_intensity(det, det.gate_close, echo, n, cdf_open)
     count = int(0)
     while count < det.max_events and live < det.gate_close:
         u, state = _uniform64(state)
-        target = integrated_intensity(det, live, echo, n) - wp.log(u)
+        target = integrated_intensity(det, live, echo, n, cdf_open) - wp.log(u)
         if target >= total:
             break
-        t = _invert(det, target, live, echo, n)
-        z = (t - echo) / det.sigma_t
-        signal_rate = n * INV_SQRT_2PI * wp.exp(wp.float64(-0.5) * z * z) / det.sigma_t
+        t = _invert(det, target, live, echo, n, cdf_open)
+        signal_rate = echo_rate(det, t, echo, n)
         v, state = _uniform64(state)
         if det.tdc_bin > wp.float64(0.0):
             times[row, count] = (wp.floor(t / det.tdc_bin) + wp.float64(0.5)) * det.tdc_bin

@@ -27,6 +27,7 @@ wp.set_module_options({"enable_backward": False})
 STATUS_MISS = wp.constant(0)
 STATUS_RETURN = wp.constant(1)
 STATUS_TIR = wp.constant(2)
+HALF_LIGHT_SPEED = wp.constant(wp.float64(149896229.0))  # c / 2 [m/s]: one-way range per time of flight
 
 COUNT_TIR = 0
 COUNT_MISS = 1
@@ -764,7 +765,7 @@ def emit_rays_kernel(instrument: Instrument):
 @functools.cache
 def photon_points_kernel(instrument: Instrument):
     """Kernel placing each photon detection: its beam as the processing believes it (float64), at the
-    photon's range — the georeferencing of the exact model, per photon."""
+    photon's range c·t/2 — the georeferencing of the exact model, per photon."""
     deflector = instrument.deflector
     Scan = scan_struct(instrument)
     row_believed = pulse_rows(instrument).believed
@@ -774,7 +775,7 @@ def photon_points_kernel(instrument: Instrument):
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,
         slots: wp.array(dtype=wp.int32),  # slot within the chunk of each photon
-        ranges: wp.array(dtype=wp.float64),  # one-way range of each photon [m]
+        times: wp.array(dtype=wp.float64),  # time of flight of each photon [s]
         # Out:
         points: wp.array(dtype=wp.vec3d),  # [m, local]; NaN where the believed deflector cannot send the beam out
         directions: wp.array(dtype=wp.vec3f),  # the believed beam's unit direction, local
@@ -785,7 +786,8 @@ def photon_points_kernel(instrument: Instrument):
         p = slot // per_pulse
         s3, exit_point, ok = deflector.finish(scan.beam_believed[slot % per_pulse], pulses, row_believed, p,
                                               scan.believed)
-        point = get3(pulses, ROW_ORIGIN, p) + get33(pulses, ROW_ROT, p) * (exit_point + ranges[i] * s3)
+        r = times[i] * HALF_LIGHT_SPEED
+        point = get3(pulses, ROW_ORIGIN, p) + get33(pulses, ROW_ROT, p) * (exit_point + r * s3)
         nan = wp.float64(wp.nan)
         points[i] = wp.where(ok, point, wp.vec3d(nan, nan, nan))
         directions[i] = wp.vec3f(get33(pulses, ROW_ROT, p) * s3)

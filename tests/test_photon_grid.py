@@ -68,3 +68,55 @@ def test_angle_cells_follow_the_beam_not_the_range():
     assert cells[1].tolist() == [550, 550]
     assert cells[0, 0] == math.floor((3.25 - 3.0) / 6.5 * 1100)
     assert (cells[3] == -1).all()  # outside the field
+
+
+def _reference_grid(xyz, cells, bin_m, min_count, window_m):
+    """Cell by cell in plain Python (float64): the rule of flightsim.scoring.photon_grid, written out."""
+    ok = [i for i in range(len(xyz)) if np.isfinite(xyz[i]).all() and cells[i][0] >= 0 and cells[i][1] >= 0]
+    lo = min(xyz[i][2] for i in ok)
+    stride = math.floor((max(xyz[i][2] for i in ok) - lo) / bin_m) + 2
+    by_cell = {}
+    for i in ok:
+        by_cell.setdefault((int(cells[i][1]), int(cells[i][0])), []).append(i)
+    points = {}
+    for (row, col), members in sorted(by_cell.items()):
+        bins = {}
+        for i in members:
+            b = math.floor((xyz[i][2] - lo) / bin_m)
+            bins[b] = bins.get(b, 0) + 1
+        pairs = sorted(bins)
+        window, low = max((bins[b] + bins.get(b + 1, 0), -b) for b in pairs)
+        background = 2.0 * max(len(members) - window, 0) / max(stride - 1, 1)
+        if window < max(min_count, background + 5.0 * math.sqrt(background)):
+            continue
+        centre = lo + (-low + 1) * bin_m
+        for _ in range(2):
+            near = [i for i in members if abs(xyz[i][2] - centre) <= window_m]
+            if near:
+                centre = sum(xyz[i][2] for i in near) / len(near)
+        if near:
+            points[(col, row)] = (np.mean(xyz[near], axis=0), len(near), window)
+    return points, len(by_cell)
+
+
+def test_device_gridding_matches_a_cell_by_cell_reference():
+    rng = np.random.default_rng(7)
+    n = 6000
+    cells = rng.integers(0, 12, (n, 2))
+    cells[rng.random(n) < 0.02] = -1  # outside the field
+    z = np.where(rng.random(n) < 0.6, 0.3 * cells[:, 0] + rng.normal(0, 0.04, n), rng.uniform(-20, 20, n))
+    xyz = np.column_stack([cells[:, 0] + rng.random(n), cells[:, 1] + rng.random(n), z])
+    xyz[rng.random(n) < 0.01, 2] = np.nan
+    # a tie: two pairs of bins of equal count in cell (11, 11); the lower one wins
+    tie = np.column_stack([np.full(10, 11.5), np.full(10, 11.5), np.r_[np.full(5, 30.05), np.full(5, 35.05)]])
+    xyz, cells = np.vstack([xyz, tie]), np.vstack([cells, np.full((10, 2), 11)])
+    cells[(cells[:, 0] == 11) & (cells[:, 1] == 11) & (xyz[:, 2] < 30)] = 10
+    expected, occupied = _reference_grid(xyz, cells, 0.1, 4, 0.12)
+    grid = grid_points(xyz, cells, bin_m=0.1, min_count=4, window_m=0.12)
+    assert grid.cells == occupied
+    assert [tuple(c) for c in grid.cell] == sorted(expected, key=lambda c: (c[1], c[0]))
+    for point, cell, photons, peak in zip(grid.points, grid.cell, grid.photons, grid.peak):
+        mean, count, window = expected[tuple(cell)]
+        assert (photons, peak) == (count, window)
+        assert point == pytest.approx(mean, abs=1e-9)
+    assert grid.points[-1][2] == pytest.approx(30.05, abs=1e-9)  # the tie: the lower pair

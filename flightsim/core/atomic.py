@@ -1,7 +1,9 @@
 """Files that appear complete or not at all: written under a temporary name, then renamed."""
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -27,3 +29,19 @@ def save_figure(fig, path: Path, **savefig_options) -> Path:
     fig.savefig(tmp, format=path.suffix.lstrip(".") or "png", **savefig_options)
     os.replace(tmp, path)
     return path
+
+
+@contextlib.contextmanager
+def replaced_atomically(path: str | os.PathLike) -> Iterator[Path]:
+    """A temporary path beside ``path``: fsync'ed and renamed to ``path`` when the block succeeds,
+    deleted when it fails."""
+    path = Path(path)
+    tmp = temporary_name(path)
+    try:
+        yield tmp
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

@@ -25,7 +25,7 @@ PLATFORMS = ("lines", "hover")
 ARCSEC = math.pi / (180.0 * 3600.0)  # [rad per arcsecond]
 CHANGE3_CHANNELS_MRAD = tuple(float(17 - 2 * i) for i in range(1, 17))  # θ_i = 17 − 2i (seed paper §2.3)
 OPTICS = ("float32", "float64", "lut")
-BVH_CONSTRUCTORS = ("sah", "median", "lbvh", "cubql")
+BVH_CONSTRUCTORS = ("auto", "sah", "median", "lbvh", "cubql")
 KMH = 1.0 / 3.6  # [m/s per km/h]
 
 
@@ -220,7 +220,7 @@ class RunSettings:
     cull: bool = True  # skip pulses whose beams cannot reach the scene
     optics: str = "float64"  # per-beam arithmetic: float64, float32, or lut (float32, exit rays tabulated over φ)
     lut_samples: int = field(default=4096, metadata=_num(8, 1 << 22, "prism angles per turn", integer=True))
-    bvh: str = "sah"  # BVH constructor: sah, median, lbvh, cubql
+    bvh: str = "auto"  # BVH constructor: auto (sah on the CPU, cubql on a GPU), sah, median, lbvh, cubql
     bvh_leaf_size: int = field(default=0, metadata=_num(0, 64, "triangles; 0 = Warp's default", integer=True))
     slots_per_thread: int = field(default=0, metadata=_num(0, 4096, "statistics mode; 0 = automatic",
                                                                 integer=True))

@@ -29,7 +29,7 @@ from flightsim.instrument.ranging import has_systematics, range_errors, sigmas
 from flightsim.platforms.pose_errors import has_pose_errors, pose_errors
 from flightsim.scoring.planes import PlaneMoments
 from flightsim.scenes.scene import Scene
-from flightsim.core.warp_runtime import resolve_device
+from flightsim.core.warp_runtime import resolve_device, to_host
 from kernels import frames, trace
 from trajectories import Trajectory
 
@@ -81,6 +81,18 @@ class PhotonChunk:
 
 
 @dataclass
+class DevicePhotons:
+    """The photon detections of one chunk on the device, ordered by slot (valid until the next chunk)."""
+
+    count: int
+    slot: wp.array  # int32 slot within the chunk (pulse of the chunk · beams per pulse + beam)
+    time_of_flight_s: wp.array  # float64 [s]
+    signal: wp.array  # int8: 1 when the photon came from the pulse (truth)
+    points: wp.array  # vec3d local [m]: placed on its believed beam at c·t/2
+    directions: wp.array  # vec3f local unit direction of the photon's believed beam
+
+
+@dataclass
 class RunCounts:
     """What happened to every beam of a run."""
 
@@ -99,9 +111,11 @@ class SceneMeshes:
     """A scene's acceleration structures on one device, built once: the triangle BVH, and a BVH of
     the plane-boundary segments for edge-buffer queries (built on first use)."""
 
-    def __init__(self, scene: Scene, device: str, bvh_constructor: str = "sah", leaf_size: int | None = None):
+    def __init__(self, scene: Scene, device: str, bvh_constructor: str = "auto", leaf_size: int | None = None):
         self.scene = scene
         self.device = device
+        if bvh_constructor == "auto":  # measured fastest per device kind (README, run.bvh)
+            bvh_constructor = "sah" if wp.get_device(device).is_cpu else "cubql"
         self.mesh = wp.Mesh(points=wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3f, device=device),
                             indices=wp.array(scene.triangles.astype(np.int32).ravel(), dtype=wp.int32, device=device),
                             bvh_constructor=bvh_constructor, bvh_leaf_size=leaf_size)
@@ -262,17 +276,19 @@ class Simulator:
     def device_kind(self) -> str:
         return "cpu" if self.device == "cpu" else "cuda"
 
-    def chunk_pulses(self, points: bool = False) -> int:
-        """Pulses per launch: the config's, or enough to fill the device's slot budget for the mode."""
+    def chunk_pulses(self, budget: dict[str, int] = SLOTS_PER_CHUNK) -> int:
+        """Pulses per launch: the config's, or enough to fill the mode's slot ``budget`` on this device kind."""
         if self.cfg.run.chunk_pulses:
             return self.cfg.run.chunk_pulses
-        budget = (POINT_SLOTS_PER_CHUNK if points else SLOTS_PER_CHUNK)[self.device_kind]
-        return max(1, budget // self.beams_per_pulse)
+        return max(1, budget[self.device_kind] // self.beams_per_pulse)
 
-    def pulses_per_launch(self, points: bool = False) -> int:
+    def pulses_per_launch(self, budget: dict[str, int] = SLOTS_PER_CHUNK) -> int:
         """Pulses the device buffers hold: a chunk, or all the run's pulses where they are fewer."""
-        planned = sum(k1 - k0 for t in self.trajectories for k0, k1 in self.windows(t))
-        return max(1, min(self.chunk_pulses(points), planned))
+        return max(1, min(self.chunk_pulses(budget), self.planned_pulses()))
+
+    def planned_pulses(self) -> int:
+        """Pulses the run will launch (within the pulse limits, culled ones left out)."""
+        return sum(k1 - k0 for t in self.trajectories for k0, k1 in self.windows(t))
 
     def pulse_count(self, trajectory: Trajectory) -> int:
         return self.timing.pulse_count(trajectory.start_time, trajectory.end_time)
@@ -285,7 +301,7 @@ class Simulator:
         self._require_discrete("points")
         started = time.perf_counter()
         counts = RunCounts()
-        buffers = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.rows.total,
+        buffers = _PointBuffers(self.pulses_per_launch(POINT_SLOTS_PER_CHUNK), self.beams_per_pulse, self.rows.total,
                                 self.device)
         kernel = trace.points_kernel(self.features, self.instrument.kernel, max_registers=self.max_registers)
         for chunk in self._chunks(buffers.pulses, counts, progress):
@@ -305,16 +321,17 @@ class Simulator:
                              "flightsim simulate")
 
     def run_photons(self, consume: Callable[[PhotonChunk], None],
-                    progress: Callable[[int, int], None] | None = None) -> RunCounts:
+                    progress: Callable[[int, int], None] | None = None, on_device: bool = False) -> RunCounts:
         """Photon mode (``instrument.detector = "photon"``): trace every beam, turn its return into the
         detections of its SPAD pixel on the device, and call ``consume`` with each line's part of each
-        chunk's detections; ``RunCounts.returns`` counts the photons."""
+        chunk's detections; ``RunCounts.returns`` counts the photons. ``on_device``: ``consume`` gets
+        each chunk's detections as a :class:`DevicePhotons` instead, and nothing leaves the device."""
         from kernels import photon
 
         started = time.perf_counter()
         counts = RunCounts()
-        buffers = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.rows.total,
-                                self.device)
+        budget = SLOTS_PER_CHUNK if on_device else POINT_SLOTS_PER_CHUNK  # on the host, photons fill memory
+        buffers = _PointBuffers(self.pulses_per_launch(budget), self.beams_per_pulse, self.rows.total, self.device)
         events = _PhotonBuffers(len(buffers.status), self.cfg.photon.max_events, self.device)
         det = self.instrument.detector.struct()
         ranges_only = dataclasses.replace(self.features, exact=False, nominal=False, edges=False)  # no georeferencing
@@ -327,18 +344,22 @@ class Simulator:
                       inputs=[det, self.cfg.photon.reflectance, buffers.pulses, self.beams_per_pulse, buffers.status,
                               buffers.ranges, buffers.cos_incidence],
                       outputs=[events.times, events.signal, events.counts], device=self.device)
-            slot, tof, signal = events.gather(n_slots)
-            points, directions = events.place(buffers.pulses, self.scan, self.instrument.kernel, len(slot))
-            counts.returns += len(slot)
-            for part in self._photon_parts(chunk, slot, tof, signal, points, directions):
+            found = events.gather(n_slots, buffers.pulses, self.scan, self.instrument.kernel)
+            counts.returns += found.count
+            if on_device:
+                consume(found)
+                continue
+            for part in self._photon_parts(chunk, found):
                 counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
                 consume(part)
         return self._finish(counts, buffers.counters, started)
 
-    def _photon_parts(self, chunk: list[Segment], slot: np.ndarray, tof: np.ndarray, signal: np.ndarray,
-                      points: np.ndarray, directions: np.ndarray) -> list[PhotonChunk]:
-        """Split a chunk's detections (ordered by slot) by flight line."""
-        return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], signal[a:b].astype(bool),
+    def _photon_parts(self, chunk: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
+        """Bring a chunk's detections (ordered by slot) to the host, split by flight line."""
+        slot = found.slot[:found.count].numpy().astype(np.int64)
+        tof, signal = found.time_of_flight_s.numpy(), found.signal.numpy().astype(bool)
+        points, directions = found.points.numpy(), found.directions.numpy()
+        return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], signal[a:b],
                             points[a:b], directions[a:b])
                 for trajectory, pulse, beam, a, b in self._by_line(chunk, slot)]
 
@@ -364,7 +385,7 @@ class Simulator:
         started = time.perf_counter()
         counts = RunCounts()
         if self._points is None:
-            self._points = _PointBuffers(self.pulses_per_launch(points=True), self.beams_per_pulse, self.rows.total,
+            self._points = _PointBuffers(self.pulses_per_launch(POINT_SLOTS_PER_CHUNK), self.beams_per_pulse, self.rows.total,
                                          self.device)
         buffers = self._points
         buffers.counters.zero_()
@@ -536,15 +557,12 @@ class Simulator:
                 for trajectory, pulse, beam, a, b in self._by_line(chunk, slots)]
 
 
-@wp.kernel
-def _half_light_path(tof: wp.array(dtype=wp.float64), ranges: wp.array(dtype=wp.float64)):
-    """One-way range c·t/2 of each time of flight [m]."""
-    i = wp.tid()
-    ranges[i] = tof[i] * wp.float64(149896229.0)
-
-
 class _PhotonBuffers:
-    """Device arrays of photon mode: each slot's detections, and the flat compacted events."""
+    """Device arrays of photon mode: each slot's detections, and the flat compacted events (sized for
+    FLAT_EVENTS_PER_SLOT detections per slot at first, grown when a chunk holds more)."""
+
+    FLAT = {"slot": wp.int32, "tof": wp.float64, "flag": wp.int8, "points": wp.vec3d, "directions": wp.vec3f}
+    FLAT_EVENTS_PER_SLOT = 2
 
     def __init__(self, slots: int, max_events: int, device: str):
         self.device = device
@@ -552,34 +570,31 @@ class _PhotonBuffers:
         self.signal = wp.empty((slots, max_events), dtype=wp.int8, device=device)
         self.counts = wp.empty(slots, dtype=wp.int32, device=device)
         self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
-        self.slot = wp.empty(slots * max_events, dtype=wp.int32, device=device)
-        self.tof = wp.empty(slots * max_events, dtype=wp.float64, device=device)
-        self.flag = wp.empty(slots * max_events, dtype=wp.int8, device=device)
+        self.capacity = 0
+        self._reserve(slots * min(max_events, self.FLAT_EVENTS_PER_SLOT))
 
-    def gather(self, n_slots: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(slot within the chunk, time of flight [s], signal flag) of every detection, ordered by slot."""
+    def _reserve(self, n: int) -> None:
+        """Flat arrays for at least ``n`` detections (their contents are not kept)."""
+        if n <= self.capacity:
+            return
+        self.capacity = max(n, self.capacity + self.capacity // 2)
+        for name, dtype in self.FLAT.items():
+            setattr(self, name, wp.empty(self.capacity, dtype=dtype, device=self.device))
+
+    def gather(self, n_slots: int, pulses: wp.array, scan, instrument) -> DevicePhotons:
+        """Compact every slot's detections (ordered by slot) and place each on its believed beam, on the device."""
         from kernels import photon
 
         counts, offsets = self.counts[:n_slots], self.offsets[:n_slots]
         wp.utils.array_scan(counts, offsets, inclusive=False)
-        n = int(offsets[n_slots - 1:].numpy()[0] + counts[n_slots - 1:].numpy()[0])
+        n = int(to_host(offsets[n_slots - 1:])[0] + to_host(counts[n_slots - 1:])[0])
+        self._reserve(n)
         wp.launch(photon.gather_events, n_slots, inputs=[counts, offsets, self.times, self.signal],
                   outputs=[self.slot, self.tof, self.flag], device=self.device)
-        self.n = n
-        return (self.slot[:n].numpy().astype(np.int64), self.tof[:n].numpy().copy(), self.flag[:n].numpy().copy())
-
-    def place(self, pulses: wp.array, scan, instrument, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """(points (n, 3) float64 local [m], beam directions (n, 3) float32 local) of the gathered detections,
-        georeferenced on the device."""
-        if n == 0:
-            return np.zeros((0, 3)), np.zeros((0, 3), np.float32)
-        ranges = wp.empty(n, dtype=wp.float64, device=self.device)
-        wp.launch(_half_light_path, n, inputs=[self.tof[:n]], outputs=[ranges], device=self.device)
-        points = wp.empty(n, dtype=wp.vec3d, device=self.device)
-        directions = wp.empty(n, dtype=wp.vec3f, device=self.device)
-        wp.launch(trace.photon_points_kernel(instrument), n, inputs=[pulses, scan, self.slot[:n], ranges],
-                  outputs=[points, directions], device=self.device)
-        return points.numpy(), directions.numpy()
+        if n:
+            wp.launch(trace.photon_points_kernel(instrument), n, inputs=[pulses, scan, self.slot[:n], self.tof[:n]],
+                      outputs=[self.points, self.directions], device=self.device)
+        return DevicePhotons(n, self.slot[:n], self.tof[:n], self.flag[:n], self.points[:n], self.directions[:n])
 
 
 def _pulse_table(pulses: int, rows: int, device: str) -> wp.array:
@@ -660,7 +675,7 @@ class _PointBuffers:
         flags, offsets = self.flags[:n_slots], self.offsets[:n_slots]
         wp.launch(trace.flag_returns, n_slots, inputs=[self.status[:n_slots]], outputs=[flags], device=self.device)
         wp.utils.array_scan(flags, offsets, inclusive=False)
-        last = np.concatenate([flags[n_slots - 1:].numpy(), offsets[n_slots - 1:].numpy()])
+        last = np.concatenate([flags[n_slots - 1:n_slots].numpy(), offsets[n_slots - 1:n_slots].numpy()])
         wp.launch(trace.slot_indices, n_slots, inputs=[flags, offsets], outputs=[self.index], device=self.device)
         return int(last.sum())
 

@@ -539,8 +539,9 @@ def _tile_header_template(
     )
     # laspy 2.7 flags min/max as valid but tracks them wrongly for 1-D fields (the first value of
     # each write; laspy issue #346): claim no statistics rather than wrong ones.
-    for descriptor in header.vlrs.get("ExtraBytesVlr")[0].extra_bytes_structs:
-        descriptor.options = 0
+    for vlr in header.vlrs.get("ExtraBytesVlr"):  # none when ``dims`` is empty
+        for descriptor in vlr.extra_bytes_structs:
+            descriptor.options = 0
     return header
 
 

@@ -1,91 +1,223 @@
-"""From photons to points: grid the photon events in the horizontal plane, histogram each cell's
-heights and keep the cell's peak (seed: spad-fsm-small-body-lidar-paper.txt, Fig. 4a).
+"""From photons to points: grid the photon events, histogram each cell's heights and keep the cell's
+peak (seed: spad-fsm-small-body-lidar-paper.txt, Fig. 4a). Runs on the device (kernels/photon_grid.py):
+a frame's photons never leave it, only its points do.
 
-Per cell of side ``cell_m``: the heights are binned at ``bin_m``; the fullest pair of adjacent bins
-is the cell's surface when it holds at least ``min_count`` photons and 5σ above the cell's background
-per pair of bins (noise spreads over the whole gate, the echo piles up in one or two bins); the point
-is the mean of the cell's photons within ``window_m`` of that pair's middle.
+Per cell: the heights are binned at ``bin_m`` from the lowest photon; the fullest pair of adjacent bins
+(the lowest on a tie) is the cell's surface when it holds at least ``min_count`` photons and 5σ above
+the cell's background per pair of bins (noise spreads over the whole gate, the echo piles up in one
+or two bins); the point is the mean of the cell's photons within ``window_m`` of that pair's middle,
+then once more within ``window_m`` of that mean (so a window off the echo's centre does not clip it).
+
+Cells are columns and rows given with the photons (:func:`xy_cells` for horizontal cells,
+:func:`angle_cells` / :class:`PhotonFrame` for the beams' angle grid); a negative column or row, or a
+non-finite position, leaves the photon out.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
+
+from flightsim.core.warp_runtime import to_host
+from kernels import photon_grid as k
+
+REDUCE_THREADS = 1 << 16  # threads of the extent reduction (each strides over the photons)
 
 
 @dataclass
 class GridPoints:
-    """One point per accepted cell (local or world coordinates, as given) [m]."""
+    """One point per accepted cell, in row-major cell order (local or world coordinates, as given) [m]."""
 
-    points: np.ndarray  # (m, 3)
-    cell: np.ndarray  # (m, 2) int64 column and row of each point's cell, from the photons' lowest x, y
-    photons: np.ndarray  # (m,) photons averaged into each point
-    peak: np.ndarray  # (m,) photons in the fullest bin
+    points: np.ndarray  # (m, 3) float64
+    cell: np.ndarray  # (m, 2) int32 column and row of each point's cell
+    photons: np.ndarray  # (m,) int32 photons averaged into each point
+    peak: np.ndarray  # (m,) int32 photons in the cell's fullest pair of bins
     cells: int  # cells holding any photon
 
 
+def _empty(cells: int = 0) -> GridPoints:
+    return GridPoints(np.zeros((0, 3)), np.zeros((0, 2), np.int32), np.zeros(0, np.int32), np.zeros(0, np.int32), cells)
+
+
 def xy_cells(xyz: np.ndarray, cell_m: float) -> np.ndarray:
-    """(n, 2) int64 column, row of each position's horizontal cell of side ``cell_m`` [m]."""
+    """(n, 2) int64 column, row of each position's horizontal cell of side ``cell_m`` [m], from the lowest x, y."""
     xy = np.asarray(xyz, dtype=np.float64)[:, :2]
     return np.floor((xy - np.nanmin(xy, axis=0)) / cell_m).astype(np.int64)
 
 
-def angle_cells(directions: np.ndarray, half_field_rad: float, cells: int) -> np.ndarray:
+def angle_cells(directions: np.ndarray, half_field_rad: float, cells: int, device: str = "cpu") -> np.ndarray:
     """(n, 2) int64 column, row of each downward beam direction (n, 3) in a ``cells`` × ``cells`` grid of
     angles from nadir over ±``half_field_rad`` (atan of the east and north direction over the depth);
     −1 outside the field. Every photon of a beam falls in its beam's cell whatever its range."""
-    d = np.asarray(directions, dtype=np.float64)
-    angles = np.arctan2(d[:, :2], -d[:, 2:3])
-    ij = np.floor((angles + half_field_rad) / (2.0 * half_field_rad) * cells).astype(np.int64)
-    return np.where(((ij >= 0) & (ij < cells)).all(axis=1, keepdims=True), ij, -1)
+    d = wp.array(np.asarray(directions, dtype=np.float32), dtype=wp.vec3f, device=device)
+    out = wp.empty(len(d), dtype=wp.vec2i, device=device)
+    wp.launch(k.angle_cells, len(d), inputs=[d, float(half_field_rad), int(cells)], outputs=[out], device=device)
+    return out.numpy().astype(np.int64)
 
 
-def grid_points(xyz: np.ndarray, cells: np.ndarray, bin_m: float, min_count: int, window_m: float) -> GridPoints:
-    """The surface points of photon positions ``xyz`` (n, 3) [m] gridded by ``cells`` (n, 2) int column and
-    row (``xy_cells``, ``angle_cells``; negative: left out).
+def grid_points(xyz, cells, bin_m: float, min_count: int, window_m: float, device: str = "cpu") -> GridPoints:
+    """The surface points of photon positions ``xyz`` (n, 3) [m] gridded by ``cells`` (n, 2) column and row."""
+    positions = wp.array(np.asarray(xyz, dtype=np.float64), dtype=wp.vec3d, device=device)
+    ij = wp.array(np.asarray(cells).astype(np.int32), dtype=wp.vec2i, device=device)
+    return _grid(positions, ij, len(positions), bin_m, min_count, window_m)
 
-    The peak is the fullest pair of adjacent height bins (an echo straddling a bin edge stays whole);
-    the point is the mean of the cell's photons within ``window_m`` of the pair's middle, then once more
-    within ``window_m`` of that mean (so a window off the echo's centre does not clip it).
+
+class PhotonFrame:
+    """A frame's photon positions and beam angle cells, gathered on the device chunk by chunk
+    (``add`` takes a simulate.DevicePhotons), then gridded into points with ``grid``; ``reset`` starts
+    the next frame in the same device and host memory.
+
+    The points of ``grid`` are views of the frame's page-locked host buffers (the copy from the device
+    runs at full bus speed and touches no fresh pages): they hold until the frame's next ``grid``.
     """
-    xyz = np.asarray(xyz, dtype=np.float64)
-    ok = np.isfinite(xyz).all(axis=1) & (np.asarray(cells) >= 0).all(axis=1)
-    xyz, ij = xyz[ok], np.asarray(cells, dtype=np.int64)[ok]
-    empty = GridPoints(np.zeros((0, 3)), np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
-    if len(xyz) == 0:
-        return empty
-    lo = xyz.min(axis=0)
-    columns = ij[:, 0].max() + 1
-    cell = ij[:, 1] * columns + ij[:, 0]
-    zbin = np.floor((xyz[:, 2] - lo[2]) / bin_m).astype(np.int64)
-    stride = zbin.max() + 2
-    keys, counts = np.unique(cell * stride + zbin, return_counts=True)
-    following = np.searchsorted(keys, keys + 1)
-    has_next = (following < len(keys)) & (keys[np.minimum(following, len(keys) - 1)] == keys + 1)
-    window = counts + np.where(has_next, counts[np.minimum(following, len(keys) - 1)], 0)
-    key_cell = keys // stride
-    order = np.lexsort((-window, key_cell))  # per cell, the fullest pair of bins first
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = key_cell[order[1:]] != key_cell[order[:-1]]
-    best = order[first]
-    cells = len(best)
-    # background rejection: the pair must beat the cell's own background by 5σ, and hold min_count
-    in_cell = np.bincount(np.searchsorted(np.unique(key_cell), key_cell), weights=counts)
-    background = 2.0 * np.maximum(in_cell - window[best], 0.0) / max(stride - 1, 1)
-    best = best[window[best] >= np.maximum(min_count, background + 5.0 * np.sqrt(background))]
-    if len(best) == 0:
-        return GridPoints(empty.points, empty.cell, empty.photons, empty.peak, cells)
-    best_cell = key_cell[best]
-    index = np.minimum(np.searchsorted(best_cell, cell), len(best_cell) - 1)
-    in_cell = best_cell[index] == cell
-    centre = lo[2] + (keys[best] % stride + 1) * bin_m  # the pair's middle, then the mean of its window
-    for _ in range(2):
-        member = in_cell & (np.abs(xyz[:, 2] - centre[index]) <= window_m)
-        n = np.bincount(index[member], minlength=len(best_cell))
-        sums = np.stack([np.bincount(index[member], weights=xyz[member, k], minlength=len(best_cell))
-                         for k in range(3)], axis=1)
-        centre = np.where(n > 0, sums[:, 2] / np.maximum(n, 1), centre)
-    ok = n > 0
-    kept = best_cell[ok]
-    return GridPoints(sums[ok] / n[ok, None], np.stack([kept % columns, kept // columns], axis=1), n[ok],
-                      window[best][ok], cells)
+
+    def __init__(self, half_field_rad: float, cells: int, device: str, capacity: int = 1 << 20):
+        self.half_field, self.cells, self.device = float(half_field_rad), int(cells), device
+        self.xyz = wp.empty(capacity, dtype=wp.vec3d, device=device)
+        self.cell = wp.empty(capacity, dtype=wp.vec2i, device=device)
+        self._signal = wp.zeros(1024, dtype=wp.int64, device=device)
+        self._host: dict[str, wp.array] = {}
+        self.count = 0
+
+    def reset(self) -> None:
+        """Forget the photons added (keep the memory)."""
+        self.count = 0
+        self._signal.zero_()
+
+    def add(self, photons) -> None:
+        """Append a chunk's photons (device arrays ``points``, ``directions``, ``signal``; ``count`` rows)."""
+        n = photons.count
+        if n == 0:
+            return
+        self._reserve(self.count + n)
+        wp.launch(k.append_photons, n,
+                  inputs=[photons.points, photons.directions, photons.signal, self.half_field, self.cells, self.count],
+                  outputs=[self.xyz, self.cell, self._signal], device=self.device)
+        self.count += n
+
+    @property
+    def signal_photons(self) -> int:
+        """Photons flagged as signal (truth) among those added."""
+        return int(to_host(self._signal).sum())
+
+    def grid(self, bin_m: float, min_count: int, window_m: float) -> GridPoints:
+        return _grid(self.xyz, self.cell, self.count, bin_m, min_count, window_m, self._host)
+
+    def _reserve(self, n: int) -> None:
+        if n <= len(self.xyz):
+            return
+        size = max(n, 2 * len(self.xyz))
+        for name, dtype in (("xyz", wp.vec3d), ("cell", wp.vec2i)):
+            grown = wp.empty(size, dtype=dtype, device=self.device)
+            wp.copy(grown, getattr(self, name), count=self.count)
+            setattr(self, name, grown)
+
+
+def _extent(xyz: wp.array, cell: wp.array, n: int) -> tuple[float, float, int, int] | None:
+    """(lowest, highest height [m], columns, rows) of the valid photons; None when there are none."""
+    threads = min(n, REDUCE_THREADS)
+    device = xyz.device
+    zmin, zmax = wp.empty(threads, dtype=wp.float64, device=device), wp.empty(threads, dtype=wp.float64, device=device)
+    top = wp.empty(threads, dtype=wp.vec2i, device=device)
+    wp.launch(k.extent, threads, inputs=[xyz, cell, n, threads], outputs=[zmin, zmax, top], device=device)
+    lo, hi, top = to_host(zmin).min(), to_host(zmax).max(), to_host(top).max(axis=0)
+    if not np.isfinite(lo):
+        return None
+    return float(lo), float(hi), int(top[0]) + 1, int(top[1]) + 1
+
+
+def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, window_m: float,
+          host: dict[str, wp.array] | None = None) -> GridPoints:
+    """The points of the first ``n`` photons (device arrays), gridded on their device; copied into the
+    page-locked ``host`` buffers when given (kept there for the next call), else into new arrays."""
+    extent = _extent(xyz, cell, n) if n else None
+    if extent is None:
+        return _empty()
+    lo, hi, columns, rows = extent
+    stride = int(np.floor((hi - lo) / bin_m)) + 2
+    runs, keys, starts = _sorted_runs(xyz, cell, n, lo, bin_m, stride, columns, rows)
+    device, n_cells = xyz.device, columns * rows
+    best = wp.zeros(n_cells, dtype=wp.int64, device=device)
+    totals = wp.zeros(n_cells, dtype=wp.int32, device=device)
+    wp.launch(k.best_pairs, runs, inputs=[keys, starts, runs, stride], outputs=[best, totals], device=device)
+    centre = wp.empty(n_cells, dtype=wp.float64, device=device)
+    peak = wp.empty(n_cells, dtype=wp.int32, device=device)
+    wp.launch(k.accept_cells, n_cells, inputs=[best, totals, stride, lo, bin_m, int(min_count)],
+              outputs=[centre, peak], device=device)
+    count = wp.empty(n_cells, dtype=wp.int32, device=device)
+    sums = wp.empty(n_cells, dtype=wp.vec3d, device=device)
+    for step in range(2):
+        if step:
+            wp.launch(k.recentre, n_cells, inputs=[count, sums], outputs=[centre], device=device)
+        count.zero_()
+        sums.zero_()
+        wp.launch(k.window_sums, n, inputs=[xyz, cell, columns, centre, float(window_m)], outputs=[count, sums],
+                  device=device)
+    return _compacted(centre, count, sums, peak, totals, columns, host)
+
+
+def _sorted_runs(xyz: wp.array, cell: wp.array, n: int, lo: float, bin_m: float, stride: int, columns: int,
+                 rows: int):
+    """(number of runs, sorted keys, run starts) of the photons' (cell, height bin) keys; the runs of the
+    valid photons only (the invalid key sorts last and its run is dropped)."""
+    device = xyz.device
+    invalid = columns * rows * stride
+    keys = wp.empty(2 * n, dtype=wp.int64, device=device)
+    order = wp.empty(2 * n, dtype=wp.int32, device=device)
+    wp.launch(k.bin_keys, n, inputs=[xyz, cell, lo, float(bin_m), stride, columns, invalid],
+              outputs=[keys, order], device=device)
+    wp.utils.radix_sort_pairs(keys, order, n, end_bit=invalid.bit_length())
+    heads = wp.empty(n, dtype=wp.int32, device=device)
+    run = wp.empty(n, dtype=wp.int32, device=device)
+    wp.launch(k.run_heads, n, inputs=[keys], outputs=[heads], device=device)
+    runs = _scanned_total(heads, run)
+    starts = wp.empty(runs + 1, dtype=wp.int32, device=device)
+    wp.launch(k.run_starts, n, inputs=[heads, run], outputs=[starts], device=device)
+    starts[runs:].fill_(n)
+    if int(to_host(keys[n - 1:n])[0]) == invalid:
+        runs -= 1  # the invalid photons' run: its start becomes the end of the valid runs
+    return runs, keys, starts
+
+
+def _compacted(centre: wp.array, count: wp.array, sums: wp.array, peak: wp.array, totals: wp.array,
+               columns: int, host: dict[str, wp.array] | None) -> GridPoints:
+    """The accepted cells' points, brought to the host."""
+    device, n_cells = centre.device, len(centre)
+    flags = wp.empty(n_cells, dtype=wp.int32, device=device)
+    offsets = wp.empty(n_cells, dtype=wp.int32, device=device)
+    wp.launch(k.occupied, n_cells, inputs=[totals], outputs=[flags], device=device)
+    cells = _scanned_total(flags, offsets)
+    wp.launch(k.point_flags, n_cells, inputs=[centre, count], outputs=[flags], device=device)
+    m = _scanned_total(flags, offsets)
+    if m == 0:
+        return _empty(cells)
+    out = {name: wp.empty(m, dtype=dtype, device=device) for name, dtype in OUTPUTS.items()}
+    wp.launch(k.compact_points, n_cells, inputs=[flags, offsets, columns, count, sums, peak],
+              outputs=list(out.values()), device=device)
+    if host is None:
+        found = {name: a.numpy() for name, a in out.items()}
+    else:
+        found = {name: _to_host(a, host, name) for name, a in out.items()}
+        wp.synchronize_device(device)
+    return GridPoints(found["points"], found["cell"], found["photons"], found["peak"], cells)
+
+
+OUTPUTS = {"points": wp.vec3d, "cell": wp.vec2i, "photons": wp.int32, "peak": wp.int32}  # per point, in order
+
+
+def _to_host(a: wp.array, host: dict[str, wp.array], name: str) -> np.ndarray:
+    """A NumPy view of the page-locked buffer ``host[name]`` (grown when too small) into which ``a`` is
+    being copied (valid once the device is synchronised)."""
+    if name not in host or len(host[name]) < len(a):
+        host[name] = wp.empty(max(len(a), 2 * len(host.get(name, ()))), dtype=a.dtype, device="cpu",
+                              pinned=a.device.is_cuda)
+    wp.copy(host[name], a, count=len(a))
+    return host[name].numpy()[:len(a)]
+
+
+def _scanned_total(flags: wp.array, offsets: wp.array) -> int:
+    """Exclusive scan of ``flags`` into ``offsets``; returns the total."""
+    wp.utils.array_scan(flags, offsets, inclusive=False)
+    n = len(flags)
+    return int(to_host(offsets[n - 1:n])[0] + to_host(flags[n - 1:n])[0])

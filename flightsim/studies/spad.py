@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.core.atomic import write_atomic
-from flightsim.core.config import RunConfig, copy_config, preset_config, validate
+from flightsim.core.config import RunConfig, preset_config, validate
 
 PAPER = {"mode_a": {"distance_m": 100.0, "grid": 1100, "frame_s": 0.86, "pulses": 43000, "accuracy_3sigma_cm": 2.86},
          "mode_b": {"distances_m": [83.0, 73.0, 63.0, 54.0, 44.0, 34.0], "mean_accuracy_3sigma_cm": 3.10,
@@ -44,8 +44,8 @@ class FrameResult:
     bias_cm: float  # mean signed distance
     expected_bias_cm: float  # first-photon pile-up: the echo read early by the mean detected signal per shot
     signal_per_shot: float  # mean signal photons detected per beam and pulse
-    wall_s: float  # simulation (trace, photons, placing) on the device [s]
-    grid_s: float  # gridding and scoring on the host [s]
+    wall_s: float  # simulation and gridding into points (trace, photons, placing, gridding) [s]
+    score_s: float  # scoring the points against the scene [s]
 
 
 def frame_config(distance_m: float, mode: str, device: str, pulses: int | None = None,
@@ -66,41 +66,88 @@ def frame_config(distance_m: float, mode: str, device: str, pulses: int | None =
     return validate(cfg)
 
 
-def run_frame(cfg: RunConfig, label: str, grid: int) -> FrameResult:
-    """Simulate ``cfg``'s photons, grid them at the field's ``grid`` cells per side, score against the scene."""
-    from flightsim.engine.simulate import Simulator
-    from flightsim.platforms.plan import build_scene, flight_trajectories
-    from flightsim.scoring.photon_grid import angle_cells, grid_points
+def run_frame(cfg: RunConfig, label: str, grid: int, products: Path | None = None) -> FrameResult:
+    """Simulate ``cfg``'s photons, grid them on the device at the field's ``grid`` cells per side, score
+    the points against the scene; with ``products`` (a path stem), write the frame's products there."""
     from flightsim.scoring.surface import signed_distances
 
-    scene = build_scene(cfg)
-    sim = Simulator(cfg, scene, flight_trajectories(cfg, scene))
-    points, directions, signal = [], [], []
-
-    def keep(chunk):
-        points.append(chunk.points.astype(np.float32))
-        directions.append(chunk.directions)
-        signal.append(chunk.signal)
-
-    counts = sim.run_photons(keep)
+    scene, sim = frame_simulator(cfg)
+    counts, result, wall = simulate_frame(sim, photon_frame(sim, grid))
+    if products is not None:
+        write_products(products, scene, sim, result, grid)
     started = time.perf_counter()
-    xyz = np.concatenate(points) if points else np.zeros((0, 3), np.float32)
-    cells = angle_cells(np.concatenate(directions), math.radians(HALF_FIELD_DEG), grid) if points else \
-        np.zeros((0, 2), np.int64)
-    flags = np.concatenate(signal) if signal else np.zeros(0, bool)
-    distance = cfg.flight.altitude_m
-    cell = 2.0 * distance * math.tan(math.radians(HALF_FIELD_DEG)) / grid  # at nadir [m]
-    sigma_m = math.hypot(cfg.photon.pulse_fwhm_s / 2.3548, cfg.photon.jitter_s) * 1.5e8
-    result = grid_points(xyz, cells, bin_m=max(2.0 * sigma_m, cfg.photon.tdc_bin_s * 1.5e8),
-                         min_count=MIN_PHOTONS, window_m=3.0 * sigma_m + cfg.photon.tdc_bin_s * 1.5e8)
     d = signed_distances(scene, result.points, device=cfg.run.device)
     d = d[np.isfinite(d)]
+    cell = 2.0 * cfg.flight.altitude_m * math.tan(math.radians(HALF_FIELD_DEG)) / grid  # at nadir [m]
     half = 6.0  # the sandbox's half side [m]
     in_field = min(grid, int(2 * half / cell)) ** 2
-    per_shot = float(flags.sum()) / max(counts.beams_fired, 1)
-    return FrameResult(label, distance, cfg.fsm.mode, grid, len(result.points), in_field, len(flags),
-                       int(flags.sum()), counts.pulses, 300.0 * float(np.std(d)), 100.0 * float(np.mean(d)),
-                       pile_up_cm(per_shot, cfg), per_shot, counts.wall_s, time.perf_counter() - started)
+    per_shot = result.signal_photons / max(counts.beams_fired, 1)
+    return FrameResult(label, cfg.flight.altitude_m, cfg.fsm.mode, grid, len(result.points), in_field,
+                       counts.returns, result.signal_photons, counts.pulses, 300.0 * float(np.std(d)),
+                       100.0 * float(np.mean(d)), pile_up_cm(per_shot, cfg), per_shot, wall,
+                       time.perf_counter() - started)
+
+
+def write_products(stem: Path, scene, sim, frame: "FramePoints", grid: int) -> list[Path]:
+    """A frame's products beside ``stem``: the range image (``_range.png``, the angle grid, north up), a
+    GeoTIFF of the points' mean heights in the scene's CRS at the nadir cell size (``_heights.tif``)
+    and the points with their photon counts (``_points.las``)."""
+    from flightsim.outputs.grid_products import (height_raster, range_image, write_geotiff, write_png,
+                                                 write_points_las)
+
+    sensor = scene.world_to_local(sim.trajectories[0].position[0])
+    ranges = np.linalg.norm(frame.points - sensor, axis=1)
+    world = scene.local_to_world(frame.points)
+    cell_m = 2.0 * sim.cfg.flight.altitude_m * math.tan(math.radians(HALF_FIELD_DEG)) / grid
+    heights, west, north = height_raster(world, cell_m)
+    return [write_png(stem.with_name(stem.name + "_range.png"), range_image(frame, grid, ranges), "range", "m"),
+            write_geotiff(stem.with_name(stem.name + "_heights.tif"), heights, (west, north), cell_m, scene.crs),
+            write_points_las(stem.with_name(stem.name + "_points.las"), world, scene.crs,
+                             photons=np.minimum(frame.photons, 65535))]
+
+
+def frame_simulator(cfg: RunConfig):
+    """(scene, Simulator) of a frame's config."""
+    from flightsim.engine.simulate import Simulator
+    from flightsim.platforms.plan import build_scene, flight_trajectories
+
+    scene = build_scene(cfg)
+    return scene, Simulator(cfg, scene, flight_trajectories(cfg, scene))
+
+
+@dataclass
+class FramePoints:
+    """A frame gridded into points on the device."""
+
+    points: np.ndarray  # (m, 3) float64 local [m]
+    cell: np.ndarray  # (m, 2) column, row in the angle grid
+    photons: np.ndarray  # (m,) photons averaged into each point
+    signal_photons: int  # photons of the frame flagged as signal (truth)
+
+
+def photon_frame(sim, grid: int):
+    """A PhotonFrame for ``sim``'s frames gridded at ``grid`` angle cells per side."""
+    from flightsim.scoring.photon_grid import PhotonFrame
+
+    return PhotonFrame(math.radians(HALF_FIELD_DEG), grid, sim.cfg.run.device,
+                       capacity=sim.planned_pulses() * sim.beams_per_pulse)  # about one photon per beam
+
+
+def simulate_frame(sim, frame) -> tuple:
+    """(RunCounts, FramePoints, wall [s]) of one frame: traced, photon-sampled and gridded into points in
+    ``frame`` (a :func:`photon_frame`, reset here), all on the device; only the points reach the host
+    (views of the frame's buffers, valid until its next use). The wall time runs from the first launch
+    to the points on the host."""
+    cfg = sim.cfg
+    started = time.perf_counter()
+    frame.reset()
+    counts = sim.run_photons(frame.add, on_device=True)
+    p = cfg.photon
+    sigma_m = math.hypot(p.pulse_fwhm_s / 2.3548, p.jitter_s) * 1.5e8
+    result = frame.grid(bin_m=max(2.0 * sigma_m, p.tdc_bin_s * 1.5e8), min_count=MIN_PHOTONS,
+                        window_m=3.0 * sigma_m + p.tdc_bin_s * 1.5e8)
+    wall = time.perf_counter() - started
+    return counts, FramePoints(result.points, result.cell, result.photons, frame.signal_photons), wall
 
 
 def pile_up_cm(signal_per_shot: float, cfg: RunConfig) -> float:
@@ -130,7 +177,8 @@ def run_spad(out: Path, device: str = "cpu", pulses: int | None = None) -> dict:
     """All experiments into ``out``: spad.json and REPORT.md (``pulses`` limits each frame, for tests)."""
     out.mkdir(parents=True, exist_ok=True)
     grid_b = 32 * MODE_B_STEPS
-    frames = [run_frame(frame_config(100.0, "A", device, pulses), "MODE-A 100 m", PAPER["mode_a"]["grid"])]
+    frames = [run_frame(frame_config(100.0, "A", device, pulses), "MODE-A 100 m", PAPER["mode_a"]["grid"],
+                        products=out / "mode_a_100m")]
     frames += [run_frame(frame_config(d, "B", device, pulses), f"MODE-B {d:g} m", grid_b)
                for d in PAPER["mode_b"]["distances_m"]]
     base = frame_config(63.0, "B", device, pulses)

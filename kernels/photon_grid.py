@@ -1,0 +1,205 @@
+"""Photons to points on the device: angle cells, per-cell height histograms by sorting (cell, height
+bin) keys, the fullest pair of adjacent bins per cell, background rejection and the windowed mean
+(the algorithm is described in flightsim.scoring.photon_grid, which drives these kernels).
+
+A photon is *valid* when its position is finite and its cell's column and row are ≥ 0. Keys are
+``cell · stride + zbin`` (int64) with ``cell = row · columns + column`` and ``stride`` = highest
+height bin + 2, so bin + 1 never leaves its cell; invalid photons get the key ``invalid`` (above
+every valid key) and sort last.
+"""
+from __future__ import annotations
+
+import warp as wp
+
+PACK_LOW = wp.constant(wp.int64(0x7FFFFFFF))  # the bin's place in a packed (window, bin) best pair
+
+
+@wp.func
+def valid(p: wp.vec3d, cell: wp.vec2i) -> bool:
+    """Finite position inside the grid."""
+    return wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2]) and cell[0] >= 0 and cell[1] >= 0
+
+
+@wp.func
+def angle_cell(d: wp.vec3f, half_field: wp.float64, cells: int) -> wp.vec2i:
+    """Column and row of a downward direction in a cells × cells grid of angles from nadir over
+    ±half_field [rad] (atan of east and of north over the depth); (−1, −1) outside."""
+    depth = -wp.float64(d[2])
+    scale = wp.float64(2.0) * half_field
+    col = int(wp.floor((wp.atan2(wp.float64(d[0]), depth) + half_field) / scale * wp.float64(cells)))
+    row = int(wp.floor((wp.atan2(wp.float64(d[1]), depth) + half_field) / scale * wp.float64(cells)))
+    if col < 0 or col >= cells or row < 0 or row >= cells:
+        return wp.vec2i(-1, -1)
+    return wp.vec2i(col, row)
+
+
+@wp.kernel
+def angle_cells(directions: wp.array(dtype=wp.vec3f), half_field: wp.float64, cells: int,
+                out: wp.array(dtype=wp.vec2i)):
+    """The angle cell of every direction."""
+    i = wp.tid()
+    out[i] = angle_cell(directions[i], half_field, cells)
+
+
+@wp.kernel
+def append_photons(points: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3f),
+                   flags: wp.array(dtype=wp.int8), half_field: wp.float64, cells: int, base: int,
+                   xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i),
+                   signal_count: wp.array(dtype=wp.int64)):
+    """Copy a chunk's photons to a frame's arrays from ``base``, with their angle cells; count the signal
+    photons into 1024 counters (spread so the atomics do not queue on one address)."""
+    i = wp.tid()
+    xyz[base + i] = points[i]
+    cell[base + i] = angle_cell(directions[i], half_field, cells)
+    if flags[i] != wp.int8(0):
+        wp.atomic_add(signal_count, i & 1023, wp.int64(1))
+
+
+@wp.kernel
+def extent(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), n: int, threads: int,
+           zmin: wp.array(dtype=wp.float64), zmax: wp.array(dtype=wp.float64), top: wp.array(dtype=wp.vec2i)):
+    """Per thread (grid-stride over the valid photons): lowest and highest height [m] and highest
+    column and row; the host reduces the threads' values."""
+    t = wp.tid()
+    lo = wp.float64(wp.inf)
+    hi = wp.float64(-wp.inf)
+    c = wp.vec2i(-1, -1)
+    i = t
+    while i < n:
+        if valid(xyz[i], cell[i]):
+            lo = wp.min(lo, xyz[i][2])
+            hi = wp.max(hi, xyz[i][2])
+            c = wp.max(c, cell[i])
+        i += threads
+    zmin[t] = lo
+    zmax[t] = hi
+    top[t] = c
+
+
+@wp.kernel
+def bin_keys(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), lo: wp.float64, bin_m: wp.float64,
+             stride: wp.int64, columns: wp.int64, invalid: wp.int64,
+             keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32)):
+    """The (cell, height bin) key of every photon."""
+    i = wp.tid()
+    order[i] = i
+    keys[i] = invalid
+    if valid(xyz[i], cell[i]):
+        zbin = wp.int64(wp.floor((xyz[i][2] - lo) / bin_m))
+        keys[i] = (wp.int64(cell[i][1]) * columns + wp.int64(cell[i][0])) * stride + zbin
+
+
+@wp.kernel
+def run_heads(keys: wp.array(dtype=wp.int64), heads: wp.array(dtype=wp.int32)):
+    """1 where a run of equal sorted keys starts."""
+    i = wp.tid()
+    heads[i] = 0
+    if i == 0:
+        heads[i] = 1
+    elif keys[i] != keys[i - 1]:
+        heads[i] = 1
+
+
+@wp.kernel
+def run_starts(heads: wp.array(dtype=wp.int32), run: wp.array(dtype=wp.int32), starts: wp.array(dtype=wp.int32)):
+    """Where each run starts (``run``: exclusive scan of ``heads``)."""
+    i = wp.tid()
+    if heads[i] == 1:
+        starts[run[i]] = i
+
+
+@wp.kernel
+def best_pairs(keys: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int32), runs: int, stride: wp.int64,
+               best: wp.array(dtype=wp.int64), totals: wp.array(dtype=wp.int32)):
+    """Per run (one occupied bin): its photons plus those of the next bin up form a pair; each cell keeps
+    the fullest pair (the lowest bin on a tie) packed as window · 2³² + (2³¹ − 1 − bin), and counts its
+    photons."""
+    r = wp.tid()
+    a = starts[r]
+    b = starts[r + 1]
+    key = keys[a]
+    window = b - a
+    if r + 1 < runs:
+        if keys[b] == key + wp.int64(1):
+            window += starts[r + 2] - b
+    c = key / stride
+    zbin = key - c * stride
+    wp.atomic_max(best, int(c), (wp.int64(window) << wp.int64(32)) | (PACK_LOW - zbin))
+    wp.atomic_add(totals, int(c), b - a)
+
+
+@wp.kernel
+def accept_cells(best: wp.array(dtype=wp.int64), totals: wp.array(dtype=wp.int32), stride: wp.int64,
+                 lo: wp.float64, bin_m: wp.float64, min_count: int,
+                 centre: wp.array(dtype=wp.float64), peak: wp.array(dtype=wp.int32)):
+    """A cell's best pair is its surface when it holds ≥ min_count photons and beats the cell's own
+    background per pair of bins by 5σ; ``centre`` is then the pair's middle height [m], else NaN."""
+    c = wp.tid()
+    centre[c] = wp.float64(wp.nan)
+    peak[c] = 0
+    if totals[c] == 0:
+        return
+    window = int(best[c] >> wp.int64(32))
+    zbin = PACK_LOW - (best[c] & PACK_LOW)
+    background = wp.float64(2.0) * wp.float64(wp.max(totals[c] - window, 0)) / wp.float64(wp.max(stride - wp.int64(1), wp.int64(1)))
+    need = wp.max(wp.float64(min_count), background + wp.float64(5.0) * wp.sqrt(background))
+    if wp.float64(window) >= need:
+        centre[c] = lo + wp.float64(zbin + wp.int64(1)) * bin_m
+        peak[c] = window
+
+
+@wp.kernel
+def window_sums(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), columns: int,
+                centre: wp.array(dtype=wp.float64), window_m: wp.float64,
+                count: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.vec3d)):
+    """Add every photon within ``window_m`` of its accepted cell's centre height to the cell's sums."""
+    i = wp.tid()
+    if not valid(xyz[i], cell[i]):
+        return
+    c = cell[i][1] * columns + cell[i][0]
+    z = centre[c]
+    if wp.isnan(z):
+        return
+    if wp.abs(xyz[i][2] - z) <= window_m:
+        wp.atomic_add(count, c, 1)
+        wp.atomic_add(sums, c, xyz[i])
+
+
+@wp.kernel
+def recentre(count: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.vec3d), centre: wp.array(dtype=wp.float64)):
+    """The window's mean height becomes the cell's centre (cells whose window is empty keep theirs)."""
+    c = wp.tid()
+    if count[c] > 0:
+        centre[c] = sums[c][2] / wp.float64(count[c])
+
+
+@wp.kernel
+def point_flags(centre: wp.array(dtype=wp.float64), count: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
+    """1 for an accepted cell whose window holds photons (it becomes a point)."""
+    c = wp.tid()
+    flags[c] = 0
+    if not wp.isnan(centre[c]) and count[c] > 0:
+        flags[c] = 1
+
+
+@wp.kernel
+def compact_points(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), columns: int,
+                   count: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.vec3d), peak: wp.array(dtype=wp.int32),
+                   points: wp.array(dtype=wp.vec3d), cells: wp.array(dtype=wp.vec2i),
+                   photons: wp.array(dtype=wp.int32), peaks: wp.array(dtype=wp.int32)):
+    """Each point (mean of its window) at its cell's place in row-major cell order."""
+    c = wp.tid()
+    if flags[c] == 0:
+        return
+    k = offsets[c]
+    points[k] = sums[c] / wp.float64(count[c])
+    cells[k] = wp.vec2i(c % columns, c / columns)
+    photons[k] = count[c]
+    peaks[k] = peak[c]
+
+
+@wp.kernel
+def occupied(totals: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
+    """1 for a cell holding any photon."""
+    c = wp.tid()
+    flags[c] = wp.where(totals[c] > 0, 1, 0)
