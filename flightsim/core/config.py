@@ -27,6 +27,8 @@ CHANGE3_CHANNELS_MRAD = tuple(float(17 - 2 * i) for i in range(1, 17))  # θ_i =
 OPTICS = ("float32", "float64", "lut")
 BVH_CONSTRUCTORS = ("auto", "sah", "median", "lbvh", "cubql")
 KMH = 1.0 / 3.6  # [m/s per km/h]
+MIN_ROTATION_PERIOD_S, MAX_ROTATION_PERIOD_S = 60.0, 1.0e7  # a spinning body's period: 1 min to 116 days [s]
+ROTATION_PERIOD_UNIT = f"s; 0 = not rotating, else at least {MIN_ROTATION_PERIOD_S:g} s"
 
 
 def _num(lo: float, hi: float, unit: str = "", *, lo_open: bool = False, integer: bool = False) -> dict:
@@ -61,6 +63,8 @@ class FlightConfig:
     trajectory: str = ""  # CSV trajectory file; when given it replaces the line plan
     platform: str = "lines"  # "lines": flight lines (or the trajectory file); "hover": a lander or tripod over the scene centre
     descent_mps: float = field(default=0.0, metadata=_num(-100.0, 100.0, "m/s, hover platform (positive: descending)"))
+    body_rotation_period_s: float = field(default=0.0, metadata=_num(0.0, MAX_ROTATION_PERIOD_S, ROTATION_PERIOD_UNIT))
+    # hover platform: the scene spins about its local y axis through the local origin (platforms.rotating_body)
 
 
 @dataclass
@@ -383,11 +387,27 @@ def _check_choices(cfg: RunConfig) -> None:
     _check_vector("errors.boresight_arcsec", cfg.errors.boresight_arcsec, 3600.0, "arcsec")
 
 
+def _check_rotation(cfg: RunConfig) -> None:
+    """flight.body_rotation_period_s (already in [0, MAX]) is 0, or at least MIN under a hover (a hover
+    already refuses a trajectory file, so a rotating body never flies one)."""
+    f = cfg.flight
+    period = f.body_rotation_period_s
+    if period == 0.0:
+        return
+    if period < MIN_ROTATION_PERIOD_S:  # the same words as the range check of the field's metadata
+        raise InputError("flight.body_rotation_period_s", period,
+                         f"a finite number in [0, {MAX_ROTATION_PERIOD_S:g}] {ROTATION_PERIOD_UNIT}")
+    if f.platform != "hover":
+        raise InputError("flight.body_rotation_period_s", period,
+                         f"0 with flight.platform = {f.platform} (a rotating body needs flight.platform = hover)")
+
+
 def validate(cfg: RunConfig) -> RunConfig:
     """Check every field; return the resolved config or raise InputError naming the field."""
     for section in dataclasses.fields(cfg):
         check_fields(section.name, getattr(cfg, section.name))
     _check_choices(cfg)
+    _check_rotation(cfg)
     _check_optics(cfg)
     resolved = resolve(cfg)
     from flightsim.instrument.parts import HostInstrument  # the parts check their own sections

@@ -8,6 +8,7 @@ import numpy as np
 
 from flightsim.core.config import BUILTIN_SCENES, RunConfig
 from flightsim.core.errors import InputError
+from flightsim.platforms import rotating_body
 from flightsim.scenes.meshio import load_mesh
 from flightsim.scenes.scene import (Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene,
                              required_half_extent)
@@ -48,22 +49,23 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
     crs = parse_crs(cfg.scene.crs, field="scene.crs")
     origin = np.asarray(cfg.scene.origin, dtype=np.float64)
     name = cfg.scene.name
-    half = scene_half_extent(cfg) if half_extent_m is None else half_extent_m
-    if name == "plane":
-        return plane_scene(half, origin, crs, slope=cfg.scene.slope)
-    if name == "calibration":
-        return calibration_scene(max(half, calibration_min_half_extent() + cfg.scene.margin_m), origin, crs)
-    if name == "lunar":
-        from flightsim.scenes.lunar import lunar_scene
-
-        return lunar_scene(half, origin, crs, seed=cfg.run.seed, slope=cfg.scene.slope)
     if name in ("sandbox", "ellipsoid"):  # fixed-size small-body scenes
         from flightsim.scenes import smallbody
 
         return getattr(smallbody, f"{name}_scene")(origin, crs, seed=cfg.run.seed)
-    if not Path(name).is_file():
-        raise InputError("scene.name", name, f"{', '.join(BUILTIN_SCENES)}, or the path of an existing .obj/.ply mesh")
-    return load_mesh(name, crs, origin)
+    if name not in ("plane", "calibration", "lunar"):
+        if not Path(name).is_file():
+            raise InputError("scene.name", name,
+                             f"{', '.join(BUILTIN_SCENES)}, or the path of an existing .obj/.ply mesh")
+        return load_mesh(name, crs, origin)
+    half = scene_half_extent(cfg) if half_extent_m is None else half_extent_m  # sized to the flight
+    if name == "plane":
+        return plane_scene(half, origin, crs, slope=cfg.scene.slope)
+    if name == "calibration":
+        return calibration_scene(max(half, calibration_min_half_extent() + cfg.scene.margin_m), origin, crs)
+    from flightsim.scenes.lunar import lunar_scene
+
+    return lunar_scene(half, origin, crs, seed=cfg.run.seed, slope=cfg.scene.slope)
 
 
 def _planned_lines(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
@@ -110,7 +112,11 @@ def _clear_at_a_glance(trajectory: Trajectory, scene: Scene) -> bool:
 
 
 def _check_clearance(trajectory: Trajectory, scene: Scene, cfg: RunConfig) -> None:
-    """Reject a flight whose sensor does not stay at least MIN_CLEARANCE_M above the terrain beneath it."""
+    """Reject a flight whose sensor does not stay at least MIN_CLEARANCE_M above the terrain beneath it
+    (over a spinning body: outside the body's sweep)."""
+    if cfg.flight.body_rotation_period_s > 0.0:
+        rotating_body.check_clearance(trajectory, scene, cfg.flight.altitude_m, MIN_CLEARANCE_M)
+        return
     if _clear_at_a_glance(trajectory, scene):
         return
     margin, height, top = _clearance(trajectory, scene)
@@ -128,7 +134,9 @@ def _check_clearance(trajectory: Trajectory, scene: Scene, cfg: RunConfig) -> No
 
 def _hover(cfg: RunConfig, scene: Scene) -> Trajectory:
     """A lander (or tripod) over the scene centre: flight.altitude_m above the ground at the start,
-    sinking at flight.descent_mps, level, its sensor axis (body z) down; heading flight.heading_deg."""
+    sinking at flight.descent_mps, level, its sensor axis (body z) down; heading flight.heading_deg.
+    Over a body spinning every flight.body_rotation_period_s, the same hover held in inertial space,
+    seen from the body (:mod:`flightsim.platforms.rotating_body`)."""
     f = cfg.flight
     lo, hi = scene.bounds()
     centre = scene.local_to_world(np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, scene.ground_z]))
@@ -136,7 +144,10 @@ def _hover(cfg: RunConfig, scene: Scene) -> Trajectory:
     heights = centre[2] + f.altitude_m - f.descent_mps * (times - f.start_gps_time)
     position = np.column_stack([np.full(2, centre[0]), np.full(2, centre[1]), heights])
     attitude = np.tile(np.radians([f.roll_deg, f.pitch_deg, f.heading_deg % 360.0]), (2, 1))
-    return Trajectory(times, position, attitude, 1)
+    hover = Trajectory(times, position, attitude, 1)
+    if f.body_rotation_period_s == 0.0:
+        return hover
+    return rotating_body.spun_hover(hover, scene, f.body_rotation_period_s)
 
 
 def flight_trajectories(cfg: RunConfig, scene: Scene) -> list[Trajectory]:

@@ -41,6 +41,7 @@ SANDBOX_BOULDER_K = 0.3  # boulders per m² wider than SANDBOX_BOULDER_MIN_M: ~4
 SANDBOX_BOULDER_MIN_M, SANDBOX_BOULDER_MAX_M, SANDBOX_BOULDER_SLOPE = 0.1, 0.8, 2.5
 SANDBOX_ROUGHNESS_RMS_M = 0.01  # RMS of the fBm roughness [m]
 
+ELLIPSOID_AXES_M = (250.0, 120.2, 120.2)  # the paper's small body: semi-axes a, b, c [m]
 NOISE_TERMS = 48  # random-phase cosines in the ellipsoid's radial perturbation
 NOISE_MAX_ORDER = 12.0  # highest angular frequency of a cosine [cycles per radian of direction]
 MAX_SUBDIVISIONS = 8  # 655 362 vertices, 1.3 M triangles
@@ -88,8 +89,8 @@ def _sandbox_boulders(rng: np.random.Generator, half: float) -> list[tuple[float
     return [(float(cx), float(cy), float(d)) for (cx, cy), d in zip(centres, diameters)]
 
 
-def ellipsoid_scene(origin=DEFAULT_ORIGIN, crs=DEFAULT_CRS, seed: int = 0, a_m: float = 250.0,
-                    b_m: float = 120.2, c_m: float = 120.2, subdivisions: int = 6,
+def ellipsoid_scene(origin=DEFAULT_ORIGIN, crs=DEFAULT_CRS, seed: int = 0, a_m: float = ELLIPSOID_AXES_M[0],
+                    b_m: float = ELLIPSOID_AXES_M[1], c_m: float = ELLIPSOID_AXES_M[2], subdivisions: int = 6,
                     roughness_m: float = 0.5) -> Scene:
     """A closed ellipsoid body, semi-axes ``a_m``, ``b_m``, ``c_m`` [m] along local x, y, z.
 
