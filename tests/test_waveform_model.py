@@ -1,0 +1,217 @@
+"""The float64 large-footprint echo model against closed forms and the patent's stated numbers.
+
+Closed forms used (R = Hα the footprint edge, profile e^(−2ρ²/R²) truncated at R, u = 2ρ²/R² ∈ [0, 2]
+with density ∝ e^(−u)):
+- E[u] = (1 − 3e⁻²)/(1 − e⁻²), so E[ρ²] = (R²/2)·E[u] and, by symmetry, σ_x² = E[x²] = (R²/4)·E[u]
+  (σ_x = 24.865 m against 30 m untruncated).
+- A ground point at ρ lies √(H² + ρ²) − H = ρ²/2H − O(ρ⁴/H³) farther than nadir (H(1/cos φ − 1) with
+  tan φ = ρ/H), so the footprint's mean extra range is Δ = E[ρ²]/2H = Hα²(1 − 3e⁻²)/(4(1 − e⁻²))
+  = 3.0914 mm (20.62 ps of two-way delay).
+- Over the plane z = s·x the range is H − s·x + O(s²x²/H): the delays' RMS is 2sσ_x/c.
+- The disc ρ ≤ R holds 1 − e⁻² of an untruncated Gaussian beam (all of the pulse by the patent's eq. 7).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from flightsim.core.errors import InputError
+from flightsim.instrument import waveform_model as wm
+
+C = 299_792_458.0
+H, ALPHA, TAU, P_MAX = 200e3, 3e-4, 7e-9, 0.05  # the patent's embodiment
+R = H * ALPHA  # 60 m
+SIGMA_P = TAU / (2.0 * math.sqrt(2.0 * math.log(2.0)))  # 2.9726 ns
+E2 = math.exp(-2.0)
+MEAN_U = (1.0 - 3.0 * E2) / (1.0 - E2)
+DELTA_M = H * ALPHA ** 2 * MEAN_U / 4.0
+SIGMA_X_M = 0.5 * R * math.sqrt(MEAN_U)
+SYSTEM = wm.WaveformSystem()
+
+
+def _echo(system: wm.WaveformSystem, surface):
+    rets = wm.sample_returns(system, wm.footprint(system), surface)
+    times = wm.time_base(system, rets)
+    return rets, times, wm.echo_analytic(system, rets, times)
+
+
+def test_pulse_is_the_patent_gaussian():
+    t = np.arange(-20e-9, 30e-9, 1e-12)
+    p = wm.pulse_power_w(SYSTEM, t)
+    m = wm.pulse_moments(SYSTEM)
+    assert wm.pulse_power_w(SYSTEM, 0.0) == pytest.approx(0.5 * P_MAX, rel=1e-14, abs=0)  # t = 0: leading half power
+    assert wm.pulse_power_w(SYSTEM, TAU) == pytest.approx(0.5 * P_MAX, rel=1e-14, abs=0)
+    energy = math.sqrt(math.pi) * TAU * P_MAX / (2.0 * math.sqrt(math.log(2.0)))  # eq. 3's A
+    assert m.energy_j == pytest.approx(energy, rel=1e-14, abs=0)
+    assert m.energy_j == pytest.approx(np.sum(p) * 1e-12, rel=1e-9, abs=0)
+    assert m.energy_j == pytest.approx(3.7255e-10, rel=1e-4, abs=0)
+    assert m.mean_s == pytest.approx(np.sum(t * p) / np.sum(p), rel=1e-9, abs=0) == 3.5e-9
+    assert m.rms_width_s == pytest.approx(SIGMA_P, rel=1e-14, abs=0)
+    assert m.rms_width_s == pytest.approx(2.97263e-9, rel=1e-5, abs=0)
+    assert wm.fwhm_s(t, p) == pytest.approx(TAU, rel=1e-6, abs=0)
+
+
+def test_patent_grid_has_7200_cells_out_to_the_edge():
+    fp = wm.footprint(SYSTEM)
+    rho = np.hypot(fp.x_m, fp.y_m)
+    assert fp.weight.size == 7200
+    assert np.unique(rho.round(9)).tolist() == pytest.approx([(m - 0.5) * R / 60 for m in range(1, 61)])  # eq. 15
+    assert fp.weight.sum() == pytest.approx(1.0, rel=1e-13, abs=0)  # eq. 7: the disc carries the whole pulse
+    ring = np.exp(-2.0 * (np.arange(60) / 60) ** 2) - np.exp(-2.0 * (np.arange(1, 61) / 60) ** 2)  # ∫ over annuli
+    assert fp.weight.reshape(60, 120)[:, 0] == pytest.approx(ring / 120 / (1.0 - E2), rel=1e-12, abs=0)
+    tan_off_nadir = np.hypot(fp.direction[:, 0], fp.direction[:, 1]) / -fp.direction[:, 2]
+    assert tan_off_nadir == pytest.approx(rho / H, rel=1e-12, abs=0)  # tan φ = ρ/H (eq. 6)
+    even = wm.footprint(dataclasses.replace(SYSTEM, scheme="equal_energy"))
+    assert np.ptp(even.weight) < 1e-15 and np.hypot(even.x_m, even.y_m).max() < R
+
+
+def test_flat_echo_is_the_pulse_delayed_by_the_footprint_mean_range():
+    rets, times, echo = _echo(SYSTEM, wm.PlaneSurface(0.0))
+    m = wm.measure(SYSTEM, times, echo)
+    assert m.fwhm_s == pytest.approx(TAU, rel=1e-3, abs=0)
+    assert m.rms_width_s == pytest.approx(SIGMA_P, rel=1e-4, abs=0)
+    delay = 2.0 * (H + DELTA_M) / C  # 2H/c plus the footprint's own spread: 20.62 ps
+    assert m.centroid_s - 0.5 * TAU == pytest.approx(delay, abs=1e-14)  # 0.01 ps
+    assert m.half_power_s == pytest.approx(delay, abs=1e-13)
+    assert m.centroid_range_m - H == pytest.approx(DELTA_M, rel=1e-4, abs=0)
+    assert DELTA_M == pytest.approx(3.0914e-3, rel=1e-4, abs=0)
+    assert np.max(rets.range_m) - H == pytest.approx(R ** 2 / (2 * H) * (59.5 / 60) ** 2, rel=1e-6, abs=0)  # edge ring
+
+
+def test_slope_widens_the_echo_by_the_across_slope_extent():
+    s = wm.PATENT_SLOPE
+    for system in (SYSTEM, wm.PATENT):
+        _, times, echo = _echo(system, wm.PlaneSurface(s))
+        expected = math.sqrt(SIGMA_P ** 2 + (2.0 * s * SIGMA_X_M / C) ** 2)  # 33.31 ns
+        assert wm.rms_width_s(times, echo) == pytest.approx(expected, rel=1e-3, abs=0)
+        assert wm.rms_width_s(times, echo) != pytest.approx(math.sqrt(SIGMA_P ** 2 + (2 * s * 0.5 * R / C) ** 2),
+                                                            rel=0.1, abs=0)  # the untruncated σ_x = R/2 is far off
+
+
+@pytest.mark.parametrize("scheme, rel", [("polar", 1e-11), ("equal_energy", 1e-11), ("polar_midpoint", 2e-4)])
+def test_received_power_is_the_lidar_equation_over_the_footprint(scheme, rel):
+    parts = dict(aperture_m=0.14, transmitter_efficiency=0.8, receiver_efficiency=0.6,
+                 atmosphere_transmission=0.9, reflectance=0.12 / math.pi, scheme=scheme)
+    lidar = math.pi * 0.12 / math.pi * 0.9 ** 2 * 0.14 ** 2 * 0.8 * 0.6 / (4.0 * H ** 2)  # eq. 1, P_r / P_s at H
+    obliquity = 1.0 - 1.5 * (0.5 * R ** 2 * MEAN_U) / H ** 2  # E[cos θ_i · H²/r²] = E[(1 + ρ²/H²)^(−3/2)]
+    for all_energy, inside in ((True, 1.0), (False, 1.0 - E2)):
+        system = wm.WaveformSystem(footprint_holds_all_energy=all_energy, **parts)
+        rets, times, echo = _echo(system, wm.PlaneSurface(0.0))
+        assert np.sum(rets.gain) * P_MAX == pytest.approx(lidar * inside * obliquity * P_MAX, rel=rel, abs=0)
+        assert np.sum(echo) * system.sample_interval_s == pytest.approx(
+            np.sum(rets.gain) * wm.pulse_energy_j(system), rel=1e-9, abs=0)  # the echo holds each sample's pulse energy
+
+
+@pytest.mark.parametrize("surface", [wm.PlaneSurface(0.0), wm.BumpSurface()], ids=["flat", "bump"])
+def test_binned_path_converges_to_the_analytic_echo_as_dt_shrinks(surface):
+    errors = {"linear": [], "nearest": []}
+    dts = (4e-11, 2e-11, 1e-11, 5e-12)
+    for dt in dts:
+        system = wm.WaveformSystem(n_rings=30, n_sectors=60, sample_interval_s=dt)
+        rets = wm.sample_returns(system, wm.footprint(system), surface)
+        times = wm.time_base(system, rets)
+        exact = wm.echo_analytic(system, rets, times)
+        scale = np.sum(rets.gain) * P_MAX
+        for binning, found in errors.items():
+            found.append(np.max(np.abs(wm.echo_binned(system, rets, times, binning) - exact)) / scale)
+        # Bounds: a delay moved by ≤ dt/2 changes P by ≤ max|P'|·dt/2 = P_max e^(−½) dt/2σ; linear binning
+        # interpolates P between bins, off by ≤ max|P''| dt²/8 = P_max dt²/8σ².
+        assert errors["nearest"][-1] <= math.exp(-0.5) * dt / (2.0 * SIGMA_P)
+        assert errors["linear"][-1] <= dt ** 2 / (8.0 * SIGMA_P ** 2)
+    order = np.log2(np.array(errors["linear"][:-1]) / np.array(errors["linear"][1:]))
+    assert np.all(order > 1.7) and np.mean(order) == pytest.approx(2.0, abs=0.25)  # observed: second order
+
+
+def test_flat_centroid_converges_in_rings_at_second_order():
+    errors = []
+    for rings in (8, 16, 32, 64):
+        system = wm.WaveformSystem(n_rings=rings, n_sectors=8, sample_interval_s=1e-10)
+        _, times, echo = _echo(system, wm.PlaneSurface(0.0))
+        errors.append(wm.measure(system, times, echo).centroid_range_m - H - DELTA_M)
+    order = np.log2(np.abs(np.array(errors[:-1]) / np.array(errors[1:])))
+    assert order == pytest.approx([2.0, 2.0, 2.0], abs=0.05)  # ring midpoints: Δρ²/12 bias in E[ρ²]
+    system = wm.WaveformSystem(n_rings=8, n_sectors=8, scheme="equal_energy", sample_interval_s=1e-10)
+    _, times, echo = _echo(system, wm.PlaneSurface(0.0))
+    assert wm.measure(system, times, echo).centroid_range_m - H == pytest.approx(DELTA_M, abs=1e-9)  # RMS radii
+
+
+def test_slope_echo_converges_as_rings_and_sectors_grow():
+    def echo(rings, times=None):
+        system = wm.WaveformSystem(n_rings=rings, n_sectors=2 * rings, sample_interval_s=1e-10)
+        rets = wm.sample_returns(system, wm.footprint(system), wm.PlaneSurface(wm.PATENT_SLOPE))
+        times = wm.time_base(system, rets) if times is None else times
+        return times, wm.echo_analytic(system, rets, times)
+
+    times, reference = echo(256)
+    errors = np.array([np.max(np.abs(echo(m, times)[1] - reference)) for m in (32, 64, 128)]) / reference.max()
+    assert errors[0] < 1e-2 and np.all(np.diff(errors) < 0)
+    assert np.log2(errors[0] / errors[-1]) / 2 > 2.0  # observed ≈ 2.9 (against a 256 × 512 grid)
+
+
+def test_bump_is_met_on_its_surface_and_its_truth():
+    bump = wm.BumpSurface()
+    fp = wm.footprint(SYSTEM)
+    rets = wm.sample_returns(SYSTEM, fp, bump)
+    x, y, z = rets.point_m.T
+    assert np.max(np.abs(z - bump.height(x, y))) < 1e-10  # one Newton step leaves 3e-10 m, two reach rounding
+    on_ray = np.array([0.0, 0.0, H]) + rets.range_m[:, None] * fp.direction
+    assert np.max(np.abs(on_ray - rets.point_m)) < 1e-9
+    assert wm.nadir_range_m(SYSTEM, bump) == H - 5.0
+    num = quad(lambda r: 2.5 * (1 + math.cos(math.pi * r / 20.0)) * math.exp(-2 * r * r / R ** 2) * r, 0, 20.0)[0]
+    den = quad(lambda r: math.exp(-2 * r * r / R ** 2) * r, 0, R)[0]
+    assert wm.mean_height_m(fp, rets) == pytest.approx(num / den, rel=1e-3, abs=0)
+    top = np.argmin(np.hypot(x, y))
+    assert rets.cos_incidence[top] == pytest.approx(1.0, abs=1e-3)
+
+
+def test_decomposition_recovers_gaussians():
+    t = np.arange(0.0, 80e-9, 1e-11)
+    truth = [(10e-9, 3e-13, 3e-9), (40e-9, 1e-13, 5e-9)]
+    echo = sum(a * np.exp(-0.5 * ((t - t0) / s) ** 2) for t0, a, s in truth)
+    found = wm.decompose(SYSTEM, t, echo)
+    assert [(g.time_s, g.amplitude_w, g.sigma_s) for g in found] == [pytest.approx(g, rel=1e-6, abs=0) for g in truth]
+    _, times, flat = _echo(SYSTEM, wm.PlaneSurface(0.0))
+    (only,) = wm.decompose(SYSTEM, times, flat)
+    assert only.sigma_s == pytest.approx(SIGMA_P, rel=1e-4, abs=0)
+    assert only.time_s == pytest.approx(0.5 * TAU + 2.0 * (H + DELTA_M) / C, abs=1e-14)
+
+
+def test_patent_figures():
+    fig = wm.patent_figures()
+    flat, slope, bump = fig["flat"], fig["slope"], fig["bump"]
+    assert flat["fwhm_s"] == pytest.approx(TAU, rel=1e-3, abs=0)
+    assert flat["first_return_s"] == pytest.approx(2.0 * math.hypot(H, R / 120) / C, abs=1e-17)  # inner ring
+    assert flat["last_return_s"] == pytest.approx(2.0 * (H + (59.5 / 60) ** 2 * R ** 2 / (2 * H)) / C, abs=1e-15)
+    assert flat["window_s"] == pytest.approx((flat["first_return_s"] - TAU, flat["last_return_s"] + TAU), abs=1e-18)
+    assert flat["range_error_m"] == pytest.approx(DELTA_M, abs=2e-5)
+    top = 59.5 * math.cos(math.pi / 120)  # outer ring, first sector's mid-angle: the highest cell (eq. 15)
+    assert slope["first_return_s"] == pytest.approx(2.0 * math.hypot(59.5, H - 0.2 * top) / C, abs=1e-17)  # eq. 10
+    assert slope["rms_width_s"] == pytest.approx(math.sqrt(SIGMA_P ** 2 + (0.4 * SIGMA_X_M / C) ** 2), rel=1e-3, abs=0)
+    assert slope["range_error_m"] < -1.0  # the uphill side's earlier returns pull the half-power point
+    assert bump["nadir_range_m"] == H - 5.0 and bump["first_return_s"] > 2.0 * (H - 5.0) / C
+    assert 0.0 < bump["mean_height_m"] < 5.0
+
+
+@pytest.mark.parametrize("field, value", [
+    ("altitude_m", 0.0), ("altitude_m", math.inf), ("half_divergence_rad", 0.0), ("half_divergence_rad", -3e-4),
+    ("pulse_fwhm_s", 0.0), ("peak_power_w", math.nan), ("sample_interval_s", 8e-9), ("n_rings", 0),
+    ("n_sectors", 0), ("n_rings", 2.5), ("receiver_efficiency", 1.5), ("scheme", "hex"), ("geometry", "slant"),
+])
+def test_bad_input_names_its_field(field, value):
+    with pytest.raises(InputError) as err:
+        wm.WaveformSystem(**{field: value})
+    assert err.value.field == f"waveform.{field}"
+
+
+@pytest.mark.parametrize("make, field", [
+    (lambda: wm.BumpSurface(radius_m=0.0), "surface.radius_m"), (lambda: wm.PlaneSurface(math.nan), "surface.slope"),
+    (lambda: wm.echo_binned(SYSTEM, None, np.zeros(3), "cubic"), "waveform.binning"),
+])
+def test_bad_surface_or_binning_names_its_field(make, field):
+    with pytest.raises(InputError) as err:
+        make()
+    assert err.value.field == field
