@@ -17,7 +17,7 @@ EXIT_INVALID = 2
 
 # simulate flags that set a config field: (flag, dest, config key, help)
 CONFIG_FLAGS = [
-    ("--scene", "scene", "scene.name", "calibration (default), plane, lunar, sandbox, ellipsoid, or PATH.obj / PATH.ply"),
+    ("--scene", "scene", "scene.name", "calibration (default), plane, lunar, sandbox, ellipsoid, bump, or PATH.obj / PATH.ply"),
     ("--altitude", "altitude", "flight.altitude_m", "flying height above ground [m] (default 500)"),
     ("--array", "array", "sensor.array", "beams per side of the N×N array, 1–64 (default 3)"),
     ("--spacing-mrad", "spacing_mrad", "sensor.spacing_mrad", "angular spacing of the sub-beams [mrad] (default 2.314)"),
@@ -97,7 +97,7 @@ def build_grid(args: argparse.Namespace):
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, flags=CONFIG_FLAGS) -> None:
-    parser.add_argument("--instrument", help="built-in instrument to start from: risley (default), change3 or spad")
+    parser.add_argument("--instrument", help="built-in instrument to start from: risley (default), change3, spad or change1")
     parser.add_argument("--config", help="run config TOML over the instrument (a run.toml of an earlier run "
                                          "reproduces it)")
     for flag, dest, _key, help_text in flags:
@@ -122,6 +122,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if "photons" in summary:
         print(f"{summary['photons']} photons ({summary['signal_photons']} signal) from {summary['pulses']} pulses "
               f"in {summary['wall_s']:.2f} s; written to {args.out}")
+        return 0
+    if "waveforms" in summary:
+        print(f"{summary['waveforms']} waveforms ({summary['subray_returns']} sub-ray returns) from {summary['pulses']} "
+              f"pulses in {summary['wall_s']:.2f} s; written to {args.out}")
         return 0
     rms = ", ".join(f"{m} {v * 1000:.2f} mm" if v is not None else f"{m} n/a" for m, v in summary["rms_m"].items())
     points = ", ".join(f"{n} {m}" for m, n in summary["points"].items())
@@ -238,6 +242,22 @@ def cmd_spad(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_waveform(args: argparse.Namespace) -> int:
+    from flightsim.core.warp_runtime import resolve_device
+    from flightsim.studies.waveform import run_one, run_patent
+
+    settings = dict(_set_items(args))
+    resolve_device(args.device)
+    if args.patent:
+        run_patent(Path(args.out), device=args.device, **settings)
+        print((Path(args.out) / "REPORT.md").read_text())
+        return 0
+    summary = run_one(args.scene, Path(args.out), args.device, args.config, args.overwrite, **settings)
+    print(f"{summary['waveforms']} waveforms ({summary['subray_returns']} sub-ray returns) in {summary['wall_s']:.2f} s; "
+          f"written to {args.out}")
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     import laspy
     import numpy
@@ -307,7 +327,7 @@ def make_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="measure throughput, run time against error, and savings")
     bench.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     bench.add_argument("--quick", action="store_true", help="small sizes (under a minute on a CPU)")
-    bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto,galvo,spad")
+    bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto,galvo,spad,waveform")
     bench.add_argument("--out", required=True, help="directory for bench.json, bench.md, pareto.csv/png")
     bench.set_defaults(func=cmd_bench)
 
@@ -326,6 +346,17 @@ def make_parser() -> argparse.ArgumentParser:
     spad.add_argument("--pulses", type=int, help="pulses per frame (default: the paper's 43,000; fewer for a quick run)")
     spad.add_argument("--out", required=True, help="directory for REPORT.md and spad.json")
     spad.set_defaults(func=cmd_spad)
+
+    waveform = sub.add_parser("waveform", help="full-waveform echoes of the large-footprint lunar altimeter "
+                                               "(the change1 preset)")
+    waveform.add_argument("--scene", default="flat", help="flat (default), slope, bump, or PATH.obj / PATH.ply")
+    waveform.add_argument("--patent", action="store_true", help="the patent's Figs. 3-5 with REPORT.md")
+    waveform.add_argument("--config", help="run config TOML over the change1 preset")
+    waveform.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    waveform.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
+    waveform.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
+    waveform.add_argument("--out", required=True, help="output directory")
+    waveform.set_defaults(func=cmd_waveform)
 
     info = sub.add_parser("info", help="versions, devices and the kernel cache")
     info.set_defaults(func=cmd_info)

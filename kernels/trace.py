@@ -736,28 +736,29 @@ def slot_indices(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int
 
 
 @functools.cache
-def emit_rays_kernel(instrument: Instrument):
-    """Kernel writing the rays the pipeline casts, one per slot, rounded to float32 as the ray cast
-    takes them (for timing the bare ray cast)."""
+def emit_rays_kernel(instrument: Instrument, precise: bool = False):
+    """Kernel writing the rays the pipeline casts, one per slot: rounded to float32 as the ray cast takes
+    them (for timing the bare ray cast), or in float64 with ``precise`` (the waveform detector's beams)."""
     deflector = instrument.deflector
     Scan = scan_struct(instrument)
     row_truth = pulse_rows(instrument).truth
+    vec = wp.vec3d if precise else wp.vec3f
 
     @wp.kernel(module="unique")
     def emit_rays(
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,
         # Out:
-        starts: wp.array(dtype=wp.vec3f),  # [m, local]
-        directions: wp.array(dtype=wp.vec3f),  # unit; zero where the beam does not leave the deflector
+        starts: wp.array(dtype=vec),  # [m, local]
+        directions: wp.array(dtype=vec),  # unit; zero where the beam does not leave the deflector
     ):
         slot = wp.tid()
         per_pulse = scan.per_pulse
         p = slot // per_pulse
         rot = get33(pulses, ROW_ROT, p)
         s3, exit_point, ok = deflector.finish(scan.beam_truth[slot % per_pulse], pulses, row_truth, p, scan.truth)
-        starts[slot] = wp.vec3f(get3(pulses, ROW_ORIGIN, p) + rot * exit_point)
-        directions[slot] = wp.where(ok, wp.vec3f(rot * s3), wp.vec3f(0.0, 0.0, 0.0))
+        starts[slot] = vec(get3(pulses, ROW_ORIGIN, p) + rot * exit_point)
+        directions[slot] = wp.where(ok, vec(rot * s3), vec())
 
     return emit_rays
 

@@ -17,10 +17,10 @@ from typing import Any
 from flightsim.core.errors import InputError
 
 MODELS = ("exact", "nominal")
-BUILTIN_SCENES = ("calibration", "plane", "lunar", "sandbox", "ellipsoid")
+BUILTIN_SCENES = ("calibration", "plane", "lunar", "sandbox", "ellipsoid", "bump")
 EMITTERS = ("fan", "channels")
 DEFLECTORS = ("risley", "galvo", "fsm", "fixed")
-DETECTORS = ("discrete", "photon")
+DETECTORS = ("discrete", "photon", "waveform")
 PLATFORMS = ("lines", "hover")
 ARCSEC = math.pi / (180.0 * 3600.0)  # [rad per arcsecond]
 CHANGE3_CHANNELS_MRAD = tuple(float(17 - 2 * i) for i in range(1, 17))  # θ_i = 17 − 2i (seed paper §2.3)
@@ -51,7 +51,7 @@ class SceneConfig:
 class FlightConfig:
     """The flight plan: straight parallel lines over the scene centre, or a trajectory file."""
 
-    altitude_m: float = field(default=500.0, metadata=_num(0.0, 50000.0, "m above ground", lo_open=True))
+    altitude_m: float = field(default=500.0, metadata=_num(0.0, 1.0e6, "m above ground", lo_open=True))
     speed_kmh: float = field(default=200.0, metadata=_num(0.0, 2000.0, "km/h", lo_open=True))
     duration_s: float = field(default=10.0, metadata=_num(0.0, 36000.0, "s per line", lo_open=True))
     heading_deg: float = field(default=0.0, metadata=_num(-360.0, 360.0, "deg"))
@@ -94,7 +94,8 @@ class InstrumentConfig:
     emitter: str = "fan"  # "fan": the N×N DOE fan of [sensor]; "channels": the linear array of [channels]
     deflector: str = "risley"  # "risley": the wedge of [sensor]; "galvo": the two mirrors of [galvo];
     # "fsm": the 45° mirror and fast steering mirror of [fsm]; "fixed"
-    detector: str = "discrete"  # "discrete": one return per beam; "photon": photon events of a SPAD pixel ([photon])
+    detector: str = "discrete"  # "discrete": one return per beam; "photon": photon events of a SPAD pixel ([photon]);
+    # "waveform": a full waveform per beam from sub-rays over its footprint ([waveform])
 
 
 @dataclass
@@ -187,6 +188,27 @@ class PhotonConfig:
 
 
 @dataclass
+class WaveformConfig:
+    """The full-waveform detector (kernels.waveform): each beam's footprint sampled by sub-rays over its
+    Gaussian profile exp(−2 tan²φ/α²), their echoes summed into one waveform per beam (seed:
+    large-footprint-echo-waveform-patent.txt; defaults are the patent's Chang'e-1-like altimeter)."""
+
+    half_divergence_rad: float = field(default=3.0e-4, metadata=_num(0.0, 0.1, "rad, α: the 1/e² half angle", lo_open=True))
+    pulse_fwhm_s: float = field(default=7.0e-9, metadata=_num(0.0, 1.0e-6, "s", lo_open=True))
+    peak_power_w: float = field(default=0.05, metadata=_num(0.0, 1.0e9, "W", lo_open=True))
+    scheme: str = "polar"  # footprint sub-rays: polar (the patent's rings × sectors), polar_midpoint, equal_energy
+    n_rings: int = field(default=60, metadata=_num(1, 4096, "rings of the footprint", integer=True))
+    n_sectors: int = field(default=120, metadata=_num(1, 4096, "sectors of the footprint", integer=True))
+    sample_interval_s: float = field(default=1.0e-11, metadata=_num(0.0, 1.0e-6, "s", lo_open=True))
+    samples: int = field(default=32768, metadata=_num(16, 1 << 22, "samples per waveform", integer=True))
+    aperture_m: float = field(default=1.0, metadata=_num(0.0, 100.0, "m, receiver diameter D", lo_open=True))
+    transmitter_efficiency: float = field(default=1.0, metadata=_num(0.0, 1.0, "η_t", lo_open=True))
+    receiver_efficiency: float = field(default=1.0, metadata=_num(0.0, 1.0, "η_r", lo_open=True))
+    atmosphere_transmission: float = field(default=1.0, metadata=_num(0.0, 1.0, "T_A, one way", lo_open=True))
+    reflectance: float = field(default=1.0, metadata=_num(0.0, 1.0, "f, backscatter of eq. 1, every face", lo_open=True))
+
+
+@dataclass
 class ProcessingConfig:
     """The deflector the georeferencing believes in; 0 means "the same as the sensor's"."""
 
@@ -245,6 +267,7 @@ class RunConfig:
     fsm: FsmConfig = field(default_factory=FsmConfig)
     errors: ErrorsConfig = field(default_factory=ErrorsConfig)
     photon: PhotonConfig = field(default_factory=PhotonConfig)
+    waveform: WaveformConfig = field(default_factory=WaveformConfig)
     processing: ProcessingConfig = field(default_factory=ProcessingConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     scoring: ScoringConfig = field(default_factory=ScoringConfig)
@@ -510,7 +533,7 @@ def _toml_value(value: Any) -> str:
 
 PART_SECTIONS = {"channels": ("emitter", "channels"), "galvo": ("deflector", "galvo"),  # written when chosen
                  "fsm": ("deflector", "fsm"),
-                 "photon": ("detector", "photon")}
+                 "photon": ("detector", "photon"), "waveform": ("detector", "waveform")}
 
 
 def to_toml(cfg: RunConfig) -> str:

@@ -71,6 +71,8 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     write_atomic(directory / "run.toml", cfg_text)
     if cfg.instrument.detector == "photon":
         return _photons_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
+    if cfg.instrument.detector == "waveform":
+        return _waveforms_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
     buffer = edge_buffer_m(cfg)
     simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
     las = LasOutput(directory, cfg, scene, simulator.timing, edge_distance=buffer > 0.0)
@@ -120,6 +122,35 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
         **_summary_head(cfg, simulator, counts),
         "photons": writer.count,
         "signal_photons": writer.signal,
+        "wall_s": round(counts.wall_s, 4),
+        "lines": {str(k): v for k, v in counts.per_line.items()},
+        "files": [name],
+    }
+    write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _waveforms_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, cfg_text: str,
+                            progress: Callable[[int, int], None] | None) -> dict:
+    """Waveform mode: every beam's waveform, its geolocation and ranging into waveforms.h5, then summary.json."""
+    from flightsim.engine.simulate import Simulator
+    from flightsim.instrument.waveform import system
+    from flightsim.outputs.waveforms_h5 import WaveformWriter
+
+    simulator = Simulator(cfg, scene, trajectories)
+    taps, first_lag = simulator.instrument.detector.pulse_taps("cpu")
+    tx = (taps.numpy(), first_lag * cfg.waveform.sample_interval_s)
+    writer = WaveformWriter(directory, cfg_text, system(cfg.waveform), simulator.timing.prf_hz, scene, tx)
+    try:
+        counts = simulator.run_waveforms(writer, progress)
+        name = writer.close()
+    except BaseException:
+        writer.abort()
+        raise
+    summary = {
+        **_summary_head(cfg, simulator, counts),
+        "waveforms": writer.shots,
+        "subray_returns": counts.returns,
         "wall_s": round(counts.wall_s, 4),
         "lines": {str(k): v for k, v in counts.per_line.items()},
         "files": [name],

@@ -35,6 +35,7 @@ from trajectories import Trajectory
 
 SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
 POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # points mode: host memory grows with it
+WAVEFORM_SAMPLES_PER_CHUNK = {"cpu": 1 << 22, "cuda": 1 << 28}  # waveform mode: waveform samples per launch
 SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # statistics mode: consecutive slots per reducing thread
 MAX_REGISTERS = {"cpu": None, "cuda": 64}  # registers per thread of the trace kernels (None: the compiler's choice)
 SUM_REPLICAS = 64  # statistics mode on a GPU: copies of the per-plane sums, so busy planes' atomics spread
@@ -90,6 +91,37 @@ class DevicePhotons:
     signal: wp.array  # int8: 1 when the photon came from the pulse (truth)
     points: wp.array  # vec3d local [m]: placed on its believed beam at c·t/2
     directions: wp.array  # vec3f local unit direction of the photon's believed beam
+
+
+@dataclass
+class WaveformChunk:
+    """The waveforms of one chunk of pulses of one flight line (host arrays, one row per beam whose
+    central ray reached the scene)."""
+
+    line_id: int
+    start_time: float  # adjusted standard GPS time of the line's pulse 0 [s]
+    pulse: np.ndarray  # (m,) int64 pulse index within the line
+    beam: np.ndarray  # (m,) int32
+    window_start_s: np.ndarray  # (m,) float64 two-way time of flight of sample 0 [s]
+    power_w: np.ndarray  # (m, samples) float32 received power at window start + i·dt [W]
+    received: np.ndarray  # (m, 4) float64 Σ power shares inside, outside the window; Σ w·z [m], Σ w of the hits (kernels.waveform)
+    start: np.ndarray  # (m, 3) float64 local beam start [m]
+    direction: np.ndarray  # (m, 3) float64 local unit beam direction
+
+    def __len__(self) -> int:
+        return len(self.pulse)
+
+
+@dataclass
+class DeviceWaveforms:
+    """A chunk's waveforms on the device, one row per slot (valid until the next chunk)."""
+
+    count: int  # slots of the chunk (rows beyond are stale)
+    window_start_s: wp.array  # float64 [s]; −1 where the central ray missed
+    power_w: wp.array  # (slots, samples) float32 [W]
+    received: wp.array  # (slots, 4) float64 (WaveformChunk.received)
+    starts: wp.array  # vec3d local beam starts [m]
+    directions: wp.array  # vec3d local unit beam directions
 
 
 @dataclass
@@ -354,6 +386,74 @@ class Simulator:
                 consume(part)
         return self._finish(counts, buffers.counters, started)
 
+    def run_waveforms(self, consume: Callable[[WaveformChunk], None],
+                      progress: Callable[[int, int], None] | None = None, on_device: bool = False) -> RunCounts:
+        """Waveform mode (``instrument.detector = "waveform"``): per beam, every sub-ray of its footprint
+        traced and its echo summed into the beam's waveform on the device (kernels/waveform.py); ``consume``
+        gets each line's part of each chunk's waveforms. ``RunCounts.returns`` counts sub-rays cast by
+        beams whose central ray reached the scene (on the device: all sub-rays launched). ``on_device``:
+        ``consume`` gets each chunk's :class:`DeviceWaveforms` instead, and nothing leaves the device."""
+        from kernels import waveform as kw
+
+        started = time.perf_counter()
+        counts = RunCounts()
+        det = self.instrument.detector
+        params, subrays = det.struct(), det.subrays(self.device)
+        taps, first_lag = det.pulse_taps(self.device)
+        refs = self._mesh_refs()
+        budget = max(1, WAVEFORM_SAMPLES_PER_CHUNK[self.device_kind] // params.samples)
+        pulses_per_launch = max(1, min(self.pulses_per_launch(), budget // self.beams_per_pulse))
+        pulses = _pulse_table(pulses_per_launch, self.rows.total, self.device)
+        slots = pulses_per_launch * self.beams_per_pulse
+        starts, directions = (wp.empty(slots, dtype=wp.vec3d, device=self.device) for _ in range(2))
+        window = wp.empty(slots, dtype=wp.float64, device=self.device)
+        impulses = wp.empty((slots, params.samples), dtype=wp.float64, device=self.device)
+        power = wp.empty((slots, params.samples), dtype=wp.float32, device=self.device)
+        received = wp.empty((slots, 4), dtype=wp.float64, device=self.device)
+        span = wp.empty((slots, 2), dtype=wp.int32, device=self.device)
+        for chunk in self._chunks(pulses, counts, progress):
+            n = sum(s.count for s in chunk) * self.beams_per_pulse
+            wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True), n, inputs=[pulses, self.scan],
+                      outputs=[starts, directions], device=self.device)
+            wp.launch(kw.pilot, n, inputs=[refs, params, starts, directions], outputs=[window], device=self.device)
+            impulses.zero_()
+            received.zero_()
+            wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[span], device=self.device)
+            wp.launch(kw.deposit, (n, len(subrays)), inputs=[refs, params, starts, directions, window, subrays.offsets,
+                                                              subrays.weights], outputs=[impulses, received, span],
+                      device=self.device)
+            wp.launch(kw.convolve, (n, params.samples), inputs=[impulses, span, taps, first_lag], outputs=[power],
+                      device=self.device)
+            if on_device:
+                counts.returns += n * len(subrays)
+                consume(DeviceWaveforms(n, window, power, received, starts, directions))
+                continue
+            found = window.numpy()[:n]
+            slot = np.flatnonzero(found >= 0.0)
+            counts.returns += len(slot) * len(subrays)
+            for part in self._waveform_parts(chunk, slot, found, power, received, starts, directions):
+                counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
+                consume(part)
+        return self._finish(counts, wp.zeros(3, dtype=wp.int32, device=self.device), started)
+
+    def _mesh_refs(self):
+        from kernels import waveform as kw
+
+        refs = kw.MeshRefs()
+        refs.mesh, refs.padded = self.meshes.mesh.id, self.meshes.padded.id
+        refs.vertices64, refs.indices = self.meshes.vertices64, self.meshes.indices
+        refs.max_range = self.cfg.sensor.max_range_m
+        return refs
+
+    def _waveform_parts(self, chunk: list[Segment], slot: np.ndarray, window: np.ndarray, power: wp.array,
+                        received: wp.array, starts: wp.array, directions: wp.array) -> list[WaveformChunk]:
+        """Bring a chunk's waveforms (beams whose pilot reached the scene) to the host, split by line."""
+        rows = {name: a.numpy()[slot] for name, a in (("power", power), ("received", received), ("start", starts),
+                                                       ("direction", directions))}
+        return [WaveformChunk(trajectory.line_id, trajectory.start_time, pulse, beam, window[slot[a:b]],
+                              rows["power"][a:b], rows["received"][a:b], rows["start"][a:b], rows["direction"][a:b])
+                for trajectory, pulse, beam, a, b in self._by_line(chunk, slot)]
+
     def _photon_parts(self, chunk: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
         """Bring a chunk's detections (ordered by slot) to the host, split by flight line."""
         slot = found.slot[:found.count].numpy().astype(np.int64)
@@ -529,6 +629,23 @@ class Simulator:
         directions = wp.empty(n, dtype=wp.vec3f, device=self.device)
         wp.launch(trace.emit_rays_kernel(self.instrument.kernel), n, inputs=[pulses, self.scan], outputs=[starts, directions], device=self.device)
         return starts, directions
+
+    def sample_subrays(self, max_rays: int) -> tuple[wp.array, wp.array]:
+        """The float32 sub-rays of the waveform detector for the run's first beams (up to ``max_rays``
+        rays), on the device: what the deposit kernel casts."""
+        from kernels import waveform as kw
+
+        subrays = self.instrument.detector.subrays(self.device)
+        pulses = _pulse_table(max(1, max_rays // (len(subrays) * self.beams_per_pulse)), self.rows.total, self.device)
+        chunk = next(self._chunks(pulses, RunCounts(), None))
+        n = sum(s.count for s in chunk) * self.beams_per_pulse
+        starts, directions = (wp.empty(n, dtype=wp.vec3d, device=self.device) for _ in range(2))
+        wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True), n, inputs=[pulses, self.scan],
+                  outputs=[starts, directions], device=self.device)
+        ray_starts, ray_directions = (wp.empty(n * len(subrays), dtype=wp.vec3f, device=self.device) for _ in range(2))
+        wp.launch(kw.emit_subrays, (n, len(subrays)), inputs=[starts, directions, subrays.offsets],
+                  outputs=[ray_starts, ray_directions], device=self.device)
+        return ray_starts, ray_directions
 
     def _finish(self, counts: RunCounts, counters: wp.array, started: float) -> RunCounts:
         tir, misses = (int(v) for v in counters.numpy()[:2])

@@ -15,11 +15,12 @@ from flightsim.instrument.fsm import FsmDeflector
 from flightsim.instrument.galvo import GalvoDeflector
 from flightsim.instrument.photon import DiscreteDetector, PhotonDetector
 from flightsim.instrument.risley import RisleyDeflector
+from flightsim.instrument.waveform import WaveformDetector
 from kernels.parts import Instrument
 
 EMITTERS = {"fan": FanEmitter, "channels": ChannelEmitter}
 DEFLECTORS = {"risley": RisleyDeflector, "galvo": GalvoDeflector, "fsm": FsmDeflector, "fixed": FixedDeflector}
-DETECTORS = {"discrete": DiscreteDetector, "photon": PhotonDetector}
+DETECTORS = {"discrete": DiscreteDetector, "photon": PhotonDetector, "waveform": WaveformDetector}
 
 
 class HostInstrument:
@@ -46,8 +47,10 @@ class HostInstrument:
         return self.emitter.beams_per_pulse
 
     def reach_deg(self) -> float:
-        """A bound on any beam's angle from the sensor axis (sizes built-in scenes) [deg]."""
-        return self.deflector.reach_deg(self.emitter)
+        """A bound on any beam's angle from the sensor axis (sizes built-in scenes), with the waveform
+        detector's footprint around it [deg]."""
+        footprint = getattr(self.detector, "footprint_deg", lambda: 0.0)()
+        return self.deflector.reach_deg(self.emitter) + footprint
 
     def max_off_axis_rad(self) -> float:
         """Largest angle of any beam from the sensor axis over the scan (culls pulses) [rad]."""

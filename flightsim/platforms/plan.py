@@ -53,7 +53,7 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
         from flightsim.scenes import smallbody
 
         return getattr(smallbody, f"{name}_scene")(origin, crs, seed=cfg.run.seed)
-    if name not in ("plane", "calibration", "lunar"):
+    if name not in ("plane", "calibration", "lunar", "bump"):
         if not Path(name).is_file():
             raise InputError("scene.name", name,
                              f"{', '.join(BUILTIN_SCENES)}, or the path of an existing .obj/.ply mesh")
@@ -61,6 +61,10 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
     half = scene_half_extent(cfg) if half_extent_m is None else half_extent_m  # sized to the flight
     if name == "plane":
         return plane_scene(half, origin, crs, slope=cfg.scene.slope)
+    if name == "bump":
+        from flightsim.scenes.footprint import bump_scene
+
+        return bump_scene(half, origin, crs)
     if name == "calibration":
         return calibration_scene(max(half, calibration_min_half_extent() + cfg.scene.margin_m), origin, crs)
     from flightsim.scenes.lunar import lunar_scene

@@ -287,8 +287,8 @@ def required_half_extent(
     """
     if not (math.isfinite(altitude_m) and altitude_m > 0.0):
         raise InputError("altitude_m", altitude_m, "a finite altitude > 0 m")
-    if not (math.isfinite(cone_half_angle_rad) and 0.0 < cone_half_angle_rad < math.pi / 2):
-        raise InputError("cone_half_angle_rad", cone_half_angle_rad, "an angle in (0, π/2) rad")
+    if not (math.isfinite(cone_half_angle_rad) and 0.0 <= cone_half_angle_rad < math.pi / 2):
+        raise InputError("cone_half_angle_rad", cone_half_angle_rad, "an angle in [0, π/2) rad")
     if not (math.isfinite(along_track_half_m) and along_track_half_m >= 0.0):
         raise InputError("along_track_half_m", along_track_half_m, "a finite length ≥ 0 m")
     if not (math.isfinite(margin_m) and margin_m >= 0.0):

@@ -28,7 +28,7 @@ from flightsim.core.warp_runtime import resolve_device
 from kernels import trace
 
 DELTA = 2.314
-SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad")
+SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform")
 
 
 @dataclasses.dataclass
@@ -87,9 +87,10 @@ def timed_statistics(sim: Simulator, repeats: int = 2):
     return best, counts
 
 
-def bare_raycast(sim: Simulator, rays: int, repeats: int) -> tuple[float, int]:
-    """(wall [s], hits) of casting the run's first ``rays`` rays ``repeats`` times with nothing else."""
-    starts, directions = sim.sample_rays(rays)
+def bare_raycast(sim: Simulator, rays: int, repeats: int, subrays: bool = False) -> tuple[float, int]:
+    """(wall [s], hits) of casting the run's first ``rays`` rays (the waveform detector's sub-rays with
+    ``subrays``) ``repeats`` times with nothing else."""
+    starts, directions = sim.sample_subrays(rays) if subrays else sim.sample_rays(rays)
     faces = wp.empty(starts.shape[0], dtype=wp.int32, device=sim.device)
     args = dict(dim=starts.shape[0], inputs=[sim.meshes.mesh.id, starts, directions, sim.cfg.sensor.max_range_m],
                 outputs=[faces], device=sim.device)
@@ -186,6 +187,29 @@ def spad_frame(device: str, s: Sizes) -> dict:
             "trace_and_photons_s": photons_only, "frame_wall_s": frame_wall,
             "instrument_frame_s": PAPER["mode_a"]["frame_s"], "faster_than_instrument": PAPER["mode_a"]["frame_s"] / frame_wall,
             "beams_per_s": beams_per_s, "raycast_rays_per_s": bare_per_s, "ratio": beams_per_s / bare_per_s}
+
+
+def waveform_altimeter(device: str, s: Sizes) -> list[dict]:
+    """The waveform altimeter (the change1 preset: 7200 sub-rays per shot, 32,768 samples of 0.01 ns) over
+    the flat and the 0.20-slope footprints, shots fired at 1 kHz: sub-ray returns/s with the waveform
+    accumulation on the device (pilot ray, deposit, convolution with the pulse; nothing to the host),
+    against the bare ray cast of the same sub-rays. Best of two after a run that compiles."""
+    from flightsim.studies.waveform import waveform_config
+
+    cuda = resolve_device(device) != "cpu"
+    records = []
+    for scene, shots in (("flat", 20000 if cuda else 20), ("slope", 500 if cuda else 4)):
+        cfg = waveform_config(scene, device, **{"sensor.prf_hz": 1000.0, "flight.duration_s": (shots - 0.5) / 1000.0})
+        sim = simulator(cfg)
+        sim.run_waveforms(lambda found: None, on_device=True)
+        counts = min((sim.run_waveforms(lambda found: None, on_device=True) for _ in range(2)), key=lambda c: c.wall_s)
+        sample = min(counts.returns, 1 << 24)
+        bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.returns / sample)), subrays=True)
+        rate, bare = counts.returns / counts.wall_s, hits / bare_wall
+        records.append({"scene": scene, "shots": counts.pulses, "subrays": counts.returns, "samples": cfg.waveform.samples,
+                        "wall_s": counts.wall_s, "subray_returns_per_s": rate, "raycast_returns_per_s": bare,
+                        "ratio": rate / bare})
+    return records
 
 
 def stages(device: str, s: Sizes) -> list[dict]:
@@ -439,7 +463,8 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
     results = {"device": dev, "gpu_name": gpu_name(dev), "quick": quick, "git_commit": git_commit(),
                "cpu_count": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
     runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
-               "pareto": pareto, "galvo": galvo, "spad": spad_frame}
+               "pareto": pareto, "galvo": galvo, "spad": spad_frame,
+               "waveform": waveform_altimeter}
     for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)

@@ -57,7 +57,7 @@ def markdown(merged: dict) -> str:
         if r.get("section_measured"):
             lines += ["Sections measured at (commit, date): " + ", ".join(
                 f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
-        lines += _throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r) + _spad(r)
+        lines += _throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r) + _spad(r) + _waveform(r)
     return "\n".join(lines) + "\n"
 
 
@@ -105,6 +105,18 @@ def _spad(r: dict) -> list[str]:
             f"{_fmt(f['beams_per_s'])} | {_fmt(f['raycast_rays_per_s'])} | {f['ratio']:.2f} |", "",
             f"One frame takes {f['frame_wall_s']:.3g} s{part}: {_fmt(f['faster_than_instrument'])}× faster than the "
             f"instrument records it.", ""]
+
+
+def _waveform(r: dict) -> list[str]:
+    if not r.get("waveform"):
+        return []
+    rows = [f"| {w['scene']} | {w['shots']:,} | {w['subrays']:,} | {w['samples']:,} | {w['wall_s']:.3f} | "
+            f"{_fmt(w['subray_returns_per_s'])} | {_fmt(w['raycast_returns_per_s'])} | {w['ratio']:.2f} |"
+            for w in r["waveform"]]
+    return ["", "### Waveform altimeter (change1: sub-rays summed into waveforms on the device)", "",
+            "Target (H100): ≥ 1e9 sub-ray returns/s with the waveform accumulation.", "",
+            "| footprint | shots | sub-rays | samples per waveform | wall [s] | sub-ray returns/s | "
+            "bare ray cast returns/s | ratio |", "| --- | --- | --- | --- | --- | --- | --- | --- |", *rows, ""]
 
 
 def _stages(r: dict) -> list[str]:

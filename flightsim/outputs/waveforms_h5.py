@@ -1,0 +1,142 @@
+"""Waveforms to HDF5 (h5py), laid out like a GEDI L1B product: per beam a group ``BEAMbbbb`` with one
+row per shot and the waveforms concatenated (``rxwaveform[rx_sample_start_index − 1 :][: rx_sample_count]``,
+1-based as GEDI). ``waveforms.h5``:
+
+BEAMbbbb/shot_number            uint64   line_id · 2³² + pulse
+BEAMbbbb/line_id, pulse         int32, int64
+BEAMbbbb/delta_time             float64  adjusted standard GPS time of the shot [s]
+BEAMbbbb/rxwaveform             float32  received power [W], samples of every shot one after another
+BEAMbbbb/rx_sample_start_index  uint64   1-based start of each shot's samples in rxwaveform
+BEAMbbbb/rx_sample_count        uint32
+BEAMbbbb/rx_window_start_s      float64  two-way time of flight of each shot's sample 0 [s]
+BEAMbbbb/txwaveform, tx_sample_start_index, tx_sample_count: the transmitted power P(t) [W] at the
+                                         same interval, sample 0 at tx_window_start_s after emission
+BEAMbbbb/geolocation/{x,y,z}_bin0, {x,y,z}_lastbin      float64  world E, N, H (scene CRS) of the first
+                                         and last sample on the beam's line of sight, at range c(t − τ/2)/2
+BEAMbbbb/geolocation/latitude_bin0, longitude_bin0, latitude_lastbin, longitude_lastbin  [deg] in the
+                                         scene CRS's geodetic CRS
+BEAMbbbb/ranging/range_halfpower_m, range_centroid_m, range_peak_m, fwhm_s, rms_width_s, n_components,
+                 component_range_m, component_amplitude_w, component_sigma_s (MAX_COMPONENTS columns,
+                 NaN-padded): half-power leading edge, centroid, peak and Gaussian decomposition
+                 (flightsim.instrument.waveform_model)
+BEAMbbbb/truth/nadir_range_m    float64  the beam's central ray to the scene [m]
+BEAMbbbb/truth/mean_height_m    float64  footprint-weighted mean height (world H) [m]
+BEAMbbbb/truth/received_in_window  float64  share of the received energy inside the window
+
+Attributes: ``sample_interval_s``, ``config_toml``, ``crs_wkt``, ``flightsim``. Written under a temporary
+name and renamed when complete.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pyproj
+
+from flightsim import __version__
+from flightsim.instrument import waveform_model as model
+
+MAX_COMPONENTS = 4
+
+
+class WaveformWriter:
+    """Appends WaveformChunks to ``directory/waveforms.h5``; ``close()`` renames it into place."""
+
+    def __init__(self, directory: Path, cfg_text: str, system: model.WaveformSystem, prf_hz: float, scene,
+                 tx: tuple[np.ndarray, float]):
+        self.path, self.part = directory / "waveforms.h5", directory / ".waveforms.h5.part"
+        self.system, self.prf_hz, self.scene = system, prf_hz, scene
+        self.tx, self.tx_start = tx
+        self.file = h5py.File(self.part, "w")
+        self.file.attrs.update(flightsim=__version__, config_toml=cfg_text, crs_wkt=scene.crs.to_wkt(),
+                               sample_interval_s=system.sample_interval_s)
+        geodetic = scene.crs.geodetic_crs
+        self.to_geodetic = pyproj.Transformer.from_crs(scene.crs, geodetic, always_xy=True) if geodetic else None
+        self.shots = 0
+
+    def __call__(self, chunk) -> None:
+        for beam in np.unique(chunk.beam):
+            rows = np.flatnonzero(chunk.beam == beam)
+            self._append(f"BEAM{int(beam):04d}", self._columns(chunk, rows), chunk.power_w[rows].ravel())
+            self.shots += len(rows)
+
+    def _columns(self, chunk, rows: np.ndarray) -> dict[str, np.ndarray]:
+        s, n = self.system, len(rows)
+        samples = chunk.power_w.shape[1]
+        t0 = chunk.window_start_s[rows]
+        times = t0[:, None] + s.sample_interval_s * np.arange(samples)[None, :]
+        measures = [model.measure(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
+        parts = [model.decompose(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
+        comp = np.full((n, 3, MAX_COMPONENTS), np.nan)
+        for i, gs in enumerate(parts):
+            for j, g in enumerate(gs[:MAX_COMPONENTS]):
+                comp[i, :, j] = (0.5 * model.C * (g.time_s - 0.5 * s.pulse_fwhm_s), g.amplitude_w, g.sigma_s)
+        received = chunk.received[rows]
+        columns = {
+            "shot_number": (np.uint64(chunk.line_id) << np.uint64(32)) + chunk.pulse[rows].astype(np.uint64),
+            "line_id": np.full(n, chunk.line_id, np.int32), "pulse": chunk.pulse[rows],
+            "delta_time": chunk.start_time + chunk.pulse[rows] / self.prf_hz,
+            "rx_window_start_s": t0, "rx_sample_count": np.full(n, samples, np.uint32),
+            "tx_window_start_s": np.full(n, self.tx_start), "tx_sample_count": np.full(n, len(self.tx), np.uint32),
+            "ranging/range_halfpower_m": [m.half_power_range_m for m in measures],
+            "ranging/range_centroid_m": [m.centroid_range_m for m in measures],
+            "ranging/range_peak_m": [m.peak_range_m for m in measures],
+            "ranging/fwhm_s": [m.fwhm_s for m in measures], "ranging/rms_width_s": [m.rms_width_s for m in measures],
+            "ranging/n_components": np.array([len(p) for p in parts], np.int32),
+            "ranging/component_range_m": comp[:, 0], "ranging/component_amplitude_w": comp[:, 1],
+            "ranging/component_sigma_s": comp[:, 2],
+            "truth/nadir_range_m": 0.5 * model.C * t0 + 0.5 * samples * s.sample_interval_s * 0.5 * model.C,
+            "truth/mean_height_m": received[:, 2] / np.where(received[:, 3] > 0, received[:, 3], np.nan)
+                                   + self.scene.origin[2],
+            "truth/received_in_window": received[:, 0] / np.maximum(received[:, 0] + received[:, 1], 1e-300),
+        }
+        columns.update(self._geolocation(chunk, rows, t0, samples))
+        return {name: np.asarray(v) for name, v in columns.items()}
+
+    def _geolocation(self, chunk, rows, t0, samples) -> dict[str, np.ndarray]:
+        s = self.system
+        out = {}
+        for tag, t in (("bin0", t0), ("lastbin", t0 + (samples - 1) * s.sample_interval_s)):
+            r = 0.5 * model.C * (t - 0.5 * s.pulse_fwhm_s)
+            world = self.scene.local_to_world(chunk.start[rows] + r[:, None] * chunk.direction[rows])
+            out.update({f"geolocation/{a}_{tag}": world[:, k] for k, a in enumerate("xyz")})
+            if self.to_geodetic is not None:
+                lon, lat = self.to_geodetic.transform(world[:, 0], world[:, 1])
+                out.update({f"geolocation/latitude_{tag}": lat, f"geolocation/longitude_{tag}": lon})
+        return out
+
+    def _append(self, group: str, columns: dict[str, np.ndarray], rx: np.ndarray) -> None:
+        g = self.file.require_group(group)
+        n = len(columns["pulse"])
+        shots = g["pulse"].shape[0] if "pulse" in g else 0
+        rx = self._extend(g, "rxwaveform", rx, n)
+        tx = self._extend(g, "txwaveform", np.tile(self.tx.astype(np.float32), n), n)
+        columns["rx_sample_start_index"] = (rx + 1 + np.arange(n) * columns["rx_sample_count"][0]).astype(np.uint64)
+        columns["tx_sample_start_index"] = (tx + 1 + np.arange(n) * len(self.tx)).astype(np.uint64)
+        for name, values in columns.items():
+            if name not in g:
+                g.create_dataset(name, shape=(0,) + values.shape[1:], maxshape=(None,) + values.shape[1:],
+                                 dtype=values.dtype, chunks=True)
+            g[name].resize((shots + n,) + values.shape[1:])
+            g[name][shots:] = values
+
+    def _extend(self, g, name: str, values: np.ndarray, n: int) -> int:
+        """Append ``values`` to the 1-D dataset ``name``; its length before."""
+        if name not in g:
+            g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.float32, chunks=(1 << 16,),
+                             compression="gzip", shuffle=True)  # mostly zeros outside the echo
+        before = g[name].shape[0]
+        g[name].resize((before + len(values),))
+        g[name][before:] = values
+        return before
+
+    def close(self) -> str:
+        self.file.close()
+        os.replace(self.part, self.path)
+        return self.path.name
+
+    def abort(self) -> None:
+        self.file.close()
+        self.part.unlink(missing_ok=True)

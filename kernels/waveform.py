@@ -1,0 +1,155 @@
+"""Full-waveform detection: every beam's footprint sampled by sub-rays, their echoes summed on the device.
+
+Per beam (slot) with float64 start and unit direction d: its window opens ``samples``/2 samples before
+the two-way delay of the central ray (the pilot; a beam whose pilot misses gets no waveform). Each
+sub-ray k leaves along normalize(d + a_k u + b_k v), (a_k, b_k) = tan φ_k (cos θ_k, sin θ_k), u the
+local east made normal to d and v = u × d (north for a nadir beam); it is cast against the mesh, its
+range refined on the hit triangle in float64, and its share of the received power
+    g_k = w_k · link · cos θ_i / r²,   link = π f T_A² D² η_t η_r / 4     (the patent's eq. 1)
+added to the two samples around its delay 2r/c, split linearly (so each sub-ray's delay is kept to
+first order: its error is below dt²/(8σ²) of the echo). The waveform is then that impulse train
+convolved with the transmitted pulse P(t) = P_max exp(−(t − τ/2)²/2σ²) sampled at multiples of dt
+over ±PULSE_SIGMAS σ: the received power [W] at t = window start + i·dt.
+"""
+import warp as wp
+
+from kernels.trace import _fallback_hit, _refine_hit
+
+wp.set_module_options({"enable_backward": False})
+
+PULSE_SIGMAS = 8.0  # the pulse kernel's half length [σ]: its tails hold 1e-15 of the energy
+LIGHT_SPEED = wp.constant(wp.float64(299792458.0))  # [m/s]
+
+
+@wp.struct
+class WaveformParams:
+    """The waveform detector's constants (SI units)."""
+
+    link: wp.float64  # π f T_A² D² η_t η_r / 4: received / transmitted power times r² / cos θ_i [m²]
+    dt: wp.float64  # sample interval [s]
+    samples: wp.int32  # samples per waveform
+    sigma: wp.float64  # the pulse's σ [s]
+    centre: wp.float64  # the pulse's centre after its start, τ/2 [s]
+    peak_power: wp.float64  # P_max [W]
+
+
+@wp.struct
+class MeshRefs:
+    """The scene as the casts need it."""
+
+    mesh: wp.uint64
+    padded: wp.uint64  # BVH of padded triangle boxes for the fallback cast
+    vertices64: wp.array(dtype=wp.vec3d)
+    indices: wp.array(dtype=wp.int32)
+    max_range: wp.float32
+
+
+@wp.func
+def cast64(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
+    """(face or −1, range [m], unit face normal) of a float64 ray: float32 cast, float64 range on the face."""
+    hit = wp.mesh_query_ray(m.mesh, wp.vec3f(start), wp.vec3f(direction), m.max_range)
+    face = hit.face
+    if not hit.result:
+        face, t_second = _fallback_hit(m.padded, m.vertices64, m.indices, start, direction, m.max_range)
+    if face < 0:
+        return -1, wp.float64(0.0), wp.vec3d()
+    v0 = m.vertices64[m.indices[3 * face]]
+    normal = wp.normalize(wp.cross(m.vertices64[m.indices[3 * face + 1]] - v0, m.vertices64[m.indices[3 * face + 2]] - v0))
+    return face, _refine_hit(m.vertices64, m.indices, face, start, direction), normal
+
+
+@wp.func
+def subray_direction(d: wp.vec3d, offset: wp.vec2d):
+    """The unit direction of a sub-ray at offset tan φ (cos θ, sin θ) from the beam axis d."""
+    east = wp.vec3d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0))
+    u = east - wp.dot(east, d) * d
+    if wp.length(u) < wp.float64(1.0e-6):  # a beam along east: measure θ from north instead
+        north = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+        u = north - wp.dot(north, d) * d
+    u = wp.normalize(u)
+    v = wp.cross(u, d)
+    return wp.normalize(d + offset[0] * u + offset[1] * v)
+
+
+@wp.kernel
+def pilot(m: MeshRefs, p: WaveformParams, starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3d),
+          window_start: wp.array(dtype=wp.float64)):
+    """Each beam's window start [s, two-way time]: samples/2 samples before its central ray's delay; −1 when
+    the central ray misses (or the beam does not leave the instrument)."""
+    slot = wp.tid()
+    window_start[slot] = wp.float64(-1.0)
+    d = directions[slot]
+    if wp.length(d) < wp.float64(0.5):
+        return
+    face, r, normal = cast64(m, starts[slot], d)
+    if face >= 0:
+        window_start[slot] = wp.float64(2.0) * r / LIGHT_SPEED - wp.float64(p.samples / 2) * p.dt
+
+
+@wp.kernel
+def deposit(m: MeshRefs, p: WaveformParams, starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3d),
+            window_start: wp.array(dtype=wp.float64), offsets: wp.array(dtype=wp.vec2d),
+            weights: wp.array(dtype=wp.float64), impulses: wp.array2d(dtype=wp.float64),
+            received: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.int32)):
+    """Sub-ray k of beam ``slot``: cast, share of the received power g_k [1] added to the impulse train
+    at its delay (linear split). ``received[slot]`` gathers Σ g_k inside the window (column 0) and
+    outside it (1), and over the hits Σ w_k z_k [m] (2) and Σ w_k (3): the footprint-weighted mean
+    height of the surface (local z). ``span[slot]`` narrows to the lowest and highest sample touched
+    (start it at (samples, −1))."""
+    slot, k = wp.tid()
+    t0 = window_start[slot]
+    if t0 < wp.float64(0.0):
+        return
+    direction = subray_direction(directions[slot], offsets[k])
+    face, r, normal = cast64(m, starts[slot], direction)
+    if face < 0:
+        return
+    g = weights[k] * p.link * wp.abs(wp.dot(normal, direction)) / (r * r)
+    wp.atomic_add(received, slot, 2, weights[k] * (starts[slot][2] + r * direction[2]))
+    wp.atomic_add(received, slot, 3, weights[k])
+    x = (wp.float64(2.0) * r / LIGHT_SPEED - t0) / p.dt
+    i = int(wp.floor(x))
+    f = x - wp.float64(i)
+    if i < 0 or i + 1 >= p.samples:
+        wp.atomic_add(received, slot, 1, g)
+        return
+    wp.atomic_add(impulses, slot, i, g * (wp.float64(1.0) - f))
+    wp.atomic_add(impulses, slot, i + 1, g * f)
+    wp.atomic_add(received, slot, 0, g)
+    wp.atomic_min(span, slot, 0, i)
+    wp.atomic_max(span, slot, 1, i + 1)
+
+
+@wp.kernel
+def convolve(impulses: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.int32), taps: wp.array(dtype=wp.float64),
+             first_lag: int, out: wp.array2d(dtype=wp.float32)):
+    """out[slot, i] = Σ_j impulses[slot, j] · P((i − j)·dt): the received power [W] (taps: P at lags
+    first_lag, first_lag + 1, … samples); only the impulses within ``span[slot]`` are visited."""
+    slot, i = wp.tid()
+    lo = span[slot, 0]
+    hi = span[slot, 1]
+    k0 = wp.max(0, i - first_lag - hi)
+    k1 = wp.min(taps.shape[0] - 1, i - first_lag - lo)
+    total = wp.float64(0.0)
+    for k in range(k0, k1 + 1):
+        total += impulses[slot, i - first_lag - k] * taps[k]
+    out[slot, i] = wp.float32(total)
+
+
+@wp.kernel
+def start_span(samples: int, span: wp.array2d(dtype=wp.int32)):
+    """(samples, −1): no sample touched yet."""
+    slot = wp.tid()
+    span[slot, 0] = samples
+    span[slot, 1] = -1
+
+
+@wp.kernel
+def emit_subrays(starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3d),
+                 offsets: wp.array(dtype=wp.vec2d), ray_starts: wp.array(dtype=wp.vec3f),
+                 ray_directions: wp.array(dtype=wp.vec3f)):
+    """The float32 sub-rays the deposit casts (for timing the bare ray cast of the same rays)."""
+    slot, k = wp.tid()
+    n = offsets.shape[0]
+    ray_starts[slot * n + k] = wp.vec3f(starts[slot])
+    ray_directions[slot * n + k] = wp.vec3f(subray_direction(directions[slot], offsets[k]))
