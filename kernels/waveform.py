@@ -17,6 +17,7 @@ from kernels.trace import _fallback_hit, _refine_hit
 
 wp.set_module_options({"enable_backward": False})
 
+SUBRAYS_PER_THREAD = 32  # sub-rays one deposit thread casts in turn
 PULSE_SIGMAS = 8.0  # the pulse kernel's half length [σ]: its tails hold 1e-15 of the energy
 LIGHT_SPEED = wp.constant(wp.float64(299792458.0))  # [m/s]
 
@@ -86,38 +87,69 @@ def pilot(m: MeshRefs, p: WaveformParams, starts: wp.array(dtype=wp.vec3d), dire
         window_start[slot] = wp.float64(2.0) * r / LIGHT_SPEED - wp.float64(p.samples / 2) * p.dt
 
 
+@wp.func
+def _flush(impulses: wp.array2d(dtype=wp.float64), slot: int, i: int, low: wp.float64, high: wp.float64):
+    """Add a run of deposits into samples i and i + 1 (nothing for i < 0)."""
+    if i >= 0:
+        wp.atomic_add(impulses, slot, i, low)
+        wp.atomic_add(impulses, slot, i + 1, high)
+
+
 @wp.kernel
 def deposit(m: MeshRefs, p: WaveformParams, starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3d),
             window_start: wp.array(dtype=wp.float64), offsets: wp.array(dtype=wp.vec2d),
-            weights: wp.array(dtype=wp.float64), impulses: wp.array2d(dtype=wp.float64),
+            weights: wp.array(dtype=wp.float64), per_thread: int, impulses: wp.array2d(dtype=wp.float64),
             received: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.int32)):
-    """Sub-ray k of beam ``slot``: cast, share of the received power g_k [1] added to the impulse train
-    at its delay (linear split). ``received[slot]`` gathers Σ g_k inside the window (column 0) and
-    outside it (1), and over the hits Σ w_k z_k [m] (2) and Σ w_k (3): the footprint-weighted mean
-    height of the surface (local z). ``span[slot]`` narrows to the lowest and highest sample touched
-    (start it at (samples, −1))."""
-    slot, k = wp.tid()
+    """Sub-rays ``group``·per_thread … of beam ``slot``, one after another: each cast, its share of the
+    received power g_k [1] added to the impulse train at its delay (linear split). Consecutive sub-rays
+    landing in the same sample (a ring of a flat footprint) are summed in registers and added once, and
+    the sums below once per thread, so the atomics do not queue on the few samples of a flat echo.
+    ``received[slot]`` gathers Σ g_k inside the window (column 0) and outside it (1), and over the hits
+    Σ w_k z_k [m] (2) and Σ w_k (3): the footprint-weighted mean height (local z). ``span[slot]``
+    narrows to the lowest and highest sample touched (start it at (samples, −1))."""
+    slot, group = wp.tid()
     t0 = window_start[slot]
     if t0 < wp.float64(0.0):
         return
-    direction = subray_direction(directions[slot], offsets[k])
-    face, r, normal = cast64(m, starts[slot], direction)
-    if face < 0:
-        return
-    g = weights[k] * p.link * wp.abs(wp.dot(normal, direction)) / (r * r)
-    wp.atomic_add(received, slot, 2, weights[k] * (starts[slot][2] + r * direction[2]))
-    wp.atomic_add(received, slot, 3, weights[k])
-    x = (wp.float64(2.0) * r / LIGHT_SPEED - t0) / p.dt
-    i = int(wp.floor(x))
-    f = x - wp.float64(i)
-    if i < 0 or i + 1 >= p.samples:
-        wp.atomic_add(received, slot, 1, g)
-        return
-    wp.atomic_add(impulses, slot, i, g * (wp.float64(1.0) - f))
-    wp.atomic_add(impulses, slot, i + 1, g * f)
-    wp.atomic_add(received, slot, 0, g)
-    wp.atomic_min(span, slot, 0, i)
-    wp.atomic_max(span, slot, 1, i + 1)
+    inside = wp.float64(0.0)
+    outside = wp.float64(0.0)
+    wz = wp.float64(0.0)
+    w = wp.float64(0.0)
+    run = int(-1)
+    low = wp.float64(0.0)
+    high = wp.float64(0.0)
+    first = int(p.samples)
+    last = int(-1)
+    for k in range(group * per_thread, wp.min((group + 1) * per_thread, offsets.shape[0])):
+        direction = subray_direction(directions[slot], offsets[k])
+        face, r, normal = cast64(m, starts[slot], direction)
+        if face >= 0:
+            g = weights[k] * p.link * wp.abs(wp.dot(normal, direction)) / (r * r)
+            wz += weights[k] * (starts[slot][2] + r * direction[2])
+            w += weights[k]
+            x = (wp.float64(2.0) * r / LIGHT_SPEED - t0) / p.dt
+            i = int(wp.floor(x))
+            f = x - wp.float64(i)
+            if i < 0 or i + 1 >= p.samples:
+                outside += g
+            else:
+                inside += g
+                first = wp.min(first, i)
+                last = wp.max(last, i + 1)
+                if i != run:
+                    _flush(impulses, slot, run, low, high)
+                    run = i
+                    low = wp.float64(0.0)
+                    high = wp.float64(0.0)
+                low += g * (wp.float64(1.0) - f)
+                high += g * f
+    _flush(impulses, slot, run, low, high)
+    wp.atomic_add(received, slot, 0, inside)
+    wp.atomic_add(received, slot, 1, outside)
+    wp.atomic_add(received, slot, 2, wz)
+    wp.atomic_add(received, slot, 3, w)
+    wp.atomic_min(span, slot, 0, first)
+    wp.atomic_max(span, slot, 1, last)
 
 
 @wp.kernel

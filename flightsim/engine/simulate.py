@@ -419,9 +419,10 @@ class Simulator:
             impulses.zero_()
             received.zero_()
             wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[span], device=self.device)
-            wp.launch(kw.deposit, (n, len(subrays)), inputs=[refs, params, starts, directions, window, subrays.offsets,
-                                                              subrays.weights], outputs=[impulses, received, span],
-                      device=self.device)
+            groups = -(-len(subrays) // kw.SUBRAYS_PER_THREAD)
+            wp.launch(kw.deposit, (n, groups), inputs=[refs, params, starts, directions, window, subrays.offsets,
+                                                       subrays.weights, kw.SUBRAYS_PER_THREAD],
+                      outputs=[impulses, received, span], device=self.device)
             wp.launch(kw.convolve, (n, params.samples), inputs=[impulses, span, taps, first_lag], outputs=[power],
                       device=self.device)
             if on_device:

@@ -203,12 +203,15 @@ def waveform_altimeter(device: str, s: Sizes) -> list[dict]:
         sim = simulator(cfg)
         sim.run_waveforms(lambda found: None, on_device=True)
         counts = min((sim.run_waveforms(lambda found: None, on_device=True) for _ in range(2)), key=lambda c: c.wall_s)
+        kernels = _kernel_times(lambda: sim.run_waveforms(lambda found: None, on_device=True)) if cuda else {}
         sample = min(counts.returns, 1 << 24)
         bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.returns / sample)), subrays=True)
         rate, bare = counts.returns / counts.wall_s, hits / bare_wall
+        accumulate = sum(t for name, t in kernels.items() if name in ("emit_rays", "pilot", "deposit"))
         records.append({"scene": scene, "shots": counts.pulses, "subrays": counts.returns, "samples": cfg.waveform.samples,
                         "wall_s": counts.wall_s, "subray_returns_per_s": rate, "raycast_returns_per_s": bare,
-                        "ratio": rate / bare})
+                        "ratio": rate / bare, "kernels_s": kernels,
+                        "accumulation_returns_per_s": counts.returns / accumulate if accumulate else None})
     return records
 
 
@@ -235,6 +238,17 @@ def stages(device: str, s: Sizes) -> list[dict]:
         rows.append({"array": array, "slots": counts.beams_fired, "returns": counts.returns, "wall_s": wall,
                      "kernels_s": kernels, "bare_raycast_s": bare_wall})
     return rows
+
+
+def _kernel_times(run) -> dict[str, float]:
+    """GPU time of each kernel [s] while ``run()`` runs (Warp's CUDA activity timing)."""
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+    run()
+    kernels: dict[str, float] = {}
+    for result in wp.timing_end():
+        name = kernel_name(result.name)
+        kernels[name] = kernels.get(name, 0.0) + result.elapsed * 1e-3
+    return kernels
 
 
 def kernel_name(timing_name: str) -> str:
