@@ -13,6 +13,7 @@ over ±PULSE_SIGMAS σ: the received power [W] at t = window start + i·dt.
 """
 import warp as wp
 
+from kernels.frames import ROW_PULSE, ROW_SEED
 from kernels.trace import _fallback_hit, _refine_hit
 
 wp.set_module_options({"enable_backward": False})
@@ -32,6 +33,19 @@ class WaveformParams:
     sigma: wp.float64  # the pulse's σ [s]
     centre: wp.float64  # the pulse's centre after its start, τ/2 [s]
     peak_power: wp.float64  # P_max [W]
+
+
+@wp.struct
+class Receiver:
+    """Noise and digitiser after the optics (SI units; all zero: the noiseless power)."""
+
+    shot_noise: wp.int32  # 1: Poisson photo-electrons of signal and background per sample
+    joules_per_electron: wp.float64  # h c / (λ η): received energy per photo-electron [J]
+    background: wp.float64  # optical background power [W]
+    thermal: wp.float64  # receiver noise, rms per sample [W]
+    lsb: wp.float64  # the digitiser's step [W]; 0: no digitiser
+    top: wp.float64  # the digitiser's highest code (2^bits − 1)
+    stream: wp.int32  # seed of the run's noise
 
 
 @wp.struct
@@ -185,3 +199,33 @@ def emit_subrays(starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp
     n = offsets.shape[0]
     ray_starts[slot * n + k] = wp.vec3f(starts[slot])
     ray_directions[slot * n + k] = wp.vec3f(subray_direction(directions[slot], offsets[k]))
+
+
+@wp.kernel
+def receive(r: Receiver, dt: wp.float64, samples: int, keys: wp.array(dtype=wp.int64), power: wp.array2d(dtype=wp.float32)):
+    """The detector's reading of every sample: background added, photo-electrons drawn Poisson from the
+    mean (power + background)·dt / (energy per electron), Gaussian receiver noise, then the digitiser's
+    code (rounded, clipped to [0, top]) times its step [W]. Keyed by the beam (``keys[slot]``: line
+    seed · 2³² + pulse · beams + beam) and the sample, so the same seed reads the same on any device and
+    chunking."""
+    slot, i = wp.tid()
+    key = keys[slot]
+    state = wp.rand_init(int((key * wp.int64(1000003) + wp.int64(r.stream)) % wp.int64(2147483647)), i)
+    value = wp.float64(power[slot, i]) + r.background
+    if r.shot_noise != 0:
+        mean = value * dt / r.joules_per_electron
+        value = wp.float64(wp.poisson(state, wp.float32(mean))) * r.joules_per_electron / dt
+    if r.thermal > wp.float64(0.0):
+        value += r.thermal * wp.float64(wp.randn(state))
+    if r.lsb > wp.float64(0.0):
+        value = wp.clamp(wp.round(value / r.lsb), wp.float64(0.0), r.top) * r.lsb
+    power[slot, i] = wp.float32(value)
+
+
+@wp.kernel
+def beam_keys(pulses: wp.array2d(dtype=wp.float64), per_pulse: int, keys: wp.array(dtype=wp.int64)):
+    """Each slot's noise key: its line's seed · 2³² + pulse · beams + beam."""
+    slot = wp.tid()
+    p = slot // per_pulse
+    keys[slot] = (wp.int64(pulses[ROW_SEED, p]) << wp.int64(32)) + wp.int64(pulses[ROW_PULSE, p]) * wp.int64(per_pulse) \
+        + wp.int64(slot % per_pulse)

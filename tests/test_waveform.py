@@ -110,3 +110,70 @@ def test_bad_waveform_input_exits_2_naming_the_field(tmp_path, capsys, key, valu
     err = capsys.readouterr().err
     assert field in err and "Traceback" not in err
     assert not (tmp_path / "w").exists()
+
+
+E_ELECTRON = 6.62607015e-34 * C / (1064e-9 * 0.4)  # J per photo-electron at the defaults
+
+
+def test_background_shot_noise_is_poisson_and_thermal_noise_gaussian():
+    dt = SMALL["waveform.sample_interval_s"]
+    background = 20 * E_ELECTRON / dt  # 20 photo-electrons per sample
+    _, times, power, _ = _shot("flat", **{"waveform.shot_noise": True, "waveform.background_w": background})
+    quiet = power[:3000] * dt / E_ELECTRON  # far before the echo: background alone, in electrons
+    assert np.allclose(quiet, np.round(quiet), atol=1e-3)  # whole photo-electrons
+    n = quiet.size
+    assert abs(quiet.mean() - 20) < 4 * math.sqrt(20 / n)
+    assert abs(quiet.var() / 20 - 1) < 4 * math.sqrt(2 / n)  # Poisson: variance = mean
+    sigma = 1e-15
+    _, _, noisy, _ = _shot("flat", **{"waveform.thermal_noise_w": sigma})
+    _, _, clean, _ = _shot("flat")
+    d = (noisy - clean)[:3000]
+    assert abs(d.mean()) < 4 * sigma / math.sqrt(d.size)
+    assert abs(d.std() / sigma - 1) < 4 / math.sqrt(2 * d.size)
+    _, _, again, _ = _shot("flat", **{"waveform.thermal_noise_w": sigma})
+    assert np.array_equal(again, noisy)  # same seed, same noise
+    _, _, other, _ = _shot("flat", **{"waveform.thermal_noise_w": sigma, "run.seed": 7})
+    assert not np.array_equal(other, noisy)
+
+
+def test_digitiser_codes_and_clipping():
+    _, _, clean, _ = _shot("flat")
+    top = clean.max()
+    _, _, coded, _ = _shot("flat", **{"waveform.bits": 8, "waveform.full_scale_w": 0.8 * top})
+    lsb = 0.8 * top / 255
+    codes = coded / lsb
+    assert np.allclose(codes, np.round(codes), atol=1e-4)
+    assert codes.max() == pytest.approx(255, abs=1e-3)  # the peak clips at full scale
+    assert np.abs(coded - np.clip(clean, 0, 0.8 * top)).max() <= 0.5 * lsb * (1 + 1e-5)
+
+
+def test_bits_without_full_scale_exit_2(tmp_path, capsys):
+    assert main(["waveform", "--set", "waveform.bits=12", "--out", str(tmp_path / "w")]) == 2
+    assert "waveform.full_scale_w" in capsys.readouterr().err
+
+
+def test_risley_array_runs_with_the_waveform_detector_and_writes_returns(tmp_path):
+    import laspy
+
+    from flightsim.core.config import RunConfig, set_value, validate
+    from flightsim.engine.run import simulate_to_directory
+
+    cfg = RunConfig()
+    for key, value in {"instrument.detector": "waveform", "scene.name": "plane", "sensor.array": 2,
+                       "flight.duration_s": 0.002, "waveform.half_divergence_rad": 1.5e-4, "waveform.n_rings": 4,
+                       "waveform.n_sectors": 8, "waveform.sample_interval_s": 5e-11, "waveform.samples": 1024}.items():
+        set_value(cfg, key, value)
+    summary = simulate_to_directory(validate(cfg), tmp_path / "r")
+    assert summary["waveforms"] == summary["beams_fired"] == 4 * summary["pulses"]
+    las = laspy.read(tmp_path / "r" / "returns.las")
+    assert len(las.points) == summary["waveforms"]  # one Gaussian per beam on the plane
+    assert np.abs(np.asarray(las.z) - cfg.scene.origin[2]).max() < 0.01  # on the plane (world height of local 0)
+
+
+def test_receiver_response_widens_the_echo_and_keeps_its_energy():
+    _, times, plain, _ = _shot("flat")
+    tau_r = 4e-9
+    _, _, read, _ = _shot("flat", **{"waveform.receiver_fwhm_s": tau_r})
+    assert model.fwhm_s(times, read) == pytest.approx(math.hypot(7e-9, tau_r), rel=1e-3)  # Gaussians add in quadrature
+    assert read.sum() == pytest.approx(plain.sum(), rel=1e-6)
+    assert _moments(times, read)[0] == pytest.approx(_moments(times, plain)[0], abs=1e-13)  # no delay

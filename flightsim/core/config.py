@@ -18,6 +18,7 @@ from flightsim.core.errors import InputError
 
 MODELS = ("exact", "nominal")
 BUILTIN_SCENES = ("calibration", "plane", "lunar", "sandbox", "ellipsoid", "bump")
+SCENE_FILES = (".obj", ".ply", ".tif", ".tiff", ".npy")  # meshes and height grids
 EMITTERS = ("fan", "channels")
 DEFLECTORS = ("risley", "galvo", "fsm", "fixed")
 DETECTORS = ("discrete", "photon", "waveform")
@@ -40,10 +41,11 @@ def _num(lo: float, hi: float, unit: str = "", *, lo_open: bool = False, integer
 class SceneConfig:
     """What is scanned: a built-in scene or a mesh file, and where it lies."""
 
-    name: str = "calibration"  # "calibration", "plane", or a path to an .obj/.ply mesh
+    name: str = "calibration"  # a built-in scene, or a path to an .obj/.ply mesh or a .tif/.tiff/.npy height grid
     crs: str = "EPSG:32648"
     origin: tuple[float, float, float] = (409000.0, 3393000.0, 450.0)  # world E, N, H [m]
     slope: float = field(default=0.0, metadata=_num(-2.0, 2.0, "rise/run"))  # plane scene only
+    cell_m: float = field(default=1.0, metadata=_num(0.0, 1.0e5, "m, node spacing of a .npy height grid", lo_open=True))
     margin_m: float = field(default=50.0, metadata=_num(0.0, 10000.0, "m"))
 
 
@@ -52,7 +54,7 @@ class FlightConfig:
     """The flight plan: straight parallel lines over the scene centre, or a trajectory file."""
 
     altitude_m: float = field(default=500.0, metadata=_num(0.0, 1.0e6, "m above ground", lo_open=True))
-    speed_kmh: float = field(default=200.0, metadata=_num(0.0, 2000.0, "km/h", lo_open=True))
+    speed_kmh: float = field(default=200.0, metadata=_num(0.0, 30000.0, "km/h (to orbital ground speeds)", lo_open=True))
     duration_s: float = field(default=10.0, metadata=_num(0.0, 36000.0, "s per line", lo_open=True))
     heading_deg: float = field(default=0.0, metadata=_num(-360.0, 360.0, "deg"))
     roll_deg: float = field(default=0.0, metadata=_num(-30.0, 30.0, "deg"))
@@ -206,6 +208,14 @@ class WaveformConfig:
     receiver_efficiency: float = field(default=1.0, metadata=_num(0.0, 1.0, "η_r", lo_open=True))
     atmosphere_transmission: float = field(default=1.0, metadata=_num(0.0, 1.0, "T_A, one way", lo_open=True))
     reflectance: float = field(default=1.0, metadata=_num(0.0, 1.0, "f, backscatter of eq. 1, every face", lo_open=True))
+    receiver_fwhm_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, Gaussian impulse response; 0 = none"))
+    shot_noise: bool = False  # Poisson photo-electrons of signal and background in every sample
+    wavelength_nm: float = field(default=1064.0, metadata=_num(100.0, 20000.0, "nm"))
+    quantum_efficiency: float = field(default=0.4, metadata=_num(0.0, 1.0, "of the detector", lo_open=True))
+    background_w: float = field(default=0.0, metadata=_num(0.0, 1.0e3, "W, optical background at the detector"))
+    thermal_noise_w: float = field(default=0.0, metadata=_num(0.0, 1.0e3, "W rms per sample, receiver noise"))
+    bits: int = field(default=0, metadata=_num(0, 16, "digitiser resolution; 0 = no digitiser", integer=True))
+    full_scale_w: float = field(default=0.0, metadata=_num(0.0, 1.0e9, "W, the digitiser's top code; needed with bits"))
 
 
 @dataclass
@@ -387,10 +397,11 @@ def _check_choices(cfg: RunConfig) -> None:
     models = tuple(cfg.output.models)
     if not models or any(m not in MODELS for m in models) or len(set(models)) != len(models):
         raise InputError("output.models", ",".join(map(str, models)), "a non-empty subset of exact,nominal")
+    scenes = f"{', '.join(BUILTIN_SCENES)}, or a path to an .obj/.ply mesh or a .tif/.tiff/.npy height grid"
     if not isinstance(cfg.scene.name, str) or not cfg.scene.name:
-        raise InputError("scene.name", cfg.scene.name, "calibration, plane, lunar, or a path to an .obj/.ply mesh")
-    if cfg.scene.name not in BUILTIN_SCENES and Path(cfg.scene.name).suffix.lower() not in (".obj", ".ply"):
-        raise InputError("scene.name", cfg.scene.name, "calibration, plane, lunar, or a path to an .obj/.ply mesh")
+        raise InputError("scene.name", cfg.scene.name, scenes)
+    if cfg.scene.name not in BUILTIN_SCENES and Path(cfg.scene.name).suffix.lower() not in SCENE_FILES:
+        raise InputError("scene.name", cfg.scene.name, scenes)
     if cfg.flight.platform == "hover" and cfg.flight.trajectory:
         raise InputError("flight.trajectory", cfg.flight.trajectory, "empty with flight.platform = hover")
     choices = (("run.optics", cfg.run.optics, OPTICS), ("run.bvh", cfg.run.bvh, BVH_CONSTRUCTORS),

@@ -143,7 +143,7 @@ def _waveforms_to_directory(cfg: RunConfig, scene, trajectories, directory: Path
     writer = WaveformWriter(directory, cfg_text, system(cfg.waveform), simulator.timing.prf_hz, scene, tx)
     try:
         counts = simulator.run_waveforms(writer, progress)
-        name = writer.close()
+        names = writer.close()
     except BaseException:
         writer.abort()
         raise
@@ -151,9 +151,10 @@ def _waveforms_to_directory(cfg: RunConfig, scene, trajectories, directory: Path
         **_summary_head(cfg, simulator, counts),
         "waveforms": writer.shots,
         "subray_returns": counts.returns,
+        "returns": int(sum(len(r) for r in writer.returns)),
         "wall_s": round(counts.wall_s, 4),
         "lines": {str(k): v for k, v in counts.per_line.items()},
-        "files": [name],
+        "files": names,
     }
     write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary

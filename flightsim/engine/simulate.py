@@ -411,6 +411,7 @@ class Simulator:
         power = wp.empty((slots, params.samples), dtype=wp.float32, device=self.device)
         received = wp.empty((slots, 4), dtype=wp.float64, device=self.device)
         span = wp.empty((slots, 2), dtype=wp.int32, device=self.device)
+        receiver, keys = det.receiver(), wp.empty(slots, dtype=wp.int64, device=self.device)
         for chunk in self._chunks(pulses, counts, progress):
             n = sum(s.count for s in chunk) * self.beams_per_pulse
             wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True), n, inputs=[pulses, self.scan],
@@ -425,6 +426,10 @@ class Simulator:
                       outputs=[impulses, received, span], device=self.device)
             wp.launch(kw.convolve, (n, params.samples), inputs=[impulses, span, taps, first_lag], outputs=[power],
                       device=self.device)
+            if receiver is not None:
+                wp.launch(kw.beam_keys, n, inputs=[pulses, self.beams_per_pulse], outputs=[keys], device=self.device)
+                wp.launch(kw.receive, (n, params.samples), inputs=[receiver, params.dt, params.samples, keys],
+                          outputs=[power], device=self.device)
             if on_device:
                 counts.returns += n * len(subrays)
                 consume(DeviceWaveforms(n, window, power, received, starts, directions))

@@ -16,8 +16,14 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.config import RunConfig, WaveformConfig, check_fields
+from flightsim.core.errors import InputError
 from flightsim.instrument import waveform_model as model
 from kernels import waveform as kw
+
+
+H = 6.62607015e-34  # Planck constant [J s]
+C = 299_792_458.0  # [m/s]
+WAVEFORM_STREAM = 0x2F6A91  # seed key of the receiver noise
 
 
 def system(s: WaveformConfig, altitude_m: float = 1.0) -> model.WaveformSystem:
@@ -48,8 +54,25 @@ class WaveformDetector:
         self.cfg = cfg
 
     def check(self) -> None:
-        check_fields("waveform", self.cfg.waveform)
-        system(self.cfg.waveform)
+        s = self.cfg.waveform
+        check_fields("waveform", s)
+        system(s)
+        if s.bits and s.full_scale_w <= 0.0:
+            raise InputError("waveform.full_scale_w", s.full_scale_w, f"a power > 0 W with waveform.bits = {s.bits}")
+
+    def receiver(self) -> kw.Receiver | None:
+        """The noise and digitiser of ``[waveform]``, or None when the reading is the noiseless power."""
+        s = self.cfg.waveform
+        if not (s.shot_noise or s.background_w or s.thermal_noise_w or s.bits):
+            return None
+        r = kw.Receiver()
+        r.shot_noise = int(s.shot_noise)
+        r.joules_per_electron = H * C / (s.wavelength_nm * 1e-9 * s.quantum_efficiency)
+        r.background, r.thermal = s.background_w, s.thermal_noise_w
+        r.top = float(2 ** s.bits - 1)
+        r.lsb = s.full_scale_w / r.top if s.bits else 0.0
+        r.stream = WAVEFORM_STREAM
+        return r
 
     def footprint_deg(self) -> float:
         """Angle of the footprint's edge (tan φ = α) from its beam's axis [deg]."""
@@ -75,11 +98,16 @@ class WaveformDetector:
         return params
 
     def pulse_taps(self, device: str) -> tuple[wp.array, int]:
-        """(P at multiples of dt over its ±PULSE_SIGMAS σ, the first tap's lag in samples): the kernel the
-        binned echo is convolved with [W]."""
-        sys = system(self.cfg.waveform)
+        """(the pulse as read through the receiver at multiples of dt over ±PULSE_SIGMAS σ, the first tap's
+        lag in samples): the kernel the binned echo is convolved with [W]. With a Gaussian receiver impulse
+        response of FWHM τ_r (unit area) the pulse stays Gaussian, its σ² grows by σ_r² and its peak falls
+        by σ/σ' (the energy is kept); without one it is the transmitted P(t) of eq. 2."""
+        s = self.cfg.waveform
+        sys = system(s)
         dt, sigma, centre = sys.sample_interval_s, model.pulse_sigma_s(sys), 0.5 * sys.pulse_fwhm_s
-        first = int(np.floor((centre - kw.PULSE_SIGMAS * sigma) / dt))
-        last = int(np.ceil((centre + kw.PULSE_SIGMAS * sigma) / dt))
-        lags = np.arange(first, last + 1, dtype=np.float64)
-        return wp.array(model.pulse_power_w(sys, lags * dt), dtype=wp.float64, device=device), first
+        widened = math.hypot(sigma, s.receiver_fwhm_s / model.FWHM_PER_SIGMA)
+        first = int(np.floor((centre - kw.PULSE_SIGMAS * widened) / dt))
+        last = int(np.ceil((centre + kw.PULSE_SIGMAS * widened) / dt))
+        t = np.arange(first, last + 1, dtype=np.float64) * dt
+        taps = s.peak_power_w * sigma / widened * np.exp(-0.5 * ((t - centre) / widened) ** 2)
+        return wp.array(taps, dtype=wp.float64, device=device), first

@@ -25,6 +25,9 @@ BEAMbbbb/truth/received_in_window  float64  share of the received energy inside 
 
 Attributes: ``sample_interval_s``, ``config_toml``, ``crs_wkt``, ``flightsim``. Written under a temporary
 name and renamed when complete.
+
+Beside it, ``returns.las``: every Gaussian component of every waveform as a discrete return (LAS 1.4,
+PDRF 6, the scene's CRS), placed on its beam at the component's range c(t − τ/2)/2, at the shot's GPS time.
 """
 from __future__ import annotations
 
@@ -55,6 +58,9 @@ class WaveformWriter:
         geodetic = scene.crs.geodetic_crs
         self.to_geodetic = pyproj.Transformer.from_crs(scene.crs, geodetic, always_xy=True) if geodetic else None
         self.shots = 0
+        self.directory = directory
+        self.returns: list[np.ndarray] = []
+        self.return_times: list[np.ndarray] = []
 
     def __call__(self, chunk) -> None:
         for beam in np.unique(chunk.beam):
@@ -73,6 +79,7 @@ class WaveformWriter:
         for i, gs in enumerate(parts):
             for j, g in enumerate(gs[:MAX_COMPONENTS]):
                 comp[i, :, j] = (0.5 * model.C * (g.time_s - 0.5 * s.pulse_fwhm_s), g.amplitude_w, g.sigma_s)
+        self._keep_returns(chunk, rows, comp[:, 0])
         received = chunk.received[rows]
         columns = {
             "shot_number": (np.uint64(chunk.line_id) << np.uint64(32)) + chunk.pulse[rows].astype(np.uint64),
@@ -94,6 +101,14 @@ class WaveformWriter:
         }
         columns.update(self._geolocation(chunk, rows, t0, samples))
         return {name: np.asarray(v) for name, v in columns.items()}
+
+    def _keep_returns(self, chunk, rows: np.ndarray, ranges: np.ndarray) -> None:
+        """Each component (range [m] per row and column, NaN-padded) as a world point with its shot's time."""
+        shot, column = np.nonzero(np.isfinite(ranges))
+        r = ranges[shot, column]
+        local = chunk.start[rows][shot] + r[:, None] * chunk.direction[rows][shot]
+        self.returns.append(self.scene.local_to_world(local))
+        self.return_times.append(chunk.start_time + chunk.pulse[rows][shot] / self.prf_hz)
 
     def _geolocation(self, chunk, rows, t0, samples) -> dict[str, np.ndarray]:
         s = self.system
@@ -132,10 +147,18 @@ class WaveformWriter:
         g[name][before:] = values
         return before
 
-    def close(self) -> str:
+    def close(self) -> list[str]:
+        """Finish waveforms.h5 and write returns.las (when any waveform held a return); their names."""
+        from flightsim.outputs.grid_products import write_points_las
+
         self.file.close()
         os.replace(self.part, self.path)
-        return self.path.name
+        names = [self.path.name]
+        if self.returns and sum(len(r) for r in self.returns):
+            write_points_las(self.directory / "returns.las", np.concatenate(self.returns), self.scene.crs,
+                             gps_time=np.concatenate(self.return_times))
+            names.append("returns.las")
+        return names
 
     def abort(self) -> None:
         self.file.close()

@@ -54,9 +54,13 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
 
         return getattr(smallbody, f"{name}_scene")(origin, crs, seed=cfg.run.seed)
     if name not in ("plane", "calibration", "lunar", "bump"):
+        from flightsim.scenes.dem import dem_scene, is_dem
+
+        if is_dem(name):
+            return dem_scene(name, crs, origin, cfg.scene.cell_m)
         if not Path(name).is_file():
             raise InputError("scene.name", name,
-                             f"{', '.join(BUILTIN_SCENES)}, or the path of an existing .obj/.ply mesh")
+                             f"{', '.join(BUILTIN_SCENES)}, or the path of an existing .obj/.ply mesh or .tif/.npy height grid")
         return load_mesh(name, crs, origin)
     half = scene_half_extent(cfg) if half_extent_m is None else half_extent_m  # sized to the flight
     if name == "plane":
