@@ -22,7 +22,8 @@ SCENE_FILES = (".obj", ".ply", ".tif", ".tiff", ".npy")  # meshes and height gri
 EMITTERS = ("fan", "channels")
 DEFLECTORS = ("risley", "galvo", "fsm", "fixed")
 DETECTORS = ("discrete", "photon", "waveform")
-PLATFORMS = ("lines", "hover")
+PLATFORMS = ("lines", "hover", "orbit")
+BODIES = ("earth", "moon")
 ARCSEC = math.pi / (180.0 * 3600.0)  # [rad per arcsecond]
 CHANGE3_CHANNELS_MRAD = tuple(float(17 - 2 * i) for i in range(1, 17))  # θ_i = 17 − 2i (seed paper §2.3)
 OPTICS = ("float32", "float64", "lut")
@@ -65,6 +66,8 @@ class FlightConfig:
     trajectory: str = ""  # CSV trajectory file; when given it replaces the line plan
     platform: str = "lines"  # "lines": flight lines (or the trajectory file); "hover": a lander or tripod over the scene centre
     descent_mps: float = field(default=0.0, metadata=_num(-100.0, 100.0, "m/s, hover platform (positive: descending)"))
+    body: str = "earth"  # orbit platform: the central body, earth (WGS84) or moon (a 1737.4 km sphere)
+    inclination_deg: float = field(default=92.0, metadata=_num(0.0, 180.0, "deg, orbit platform"))
     body_rotation_period_s: float = field(default=0.0, metadata=_num(0.0, MAX_ROTATION_PERIOD_S, ROTATION_PERIOD_UNIT))
     # hover platform: the scene spins about its local y axis through the local origin (platforms.rotating_body)
 
@@ -148,6 +151,7 @@ class ErrorsConfig:
     h_noise_arcsec: float = field(default=0.0, metadata=_num(0.0, 3600.0, "arcsec, horizontal mirror angle, 1 sigma"))
     v_noise_arcsec: float = field(default=0.0, metadata=_num(0.0, 3600.0, "arcsec, vertical mirror angle, 1 sigma"))
     channel_delay_m: float = field(default=0.0, metadata=_num(0.0, 10.0, "m, 1 sigma of each channel's fixed delay"))
+    range_bias_m: float = field(default=0.0, metadata=_num(-100.0, 100.0, "m, added to every range (a ranging bias)"))
     clock_drift: float = field(default=0.0, metadata=_num(-1.0e-3, 1.0e-3, "clock frequency drift e_df"))
     tdc_bin_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, TDC resolution"))
     jitter_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, rising-edge jitter of each stamp, 1 sigma"))
@@ -402,13 +406,14 @@ def _check_choices(cfg: RunConfig) -> None:
         raise InputError("scene.name", cfg.scene.name, scenes)
     if cfg.scene.name not in BUILTIN_SCENES and Path(cfg.scene.name).suffix.lower() not in SCENE_FILES:
         raise InputError("scene.name", cfg.scene.name, scenes)
-    if cfg.flight.platform == "hover" and cfg.flight.trajectory:
-        raise InputError("flight.trajectory", cfg.flight.trajectory, "empty with flight.platform = hover")
+    if cfg.flight.platform in ("hover", "orbit") and cfg.flight.trajectory:
+        raise InputError("flight.trajectory", cfg.flight.trajectory,
+                         f"empty with flight.platform = {cfg.flight.platform}")
     choices = (("run.optics", cfg.run.optics, OPTICS), ("run.bvh", cfg.run.bvh, BVH_CONSTRUCTORS),
                ("instrument.emitter", cfg.instrument.emitter, EMITTERS),
                ("instrument.deflector", cfg.instrument.deflector, DEFLECTORS),
                ("instrument.detector", cfg.instrument.detector, DETECTORS),
-               ("flight.platform", cfg.flight.platform, PLATFORMS))
+               ("flight.platform", cfg.flight.platform, PLATFORMS), ("flight.body", cfg.flight.body, BODIES))
     for name, value, allowed in choices:
         if value not in allowed:
             raise InputError(name, value, "one of " + ", ".join(allowed))

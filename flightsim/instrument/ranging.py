@@ -56,15 +56,16 @@ def sigmas(cfg: RunConfig) -> RangingSigmas:
 def has_systematics(cfg: RunConfig) -> bool:
     """Whether the kernels need the ranging-chain branch (delays, drift, quantisation)."""
     e = cfg.errors
-    return e.channel_delay_m > 0.0 or e.clock_drift != 0.0 or e.tdc_bin_s > 0.0
+    return e.channel_delay_m > 0.0 or e.clock_drift != 0.0 or e.tdc_bin_s > 0.0 or e.range_bias_m != 0.0
 
 
 def channel_delays(cfg: RunConfig, beams: int) -> np.ndarray:
-    """Each beam's fixed delay [m]: Gaussian with 1σ channel_delay_m, drawn from the run's seed."""
+    """Each beam's fixed delay [m]: the ranging bias range_bias_m plus a Gaussian with 1σ channel_delay_m,
+    drawn from the run's seed."""
     if cfg.errors.channel_delay_m == 0.0:
-        return np.zeros(beams)
+        return np.full(beams, cfg.errors.range_bias_m)
     rng = np.random.default_rng([cfg.run.seed, 0x5EED])
-    return rng.normal(0.0, cfg.errors.channel_delay_m, beams)
+    return cfg.errors.range_bias_m + rng.normal(0.0, cfg.errors.channel_delay_m, beams)
 
 
 def range_errors(cfg: RunConfig, beams: int, device: str) -> trace.RangeErrors:
