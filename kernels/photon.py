@@ -54,6 +54,34 @@ class PhotonDetector:
     tdc_bin: wp.float64  # TDC resolution: a detection reads the centre of its bin [s]; 0 = exact times
 
 
+@wp.struct
+class Echoes:
+    """A pixel's echoes in one pulse: the surface's and, optionally, a retroreflector's (n1 = 0: none);
+    expected photo-electrons n, time of flight t [s] and the echo's normal CDF at the gate's opening."""
+
+    n0: wp.float64
+    t0: wp.float64
+    cdf0: wp.float64
+    n1: wp.float64
+    t1: wp.float64
+    cdf1: wp.float64
+
+
+@wp.func
+def echoes(det: PhotonDetector, n0: wp.float64, t0: wp.float64, n1: wp.float64, t1: wp.float64):
+    """The Echoes of a surface (n0 at t0) and a retroreflector (n1 at t1)."""
+    e = Echoes()
+    e.n0 = n0
+    e.t0 = t0
+    e.cdf0 = _normal_cdf((det.gate_open - t0) / det.sigma_t)
+    e.n1 = n1
+    e.t1 = t1
+    e.cdf1 = wp.float64(0.0)
+    if n1 > wp.float64(0.0):
+        e.cdf1 = _normal_cdf((det.gate_open - t1) / det.sigma_t)
+    return e
+
+
 @wp.func
 def expected_signal(det: PhotonDetector, distance: wp.float64, cos_incidence: wp.float64,
                     reflectance: wp.float64):
@@ -69,55 +97,56 @@ def _normal_cdf(x: wp.float64):
 
 
 @wp.func
-def integrated_intensity(det: PhotonDetector, t: wp.float64, t0: wp.float64, n_signal: wp.float64,
-                         cdf_open: wp.float64):
-    """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]
-    (``cdf_open``: the echo's normal CDF at the gate's opening)."""
-    return det.noise_rate * (t - det.gate_open) + n_signal * (_normal_cdf((t - t0) / det.sigma_t) - cdf_open)
+def integrated_intensity(det: PhotonDetector, t: wp.float64, e: Echoes):
+    """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]."""
+    value = det.noise_rate * (t - det.gate_open) + e.n0 * (_normal_cdf((t - e.t0) / det.sigma_t) - e.cdf0)
+    if e.n1 > wp.float64(0.0):
+        value += e.n1 * (_normal_cdf((t - e.t1) / det.sigma_t) - e.cdf1)
+    return value
 
 
 @wp.func
 def echo_rate(det: PhotonDetector, t: wp.float64, t0: wp.float64, n_signal: wp.float64):
-    """The echo's part of λ(t) = Λ'(t) at time of flight t [1/s] (λ = noise rate + echo rate)."""
+    """One echo's part of λ(t) = Λ'(t) at time of flight t [1/s] (λ = noise rate + the echoes' rates)."""
     z = (t - t0) / det.sigma_t
     return n_signal * INV_SQRT_2PI * wp.exp(wp.float64(-0.5) * z * z) / det.sigma_t
 
 
 @wp.func
-def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, t0: wp.float64, n_signal: wp.float64,
-                 cdf_open: wp.float64):
-    """Λ⁻¹(target) for Λ's dominant part: the noise line where the target lies before or after the echo
-    (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to the echo's centre."""
+def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes):
+    """Λ⁻¹(target) for Λ's dominant part (the surface echo's): the noise line where the target lies before
+    or after the echo (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to its centre."""
     reach = wp.float64(ECHO_SIGMAS) * det.sigma_t
-    start = wp.max(lo, t0 - reach)
-    before = integrated_intensity(det, lo, t0, n_signal, cdf_open) + det.noise_rate * (start - lo)
-    if target <= before or n_signal <= wp.float64(0.0):
-        return lo + (target - integrated_intensity(det, lo, t0, n_signal, cdf_open)) / det.noise_rate
-    after = det.noise_rate * (t0 + reach - det.gate_open) + n_signal * (wp.float64(1.0) - ECHO_CDF_LOW - cdf_open)
+    start = wp.max(lo, e.t0 - reach)
+    before = integrated_intensity(det, lo, e) + det.noise_rate * (start - lo)
+    if target <= before or e.n0 <= wp.float64(0.0):
+        return lo + (target - integrated_intensity(det, lo, e)) / det.noise_rate
+    after = det.noise_rate * (e.t0 + reach - det.gate_open) + e.n0 * (wp.float64(1.0) - ECHO_CDF_LOW - e.cdf0)
     if target >= after:
-        return t0 + reach + (target - after) / det.noise_rate
-    p = (target - det.noise_rate * (t0 - det.gate_open)) / n_signal + cdf_open
+        return e.t0 + reach + (target - after) / det.noise_rate
+    p = (target - det.noise_rate * (e.t0 - det.gate_open)) / e.n0 + e.cdf0
     p = wp.min(wp.max(p, wp.float64(1.0e-15)), wp.float64(1.0 - 1.0e-15))
-    return t0 + det.sigma_t * wp.float64(1.4142135623730951) * wp.erfinv(wp.float64(2.0) * p - wp.float64(1.0))
+    return e.t0 + det.sigma_t * wp.float64(1.4142135623730951) * wp.erfinv(wp.float64(2.0) * p - wp.float64(1.0))
 
 
 @wp.func
-def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, t0: wp.float64, n_signal: wp.float64,
-            cdf_open: wp.float64):
+def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes):
     """The time of flight t ≥ lo at which Λ(t) = target ≤ Λ(gate close) (safeguarded Newton)."""
     hi = det.gate_close
-    t = _first_guess(det, target, lo, t0, n_signal, cdf_open)
+    t = _first_guess(det, target, lo, e)
     if not (t > lo and t < hi):
         t = lo
     for _ in range(INVERSION_STEPS):
-        f = integrated_intensity(det, t, t0, n_signal, cdf_open) - target
+        f = integrated_intensity(det, t, e) - target
         if f == wp.float64(0.0):
             return t
         if f < wp.float64(0.0):
             lo = t
         else:
             hi = t
-        rate = det.noise_rate + echo_rate(det, t, t0, n_signal)
+        rate = det.noise_rate + echo_rate(det, t, e.t0, e.n0)
+        if e.n1 > wp.float64(0.0):
+            rate += echo_rate(det, t, e.t1, e.n1)
         step = wp.float64(0.5) * (lo + hi)
         if rate > wp.float64(0.0):
             newton = t - f / rate
@@ -137,29 +166,34 @@ def _uniform64(state: wp.uint32):
 
 
 @wp.func
-def detect(det: PhotonDetector, state: wp.uint32, n: wp.float64, echo: wp.float64, row: int,
+def detect(det: PhotonDetector, state: wp.uint32, e: Echoes, row: int,
            times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8)):
-    """Sample one pixel's detections of one pulse (expected signal ``n`` echoing at time of flight
-    ``echo`` [s]) into row ``row`` of ``times`` [s] and ``signal``, in time order; return their count."""
+    """Sample one pixel's detections of one pulse (its echoes ``e``) into row ``row`` of ``times`` [s] and
+    ``signal`` (0 noise, 1 the surface's echo, 2 the retroreflector's), in time order; return their count."""
     live = det.gate_open
-    cdf_open = _normal_cdf((det.gate_open - echo) / det.sigma_t)
-    total = integrated_intensity(det, det.gate_close, echo, n, cdf_open)
+    total = integrated_intensity(det, det.gate_close, e)
     count = int(0)
     while count < det.max_events and live < det.gate_close:
         u, state = _uniform64(state)
-        target = integrated_intensity(det, live, echo, n, cdf_open) - wp.log(u)
+        target = integrated_intensity(det, live, e) - wp.log(u)
         if target >= total:
             break
-        t = _invert(det, target, live, echo, n, cdf_open)
-        signal_rate = echo_rate(det, t, echo, n)
+        t = _invert(det, target, live, e)
+        surface = echo_rate(det, t, e.t0, e.n0)
+        retro = wp.float64(0.0)
+        if e.n1 > wp.float64(0.0):
+            retro = echo_rate(det, t, e.t1, e.n1)
         v, state = _uniform64(state)
         if det.tdc_bin > wp.float64(0.0):
             times[row, count] = (wp.floor(t / det.tdc_bin) + wp.float64(0.5)) * det.tdc_bin
         else:
             times[row, count] = t
+        share = v * (surface + retro + det.noise_rate)
         flag = wp.int8(0)
-        if v * (signal_rate + det.noise_rate) < signal_rate:
+        if share < surface:
             flag = wp.int8(1)
+        elif share < surface + retro:
+            flag = wp.int8(2)
         signal[row, count] = flag
         count += 1
         live = t + det.dead_time
@@ -174,16 +208,36 @@ def photon_events(det: PhotonDetector, seed: int, first_slot: wp.int64, n_signal
     so splitting a run into launches never changes a photon)."""
     i = wp.tid()
     state = wp.rand_init(seed, int((first_slot + wp.int64(i)) % wp.int64(2147483647)))
-    counts[i] = detect(det, state, n_signal[i], t0[i], i, times, signal)
+    counts[i] = detect(det, state, echoes(det, n_signal[i], t0[i], wp.float64(0.0), wp.float64(0.0)), i, times,
+                       signal)
+
+
+@wp.func
+def retro_echo(position: wp.vec3d, photons: wp.float64, footprint: wp.float64, start: wp.vec3d, direction: wp.vec3d):
+    """(expected photo-electrons, time of flight [s]) of a point retroreflector at ``position`` [m, local]
+    in the Gaussian footprint of a beam (unit ``direction`` from ``start``): ``photons`` at the footprint's
+    centre, times exp(−2 d²/w²) with d its distance from the beam axis and w = ``footprint`` × its
+    distance along the axis (the e⁻² radius; ``footprint`` the e⁻² half angle [rad])."""
+    v = position - start
+    along = wp.dot(v, direction)
+    if along <= wp.float64(0.0):
+        return wp.float64(0.0), wp.float64(0.0)
+    off2 = wp.max(wp.dot(v, v) - along * along, wp.float64(0.0))
+    w = footprint * along
+    return photons * wp.exp(wp.float64(-2.0) * off2 / (w * w)), wp.float64(2.0) * wp.length(v) / LIGHT_SPEED
 
 
 @wp.kernel
 def photon_slots(det: PhotonDetector, reflectance: wp.float64, pulses: wp.array2d(dtype=wp.float64), per_pulse: int,
                  status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),
-                 cos_incidence: wp.array(dtype=wp.float32), times: wp.array2d(dtype=wp.float64),
+                 cos_incidence: wp.array(dtype=wp.float32), ccr_positions: wp.array(dtype=wp.vec3d),
+                 ccr_photons: wp.float64, footprint: wp.float64, starts: wp.array(dtype=wp.vec3d),
+                 directions: wp.array(dtype=wp.vec3d), times: wp.array2d(dtype=wp.float64),
                  signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
-    """The detections of each slot of a traced chunk: its return (if any) through the lidar equation,
-    background and dark counts over the whole gate. Keyed by (line seed, pulse · beams + beam)."""
+    """The detections of each slot of a traced chunk: its return (if any) through the lidar equation, the
+    retroreflector its footprint lights most (``ccr_positions``; none when empty — then ``starts`` and
+    ``directions``, the beams' true rays, are not read), background and dark counts over the whole gate.
+    Keyed by (line seed, pulse · beams + beam)."""
     slot = wp.tid()
     p = slot // per_pulse
     beam = slot % per_pulse
@@ -195,7 +249,14 @@ def photon_slots(det: PhotonDetector, reflectance: wp.float64, pulses: wp.array2
         echo = wp.float64(2.0) * r / LIGHT_SPEED
     key = (wp.int64(pulses[ROW_PULSE, p]) * wp.int64(per_pulse) + wp.int64(beam)) % wp.int64(2147483647)
     state = wp.rand_init(int(pulses[ROW_SEED, p]) ^ PHOTON_STREAM, int(key))
-    counts[slot] = detect(det, state, n, echo, slot, times, signal)
+    n1 = wp.float64(0.0)
+    t1 = wp.float64(0.0)
+    for c in range(ccr_positions.shape[0]):  # the retroreflector lit most by the beam's footprint
+        n_c, t_c = retro_echo(ccr_positions[c], ccr_photons, footprint, starts[slot], directions[slot])
+        if n_c > n1:
+            n1 = n_c
+            t1 = t_c
+    counts[slot] = detect(det, state, echoes(det, n, echo, n1, t1), slot, times, signal)
 
 
 @wp.kernel

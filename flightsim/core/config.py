@@ -47,6 +47,9 @@ class SceneConfig:
     origin: tuple[float, float, float] = (409000.0, 3393000.0, 450.0)  # world E, N, H [m]
     slope: float = field(default=0.0, metadata=_num(-2.0, 2.0, "rise/run"))  # plane scene only
     cell_m: float = field(default=1.0, metadata=_num(0.0, 1.0e5, "m, node spacing of a .npy height grid", lo_open=True))
+    ccrs: tuple = ()  # corner-cube retroreflectors: [east, north, up] local [m] each (photon detector)
+    ccr_photons: float = field(default=0.0, metadata=_num(0.0, 1.0e6, "photo-electrons a CCR returns at a footprint's "
+                                                                       "centre"))
     margin_m: float = field(default=50.0, metadata=_num(0.0, 10000.0, "m"))
 
 
@@ -441,12 +444,22 @@ def _check_rotation(cfg: RunConfig) -> None:
                          f"0 with flight.platform = {f.platform} (a rotating body needs flight.platform = hover)")
 
 
+def _check_ccrs(cfg: RunConfig) -> None:
+    """scene.ccrs: each retroreflector three finite local coordinates [m]."""
+    for ccr in cfg.scene.ccrs:
+        ok = isinstance(ccr, (list, tuple)) and len(ccr) == 3 and all(  # as converted by _to_points
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in ccr)
+        if not ok:
+            raise InputError("scene.ccrs", ccr, "[east, north, up] local coordinates [m], three finite numbers each")
+
+
 def validate(cfg: RunConfig) -> RunConfig:
     """Check every field; return the resolved config or raise InputError naming the field."""
     for section in dataclasses.fields(cfg):
         check_fields(section.name, getattr(cfg, section.name))
     _check_choices(cfg)
     _check_rotation(cfg)
+    _check_ccrs(cfg)
     _check_optics(cfg)
     resolved = resolve(cfg)
     from flightsim.instrument.parts import HostInstrument  # the parts check their own sections
@@ -480,8 +493,25 @@ def _to_tuple(value: Any, like: tuple) -> tuple:
     return tuple(str(v).strip() for v in items if str(v).strip())
 
 
+POINT_LISTS = ("scene.ccrs",)  # fields holding lists of points: TOML arrays of arrays, or "[[x, y, z], ...]"
+
+
+def _to_points(name: str, value: Any) -> tuple:
+    """A list of points from TOML (arrays of numbers) or the command line (the same, as text)."""
+    import json
+
+    try:
+        items = json.loads(value) if isinstance(value, str) else value
+        return tuple(tuple(float(v) for v in point) if isinstance(point, (list, tuple)) else (point,)
+                     for point in items)
+    except (TypeError, ValueError):
+        raise InputError(name, value, "a list of points such as [[0, 0, 1], [5, 0, 1]]") from None
+
+
 def _coerce(name: str, current: Any, value: Any) -> Any:
     """Convert a TOML or command-line value to the type of the field it replaces."""
+    if canonical_key(name) in POINT_LISTS:
+        return _to_points(name, value)
     convert = {bool: _to_bool, int: _to_int, float: float, str: str}.get(type(current))
     try:
         return _to_tuple(value, current) if isinstance(current, tuple) else convert(value)

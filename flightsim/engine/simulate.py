@@ -74,6 +74,7 @@ class PhotonChunk:
     pixel: np.ndarray  # (m,) int32 beam (pixel) index
     time_of_flight_s: np.ndarray  # (m,) float64 [s]
     signal: np.ndarray  # (m,) bool: the photon came from the pulse (truth), else background or dark count
+    kind: np.ndarray  # (m,) int8 truth: 0 background or dark count, 1 the surface's echo, 2 a retroreflector's
     points: np.ndarray  # (m, 3) float64 local [m]: the photon placed on its believed beam at c·t/2
     directions: np.ndarray  # (m, 3) float32 local unit direction of the photon's believed beam
 
@@ -88,7 +89,7 @@ class DevicePhotons:
     count: int
     slot: wp.array  # int32 slot within the chunk (pulse of the chunk · beams per pulse + beam)
     time_of_flight_s: wp.array  # float64 [s]
-    signal: wp.array  # int8: 1 when the photon came from the pulse (truth)
+    signal: wp.array  # int8 truth: 0 background or dark count, 1 the surface's echo, 2 a retroreflector's
     points: wp.array  # vec3d local [m]: placed on its believed beam at c·t/2
     directions: wp.array  # vec3f local unit direction of the photon's believed beam
 
@@ -368,13 +369,19 @@ class Simulator:
         det = self.instrument.detector.struct()
         ranges_only = dataclasses.replace(self.features, exact=False, nominal=False, edges=False)  # no georeferencing
         kernel = trace.points_kernel(ranges_only, self.instrument.kernel, max_registers=self.max_registers)
+        retro = _Retroreflectors(self.cfg, len(buffers.status), self.device)
         for chunk in self._chunks(buffers.pulses, counts, progress):
             n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
             wp.launch(kernel, n_slots, inputs=[buffers.pulses, self.scan], outputs=buffers.slot_outputs(),
                       device=self.device)
+            if retro.count:
+                wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True), n_slots,
+                          inputs=[buffers.pulses, self.scan], outputs=[retro.starts, retro.directions],
+                          device=self.device)
             wp.launch(photon.photon_slots, n_slots,
                       inputs=[det, self.cfg.photon.reflectance, buffers.pulses, self.beams_per_pulse, buffers.status,
-                              buffers.ranges, buffers.cos_incidence],
+                              buffers.ranges, buffers.cos_incidence, retro.positions, retro.photons, retro.footprint,
+                              retro.starts, retro.directions],
                       outputs=[events.times, events.signal, events.counts], device=self.device)
             found = events.gather(n_slots, buffers.pulses, self.scan, self.instrument.kernel)
             counts.returns += found.count
@@ -463,9 +470,9 @@ class Simulator:
     def _photon_parts(self, chunk: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
         """Bring a chunk's detections (ordered by slot) to the host, split by flight line."""
         slot = found.slot[:found.count].numpy().astype(np.int64)
-        tof, signal = found.time_of_flight_s.numpy(), found.signal.numpy().astype(bool)
+        tof, kind = found.time_of_flight_s.numpy(), found.signal.numpy()
         points, directions = found.points.numpy(), found.directions.numpy()
-        return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], signal[a:b],
+        return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], kind[a:b] > 0, kind[a:b],
                             points[a:b], directions[a:b])
                 for trajectory, pulse, beam, a, b in self._by_line(chunk, slot)]
 
@@ -678,6 +685,20 @@ class Simulator:
         return [ReturnChunk(line_id=trajectory.line_id, start_time=trajectory.start_time, pulse=pulse, beam=beam,
                             **_sliced(fields, a, b))
                 for trajectory, pulse, beam, a, b in self._by_line(chunk, slots)]
+
+
+class _Retroreflectors:
+    """The scene's corner-cube retroreflectors as the photon kernel reads them, and the chunk's true beam
+    rays they need (one-element placeholders when the scene has none)."""
+
+    def __init__(self, cfg: RunConfig, slots: int, device: str):
+        positions = np.asarray(cfg.scene.ccrs, dtype=np.float64).reshape(-1, 3)
+        self.count = len(positions)
+        self.positions = wp.array(positions, dtype=wp.vec3d, device=device)
+        self.photons = cfg.scene.ccr_photons
+        self.footprint = cfg.sensor.divergence_mrad * 0.5e-3  # the e⁻² half angle [rad]
+        size = slots if self.count else 1
+        self.starts, self.directions = (wp.empty(size, dtype=wp.vec3d, device=device) for _ in range(2))
 
 
 class _PhotonBuffers:

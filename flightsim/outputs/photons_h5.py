@@ -7,7 +7,7 @@ ATL03) keep them. ``photons.h5``:
 /photons/delta_time         float64  adjusted standard GPS time of the pulse [s]
 /photons/time_of_flight_s   float64  round-trip time of flight from the exit point [s]
 /photons/range_m            float64  one-way range, c·t/2 [m]
-/photons/signal             uint8    truth: 1 the photon came from the pulse's echo, 0 background or dark count
+/photons/signal             uint8    truth: 1 the surface's echo, 2 a retroreflector's, 0 background or dark count
 /photons/x, y, z            float64  the photon on its believed beam at range_m, world E, N, H of the scene CRS [m]
 
 The file's attributes hold the run's config (TOML) and the flightsim version. It is written under a
@@ -54,7 +54,7 @@ class PhotonWriter:
         columns = {"line_id": np.full(n, chunk.line_id), "pulse": chunk.pulse, "pixel": chunk.pixel,
                    "delta_time": chunk.start_time + chunk.pulse / self.prf_hz,
                    "time_of_flight_s": chunk.time_of_flight_s, "range_m": chunk.time_of_flight_s * (C / 2.0),
-                   "signal": chunk.signal}
+                   "signal": chunk.kind}
         world = chunk.points + self.origin
         columns.update(x=world[:, 0], y=world[:, 1], z=world[:, 2])
         for name, values in columns.items():

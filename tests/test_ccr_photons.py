@@ -1,0 +1,61 @@
+"""Corner-cube retroreflectors in the photon detector: a CCR returns photons whenever a footprint's
+Gaussian lights it, as many as the profile at its offset says (seed:
+corner-cube-single-photon-calibration-patent.txt)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from flightsim.cli import main
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.simulate import Simulator
+from flightsim.platforms.plan import build_scene, flight_trajectories
+
+FOOTPRINT = 0.5 * 0.035e-3  # e⁻² half angle of a 0.035 mrad beam [rad]: w = 8.75 m at 500 km
+CCR_PHOTONS = 3.0
+
+
+def _pass(detector: str, **settings) -> RunConfig:
+    cfg = RunConfig()
+    for key, value in {"instrument.deflector": "fixed", "sensor.array": 1, "flight.platform": "orbit",
+                       "flight.altitude_m": 500e3, "flight.duration_s": 0.01, "sensor.prf_hz": 1.0e4,
+                       "sensor.max_range_m": 6e5, "sensor.divergence_mrad": 0.035, "scene.name": "plane",
+                       "instrument.detector": detector, "photon.gate_m": [499000.0, 501000.0],
+                       "photon.noise_hz": 1.0e3, "photon.dead_time_s": 3e-9, "photon.pulse_fwhm_s": 1.5e-9,
+                       "photon.pulse_energy_j": 1e-4, "scene.ccrs": [[0.0, 0.0, 1.0]],
+                       "scene.ccr_photons": CCR_PHOTONS, "output.models": ["exact"], **settings}.items():
+        set_value(cfg, key, value)
+    return validate(cfg)
+
+
+def test_ccr_photons_follow_the_footprint_profile_along_the_track():
+    discrete = _pass("discrete")
+    scene = build_scene(discrete)
+    sim = Simulator(discrete, scene, flight_trajectories(discrete, scene), with_truth=True)
+    hits = []
+    sim.run(hits.append)
+    truth = np.concatenate([c.true_points for c in hits])  # footprint centres (the beam's true hits)
+    offset = np.linalg.norm(truth[:, :2], axis=1)  # from the CCR at local (0, 0)
+    expected = CCR_PHOTONS * np.exp(-2.0 * offset ** 2 / (FOOTPRINT * 500e3) ** 2)
+    p = 1.0 - np.exp(-expected)  # the CCR's echo comes 6.7 ns before the ground's: its first photon counts
+
+    cfg = _pass("photon")
+    chunks = []
+    Simulator(cfg, scene, flight_trajectories(cfg, scene)).run_photons(chunks.append)
+    pulse = np.concatenate([c.pulse for c in chunks])
+    flag = np.concatenate([c.signal for c in chunks])  # bool: signal of any kind
+    kinds = np.concatenate([c.kind for c in chunks])
+    assert set(np.unique(kinds)) <= {0, 1, 2} and (flag == (kinds > 0)).all()
+    per_shot = np.bincount(pulse[kinds == 2], minlength=len(p))[:len(p)]
+    assert per_shot.max() <= 1  # a 3 ns dead time: one CCR photo-electron per shot at most
+    z = (per_shot.sum() - p.sum()) / math.sqrt(np.sum(p * (1 - p)))
+    assert abs(z) < 4
+    assert per_shot[offset > 3.0 * FOOTPRINT * 500e3].sum() == 0  # none beyond 3 e⁻² radii
+    assert per_shot.sum() > 10
+
+
+def test_bad_ccr_entries_exit_2_naming_the_field(tmp_path, capsys):
+    assert main(["simulate", "--set", "scene.ccrs=[[0, 0]]", "--out", str(tmp_path / "c")]) == 2
+    assert "scene.ccrs" in capsys.readouterr().err
