@@ -18,6 +18,7 @@ n_s φ/σ ÷ λ at its time. Random numbers are Warp's counter-based PCG keyed b
 same seed gives the same photons on the CPU and the GPU. The TDC reads each detection as the centre
 of its bin (the dead time runs from the true time).
 """
+import functools
 import math
 
 import warp as wp
@@ -97,65 +98,10 @@ def _normal_cdf(x: wp.float64):
 
 
 @wp.func
-def integrated_intensity(det: PhotonDetector, t: wp.float64, e: Echoes):
-    """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]."""
-    value = det.noise_rate * (t - det.gate_open) + e.n0 * (_normal_cdf((t - e.t0) / det.sigma_t) - e.cdf0)
-    if e.n1 > wp.float64(0.0):
-        value += e.n1 * (_normal_cdf((t - e.t1) / det.sigma_t) - e.cdf1)
-    return value
-
-
-@wp.func
 def echo_rate(det: PhotonDetector, t: wp.float64, t0: wp.float64, n_signal: wp.float64):
     """One echo's part of λ(t) = Λ'(t) at time of flight t [1/s] (λ = noise rate + the echoes' rates)."""
     z = (t - t0) / det.sigma_t
     return n_signal * INV_SQRT_2PI * wp.exp(wp.float64(-0.5) * z * z) / det.sigma_t
-
-
-@wp.func
-def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes):
-    """Λ⁻¹(target) for Λ's dominant part (the surface echo's): the noise line where the target lies before
-    or after the echo (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to its centre."""
-    reach = wp.float64(ECHO_SIGMAS) * det.sigma_t
-    start = wp.max(lo, e.t0 - reach)
-    before = integrated_intensity(det, lo, e) + det.noise_rate * (start - lo)
-    if target <= before or e.n0 <= wp.float64(0.0):
-        return lo + (target - integrated_intensity(det, lo, e)) / det.noise_rate
-    after = det.noise_rate * (e.t0 + reach - det.gate_open) + e.n0 * (wp.float64(1.0) - ECHO_CDF_LOW - e.cdf0)
-    if target >= after:
-        return e.t0 + reach + (target - after) / det.noise_rate
-    p = (target - det.noise_rate * (e.t0 - det.gate_open)) / e.n0 + e.cdf0
-    p = wp.min(wp.max(p, wp.float64(1.0e-15)), wp.float64(1.0 - 1.0e-15))
-    return e.t0 + det.sigma_t * wp.float64(1.4142135623730951) * wp.erfinv(wp.float64(2.0) * p - wp.float64(1.0))
-
-
-@wp.func
-def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes):
-    """The time of flight t ≥ lo at which Λ(t) = target ≤ Λ(gate close) (safeguarded Newton)."""
-    hi = det.gate_close
-    t = _first_guess(det, target, lo, e)
-    if not (t > lo and t < hi):
-        t = lo
-    for _ in range(INVERSION_STEPS):
-        f = integrated_intensity(det, t, e) - target
-        if f == wp.float64(0.0):
-            return t
-        if f < wp.float64(0.0):
-            lo = t
-        else:
-            hi = t
-        rate = det.noise_rate + echo_rate(det, t, e.t0, e.n0)
-        if e.n1 > wp.float64(0.0):
-            rate += echo_rate(det, t, e.t1, e.n1)
-        step = wp.float64(0.5) * (lo + hi)
-        if rate > wp.float64(0.0):
-            newton = t - f / rate
-            if newton > lo and newton < hi:
-                step = newton
-        if wp.abs(step - t) <= INVERSION_TOL_S:
-            return step
-        t = step
-    return t
 
 
 @wp.func
@@ -165,39 +111,100 @@ def _uniform64(state: wp.uint32):
     return (wp.float64(bits) + wp.float64(0.5)) / wp.float64(4294967296.0), state
 
 
-@wp.func
-def detect(det: PhotonDetector, state: wp.uint32, e: Echoes, row: int,
-           times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8)):
-    """Sample one pixel's detections of one pulse (its echoes ``e``) into row ``row`` of ``times`` [s] and
-    ``signal`` (0 noise, 1 the surface's echo, 2 the retroreflector's), in time order; return their count."""
-    live = det.gate_open
-    total = integrated_intensity(det, det.gate_close, e)
-    count = int(0)
-    while count < det.max_events and live < det.gate_close:
-        u, state = _uniform64(state)
-        target = integrated_intensity(det, live, e) - wp.log(u)
-        if target >= total:
-            break
-        t = _invert(det, target, live, e)
-        surface = echo_rate(det, t, e.t0, e.n0)
-        retro = wp.float64(0.0)
-        if e.n1 > wp.float64(0.0):
-            retro = echo_rate(det, t, e.t1, e.n1)
-        v, state = _uniform64(state)
-        if det.tdc_bin > wp.float64(0.0):
-            times[row, count] = (wp.floor(t / det.tdc_bin) + wp.float64(0.5)) * det.tdc_bin
-        else:
-            times[row, count] = t
-        share = v * (surface + retro + det.noise_rate)
-        flag = wp.int8(0)
-        if share < surface:
-            flag = wp.int8(1)
-        elif share < surface + retro:
-            flag = wp.int8(2)
-        signal[row, count] = flag
-        count += 1
-        live = t + det.dead_time
-    return count
+@functools.cache
+def sampler(retro: bool):
+    """The photon sampler's device functions, with the retroreflector's echo (``retro``) or without it
+    (compiled out: the surface-only sampler of the SPAD frames pays nothing for it); returns detect."""
+
+    @wp.func
+    def integrated_intensity(det: PhotonDetector, t: wp.float64, e: Echoes):
+        """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]."""
+        value = det.noise_rate * (t - det.gate_open) + e.n0 * (_normal_cdf((t - e.t0) / det.sigma_t) - e.cdf0)
+        if wp.static(retro):
+            value += e.n1 * (_normal_cdf((t - e.t1) / det.sigma_t) - e.cdf1)
+        return value
+
+
+    @wp.func
+    def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes):
+        """Λ⁻¹(target) for Λ's dominant part (the surface echo's): the noise line where the target lies before
+        or after the echo (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to its centre."""
+        reach = wp.float64(ECHO_SIGMAS) * det.sigma_t
+        start = wp.max(lo, e.t0 - reach)
+        before = integrated_intensity(det, lo, e) + det.noise_rate * (start - lo)
+        if target <= before or e.n0 <= wp.float64(0.0):
+            return lo + (target - integrated_intensity(det, lo, e)) / det.noise_rate
+        after = det.noise_rate * (e.t0 + reach - det.gate_open) + e.n0 * (wp.float64(1.0) - ECHO_CDF_LOW - e.cdf0)
+        if target >= after:
+            return e.t0 + reach + (target - after) / det.noise_rate
+        p = (target - det.noise_rate * (e.t0 - det.gate_open)) / e.n0 + e.cdf0
+        p = wp.min(wp.max(p, wp.float64(1.0e-15)), wp.float64(1.0 - 1.0e-15))
+        return e.t0 + det.sigma_t * wp.float64(1.4142135623730951) * wp.erfinv(wp.float64(2.0) * p - wp.float64(1.0))
+
+
+    @wp.func
+    def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes):
+        """The time of flight t ≥ lo at which Λ(t) = target ≤ Λ(gate close) (safeguarded Newton)."""
+        hi = det.gate_close
+        t = _first_guess(det, target, lo, e)
+        if not (t > lo and t < hi):
+            t = lo
+        for _ in range(INVERSION_STEPS):
+            f = integrated_intensity(det, t, e) - target
+            if f == wp.float64(0.0):
+                return t
+            if f < wp.float64(0.0):
+                lo = t
+            else:
+                hi = t
+            rate = det.noise_rate + echo_rate(det, t, e.t0, e.n0)
+            if wp.static(retro):
+                rate += echo_rate(det, t, e.t1, e.n1)
+            step = wp.float64(0.5) * (lo + hi)
+            if rate > wp.float64(0.0):
+                newton = t - f / rate
+                if newton > lo and newton < hi:
+                    step = newton
+            if wp.abs(step - t) <= INVERSION_TOL_S:
+                return step
+            t = step
+        return t
+
+    @wp.func
+    def detect(det: PhotonDetector, state: wp.uint32, e: Echoes, row: int,
+               times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8)):
+        """Sample one pixel's detections of one pulse (its echoes ``e``) into row ``row`` of ``times`` [s] and
+        ``signal`` (0 noise, 1 the surface's echo, 2 the retroreflector's), in time order; return their count."""
+        live = det.gate_open
+        total = integrated_intensity(det, det.gate_close, e)
+        count = int(0)
+        while count < det.max_events and live < det.gate_close:
+            u, state = _uniform64(state)
+            target = integrated_intensity(det, live, e) - wp.log(u)
+            if target >= total:
+                break
+            t = _invert(det, target, live, e)
+            surface = echo_rate(det, t, e.t0, e.n0)
+            lit = wp.float64(0.0)
+            if wp.static(retro):
+                lit = echo_rate(det, t, e.t1, e.n1)
+            v, state = _uniform64(state)
+            if det.tdc_bin > wp.float64(0.0):
+                times[row, count] = (wp.floor(t / det.tdc_bin) + wp.float64(0.5)) * det.tdc_bin
+            else:
+                times[row, count] = t
+            share = v * (surface + lit + det.noise_rate)
+            flag = wp.int8(0)
+            if share < surface:
+                flag = wp.int8(1)
+            elif share < surface + lit:
+                flag = wp.int8(2)
+            signal[row, count] = flag
+            count += 1
+            live = t + det.dead_time
+        return count
+
+    return detect
 
 
 @wp.kernel
@@ -208,8 +215,8 @@ def photon_events(det: PhotonDetector, seed: int, first_slot: wp.int64, n_signal
     so splitting a run into launches never changes a photon)."""
     i = wp.tid()
     state = wp.rand_init(seed, int((first_slot + wp.int64(i)) % wp.int64(2147483647)))
-    counts[i] = detect(det, state, echoes(det, n_signal[i], t0[i], wp.float64(0.0), wp.float64(0.0)), i, times,
-                       signal)
+    counts[i] = wp.static(sampler(False))(det, state, echoes(det, n_signal[i], t0[i], wp.float64(0.0),
+                                                             wp.float64(0.0)), i, times, signal)
 
 
 @wp.func
@@ -227,36 +234,43 @@ def retro_echo(position: wp.vec3d, photons: wp.float64, footprint: wp.float64, s
     return photons * wp.exp(wp.float64(-2.0) * off2 / (w * w)), wp.float64(2.0) * wp.length(v) / LIGHT_SPEED
 
 
-@wp.kernel
-def photon_slots(det: PhotonDetector, reflectance: wp.float64, pulses: wp.array2d(dtype=wp.float64), per_pulse: int,
-                 status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),
-                 cos_incidence: wp.array(dtype=wp.float32), ccr_positions: wp.array(dtype=wp.vec3d),
-                 ccr_photons: wp.float64, footprint: wp.float64, starts: wp.array(dtype=wp.vec3d),
-                 directions: wp.array(dtype=wp.vec3d), times: wp.array2d(dtype=wp.float64),
-                 signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
-    """The detections of each slot of a traced chunk: its return (if any) through the lidar equation, the
-    retroreflector its footprint lights most (``ccr_positions``; none when empty — then ``starts`` and
-    ``directions``, the beams' true rays, are not read), background and dark counts over the whole gate.
-    Keyed by (line seed, pulse · beams + beam)."""
-    slot = wp.tid()
-    p = slot // per_pulse
-    beam = slot % per_pulse
-    n = wp.float64(0.0)
-    echo = det.gate_open
-    if status[slot] == STATUS_RETURN:
-        r = wp.float64(ranges[slot])
-        n = expected_signal(det, r, wp.float64(cos_incidence[slot]), reflectance)
-        echo = wp.float64(2.0) * r / LIGHT_SPEED
-    key = (wp.int64(pulses[ROW_PULSE, p]) * wp.int64(per_pulse) + wp.int64(beam)) % wp.int64(2147483647)
-    state = wp.rand_init(int(pulses[ROW_SEED, p]) ^ PHOTON_STREAM, int(key))
-    n1 = wp.float64(0.0)
-    t1 = wp.float64(0.0)
-    for c in range(ccr_positions.shape[0]):  # the retroreflector lit most by the beam's footprint
-        n_c, t_c = retro_echo(ccr_positions[c], ccr_photons, footprint, starts[slot], directions[slot])
-        if n_c > n1:
-            n1 = n_c
-            t1 = t_c
-    counts[slot] = detect(det, state, echoes(det, n, echo, n1, t1), slot, times, signal)
+@functools.cache
+def photon_slots_kernel(retro: bool):
+    """The kernel turning a traced chunk's slots into detections, with or without retroreflectors."""
+
+    @wp.kernel(module="unique")
+    def photon_slots(det: PhotonDetector, reflectance: wp.float64, pulses: wp.array2d(dtype=wp.float64), per_pulse: int,
+                     status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),
+                     cos_incidence: wp.array(dtype=wp.float32), ccr_positions: wp.array(dtype=wp.vec3d),
+                     ccr_photons: wp.float64, footprint: wp.float64, starts: wp.array(dtype=wp.vec3d),
+                     directions: wp.array(dtype=wp.vec3d), times: wp.array2d(dtype=wp.float64),
+                     signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
+        """The detections of each slot of a traced chunk: its return (if any) through the lidar equation, the
+        retroreflector its footprint lights most (``ccr_positions``; none when empty — then ``starts`` and
+        ``directions``, the beams' true rays, are not read), background and dark counts over the whole gate.
+        Keyed by (line seed, pulse · beams + beam)."""
+        slot = wp.tid()
+        p = slot // per_pulse
+        beam = slot % per_pulse
+        n = wp.float64(0.0)
+        echo = det.gate_open
+        if status[slot] == STATUS_RETURN:
+            r = wp.float64(ranges[slot])
+            n = expected_signal(det, r, wp.float64(cos_incidence[slot]), reflectance)
+            echo = wp.float64(2.0) * r / LIGHT_SPEED
+        key = (wp.int64(pulses[ROW_PULSE, p]) * wp.int64(per_pulse) + wp.int64(beam)) % wp.int64(2147483647)
+        state = wp.rand_init(int(pulses[ROW_SEED, p]) ^ PHOTON_STREAM, int(key))
+        n1 = wp.float64(0.0)
+        t1 = wp.float64(0.0)
+        if wp.static(retro):
+            for c in range(ccr_positions.shape[0]):  # the retroreflector lit most by the beam's footprint
+                n_c, t_c = retro_echo(ccr_positions[c], ccr_photons, footprint, starts[slot], directions[slot])
+                if n_c > n1:
+                    n1 = n_c
+                    t1 = t_c
+        counts[slot] = wp.static(sampler(retro))(det, state, echoes(det, n, echo, n1, t1), slot, times, signal)
+
+    return photon_slots
 
 
 @wp.kernel

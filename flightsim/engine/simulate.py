@@ -378,7 +378,7 @@ class Simulator:
                 wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True), n_slots,
                           inputs=[buffers.pulses, self.scan], outputs=[retro.starts, retro.directions],
                           device=self.device)
-            wp.launch(photon.photon_slots, n_slots,
+            wp.launch(photon.photon_slots_kernel(retro.count > 0), n_slots,
                       inputs=[det, self.cfg.photon.reflectance, buffers.pulses, self.beams_per_pulse, buffers.status,
                               buffers.ranges, buffers.cos_incidence, retro.positions, retro.photons, retro.footprint,
                               retro.starts, retro.directions],
