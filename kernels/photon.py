@@ -2,10 +2,12 @@
 
 Per pixel and pulse the photo-electrons arrive as an inhomogeneous Poisson process over the range
 gate [t_open, t_close] (times of flight [s]) of intensity
-    λ(t) = r + n_s · φ((t − t₀)/σ)/σ,
+    λ(t) = r + n_s · φ((t − t₀)/σ)/σ + n_c · φ((t − t_c)/σ)/σ,
 r the noise rate (solar background plus dark counts) [Hz], n_s the expected signal photo-electrons
 (the lidar equation, :func:`expected_signal`), t₀ the echo's time of flight and σ its spread (the
-pulse's and the timing jitter, added in quadrature). The pixel is live at t_open; after each
+pulse's and the timing jitter, added in quadrature); n_c, t_c a corner-cube retroreflector's echo
+when the footprint lights one (:func:`retro_echo`; the sampler is built without it for scenes that
+have none). The pixel is live at t_open; after each
 detection it is dead for τ_d and does not extend it (non-paralyzable; arrivals while dead are lost).
 
 Sampling is exact and costs one step per detection: with Λ the integrated intensity, the next
