@@ -97,7 +97,7 @@ def build_grid(args: argparse.Namespace):
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, flags=CONFIG_FLAGS) -> None:
-    parser.add_argument("--instrument", help="built-in instrument to start from: risley (default), change3, spad or change1")
+    parser.add_argument("--instrument", help="built-in instrument to start from: risley (default), change3, spad, change1 or atlas")
     parser.add_argument("--config", help="run config TOML over the instrument (a run.toml of an earlier run "
                                          "reproduces it)")
     for flag, dest, _key, help_text in flags:

@@ -6,7 +6,8 @@ from pathlib import Path
 PRESETS = {"risley": None,  # the defaults
            "change3": Path(__file__).with_name("change3.toml"),
            "spad": Path(__file__).with_name("spad.toml"),
-           "change1": Path(__file__).with_name("change1.toml")}
+           "change1": Path(__file__).with_name("change1.toml"),
+           "atlas": Path(__file__).with_name("atlas.toml")}
 
 
 def preset_path(name: str) -> Path | None:
