@@ -245,12 +245,14 @@ def photon_slots_kernel(retro: bool):
                      status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),
                      cos_incidence: wp.array(dtype=wp.float32), ccr_positions: wp.array(dtype=wp.vec3d),
                      ccr_photons: wp.float64, footprint: wp.float64, starts: wp.array(dtype=wp.vec3d),
-                     directions: wp.array(dtype=wp.vec3d), times: wp.array2d(dtype=wp.float64),
-                     signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
+                     directions: wp.array(dtype=wp.vec3d), delays: wp.array(dtype=wp.float32), drift: wp.float64,
+                     times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8),
+                     counts: wp.array(dtype=wp.int32)):
         """The detections of each slot of a traced chunk: its return (if any) through the lidar equation, the
-        retroreflector its footprint lights most (``ccr_positions``; none when empty — then ``starts`` and
-        ``directions``, the beams' true rays, are not read), background and dark counts over the whole gate.
-        Keyed by (line seed, pulse · beams + beam)."""
+        retroreflector its footprint lights most (``ccr_positions``, with ``retro``: ``starts`` and
+        ``directions`` the beams' true rays; its range read through the ranging chain's drift and the
+        beam's delay, as the surface's), background and dark counts over the whole gate. Keyed by (line
+        seed, pulse · beams + beam)."""
         slot = wp.tid()
         p = slot // per_pulse
         beam = slot % per_pulse
@@ -269,7 +271,7 @@ def photon_slots_kernel(retro: bool):
                 n_c, t_c = retro_echo(ccr_positions[c], ccr_photons, footprint, starts[slot], directions[slot])
                 if n_c > n1:
                     n1 = n_c
-                    t1 = t_c
+                    t1 = t_c * (wp.float64(1.0) + drift) + wp.float64(2.0) * wp.float64(delays[beam]) / LIGHT_SPEED
         counts[slot] = wp.static(sampler(retro))(det, state, echoes(det, n, echo, n1, t1), slot, times, signal)
 
     return photon_slots

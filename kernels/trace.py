@@ -736,12 +736,15 @@ def slot_indices(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int
 
 
 @functools.cache
-def emit_rays_kernel(instrument: Instrument, precise: bool = False):
+def emit_rays_kernel(instrument: Instrument, precise: bool = False, pose: bool = False):
     """Kernel writing the rays the pipeline casts, one per slot: rounded to float32 as the ray cast takes
-    them (for timing the bare ray cast), or in float64 with ``precise`` (the waveform detector's beams)."""
+    them (for timing the bare ray cast), or in float64 with ``precise`` (the waveform detector's beams and
+    the retroreflectors' footprints); ``pose``: from the pulse's true pose (its pose-error rows), as
+    trace_slot casts them."""
     deflector = instrument.deflector
     Scan = scan_struct(instrument)
-    row_truth = pulse_rows(instrument).truth
+    rows = pulse_rows(instrument, pose)
+    row_truth, row_pose = rows.truth, rows.true_pose
     vec = wp.vec3d if precise else wp.vec3f
 
     @wp.kernel(module="unique")
@@ -755,9 +758,13 @@ def emit_rays_kernel(instrument: Instrument, precise: bool = False):
         slot = wp.tid()
         per_pulse = scan.per_pulse
         p = slot // per_pulse
+        origin = get3(pulses, ROW_ORIGIN, p)
         rot = get33(pulses, ROW_ROT, p)
+        if wp.static(pose):
+            origin = origin + get3(pulses, row_pose, p)
+            rot = rot * get33(pulses, row_pose + 3, p)
         s3, exit_point, ok = deflector.finish(scan.beam_truth[slot % per_pulse], pulses, row_truth, p, scan.truth)
-        starts[slot] = vec(get3(pulses, ROW_ORIGIN, p) + rot * exit_point)
+        starts[slot] = vec(origin + rot * exit_point)
         directions[slot] = wp.where(ok, vec(rot * s3), vec())
 
     return emit_rays

@@ -375,13 +375,13 @@ class Simulator:
             wp.launch(kernel, n_slots, inputs=[buffers.pulses, self.scan], outputs=buffers.slot_outputs(),
                       device=self.device)
             if retro.count:
-                wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True), n_slots,
-                          inputs=[buffers.pulses, self.scan], outputs=[retro.starts, retro.directions],
+                wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True, pose=self.features.pose),
+                          n_slots, inputs=[buffers.pulses, self.scan], outputs=[retro.starts, retro.directions],
                           device=self.device)
             wp.launch(photon.photon_slots_kernel(retro.count > 0), n_slots,
                       inputs=[det, self.cfg.photon.reflectance, buffers.pulses, self.beams_per_pulse, buffers.status,
                               buffers.ranges, buffers.cos_incidence, retro.positions, retro.photons, retro.footprint,
-                              retro.starts, retro.directions],
+                              retro.starts, retro.directions, self.scan.ranging.delays, self.scan.ranging.drift],
                       outputs=[events.times, events.signal, events.counts], device=self.device)
             found = events.gather(n_slots, buffers.pulses, self.scan, self.instrument.kernel)
             counts.returns += found.count
@@ -421,8 +421,8 @@ class Simulator:
         receiver, keys = det.receiver(), wp.empty(slots, dtype=wp.int64, device=self.device)
         for chunk in self._chunks(pulses, counts, progress):
             n = sum(s.count for s in chunk) * self.beams_per_pulse
-            wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True), n, inputs=[pulses, self.scan],
-                      outputs=[starts, directions], device=self.device)
+            wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True, pose=self.features.pose), n,
+                      inputs=[pulses, self.scan], outputs=[starts, directions], device=self.device)
             wp.launch(kw.pilot, n, inputs=[refs, params, starts, directions], outputs=[window], device=self.device)
             impulses.zero_()
             received.zero_()
