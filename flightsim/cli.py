@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import sys
 import time
@@ -258,6 +259,23 @@ def cmd_waveform(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from flightsim.calibration.geolocation import Bias
+    from flightsim.core.warp_runtime import resolve_device
+    from flightsim.studies.spaceborne import run_calibration
+
+    resolve_device(args.device)
+    try:
+        along, across, rng = (float(v) for v in args.truth.split(","))
+    except ValueError:
+        raise InputError("--truth", args.truth, "three numbers: pointing along, across track [arcsec], ranging [m]") from None
+    if not all(math.isfinite(v) for v in (along, across, rng)) or max(abs(along), abs(across)) > 60 or abs(rng) > 10:
+        raise InputError("--truth", args.truth, "finite biases within ±60 arcsec and ±10 m")
+    run_calibration(Path(args.out), device=args.device, truth=Bias(along, across, rng))
+    print((Path(args.out) / "REPORT.md").read_text())
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     import laspy
     import numpy
@@ -357,6 +375,14 @@ def make_parser() -> argparse.ArgumentParser:
     waveform.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
     waveform.add_argument("--out", required=True, help="output directory")
     waveform.set_defaults(func=cmd_waveform)
+
+    calibrate = sub.add_parser("calibrate", help="corner-cube calibration of the spaceborne altimeter's pointing "
+                                                 "and ranging on simulated passes (the atlas preset)")
+    calibrate.add_argument("--truth", default="3,-2,0.25",
+                           help="injected pointing along, across track [arcsec] and ranging bias [m]")
+    calibrate.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    calibrate.add_argument("--out", required=True, help="directory for REPORT.md, calibration.json and figures")
+    calibrate.set_defaults(func=cmd_calibrate)
 
     info = sub.add_parser("info", help="versions, devices and the kernel cache")
     info.set_defaults(func=cmd_info)

@@ -37,3 +37,12 @@ def test_ranging_bias_is_recovered_once_the_ccr_pile_up_is_taken_out():
     assert sigma < 0.01
     # without the correction the first photon of each CCR echo reads short: the estimate falls low
     assert TRUTH.range_m - p.least_squares.bias.range_m > 3 * sigma
+
+
+@pytest.mark.parametrize("truth", ["3,-2", "a,b,c", "3,-2,nan", "100,0,0"])
+def test_bad_truth_exits_2_naming_it(tmp_path, capsys, truth):
+    from flightsim.cli import main
+
+    assert main(["calibrate", "--truth", truth, "--out", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "--truth" in err and "Traceback" not in err

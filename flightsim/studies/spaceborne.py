@@ -18,10 +18,13 @@ import numpy as np
 from flightsim.calibration.ccr import CcrField, calibrate_least_squares, calibrate_patent, design_field
 from flightsim.calibration.geolocation import Bias, Track, footprint_offset, theoretical_radius
 from flightsim.core.config import RunConfig, preset_config, set_value, validate
+from flightsim.core.errors import InputError
 
 GROUND_SPEED_MPS = 7000.0  # ICESat-2-like
 CCR_PHOTONS = math.exp(2.0)  # photo-electrons a CCR returns at a footprint's centre (e²: 1 at its e⁻² edge)
 LEAD_M = 100.0  # ground track before the first CCR [m]
+GATE_HALF_M = 150.0  # the range window around the surface: a telemetry band of 300 m, as ATLAS sends down
+MAX_EVENTS = 64  # detections kept per shot: 20 MHz of background puts ~40 in the band
 
 
 @dataclass
@@ -49,7 +52,8 @@ def pass_config(truth: Bias, field: CcrField, shots: int, device: str = "cpu", s
                 "scene.ccrs": [list(p) for p in field.positions_m], "scene.ccr_photons": CCR_PHOTONS,
                 "errors.boresight_arcsec": [-truth.across_arcsec, truth.along_arcsec, 0.0],
                 "errors.range_bias_m": truth.range_m, "photon.noise_hz": background_hz,
-                "photon.gate_m": [h - 1000.0, h + 1000.0], "run.device": device, "run.seed": seed}
+                "photon.gate_m": [h - GATE_HALF_M, h + GATE_HALF_M], "photon.max_events": MAX_EVENTS,
+                "run.device": device, "run.seed": seed}
     for key, value in settings.items():
         set_value(cfg, key, value)
     return validate(cfg)
@@ -113,3 +117,144 @@ def pile_up_corrected_range_bias(track: Track, shot, range_m, field: CcrField, i
         residuals.append(np.asarray(range_m)[t.photons] - early - geometric)
     r = np.concatenate(residuals)
     return float(r.mean()), float(r.std(ddof=1) / math.sqrt(r.size))
+
+
+COMMAND = "flightsim calibrate --out results/spaceborne"
+SEEDS = (0, 1, 2)
+TRIGGERED = (4, 8, 16)  # design_field's guaranteed triggered CCRs
+BACKGROUNDS_HZ = (1.0e6, 5.0e6, 2.0e7)
+
+
+def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25)) -> dict:
+    """The pass at the defaults (figures) and the sweep over field size, background and seeds into
+    ``out``: calibration.json, REPORT.md, pass.png, radius.png."""
+    import json
+    from pathlib import Path
+
+    from flightsim.calibration.geolocation import ground_shift_m
+    from flightsim.core.atomic import write_atomic
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for triggered in TRIGGERED:
+        for background in BACKGROUNDS_HZ:
+            for seed in SEEDS:
+                try:
+                    p = simulate_pass(truth, triggered, device, seed, background)
+                except InputError as exc:  # the calibration found too little to work with: recorded, not fatal
+                    rows.append({"min_triggered": triggered, "background_hz": background, "seed": seed,
+                                 "failed": str(exc)})
+                    continue
+                rows.append(_row(p, triggered, background, seed))
+                if (triggered, background, seed) == (16, 1.0e6, 0):
+                    _figures(p, out)
+    numbers = {"device": device, "truth": [truth.along_arcsec, truth.across_arcsec, truth.range_m],
+               "one_arcsec_at_500km_m": ground_shift_m(500e3, 1.0), "passes": rows}
+    write_atomic(out / "calibration.json", json.dumps(numbers, indent=2) + "\n")
+    write_atomic(out / "REPORT.md", report(numbers))
+    return numbers
+
+
+def _row(p: CalibrationPass, triggered: int, background: float, seed: int) -> dict:
+    t = p.truth
+    lsq, pat = p.least_squares, p.patent.bias
+    return {"min_triggered": triggered, "background_hz": background, "seed": seed, "ccrs": len(p.field),
+            "tracks": len(p.patent.identification.tracks), "ccr_photons": int((p.kind == 2).sum()),
+            "patent_error_arcsec": [pat.along_arcsec - t.along_arcsec, pat.across_arcsec - t.across_arcsec],
+            "lsq_error_arcsec": [lsq.bias.along_arcsec - t.along_arcsec, lsq.bias.across_arcsec - t.across_arcsec],
+            "lsq_sigma_arcsec": [float(lsq.sigma[0]), float(lsq.sigma[1])],
+            "range_error_m": p.range_bias_m[0] - t.range_m, "range_sigma_m": p.range_bias_m[1],
+            "range_error_uncorrected_m": lsq.bias.range_m - t.range_m}
+
+
+def _figures(p: CalibrationPass, out) -> None:
+    """pass.png: photon heights along track, CCR photons marked; radius.png: step 5's azimuth difference."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from flightsim.calibration.geolocation import Bias as Nominal, geolocate
+    from flightsim.core.atomic import save_figure
+
+    points = geolocate(p.track, p.shot, p.range_m, Nominal())
+    along, _ = p.track.to_track_frame(points)
+    fig, ax = plt.subplots(figsize=(10, 3.6))
+    for kind, colour, label in ((0, "0.7", "background"), (1, "tab:blue", "ground"), (2, "tab:red", "corner cubes")):
+        m = p.kind == kind
+        ax.scatter(along[m], points[m, 2], s=1 if kind < 2 else 6, c=colour, label=label)
+    ax.set(xlabel="along track [m]", ylabel="height, nominal geolocation [m]", ylim=(-4, 6),
+           title="photons of the pass (truth colours), geolocated with the nominal instrument")
+    ax.legend(markerscale=4, fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, out / "pass.png", dpi=120)
+    plt.close(fig)
+    r = p.patent.radius
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    ax.plot(r.radii_m, r.azimuth_difference_deg, ".-")
+    ax.axvline(r.radius_m, color="r", lw=0.8, label=f"chosen R = {r.radius_m:.1f} m")
+    ax.set(xlabel="footprint radius tried [m]", ylabel="|azimuth − coarse line's| [deg]",
+           title="step 5: radius iteration")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, out / "radius.png", dpi=120)
+    plt.close(fig)
+
+
+def report(n: dict) -> str:
+    def rms(key, rows, k):
+        return float(np.sqrt(np.mean([r[key][k] ** 2 for r in rows])))
+
+    lines = []
+    for triggered in TRIGGERED:
+        for background in BACKGROUNDS_HZ:
+            every = [r for r in n["passes"] if r["min_triggered"] == triggered and r["background_hz"] == background]
+            rows = [r for r in every if "failed" not in r]
+            if not rows:
+                lines.append(f"| {triggered} | – | {background / 1e6:g} | calibration failed in all {len(every)} "
+                             f"passes | | | | | |")
+                continue
+            failed = f" ({len(every) - len(rows)} of {len(every)} failed)" if len(rows) < len(every) else ""
+            rng = float(np.sqrt(np.mean([r["range_error_m"] ** 2 for r in rows])))
+            raw = float(np.mean([r["range_error_uncorrected_m"] for r in rows]))
+            lines.append(f"| {triggered} | {rows[0]['ccrs']} | {background / 1e6:g} | "
+                         f"{np.mean([r['tracks'] for r in rows]):.1f}{failed} | "
+                         f"{rms('patent_error_arcsec', rows, 0):.3f} / {rms('patent_error_arcsec', rows, 1):.3f} | "
+                         f"{rms('lsq_error_arcsec', rows, 0):.3f} / {rms('lsq_error_arcsec', rows, 1):.3f} | "
+                         f"{np.mean([r['lsq_sigma_arcsec'][0] for r in rows]):.3f} | {100 * rng:.2f} | "
+                         f"{100 * raw:+.2f} |")
+    t = n["truth"]
+    return f"""# Corner-cube calibration of a spaceborne single-photon altimeter
+
+Regenerate: `{COMMAND}` (device `{n['device']}`; each pass a few seconds on the CPU).
+Seed: `../shared/seeds/corner-cube-single-photon-calibration-patent.txt`. Instrument: the `atlas` preset
+(one ICESat-2-style strong beam, 10 kHz, 12 m footprint, 500 km), flown as the calibration model's
+straight level track at 7 km/s over flat ground holding a field of corner cubes (`design_field`: CCRs
+1–2 m high on a diagonal, spaced so that at least the stated number are triggered wherever the track
+falls within 3σ of a 2″ a-priori pointing). Injected on the truth: pointing {t[0]:+g}″ along track,
+{t[1]:+g}″ across track, ranging {100 * t[2]:+g} cm; the calibration sees only photon times and the
+nominal instrument. Three seeds per setting.
+
+1″ of pointing at 500 km moves the ground point by H·tan(1″) = {n['one_arcsec_at_500km_m']:.4f} m (the patent's
+"about 2.5 m"; the orbit platform's test measures it through the simulator).
+
+| CCRs triggered (design) | CCRs | background [MHz] | tracks found | patent RMS error along / across [″] | least squares RMS error along / across [″] | least squares σ [″] | ranging RMS error [cm] | ranging, no pile-up correction [cm] |
+| --- | --- | --- | --- | --- | --- | --- | --- | --- |
+{chr(10).join(lines)}
+
+Reading the numbers:
+- Both estimators recover a few arcseconds of pointing to a fraction of an arcsecond; the least-squares
+  estimator (every searched shot's CCR photon count, Poisson in the footprint's Gaussian) is the steadier
+  of the two as the background grows, the patent's chord-and-tangent geometry needs the larger fields.
+- **Ranging**: with a detector dead time (3.2 ns) longer than the echo, only the first CCR photo-electron
+  of a shot counts and it comes early — the CCRs return several photo-electrons at the footprint centre, so
+  the plain mean of measured − geometric range reads the bias several cm short (last column). Taking
+  each photon's first-photon pile-up out (its expected count from the CCR link budget and its offset from
+  the calibrated footprint centre) recovers the ranging bias (ranging column). The patent does not treat
+  this; a real CCR calibration must.
+- A pass "fails" when step 1 finds no CCR track to start from (recorded in calibration.json with the
+  reason): small fields under a strong background.
+- Figures: `pass.png` (the photons of the default pass, truth colours: the CCR tracks stand 1–2 m over
+  the ground), `radius.png` (step 5: the azimuth of the fitted centre line against the radius tried).
+"""
