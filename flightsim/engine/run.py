@@ -106,17 +106,27 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
 
 def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, cfg_text: str,
                           progress: Callable[[int, int], None] | None) -> dict:
-    """Photon mode: every detection into photons.h5, then summary.json."""
+    """Photon mode: every detection into photons.h5 (and, from orbit, the ATL03-style atl03.h5), then
+    summary.json."""
     from flightsim.engine.simulate import Simulator
+    from flightsim.outputs.atl03_h5 import Atl03Writer
     from flightsim.outputs.photons_h5 import PhotonWriter
 
     simulator = Simulator(cfg, scene, trajectories)
     writer = PhotonWriter(directory, cfg_text, simulator.timing.prf_hz, scene.origin, scene.crs.to_wkt())
+    writers = [writer] + ([Atl03Writer(directory, cfg, cfg_text, simulator.timing.prf_hz, scene)]
+                          if cfg.flight.platform == "orbit" else [])
+
+    def consume(chunk):
+        for w in writers:
+            w(chunk)
+
     try:
-        counts = simulator.run_photons(writer, progress)
-        name = writer.close()
+        counts = simulator.run_photons(consume, progress)
+        names = [w.close() for w in writers]
     except BaseException:
-        writer.abort()
+        for w in writers:
+            w.abort()
         raise
     summary = {
         **_summary_head(cfg, simulator, counts),
@@ -124,7 +134,7 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
         "signal_photons": writer.signal,
         "wall_s": round(counts.wall_s, 4),
         "lines": {str(k): v for k, v in counts.per_line.items()},
-        "files": [name],
+        "files": names,
     }
     write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary

@@ -151,3 +151,25 @@ def scene_geodetic(body: Body, scene: Scene) -> tuple[float, float]:
     to_geodetic = pyproj.Transformer.from_crs(scene.crs, "EPSG:4326", always_xy=True)
     lon, lat = to_geodetic.transform(scene.origin[0], scene.origin[1])
     return float(lat), float(lon)
+
+
+def local_to_geodetic(cfg, scene: Scene, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(latitude, longitude [deg], height [m]) of local points (n, 3): through the tangent plane and the
+    body for the orbit platform (heights above the WGS84 ellipsoid or the Moon's sphere), else through
+    the scene's projected CRS (world = origin + local; heights as the scene's)."""
+    local = np.asarray(local, dtype=np.float64).reshape(-1, 3)
+    if cfg.flight.platform != "orbit":
+        world = scene.local_to_world(local)
+        lon, lat = pyproj.Transformer.from_crs(scene.crs, "EPSG:4326", always_xy=True).transform(world[:, 0],
+                                                                                                  world[:, 1])
+        return np.asarray(lat), np.asarray(lon), world[:, 2]
+    body = BODIES[cfg.flight.body]
+    lat0, lon0 = scene_geodetic(body, scene)
+    fixed = geodetic_to_body_fixed(body, lat0, lon0, scene.origin[2]) + local @ enu_rotation(lat0, lon0)
+    if body.name == "earth":
+        to_geodetic = pyproj.Transformer.from_crs("EPSG:4978", "EPSG:4979", always_xy=True)
+        lon, lat, h = to_geodetic.transform(fixed[:, 0], fixed[:, 1], fixed[:, 2])
+        return np.asarray(lat), np.asarray(lon), np.asarray(h)
+    r = np.linalg.norm(fixed, axis=1)
+    return (np.degrees(np.arcsin(fixed[:, 2] / r)), np.degrees(np.arctan2(fixed[:, 1], fixed[:, 0])),
+            r - body.radius_m)

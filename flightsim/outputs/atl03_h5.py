@@ -1,0 +1,89 @@
+"""Photon events as an ATL03-style HDF5 product (h5py), for photon-counting runs: per beam a group
+``gtN`` (N = beam + 1) the way ICESat-2's ATL03 lays out its ground tracks. ``atl03.h5``:
+
+gtN/heights/delta_time        float64  adjusted standard GPS time of the photon's shot [s]
+gtN/heights/lat_ph, lon_ph    float64  geodetic latitude, longitude of the photon [deg]
+gtN/heights/h_ph              float64  its height [m]: above the WGS84 ellipsoid (or the Moon's sphere) for
+                                       the orbit platform, else the scene's height
+gtN/heights/signal_conf_ph    int8     4 (high) for the pulse's photons, 0 for background — from the
+                                       simulation's truth, not an ATL03-style classifier
+gtN/heights/truth_kind        int8     0 background or dark count, 1 the surface's echo, 2 a corner cube's
+gtN/heights/ph_id_pulse       int64    pulse index within its line
+gtN/heights/dist_ph_along     float64  horizontal distance from the line's first photon [m]
+gtN/geolocation/delta_time, reference_photon_lat, reference_photon_lon, reference_photon_h: per shot
+                                       that has photons, the beam's footprint centre (its believed axis
+                                       where it meets the scene's ground height)
+
+Attributes: ``config_toml``, ``flightsim``. Geolocation is the processing's (the believed instrument), as
+the product's is. Written under a temporary name and renamed when complete.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from flightsim import __version__
+from flightsim.platforms.orbit import local_to_geodetic
+
+
+class Atl03Writer:
+    """Appends PhotonChunks to ``directory/atl03.h5``; ``close()`` renames it into place."""
+
+    def __init__(self, directory: Path, cfg, cfg_text: str, prf_hz: float, scene):
+        self.path, self.part = directory / "atl03.h5", directory / ".atl03.h5.part"
+        self.cfg, self.prf_hz, self.scene = cfg, prf_hz, scene
+        self.file = h5py.File(self.part, "w")
+        self.file.attrs.update(flightsim=__version__, config_toml=cfg_text)
+        self.first: dict[int, np.ndarray] = {}  # each line's first photon (local), for dist_ph_along
+        self.count = 0
+
+    def __call__(self, chunk) -> None:
+        for beam in np.unique(chunk.pixel):
+            rows = np.flatnonzero(chunk.pixel == beam)
+            self._heights(f"gt{int(beam) + 1}", chunk, rows)
+            self._geolocation(f"gt{int(beam) + 1}", chunk, rows)
+        self.count += len(chunk)
+
+    def _heights(self, group: str, chunk, rows: np.ndarray) -> None:
+        lat, lon, h = local_to_geodetic(self.cfg, self.scene, chunk.points[rows])
+        start = self.first.setdefault(chunk.line_id, chunk.points[rows[0]].copy())
+        along = np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1)
+        self._append(f"{group}/heights", {
+            "delta_time": chunk.start_time + chunk.pulse[rows] / self.prf_hz, "lat_ph": lat, "lon_ph": lon, "h_ph": h,
+            "signal_conf_ph": np.where(chunk.kind[rows] > 0, 4, 0).astype(np.int8),
+            "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows],
+            "dist_ph_along": along})
+
+    def _geolocation(self, group: str, chunk, rows: np.ndarray) -> None:
+        pulses, first = np.unique(chunk.pulse[rows], return_index=True)
+        i = rows[first]
+        d = chunk.directions[i].astype(np.float64)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        start = chunk.points[i] - (chunk.time_of_flight_s[i] * 149896229.0)[:, None] * d  # the beam's exit point
+        t = (self.scene.ground_z - start[:, 2]) / d[:, 2]
+        lat, lon, h = local_to_geodetic(self.cfg, self.scene, start + t[:, None] * d)
+        self._append(f"{group}/geolocation", {
+            "delta_time": chunk.start_time + pulses / self.prf_hz, "reference_photon_lat": lat,
+            "reference_photon_lon": lon, "reference_photon_h": h})
+
+    def _append(self, group: str, columns: dict) -> None:
+        g = self.file.require_group(group)
+        for name, values in columns.items():
+            values = np.asarray(values)
+            if name not in g:
+                g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=values.dtype, chunks=(1 << 16,))
+            n = g[name].shape[0]
+            g[name].resize((n + len(values),))
+            g[name][n:] = values
+
+    def close(self) -> str:
+        self.file.close()
+        os.replace(self.part, self.path)
+        return self.path.name
+
+    def abort(self) -> None:
+        self.file.close()
+        self.part.unlink(missing_ok=True)

@@ -1,0 +1,38 @@
+"""The ATL03-style product of a photon-counting pass from orbit: its layout, and its geolocation against the
+scene origin's own geodetic coordinates (pyproj) at the shot above it."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pyproj
+import pytest
+
+from flightsim.core.config import preset_config, set_value, validate
+from flightsim.engine.run import simulate_to_directory
+
+
+def test_atl03_product_from_an_orbit_pass(tmp_path):
+    cfg = preset_config("atlas")
+    for key, value in {"flight.duration_s": 0.02, "scene.ccrs": [[0.0, 0.0, 1.5]], "scene.ccr_photons": 5.0,
+                       "photon.gate_m": [499850.0, 500150.0]}.items():
+        set_value(cfg, key, value)
+    summary = simulate_to_directory(validate(cfg), tmp_path / "a")
+    assert summary["files"] == ["photons.h5", "atl03.h5"]
+    with h5py.File(tmp_path / "a" / "atl03.h5") as f:
+        h = {k: f[f"gt1/heights/{k}"][:] for k in ("delta_time", "lat_ph", "lon_ph", "h_ph", "signal_conf_ph",
+                                                  "truth_kind", "ph_id_pulse", "dist_ph_along")}
+        geo = {k: f[f"gt1/geolocation/{k}"][:] for k in ("delta_time", "reference_photon_lat",
+                                                       "reference_photon_lon", "reference_photon_h")}
+    assert len(h["h_ph"]) == summary["photons"]
+    assert ((h["signal_conf_ph"] == 4) == (h["truth_kind"] > 0)).all()
+    ground = h["h_ph"][h["truth_kind"] == 1]
+    assert abs(np.median(ground) - cfg.scene.origin[2]) < 0.15  # the plane at the origin's height (+ pile-up)
+    assert abs(np.median(h["h_ph"][h["truth_kind"] == 2]) - ground.mean() - 1.5) < 0.15  # the CCR 1.5 m up
+    # the pass is above the scene origin at mid-run: that shot's footprint centre is the origin
+    lon0, lat0 = pyproj.Transformer.from_crs(cfg.scene.crs, "EPSG:4326", always_xy=True).transform(
+        *cfg.scene.origin[:2])
+    mid = np.argmin(np.abs(geo["delta_time"] - (cfg.flight.start_gps_time + 0.01)))
+    assert geo["reference_photon_lat"][mid] == pytest.approx(lat0, abs=1e-6)
+    assert geo["reference_photon_lon"][mid] == pytest.approx(lon0, abs=1e-6)
+    assert geo["reference_photon_h"][mid] == pytest.approx(cfg.scene.origin[2], abs=0.01)
+    assert (np.diff(geo["delta_time"]) > 0).all()
