@@ -36,3 +36,19 @@ def test_atl03_product_from_an_orbit_pass(tmp_path):
     assert geo["reference_photon_lon"][mid] == pytest.approx(lon0, abs=1e-6)
     assert geo["reference_photon_h"][mid] == pytest.approx(cfg.scene.origin[2], abs=0.01)
     assert (np.diff(geo["delta_time"]) > 0).all()
+
+
+def test_three_beams_across_track_give_three_ground_tracks(tmp_path):
+    """ATLAS-like strong beams 3.3 km apart: channels at −6.6, 0, +6.6 mrad across track from 500 km."""
+    cfg = preset_config("atlas")
+    for key, value in {"flight.duration_s": 0.005, "instrument.emitter": "channels",
+                       "channels.angles_mrad": "-6.6,0,6.6", "photon.gate_m": [499850.0, 500200.0]}.items():
+        set_value(cfg, key, value)
+    simulate_to_directory(validate(cfg), tmp_path / "b")
+    geod = pyproj.Geod(ellps="WGS84")
+    with h5py.File(tmp_path / "b" / "atl03.h5") as f:
+        assert sorted(f) == ["gt1", "gt2", "gt3"]
+        centre = [np.mean(f[f"gt{k}/geolocation/reference_photon_{c}"][:]) for k in (1, 2, 3) for c in ("lat", "lon")]
+    for a, b in ((0, 2), (2, 4)):
+        _, _, distance = geod.inv(centre[a + 1], centre[a], centre[b + 1], centre[b])
+        assert distance == pytest.approx(500e3 * np.tan(6.6e-3), rel=2e-3)  # 3.30 km on the ground
