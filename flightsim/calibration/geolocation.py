@@ -78,6 +78,8 @@ class Track:
     rate_hz: float = 10e3  # f, pulse repetition frequency [Hz]
     azimuth_deg: float = 0.0  # flight direction, clockwise from north [deg]
     origin_m: tuple[float, float] = (0.0, 0.0)  # (E, N) of the nadir point at shot 0 [m]
+    shot_positions: np.ndarray | None = None  # (n, 3) laser ENU of each shot: a known curved track [m]
+    shot_axes: np.ndarray | None = None  # (n, 3, 3) body→ENU of each shot (columns along, right, down)
 
     def __post_init__(self):
         _positive("track.altitude_m", self.altitude_m)
@@ -99,7 +101,12 @@ class Track:
         return np.array([along, right, [0.0, 0.0, -1.0]], dtype=np.float64).T
 
     def position(self, shot) -> np.ndarray:
-        """Laser positions (n, 3) ENU [m] of (possibly fractional) shot indices."""
+        """Laser positions (n, 3) ENU [m] of (possibly fractional) shot indices: on the straight track, or
+        interpolated linearly between the known positions of a curved one."""
+        if self.shot_positions is not None:
+            k = np.asarray(shot, dtype=np.float64)
+            index = np.arange(len(self.shot_positions))
+            return np.stack([np.interp(k, index, self.shot_positions[:, i]) for i in range(3)], axis=-1)
         s = np.asarray(shot, dtype=np.float64) * self.spacing_m
         axes = self.axes()
         horizontal = np.asarray(self.origin_m, dtype=np.float64) + s[..., None] * axes[:2, 0]
@@ -127,9 +134,14 @@ def pointing_rotation(bias: Bias) -> np.ndarray:
     return ry @ rx
 
 
-def beam_direction(track: Track, bias: Bias = Bias()) -> np.ndarray:
-    """Unit pulse vector (3,) in ENU: the body-frame nadir +z turned by the pointing bias."""
-    return track.axes() @ (pointing_rotation(bias) @ np.array([0.0, 0.0, 1.0]))
+def beam_direction(track: Track, bias: Bias = Bias(), shot=None) -> np.ndarray:
+    """Unit pulse vector in ENU: the body-frame nadir +z turned by the pointing bias; (3,) on a straight
+    track, (n, 3) for the given shots (nearest) of a curved one."""
+    body = pointing_rotation(bias) @ np.array([0.0, 0.0, 1.0])
+    if track.shot_axes is None or shot is None:
+        return track.axes() @ body
+    k = np.clip(np.rint(np.asarray(shot, dtype=np.float64)).astype(np.int64), 0, len(track.shot_axes) - 1)
+    return track.shot_axes[k] @ body
 
 
 def _photon_arrays(shot, range_m) -> tuple[np.ndarray, np.ndarray]:
@@ -152,7 +164,7 @@ def geolocate(track: Track, shot, range_m, bias: Bias = Bias()) -> np.ndarray:
         bias: the pointing and ranging biases believed (zero: the nominal model).
     """
     shot, range_m = _photon_arrays(shot, range_m)
-    u = beam_direction(track, bias)
+    u = beam_direction(track, bias, shot)
     return track.position(shot) + (range_m - bias.range_m)[..., None] * u
 
 
@@ -165,9 +177,9 @@ def measured_range(track: Track, shot, points, bias: Bias = Bias()) -> np.ndarra
 
 def footprint_centre(track: Track, shot, height_m, bias: Bias = Bias()) -> np.ndarray:
     """Where the beam axis of each shot meets the horizontal plane z = height_m: (n, 3) ENU [m]."""
-    u = beam_direction(track, bias)
+    u = beam_direction(track, bias, shot)
     laser = track.position(shot)
-    t = (np.asarray(height_m, dtype=np.float64) - laser[..., 2]) / u[2]
+    t = (np.asarray(height_m, dtype=np.float64) - laser[..., 2]) / u[..., 2]
     return laser + t[..., None] * u
 
 

@@ -43,25 +43,32 @@ class CalibrationPass:
 
 
 def pass_config(truth: Bias, field: CcrField, shots: int, device: str = "cpu", seed: int = 0,
-                background_hz: float = 1.0e6) -> RunConfig:
-    """The atlas preset flown as a straight level line north over flat ground, CCRs in the scene."""
+                background_hz: float = 1.0e6, platform: str = "lines") -> RunConfig:
+    """The atlas preset over flat ground with CCRs in the scene: flown as a straight level line north at
+    the orbit's ground speed (``lines``) or on its orbit, the pass above the scene origin at mid-run
+    (``orbit``)."""
     cfg = preset_config("atlas")
     h = cfg.flight.altitude_m
-    settings = {"flight.platform": "lines", "flight.speed_kmh": GROUND_SPEED_MPS * 3.6, "flight.heading_deg": 0.0,
-                "flight.duration_s": (shots - 0.5) / cfg.sensor.prf_hz, "flight.lines": 1,
+    settings = {"flight.duration_s": (shots - 0.5) / cfg.sensor.prf_hz,
                 "scene.ccrs": [list(p) for p in field.positions_m], "scene.ccr_photons": CCR_PHOTONS,
                 "errors.boresight_arcsec": [-truth.across_arcsec, truth.along_arcsec, 0.0],
                 "errors.range_bias_m": truth.range_m, "photon.noise_hz": background_hz,
                 "photon.gate_m": [h - GATE_HALF_M, h + GATE_HALF_M], "photon.max_events": MAX_EVENTS,
                 "run.device": device, "run.seed": seed}
+    if platform == "lines":
+        settings.update({"flight.platform": "lines", "flight.speed_kmh": GROUND_SPEED_MPS * 3.6,
+                         "flight.heading_deg": 0.0, "flight.lines": 1})
     for key, value in settings.items():
         set_value(cfg, key, value)
     return validate(cfg)
 
 
 def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", seed: int = 0,
-                  background_hz: float = 1.0e6) -> CalibrationPass:
-    """Fly the pass over a field designed for ``min_triggered`` CCRs (design_field) and calibrate it."""
+                  background_hz: float = 1.0e6, platform: str = "lines") -> CalibrationPass:
+    """Fly the pass over a field designed for ``min_triggered`` CCRs (design_field) and calibrate it. On
+    the ``orbit`` platform the calibration takes each shot's believed laser position and body axes from
+    the simulator (the pass curves and its nadir turns by ~0.5 mrad over 3.5 km); the field is laid out
+    along the straight line through the pass's first and last nadir points."""
     from flightsim.engine.simulate import Simulator
     from flightsim.platforms.plan import build_scene, flight_trajectories
 
@@ -71,16 +78,13 @@ def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", see
     design = design_field(radius, 2.0, h, min_triggered=min_triggered)
     span = LEAD_M * 2 + float(np.ptp(design.along_m))
     shots = int(span / (GROUND_SPEED_MPS / base.sensor.prf_hz))
-    # the track's first nadir point, from a config without CCRs (the line plan does not depend on them)
-    probe = pass_config(truth, CcrField(np.zeros((1, 3)), np.zeros(1)), shots, device, seed, background_hz)
+    # the track from a config without CCRs (the flight does not depend on them)
+    probe = pass_config(truth, CcrField(np.zeros((1, 3)), np.zeros(1)), shots, device, seed, background_hz, platform)
     scene = build_scene(probe)
-    (line,) = flight_trajectories(probe, scene)
-    start = scene.world_to_local(line.position[:1])[0]
-    track = Track(altitude_m=h, ground_speed_mps=GROUND_SPEED_MPS, rate_hz=base.sensor.prf_hz, azimuth_deg=0.0,
-                  origin_m=(float(start[0]), float(start[1])))
+    track = _track(Simulator(probe, scene, flight_trajectories(probe, scene)), shots, platform)
     field = CcrField.from_track_frame(track, LEAD_M + design.along_m, design.across_m,
                                       np.resize([1.0, 1.5, 2.0], design.n_ccr))
-    cfg = pass_config(truth, field, shots, device, seed, background_hz)
+    cfg = pass_config(truth, field, shots, device, seed, background_hz, platform)
     chunks = []
     Simulator(cfg, scene, flight_trajectories(cfg, scene)).run_photons(chunks.append)
     shot = np.concatenate([c.pulse for c in chunks])
@@ -91,6 +95,23 @@ def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", see
                                   start=patent.coarse.solution.bias)
     pile_up = pile_up_corrected_range_bias(track, shot, range_m, field, patent.identification, lsq.bias, radius, cfg)
     return CalibrationPass(truth, track, field, shot, range_m, kind, patent, lsq, pile_up)
+
+
+def _track(sim, shots: int, platform: str) -> Track:
+    """The calibration's laser track of the simulator's (believed) pulses: straight at the configured speed
+    for ``lines``; for ``orbit`` each shot's position and axes, the straight line through the first and
+    last nadir points giving the along/across frame the field is laid out in."""
+    poses = sim.poses64(sim.trajectories[0].line_id, 0, shots).numpy()
+    origin, rot = np.asarray(poses["origin"], dtype=np.float64), np.asarray(poses["rot"], dtype=np.float64)
+    nadir = origin - (origin[:, 2] / rot[:, 2, 2])[:, None] * rot[:, :, 2]  # the beam axis on the ground z = 0
+    h, rate = float(sim.cfg.flight.altitude_m), sim.cfg.sensor.prf_hz
+    if platform == "lines":
+        return Track(altitude_m=h, ground_speed_mps=GROUND_SPEED_MPS, rate_hz=rate, azimuth_deg=0.0,
+                     origin_m=(float(nadir[0, 0]), float(nadir[0, 1])))
+    step = (nadir[-1, :2] - nadir[0, :2]) / (shots - 1)
+    return Track(altitude_m=h, ground_speed_mps=float(np.hypot(*step)) * rate, rate_hz=rate,
+                 azimuth_deg=float(np.degrees(np.arctan2(step[0], step[1]))),
+                 origin_m=(float(nadir[0, 0]), float(nadir[0, 1])), shot_positions=origin, shot_axes=rot)
 
 
 def pile_up_corrected_range_bias(track: Track, shot, range_m, field: CcrField, identification, pointing: Bias,
@@ -123,6 +144,7 @@ COMMAND = "flightsim calibrate --out results/spaceborne"
 SEEDS = (0, 1, 2)
 TRIGGERED = (4, 8, 16)  # design_field's guaranteed triggered CCRs
 BACKGROUNDS_HZ = (1.0e6, 5.0e6, 2.0e7)
+SETTINGS = [(t, b, "lines") for t in TRIGGERED for b in BACKGROUNDS_HZ] + [(16, 1.0e6, "orbit")]  # the sweep
 
 
 def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25)) -> dict:
@@ -137,18 +159,17 @@ def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for triggered in TRIGGERED:
-        for background in BACKGROUNDS_HZ:
-            for seed in SEEDS:
-                try:
-                    p = simulate_pass(truth, triggered, device, seed, background)
-                except InputError as exc:  # the calibration found too little to work with: recorded, not fatal
-                    rows.append({"min_triggered": triggered, "background_hz": background, "seed": seed,
-                                 "failed": str(exc)})
-                    continue
-                rows.append(_row(p, triggered, background, seed))
-                if (triggered, background, seed) == (16, 1.0e6, 0):
-                    _figures(p, out)
+    for triggered, background, platform in SETTINGS:
+        for seed in SEEDS:
+            try:
+                p = simulate_pass(truth, triggered, device, seed, background, platform)
+            except InputError as exc:  # the calibration found too little to work with: recorded, not fatal
+                rows.append({"min_triggered": triggered, "background_hz": background, "platform": platform,
+                             "seed": seed, "failed": str(exc)})
+                continue
+            rows.append({**_row(p, triggered, background, seed), "platform": platform})
+            if (triggered, background, seed, platform) == (16, 1.0e6, 0, "lines"):
+                _figures(p, out)
     numbers = {"device": device, "truth": [truth.along_arcsec, truth.across_arcsec, truth.range_m],
                "one_arcsec_at_500km_m": ground_shift_m(500e3, 1.0), "passes": rows}
     write_atomic(out / "calibration.json", json.dumps(numbers, indent=2) + "\n")
@@ -207,23 +228,23 @@ def report(n: dict) -> str:
         return float(np.sqrt(np.mean([r[key][k] ** 2 for r in rows])))
 
     lines = []
-    for triggered in TRIGGERED:
-        for background in BACKGROUNDS_HZ:
-            every = [r for r in n["passes"] if r["min_triggered"] == triggered and r["background_hz"] == background]
-            rows = [r for r in every if "failed" not in r]
-            if not rows:
-                lines.append(f"| {triggered} | – | {background / 1e6:g} | calibration failed in all {len(every)} "
-                             f"passes | | | | | |")
-                continue
-            failed = f" ({len(every) - len(rows)} of {len(every)} failed)" if len(rows) < len(every) else ""
-            rng = float(np.sqrt(np.mean([r["range_error_m"] ** 2 for r in rows])))
-            raw = float(np.mean([r["range_error_uncorrected_m"] for r in rows]))
-            lines.append(f"| {triggered} | {rows[0]['ccrs']} | {background / 1e6:g} | "
-                         f"{np.mean([r['tracks'] for r in rows]):.1f}{failed} | "
-                         f"{rms('patent_error_arcsec', rows, 0):.3f} / {rms('patent_error_arcsec', rows, 1):.3f} | "
-                         f"{rms('lsq_error_arcsec', rows, 0):.3f} / {rms('lsq_error_arcsec', rows, 1):.3f} | "
-                         f"{np.mean([r['lsq_sigma_arcsec'][0] for r in rows]):.3f} | {100 * rng:.2f} | "
-                         f"{100 * raw:+.2f} |")
+    for triggered, background, platform in SETTINGS:
+        every = [r for r in n["passes"] if (r["min_triggered"], r["background_hz"], r["platform"])
+                 == (triggered, background, platform)]
+        rows = [r for r in every if "failed" not in r]
+        if not rows:
+            lines.append(f"| {platform} | {triggered} | – | {background / 1e6:g} | calibration failed in all "
+                         f"{len(every)} passes | | | | | |")
+            continue
+        failed = f" ({len(every) - len(rows)} of {len(every)} failed)" if len(rows) < len(every) else ""
+        rng = float(np.sqrt(np.mean([r["range_error_m"] ** 2 for r in rows])))
+        raw = float(np.mean([r["range_error_uncorrected_m"] for r in rows]))
+        lines.append(f"| {platform} | {triggered} | {rows[0]['ccrs']} | {background / 1e6:g} | "
+                     f"{np.mean([r['tracks'] for r in rows]):.1f}{failed} | "
+                     f"{rms('patent_error_arcsec', rows, 0):.3f} / {rms('patent_error_arcsec', rows, 1):.3f} | "
+                     f"{rms('lsq_error_arcsec', rows, 0):.3f} / {rms('lsq_error_arcsec', rows, 1):.3f} | "
+                     f"{np.mean([r['lsq_sigma_arcsec'][0] for r in rows]):.3f} | {100 * rng:.2f} | "
+                     f"{100 * raw:+.2f} |")
     t = n["truth"]
     return f"""# Corner-cube calibration of a spaceborne single-photon altimeter
 
@@ -234,13 +255,15 @@ straight level track at 7 km/s over flat ground holding a field of corner cubes 
 1–2 m high on a diagonal, spaced so that at least the stated number are triggered wherever the track
 falls within 3σ of a 2″ a-priori pointing). Injected on the truth: pointing {t[0]:+g}″ along track,
 {t[1]:+g}″ across track, ranging {100 * t[2]:+g} cm; the calibration sees only photon times and the
-nominal instrument. Three seeds per setting.
+nominal instrument. Three seeds per setting. The last row flies the same field from the `orbit` platform: a
+circular 500 km pass whose nadir turns by ~0.5 mrad over the 3.5 km of track; the calibration then takes each
+shot's believed laser position and axes from the simulator (eq. (1)'s X_gnss and rotations per shot).
 
 1″ of pointing at 500 km moves the ground point by H·tan(1″) = {n['one_arcsec_at_500km_m']:.4f} m (the patent's
 "about 2.5 m"; the orbit platform's test measures it through the simulator).
 
-| CCRs triggered (design) | CCRs | background [MHz] | tracks found | patent RMS error along / across [″] | least squares RMS error along / across [″] | least squares σ [″] | ranging RMS error [cm] | ranging, no pile-up correction [cm] |
-| --- | --- | --- | --- | --- | --- | --- | --- | --- |
+| pass | CCRs triggered (design) | CCRs | background [MHz] | tracks found | patent RMS error along / across [″] | least squares RMS error along / across [″] | least squares σ [″] | ranging RMS error [cm] | ranging, no pile-up correction [cm] |
+| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |
 {chr(10).join(lines)}
 
 Reading the numbers:
