@@ -19,13 +19,11 @@ the product's is. Written under a temporary name and renamed when complete.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from flightsim import __version__
+from flightsim.outputs.h5_product import H5Product
 from flightsim.platforms.orbit import local_to_geodetic
 
 
@@ -33,10 +31,8 @@ class Atl03Writer:
     """Appends PhotonChunks to ``directory/atl03.h5``; ``close()`` renames it into place."""
 
     def __init__(self, directory: Path, cfg, cfg_text: str, prf_hz: float, scene):
-        self.path, self.part = directory / "atl03.h5", directory / ".atl03.h5.part"
+        self.product = H5Product(directory / "atl03.h5", config_toml=cfg_text)
         self.cfg, self.prf_hz, self.scene = cfg, prf_hz, scene
-        self.file = h5py.File(self.part, "w")
-        self.file.attrs.update(flightsim=__version__, config_toml=cfg_text)
         self.first: dict[int, np.ndarray] = {}  # each line's first photon (local), for dist_ph_along
         self.count = 0
 
@@ -51,7 +47,7 @@ class Atl03Writer:
         lat, lon, h = local_to_geodetic(self.cfg, self.scene, chunk.points[rows])
         start = self.first.setdefault(chunk.line_id, chunk.points[rows[0]].copy())
         along = np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1)
-        self._append(f"{group}/heights", {
+        self.product.append(f"{group}/heights", {
             "delta_time": chunk.start_time + chunk.pulse[rows] / self.prf_hz, "lat_ph": lat, "lon_ph": lon, "h_ph": h,
             "signal_conf_ph": np.where(chunk.kind[rows] > 0, 4, 0).astype(np.int8),
             "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows],
@@ -65,25 +61,12 @@ class Atl03Writer:
         start = chunk.points[i] - (chunk.time_of_flight_s[i] * 149896229.0)[:, None] * d  # the beam's exit point
         t = (self.scene.ground_z - start[:, 2]) / d[:, 2]
         lat, lon, h = local_to_geodetic(self.cfg, self.scene, start + t[:, None] * d)
-        self._append(f"{group}/geolocation", {
+        self.product.append(f"{group}/geolocation", {
             "delta_time": chunk.start_time + pulses / self.prf_hz, "reference_photon_lat": lat,
             "reference_photon_lon": lon, "reference_photon_h": h})
 
-    def _append(self, group: str, columns: dict) -> None:
-        g = self.file.require_group(group)
-        for name, values in columns.items():
-            values = np.asarray(values)
-            if name not in g:
-                g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=values.dtype, chunks=(1 << 16,))
-            n = g[name].shape[0]
-            g[name].resize((n + len(values),))
-            g[name][n:] = values
-
     def close(self) -> str:
-        self.file.close()
-        os.replace(self.part, self.path)
-        return self.path.name
+        return self.product.close()
 
     def abort(self) -> None:
-        self.file.close()
-        self.part.unlink(missing_ok=True)
+        self.product.abort()

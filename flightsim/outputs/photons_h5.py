@@ -15,13 +15,11 @@ temporary name and renamed when complete.
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from flightsim import __version__
+from flightsim.outputs.h5_product import H5Product
 
 C = 299_792_458.0
 FIELDS = {"line_id": np.int32, "pulse": np.int64, "pixel": np.int32, "delta_time": np.float64,
@@ -33,17 +31,10 @@ class PhotonWriter:
     """Appends PhotonChunks to ``directory/photons.h5``; ``close()`` renames it into place."""
 
     def __init__(self, directory: Path, cfg_text: str, prf_hz: float, origin: np.ndarray, crs_wkt: str):
-        self.path = directory / "photons.h5"
-        self.part = directory / ".photons.h5.part"
+        self.product = H5Product(directory / "photons.h5", config_toml=cfg_text, crs_wkt=crs_wkt)
+        self.product.append("photons", {name: np.zeros(0, dtype) for name, dtype in FIELDS.items()})
         self.prf_hz = prf_hz
-        self.file = h5py.File(self.part, "w")
-        self.file.attrs["flightsim"] = __version__
-        self.file.attrs["config_toml"] = cfg_text
-        self.file.attrs["crs_wkt"] = crs_wkt
         self.origin = np.asarray(origin, dtype=np.float64)
-        group = self.file.create_group("photons")
-        self.data = {name: group.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(1 << 16,))
-                     for name, dtype in FIELDS.items()}
         self.count = 0
         self.signal = 0
 
@@ -57,18 +48,12 @@ class PhotonWriter:
                    "signal": chunk.kind}
         world = chunk.points + self.origin
         columns.update(x=world[:, 0], y=world[:, 1], z=world[:, 2])
-        for name, values in columns.items():
-            dataset = self.data[name]
-            dataset.resize((self.count + n,))
-            dataset[self.count:] = values
+        self.product.append("photons", {name: np.asarray(v, dtype=FIELDS[name]) for name, v in columns.items()})
         self.count += n
         self.signal += int(np.count_nonzero(chunk.signal))
 
     def close(self) -> str:
-        self.file.close()
-        os.replace(self.part, self.path)
-        return self.path.name
+        return self.product.close()
 
     def abort(self) -> None:
-        self.file.close()
-        self.part.unlink(missing_ok=True)
+        self.product.abort()

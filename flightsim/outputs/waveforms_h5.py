@@ -31,15 +31,13 @@ PDRF 6, the scene's CRS), placed on its beam at the component's range c(t − τ
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pyproj
 
-from flightsim import __version__
 from flightsim.instrument import waveform_model as model
+from flightsim.outputs.h5_product import H5Product
 
 MAX_COMPONENTS = 4
 
@@ -49,12 +47,10 @@ class WaveformWriter:
 
     def __init__(self, directory: Path, cfg_text: str, system: model.WaveformSystem, prf_hz: float, scene,
                  tx: tuple[np.ndarray, float]):
-        self.path, self.part = directory / "waveforms.h5", directory / ".waveforms.h5.part"
+        self.product = H5Product(directory / "waveforms.h5", config_toml=cfg_text, crs_wkt=scene.crs.to_wkt(),
+                                 sample_interval_s=system.sample_interval_s)
         self.system, self.prf_hz, self.scene = system, prf_hz, scene
         self.tx, self.tx_start = tx
-        self.file = h5py.File(self.part, "w")
-        self.file.attrs.update(flightsim=__version__, config_toml=cfg_text, crs_wkt=scene.crs.to_wkt(),
-                               sample_interval_s=system.sample_interval_s)
         geodetic = scene.crs.geodetic_crs
         self.to_geodetic = pyproj.Transformer.from_crs(scene.crs, geodetic, always_xy=True) if geodetic else None
         self.shots = 0
@@ -123,37 +119,20 @@ class WaveformWriter:
         return out
 
     def _append(self, group: str, columns: dict[str, np.ndarray], rx: np.ndarray) -> None:
-        g = self.file.require_group(group)
+        """A beam's shots: their waveforms (gzip: mostly zeros outside the echo) and their columns."""
         n = len(columns["pulse"])
-        shots = g["pulse"].shape[0] if "pulse" in g else 0
-        rx = self._extend(g, "rxwaveform", rx, n)
-        tx = self._extend(g, "txwaveform", np.tile(self.tx.astype(np.float32), n), n)
-        columns["rx_sample_start_index"] = (rx + 1 + np.arange(n) * columns["rx_sample_count"][0]).astype(np.uint64)
-        columns["tx_sample_start_index"] = (tx + 1 + np.arange(n) * len(self.tx)).astype(np.uint64)
-        for name, values in columns.items():
-            if name not in g:
-                g.create_dataset(name, shape=(0,) + values.shape[1:], maxshape=(None,) + values.shape[1:],
-                                 dtype=values.dtype, chunks=True)
-            g[name].resize((shots + n,) + values.shape[1:])
-            g[name][shots:] = values
-
-    def _extend(self, g, name: str, values: np.ndarray, n: int) -> int:
-        """Append ``values`` to the 1-D dataset ``name``; its length before."""
-        if name not in g:
-            g.create_dataset(name, shape=(0,), maxshape=(None,), dtype=np.float32, chunks=(1 << 16,),
-                             compression="gzip", shuffle=True)  # mostly zeros outside the echo
-        before = g[name].shape[0]
-        g[name].resize((before + len(values),))
-        g[name][before:] = values
-        return before
+        tx = np.tile(self.tx.astype(np.float32), n)
+        rx_before = self.product.append(group, {"rxwaveform": rx.astype(np.float32)}, compress=True)
+        tx_before = self.product.append(group, {"txwaveform": tx}, compress=True)
+        columns["rx_sample_start_index"] = (rx_before + 1 + np.arange(n) * columns["rx_sample_count"][0]).astype(np.uint64)
+        columns["tx_sample_start_index"] = (tx_before + 1 + np.arange(n) * len(self.tx)).astype(np.uint64)
+        self.product.append(group, columns)
 
     def close(self) -> list[str]:
         """Finish waveforms.h5 and write returns.las (when any waveform held a return); their names."""
         from flightsim.outputs.grid_products import write_points_las
 
-        self.file.close()
-        os.replace(self.part, self.path)
-        names = [self.path.name]
+        names = [self.product.close()]
         if self.returns and sum(len(r) for r in self.returns):
             write_points_las(self.directory / "returns.las", np.concatenate(self.returns), self.scene.crs,
                              gps_time=np.concatenate(self.return_times))
@@ -161,5 +140,4 @@ class WaveformWriter:
         return names
 
     def abort(self) -> None:
-        self.file.close()
-        self.part.unlink(missing_ok=True)
+        self.product.abort()
