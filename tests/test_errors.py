@@ -113,6 +113,23 @@ CASES = [
      "afile"),
     ("sweep_out_under_a_file", ["sweep", "--scene", "plane", "--duration", "0.1", "--out", "DIR/afile/sub"],
      "--out", "afile/sub"),
+    # the SPAD lidar, the waveform altimeter, the spaceborne altimeter and their scenes and platforms
+    ("photon_pde_above_one", ["simulate", "--instrument", "spad", "--set", "photon.pde=1.5"], "photon.pde", "1.5"),
+    ("spin_under_lines", ["simulate", "--set", "flight.body_rotation_period_s=600"],
+     "flight.body_rotation_period_s", "600"),
+    ("waveform_alpha_zero", ["waveform", "--set", "waveform.half_divergence_rad=0"],
+     "waveform.half_divergence_rad", "0"),
+    ("waveform_interval_above_pulse", ["waveform", "--set", "waveform.sample_interval_s=1e-8"],
+     "waveform.sample_interval_s", "1e-08"),
+    ("waveform_empty_footprint", ["waveform", "--set", "waveform.n_rings=0"], "waveform.n_rings", "0"),
+    ("waveform_digitiser_without_scale", ["waveform", "--set", "waveform.bits=12"], "waveform.full_scale_w", "0"),
+    ("dem_missing", ["simulate", "--scene", "DIR/missing.tif"], "scene.name", "missing.tif"),
+    ("orbit_misses_the_scene", ["simulate", "--set", "flight.platform=orbit", "--altitude", "500000", "--set",
+                                "flight.inclination_deg=20", "--set", "sensor.max_range_m=600000", "--duration",
+                                "0.01"], "flight.inclination_deg", "20"),
+    ("orbit_body_unknown", ["simulate", "--set", "flight.body=mars"], "flight.body", "mars"),
+    ("ccr_two_coordinates", ["simulate", "--set", "scene.ccrs=[[0,0]]"], "scene.ccrs", "0.0"),
+    ("calibrate_truth_short", ["calibrate", "--truth", "3,-2"], "--truth", "3,-2"),
 ]
 
 
