@@ -75,6 +75,10 @@ class FlightConfig:
     # hover platform: the scene spins about its local y axis through the local origin (platforms.rotating_body)
 
 
+    eccentricity: float = field(default=0.0, metadata=_num(0.0, 1.0, "orbit platform, below 1; altitude_m is the "
+                                                                      "altitude of the pass over the scene"))
+    perigee_arg_deg: float = field(default=0.0, metadata=_num(-360.0, 360.0, "deg, orbit platform: argument of "
+                                                                             "perigee from the ascending node"))
 @dataclass
 class SensorConfig:
     """The instrument as it really is: beam array, prism, scan timing, mounting."""

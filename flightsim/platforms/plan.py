@@ -38,7 +38,7 @@ def scene_half_extent(cfg: RunConfig) -> float:
     if f.platform == "orbit":
         from flightsim.platforms.orbit import BODIES, ground_speed_mps
 
-        along = ground_speed_mps(BODIES[f.body], f.altitude_m) * f.duration_s / 2.0
+        along = ground_speed_mps(BODIES[f.body], f.altitude_m, f.eccentricity) * f.duration_s / 2.0
     across = (f.lines - 1) / 2.0 * f.line_spacing_m if f.platform == "lines" else 0.0
     sin_h, cos_h = abs(math.sin(math.radians(f.heading_deg))), abs(math.cos(math.radians(f.heading_deg)))
     reach = max(along * sin_h + across * cos_h, along * cos_h + across * sin_h)
@@ -170,9 +170,7 @@ def flight_trajectories(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
         elif cfg.flight.platform == "orbit":
             from flightsim.platforms.orbit import orbit_trajectory
 
-            f = cfg.flight
-            trajectories = [orbit_trajectory(f.body, scene, f.altitude_m, f.inclination_deg, f.start_gps_time,
-                                             f.duration_s)]
+            trajectories = [orbit_trajectory(cfg.flight, scene)]
         elif cfg.flight.trajectory:
             trajectories = [Trajectory.read_csv(cfg.flight.trajectory)]
         else:
