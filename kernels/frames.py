@@ -89,7 +89,7 @@ class PulsePose64:
 
 
 @wp.func
-def _last_at_or_below(values: wp.array(dtype=Any), begin: int, count: int, x: Any):
+def last_at_or_below(values: wp.array(dtype=Any), begin: int, count: int, x: Any):
     """Largest i in [begin, begin + count − 1) with values[i] ≤ x (binary search; ascending values)."""
     lo = begin
     hi = begin + count - 1
@@ -116,12 +116,12 @@ def prism_angle(cycles0: wp.float64, cycles_per_pulse: wp.float64, k: wp.int64):
 @wp.func
 def _pose(lines: Lines, segments: Segments, n_segments: int, p: int):
     """(line, pulse k, sensor origin [m], R_local←sensor, R_local←body) of chunk pulse p, in float64."""
-    s = _last_at_or_below(segments.pulse_start, 0, n_segments + 1, p)
+    s = last_at_or_below(segments.pulse_start, 0, n_segments + 1, p)
     line = segments.line[s]
     k = segments.first_pulse[s] + wp.int64(p - segments.pulse_start[s])
     t = wp.float64(k) * lines.pulse_period
     begin = lines.sample_start[line]
-    i = _last_at_or_below(lines.times, begin, lines.sample_count[line], t)
+    i = last_at_or_below(lines.times, begin, lines.sample_count[line], t)
     w = (t - lines.times[i]) / (lines.times[i + 1] - lines.times[i])
     w = wp.clamp(w, wp.float64(0.0), wp.float64(1.0))
     position = lines.positions[i] + w * (lines.positions[i + 1] - lines.positions[i])

@@ -685,6 +685,25 @@ def reduce_kernel(f: Features):
     return reduce_records
 
 
+@wp.kernel
+def plane_codes(
+    status: wp.array(dtype=wp.int32),
+    faces: wp.array(dtype=wp.int32),
+    edge_distance: wp.array(dtype=wp.float32),
+    face_plane: wp.array(dtype=wp.int32),
+    edge_buffer: wp.float32,  # > 0: returns nearer a plane boundary than this are left out [m]
+    codes: wp.array(dtype=wp.int32),  # out: the plane of a return, else a CODE_* (reduce_kernel's input)
+):
+    """Points mode: the statistics reduction's code of each slot the points kernel traced."""
+    slot = wp.tid()
+    if status[slot] != STATUS_RETURN:
+        codes[slot] = CODE_MISS
+    elif edge_buffer > wp.float32(0.0) and edge_distance[slot] < edge_buffer:
+        codes[slot] = CODE_EDGE
+    else:
+        codes[slot] = face_plane[faces[slot]]
+
+
 @wp.func
 def _flush(
     counts: wp.array3d(dtype=wp.int64),
@@ -733,6 +752,18 @@ def slot_indices(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int
     i = wp.tid()
     if flags[i] != 0:
         dst[offsets[i]] = i
+
+
+@wp.kernel
+def returns_before(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), n_slots: int,
+                   bounds: wp.array(dtype=wp.int32)):
+    """bounds[i] ← the number of returns among the slots before slot bounds[i] (0 ≤ bounds[i] ≤ n_slots)."""
+    i = wp.tid()
+    b = bounds[i]
+    if b == n_slots:
+        bounds[i] = offsets[n_slots - 1] + flags[n_slots - 1]
+    else:
+        bounds[i] = offsets[b]
 
 
 @functools.cache

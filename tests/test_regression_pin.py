@@ -29,8 +29,11 @@ COUNTS = ("points", "pulses", "pulses_culled", "beams_fired", "tir_dropped", "mi
 
 
 def _close(value: float, pinned: float) -> bool:
-    """Equal to float64 rounding: RMS values at the 1e-13 m noise floor may differ absolutely by 1e-12 m."""
-    return math.isclose(value, pinned, rel_tol=1e-9, abs_tol=1e-12)
+    """Equal to float64 rounding of a different summation order. The exact model's RMS sits at the float32
+    floor of the points (~0.5 µm), where the variance Σd²/n − mean² cancels ~1e4 m² down to ~1e-13 m²:
+    summing on the device instead of the host moves it by ~0.2 nm, so 1 nm absolute is allowed (any
+    change of the simulation moves it by orders of magnitude more)."""
+    return math.isclose(value, pinned, rel_tol=1e-9, abs_tol=1e-9)
 
 
 @pytest.mark.parametrize("name", sorted(RUNS))

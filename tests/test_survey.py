@@ -17,7 +17,7 @@ from flightsim.studies import survey
 from flightsim.core.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_tiles import read_points
-from flightsim.outputs.consumers import LasOutput
+from host_reference import HostLasOutput
 from flightsim.engine.simulate import Simulator
 from flightsim.studies.survey import SurveySpec, plan_survey, run_survey
 
@@ -80,7 +80,7 @@ def test_tasks_give_the_points_of_one_undivided_simulation(serial, tmp_path):
     lines = {t.line.line_id: t.line for t in plan.tasks}
     trajectories = [line.trajectory(ground_height_m=grid.centre[2]) for line in lines.values()]
     simulator = Simulator(plan.cfg, scene, trajectories)
-    las = LasOutput(tmp_path, plan.cfg, scene, simulator.timing, edge_distance=False, plane_ids=global_plane)
+    las = HostLasOutput(tmp_path, plan.cfg, scene, simulator.timing, edge_distance=False, plane_ids=global_plane)
     counts = simulator.run(las)
     las.close()
     assert summary["pulses"] == counts.pulses and summary["points"]["exact"] == counts.returns > 300_000

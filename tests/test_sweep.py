@@ -9,7 +9,7 @@ import pytest
 from flightsim.studies import sweep as sweep_module
 from flightsim.core.config import RunConfig, set_value, validate
 from flightsim.scenes.edges import edge_buffer_m
-from flightsim.outputs.consumers import PlaneStatistics
+from host_reference import HostPlaneStatistics
 from flightsim.platforms.plan import build_scene, flight_trajectories
 from flightsim.scoring.planes import pooled_rms
 from flightsim.engine.simulate import Simulator
@@ -76,7 +76,7 @@ def test_device_statistics_equal_the_point_path(device):
     scene = build_scene(cfg)
     buffer = edge_buffer_m(cfg)
     simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer)
-    host = PlaneStatistics(scene, simulator.models, buffer)
+    host = HostPlaneStatistics(scene, simulator.models, buffer)
     point_counts = simulator.run(host)
     device_moments, device_counts = simulator.run_statistics()
     assert device_counts.returns == point_counts.returns

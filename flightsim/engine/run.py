@@ -61,7 +61,8 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     scene = build_scene(cfg)
     trajectories = flight_trajectories(cfg, scene)
     # Warp is loaded only for input that passed the checks above, so that bad input fails fast
-    from flightsim.outputs.consumers import LasOutput, PlaneStatistics
+    from flightsim.outputs.consumers import PlaneStatistics
+    from flightsim.outputs.device_las import DeviceLasOutput
     from flightsim.engine.simulate import Simulator
     from flightsim.core.warp_runtime import resolve_device
 
@@ -75,15 +76,15 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         return _waveforms_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
     buffer = edge_buffer_m(cfg)
     simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
-    las = LasOutput(directory, cfg, scene, simulator.timing, edge_distance=buffer > 0.0)
-    stats = PlaneStatistics(scene, simulator.models, buffer)
+    las = DeviceLasOutput(directory, cfg, simulator, edge_distance=buffer > 0.0)
+    stats = PlaneStatistics(simulator, buffer)
 
-    def consume(chunk):
-        las(chunk)
-        stats(chunk)
+    def consume(returns):
+        stats(returns)
+        las(returns)
 
     try:
-        counts = simulator.run(consume, progress)
+        counts = simulator.run_device(consume, progress)
         tiles = las.close()
     except BaseException:
         las.abort()

@@ -65,6 +65,18 @@ class ReturnChunk:
 
 
 @dataclass
+class DeviceReturns:
+    """The returns of one chunk of pulses left on the device (points mode): the points kernel's per-slot
+    outputs in ``buffers`` (``buffers.pulses`` is the chunk's pulse table) and ``buffers.index[:count]``,
+    the slot of each return in slot order. Valid until the consumer returns."""
+
+    segments: list[Segment]  # the chunk's pieces of flight lines, in pulse order
+    n_slots: int  # slots traced (pulses × beams per pulse)
+    count: int  # returns
+    buffers: "_PointBuffers"
+
+
+@dataclass
 class PhotonChunk:
     """The photon detections of one chunk of pulses of one flight line (host arrays, one row per photon)."""
 
@@ -330,7 +342,15 @@ class Simulator:
 
     def run(self, consume: Callable[[ReturnChunk], None],
             progress: Callable[[int, int], None] | None = None) -> RunCounts:
-        """Points mode: call ``consume`` with the returns of each line's part of each chunk; return the counts."""
+        """Points mode: call ``consume`` with the returns of each line's part of each chunk, on the host;
+        return the counts."""
+        return self.run_device(lambda returns: [consume(part) for part in self._returns(returns)], progress)
+
+    def run_device(self, consume: Callable[[DeviceReturns], None],
+                   progress: Callable[[int, int], None] | None = None) -> RunCounts:
+        """Points mode with the returns left on the device: call ``consume`` with each chunk's
+        :class:`DeviceReturns` (the points kernel's slot outputs and the slot of each return); return
+        the counts (returns per flight line counted on the device)."""
         self._require_discrete("points")
         started = time.perf_counter()
         counts = RunCounts()
@@ -341,10 +361,12 @@ class Simulator:
             n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
             wp.launch(kernel, n_slots, inputs=[buffers.pulses, self.scan], outputs=buffers.slot_outputs(),
                       device=self.device)
-            for part in self._returns(chunk, n_slots, buffers):
-                counts.returns += len(part)
-                counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
-                consume(part)
+            returns = DeviceReturns(chunk, n_slots, buffers.compact_index(n_slots), buffers)
+            for segment, n in zip(chunk, buffers.returns_per_segment(chunk, self.beams_per_pulse)):
+                line_id = self.trajectories[segment.line].line_id
+                counts.per_line[line_id] = counts.per_line.get(line_id, 0) + n
+                counts.returns += n
+            consume(returns)
         return self._finish(counts, buffers.counters, started)
 
     def _require_discrete(self, mode: str) -> None:
@@ -552,7 +574,7 @@ class Simulator:
         for k, model in enumerate(MODELS):
             if model in self.models:
                 m = PlaneMoments(b.reference_points)
-                m.add_sums(count[k], first[k], _symmetric(second[k]))
+                m.add_sums(count[k], first[k], symmetric(second[k]))
                 moments[model] = m
         counts.edge_excluded = int(counters[2])
         self._finish(counts, sums[3], started)
@@ -667,9 +689,9 @@ class Simulator:
         counts.wall_s = time.perf_counter() - started
         return counts
 
-    def _returns(self, chunk: list[Segment], n_slots: int, buffers: "_PointBuffers") -> list[ReturnChunk]:
-        """Compact the chunk's returning slots on the device, bring them to the host, split by line."""
-        n_returns = buffers.compact_index(n_slots)
+    def _returns(self, returns: DeviceReturns) -> list[ReturnChunk]:
+        """Compact a chunk's returning slots on the device, bring them to the host, split by line."""
+        buffers, n_slots, n_returns = returns.buffers, returns.n_slots, returns.count
         slots = buffers.index.numpy()[:n_returns].astype(np.int64)
         gather = buffers.gather
         f = self.features
@@ -684,7 +706,7 @@ class Simulator:
         )
         return [ReturnChunk(line_id=trajectory.line_id, start_time=trajectory.start_time, pulse=pulse, beam=beam,
                             **_sliced(fields, a, b))
-                for trajectory, pulse, beam, a, b in self._by_line(chunk, slots)]
+                for trajectory, pulse, beam, a, b in self._by_line(returns.segments, slots)]
 
 
 class _Retroreflectors:
@@ -755,7 +777,7 @@ def _sliced(fields: dict, a: int, b: int) -> dict:
     return {k: cut(v) for k, v in fields.items()}
 
 
-def _symmetric(upper: np.ndarray) -> np.ndarray:
+def symmetric(upper: np.ndarray) -> np.ndarray:
     """(P, 6) upper triangles xx, xy, xz, yy, yz, zz → (P, 3, 3) symmetric matrices."""
     rows, cols = np.triu_indices(3)
     full = np.zeros((len(upper), 3, 3))
@@ -822,6 +844,14 @@ class _PointBuffers:
         last = np.concatenate([flags[n_slots - 1:n_slots].numpy(), offsets[n_slots - 1:n_slots].numpy()])
         wp.launch(trace.slot_indices, n_slots, inputs=[flags, offsets], outputs=[self.index], device=self.device)
         return int(last.sum())
+
+    def returns_per_segment(self, segments: list[Segment], beams_per_pulse: int) -> list[int]:
+        """Returns of each segment of the chunk last compacted (from the prefix sums, a few ints back)."""
+        bounds = np.cumsum([0] + [s.count for s in segments]) * beams_per_pulse
+        before = wp.array(bounds.astype(np.int32), dtype=wp.int32, device=self.device)
+        wp.launch(trace.returns_before, len(bounds), inputs=[self.flags, self.offsets, int(bounds[-1]), before],
+                  device=self.device)
+        return np.diff(to_host(before)).tolist()
 
     def gather(self, src: wp.array, n_slots: int, n_returns: int) -> np.ndarray:
         """Compact ``src`` on the device and copy only the returns to the host."""

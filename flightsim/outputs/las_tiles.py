@@ -275,8 +275,27 @@ class TileWriter:
             record["X"] = xq[index] - key[0] * self._tile_mm
             record["Y"] = yq[index] - key[1] * self._tile_mm
             record["Z"] = zq[index]
-            self._tile(key).write(record)
-            self._counts[key] += len(index)
+            xyz = np.column_stack([record["X"], record["Y"], record["Z"]])
+            self.write_records(key, record.array, xyz.min(axis=0), xyz.max(axis=0))
+
+    def write_records(self, key: tuple[int, int], records: np.ndarray, lowest, highest) -> None:
+        """Append finished point records to tile ``key`` (tile indices).
+
+        ``records``: a structured array of the tile format's dtype, or a C-contiguous array of its bytes
+        (e.g. words packed on the device); X and Y relative to the tile's lower-left corner and Z
+        absolute, in mm. ``lowest``/``highest``: the least and greatest stored X, Y, Z of these records,
+        which grow the header bounds exactly as laspy's own writer would.
+        """
+        if self._finished:
+            raise RuntimeError("TileWriter is closed")
+        dtype = self._template.point_format.dtype()
+        records = np.asarray(records)
+        if records.dtype != dtype:
+            records = records.reshape(-1).view(np.uint8).view(dtype)
+        if len(records) == 0:
+            return
+        self._tile(key).write(laspy.PackedPointRecord(records, self._template.point_format), lowest, highest)
+        self._counts[key] += len(records)
 
     def _record(self, points: PointBatch) -> laspy.PackedPointRecord:
         """Format-6 records of ``points`` with every field but X, Y, Z filled in."""
@@ -391,11 +410,22 @@ class _TileFile:
             raise
         return cls(file, sink)
 
-    def write(self, record: laspy.PackedPointRecord) -> None:
+    def write(self, record: laspy.PackedPointRecord, lowest, highest) -> None:
+        """Append records whose stored X, Y, Z range over [lowest, highest] (ints, mm).
+
+        The header is grown here as laspy's ``LasHeader.grow`` does (bounds = stored integer · scale +
+        offset, counts by return number; every record is return 1 of 1, and no extra-bytes statistics
+        are kept), without laspy's passes over the records: the bounds come from the caller.
+        """
         if isinstance(self._sink, laspy.LasWriter):
-            self._sink.write_points(record)
+            self._sink.point_writer.write_points(record)
         else:
-            self._sink.append_points(record)
+            self._sink.points_appender.append_points(record)
+        header = self._sink.header
+        header.maxs = np.maximum(header.maxs, np.asarray(highest, dtype=np.int64) * header.scales + header.offsets)
+        header.mins = np.minimum(header.mins, np.asarray(lowest, dtype=np.int64) * header.scales + header.offsets)
+        header.number_of_points_by_return[0] += len(record)
+        header.point_count += len(record)
 
     def close(self) -> None:
         """Finish the file (header, LAZ chunk table), flush it to disk and close it."""

@@ -35,7 +35,7 @@ import numpy as np
 from flightsim import __version__
 from flightsim.core.config import MODELS, RunConfig, copy_config, to_toml, validate
 from flightsim.core.errors import InputError
-from flightsim.outputs.consumers import LasOutput
+from flightsim.outputs.device_las import DeviceLasOutput
 from flightsim.platforms.plan import MIN_CLEARANCE_M
 from flightsim.core.atomic import write_atomic
 from flightsim.scenes.scene import Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene
@@ -305,9 +305,9 @@ def _simulate_segment(cfg: RunConfig, grid: TileGrid, task: SegmentTask, directo
                           pulse_limits={task.line.line_id: task.pulses})
     parts_cfg = copy_config(cfg)
     parts_cfg.output.laz = False  # parts are plain LAS; the merge writes the final format
-    las = LasOutput(directory, parts_cfg, scene, simulator.timing, edge_distance=False, plane_ids=global_plane)
+    las = DeviceLasOutput(directory, parts_cfg, simulator, edge_distance=False, plane_ids=global_plane)
     try:
-        counts = simulator.run(las)
+        counts = simulator.run_device(las)
         tiles = las.close()
     except BaseException:
         las.abort()

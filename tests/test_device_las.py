@@ -1,0 +1,116 @@
+"""The points path at the device's speed: LAS records packed on the device, written by writer threads.
+
+Every tile must hold the bytes the host writer (``host_reference.HostLasOutput``: numpy quantisation and
+laspy packing of host arrays, flightsim's writer before records were packed on the device) makes from the
+same run, and the per-plane moments summed on the device must equal numpy's.
+"""
+import errno
+import hashlib
+
+import numpy as np
+import pytest
+
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.run import simulate_to_directory
+from flightsim.engine.simulate import Simulator
+from flightsim.outputs import las_tiles
+from flightsim.outputs.consumers import PlaneStatistics
+from flightsim.outputs.device_las import DeviceLasOutput
+from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.scenes.edges import edge_buffer_m
+from host_reference import HostLasOutput, HostPlaneStatistics
+
+
+def _config(device: str, **settings) -> RunConfig:
+    cfg = RunConfig()
+    base = {"flight.duration_s": 0.25, "flight.lines": 2, "flight.line_spacing_m": 60.0, "output.tile_size_m": 40,
+            "sensor.range_noise_m": 0.03, "output.position_error": True, "run.device": device,
+            "run.chunk_pulses": 97}  # many chunks, each cutting lines and tiles at odd places
+    for key, value in {**base, **settings}.items():
+        set_value(cfg, key, value)
+    return validate(cfg)
+
+
+def _digests(directory) -> dict[str, str]:
+    return {str(p.relative_to(directory)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(directory.rglob("*.la[sz]"))}
+
+
+def _both_writers(cfg: RunConfig, tmp_path):
+    """Tiles of the same run from the device path (``dev``) and the host reference (``host``)."""
+    scene = build_scene(cfg)
+    buffer = edge_buffer_m(cfg)
+    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), with_truth=True, edge_buffer_m=buffer)
+    device = DeviceLasOutput(tmp_path / "dev", cfg, simulator, edge_distance=buffer > 0.0)
+    simulator.run_device(device)
+    device_tiles = device.close()
+    host = HostLasOutput(tmp_path / "host", cfg, scene, simulator.timing, edge_distance=buffer > 0.0)
+    simulator.run(host)
+    return device_tiles, host.close()
+
+
+@pytest.mark.parametrize("settings", [
+    {},
+    {"output.laz": True},
+    {"scene.crs": "EPSG:3857", "scene.origin": "-1000.0005,-20.0,12.0", "scoring.edge_buffer_m": 0.0},
+], ids=["las", "laz", "negative-coordinates"])
+def test_device_records_are_the_host_writers_bytes(device, tmp_path, settings):
+    cfg = _config(device, **settings)
+    device_tiles, host_tiles = _both_writers(cfg, tmp_path)
+    assert device_tiles == host_tiles
+    assert sum(len(tiles) for tiles in host_tiles.values()) >= 8  # both models, tiles cut at 40 m
+    assert sum(n for tiles in host_tiles.values() for n in tiles.values()) > 5000
+    dev, host = _digests(tmp_path / "dev"), _digests(tmp_path / "host")
+    assert len(dev) == sum(len(tiles) for tiles in host_tiles.values())
+    assert dev == host
+
+
+def test_device_plane_moments_equal_numpys(device):
+    cfg = _config(device, **{"output.position_error": False})
+    scene = build_scene(cfg)
+    buffer = edge_buffer_m(cfg)
+    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer)
+    on_device = PlaneStatistics(simulator, buffer)
+    counts = simulator.run_device(on_device)
+    host = HostPlaneStatistics(scene, simulator.models, buffer)
+    simulator.run(host)
+    count, first, _ = (a.numpy().sum(axis=0) for a in on_device.sums[:3])
+    for k, model in enumerate(("exact", "nominal")):
+        reference = host.moments[model]
+        assert np.array_equal(count[k], reference.count)
+        assert np.allclose(first[k], reference.first, rtol=1e-12, atol=1e-9)
+    assert 0 < reference.count.sum() < counts.returns  # the edge buffer left some out
+    nominal = on_device.rms_m()["nominal"]
+    assert nominal == pytest.approx(np.sqrt(sum(f.n * f.rms_m**2 for f in reference.fits())
+                                            / sum(f.n for f in reference.fits())), rel=1e-9)
+
+
+def test_returns_per_line_are_counted_on_the_device(device):
+    cfg = _config(device, **{"flight.lines": 3})
+    scene = build_scene(cfg)
+    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene))
+    chunks = []
+    counts = simulator.run(chunks.append)
+    per_line = {}
+    for chunk in chunks:
+        per_line[chunk.line_id] = per_line.get(chunk.line_id, 0) + len(chunk)
+    assert counts.per_line == per_line and len(per_line) == 3
+    assert counts.returns == sum(per_line.values())
+
+
+def test_a_disk_that_fills_up_leaves_no_tile(tmp_path, monkeypatch):
+    cfg = _config("cpu")
+    real = las_tiles.TileWriter.write_records
+    calls = []
+
+    def fill_up(self, *args):
+        calls.append(1)
+        if len(calls) > 5:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(self, *args)
+
+    monkeypatch.setattr(las_tiles.TileWriter, "write_records", fill_up)
+    with pytest.raises(OSError, match="No space left"):
+        simulate_to_directory(cfg, tmp_path / "run")
+    left = [p.name for p in (tmp_path / "run").rglob("*") if p.is_file()]
+    assert left == ["run.toml"]  # no tile, no temporary, no summary
