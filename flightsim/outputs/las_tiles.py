@@ -390,7 +390,7 @@ class _TileFile:
     def create(cls, path: Path, header: laspy.LasHeader, compress: bool) -> _TileFile:
         file = open(path, "w+b")
         try:
-            backend = laspy.LazBackend.Lazrs if compress else None
+            backend = laspy.LazBackend.LazrsParallel if compress else None
             sink = laspy.LasWriter(
                 file, header, do_compress=compress, laz_backend=backend, closefd=False
             )
@@ -403,7 +403,7 @@ class _TileFile:
     def reopen(cls, path: Path, compress: bool) -> _TileFile:
         file = open(path, "r+b")
         try:
-            backend = laspy.LazBackend.Lazrs if compress else None
+            backend = laspy.LazBackend.LazrsParallel if compress else None
             sink = LasAppender(file, laz_backend=backend, closefd=False)
         except BaseException:
             file.close()

@@ -11,6 +11,7 @@ import dataclasses
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -28,7 +29,9 @@ from flightsim.core.warp_runtime import resolve_device
 from kernels import trace
 
 DELTA = 2.314
-SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform")
+SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform", "scale")
+SCALE_TRIANGLES = {"cuda": (1e4, 1e6, 1e7, 5e7), "cpu": (1e4, 1e6)}  # terrain sizes of the scale section
+DISK_PROBE_BYTES = {"cuda": 2 << 30, "cpu": 512 << 20}  # written to measure the disk's sequential rate
 
 
 @dataclasses.dataclass
@@ -41,6 +44,8 @@ class Sizes:
     las_returns: float  # returns per model of the LAS run (points written = 2×)
     pareto_returns: float
     quick: bool
+    scale_returns: float = 1e6  # beams per statistics record of the scale section
+    scale_las_returns: float = 1e6  # beams per LAS record of the scale section
 
 
 def sizes(kind: str, quick: bool) -> Sizes:
@@ -49,9 +54,9 @@ def sizes(kind: str, quick: bool) -> Sizes:
     small_grid = (["500", "5000"], ["2", "6"], [f"{DELTA:.3f}", f"{5 * DELTA:.3f}"])
     if kind == "cuda":
         return Sizes(1e9 if not quick else 2e8, (3, 8), small_grid if quick else full_grid,
-                     5e5 if quick else 5e7, 1e8, quick)
+                     5e5 if quick else 5e7, 1e8, quick, 5e7 if quick else 3e8, 5e6 if quick else 2e7)
     return Sizes(1e6 if quick else 2e7, (3,) if quick else (3, 8), small_grid if quick else full_grid,
-                 2e5 if quick else 5e7, 5e5 if quick else 5e6, quick)
+                 2e5 if quick else 5e7, 5e5 if quick else 5e6, quick, 2e5 if quick else 2e6, 2e5 if quick else 1e6)
 
 
 LINE_S = 10.0  # each benchmark line: 10 s (556 m) centred over the calibration field
@@ -334,6 +339,86 @@ def _las_run(device: str, returns: float) -> dict:
             "points_per_s": points / wall, "peak_rss_mib": usage.ru_maxrss / 1024.0}
 
 
+def scale(device: str, s: Sizes) -> dict:
+    """Terrain meshes of 1e4 to 5e7 triangles (``flightsim.scenes.testdem``, 3 km square): scene build and
+    BVH time, statistics-mode and LAS-mode throughput of the 8×8 workload at 500 m, the bare ray cast of
+    the same rays, device memory; and the output disk's sequential write rate, measured in the same run."""
+    kind = "cpu" if resolve_device(device) == "cpu" else "cuda"
+    with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
+        disk = disk_write_rate(Path(tmp) / "probe", DISK_PROBE_BYTES[kind])
+        scenes = [_scale_record(device, int(n), s, Path(tmp)) for n in SCALE_TRIANGLES[kind]]
+    for record in scenes:
+        record["las_fraction_of_disk"] = record["las_bytes_per_s"] / disk
+    return {"disk_write_bytes_per_s": disk, "scenes": scenes}
+
+
+def disk_write_rate(path: Path, size: int, block: int = 16 << 20) -> float:
+    """Sequential write rate of the disk holding ``path`` [bytes/s]: ``size`` bytes in ``block`` writes,
+    fsync'ed, as the tile writers write."""
+    data = os.urandom(block)
+    started = time.perf_counter()
+    with open(path, "wb") as fh:
+        for _ in range(max(1, size // block)):
+            fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    wall = time.perf_counter() - started
+    written = max(1, size // block) * block
+    path.unlink()
+    return written / wall
+
+
+def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
+    from flightsim.scenes.testdem import terrain
+
+    started = time.perf_counter()
+    scene = terrain(triangles)
+    build_s = time.perf_counter() - started
+    cfg = workload(device, 8, s.scale_returns, **{"scoring.edge_buffer_m": 0.0})
+    d = resolve_device(device)
+    started = time.perf_counter()
+    meshes = SceneMeshes(scene, d, cfg.run.bvh)
+    wp.synchronize_device(d)
+    bvh_s = time.perf_counter() - started
+    sim = Simulator(cfg, scene, flight_trajectories(cfg, scene), meshes=meshes)
+    wall, counts = timed_statistics(sim, repeats=1)
+    sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
+    bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.beams_fired / sample)))
+    las_cfg = workload(device, 8, s.scale_las_returns, **{"scoring.edge_buffer_m": 0.0})
+    las_sim = Simulator(las_cfg, scene, flight_trajectories(las_cfg, scene), meshes=meshes)
+    _las_run_into(las_sim, las_cfg, tmp / "warm-up")  # compiles the points path's kernels
+    las_wall, las_counts, written = _las_run_into(las_sim, las_cfg, tmp / "las")
+    points = las_counts.returns * len(las_sim.models)
+    return {"triangles": len(scene.triangles), "scene_build_s": build_s, "bvh_build_s": bvh_s,
+            "stats_returns_per_s": counts.returns / wall, "raycast_returns_per_s": hits / bare_wall,
+            "stats_ratio": counts.returns / wall / (hits / bare_wall),
+            "las_points_per_s": points / las_wall, "las_bytes_per_s": written / las_wall,
+            "las_fraction_of_stats": las_counts.returns / las_wall / (counts.returns / wall),
+            "device_memory_mib": _device_memory_mib(d)}
+
+
+def _las_run_into(sim: Simulator, cfg: RunConfig, directory: Path):
+    """(wall [s] until every tile is closed, counts, bytes written) of a LAS-mode run into ``directory``,
+    which is removed afterwards."""
+    from flightsim.outputs.device_las import DeviceLasOutput
+
+    started = time.perf_counter()
+    las = DeviceLasOutput(directory, cfg, sim, edge_distance=False)
+    counts = sim.run_device(las)
+    tiles = las.close()
+    wall = time.perf_counter() - started
+    written = sum((directory / model / name).stat().st_size for model, names in tiles.items() for name in names)
+    shutil.rmtree(directory)
+    return wall, counts, written
+
+
+def _device_memory_mib(device: str) -> float | None:
+    """High-water mark of Warp's memory pool on a GPU [MiB]; None on the CPU."""
+    if device == "cpu":
+        return None
+    return wp.get_mempool_used_mem_high(device) / 2**20
+
+
 def skipping(device: str, s: Sizes) -> list[dict]:
     """Measured savings of each kind of skipped work."""
     cfg = workload(device, 3, s.pareto_returns)
@@ -478,7 +563,7 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
                "cpu_count": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
     runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
                "pareto": pareto, "galvo": galvo, "spad": spad_frame,
-               "waveform": waveform_altimeter}
+               "waveform": waveform_altimeter, "scale": scale}
     for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)

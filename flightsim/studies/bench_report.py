@@ -57,7 +57,7 @@ def markdown(merged: dict) -> str:
         if r.get("section_measured"):
             lines += ["Sections measured at (commit, date): " + ", ".join(
                 f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
-        lines += _throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r) + _spad(r) + _waveform(r)
+        lines += _throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r) + _spad(r) + _waveform(r) + _scale(r)
     return "\n".join(lines) + "\n"
 
 
@@ -158,6 +158,26 @@ def _las(r: dict) -> list[str]:
     lines += [f"| {x['points_written']:.3g} | {x['wall_s']:.1f} | {_fmt(x['points_per_s'])} | {x['peak_rss_mib']:.0f} |"
               for x in r["las"]]
     return lines + ["", "Memory is bounded by the chunk size and open tiles, not by the run length.", ""]
+
+
+def _scale(r: dict) -> list[str]:
+    if "scale" not in r:
+        return []
+    x = r["scale"]
+    disk = x["disk_write_bytes_per_s"]
+    lines = [f"### Scale: terrain meshes (testdem, 3 km square, 8×8 array at 500 m; disk writes {disk / 1e6:.0f} MB/s)", "",
+             "| triangles | build [s] | BVH [s] | statistics returns/s | bare ray cast /s | ratio | "
+             "LAS points/s | LAS MB/s | of disk | LAS ÷ statistics | device MiB |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for e in x["scenes"]:
+        memory = "–" if e["device_memory_mib"] is None else f"{e['device_memory_mib']:.0f}"
+        lines.append(f"| {e['triangles']:.3g} | {e['scene_build_s']:.2f} | {e['bvh_build_s']:.2f} | "
+                     f"{_fmt(e['stats_returns_per_s'])} | {_fmt(e['raycast_returns_per_s'])} | {e['stats_ratio']:.2f} | "
+                     f"{_fmt(e['las_points_per_s'])} | {e['las_bytes_per_s'] / 1e6:.0f} | "
+                     f"{e['las_fraction_of_disk']:.2f} | {e['las_fraction_of_stats']:.2f} | {memory} |")
+    return lines + ["", "LAS: both models, records packed on the device, one writer thread per model; its wall runs "
+                        "until every tile is closed. Ratio: statistics-mode returns/s ÷ bare ray cast of the same rays.",
+                    ""]
 
 
 def _skip(r: dict) -> list[str]:
