@@ -384,6 +384,7 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
     wall, counts = timed_statistics(sim, repeats=1)
     sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
     bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.beams_fired / sample)))
+    kernels = _kernel_times(sim.run_statistics) if sim.device_kind == "cuda" else None
     las_cfg = workload(device, 8, s.scale_las_returns, **{"scoring.edge_buffer_m": 0.0})
     las_sim = Simulator(las_cfg, scene, flight_trajectories(las_cfg, scene), meshes=meshes)
     _las_run_into(las_sim, las_cfg, tmp / "warm-up")  # compiles the points path's kernels
@@ -394,7 +395,7 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
             "stats_ratio": counts.returns / wall / (hits / bare_wall),
             "las_points_per_s": points / las_wall, "las_bytes_per_s": written / las_wall,
             "las_fraction_of_stats": las_counts.returns / las_wall / (counts.returns / wall),
-            "device_memory_mib": _device_memory_mib(d)}
+            "device_memory_mib": _device_memory_mib(d), "stats_kernels_s": kernels}
 
 
 def _las_run_into(sim: Simulator, cfg: RunConfig, directory: Path):
