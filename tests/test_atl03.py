@@ -24,7 +24,8 @@ def test_atl03_product_from_an_orbit_pass(tmp_path):
         geo = {k: f[f"gt1/geolocation/{k}"][:] for k in ("delta_time", "reference_photon_lat",
                                                        "reference_photon_lon", "reference_photon_h")}
     assert len(h["h_ph"]) == summary["photons"]
-    assert ((h["signal_conf_ph"] == 4) == (h["truth_kind"] > 0)).all()
+    assert set(np.unique(h["signal_conf_ph"])) <= {0, 1, 2, 3, 4}  # from the signal finder, not the truth
+    assert (h["signal_conf_ph"][h["truth_kind"] == 1] >= 2).mean() > 0.9
     ground = h["h_ph"][h["truth_kind"] == 1]
     assert abs(np.median(ground) - cfg.scene.origin[2]) < 0.15  # the plane at the origin's height (+ pile-up)
     assert abs(np.median(h["h_ph"][h["truth_kind"] == 2]) - ground.mean() - 1.5) < 0.15  # the CCR 1.5 m up

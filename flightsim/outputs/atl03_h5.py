@@ -5,9 +5,12 @@ gtN/heights/delta_time        float64  adjusted standard GPS time of the photon'
 gtN/heights/lat_ph, lon_ph    float64  geodetic latitude, longitude of the photon [deg]
 gtN/heights/h_ph              float64  its height [m]: above the WGS84 ellipsoid (or the Moon's sphere) for
                                        the orbit platform, else the scene's height
-gtN/heights/signal_conf_ph    int8     4 (high) for the pulse's photons, 0 for background — from the
-                                       simulation's truth, not an ATL03-style classifier
-gtN/heights/truth_kind        int8     0 background or dark count, 1 the surface's echo, 2 a corner cube's
+gtN/heights/signal_conf_ph    int8     ATL03's confidence 0 noise, 1 buffer, 2 low, 3 medium, 4 high, from
+                                       the photons' height histograms in 20 m along-track segments against the
+                                       background of the telemetry band (flightsim.scoring.signal_finder),
+                                       not from the truth; one surface type
+gtN/heights/truth_kind        int8     the simulator's truth: 0 background or dark count, 1 the surface's
+                                       echo, 2 a corner cube's
 gtN/heights/ph_id_pulse       int64    pulse index within its line
 gtN/heights/dist_ph_along     float64  horizontal distance from the line's first photon [m]
 gtN/geolocation/delta_time, reference_photon_lat, reference_photon_lon, reference_photon_h: per shot
@@ -15,7 +18,8 @@ gtN/geolocation/delta_time, reference_photon_lat, reference_photon_lon, referenc
                                        where it meets the scene's ground height)
 
 Attributes: ``config_toml``, ``flightsim``. Geolocation is the processing's (the believed instrument), as
-the product's is. Written under a temporary name and renamed when complete.
+the product's is. Written under a temporary name and renamed when complete; signal_conf_ph is computed
+at close, reading each beam's heights back block by block (memory bounded by the block, not the run).
 """
 from __future__ import annotations
 
@@ -25,6 +29,7 @@ import numpy as np
 
 from flightsim.outputs.h5_product import H5Product
 from flightsim.platforms.orbit import local_to_geodetic
+from flightsim.scoring.signal_finder import SignalFinder
 
 
 class Atl03Writer:
@@ -49,7 +54,6 @@ class Atl03Writer:
         along = np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1)
         self.product.append(f"{group}/heights", {
             "delta_time": chunk.start_time + chunk.pulse[rows] / self.prf_hz, "lat_ph": lat, "lon_ph": lon, "h_ph": h,
-            "signal_conf_ph": np.where(chunk.kind[rows] > 0, 4, 0).astype(np.int8),
             "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows],
             "dist_ph_along": along})
 
@@ -66,7 +70,23 @@ class Atl03Writer:
             "reference_photon_lon": lon, "reference_photon_h": h})
 
     def close(self) -> str:
+        for group in self.product.file:
+            self._confidence(self.product.file[f"{group}/heights"])
         return self.product.close()
+
+    @staticmethod
+    def _confidence(heights) -> None:
+        """signal_conf_ph of one beam's heights group, by the signal finder over its photons."""
+        n = heights["h_ph"].shape[0]
+        conf = heights.create_dataset("signal_conf_ph", shape=(n,), dtype=np.int8, chunks=True)
+
+        def read(lo: int, hi: int) -> tuple:
+            return heights["dist_ph_along"][lo:hi], heights["h_ph"][lo:hi], heights["ph_id_pulse"][lo:hi]
+
+        def write(lo: int, values: np.ndarray) -> None:
+            conf[lo:lo + len(values)] = values
+
+        SignalFinder().classify_stream(n, read, write)
 
     def abort(self) -> None:
         self.product.abort()
