@@ -184,3 +184,21 @@ def test_bad_input_exits_2_with_one_line_naming_field_value_and_what_is_allowed(
 def test_a_file_given_as_output_is_left_as_it_was(results):
     afile = Path(results["sweep_out_is_a_file"][0][-1])
     assert afile.name == "afile" and afile.read_text() == "not a directory\n"
+
+# Keplerian orbits and the photon LAS points' CRS (platforms.orbit, outputs.photon_las): an open orbit, a
+# perigee under the surface (e = 0.5 with the pass at apogee: perigee at a third of the pass's radius), an
+# unknown and a geographic output CRS, and output.crs on a run that writes no photon tiles.
+_ORBIT = ["simulate", "--set", "flight.platform=orbit", "--altitude", "500000", "--set", "sensor.max_range_m=600000",
+          "--duration", "0.01"]
+ORBIT_CASES = [
+    ("orbit_open", _ORBIT + ["--set", "flight.eccentricity=1"], "flight.eccentricity", "1"),
+    ("orbit_perigee_below_surface", _ORBIT + ["--set", "flight.eccentricity=0.5", "--set", "flight.perigee_arg_deg=210"],
+     "flight.eccentricity", "0.5"),
+    ("output_crs_unknown", ["simulate", "--instrument", "atlas", "--set", "output.crs=EPSG:99999"], "output.crs",
+     "EPSG:99999"),
+    ("output_crs_geographic", ["simulate", "--instrument", "atlas", "--set", "output.crs=EPSG:4326"], "output.crs",
+     "EPSG:4326"),
+    ("output_crs_without_photons", ["simulate", "--set", "output.crs=EPSG:32647"], "output.crs", "EPSG:32647"),
+]
+CASES.extend(ORBIT_CASES)
+PARAMS.extend(pytest.param(*case, id=case[0]) for case in ORBIT_CASES)

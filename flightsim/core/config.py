@@ -71,14 +71,14 @@ class FlightConfig:
     descent_mps: float = field(default=0.0, metadata=_num(-100.0, 100.0, "m/s, hover platform (positive: descending)"))
     body: str = "earth"  # orbit platform: the central body, earth (WGS84) or moon (a 1737.4 km sphere)
     inclination_deg: float = field(default=92.0, metadata=_num(0.0, 180.0, "deg, orbit platform"))
-    body_rotation_period_s: float = field(default=0.0, metadata=_num(0.0, MAX_ROTATION_PERIOD_S, ROTATION_PERIOD_UNIT))
-    # hover platform: the scene spins about its local y axis through the local origin (platforms.rotating_body)
-
-
     eccentricity: float = field(default=0.0, metadata=_num(0.0, 1.0, "orbit platform, below 1; altitude_m is the "
                                                                       "altitude of the pass over the scene"))
     perigee_arg_deg: float = field(default=0.0, metadata=_num(-360.0, 360.0, "deg, orbit platform: argument of "
                                                                              "perigee from the ascending node"))
+    body_rotation_period_s: float = field(default=0.0, metadata=_num(0.0, MAX_ROTATION_PERIOD_S, ROTATION_PERIOD_UNIT))
+    # hover platform: the scene spins about its local y axis through the local origin (platforms.rotating_body)
+
+
 @dataclass
 class SensorConfig:
     """The instrument as it really is: beam array, prism, scan timing, mounting."""
@@ -248,6 +248,7 @@ class OutputConfig:
     tile_size_m: int = field(default=500, metadata=_num(1, 100000, "m", integer=True))
     laz: bool = False
     position_error: bool = False
+    crs: str = ""  # photon runs: CRS of the photon LAS points, "" = the scene's (flightsim.outputs.photon_las)
 
 
 @dataclass
@@ -457,6 +458,20 @@ def _check_ccrs(cfg: RunConfig) -> None:
             raise InputError("scene.ccrs", ccr, "[east, north, up] local coordinates [m], three finite numbers each")
 
 
+def _check_output_crs(cfg: RunConfig) -> None:
+    """output.crs: "" or, for a photon run from the Earth, a projected CRS in metres with a WKT1 form (the LAS
+    tiles'; latitude and longitude are in atl03.h5)."""
+    value = cfg.output.crs
+    if not value:
+        return
+    if cfg.instrument.detector != "photon" or (cfg.flight.platform == "orbit" and cfg.flight.body != "earth"):
+        raise InputError("output.crs", value, "\"\" (the scene's CRS) unless instrument.detector = photon over "
+                                              "the Earth")
+    from flightsim.scenes.scene import parse_crs
+
+    parse_crs(value, field="output.crs")
+
+
 def validate(cfg: RunConfig) -> RunConfig:
     """Check every field; return the resolved config or raise InputError naming the field."""
     for section in dataclasses.fields(cfg):
@@ -464,6 +479,7 @@ def validate(cfg: RunConfig) -> RunConfig:
     _check_choices(cfg)
     _check_rotation(cfg)
     _check_ccrs(cfg)
+    _check_output_crs(cfg)
     _check_optics(cfg)
     resolved = resolve(cfg)
     from flightsim.instrument.parts import HostInstrument  # the parts check their own sections

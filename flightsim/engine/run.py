@@ -107,16 +107,19 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
 
 def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, cfg_text: str,
                           progress: Callable[[int, int], None] | None) -> dict:
-    """Photon mode: every detection into photons.h5 (and, from orbit, the ATL03-style atl03.h5), then
-    summary.json."""
+    """Photon mode: every detection into photons.h5, LAS tiles in photons/ (in output.crs) and, from orbit, the
+    ATL03-style atl03.h5, then summary.json."""
     from flightsim.engine.simulate import Simulator
     from flightsim.outputs.atl03_h5 import Atl03Writer
+    from flightsim.outputs.photon_las import FOLDER, PhotonLas
     from flightsim.outputs.photons_h5 import PhotonWriter
 
     simulator = Simulator(cfg, scene, trajectories)
+    shutil.rmtree(directory / FOLDER, ignore_errors=True)  # tiles of a run being redone
     writer = PhotonWriter(directory, cfg_text, simulator.timing.prf_hz, scene.origin, scene.crs.to_wkt())
-    writers = [writer] + ([Atl03Writer(directory, cfg, cfg_text, simulator.timing.prf_hz, scene)]
-                          if cfg.flight.platform == "orbit" else [])
+    las = PhotonLas(directory, cfg, scene, simulator.timing)
+    writers = [writer, las] + ([Atl03Writer(directory, cfg, cfg_text, simulator.timing.prf_hz, scene)]
+                               if cfg.flight.platform == "orbit" else [])
 
     def consume(chunk):
         for w in writers:
@@ -133,6 +136,7 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
         **_summary_head(cfg, simulator, counts),
         "photons": writer.count,
         "signal_photons": writer.signal,
+        "photon_tiles": las.tiles,
         "wall_s": round(counts.wall_s, 4),
         "lines": {str(k): v for k, v in counts.per_line.items()},
         "files": names,

@@ -1,0 +1,84 @@
+"""Photon events of a photon-counting run as LAS 1.4 tiles (``photons/``), in the CRS the user picks.
+
+Every detection is written, signal and noise alike: classification 1 (unclassified) for the pulse's
+photons (the surface's or a corner cube's echo) and 7 (low noise) for background and dark counts — the
+simulator's truth, as the discrete-return tiles take their classes from the scene; the ATL03-style
+confidence of a classifier is in atl03.h5. Each point is the photon on its believed beam at c·t/2 (the
+processing's geolocation, as photons.h5 and atl03.h5 have it).
+
+CRS (``output.crs``): "" writes the scene's CRS; otherwise any projected CRS in metres that pyproj knows
+and that has a WKT1 form (e.g. a UTM zone), as the tiles (flightsim.outputs.las_tiles.TileWriter) need.
+Geographic CRSs are refused for LAS (config validation): latitude, longitude and height are in atl03.h5.
+Coordinates: from the orbit platform around the Earth the local points go through their geodetic
+latitude, longitude and WGS84 ellipsoidal height (flightsim.platforms.orbit.local_to_geodetic) into the
+CRS — the true projection, not the tangent plane; elsewhere world = scene origin + local, re-projected
+through latitude and longitude when output.crs differs from the scene's (heights as the scene's). Around
+the Moon only "" is allowed and the points are the scene frame's.
+
+Fields: gps_time the pulse's adjusted standard GPS time, point_source_id the flight line, scan_angle the
+beam's angle from the local vertical (signed by its east component), intensity 0, beam_row/beam_col the
+pixel as the discrete tiles number beams, range the one-way range c·t/2 [m], plane_id −1.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyproj
+
+from flightsim.outputs.las_tiles import PointBatch, TileWriter, gps_week_date
+from flightsim.platforms.orbit import local_to_geodetic
+from flightsim.scenes.scene import parse_crs
+
+C_HALF = 299_792_458.0 / 2.0  # [m/s]
+SIGNAL_CLASS, NOISE_CLASS = 1, 7  # ASPRS: unclassified, low noise
+FOLDER = "photons"
+
+
+def output_crs(cfg, scene) -> pyproj.CRS:
+    """The CRS the photon points are written in: output.crs, or the scene's when it is ""."""
+    return parse_crs(cfg.output.crs, field="output.crs") if cfg.output.crs else scene.crs
+
+
+def photon_world(cfg, scene, local: np.ndarray, crs: pyproj.CRS) -> np.ndarray:
+    """(n, 3) coordinates [m] of local points (n, 3) in ``crs`` (see the module docstring)."""
+    orbit_earth = cfg.flight.platform == "orbit" and cfg.flight.body == "earth"
+    if not orbit_earth and crs == scene.crs:
+        return scene.local_to_world(local)
+    lat, lon, h = local_to_geodetic(cfg, scene, local)
+    x, y = pyproj.Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)
+    return np.column_stack([x, y, h])
+
+
+class PhotonLas:
+    """Appends PhotonChunks to LAS tiles in ``directory/photons``; ``close()`` renames them into place."""
+
+    def __init__(self, directory: Path, cfg, scene, timing):
+        self.cfg, self.scene, self.timing = cfg, scene, timing
+        self.crs = output_crs(cfg, scene)
+        self.n = cfg.sensor.array if cfg.instrument.emitter == "fan" else 256  # as the discrete tiles number beams
+        self.writer = TileWriter(Path(directory) / FOLDER, self.crs, tile_size_m=cfg.output.tile_size_m,
+                                 compress=cfg.output.laz, creation_date=gps_week_date(cfg.flight.start_gps_time))
+        self.tiles: dict[str, int] = {}
+
+    def __call__(self, chunk) -> None:
+        world = photon_world(self.cfg, self.scene, chunk.points, self.crs)
+        d = chunk.directions.astype(np.float64)
+        self.writer.write(PointBatch(
+            x=world[:, 0], y=world[:, 1], z=world[:, 2],
+            gps_time=self.timing.pulse_times(chunk.start_time, chunk.pulse),
+            point_source_id=np.full(len(chunk), chunk.line_id, dtype=np.uint16),
+            classification=np.where(chunk.signal, SIGNAL_CLASS, NOISE_CLASS).astype(np.uint8),
+            scan_angle_deg=np.degrees(np.arctan2(d[:, 0], -d[:, 2])).astype(np.float32),
+            intensity=np.zeros(len(chunk), dtype=np.uint16),
+            beam_row=(chunk.pixel // self.n).astype(np.uint8), beam_col=(chunk.pixel % self.n).astype(np.uint8),
+            prism_angle_deg=np.degrees(self.timing.prism_angles(chunk.start_time, chunk.pulse)).astype(np.float32),
+            range_m=(chunk.time_of_flight_s * C_HALF).astype(np.float32),
+            plane_id=np.full(len(chunk), -1, dtype=np.int32)))
+
+    def close(self) -> str:
+        self.tiles = self.writer.close()
+        return FOLDER
+
+    def abort(self) -> None:
+        self.writer.abort()
