@@ -47,6 +47,10 @@ class SceneConfig:
     origin: tuple[float, float, float] = (409000.0, 3393000.0, 450.0)  # world E, N, H [m]
     slope: float = field(default=0.0, metadata=_num(-2.0, 2.0, "rise/run"))  # plane scene only
     cell_m: float = field(default=1.0, metadata=_num(0.0, 1.0e5, "m, node spacing of a .npy height grid", lo_open=True))
+    simplify_m: float = field(default=0.0, metadata=_num(0.0, 1.0e4, "m, largest vertical error of a simplified height "
+                                                                     "grid; 0 = two triangles per cell"))
+    landcover: str = ""  # height grids: a GeoTIFF of ASPRS class codes in the grid's CRS (scenes.landcover)
+    buildings: str = ""  # height grids: an .obj/.ply mesh in the grid's CRS world coordinates (scenes.buildings)
     ccrs: tuple = ()  # corner-cube retroreflectors: [east, north, up] local [m] each (photon detector)
     ccr_photons: float = field(default=0.0, metadata=_num(0.0, 1.0e6, "photo-electrons a CCR returns at a footprint's "
                                                                        "centre"))
@@ -462,6 +466,19 @@ def _check_output_crs(cfg: RunConfig) -> None:
     """output.crs: "" or, for a photon run from the Earth, a projected CRS in metres with a WKT1 form (the LAS
     tiles'; latitude and longitude are in atl03.h5)."""
     value = cfg.output.crs
+def _check_terrain(cfg: RunConfig) -> None:
+    """scene.simplify_m, scene.landcover and scene.buildings go with a height grid (scenes.dem) only."""
+    s = cfg.scene
+    grid = "a .tif/.tiff/.npy height grid as scene.name"
+    is_grid = Path(s.name).suffix.lower() in (".tif", ".tiff", ".npy")
+    if s.simplify_m > 0.0 and not is_grid:
+        raise InputError("scene.simplify_m", s.simplify_m, f"0 unless scene.name is {grid}")
+    for name, value, suffixes in (("scene.landcover", s.landcover, (".tif", ".tiff")),
+                                  ("scene.buildings", s.buildings, (".obj", ".ply"))):
+        if value and (not is_grid or Path(value).suffix.lower() not in suffixes):
+            raise InputError(name, value, f"\"\" or a {'/'.join(suffixes)} file path, with {grid}")
+
+
     if not value:
         return
     if cfg.instrument.detector != "photon" or (cfg.flight.platform == "orbit" and cfg.flight.body != "earth"):
@@ -484,6 +501,7 @@ def validate(cfg: RunConfig) -> RunConfig:
     resolved = resolve(cfg)
     from flightsim.instrument.parts import HostInstrument  # the parts check their own sections
 
+    _check_terrain(cfg)
     HostInstrument(resolved).check()
     return resolved
 

@@ -61,7 +61,8 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
         from flightsim.scenes.dem import dem_scene, is_dem
 
         if is_dem(name):
-            return dem_scene(name, crs, origin, cfg.scene.cell_m)
+            return dem_scene(name, crs, origin, cfg.scene.cell_m, cfg.scene.simplify_m, cfg.scene.landcover,
+                             cfg.scene.buildings)
         if not Path(name).is_file():
             raise InputError("scene.name", name,
                              f"{', '.join(BUILTIN_SCENES)}, or the path of an existing .obj/.ply mesh or .tif/.npy height grid")

@@ -1,12 +1,16 @@
 """Height grids as scenes: a GeoTIFF DEM (rasterio: its CRS, transform and nodata) or a ``.npy`` grid,
-turned into a mesh of two triangles per cell.
+turned into a mesh of two triangles per cell (or an error-bounded simplification of it), with an
+optional land-cover raster (:mod:`flightsim.scenes.landcover`) and buildings
+(:mod:`flightsim.scenes.buildings`).
 
 Node (row i, column j) of a GeoTIFF stands at the centre of its pixel, world (E, N) from the raster's
-transform; a ``.npy`` grid (rows from north to south, as a raster) is laid out at ``cell_m`` spacing
-centred on the scene's origin, in the scene's CRS. Heights are world H [m]; the local origin is the
-grid's middle at the scene origin's H (local z = H − origin H), so a hover over the scene centre looks
-at the grid's middle; ground_z is the local height of the middle node.
-A triangle with a nodata (or non-finite) corner is left out: the mesh has a hole there.
+transform (any pixel size, square or not); a ``.npy`` grid (rows from north to south, as a raster) is
+laid out at ``cell_m`` spacing centred on the scene's origin, in the scene's CRS. Heights are world H
+[m]; the local origin is the grid's middle at the scene origin's H (local z = H − origin H), so a hover
+over the scene centre looks at the grid's middle; ground_z is the local height of the middle node.
+A triangle with a nodata (or non-finite) corner is left out: the mesh has a hole there, and a ray
+through it misses. A GeoTIFF must carry a projected CRS in metres: one in a geographic CRS is refused
+with the ``gdalwarp`` command that reprojects it (:mod:`flightsim.scenes.raster`).
 """
 from __future__ import annotations
 
@@ -16,55 +20,70 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.core.errors import InputError
+from flightsim.scenes.gridmesh import grid_triangles
 from flightsim.scenes.lunar import surface_scene
 from flightsim.scenes.scene import Scene
 
 DEM_SUFFIXES = (".tif", ".tiff", ".npy")
-MAX_DEM_NODES = 4097 * 4097  # about 33 M triangles
+MAX_DEM_NODES = 6001 * 6001  # about 72 M triangles
 
 
 def is_dem(name: str) -> bool:
     return Path(name).suffix.lower() in DEM_SUFFIXES
 
 
-def dem_scene(path: str, crs, origin, cell_m: float) -> Scene:
+def dem_scene(path: str, crs, origin, cell_m: float, simplify_m: float = 0.0, landcover: str = "",
+              buildings: str = "") -> Scene:
     """The scene of the height grid at ``path`` (.tif/.tiff: its own CRS and geometry; .npy: ``crs``,
-    centred on ``origin``, ``cell_m`` [m] apart)."""
-    if not Path(path).is_file():
-        raise InputError("scene.name", path, "an existing .tif/.tiff/.npy height grid")
+    centred on ``origin``, ``cell_m`` [m] apart), simplified to within ``simplify_m`` [m] (0: every cell),
+    classified by the ``landcover`` raster and with the ``buildings`` mesh (paths; "" for none)."""
     if Path(path).suffix.lower() == ".npy":
         heights, centre, step = _npy(path, cell_m), np.asarray(origin, dtype=np.float64)[:2], (cell_m, cell_m)
     else:
         heights, centre, step, crs = _geotiff(path)
-    return grid_scene(Path(path).stem, heights, centre, step, crs, float(np.asarray(origin, dtype=np.float64)[2]))
+    scene = grid_scene(Path(path).stem, heights, centre, step, crs, float(np.asarray(origin, dtype=np.float64)[2]),
+                       simplify_m)
+    if landcover:
+        from flightsim.scenes.landcover import landcover_classes
+
+        scene.classification = landcover_classes(scene, landcover)
+    if buildings:
+        from flightsim.scenes.buildings import add_buildings
+
+        scene = add_buildings(scene, buildings)
+    return scene
 
 
 def grid_scene(name: str, heights: np.ndarray, centre_en: np.ndarray, step: tuple[float, float], crs,
-               base_h: float = 0.0) -> Scene:
+               base_h: float = 0.0, simplify_m: float = 0.0) -> Scene:
     """Mesh of ``heights`` (rows north to south; NaN = nodata) with node spacing ``step`` = (east, north)
-    [m], its centre node at world ``centre_en``; local z = height − ``base_h``."""
+    [m], its centre node at world ``centre_en``; local z = height − ``base_h``; simplified to within
+    ``simplify_m`` [m] vertically (0: two triangles per cell). Only nodes of some triangle are kept."""
     rows, cols = heights.shape
     if rows < 2 or cols < 2 or rows * cols > MAX_DEM_NODES:
         raise InputError("scene.name", f"a {rows} × {cols} grid", f"2 × 2 to {MAX_DEM_NODES:,} nodes")
-    x = (np.arange(cols) - (cols - 1) / 2) * step[0]
-    y = ((rows - 1) / 2 - np.arange(rows)) * step[1]
-    xx, yy = np.meshgrid(x, y, indexing="xy")
-    z = heights - base_h
-    vertices = np.column_stack([xx.ravel(), yy.ravel(), np.nan_to_num(z.ravel())])
-    node = np.arange(rows * cols).reshape(rows, cols)
-    a, b, c, d = node[1:, :-1], node[1:, 1:], node[:-1, 1:], node[:-1, :-1]  # SW, SE, NE, NW of each cell
-    triangles = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
-    finite = np.isfinite(z.ravel())
-    triangles = triangles[finite[triangles].all(axis=1)]
+    triangles = grid_triangles(heights, simplify_m)
     if len(triangles) == 0:
-        raise InputError("scene.name", name, "a height grid with at least one cell of four valid heights")
-    centre = z[rows // 2, cols // 2]
+        raise InputError("scene.name", name, "a height grid with three valid heights around at least one triangle")
+    node = np.arange(rows * cols)
+    if simplify_m > 0.0 or not np.isfinite(heights).all():  # keep only the nodes of some triangle
+        used = np.zeros(rows * cols, dtype=bool)
+        used[triangles.ravel()] = True
+        node = np.flatnonzero(used)
+        triangles = (np.cumsum(used, dtype=np.int64) - 1).astype(np.int32)[triangles]
+    vertices = np.empty((len(node), 3))
+    vertices[:, 0] = (node % cols - (cols - 1) / 2) * step[0]
+    vertices[:, 1] = ((rows - 1) / 2 - node // cols) * step[1]
+    vertices[:, 2] = heights.ravel()[node] - base_h
+    centre = heights[rows // 2, cols // 2] - base_h
     origin = (float(centre_en[0]), float(centre_en[1]), base_h)
-    return surface_scene(name, crs, origin, vertices, triangles.astype(np.int32),
-                         float(centre) if np.isfinite(centre) else float(np.nanmedian(z)))
+    ground_z = float(centre) if np.isfinite(centre) else float(np.median(vertices[:, 2]))
+    return surface_scene(name, crs, origin, vertices, triangles, ground_z)
 
 
 def _npy(path: str, cell_m: float) -> np.ndarray:
+    if not Path(path).is_file():
+        raise InputError("scene.name", path, "an existing .tif/.tiff/.npy height grid")
     heights = np.load(path, allow_pickle=False)
     if heights.ndim != 2 or heights.dtype.kind not in "fiu":
         raise InputError("scene.name", path, "a 2-D numeric .npy height grid [m]")
@@ -74,16 +93,12 @@ def _npy(path: str, cell_m: float) -> np.ndarray:
 
 
 def _geotiff(path: str) -> tuple[np.ndarray, np.ndarray, tuple[float, float], object]:
-    """(heights with NaN at nodata, world E, N of the grid's middle, (east, north) step [m], CRS WKT)."""
-    import rasterio
+    """(heights with NaN at nodata, world E, N of the grid's middle, (east, north) step [m], CRS)."""
+    from flightsim.scenes.raster import read_raster
 
-    with rasterio.open(path) as src:
-        if src.crs is None or not src.crs.is_projected:
-            raise InputError("scene.name", path, "a GeoTIFF in a projected CRS (metres)")
-        t = src.transform
-        if t.b != 0 or t.d != 0 or t.e >= 0:
-            raise InputError("scene.name", path, "a north-up GeoTIFF (no rotation)")
-        heights = src.read(1, masked=True).astype(np.float64).filled(np.nan)
-        rows, cols = heights.shape
-        centre = np.array([t.c + cols / 2 * t.a, t.f + rows / 2 * t.e])  # the grid's middle (pixel centres)
-        return heights, centre, (t.a, -t.e), src.crs.to_wkt()
+    dem = read_raster(path, "scene.name", "a GeoTIFF height grid", MAX_DEM_NODES)
+    heights = np.where(dem.valid, dem.values, np.nan).astype(np.float64)
+    t = dem.transform
+    rows, cols = heights.shape
+    centre = np.array([t.c + cols / 2 * t.a, t.f + rows / 2 * t.e])  # the grid's middle (pixel centres)
+    return heights, centre, (t.a, -t.e), dem.crs
