@@ -185,6 +185,55 @@ def test_a_file_given_as_output_is_left_as_it_was(results):
     afile = Path(results["sweep_out_is_a_file"][0][-1])
     assert afile.name == "afile" and afile.read_text() == "not a directory\n"
 
+
+# Real terrain (scenes.dem, scenes.raster, scenes.landcover, scenes.buildings): unreadable, empty, CRS-less and
+# geographic GeoTIFFs, buildings outside the DEM, land cover in another CRS. These cases join the ones above
+# (same fixture, same assertions); their files are written beside the others.
+def _terrain_files(d: Path) -> None:
+    import rasterio
+    from rasterio.transform import from_origin
+
+    def tif(name, crs, west, north, cell, values):
+        with rasterio.open(d / name, "w", driver="GTiff", width=values.shape[1], height=values.shape[0], count=1,
+                           dtype=values.dtype.name, crs=crs, transform=from_origin(west, north, cell, cell)) as dst:
+            dst.write(values, 1)
+
+    tif("dem.tif", "EPSG:32648", 408950.0, 3393050.0, 10.0, np.full((10, 10), 450.0, dtype=np.float32))
+    tif("nocrs.tif", None, 0.0, 100.0, 1.0, np.full((5, 5), 450.0, dtype=np.float32))
+    tif("wgs84.tif", "EPSG:4326", 105.0, 30.7, 1e-4, np.full((5, 5), 450.0, dtype=np.float32))
+    tif("utm47.tif", "EPSG:32647", 408950.0, 3393050.0, 10.0, np.full((10, 10), 2, dtype=np.uint8))
+    (d / "junk.tif").write_bytes(bytes(np.random.default_rng(6).integers(0, 256, 300, dtype=np.uint8)))
+    (d / "empty.tif").write_bytes(b"")
+    (d / "far.obj").write_text("v 409100 3393000 450\nv 409120 3393000 450\nv 409110 3393010 460\nf 1 2 3\n")
+
+
+TERRAIN_CASES = [
+    ("dem_unreadable", ["simulate", "--scene", "DIR/junk.tif"], "scene.name", "junk.tif"),
+    ("dem_empty", ["simulate", "--scene", "DIR/empty.tif"], "scene.name", "empty.tif"),
+    ("dem_without_crs", ["simulate", "--scene", "DIR/nocrs.tif"], "scene.name", "nocrs.tif"),
+    ("dem_geographic", ["simulate", "--scene", "DIR/wgs84.tif"], "scene.name", "wgs84.tif"),
+    ("buildings_outside_dem", ["simulate", "--scene", "DIR/dem.tif", "--set", "scene.buildings=DIR/far.obj"],
+     "scene.buildings", "far.obj"),
+    ("buildings_unreadable", ["simulate", "--scene", "DIR/dem.tif", "--set", "scene.buildings=DIR/junk.ply"],
+     "scene.buildings", "junk.ply"),
+    ("buildings_without_dem", ["simulate", "--set", "scene.buildings=DIR/far.obj"], "scene.buildings", "far.obj"),
+    ("landcover_other_crs", ["simulate", "--scene", "DIR/dem.tif", "--set", "scene.landcover=DIR/utm47.tif"],
+     "scene.landcover", "utm47.tif"),
+    ("landcover_without_crs", ["simulate", "--scene", "DIR/dem.tif", "--set", "scene.landcover=DIR/nocrs.tif"],
+     "scene.landcover", "nocrs.tif"),
+    ("simplify_negative", ["simulate", "--scene", "DIR/dem.tif", "--set", "scene.simplify_m=-1"],
+     "scene.simplify_m", "-1.0"),
+]
+CASES.extend(TERRAIN_CASES)  # collected after the module has run: the fixture and the parametrized test see them
+PARAMS.extend(pytest.param(*case, id=case[0]) for case in TERRAIN_CASES)
+_files_before_terrain = _files
+
+
+def _files(d: Path) -> None:  # noqa: F811 - the fixture's inputs, terrain files included
+    _files_before_terrain(d)
+    _terrain_files(d)
+
+
 # Keplerian orbits and the photon LAS points' CRS (platforms.orbit, outputs.photon_las): an open orbit, a
 # perigee under the surface (e = 0.5 with the pass at apogee: perigee at a third of the pass's radius), an
 # unknown and a geographic output CRS, and output.crs on a run that writes no photon tiles.
