@@ -252,6 +252,7 @@ class OutputConfig:
     tile_size_m: int = field(default=500, metadata=_num(1, 100000, "m", integer=True))
     laz: bool = False
     position_error: bool = False
+    copc: bool = False  # also one COPC file per model, <model>.copc.laz, from its tiles (outputs.copc)
     crs: str = ""  # photon runs: CRS of the photon LAS points, "" = the scene's (flightsim.outputs.photon_las)
 
 
@@ -413,6 +414,9 @@ def _check_choices(cfg: RunConfig) -> None:
     models = tuple(cfg.output.models)
     if not models or any(m not in MODELS for m in models) or len(set(models)) != len(models):
         raise InputError("output.models", ",".join(map(str, models)), "a non-empty subset of exact,nominal")
+    if cfg.output.copc and cfg.instrument.detector in ("photon", "waveform"):
+        raise InputError("output.copc", True, f"false with instrument.detector = {cfg.instrument.detector} "
+                                              "(COPC is made from the discrete-return tiles)")
     scenes = f"{', '.join(BUILTIN_SCENES)}, or a path to an .obj/.ply mesh or a .tif/.tiff/.npy height grid"
     if not isinstance(cfg.scene.name, str) or not cfg.scene.name:
         raise InputError("scene.name", cfg.scene.name, scenes)

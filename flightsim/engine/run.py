@@ -44,7 +44,7 @@ def _remove_run(directory: Path) -> None:
     """Delete a run's files in an order that a kill at any moment leaves resumable: the completion
     marker summary.json first, the tiles and temporaries next, and run.toml, which names the
     config of the unfinished run, last."""
-    for name in ("summary.json", "photons.h5", *MODELS):
+    for name in ("summary.json", "photons.h5", *MODELS, *(f"{m}.copc.laz" for m in MODELS)):
         target = directory / name
         if target.is_dir():
             shutil.rmtree(target)
@@ -62,6 +62,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     trajectories = flight_trajectories(cfg, scene)
     # Warp is loaded only for input that passed the checks above, so that bad input fails fast
     from flightsim.outputs.consumers import PlaneStatistics
+    from flightsim.outputs.copc import write_run_copc
     from flightsim.outputs.device_las import DeviceLasOutput
     from flightsim.engine.simulate import Simulator
     from flightsim.core.warp_runtime import resolve_device
@@ -89,6 +90,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     except BaseException:
         las.abort()
         raise
+    copc = write_run_copc(directory, tiles) if cfg.output.copc else None
     summary = {
         **_summary_head(cfg, simulator, counts),
         "points": {model: counts.returns for model in simulator.models},
@@ -100,6 +102,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         **({"apex_angle_deg": cfg.sensor.apex_angle_deg} if cfg.instrument.deflector == "risley" else {}),
         "lines": {str(k): v for k, v in counts.per_line.items()},
         "tiles": tiles,
+        **({"copc": copc} if copc is not None else {}),
     }
     write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
