@@ -13,7 +13,10 @@ the pointing calibration. Over a CCR field a few km long this module keeps:
   angle H·δ/R_E times R_E), so the 1″ displacement H·tan(1″) of :func:`ground_shift_m` holds.
 - **Laser position** (X_gnss with both lever arms, the two rotations applied): a straight,
   constant-velocity track at altitude H, known exactly; shot k fires at t = k / f and sits above
-  ``origin_m + v·t`` along the azimuth of flight (:class:`Track`).
+  ``origin_m + v·t`` along the azimuth of flight (:class:`Track`). From the orbit platform the track
+  carries each shot's position and body axes in the local frame instead (``shot_positions``,
+  ``shot_axes``): the simulator has already applied R_icrf→itrf (astropy's GCRS→ITRS at the shot's
+  time, flightsim.platforms.orbit) and R_body→icrf, so eq. (1) needs no frame of its own here.
 - **Body frame**: x along track (the flight direction, horizontal), y across track (to the right
   of the flight direction), z down (nadir); the nominal pulse vector u_laser is +z.
 - **Pointing bias** (R_cal, :func:`pointing_rotation`): R_y(δ_along) · R_x(−δ_across), which turns

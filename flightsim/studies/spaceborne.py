@@ -256,8 +256,9 @@ straight level track at 7 km/s over flat ground holding a field of corner cubes 
 falls within 3σ of a 2″ a-priori pointing). Injected on the truth: pointing {t[0]:+g}″ along track,
 {t[1]:+g}″ across track, ranging {100 * t[2]:+g} cm; the calibration sees only photon times and the
 nominal instrument. Three seeds per setting. The last row flies the same field from the `orbit` platform: a
-circular 500 km pass whose nadir turns by ~0.5 mrad over the 3.5 km of track; the calibration then takes each
-shot's believed laser position and axes from the simulator (eq. (1)'s X_gnss and rotations per shot).
+circular 500 km pass defined in GCRS and turned into ITRS by astropy at the run's GPS time, whose nadir turns
+by ~0.5 mrad over the 3.5 km of track; the calibration then takes each shot's believed laser position and
+axes from the simulator (eq. (1)'s X_gnss and its ICRF→ITRF and body→ICRF rotations, per shot).
 
 1″ of pointing at 500 km moves the ground point by H·tan(1″) = {n['one_arcsec_at_500km_m']:.4f} m (the patent's
 "about 2.5 m"; the orbit platform's test measures it through the simulator).
