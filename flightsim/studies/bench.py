@@ -30,7 +30,7 @@ from kernels import trace
 
 DELTA = 2.314
 SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform", "scale")
-SCALE_TRIANGLES = {"cuda": (1e4, 1e6, 1e7, 5e7), "cpu": (1e4, 1e6)}  # terrain sizes of the scale section
+SCALE_TRIANGLES = {"cuda": (1e4, 1e6, 1e7, 3.3e7), "cpu": (1e4, 1e6)}  # terrain sizes of the scale section
 DISK_PROBE_BYTES = {"cuda": 2 << 30, "cpu": 512 << 20}  # written to measure the disk's sequential rate
 
 
@@ -374,19 +374,20 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
     started = time.perf_counter()
     scene = terrain(triangles)
     build_s = time.perf_counter() - started
-    cfg = workload(device, 8, s.scale_returns, **{"scoring.edge_buffer_m": 0.0})
+    cfg = _scale_workload(device, s.scale_returns)
     d = resolve_device(device)
     started = time.perf_counter()
     meshes = SceneMeshes(scene, d, cfg.run.bvh)
     wp.synchronize_device(d)
     bvh_s = time.perf_counter() - started
-    sim = Simulator(cfg, scene, flight_trajectories(cfg, scene), meshes=meshes)
+    trajectories = flight_trajectories(cfg, scene)
+    sim = Simulator(cfg, scene, trajectories, meshes=meshes)
     wall, counts = timed_statistics(sim, repeats=1)
     sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
     bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.beams_fired / sample)))
     kernels = _kernel_times(sim.run_statistics) if sim.device_kind == "cuda" else None
-    las_cfg = workload(device, 8, s.scale_las_returns, **{"scoring.edge_buffer_m": 0.0})
-    las_sim = Simulator(las_cfg, scene, flight_trajectories(las_cfg, scene), meshes=meshes)
+    las_cfg = _scale_workload(device, s.scale_las_returns)
+    las_sim = Simulator(las_cfg, scene, trajectories[:las_cfg.flight.lines], meshes=meshes)
     _las_run_into(las_sim, las_cfg, tmp / "warm-up")  # compiles the points path's kernels
     las_wall, las_counts, written = _las_run_into(las_sim, las_cfg, tmp / "las")
     points = las_counts.returns * len(las_sim.models)
@@ -396,6 +397,15 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
             "las_points_per_s": points / las_wall, "las_bytes_per_s": written / las_wall,
             "las_fraction_of_stats": las_counts.returns / las_wall / (counts.returns / wall),
             "device_memory_mib": _device_memory_mib(d), "stats_kernels_s": kernels}
+
+
+def _scale_workload(device: str, returns: float) -> RunConfig:
+    """The scale section's flight: 50 s lines (2.8 km) back and forth over the same track across the 3 km
+    terrain, 8×8 array at 500 m, as many as ``returns`` beams take (at most those of the statistics run)."""
+    line_s = 50.0
+    lines = max(1, round(returns / (5000.0 * 64 * line_s)))
+    return workload(device, 8, returns, **{"scoring.edge_buffer_m": 0.0, "flight.duration_s": line_s,
+                                           "flight.lines": lines})
 
 
 def _las_run_into(sim: Simulator, cfg: RunConfig, directory: Path):
