@@ -23,7 +23,7 @@ def _pass(tmp_path, **settings) -> tuple[np.ndarray, np.ndarray]:
 
 def test_confidence_against_the_truth_of_a_pass_with_a_known_background(tmp_path):
     """3 MHz of background (0.02 photons per m and shot, 6 per shot in the band) and ~1 surface photon per
-    shot: measured 97 % of high-confidence photons are the surface's (the rest is the background inside
+    shot: measured 99.3 % of high-confidence photons are the surface's (the rest is the background inside
     its ±0.5 m), and every surface photon gets confidence ≥ 2."""
     conf, kind = _pass(tmp_path, **{"photon.noise_hz": 3.0e6})
     assert (kind > 0).sum() > 500 and (kind == 0).sum() > 4000
