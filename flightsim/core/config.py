@@ -470,6 +470,16 @@ def _check_output_crs(cfg: RunConfig) -> None:
     """output.crs: "" or, for a photon run from the Earth, a projected CRS in metres with a WKT1 form (the LAS
     tiles'; latitude and longitude are in atl03.h5)."""
     value = cfg.output.crs
+    if not value:
+        return
+    if cfg.instrument.detector != "photon" or (cfg.flight.platform == "orbit" and cfg.flight.body != "earth"):
+        raise InputError("output.crs", value, "\"\" (the scene's CRS) unless instrument.detector = photon over "
+                                              "the Earth")
+    from flightsim.scenes.scene import parse_crs
+
+    parse_crs(value, field="output.crs")
+
+
 def _check_terrain(cfg: RunConfig) -> None:
     """scene.simplify_m, scene.landcover and scene.buildings go with a height grid (scenes.dem) only."""
     s = cfg.scene
@@ -481,16 +491,6 @@ def _check_terrain(cfg: RunConfig) -> None:
                                   ("scene.buildings", s.buildings, (".obj", ".ply"))):
         if value and (not is_grid or Path(value).suffix.lower() not in suffixes):
             raise InputError(name, value, f"\"\" or a {'/'.join(suffixes)} file path, with {grid}")
-
-
-    if not value:
-        return
-    if cfg.instrument.detector != "photon" or (cfg.flight.platform == "orbit" and cfg.flight.body != "earth"):
-        raise InputError("output.crs", value, "\"\" (the scene's CRS) unless instrument.detector = photon over "
-                                              "the Earth")
-    from flightsim.scenes.scene import parse_crs
-
-    parse_crs(value, field="output.crs")
 
 
 def validate(cfg: RunConfig) -> RunConfig:
