@@ -4,7 +4,7 @@ Depends only on numpy, scipy and the standard library (never on flightsim or war
 """
 from .attitude import euler_from_rotation, make_continuous, quaternion_from_matrix, rotation_body_to_enu
 from .errors import TrajectoryError
-from .lines import FlightLine, plan_parallel_lines
+from .lines import FlightLine, climb_limited, plan_parallel_lines
 from .timing import PulseTiming
 from .trajectory import COLUMNS, Trajectory
 
@@ -14,6 +14,7 @@ __all__ = [
     "PulseTiming",
     "Trajectory",
     "TrajectoryError",
+    "climb_limited",
     "euler_from_rotation",
     "make_continuous",
     "plan_parallel_lines",

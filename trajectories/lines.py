@@ -197,3 +197,23 @@ def _speed(speed_mps, field_name: str) -> float:
     if not speed > 0.0:
         raise TrajectoryError(field_name, speed * 3.6, allowed)
     return speed
+
+
+def climb_limited(along_m, height_m, max_grade: float) -> np.ndarray:
+    """The lowest profile over ``height_m`` that climbs and descends at most ``max_grade`` (rise/run).
+
+    Args:
+        along_m: (n,) distance along the path [m], non-decreasing.
+        height_m: (n,) the least height at each point [m].
+        max_grade: steepest climb or descent, > 0.
+
+    Returns:
+        (n,) heights z_i = max_j (height_j − max_grade·|along_i − along_j|) [m]: never below
+        ``height_m``, and |Δz| ≤ max_grade·Δalong between any two points.
+    """
+    along = np.asarray(along_m, dtype=np.float64)
+    height = np.asarray(height_m, dtype=np.float64)
+    grade = positive_number(max_grade, "max_grade", "(rise/run)")
+    ahead = np.maximum.accumulate(height + grade * along) - grade * along
+    behind = (np.maximum.accumulate((height - grade * along)[::-1]) + grade * along[::-1])[::-1]
+    return np.maximum(ahead, behind)

@@ -19,6 +19,7 @@ from flightsim.core.errors import InputError
 MODELS = ("exact", "nominal")
 BUILTIN_SCENES = ("calibration", "plane", "lunar", "sandbox", "ellipsoid", "bump")
 SCENE_FILES = (".obj", ".ply", ".tif", ".tiff", ".npy")  # meshes and height grids
+SCENE_PLANES = ("auto", "none")  # how the faces of a mesh file become planes (scene.planes)
 EMITTERS = ("fan", "channels")
 DEFLECTORS = ("risley", "galvo", "fsm", "fixed")
 DETECTORS = ("discrete", "photon", "waveform")
@@ -55,6 +56,8 @@ class SceneConfig:
     ccr_photons: float = field(default=0.0, metadata=_num(0.0, 1.0e6, "photo-electrons a CCR returns at a footprint's "
                                                                        "centre"))
     margin_m: float = field(default=50.0, metadata=_num(0.0, 10000.0, "m"))
+    planes: str = "auto"  # mesh files: "auto" groups faces into planes; "none" keeps one label per OBJ group or PLY
+    # class/plane_id (a terrain: no grouping, and no plane-fit RMS, which would measure the curvature)
 
 
 @dataclass
@@ -81,6 +84,8 @@ class FlightConfig:
                                                                              "perigee from the ascending node"))
     body_rotation_period_s: float = field(default=0.0, metadata=_num(0.0, MAX_ROTATION_PERIOD_S, ROTATION_PERIOD_UNIT))
     # hover platform: the scene spins about its local y axis through the local origin (platforms.rotating_body)
+    terrain_following: bool = False  # planned lines keep altitude_m above the ground under the aircraft, climbing
+    # and descending at most platforms.plan.MAX_CLIMB_MPS (else: altitude_m above the scene's ground height)
 
 
 @dataclass
@@ -279,6 +284,7 @@ class RunSettings:
                                                                 integer=True))
     max_registers: int = field(default=0, metadata=_num(0, 255, "registers per thread of the CUDA trace kernels; "
                                                          "0 = automatic", integer=True))
+    scene_cache: bool = True  # keep scenes read from files in $FLIGHTSIM_CACHE (~/.cache/flightsim/scenes) as .npz
 
 
 @dataclass
@@ -426,6 +432,7 @@ def _check_choices(cfg: RunConfig) -> None:
         raise InputError("flight.trajectory", cfg.flight.trajectory,
                          f"empty with flight.platform = {cfg.flight.platform}")
     choices = (("run.optics", cfg.run.optics, OPTICS), ("run.bvh", cfg.run.bvh, BVH_CONSTRUCTORS),
+               ("scene.planes", cfg.scene.planes, SCENE_PLANES),
                ("instrument.emitter", cfg.instrument.emitter, EMITTERS),
                ("instrument.deflector", cfg.instrument.deflector, DEFLECTORS),
                ("instrument.detector", cfg.instrument.detector, DETECTORS),

@@ -1,8 +1,10 @@
 """What is flown over what: the scene and the flight trajectories a config asks for."""
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -12,9 +14,10 @@ from flightsim.platforms import rotating_body
 from flightsim.scenes.meshio import load_mesh
 from flightsim.scenes.scene import (Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene,
                              required_half_extent)
-from trajectories import Trajectory, TrajectoryError, plan_parallel_lines
+from trajectories import Trajectory, TrajectoryError, climb_limited, plan_parallel_lines
 
 MIN_CLEARANCE_M = 1.0  # the sensor must stay at least this far above the terrain [m]
+MAX_CLIMB_MPS = 5.0  # terrain following: the fastest climb or descent of a planned line [m/s]
 MAX_REACH_DEG = 80.0  # built-in scenes are sized for beams up to this far from nadir [deg]
 CLEARANCE_PIECES = 64  # a trajectory's clearance is checked over this many runs of samples
 
@@ -61,12 +64,12 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
         from flightsim.scenes.dem import dem_scene, is_dem
 
         if is_dem(name):
-            return dem_scene(name, crs, origin, cfg.scene.cell_m, cfg.scene.simplify_m, cfg.scene.landcover,
-                             cfg.scene.buildings)
+            return _from_file(cfg, lambda: dem_scene(name, crs, origin, cfg.scene.cell_m, cfg.scene.simplify_m,
+                                                     cfg.scene.landcover, cfg.scene.buildings))
         if not Path(name).is_file():
             raise InputError("scene.name", name,
                              f"{', '.join(BUILTIN_SCENES)}, or the path of an existing .obj/.ply mesh or .tif/.npy height grid")
-        return load_mesh(name, crs, origin)
+        return _from_file(cfg, lambda: load_mesh(name, crs, origin, planes=cfg.scene.planes))
     half = scene_half_extent(cfg) if half_extent_m is None else half_extent_m  # sized to the flight
     if name == "plane":
         return plane_scene(half, origin, crs, slope=cfg.scene.slope)
@@ -81,6 +84,17 @@ def build_scene(cfg: RunConfig, half_extent_m: float | None = None) -> Scene:
     return lunar_scene(half, origin, crs, seed=cfg.run.seed, slope=cfg.scene.slope)
 
 
+def _from_file(cfg: RunConfig, load: Callable[[], Scene]) -> Scene:
+    """The scene of the file ``cfg.scene.name``: ``load()``, through the scene cache when ``cfg.run.scene_cache``
+    (keyed on every ``scene`` setting, and on the files they name)."""
+    if not cfg.run.scene_cache:
+        return load()
+    from flightsim.scenes.cache import cached_scene
+
+    options = {f.name: getattr(cfg.scene, f.name) for f in dataclasses.fields(cfg.scene)}
+    return cached_scene(cfg.scene.name, options, load)
+
+
 def _planned_lines(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
     f = cfg.flight
     lo, hi = scene.bounds()
@@ -89,7 +103,28 @@ def _planned_lines(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
         centre[0], centre[1], f.heading_deg, line_length_m(cfg), f.altitude_m, f.lines, f.line_spacing_m,
         speed_mps=f.speed_kmh / 3.6, roll_deg=f.roll_deg, pitch_deg=f.pitch_deg, start_gps_time=f.start_gps_time,
     )
-    return [line.trajectory(ground_height_m=centre[2]) for line in lines]
+    trajectories = [line.trajectory(ground_height_m=centre[2]) for line in lines]
+    if not f.terrain_following:
+        return trajectories
+    return [_follow_terrain(t, scene, f.altitude_m, MAX_CLIMB_MPS / (f.speed_kmh / 3.6)) for t in trajectories]
+
+
+def _follow_terrain(trajectory: Trajectory, scene: Scene, altitude_m: float, max_grade: float) -> Trajectory:
+    """``trajectory`` at ``altitude_m`` [m] above the ground under each sample (the highest surface
+    there, from :attr:`Scene.height_grid`; where there is none, the nearest samples' ground, else the
+    scene's ground height), raised where needed so that it climbs and descends at most ``max_grade``
+    (rise/run) and never comes lower than that: the least such profile. The attitude is kept."""
+    local = scene.world_to_local(trajectory.position)
+    ground = scene.height_grid.ground_height(local[:, 0], local[:, 1])
+    known = np.isfinite(ground)
+    along = np.r_[0.0, np.cumsum(np.hypot(*np.diff(local[:, :2], axis=0).T))]
+    if not known.any():
+        ground = np.full(len(local), scene.ground_z)
+    elif not known.all():
+        ground = np.interp(along, along[known], ground[known])
+    height = climb_limited(along, ground + altitude_m, max_grade) + scene.origin[2]
+    position = np.column_stack([trajectory.position[:, :2], height])
+    return Trajectory(trajectory.gps_time, position, trajectory.attitude, trajectory.line_id)
 
 
 def _clearance(trajectory: Trajectory, scene: Scene, pieces: int = CLEARANCE_PIECES) -> tuple[float, float, float]:
@@ -114,14 +149,11 @@ def _clearance(trajectory: Trajectory, scene: Scene, pieces: int = CLEARANCE_PIE
 
 
 def _clear_at_a_glance(trajectory: Trajectory, scene: Scene) -> bool:
-    """True when the lowest sample is clear of every triangle box under the trajectory's rectangle (a
-    cheap sufficient test; the exact one runs only when this fails)."""
+    """True when the lowest sample is clear of the height grid's bound of the terrain under the
+    trajectory's rectangle (a cheap sufficient test; the exact one runs only when this fails)."""
     local = scene.world_to_local(trajectory.position)
-    boxes = scene.vertices[scene.triangles]
-    lo, hi = boxes.min(axis=1), boxes.max(axis=1)
-    under = ((hi[:, 0] >= local[:, 0].min()) & (lo[:, 0] <= local[:, 0].max())
-             & (hi[:, 1] >= local[:, 1].min()) & (lo[:, 1] <= local[:, 1].max()))
-    return not under.any() or local[:, 2].min() - hi[under, 2].max() >= MIN_CLEARANCE_M
+    top = scene.height_grid.top_bound(local[:, 0].min(), local[:, 1].min(), local[:, 0].max(), local[:, 1].max())
+    return local[:, 2].min() - top >= MIN_CLEARANCE_M
 
 
 def _check_clearance(trajectory: Trajectory, scene: Scene, cfg: RunConfig) -> None:

@@ -7,21 +7,30 @@ coordinates stay small even when the file holds absolute UTM values.
 Plane labels come from the file where it has them (PLY per-face ``plane_id`` and
 ``classification``; OBJ groups ``o``/``g``, whose names give the class: "ground" → 2,
 "road" → 11, "roof"/"wall"/"building" → 6, else 1). A PLY ``plane_id`` is taken as it is.
-Otherwise faces are grouped into planes by edge connectivity and coplanarity (normal angle
-≤ 1°, offset ≤ 0.05 m) without crossing a group (an OBJ group, or a PLY classification): an
-OBJ group is split into its planar parts (a group holding a whole house becomes one plane per
-face) and its coplanar parts that do not touch are merged again (a ground cut by roads stays
-one plane); an unlabelled mesh is split by connectivity and geometry alone.
+Otherwise (``planes="auto"``) faces are grouped into planes by edge connectivity and
+coplanarity (normal angle ≤ 1°, offset ≤ 0.05 m, every face against its plane's area-weighted
+fit; :func:`_coplanar_planes`) without crossing a group (an OBJ group, or a PLY
+classification): an OBJ group is split into its planar parts (a group holding a whole house
+becomes one plane per face, a curved terrain many small planes) and its coplanar parts that do
+not touch are merged again (a ground cut by roads stays one plane); an unlabelled mesh is split
+by connectivity and geometry alone. With ``planes="none"`` (a terrain) the groups are the
+labels and nothing is grouped.
+
+OBJ text is read with array operations over the whole file; a file with anything unusual
+(and every file with an error, so that the message names the line) is read line by line.
 
 Every problem with the file raises ``InputError("scene.path", path, ...)`` saying what was wrong.
 """
 from __future__ import annotations
 
+import itertools
 import math
-from collections import deque
+import warnings
 from pathlib import Path
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from flightsim.core.errors import InputError
 from flightsim.scenes.scene import (
@@ -46,7 +55,7 @@ class _MeshFormatError(Exception):
     """What is wrong with a mesh file; load_mesh turns it into an InputError."""
 
 
-def load_mesh(path, crs, origin=(0.0, 0.0, 0.0), name: str | None = None) -> Scene:
+def load_mesh(path, crs, origin=(0.0, 0.0, 0.0), name: str | None = None, planes: str = "auto") -> Scene:
     """Read an OBJ or PLY triangle mesh into a Scene.
 
     Args:
@@ -54,6 +63,9 @@ def load_mesh(path, crs, origin=(0.0, 0.0, 0.0), name: str | None = None) -> Sce
         crs: the CRS of the world coordinates (anything :func:`flightsim.scenes.scene.parse_crs` takes).
         origin: (3,) world E, N, H [m] added to the file coordinates.
         name: scene name; the file stem by default.
+        planes: "auto": faces grouped into planes (module docstring); "none": no grouping, one
+            label per OBJ group or PLY classification (or the PLY's plane_id), and the scene is
+            not ``planar`` (a terrain, whose plane fits would measure its curvature).
 
     Returns:
         A Scene with origin = world bounding-box centre rounded to whole metres, zero-area
@@ -61,6 +73,9 @@ def load_mesh(path, crs, origin=(0.0, 0.0, 0.0), name: str | None = None) -> Sce
         height of the ground (class 2) triangles, or of all triangles when none is ground.
     """
     crs = parse_crs(crs, "scene.crs")
+    if planes not in ("auto", "none"):
+        raise InputError("scene.planes", planes, "one of auto, none")
+    grouped = planes == "auto"
     try:
         offset = np.asarray(origin, dtype=np.float64)
     except (TypeError, ValueError):
@@ -70,22 +85,22 @@ def load_mesh(path, crs, origin=(0.0, 0.0, 0.0), name: str | None = None) -> Sce
     path = Path(path)
     try:
         raw = _read(path)
-        coords, faces = raw["vertices"], raw["faces"]
-        _check_mesh(coords, faces)
+        coords = raw["vertices"]
+        _check_mesh(coords, raw["corners"], raw["sizes"])
     except _MeshFormatError as error:
         raise InputError("scene.path", str(path), f"a readable OBJ or PLY triangle mesh ({error})") from None
 
     world = coords + offset
     scene_origin = np.round(0.5 * (world.min(axis=0) + world.max(axis=0)))
     local = world - scene_origin
-    triangles, source = _triangulate(faces)
+    triangles, source = _triangulate(raw["corners"], raw["sizes"])
     keep = ~_degenerate(local, triangles)
     if not np.any(keep):
         raise InputError("scene.path", str(path), "a readable OBJ or PLY triangle mesh (every face has zero area)")
     triangles, source = triangles[keep], source[keep]
     group = raw["group"][source]
     classes = raw["classification"][source]
-    if raw["labels"] == "planes":
+    if raw["labels"] == "planes" or not grouped:
         plane_of = _renumber(group)
     else:
         plane_of = _coplanar_planes(local, triangles, group, merge_apart=raw["labels"] == "groups")
@@ -103,6 +118,7 @@ def load_mesh(path, crs, origin=(0.0, 0.0, 0.0), name: str | None = None) -> Sce
         planes=planes,
         ground_z=float(local[ground_vertices, 2].min()),
         dropped_degenerate=int(np.count_nonzero(~keep)),
+        planar=grouped,
     )
 
 
@@ -152,8 +168,9 @@ def _class_from_name(name: str) -> int:
 def _read(path: Path) -> dict:
     """Dispatch on the extension.
 
-    Returns a dict: vertices (V, 3) float64; faces, an (F, k) array or a list of index arrays;
-    per-face group (int) and classification (uint8); labels: "planes" (groups are plane ids),
+    Returns a dict: vertices (V, 3) float64; corners (the vertex indices of every face, one face
+    after the other) and sizes (F,) (corners per face); per-face group (int) and classification
+    (uint8); labels: "planes" (groups are plane ids),
     "groups" (named groups, each split into its planes) or "none" (faces of one group, e.g. of
     one class, are split into planes by geometry alone).
     """
@@ -174,22 +191,28 @@ def _read(path: Path) -> dict:
         raise _MeshFormatError(f"corrupt or truncated file: {error}") from None
 
 
-def _check_mesh(coords: np.ndarray, faces) -> None:
+def _check_mesh(coords: np.ndarray, flat: np.ndarray, sizes: np.ndarray) -> None:
     """Reject meshes without faces, with non-finite coordinates or out-of-range indices."""
-    if len(faces) == 0:
+    if len(sizes) == 0:
         raise _MeshFormatError("no faces")
     if not np.all(np.isfinite(coords)):
         row = int(np.argwhere(~np.isfinite(coords))[0, 0])
         raise _MeshFormatError(f"vertex {row} has a non-finite coordinate")
-    flat = faces.reshape(-1) if isinstance(faces, np.ndarray) else np.concatenate(faces)
     if flat.min() < 0 or flat.max() >= len(coords):
         bad = int(flat[(flat < 0) | (flat >= len(coords))][0])
         raise _MeshFormatError(f"vertex index {bad} out of range for {len(coords)} vertices")
 
 
 def _read_obj(data: bytes) -> dict:
+    """OBJ ``v``/``f``/``g``/``o`` records (others are skipped): vectorised when every record is plain
+    ASCII numbers, else (and for every error, so that its message names the line) line by line."""
     if b"\x00" in data:
         raise _MeshFormatError("binary data in an OBJ file")
+    fast = _read_obj_vectorised(data)
+    return fast if fast is not None else _read_obj_lines(data)
+
+
+def _read_obj_lines(data: bytes) -> dict:
     text = data.decode("utf-8", errors="replace")  # a stray latin-1 comment is no reason to fail
     vertices: list[tuple[float, float, float]] = []
     faces: list[np.ndarray] = []
@@ -215,16 +238,117 @@ def _read_obj(data: bytes) -> dict:
             current = groups.setdefault(" ".join(args), len(groups))
     if not faces:
         raise _MeshFormatError("no faces")
-    names = sorted(groups, key=groups.get)
+    return _obj_mesh(np.asarray(vertices, dtype=np.float64).reshape(-1, 3), np.concatenate(faces),
+                     np.array([len(f) for f in faces]), np.asarray(face_group, dtype=np.int64), list(groups))
+
+
+def _obj_mesh(vertices: np.ndarray, corners: np.ndarray, sizes: np.ndarray, group: np.ndarray,
+              names: list[str]) -> dict:
+    """The :func:`_read` dict of an OBJ file: ``names`` are the groups in order of first use (id = index)."""
     group_class = np.array([_class_from_name(n) for n in names], dtype=np.uint8)
-    group = np.asarray(face_group, dtype=np.int64)
     return {
-        "vertices": np.asarray(vertices, dtype=np.float64).reshape(-1, 3),
-        "faces": faces,
+        "vertices": vertices,
+        "corners": corners,
+        "sizes": sizes,
         "group": group,
         "classification": group_class[group],
-        "labels": "groups" if len(groups) > 1 or face_group[0] != 0 else "none",
+        "labels": "groups" if len(names) > 1 or group[0] != 0 else "none",
     }
+
+
+_OBJ_ODD_BYTES = (b"\x0b", b"\x0c", b"\x1c", b"\x1d", b"\x1e", b"\x1f", b"\xc2\x85", b"\xe2\x80\xa8", b"\xe2\x80\xa9")
+"""Whitespace and line breaks of Python's str.split / splitlines other than space, tab, CR, LF."""
+
+
+def _read_obj_vectorised(data: bytes) -> dict | None:
+    """:func:`_read_obj_lines`'s result computed on the whole byte buffer with numpy, or None when the
+    file needs the line reader: an error to report, odd whitespace, non-ASCII keywords, numbers that
+    are not plain decimals (``v`` coordinates) or integers (``f`` indices)."""
+    if any(odd in data for odd in _OBJ_ODD_BYTES):
+        return None
+    buf = np.empty(len(data) + 1, dtype=np.uint8)
+    buf[:-1] = np.frombuffer(data, dtype=np.uint8)
+    buf[-1] = 10
+    for byte, meaning in ((b"\r", 10), (b"\t", 32)):
+        if byte in data:
+            buf[buf == byte[0]] = meaning
+    breaks = np.flatnonzero(buf == 10)
+    if b"#" in data:
+        _blank_comments(buf, breaks)
+    sep = buf <= 32  # space or line break: the only bytes at or below 32 left
+    edges = np.flatnonzero(np.diff(np.concatenate(([True], sep, [True])).view(np.int8)))
+    starts, ends = edges[0::2], edges[1::2]  # tokens [start, end)
+    line = np.searchsorted(breaks, starts)  # line number (0-based) of each token
+    first = np.flatnonzero(np.r_[True, line[1:] != line[:-1]])  # each non-empty line's keyword
+    count = np.diff(np.r_[first, len(starts)])  # tokens per non-empty line
+    if not data.isascii():
+        high = np.flatnonzero(buf >= 128)
+        if np.isin(np.searchsorted(starts, high, side="right") - 1, first).any():
+            return None
+    keyword = np.where(ends[first] - starts[first] == 1, buf[starts[first]], 0)
+    is_v, is_f = keyword == ord("v"), keyword == ord("f")
+    if not is_f.any() or (count[is_v | is_f] < 4).any():
+        return None
+    coordinate = (first[is_v][:, None] + np.arange(1, 4)).reshape(-1)
+    vertices = _parse_numbers(buf, starts[coordinate], ends[coordinate], np.float64, b"0123456789.eE+-")
+    sizes = count[is_f] - 1
+    token = np.repeat(first[is_f] + 1 - np.r_[0, np.cumsum(sizes)[:-1]], sizes) + np.arange(sizes.sum())
+    slashes = np.flatnonzero(buf == ord("/"))
+    head_end = ends[token]
+    if slashes.size:
+        next_slash = slashes[np.minimum(np.searchsorted(slashes, starts[token]), len(slashes) - 1)]
+        head_end = np.where((next_slash > starts[token]) & (next_slash < head_end), next_slash, head_end)
+    heads = _parse_numbers(buf, starts[token], head_end, np.int64, b"0123456789-")
+    if vertices is None or heads is None:
+        return None
+    before = np.repeat((np.cumsum(is_v) - is_v)[is_f], sizes)  # vertices defined before each face
+    corners = np.where(heads > 0, heads - 1, before + heads)
+    if (heads == 0).any() or (corners < 0).any() or (corners >= before).any():
+        return None
+    group_line = np.flatnonzero((keyword == ord("g")) | (keyword == ord("o")))
+    groups: dict[str, int] = {"": 0}
+    group_of_line = np.zeros(len(first) + 1, dtype=np.int64)  # index -1: before any g/o record
+    for k in group_line:
+        n = line[first[k]]
+        text = data[(breaks[n - 1] + 1 if n else 0):breaks[n]].decode("utf-8", errors="replace")
+        group_of_line[k] = groups.setdefault(" ".join(text.split("#", 1)[0].split()[1:]), len(groups))
+    latest = np.full(len(first), -1)
+    latest[group_line] = group_line
+    latest = np.maximum.accumulate(latest)
+    return _obj_mesh(vertices.reshape(-1, 3), corners, sizes, group_of_line[latest[is_f]], list(groups))
+
+
+def _blank_comments(buf: np.ndarray, breaks: np.ndarray) -> None:
+    """Overwrite with spaces every byte from a line's first ``#`` to its end (``breaks``: line-break positions)."""
+    hashes = np.flatnonzero(buf == ord("#"))
+    line = np.searchsorted(breaks, hashes)
+    first = np.r_[True, line[1:] != line[:-1]]
+    marker = np.zeros(len(buf) + 1, dtype=np.int8)
+    marker[hashes[first]] = 1
+    marker[breaks[line[first]]] = -1
+    buf[np.cumsum(marker[:-1], dtype=np.int8) > 0] = 32
+
+
+def _parse_numbers(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, dtype, allowed: bytes) -> np.ndarray | None:
+    """The numbers in byte ranges [starts, ends) of ``buf`` (disjoint, in order, each followed by a
+    separator or a '/'), or None unless every range is a number made of ``allowed`` bytes alone."""
+    if (ends <= starts).any():
+        return None
+    marker = np.zeros(len(buf) + 1, dtype=np.int8)
+    marker[starts] = 1
+    marker[ends] = -1
+    text = np.where(np.cumsum(marker[:-1], dtype=np.int8) > 0, buf, np.uint8(32))
+    table = np.zeros(256, dtype=bool)
+    table[np.frombuffer(allowed + b" ", dtype=np.uint8)] = True
+    if not table[text].all():
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            values = np.fromstring(text.tobytes(), dtype=dtype, sep=" ")
+        except (ValueError, DeprecationWarning):
+            return None
+    return values if len(values) == len(starts) else None
 
 
 def _obj_face(args: list[str], n_vertices: int, number: int) -> np.ndarray:
@@ -441,13 +565,13 @@ def _ply_mesh(elements: dict) -> dict:
         raise _MeshFormatError("PLY face element has no vertex_indices list")
     faces = face[key]
     if isinstance(faces, np.ndarray):
-        if faces.shape[1] < 3:
-            raise _MeshFormatError("a PLY face has fewer than 3 vertices")
+        corners, sizes = faces.reshape(-1), np.full(len(faces), faces.shape[1])
     else:
-        faces = [np.asarray(f, dtype=np.int64) for f in faces]
-        if any(len(f) < 3 for f in faces):
-            raise _MeshFormatError("a PLY face has fewer than 3 vertices")
-    n = len(faces)
+        sizes = np.array([len(f) for f in faces], dtype=np.int64)
+        corners = np.concatenate([np.asarray(f, dtype=np.int64) for f in faces] + [np.zeros(0, np.int64)])
+    if len(sizes) and sizes.min() < 3:
+        raise _MeshFormatError("a PLY face has fewer than 3 vertices")
+    n = len(sizes)
     coords = np.column_stack([np.asarray(vertex[a], dtype=np.float64) for a in "xyz"])
     classification = _ply_int_column(face, "classification", n, CLASS_UNCLASSIFIED)
     given = "plane_id" in face
@@ -456,7 +580,8 @@ def _ply_mesh(elements: dict) -> dict:
         raise _MeshFormatError("a face classification is outside 0..255")
     return {
         "vertices": coords,
-        "faces": faces,
+        "corners": corners.astype(np.int64),
+        "sizes": sizes,
         "group": group,
         "classification": classification.astype(np.uint8),
         "labels": "planes" if given else "none",
@@ -476,21 +601,18 @@ def _ply_int_column(face: dict, name: str, n: int, default: int) -> np.ndarray:
 # Geometry: triangles, degeneracy, planes
 # --------------------------------------------------------------------------------------------
 
-def _triangulate(faces) -> tuple[np.ndarray, np.ndarray]:
-    """Fan-triangulate polygons, given as an (F, k) array or a list of index arrays.
+def _triangulate(corners: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fan-triangulate polygons: face f has corners[offset_f : offset_f + sizes[f]] (sizes ≥ 3).
 
-    Returns (T, 3) vertex indices and the source face of each triangle.
+    Returns (T, 3) vertex indices, the triangles of each face together in face order, and the
+    source face of each triangle.
     """
-    if isinstance(faces, np.ndarray):
-        k = faces.shape[1]
-        triangles = np.concatenate([faces[:, [0, j, j + 1]] for j in range(1, k - 1)])
-        return triangles.astype(np.int64), np.tile(np.arange(len(faces)), k - 2)
-    triangles, source = [], []
-    for k, f in enumerate(faces):
-        for j in range(1, len(f) - 1):
-            triangles.append((f[0], f[j], f[j + 1]))
-            source.append(k)
-    return np.asarray(triangles, dtype=np.int64), np.asarray(source, dtype=np.int64)
+    fan = sizes - 2
+    source = np.repeat(np.arange(len(sizes)), fan)
+    first = np.r_[0, np.cumsum(sizes)[:-1]][source]
+    j = np.arange(len(source)) - np.r_[0, np.cumsum(fan)[:-1]][source] + 1
+    triangles = np.column_stack([corners[first], corners[first + j], corners[first + j + 1]])
+    return triangles.astype(np.int64), source
 
 
 def _degenerate(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -521,90 +643,161 @@ def _triangle_geometry(vertices: np.ndarray, triangles: np.ndarray):
 
 
 def _coplanar_planes(vertices: np.ndarray, triangles: np.ndarray, group: np.ndarray, merge_apart: bool) -> np.ndarray:
-    """Plane id per triangle: region growing over shared edges within each group.
+    """Plane id per triangle, in O(T log T) array operations.
 
-    Vertices at the same position are welded first, so a triangle soup groups like a mesh. A
-    region starts at its largest remaining triangle; a neighbour joins when its normal is within
-    COPLANAR_ANGLE_DEG of the region's area-weighted normal and its corners lie within
-    COPLANAR_OFFSET_M of the region's plane. With ``merge_apart``, coplanar regions of one group
-    that do not touch (a ground split by roads) are then merged into one plane.
+    Vertices at the same position are welded first, so a triangle soup groups like a mesh. Two
+    triangles of one group that share an edge are compatible when their normals are within
+    COPLANAR_ANGLE_DEG and each one's corners lie within COPLANAR_OFFSET_M of the other's plane;
+    the connected parts of compatible triangles are the first regions. A region is a plane when
+    every triangle's normal is within COPLANAR_ANGLE_DEG of the region's area-weighted normal and
+    every corner within COPLANAR_OFFSET_M of its plane through the area-weighted centroid; a region
+    that is not (a curved surface) is cut in quarters at the mean of its triangles' centroids along
+    its two axes of largest spread, and each quarter into its connected parts, until every region
+    is a plane (every round handles only the regions that failed, so a mesh of T triangles takes
+    about log₄ T rounds of O(T log T) work at most). With
+    ``merge_apart``, planes of one group that do not touch (a ground split by roads) are merged
+    when their normals and centroid offsets agree and their union is a plane.
     """
     normals, areas, corners = _triangle_geometry(vertices, triangles)
     _, weld = np.unique(np.round(vertices, 6), axis=0, return_inverse=True)
-    start, neighbour = _edge_neighbours(weld.reshape(-1)[triangles])
-    cos_limit = math.cos(math.radians(COPLANAR_ANGLE_DEG))
-    # plain Python numbers: this loop visits every triangle, numpy calls on 3-vectors are slow
-    start, neighbour, group_of = start.tolist(), neighbour.tolist(), group.tolist()
-    normal_of, area_of = normals.tolist(), areas.tolist()
-    corners_of = corners.reshape(-1, 9).tolist()
-    plane = [-1] * len(triangles)
-    n_planes = 0
-    for seed in np.argsort(-areas, kind="stable").tolist():
-        if plane[seed] >= 0:
-            continue
-        plane[seed] = n_planes
-        w = area_of[seed]
-        sx, sy, sz = (w * c for c in normal_of[seed])
-        cs = corners_of[seed]
-        cx, cy, cz = (w * (cs[k] + cs[k + 3] + cs[k + 6]) / 3.0 for k in range(3))
-        area_sum = w
-        queue = deque([seed])
-        while queue:
-            t = queue.popleft()
-            for u in neighbour[start[t]:start[t + 1]]:
-                if plane[u] >= 0 or group_of[u] != group_of[seed]:
-                    continue
-                length = math.sqrt(sx * sx + sy * sy + sz * sz)
-                nx, ny, nz = sx / length, sy / length, sz / length
-                un = normal_of[u]
-                if un[0] * nx + un[1] * ny + un[2] * nz < cos_limit:
-                    continue
-                c = corners_of[u]
-                px, py, pz = cx / area_sum, cy / area_sum, cz / area_sum
-                offset = max(abs((c[k] - px) * nx + (c[k + 1] - py) * ny + (c[k + 2] - pz) * nz) for k in (0, 3, 6))
-                if offset > COPLANAR_OFFSET_M:
-                    continue
-                plane[u] = n_planes
-                w = area_of[u]
-                sx, sy, sz = sx + w * un[0], sy + w * un[1], sz + w * un[2]
-                cx += w * (c[0] + c[3] + c[6]) / 3.0
-                cy += w * (c[1] + c[4] + c[7]) / 3.0
-                cz += w * (c[2] + c[5] + c[8]) / 3.0
-                area_sum += w
-                queue.append(u)
-        n_planes += 1
-    plane = np.asarray(plane, dtype=np.int32)
+    a, b = _edge_pairs(weld.reshape(-1)[triangles])
+    centroids = corners.mean(axis=1)
+    keep = (group[a] == group[b]) & _same_plane(normals[a], centroids[a], normals[b], centroids[b], corners[a], corners[b])
+    plane = _planar_regions(a[keep], b[keep], normals, areas, corners, centroids)
     if merge_apart:
-        plane = _merge_coplanar(plane, group, normals, areas, corners)
+        plane = _merge_coplanar(plane, group, normals, areas, corners, centroids)
     return _first_appearance_order(plane)
 
 
-def _merge_coplanar(plane, group, normals, areas, corners) -> np.ndarray:
-    """Merge regions of one group whose planes agree (normal angle, offset of each centroid)."""
+def _same_plane(n1, c1, n2, c2, corners1=None, corners2=None) -> np.ndarray:
+    """Whether planes (unit normal n, point c) (m, 3) agree: normals within COPLANAR_ANGLE_DEG and each
+    one's points (``corners`` (m, k, 3), else c) within COPLANAR_OFFSET_M of the other plane."""
+    p1 = c1[:, None] if corners1 is None else corners1
+    p2 = c2[:, None] if corners2 is None else corners2
+    offset1 = np.abs(np.einsum("mkj,mj->mk", p1 - c2[:, None], n2)).max(axis=1)
+    offset2 = np.abs(np.einsum("mkj,mj->mk", p2 - c1[:, None], n1)).max(axis=1)
+    cos_limit = math.cos(math.radians(COPLANAR_ANGLE_DEG))
+    return (np.einsum("mj,mj->m", n1, n2) >= cos_limit) & (offset1 <= COPLANAR_OFFSET_M) & (offset2 <= COPLANAR_OFFSET_M)
+
+
+def _edge_pairs(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (a, b), a < b, of triangles that share an (undirected) edge (every pair of a non-manifold edge)."""
+    n_vertices = int(triangles.max()) + 1
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    key = edges[:, 0] * n_vertices + edges[:, 1]
+    order = np.argsort(key, kind="stable")
+    owner = np.tile(np.arange(len(triangles)), 3)[order]
+    starts = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]])
+    sizes = np.diff(np.r_[starts, len(key)])
+    pairs = []
+    for size in np.unique(sizes[sizes > 1]):  # 2 on a manifold mesh; more where several faces share an edge
+        block = owner[starts[sizes == size][:, None] + np.arange(size)]
+        i, j = np.triu_indices(size, 1)
+        pairs.append(np.stack([block[:, i].reshape(-1), block[:, j].reshape(-1)]))
+    a, b = np.concatenate(pairs, axis=1) if pairs else np.zeros((2, 0), dtype=np.int64)
+    distinct = a != b
+    return np.minimum(a, b)[distinct], np.maximum(a, b)[distinct]
+
+
+def _connected(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Component label (0..C-1) of each of ``n`` nodes linked by edges (a, b)."""
+    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
+
+
+def _area_weighted_planes(label, n_labels, normals, areas, centroids) -> tuple[np.ndarray, np.ndarray]:
+    """Unit area-weighted normal (L, 3) and area-weighted centroid (L, 3) [m] of each label's
+    triangles (zeros for a label without triangles)."""
+    total = np.bincount(label, weights=areas, minlength=n_labels)
+    normal = np.column_stack([np.bincount(label, weights=areas * normals[:, k], minlength=n_labels) for k in range(3)])
+    centre = np.column_stack([np.bincount(label, weights=areas * centroids[:, k], minlength=n_labels) for k in range(3)])
+    length = np.linalg.norm(normal, axis=1)
+    return normal / np.where(length > 0.0, length, 1.0)[:, None], centre / np.where(total > 0.0, total, 1.0)[:, None]
+
+
+def _planar(label, n_labels, normals, areas, corners, centroids) -> np.ndarray:
+    """Per label: whether its triangles make a plane (module docstring's tolerances, against the
+    label's area-weighted plane)."""
+    normal, centre = _area_weighted_planes(label, n_labels, normals, areas, centroids)
+    n = normal[label]
+    height = np.einsum("tkj,tj->tk", corners, n) - np.einsum("lj,lj->l", normal, centre)[label][:, None]
+    offset = np.maximum(np.maximum(np.abs(height[:, 0]), np.abs(height[:, 1])), np.abs(height[:, 2]))
+    cos_limit = math.cos(math.radians(COPLANAR_ANGLE_DEG))
+    fits = (np.einsum("tj,tj->t", normals, n) >= cos_limit) & (offset <= COPLANAR_OFFSET_M)
+    return np.bincount(label, weights=~fits, minlength=n_labels) == 0
+
+
+def _planar_regions(a, b, normals, areas, corners, centroids) -> np.ndarray:
+    """Region label (0..R-1) per triangle: connected parts over edges (a, b), cut in quarters until
+    planar (see :func:`_coplanar_planes`)."""
+    label = _connected(len(normals), a, b)
+    todo, local, n_local = np.arange(len(normals)), label.copy(), int(label.max()) + 1
+    while True:
+        planar = _planar(local, n_local, normals[todo], areas[todo], corners[todo], centroids[todo])
+        failed = np.flatnonzero(~planar[local])
+        if not len(failed):
+            return np.unique(label, return_inverse=True)[1].reshape(-1)
+        position = np.full(len(todo), -1)
+        position[failed] = np.arange(len(failed))
+        a, b = position[a], position[b]  # edges as positions in the failed triangles
+        a, b = a[(a >= 0) & (b >= 0)], b[(a >= 0) & (b >= 0)]
+        todo, local = todo[failed], local[failed]
+        part = _quarters(local, n_local, centroids[todo])
+        a, b = a[part[a] == part[b]], b[part[a] == part[b]]
+        local = _connected(len(todo), a, b)
+        n_local = int(local.max()) + 1
+        label[todo] = label.max() + 1 + local
+
+
+def _quarters(label: np.ndarray, n_labels: int, points: np.ndarray) -> np.ndarray:
+    """Part 4·label + 0…3 of each point (m, 3): below or above its label's mean along the label's
+    two axes of largest spread, so that every label of two or more points is cut into two to four
+    non-empty parts (by position parity where the first cut would leave one side empty)."""
+    count = np.maximum(np.bincount(label, minlength=n_labels), 1)
+    mean = np.column_stack([np.bincount(label, weights=points[:, k], minlength=n_labels) for k in range(3)]) / count[:, None]
+    spread = np.column_stack([np.bincount(label, weights=(points[:, k] - mean[label, k]) ** 2, minlength=n_labels)
+                              for k in range(3)])
+    axes = np.argsort(spread, axis=1)[label]
+    part = 4 * label
+    for rank, weight in ((-1, 2), (-2, 1)):
+        axis = axes[:, rank]
+        side = (points[np.arange(len(points)), axis] > mean[label, axis]).astype(np.int64)
+        one_sided = np.bincount(label, weights=side, minlength=n_labels) % count == 0
+        fallback = np.arange(len(points)) % 2 if rank == -1 else 0
+        part += weight * np.where(one_sided[label], fallback, side)
+    return part
+
+
+def _merge_coplanar(plane, group, normals, areas, corners, centroids) -> np.ndarray:
+    """Merge planes of one group that agree (:func:`_same_plane` on their area-weighted planes) and
+    whose union is a plane; candidates are the first plane of each neighbouring cell of a grid over
+    (normal, offset) with cells of the tolerances' size."""
     n_regions = int(plane.max()) + 1
-    area = np.bincount(plane, weights=areas, minlength=n_regions)
-    normal = np.zeros((n_regions, 3))
-    centroid = np.zeros((n_regions, 3))
-    np.add.at(normal, plane, normals * areas[:, None])
-    np.add.at(centroid, plane, corners.mean(axis=1) * areas[:, None])
-    normal /= np.linalg.norm(normal, axis=1)[:, None]
-    centroid /= area[:, None]
+    normal, centre = _area_weighted_planes(plane, n_regions, normals, areas, centroids)
     region_group = np.zeros(n_regions, dtype=np.int64)
     region_group[plane] = group
-    cos_limit = math.cos(math.radians(COPLANAR_ANGLE_DEG))
-    target = np.arange(n_regions)
-    for r in range(n_regions):
-        if target[r] != r:
-            continue
-        rest = np.arange(r + 1, n_regions)
-        rest = rest[(target[rest] == rest) & (region_group[rest] == region_group[r])]
-        same = (
-            (normal[rest] @ normal[r] >= cos_limit)
-            & (np.abs((centroid[rest] - centroid[r]) @ normal[r]) <= COPLANAR_OFFSET_M)
-            & (np.abs(np.sum((centroid[r] - centroid[rest]) * normal[rest], axis=1)) <= COPLANAR_OFFSET_M)
-        )
-        target[rest[same]] = r
-    return target[plane].astype(np.int32)
+    group_rank = np.unique(region_group, return_inverse=True)[1].reshape(-1)
+    offset = np.einsum("rj,rj->r", normal, centre)
+    chord = 2.0 * math.sin(math.radians(COPLANAR_ANGLE_DEG) / 2.0)
+    d_cell = max(COPLANAR_OFFSET_M, float(np.ptp(offset)) * (4.0 / chord) ** 3 * (group_rank.max() + 1) / 2.0**58)
+    cell = np.floor(np.column_stack([normal / chord, offset / d_cell])).astype(np.int64)
+    cell -= cell.min(axis=0) - 1  # ≥ 1, so that every neighbour cell has a non-negative index
+    stride = np.cumprod(np.r_[1, cell.max(axis=0)[::-1][:-1] + 2])[::-1]
+    code = group_rank * int(np.prod(cell.max(axis=0) + 2)) + cell @ stride
+    order = np.argsort(code, kind="stable")
+    sorted_code = code[order]
+    pairs = []
+    for step in itertools.product((-1, 0, 1), repeat=4):
+        target = code + np.asarray(step) @ stride
+        at = np.minimum(np.searchsorted(sorted_code, target), n_regions - 1)
+        found = np.flatnonzero(sorted_code[at] == target)
+        pairs.append(np.stack([found, order[at[found]]]))
+    a, b = np.concatenate(pairs, axis=1)
+    link = (a != b) & _same_plane(normal[a], centre[a], normal[b], centre[b])
+    merged = _connected(n_regions, a[link], b[link])
+    n_merged = int(merged.max()) + 1
+    accepted = _planar(merged[plane], n_merged, normals, areas, corners, centroids)
+    return np.where(accepted[merged[plane]], merged[plane], n_merged + plane)
 
 
 def _first_appearance_order(plane: np.ndarray) -> np.ndarray:
@@ -613,30 +806,6 @@ def _first_appearance_order(plane: np.ndarray) -> np.ndarray:
     rank = np.empty(len(first), dtype=np.int32)
     rank[np.argsort(first, kind="stable")] = np.arange(len(first), dtype=np.int32)
     return rank[inverse.reshape(-1)]
-
-
-def _edge_neighbours(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Triangles sharing an (undirected) edge, as CSR: neighbours of t are index[start[t]:start[t+1]]."""
-    n = len(triangles)
-    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    owner = np.tile(np.arange(n), 3)
-    order = np.lexsort((edges[:, 1], edges[:, 0]))
-    edges, owner = edges[order], owner[order]
-    new_edge = np.r_[True, np.any(edges[1:] != edges[:-1], axis=1)]
-    starts = np.flatnonzero(new_edge)
-    sizes = np.diff(np.r_[starts, len(edges)])
-    pairs = [owner[starts[sizes == 2]], owner[starts[sizes == 2] + 1]]
-    for s, size in zip(starts[sizes > 2], sizes[sizes > 2]):  # non-manifold edges: rare
-        shared = owner[s:s + size]
-        a, b = np.meshgrid(shared, shared)
-        pairs[0] = np.r_[pairs[0], a[a < b]]
-        pairs[1] = np.r_[pairs[1], b[a < b]]
-    src = np.r_[pairs[0], pairs[1]]
-    dst = np.r_[pairs[1], pairs[0]]
-    order = np.lexsort((dst, src))
-    src, dst = src[order], dst[order]
-    start = np.searchsorted(src, np.arange(n + 1))
-    return start, dst
 
 
 def _plane_infos(vertices, triangles, plane_of, classes) -> tuple[list[PlaneInfo], np.ndarray]:

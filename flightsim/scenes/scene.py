@@ -23,6 +23,7 @@ import pyproj
 from pyproj.enums import WktVersion
 
 from flightsim.core.errors import InputError
+from flightsim.scenes.height_grid import HeightGrid
 
 DEFAULT_ORIGIN: tuple[float, float, float] = (409000.0, 3393000.0, 450.0)
 DEFAULT_CRS = "EPSG:32648"
@@ -125,6 +126,9 @@ class Scene:
         planes: one :class:`PlaneInfo` per plane id, ``planes[i].id == i``.
         ground_z: local height [m] that flight altitudes are measured from.
         dropped_degenerate: zero-area triangles dropped when the mesh was read (0 if built).
+        planar: whether each plane id labels a planar face (False: the ids only label parts of a
+            curved surface, e.g. a terrain read with ``scene.planes = "none"``, and a plane fit
+            through a part's points measures its curvature, not the points' error).
     """
 
     name: str
@@ -137,6 +141,8 @@ class Scene:
     planes: list[PlaneInfo]
     ground_z: float
     dropped_degenerate: int = field(default=0)
+    planar: bool = field(default=True)
+    _height_grid: HeightGrid | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.origin = _finite_vector3(self.origin, "scene.origin")
@@ -177,26 +183,24 @@ class Scene:
     def terrain_top(self, xmin: float, ymin: float, xmax: float, ymax: float) -> float:
         """Highest local z [m] of the scene's surface over a closed local rectangle; −inf if none.
 
-        Exact for planar triangles: the highest point of a triangle over the rectangle is a
-        corner of their intersection (a triangle vertex inside the rectangle, a triangle edge
-        crossing a rectangle side, or a rectangle corner inside the triangle), so a large sloped
-        triangle counts only as high as it rises over the rectangle, not its whole height.
+        Exact for planar triangles: the highest point of a triangle over the rectangle is a corner of
+        their intersection (a triangle vertex inside the rectangle, a triangle edge crossing a rectangle
+        side, or a rectangle corner inside the triangle), so a large sloped triangle counts only as high
+        as it rises over the rectangle, not its whole height.
         """
         return float(self.terrain_tops([[xmin, ymin, xmax, ymax]])[0])
 
     def terrain_tops(self, rectangles) -> np.ndarray:
-        """:meth:`terrain_top` of each row (xmin, ymin, xmax, ymax) of ``rectangles`` (R, 4) [m]."""
-        rects = np.asarray(rectangles, dtype=np.float64).reshape(-1, 4)
-        tops = np.full(len(rects), -np.inf)
-        corners = self.vertices[self.triangles]  # (T, 3, 3)
-        lo, hi = corners.min(axis=1), corners.max(axis=1)
-        near = _overlapping(lo, hi, rects[:, :2].min(axis=0), rects[:, 2:].max(axis=0))
-        corners, lo, hi = corners[near], lo[near], hi[near]
-        for k, (xmin, ymin, xmax, ymax) in enumerate(rects):
-            over = _overlapping(lo, hi, (xmin, ymin), (xmax, ymax))
-            if np.any(over):
-                tops[k] = _highest_over(corners[over], hi[over, 2], xmin, ymin, xmax, ymax)
-        return tops
+        """:meth:`terrain_top` of each row (xmin, ymin, xmax, ymax) of ``rectangles`` (R, 4) [m], from the
+        triangles of the few cells of :attr:`height_grid` that can reach the top."""
+        return self.height_grid.tops(rectangles)
+
+    @property
+    def height_grid(self) -> HeightGrid:
+        """The scene's :class:`~flightsim.scenes.height_grid.HeightGrid`, built on first use."""
+        if self._height_grid is None:
+            self._height_grid = HeightGrid.build(self.vertices, self.triangles)
+        return self._height_grid
 
     def world_to_local(self, xyz) -> np.ndarray:
         """World coordinates (..., 3) [m] → local float64 (..., 3) [m]."""
@@ -205,52 +209,6 @@ class Scene:
     def local_to_world(self, xyz) -> np.ndarray:
         """Local coordinates (..., 3) [m] → world float64 (..., 3) [m]."""
         return np.asarray(xyz, dtype=np.float64) + self.origin
-
-
-def _overlapping(lo: np.ndarray, hi: np.ndarray, low_xy, high_xy) -> np.ndarray:
-    """Mask of the boxes (lo, hi) (T, 3) whose xy extent meets the closed rectangle [low_xy, high_xy]."""
-    return (hi[:, 0] >= low_xy[0]) & (lo[:, 0] <= high_xy[0]) & (hi[:, 1] >= low_xy[1]) & (lo[:, 1] <= high_xy[1])
-
-
-def _highest_over(corners: np.ndarray, tops: np.ndarray, xmin: float, ymin: float, xmax: float,
-                  ymax: float) -> float:
-    """Highest z [m] of triangles ``corners`` (T, 3, 3) over the closed rectangle; −inf if none reaches it.
-
-    ``tops`` (T,) are the triangles' highest z, used to skip those that cannot beat the best so far.
-    """
-    tol = 1e-9 * (1.0 + max(abs(xmin), abs(ymin), abs(xmax), abs(ymax)))
-    x, y, z = corners[..., 0], corners[..., 1], corners[..., 2]
-    inside = (x >= xmin - tol) & (x <= xmax + tol) & (y >= ymin - tol) & (y <= ymax + tol)
-    best = float(np.max(np.where(inside, z, -np.inf)))
-    rest = tops > best
-    if not np.any(rest):
-        return best
-    x, y, z = x[rest], y[rest], z[rest]
-    candidates = [best]
-    # triangle edges crossing the lines x = xmin, xmax (within [ymin, ymax]) and y = ymin, ymax
-    a, b = np.array([0, 1, 2]), np.array([1, 2, 0])
-    for u, v, line, v_lo, v_hi in ((x, y, xmin, ymin, ymax), (x, y, xmax, ymin, ymax),
-                                   (y, x, ymin, xmin, xmax), (y, x, ymax, xmin, xmax)):
-        du = u[:, b] - u[:, a]
-        s = (line - u[:, a]) / np.where(du != 0.0, du, 1.0)
-        cross = (du != 0.0) & (s >= 0.0) & (s <= 1.0)
-        at = v[:, a] + s * (v[:, b] - v[:, a])
-        cross &= (at >= v_lo - tol) & (at <= v_hi + tol)
-        candidates.append(np.max(np.where(cross, z[:, a] + s * (z[:, b] - z[:, a]), -np.inf), initial=-np.inf))
-    # rectangle corners inside a triangle's (non-degenerate) projection
-    ex1, ey1 = x[:, 1] - x[:, 0], y[:, 1] - y[:, 0]
-    ex2, ey2 = x[:, 2] - x[:, 0], y[:, 2] - y[:, 0]
-    det = ex1 * ey2 - ey1 * ex2
-    flat = np.abs(det) <= 1e-12 * (ex1 * ex1 + ey1 * ey1 + ex2 * ex2 + ey2 * ey2)
-    det = np.where(flat, 1.0, det)
-    for cx, cy in ((xmin, ymin), (xmin, ymax), (xmax, ymin), (xmax, ymax)):
-        px, py = cx - x[:, 0], cy - y[:, 0]
-        w1 = (px * ey2 - py * ex2) / det
-        w2 = (ex1 * py - ey1 * px) / det
-        within = ~flat & (w1 >= -1e-12) & (w2 >= -1e-12) & (w1 + w2 <= 1.0 + 1e-12)
-        height = z[:, 0] + w1 * (z[:, 1] - z[:, 0]) + w2 * (z[:, 2] - z[:, 0])
-        candidates.append(np.max(np.where(within, height, -np.inf), initial=-np.inf))
-    return float(max(candidates))
 
 
 def parse_crs(value, field: str = "scene.crs") -> pyproj.CRS:

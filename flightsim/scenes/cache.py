@@ -1,0 +1,137 @@
+"""Scenes read from files (meshes, height grids), kept on disk as ``.npz`` so that the next run over
+the same file starts in seconds.
+
+An entry holds the scene's arrays (vertices, triangles, plane ids, classes), its planes, origin,
+CRS (WKT), name and ground height, and the key it was made for: the cache format, the flightsim
+version, the source file's resolved path, size and modification time [ns], and every option that
+shapes the scene (with the size and modification time of any file an option names). An entry is
+used only when its key equals the one asked for and it reads back into a valid scene; anything
+else (missing, stale, truncated, corrupt) is ignored and the scene is loaded afresh and written
+again. Entries are written to a temporary name and renamed, so a reader never sees half an entry;
+entries whose source file is gone are removed when a new one is written. A cache folder that
+cannot be written only costs the saving.
+
+The folder is ``$FLIGHTSIM_CACHE``, else ``~/.cache/flightsim/scenes``.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from flightsim import __version__
+from flightsim.core.errors import InputError
+from flightsim.scenes.scene import PlaneInfo, Scene, parse_crs
+
+CACHE_FORMAT = 1
+"""Bumped whenever the stored arrays or the way scenes are read change meaning."""
+
+_PLANE_FIELDS = ("kind", "classification", "normal", "point", "pitch_deg", "azimuth_deg", "building")
+
+
+def cache_folder() -> Path:
+    """The folder of the scene cache: ``$FLIGHTSIM_CACHE`` or ``~/.cache/flightsim/scenes``."""
+    return Path(os.environ.get("FLIGHTSIM_CACHE") or Path.home() / ".cache" / "flightsim" / "scenes")
+
+
+def cached_scene(path, options: dict, load: Callable[[], Scene], folder: Path | None = None) -> Scene:
+    """The scene of the file ``path`` from the cache, or ``load()`` (then stored for next time).
+
+    Args:
+        path: the source file (it must exist; ``load`` reports the errors of a bad one).
+        options: JSON-serialisable settings that shape the scene (CRS, origin, plane grouping, …);
+            a string naming an existing file also keys the entry on that file's size and time.
+        load: reads the scene afresh.
+        folder: the cache folder; :func:`cache_folder` by default.
+    """
+    folder = cache_folder() if folder is None else Path(folder)
+    key = _key(Path(path), options)
+    if key is None:
+        return load()
+    digest = hashlib.sha256(key.encode("utf-8")).hexdigest()[:24]
+    entry = folder / f"{Path(path).stem[:40]}-{digest}.npz"
+    scene = _read_entry(entry, key)
+    if scene is None:
+        scene = load()
+        _write_entry(folder, entry, key, scene)
+    return scene
+
+
+def _key(path: Path, options: dict) -> str | None:
+    """The entry's key as canonical JSON, None when the source cannot be stat'ed (``load`` then says why)."""
+    try:
+        source = path.resolve()
+        files = {str(source): _stamp(source)}
+        for value in options.values():
+            if isinstance(value, str) and value and Path(value).is_file():
+                files[str(Path(value).resolve())] = _stamp(Path(value))
+    except OSError:
+        return None
+    key = {"format": CACHE_FORMAT, "flightsim": __version__, "source": str(source), "files": files,
+           "options": options}
+    return json.dumps(key, sort_keys=True, default=str)
+
+
+def _stamp(path: Path) -> list[int]:
+    """(size [B], modification time [ns]) of a file."""
+    stat = path.stat()
+    return [stat.st_size, stat.st_mtime_ns]
+
+
+def _read_entry(entry: Path, key: str) -> Scene | None:
+    """The scene stored at ``entry`` for ``key``; None if absent, made for another key, or unreadable."""
+    try:
+        with np.load(entry, allow_pickle=False) as data:
+            if str(data["key"]) != key:
+                return None
+            planes = [PlaneInfo(id=k, kind=str(kind), classification=int(c), normal=n, point=p,
+                                pitch_deg=float(pitch), azimuth_deg=float(azimuth), building=int(b))
+                      for k, (kind, c, n, p, pitch, azimuth, b)
+                      in enumerate(zip(*(data[f"plane_{name}"] for name in _PLANE_FIELDS)))]
+            return Scene(name=str(data["name"]), crs=parse_crs(str(data["crs"])), origin=data["origin"],
+                         vertices=data["vertices"], triangles=data["triangles"], plane_id=data["plane_id"],
+                         classification=data["classification"], planes=planes, ground_z=float(data["ground_z"]),
+                         dropped_degenerate=int(data["dropped_degenerate"]), planar=bool(data["planar"]))
+    except (OSError, EOFError, KeyError, ValueError, TypeError, IndexError, zipfile.BadZipFile, InputError):
+        return None
+
+
+def _write_entry(folder: Path, entry: Path, key: str, scene: Scene) -> None:
+    """Store ``scene`` at ``entry`` (a temporary file renamed into place); drop entries of vanished sources."""
+    arrays = {
+        "key": np.array(key), "name": np.array(scene.name), "crs": np.array(scene.crs.to_wkt()),
+        "origin": scene.origin, "vertices": scene.vertices, "triangles": scene.triangles,
+        "plane_id": scene.plane_id, "classification": scene.classification,
+        "ground_z": np.array(scene.ground_z), "dropped_degenerate": np.array(scene.dropped_degenerate),
+        "planar": np.array(scene.planar),
+        **{f"plane_{name}": np.array([getattr(p, name) for p in scene.planes]) for name in _PLANE_FIELDS},
+    }
+    temporary = None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        _drop_orphans(folder)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{entry.stem}.", suffix=".part", delete=False) as fh:
+            temporary = Path(fh.name)
+            np.savez(fh, **arrays)
+        os.replace(temporary, entry)
+    except OSError:
+        if temporary is not None:
+            temporary.unlink(missing_ok=True)
+
+
+def _drop_orphans(folder: Path) -> None:
+    """Remove the entries whose source file no longer exists, and unreadable ones."""
+    for entry in folder.glob("*.npz"):
+        try:
+            with np.load(entry, allow_pickle=False) as data:
+                source = json.loads(str(data["key"]))["source"]
+        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile):
+            source = None
+        if source is None or not Path(source).exists():
+            entry.unlink(missing_ok=True)

@@ -1,0 +1,220 @@
+"""The highest surface per cell of a coarse grid over a scene, built once, and the height queries that use it.
+
+Cell (row i, column j) covers local x in [x0 + j·cell_m, x0 + (j+1)·cell_m) and y in
+[y0 + i·cell_m, y0 + (i+1)·cell_m) [m]. A triangle is listed in every cell its xy bounding box meets
+(closed), and a cell's ``top`` is the highest vertex of its triangles, so ``top`` is never below the
+surface anywhere over the cell (−inf where the cell holds no triangle). Queries read the few cells
+under a rectangle or a point, so their cost does not grow with the number of triangles:
+
+- :meth:`HeightGrid.top_bound`: a cheap upper bound of the surface over a rectangle;
+- :meth:`HeightGrid.tops`: the exact highest point over rectangles, refined from the triangles of
+  only those cells whose top can beat the best height found so far;
+- :meth:`HeightGrid.ground_height`: the highest surface straight under points.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+TRIANGLES_PER_CELL = 2.0
+"""Cell size target: about this many triangles' worth of area per cell."""
+
+MAX_CELLS_PER_SIDE = 2048
+"""Largest grid side [cells]."""
+
+MAX_LISTED_PER_TRIANGLE = 16.0
+"""The cell size grows until the triangles are listed at most this many times each, on average."""
+
+
+@dataclass(frozen=True)
+class HeightGrid:
+    """Highest surface z per cell and the triangles listed in each cell (local coordinates [m]).
+
+    Attributes:
+        x0, y0: local x, y of the grid's lower-left corner [m].
+        cell_m: cell side [m].
+        top: (rows, columns) highest vertex z of each cell's triangles [m]; −inf for an empty cell.
+        start: (rows·columns + 1,) cell c lists triangles members[start[c]:start[c + 1]].
+        members: triangle indices, cell after cell.
+        corners: (T, 3, 3) triangle corners [m].
+    """
+
+    x0: float
+    y0: float
+    cell_m: float
+    top: np.ndarray
+    start: np.ndarray
+    members: np.ndarray
+    corners: np.ndarray
+
+    @classmethod
+    def build(cls, vertices: np.ndarray, triangles: np.ndarray) -> "HeightGrid":
+        """The grid of a mesh: vertices (V, 3) [m], triangles (T, 3) indices."""
+        corners = vertices[triangles]
+        lo, hi = corners.min(axis=1), corners.max(axis=1)
+        x0, y0 = float(lo[:, 0].min()), float(lo[:, 1].min())
+        width, height = float(hi[:, 0].max()) - x0, float(hi[:, 1].max()) - y0
+        cell = _cell_size(width, height, len(triangles))
+        while True:
+            rows, cols = int(height // cell) + 1, int(width // cell) + 1
+            c_lo, r_lo = _index(lo[:, 0], x0, cell, cols), _index(lo[:, 1], y0, cell, rows)
+            c_hi, r_hi = _index(hi[:, 0], x0, cell, cols), _index(hi[:, 1], y0, cell, rows)
+            n_cols, n_rows = c_hi - c_lo + 1, r_hi - r_lo + 1
+            listed = n_cols * n_rows
+            if listed.sum() <= MAX_LISTED_PER_TRIANGLE * len(triangles) or max(rows, cols) == 1:
+                break
+            cell *= math.sqrt(listed.sum() / (MAX_LISTED_PER_TRIANGLE * len(triangles))) * 1.01
+        triangle = np.repeat(np.arange(len(triangles)), listed)
+        k = np.arange(len(triangle)) - np.repeat(np.cumsum(listed) - listed, listed)
+        cell_of = (r_lo[triangle] + k // n_cols[triangle]) * cols + c_lo[triangle] + k % n_cols[triangle]
+        order = np.argsort(cell_of, kind="stable")
+        cell_of, members = cell_of[order], triangle[order]
+        start = np.searchsorted(cell_of, np.arange(rows * cols + 1))
+        top = np.full(rows * cols, -np.inf)
+        filled = np.flatnonzero(start[1:] > start[:-1])
+        top[filled] = np.maximum.reduceat(hi[members, 2], start[filled])
+        return cls(x0, y0, cell, top.reshape(rows, cols), start, members, corners)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, columns)."""
+        return self.top.shape
+
+    def top_bound(self, xmin: float, ymin: float, xmax: float, ymax: float) -> float:
+        """An upper bound [m] of the surface's height over the closed rectangle; −inf where no triangle is near."""
+        cells = self._cells(xmin, ymin, xmax, ymax)
+        return -math.inf if cells is None else float(self.top[cells].max())
+
+    def tops(self, rectangles) -> np.ndarray:
+        """Highest local z [m] of the surface over each closed rectangle (xmin, ymin, xmax, ymax) (R, 4) [m];
+        −inf where none. Exact for planar triangles (see :func:`highest_over`)."""
+        rects = np.asarray(rectangles, dtype=np.float64).reshape(-1, 4)
+        return np.array([self._exact_top(*rect) for rect in rects], dtype=np.float64).reshape(len(rects))
+
+    def ground_height(self, x, y) -> np.ndarray:
+        """Highest surface z [m] straight under each point (x, y) [m] (any matching shapes); NaN where
+        no triangle lies under the point (outside the scene, a hole). Walls (vertical triangles) are
+        not ground."""
+        x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        px, py = x.reshape(-1), y.reshape(-1)
+        rows, cols = self.shape
+        col = np.floor((px - self.x0) / self.cell_m)
+        row = np.floor((py - self.y0) / self.cell_m)
+        inside = (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
+        cell = np.where(inside, row * cols + col, 0).astype(np.int64)
+        count = np.where(inside, self.start[cell + 1] - self.start[cell], 0)
+        point = np.repeat(np.arange(len(px)), count)
+        k = np.arange(len(point)) - np.repeat(np.cumsum(count) - count, count)
+        c = self.corners[self.members[self.start[cell[point]] + k]]
+        height, under = _height_under(c, px[point], py[point])
+        best = np.full(len(px), -np.inf)
+        np.maximum.at(best, point[under], height[under])
+        return np.where(np.isfinite(best), best, np.nan).reshape(x.shape)
+
+    def _cells(self, xmin: float, ymin: float, xmax: float, ymax: float) -> tuple[slice, slice] | None:
+        """(row, column) slices of the cells that meet the closed rectangle, None if none."""
+        rows, cols = self.shape
+        c0, c1 = math.floor((xmin - self.x0) / self.cell_m), math.floor((xmax - self.x0) / self.cell_m)
+        r0, r1 = math.floor((ymin - self.y0) / self.cell_m), math.floor((ymax - self.y0) / self.cell_m)
+        if c1 < 0 or r1 < 0 or c0 >= cols or r0 >= rows:
+            return None
+        return slice(max(r0, 0), min(r1, rows - 1) + 1), slice(max(c0, 0), min(c1, cols - 1) + 1)
+
+    def _exact_top(self, xmin: float, ymin: float, xmax: float, ymax: float) -> float:
+        """Highest z over the closed rectangle: the triangles of the highest cell first, then those of
+        every cell whose top is above the best height found."""
+        cells = self._cells(xmin, ymin, xmax, ymax)
+        if cells is None:
+            return -math.inf
+        rows, cols = self.shape
+        r, c = np.meshgrid(np.arange(rows)[cells[0]], np.arange(cols)[cells[1]], indexing="ij")
+        ids, bounds = (r * cols + c).reshape(-1), self.top[cells].reshape(-1)
+        ids, bounds = ids[np.isfinite(bounds)], bounds[np.isfinite(bounds)]
+        best = -math.inf
+        for pick in (np.argmax(bounds) if len(bounds) else None, None):
+            chosen = ids[[pick]] if pick is not None else ids[bounds > best]
+            if len(chosen) == 0:
+                break
+            best = max(best, self._top_of(chosen, xmin, ymin, xmax, ymax))
+        return best
+
+    def _top_of(self, cells: np.ndarray, xmin: float, ymin: float, xmax: float, ymax: float) -> float:
+        """Highest z over the rectangle of the triangles listed in ``cells``."""
+        count = self.start[cells + 1] - self.start[cells]
+        k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+        triangles = np.unique(self.members[np.repeat(self.start[cells], count) + k])
+        corners = self.corners[triangles]
+        lo, hi = corners.min(axis=1), corners.max(axis=1)
+        over = (hi[:, 0] >= xmin) & (lo[:, 0] <= xmax) & (hi[:, 1] >= ymin) & (lo[:, 1] <= ymax)
+        if not np.any(over):
+            return -math.inf
+        return highest_over(corners[over], hi[over, 2], xmin, ymin, xmax, ymax)
+
+
+def _cell_size(width: float, height: float, n_triangles: int) -> float:
+    """Cell side [m]: about TRIANGLES_PER_CELL triangles' share of the area, at most MAX_CELLS_PER_SIDE a side."""
+    extent = max(width, height)
+    if extent <= 0.0:
+        return 1.0
+    area = max(width, extent / MAX_CELLS_PER_SIDE) * max(height, extent / MAX_CELLS_PER_SIDE)
+    return max(math.sqrt(area * TRIANGLES_PER_CELL / n_triangles), extent / (MAX_CELLS_PER_SIDE - 1))
+
+
+def _index(value: np.ndarray, origin: float, cell: float, n: int) -> np.ndarray:
+    """Cell index along one axis of each coordinate, clipped to [0, n − 1]."""
+    return np.clip(np.floor((value - origin) / cell), 0, n - 1).astype(np.int64)
+
+
+def _height_under(corners: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """z [m] of each triangle (m, 3, 3) at (x, y) (m,), and whether the point lies in the triangle's
+    (non-degenerate) xy projection, edges included."""
+    x0, y0, z0 = corners[:, 0, 0], corners[:, 0, 1], corners[:, 0, 2]
+    ex1, ey1 = corners[:, 1, 0] - x0, corners[:, 1, 1] - y0
+    ex2, ey2 = corners[:, 2, 0] - x0, corners[:, 2, 1] - y0
+    det = ex1 * ey2 - ey1 * ex2
+    flat = np.abs(det) <= 1e-12 * (ex1 * ex1 + ey1 * ey1 + ex2 * ex2 + ey2 * ey2)
+    det = np.where(flat, 1.0, det)
+    px, py = x - x0, y - y0
+    w1 = (px * ey2 - py * ex2) / det
+    w2 = (ex1 * py - ey1 * px) / det
+    under = ~flat & (w1 >= -1e-12) & (w2 >= -1e-12) & (w1 + w2 <= 1.0 + 1e-12)
+    return z0 + w1 * (corners[:, 1, 2] - z0) + w2 * (corners[:, 2, 2] - z0), under
+
+
+def highest_over(corners: np.ndarray, tops: np.ndarray, xmin: float, ymin: float, xmax: float,
+                 ymax: float) -> float:
+    """Highest z [m] of triangles ``corners`` (T, 3, 3) over the closed rectangle; −inf if none reaches it.
+
+    Exact for planar triangles: the highest point of a triangle over the rectangle is a corner of
+    their intersection (a triangle vertex inside the rectangle, a triangle edge crossing a rectangle
+    side, or a rectangle corner inside the triangle), so a large sloped triangle counts only as high
+    as it rises over the rectangle. ``tops`` (T,) are the triangles' highest z, used to skip those
+    that cannot beat the best so far.
+    """
+    tol = 1e-9 * (1.0 + max(abs(xmin), abs(ymin), abs(xmax), abs(ymax)))
+    x, y, z = corners[..., 0], corners[..., 1], corners[..., 2]
+    inside = (x >= xmin - tol) & (x <= xmax + tol) & (y >= ymin - tol) & (y <= ymax + tol)
+    best = float(np.max(np.where(inside, z, -np.inf)))
+    rest = tops > best
+    if not np.any(rest):
+        return best
+    x, y, z = x[rest], y[rest], z[rest]
+    candidates = [best]
+    # triangle edges crossing the lines x = xmin, xmax (within [ymin, ymax]) and y = ymin, ymax
+    a, b = np.array([0, 1, 2]), np.array([1, 2, 0])
+    for u, v, line, v_lo, v_hi in ((x, y, xmin, ymin, ymax), (x, y, xmax, ymin, ymax),
+                                   (y, x, ymin, xmin, xmax), (y, x, ymax, xmin, xmax)):
+        du = u[:, b] - u[:, a]
+        s = (line - u[:, a]) / np.where(du != 0.0, du, 1.0)
+        cross = (du != 0.0) & (s >= 0.0) & (s <= 1.0)
+        at = v[:, a] + s * (v[:, b] - v[:, a])
+        cross &= (at >= v_lo - tol) & (at <= v_hi + tol)
+        candidates.append(np.max(np.where(cross, z[:, a] + s * (z[:, b] - z[:, a]), -np.inf), initial=-np.inf))
+    # rectangle corners inside a triangle's (non-degenerate) projection
+    corners = np.stack([x, y, z], axis=-1)
+    for cx, cy in ((xmin, ymin), (xmin, ymax), (xmax, ymin), (xmax, ymax)):
+        height, under = _height_under(corners, np.full(len(x), cx), np.full(len(x), cy))
+        candidates.append(np.max(np.where(under, height, -np.inf), initial=-np.inf))
+    return float(max(candidates))

@@ -1,0 +1,394 @@
+"""Scene preparation at scale: the vectorised OBJ reader, plane grouping, the height grid, terrain
+following and the scene cache, each against independent arithmetic or the line-by-line reader."""
+import math
+import os
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.core.errors import InputError
+from flightsim.platforms import plan
+from flightsim.scenes import cache, meshio
+from flightsim.scenes.height_grid import HeightGrid
+from flightsim.scenes.meshio import COPLANAR_ANGLE_DEG, COPLANAR_OFFSET_M, load_mesh
+from flightsim.scenes.scene import DEFAULT_CRS
+from trajectories import climb_limited, plan_parallel_lines
+
+
+def grid_mesh(z, step=1.0):
+    """Vertices (n·n, 3) and triangles of heights z (n, n) on a square grid of ``step`` [m]."""
+    n = len(z)
+    x, y = np.meshgrid(np.arange(n) * step, np.arange(n) * step, indexing="xy")
+    vertices = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    a = (np.arange(n - 1)[None, :] + n * np.arange(n - 1)[:, None]).ravel()
+    triangles = np.concatenate([np.column_stack([a, a + 1, a + n + 1]), np.column_stack([a, a + n + 1, a + n])])
+    return vertices, triangles
+
+
+def obj_text(vertices, triangles, group="") -> str:
+    head = f"g {group}\n" if group else ""
+    return ("".join(f"v {float(x)!r} {float(y)!r} {float(z)!r}\n" for x, y, z in vertices) + head
+            + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in triangles))
+
+
+# --------------------------------------------------------------------------------------------
+# OBJ reading
+
+
+number = st.floats(-1e6, 1e6, allow_nan=False).map(float)
+spelling = st.sampled_from(["{!r}", "{:.3f}", "{:e}", "{:+.6E}"])
+
+
+@st.composite
+def obj_files(draw):
+    """OBJ text with known vertices, 0-based faces and per-face group names."""
+    n = draw(st.integers(3, 12))
+    vertices = [tuple(draw(number) for _ in range(3)) for _ in range(n)]
+    lines, expected_faces, expected_groups, group = [], [], [], ""
+    newline = draw(st.sampled_from(["\n", "\r\n"]))
+    written = 0
+    for k, v in enumerate(vertices):
+        spelled = [draw(spelling).format(c) for c in v]
+        vertices[k] = tuple(float(c) for c in spelled)  # what the text says, exactly
+        lines.append("v " + " ".join(spelled) + draw(st.sampled_from(["", " 1.0", " # c"])))
+        written += 1
+        if written >= 3 and draw(st.booleans()):
+            if draw(st.booleans()):
+                group = draw(st.sampled_from(["ground", "roof 2", "Road_1", "wall"]))
+                lines.append(draw(st.sampled_from(["g ", "o ", "g  "])) + group)
+            size = draw(st.integers(3, 5))
+            face = [draw(st.integers(0, written - 1)) for _ in range(size)]
+            tokens = []
+            for i in face:
+                head = str(i + 1) if draw(st.booleans()) else str(i - written)
+                tokens.append(head + draw(st.sampled_from(["", "/1", "//2", "/1/2"])))
+            lines.append(draw(st.sampled_from(["f ", "f\t", "  f "])) + " ".join(tokens))
+            lines.append(draw(st.sampled_from(["vt 0 0", "usemtl grass", "# comment", "", "s off"])))
+            expected_faces.append(face)
+            expected_groups.append(group)
+    if not expected_faces:
+        lines.append("f 1 2 3")
+        expected_faces.append([0, 1, 2])
+        expected_groups.append(group)
+    return newline.join(lines) + draw(st.sampled_from(["", newline])), vertices, expected_faces, expected_groups
+
+
+@settings(max_examples=150, deadline=None)
+@given(obj_files())
+def test_vectorised_obj_reader_reads_what_was_written_and_agrees_with_the_line_reader(case):
+    text, vertices, faces, groups = case
+    data = text.encode("utf-8")
+    fast = meshio._read_obj_vectorised(data)
+    assert fast is not None
+    assert np.array_equal(fast["vertices"], np.array(vertices))
+    assert fast["corners"].tolist() == [i for f in faces for i in f]
+    assert fast["sizes"].tolist() == [len(f) for f in faces]
+    names = [""] + list(dict.fromkeys(g for g in groups if g))
+    assert fast["group"].tolist() == [names.index(g) for g in groups]
+    slow = meshio._read_obj_lines(data)
+    for key, value in slow.items():
+        assert np.array_equal(fast[key], value) if isinstance(value, np.ndarray) else fast[key] == value
+
+
+@pytest.mark.parametrize("text", [
+    b"v 0 0 0\x0bv 1 0 0\nv 0 1 0\nf 1 2 3\n",         # a vertical tab breaks lines in Python
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\n\u00a0f 1 2 3\n".encode(),  # a no-break space is whitespace
+    b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 +3\n",
+    b"v 0 0 0\nv 1 0 0\nv 0 1_0 0\nf 1 2 3\n",
+    b"v 0 0 inf\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+])
+def test_unusual_obj_text_goes_to_the_line_reader(text):
+    assert meshio._read_obj_vectorised(text) is None
+    meshio._read_obj(text)  # the line reader takes it (or reports the line)
+
+
+def test_the_common_obj_forms_never_need_the_line_reader(tmp_path, monkeypatch):
+    text = ("# exported\nmtllib a.mtl\no Terrain\nv 0 0 0\nv 10 0 0\nv 10 10 0.5\nv 0 10 0.5\nvt 0 0\nvn 0 0 1\n"
+            "g ground\nusemtl grass\nf 1/1/1 2/1/1 3/1/1\nf -4//1 -2//1 -1//1\n")
+    path = tmp_path / "common.obj"
+    path.write_text(text)
+    monkeypatch.setattr(meshio, "_read_obj_lines", None)
+    scene = load_mesh(path, DEFAULT_CRS)
+    assert len(scene.triangles) == 2 and scene.classification.tolist() == [2, 2]
+
+
+# --------------------------------------------------------------------------------------------
+# Plane grouping
+
+
+def area_weighted_plane(corners):
+    """Independent: unit normal and centroid of triangles (m, 3, 3), each weighted by its area."""
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    normal = cross.sum(axis=0)
+    return normal / np.linalg.norm(normal), (corners.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum()
+
+
+def test_a_curved_surface_splits_into_planes_that_are_planar(tmp_path):
+    """A paraboloid bowl (curvature 1/200 m⁻¹): no plane may bend by more than the tolerances."""
+    xy = np.arange(41) * 5.0 - 100.0
+    x, y = np.meshgrid(xy, xy)
+    vertices, triangles = grid_mesh((x * x + y * y) / 400.0, 5.0)
+    path = tmp_path / "bowl.obj"
+    path.write_text(obj_text(vertices, triangles, "ground"))
+    scene = load_mesh(path, DEFAULT_CRS)
+    assert 10 < len(scene.planes) < len(scene.triangles)
+    cos_limit = math.cos(math.radians(COPLANAR_ANGLE_DEG))
+    for plane in range(len(scene.planes)):
+        corners = scene.vertices[scene.triangles[scene.plane_id == plane]]
+        normal, centroid = area_weighted_plane(corners)
+        assert np.abs((corners - centroid) @ normal).max() <= COPLANAR_OFFSET_M + 1e-9
+        own = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        assert np.all(own @ normal / np.linalg.norm(own, axis=1) >= cos_limit - 1e-12)
+
+
+@pytest.mark.parametrize("gap, planes", [(0.0, 1), (0.02, 1), (0.2, 2)])
+def test_pieces_of_one_group_apart_merge_only_when_coplanar(tmp_path, gap, planes):
+    """Two squares of the group "ground", 10 m apart, the second raised by ``gap`` [m]."""
+    body = "v 0 0 0\nv 10 0 0\nv 10 10 0\nv 0 10 0\n"
+    body += "".join(f"v {x} {y} {gap}\n" for x, y in ((20, 0), (30, 0), (30, 10), (20, 10)))
+    body += "g ground\nf 1 2 3\nf 1 3 4\nf 5 6 7\nf 5 7 8\n"
+    path = tmp_path / f"apart_{gap}.obj"
+    path.write_text(body)
+    assert len(load_mesh(path, DEFAULT_CRS).planes) == planes
+
+
+def test_planes_none_keeps_one_label_per_group_and_is_not_planar(tmp_path):
+    xy = np.arange(11) * 5.0
+    x, y = np.meshgrid(xy, xy)
+    vertices, triangles = grid_mesh((x * x + y * y) / 100.0, 5.0)
+    path = tmp_path / "terrain.obj"
+    path.write_text(obj_text(vertices, triangles, "ground"))
+    scene = load_mesh(path, DEFAULT_CRS, planes="none")
+    assert len(scene.planes) == 1 and np.all(scene.plane_id == 0) and np.all(scene.classification == 2)
+    assert not scene.planar and load_mesh(path, DEFAULT_CRS).planar
+    with pytest.raises(InputError) as info:
+        load_mesh(path, DEFAULT_CRS, planes="some")
+    assert info.value.field == "scene.planes"
+    cfg = RunConfig()
+    set_value(cfg, "scene.planes", "flat")
+    with pytest.raises(InputError) as info:
+        validate(cfg)
+    assert info.value.field == "scene.planes"
+
+
+# --------------------------------------------------------------------------------------------
+# Height grid
+
+
+def clipped_top(tri, xmin, ymin, xmax, ymax):
+    """Independent: the highest z of a triangle clipped to the rectangle (Sutherland–Hodgman)."""
+    polygon = [np.asarray(p, dtype=np.float64) for p in tri]
+    for axis, bound, keep_below in ((0, xmin, False), (0, xmax, True), (1, ymin, False), (1, ymax, True)):
+        inside = (lambda p: p[axis] <= bound) if keep_below else (lambda p: p[axis] >= bound)
+        out = []
+        for k, p in enumerate(polygon):
+            q = polygon[k - 1]
+            if inside(p) != inside(q):
+                out.append(q + (bound - q[axis]) / (p[axis] - q[axis]) * (p - q))
+            if inside(p):
+                out.append(p)
+        polygon = out
+        if not polygon:
+            return -math.inf
+    return max(p[2] for p in polygon)
+
+
+def rough_terrain(n=30, seed=3):
+    rng = np.random.default_rng(seed)
+    return grid_mesh(rng.normal(0.0, 3.0, (n, n)), 2.0)
+
+
+def test_height_grid_bounds_and_exact_tops_over_rectangles():
+    vertices, triangles = rough_terrain()
+    grid = HeightGrid.build(vertices, triangles)
+    corners = vertices[triangles]
+    rng = np.random.default_rng(7)
+    rects = []
+    for _ in range(40):
+        x0, y0 = rng.uniform(-5, 60, 2)
+        w, h = rng.uniform(0, 15, 2)
+        rects.append((x0, y0, x0 + w, y0 + h))
+    tops = grid.tops(rects)
+    for rect, top in zip(rects, tops):
+        expected = max(clipped_top(t, *rect) for t in corners)
+        assert top == pytest.approx(expected, abs=1e-9)
+        assert grid.top_bound(*rect) >= expected
+
+
+def test_ground_height_is_the_surface_under_each_point():
+    """A tilted plane z = 0.3x − 0.2y + 5 with a hole: the grid reads the plane, NaN off the mesh."""
+    xy = np.arange(21) * 3.0
+    x, y = np.meshgrid(xy, xy)
+    vertices, triangles = grid_mesh(0.3 * x - 0.2 * y + 5.0, 3.0)
+    hole = np.all(vertices[triangles][:, :, :2].mean(axis=1) // 3.0 == [10, 10], axis=1)
+    grid = HeightGrid.build(vertices, triangles[~hole])
+    rng = np.random.default_rng(1)
+    px, py = rng.uniform(0, 60, 500), rng.uniform(0, 60, 500)
+    in_hole = (px // 3.0 == 10) & (py // 3.0 == 10)
+    height = grid.ground_height(px, py)
+    assert np.allclose(height[~in_hole], 0.3 * px[~in_hole] - 0.2 * py[~in_hole] + 5.0, atol=1e-9)
+    assert np.all(np.isnan(height[in_hole]))
+    assert np.isnan(grid.ground_height(-1.0, 5.0)) and np.isnan(grid.ground_height(5.0, 61.0))
+
+
+# --------------------------------------------------------------------------------------------
+# Terrain following
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-50, 50), min_size=2, max_size=30), st.floats(0.01, 2.0))
+def test_climb_limited_profile_is_the_least_one_above_the_heights(heights, grade):
+    along = np.cumsum(np.r_[0.0, np.full(len(heights) - 1, 7.0)])
+    z = climb_limited(along, heights, grade)
+    brute = [max(h - grade * abs(a - b) for h, b in zip(heights, along)) for a in along]
+    assert z == pytest.approx(brute, abs=1e-9)
+    assert np.all(z >= np.asarray(heights) - 1e-9)
+    assert np.all(np.abs(np.diff(z)) <= grade * 7.0 + 1e-9)
+
+
+def ridge_config(tmp_path, **settings):
+    """A ridge along x (height 40 m at y = 0, slope 1:5 on either side) as OBJ, flown north-south."""
+    xy = np.arange(61) * 10.0 - 300.0
+    x, y = np.meshgrid(xy, xy)
+    vertices, triangles = grid_mesh(np.maximum(40.0 - np.abs(y) / 5.0, 0.0), 10.0)
+    path = tmp_path / "ridge.obj"
+    path.write_text(obj_text(vertices - [300.0, 300.0, 0.0], triangles, "ground"))
+    cfg = RunConfig()
+    for key, value in {"scene.name": str(path), "scene.origin": "0,0,0", "scene.planes": "none",
+                       "flight.altitude_m": "100", "flight.duration_s": "9", "flight.speed_kmh": "200",
+                       "run.scene_cache": "false", **settings}.items():
+        set_value(cfg, key, value)
+    return validate(cfg)
+
+
+def test_terrain_following_keeps_the_altitude_over_the_ground_within_the_climb_rate(tmp_path):
+    cfg = ridge_config(tmp_path, **{"flight.terrain_following": "true"})
+    scene = plan.build_scene(cfg)
+    (line,) = plan.flight_trajectories(cfg, scene)
+    north = line.position[:, 1] - scene.origin[1]
+    ground = np.maximum(40.0 - np.abs(north) / 5.0, 0.0)  # the ridge, in closed form
+    above = line.position[:, 2] - ground  # world heights
+    assert np.all(above >= 100.0 - 1e-6)
+    speed = 200.0 / 3.6
+    climb = np.abs(np.diff(line.position[:, 2])) / np.diff(line.gps_time)
+    assert np.all(climb <= plan.MAX_CLIMB_MPS + 1e-6)
+    assert np.any(above < 100.0 + 1e-6)  # it does come down to the altitude where the slope allows
+    assert np.ptp(line.position[:, 2]) > 10.0 and speed * 9.0 > 400.0
+
+
+def test_without_terrain_following_the_lines_are_the_planned_straight_lines(tmp_path):
+    cfg = ridge_config(tmp_path)
+    scene = plan.build_scene(cfg)
+    (line,) = plan.flight_trajectories(cfg, scene)
+    lo, hi = scene.bounds()
+    centre = scene.local_to_world([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, scene.ground_z])
+    (planned,) = plan_parallel_lines(centre[0], centre[1], 0.0, 500.0, 100.0, 1, 200.0, speed_mps=200.0 / 3.6,
+                                     start_gps_time=cfg.flight.start_gps_time)
+    expected = planned.trajectory(ground_height_m=centre[2])
+    assert np.array_equal(line.position, expected.position) and np.array_equal(line.gps_time, expected.gps_time)
+
+
+def test_a_line_too_low_for_the_terrain_is_refused(tmp_path):
+    cfg = ridge_config(tmp_path, **{"flight.altitude_m": "20"})
+    scene = plan.build_scene(cfg)
+    with pytest.raises(InputError) as info:
+        plan.flight_trajectories(cfg, scene)
+    assert info.value.field == "flight.altitude_m"
+
+
+# --------------------------------------------------------------------------------------------
+# Scene cache
+
+
+def cached_config(tmp_path, monkeypatch):
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "cache"))
+    vertices, triangles = rough_terrain(12)
+    path = tmp_path / "terrain.obj"
+    path.write_text(obj_text(vertices, triangles, "ground"))
+    cfg = RunConfig()
+    set_value(cfg, "scene.name", str(path))
+    set_value(cfg, "scene.origin", "500000,3400000,100")
+    return validate(cfg), path
+
+
+def same_scene(a, b):
+    for name in ("origin", "vertices", "triangles", "plane_id", "classification"):
+        assert np.array_equal(getattr(a, name), getattr(b, name))
+    assert (a.name, a.ground_z, a.planar, a.dropped_degenerate) == (b.name, b.ground_z, b.planar, b.dropped_degenerate)
+    assert a.crs == b.crs and len(a.planes) == len(b.planes)
+    for p, q in zip(a.planes, b.planes):
+        assert (p.id, p.kind, p.classification, p.building) == (q.id, q.kind, q.classification, q.building)
+        assert np.array_equal(p.normal, q.normal) and np.array_equal(p.point, q.point)
+
+
+def refuse_to_load(*args, **kwargs):
+    raise AssertionError("the scene should have come from the cache")
+
+
+def test_a_second_run_reads_the_scene_from_the_cache(tmp_path, monkeypatch):
+    cfg, _ = cached_config(tmp_path, monkeypatch)
+    fresh = plan.build_scene(cfg)
+    entries = list((tmp_path / "cache").glob("*.npz"))
+    assert len(entries) == 1 and not list((tmp_path / "cache").glob(".*"))  # no temporary left
+    monkeypatch.setattr(plan, "load_mesh", refuse_to_load)
+    same_scene(plan.build_scene(cfg), fresh)
+
+
+def test_a_changed_file_or_option_is_read_afresh(tmp_path, monkeypatch):
+    cfg, path = cached_config(tmp_path, monkeypatch)
+    plan.build_scene(cfg)
+    text = path.read_text()
+    path.write_text(text.replace("g ground", "g roof"))  # same size, new time and content
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
+    assert np.all(plan.build_scene(cfg).classification == 6)
+    set_value(cfg, "scene.planes", "none")
+    assert not plan.build_scene(cfg).planar
+
+
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "other_key"])
+def test_a_damaged_entry_is_never_trusted(tmp_path, monkeypatch, damage):
+    cfg, path = cached_config(tmp_path, monkeypatch)
+    fresh = plan.build_scene(cfg)
+    (entry,) = (tmp_path / "cache").glob("*.npz")
+    data = entry.read_bytes()
+    if damage == "garbage":
+        entry.write_bytes(b"not a zip file" * 10)
+    elif damage == "truncated":
+        entry.write_bytes(data[: len(data) // 2])
+    else:  # a valid entry made for another key, under this entry's name
+        other = tmp_path / "other.obj"
+        other.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+        cache.cached_scene(other, {}, lambda: load_mesh(other, DEFAULT_CRS), tmp_path / "elsewhere")
+        entry.write_bytes(next((tmp_path / "elsewhere").glob("*.npz")).read_bytes())
+    calls = []
+    real = plan.load_mesh
+    monkeypatch.setattr(plan, "load_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
+    same_scene(plan.build_scene(cfg), fresh)
+    assert calls == [1]
+    monkeypatch.setattr(plan, "load_mesh", refuse_to_load)  # the entry was written again
+    same_scene(plan.build_scene(cfg), fresh)
+
+
+def test_an_unwritable_cache_or_scene_cache_off_still_loads(tmp_path, monkeypatch):
+    cfg, _ = cached_config(tmp_path, monkeypatch)
+    (tmp_path / "cache").write_text("a file where the folder should be")
+    first = plan.build_scene(cfg)
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "unused"))
+    set_value(cfg, "run.scene_cache", "false")
+    same_scene(plan.build_scene(cfg), first)
+    assert not (tmp_path / "unused").exists()
+
+
+def test_entries_of_vanished_sources_are_removed(tmp_path, monkeypatch):
+    cfg, path = cached_config(tmp_path, monkeypatch)
+    plan.build_scene(cfg)
+    path.unlink()
+    other = tmp_path / "other.obj"
+    other.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    set_value(cfg, "scene.name", str(other))
+    plan.build_scene(cfg)
+    assert [p.name.split("-")[0] for p in (tmp_path / "cache").glob("*.npz")] == ["other"]
