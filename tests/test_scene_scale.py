@@ -115,6 +115,30 @@ def test_the_common_obj_forms_never_need_the_line_reader(tmp_path, monkeypatch):
     assert len(scene.triangles) == 2 and scene.classification.tolist() == [2, 2]
 
 
+def test_ascii_ply_faces_of_one_size_are_read_at_once_and_still_refuse_non_integers(tmp_path, monkeypatch):
+    vertices, triangles = rough_terrain(6)
+    head = (f"ply\nformat ascii 1.0\nelement vertex {len(vertices)}\nproperty double x\nproperty double y\n"
+            f"property double z\nelement face {len(triangles)}\nproperty list uchar int vertex_indices\n"
+            "property uchar classification\nend_header\n")
+    body = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist())
+    body += "".join(f"3 {a} {b} {c} 2\n" for a, b, c in triangles.tolist())
+    path = tmp_path / "terrain.ply"
+    path.write_text(head + body)
+    read_at_once = []
+    one_size = meshio._ply_ascii_uniform_lists
+    monkeypatch.setattr(meshio, "_ply_ascii_uniform_lists",
+                        lambda *args: read_at_once.append(one_size(*args)) or read_at_once[-1])
+    raw = meshio._read(path)
+    assert len(read_at_once) == 1 and read_at_once[0] is not None  # the faces, not row by row
+    assert np.array_equal(raw["vertices"], vertices) and raw["corners"].tolist() == triangles.reshape(-1).tolist()
+    assert np.all(raw["classification"] == 2) and np.all(raw["sizes"] == 3)
+    monkeypatch.undo()
+    path.write_text(head + body.replace(f"3 {triangles[0, 0]} ", f"3 {triangles[0, 0]}.0 ", 1))
+    with pytest.raises(InputError) as info:
+        load_mesh(path, DEFAULT_CRS)
+    assert "int()" in info.value.allowed
+
+
 # --------------------------------------------------------------------------------------------
 # Plane grouping
 

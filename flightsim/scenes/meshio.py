@@ -453,6 +453,9 @@ def _ply_ascii_element(element: dict, tokens: list[str], cursor: int) -> tuple[d
             raise _MeshFormatError(f"PLY element {element['name']!r} is truncated")
         table = np.array(tokens[cursor:cursor + n], dtype=np.float64).reshape(count, len(props))
         return {p["name"]: table[:, k] for k, p in enumerate(props)}, cursor + n
+    fast = _ply_ascii_uniform_lists(element, tokens, cursor)
+    if fast is not None:
+        return fast
     columns: dict[str, list] = {p["name"]: [] for p in props}
     for _ in range(count):
         for p in props:
@@ -466,6 +469,36 @@ def _ply_ascii_element(element: dict, tokens: list[str], cursor: int) -> tuple[d
                 columns[p["name"]].append(np.array([int(t) for t in tokens[cursor + 1:cursor + 1 + length]]))
                 cursor += 1 + length
     return {name: (v if _is_list(props, name) else np.asarray(v)) for name, v in columns.items()}, cursor
+
+
+def _ply_ascii_uniform_lists(element: dict, tokens: list[str], cursor: int):
+    """Fast path: every list of the element has the length found in its first row and holds
+    integers. Returns (columns, new cursor), or None (the caller then parses row by row, and
+    reports what is wrong)."""
+    props, count = element["properties"], element["count"]
+    columns, width = [], 0
+    try:
+        for p in props:
+            columns.append((p, width))
+            width += 1 if p["list"] is None else 1 + int(tokens[cursor + width])
+        if count == 0 or cursor + count * width > len(tokens):
+            return None
+        table = np.array(tokens[cursor:cursor + count * width], dtype=np.float64).reshape(count, width)
+    except (ValueError, IndexError):
+        return None
+    result = {}
+    for (p, k), end in zip(columns, [k for _, k in columns[1:]] + [width]):
+        if p["list"] is None:
+            result[p["name"]] = table[:, k]
+            continue
+        values = table[:, k + 1:end]
+        rows = slice(cursor, cursor + count * width, width)
+        spelled = "".join("".join(tokens[rows.start + j:rows.stop:width]) for j in range(k + 1, end))
+        integers = not any(c in spelled for c in ".eEnN") and np.all(np.abs(values) < 2.0**53)
+        if end - k - 1 <= 0 or np.any(table[:, k] != end - k - 1) or not integers:
+            return None
+        result[p["name"]] = values.astype(np.int64)
+    return result, cursor + count * width
 
 
 def _is_list(props: list[dict], name: str) -> bool:
