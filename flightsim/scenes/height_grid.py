@@ -38,7 +38,7 @@ class HeightGrid:
         top: (rows, columns) highest vertex z of each cell's triangles [m]; −inf for an empty cell.
         start: (rows·columns + 1,) cell c lists triangles members[start[c]:start[c + 1]].
         members: triangle indices, cell after cell.
-        corners: (T, 3, 3) triangle corners [m].
+        vertices, triangles: the mesh, (V, 3) [m] and (T, 3) indices (the scene's arrays, not copies).
     """
 
     x0: float
@@ -47,7 +47,8 @@ class HeightGrid:
     top: np.ndarray
     start: np.ndarray
     members: np.ndarray
-    corners: np.ndarray
+    vertices: np.ndarray
+    triangles: np.ndarray
 
     @classmethod
     def build(cls, vertices: np.ndarray, triangles: np.ndarray) -> "HeightGrid":
@@ -75,7 +76,7 @@ class HeightGrid:
         top = np.full(rows * cols, -np.inf)
         filled = np.flatnonzero(start[1:] > start[:-1])
         top[filled] = np.maximum.reduceat(hi[members, 2], start[filled])
-        return cls(x0, y0, cell, top.reshape(rows, cols), start, members, corners)
+        return cls(x0, y0, cell, top.reshape(rows, cols), start, members, vertices, triangles)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -107,7 +108,7 @@ class HeightGrid:
         count = np.where(inside, self.start[cell + 1] - self.start[cell], 0)
         point = np.repeat(np.arange(len(px)), count)
         k = np.arange(len(point)) - np.repeat(np.cumsum(count) - count, count)
-        c = self.corners[self.members[self.start[cell[point]] + k]]
+        c = self.vertices[self.triangles[self.members[self.start[cell[point]] + k]]]
         height, under = _height_under(c, px[point], py[point])
         best = np.full(len(px), -np.inf)
         np.maximum.at(best, point[under], height[under])
@@ -145,7 +146,7 @@ class HeightGrid:
         count = self.start[cells + 1] - self.start[cells]
         k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
         triangles = np.unique(self.members[np.repeat(self.start[cells], count) + k])
-        corners = self.corners[triangles]
+        corners = self.vertices[self.triangles[triangles]]
         lo, hi = corners.min(axis=1), corners.max(axis=1)
         over = (hi[:, 0] >= xmin) & (lo[:, 0] <= xmax) & (hi[:, 1] >= ymin) & (lo[:, 1] <= ymax)
         if not np.any(over):
