@@ -7,10 +7,7 @@ COPC 1.0 specification, and with copc.js under node (``Copc.create``, ``loadHier
 """
 from __future__ import annotations
 
-import json
-import shutil
 import struct
-import subprocess
 from pathlib import Path
 
 import laspy
@@ -19,6 +16,7 @@ import numpy as np
 import pyproj
 import pytest
 
+from copcjs import read_with_copcjs
 from flightsim.core.config import RunConfig, load_toml, set_value, to_toml, validate
 from flightsim.core.errors import InputError
 from flightsim.engine.run import simulate_to_directory
@@ -26,7 +24,6 @@ from flightsim.outputs import copc as copc_module
 from flightsim.outputs.copc import NODE_GRID, write_copc
 from flightsim.outputs.las_tiles import read_points
 
-JS_DIR = Path(__file__).parent / "js"
 MM = 1e-3
 SMALL_CAP = 200  # points per node in the deep octree written from the run's tiles
 EXTRAS = ("beam_row", "beam_col", "prism_angle", "range", "plane_id", "edge_distance")
@@ -259,23 +256,11 @@ def test_level_query_streams_root_first(run):
 # ---------------------------------------------------------------- copc.js
 
 
-def _read_with_copcjs(path: Path) -> dict:
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("node (v18+) is needed for the copc.js COPC reader check")
-    if not (JS_DIR / "node_modules" / "copc").is_dir():
-        pytest.fail(f"copc.js is not installed: run `npm ci --prefix {JS_DIR}`")
-    result = subprocess.run([node, str(JS_DIR / "read_copc.js"), str(path)],
-                            capture_output=True, text=True, timeout=120)
-    assert result.returncode == 0, result.stderr
-    return json.loads(result.stdout)
-
-
 @pytest.mark.parametrize("which", ["run", "deep"])
 def test_copcjs_reads_every_point_crs_and_extra_bytes(run, which):
     directory, summary, deep = run
     path = deep if which == "deep" else directory / "exact.copc.laz"
-    got = _read_with_copcjs(path)
+    got = read_with_copcjs("read_copc.js", path)
     header, pts = got["header"], got["points"]
     assert header["pointCount"] == summary["points"]["exact"] == len(pts["X"])
     assert pyproj.CRS.from_wkt(got["wkt"]).to_epsg() == 32648

@@ -7,9 +7,6 @@ LASzip through the ``laszip`` pip package, and copc.js under node) read the same
 from __future__ import annotations
 
 import datetime
-import json
-import shutil
-import subprocess
 from pathlib import Path
 
 import laspy
@@ -17,12 +14,12 @@ import numpy as np
 import pyproj
 import pytest
 
+from copcjs import read_with_copcjs
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_tiles import PointBatch, TileWriter, gps_week_date, read_points
 
 UTM48N = pyproj.CRS.from_epsg(32648)
 CREATED = datetime.date(2021, 3, 17)
-JS_DIR = Path(__file__).parent / "js"
 EXTRA_SCHEMA = {  # LAS name -> (copc.js type, bytes, PointBatch field)
     "beam_row": ("unsigned", 1, "beam_row"),
     "beam_col": ("unsigned", 1, "beam_col"),
@@ -301,26 +298,13 @@ def test_independent_reader_laszip(tmp_path, compress):
 # ---------------------------------------------------------------- independent reader 2: copc.js
 
 
-def _read_with_copcjs(path: Path) -> dict:
-    node = shutil.which("node")
-    if node is None:
-        pytest.fail("node (v18+) is needed for the copc.js LAS reader check; install Node.js")
-    if not (JS_DIR / "node_modules" / "copc").is_dir():
-        pytest.fail(f"copc.js is not installed: run `npm ci --prefix {JS_DIR}`")
-    result = subprocess.run(
-        [node, str(JS_DIR / "read_las.js"), str(path)], capture_output=True, text=True, timeout=120
-    )
-    assert result.returncode == 0, result.stderr
-    return json.loads(result.stdout)
-
-
 @pytest.mark.parametrize("compress", [False, True], ids=["las", "laz"])
 def test_independent_reader_copcjs(tmp_path, compress):
     batch = random_batch(1200, position_error=True)
     write_tiles(tmp_path, batch, compress=compress, extras=("position_error",))
     seen = 0
     for path in sorted(tmp_path.iterdir()):
-        got = _read_with_copcjs(path)
+        got = read_with_copcjs("read_las.js", path)
         header, pts = got["header"], got["points"]
         east, north = (float(v) for v in path.stem.split("_"))
         want = points_of_tile(batch, path.stem)
