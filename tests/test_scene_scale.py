@@ -15,6 +15,7 @@ from flightsim.scenes import cache, meshio
 from flightsim.scenes.height_grid import HeightGrid
 from flightsim.scenes.meshio import COPLANAR_ANGLE_DEG, COPLANAR_OFFSET_M, load_mesh
 from flightsim.scenes.scene import DEFAULT_CRS
+from test_properties import clipped_top  # the exact terrain top over a rectangle, by polygon clipping
 from trajectories import climb_limited, plan_parallel_lines
 
 
@@ -201,24 +202,6 @@ def test_planes_none_keeps_one_label_per_group_and_is_not_planar(tmp_path):
 
 # --------------------------------------------------------------------------------------------
 # Height grid
-
-
-def clipped_top(tri, xmin, ymin, xmax, ymax):
-    """Independent: the highest z of a triangle clipped to the rectangle (Sutherland–Hodgman)."""
-    polygon = [np.asarray(p, dtype=np.float64) for p in tri]
-    for axis, bound, keep_below in ((0, xmin, False), (0, xmax, True), (1, ymin, False), (1, ymax, True)):
-        inside = (lambda p: p[axis] <= bound) if keep_below else (lambda p: p[axis] >= bound)
-        out = []
-        for k, p in enumerate(polygon):
-            q = polygon[k - 1]
-            if inside(p) != inside(q):
-                out.append(q + (bound - q[axis]) / (p[axis] - q[axis]) * (p - q))
-            if inside(p):
-                out.append(p)
-        polygon = out
-        if not polygon:
-            return -math.inf
-    return max(p[2] for p in polygon)
 
 
 def rough_terrain(n=30, seed=3):
