@@ -1,9 +1,19 @@
-"""Shared fixtures: every kernel test runs on each available device (CPU always, CUDA when present)."""
+"""Shared fixtures: every kernel test runs on each available device (CPU always, CUDA when present).
+
+Scenes read from files are cached in a folder of this test session (removed at exit), never in the
+user's ``~/.cache/flightsim``: a test must not reuse, or leave behind, an entry of another run.
+"""
+import atexit
 import os
+import shutil
+import tempfile
 
 import pytest
 
 os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.dirname(__file__), "..", ".warp-cache"))
+_SCENE_CACHE = tempfile.mkdtemp(prefix="flightsim-test-scenes-")
+os.environ["FLIGHTSIM_CACHE"] = _SCENE_CACHE
+atexit.register(shutil.rmtree, _SCENE_CACHE, ignore_errors=True)
 
 
 def _devices() -> list[str]:
