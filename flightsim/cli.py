@@ -128,10 +128,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(f"{summary['waveforms']} waveforms ({summary['subray_returns']} sub-ray returns) from {summary['pulses']} "
               f"pulses in {summary['wall_s']:.2f} s; written to {args.out}")
         return 0
-    rms = ", ".join(f"{m} {v * 1000:.2f} mm" if v is not None else f"{m} n/a" for m, v in summary["rms_m"].items())
+    patches = summary.get("patches")
+    scored = patches or summary
+    rms = ", ".join(f"{m} {v * 1000:.2f} mm" if v is not None else f"{m} n/a" for m, v in scored["rms_m"].items())
     points = ", ".join(f"{n} {m}" for m, n in summary["points"].items())
+    what = f"RMS over {patches['patches']} patches of {patches['patch_m']:g} m" if patches else "plane RMS"
     print(f"{points} points from {summary['pulses']} pulses in {summary['wall_s']:.2f} s; "
-          f"plane RMS: {rms}; written to {args.out}")
+          f"{what}: {rms}; written to {args.out}")
     return 0
 
 

@@ -704,6 +704,32 @@ def plane_codes(
         codes[slot] = face_plane[faces[slot]]
 
 
+@wp.kernel
+def patch_codes(
+    status: wp.array(dtype=wp.int32),
+    points: wp.array(dtype=wp.vec3f),  # the return positions that pick the patch [m, local]
+    edge_distance: wp.array(dtype=wp.float32),
+    edge_buffer: wp.float32,  # > 0: returns nearer a plane boundary than this are left out [m]
+    low: wp.vec2d,  # local (x, y) of the patch grid's lower-left corner [m]
+    patch_m: wp.float64,  # side of a patch [m]
+    nx: wp.int32,  # patches along x
+    ny: wp.int32,  # patches along y
+    codes: wp.array(dtype=wp.int32),  # out: the patch (row-major from ``low``) of a return, else a CODE_*
+):
+    """Points mode on curved ground: the statistics reduction's code of each slot is the square patch
+    holding the return (x, y); returns beyond the grid count in its border patches."""
+    slot = wp.tid()
+    if status[slot] != STATUS_RETURN:
+        codes[slot] = CODE_MISS
+    elif edge_buffer > wp.float32(0.0) and edge_distance[slot] < edge_buffer:
+        codes[slot] = CODE_EDGE
+    else:
+        p = points[slot]
+        i = wp.clamp(int(wp.floor((wp.float64(p[0]) - low[0]) / patch_m)), 0, nx - 1)
+        j = wp.clamp(int(wp.floor((wp.float64(p[1]) - low[1]) / patch_m)), 0, ny - 1)
+        codes[slot] = j * nx + i
+
+
 @wp.func
 def _flush(
     counts: wp.array3d(dtype=wp.int64),

@@ -73,6 +73,8 @@ CASES = [
     ("noise_negative", ["simulate", "--set", "sensor.range_noise_m=-0.1"], "sensor.range_noise_m", "-0.1"),
     ("seed_negative", ["simulate", "--seed", "-1"], "run.seed", "-1"),
     ("tile_size_zero", ["simulate", "--set", "output.tile_size_m=0"], "output.tile_size_m", "0"),
+    ("patches_too_many", ["simulate", "--set", "scoring.patch_m=0.05"], "scoring.patch_m", "0.05"),
+    ("patch_negative", ["simulate", "--set", "scoring.patch_m=-5"], "scoring.patch_m", "-5"),
     ("no_lines", ["simulate", "--set", "flight.lines=0"], "flight.lines", "0"),
     ("no_models", ["simulate", "--models", ","], "output.models", "''"),
     ("origin_two_numbers", ["simulate", "--set", "scene.origin=1,2"], "scene.origin", "(1.0, 2.0)"),

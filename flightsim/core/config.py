@@ -266,6 +266,8 @@ class ScoringConfig:
     """How plane fits are scored (SPEC §9)."""
 
     edge_buffer_m: float = field(default=-1.0, metadata=_num(-1.0, 1000.0, "m; -1 = automatic"))
+    patch_m: float = field(default=0.0, metadata=_num(0.0, 100000.0, "m, side of the square patches a LAS run "
+                                                      "fits; 0 = 25 m on a curved scene, none on a planar one"))
 
 
 @dataclass

@@ -13,6 +13,9 @@ from flightsim.scenes.edges import edge_buffer_m
 from flightsim.core.errors import InputError
 from flightsim.platforms.plan import build_scene, flight_trajectories
 
+PATCH_RASTER = "patch_rms.tif"
+"""Per-patch fit RMS of a LAS run over curved ground (:class:`flightsim.outputs.consumers.PatchStatistics`)."""
+
 
 def prepare_output(directory: Path, cfg_text: str, overwrite: bool) -> None:
     """Make ``directory`` ready for a run, refusing to clobber anything that is not ours to replace.
@@ -44,7 +47,7 @@ def _remove_run(directory: Path) -> None:
     """Delete a run's files in an order that a kill at any moment leaves resumable: the completion
     marker summary.json first, the tiles and temporaries next, and run.toml, which names the
     config of the unfinished run, last."""
-    for name in ("summary.json", "photons.h5", *MODELS, *(f"{m}.copc.laz" for m in MODELS)):
+    for name in ("summary.json", "photons.h5", PATCH_RASTER, *MODELS, *(f"{m}.copc.laz" for m in MODELS)):
         target = directory / name
         if target.is_dir():
             shutil.rmtree(target)
@@ -61,13 +64,14 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     scene = build_scene(cfg)
     trajectories = flight_trajectories(cfg, scene)
     # Warp is loaded only for input that passed the checks above, so that bad input fails fast
-    from flightsim.outputs.consumers import PlaneStatistics
+    from flightsim.outputs.consumers import PatchStatistics, PlaneStatistics, patch_grid
     from flightsim.outputs.copc import write_run_copc
     from flightsim.outputs.device_las import DeviceLasOutput
     from flightsim.engine.simulate import Simulator
     from flightsim.core.warp_runtime import resolve_device
 
     resolve_device(cfg.run.device)  # every input is checked before the output directory is touched
+    patches = None if cfg.instrument.detector in ("photon", "waveform") else patch_grid(scene, cfg.scoring.patch_m)
     cfg_text = to_toml(cfg)
     prepare_output(directory, cfg_text, overwrite)
     write_atomic(directory / "run.toml", cfg_text)
@@ -78,11 +82,13 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     buffer = edge_buffer_m(cfg)
     simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
     las = DeviceLasOutput(directory, cfg, simulator, edge_distance=buffer > 0.0)
-    stats = PlaneStatistics(simulator, buffer)
+    planes = PlaneStatistics(simulator, buffer) if scene.planar else None  # curved ground: patches only
+    fits = PatchStatistics(simulator, patches, buffer) if patches is not None else None
+    consumers = [c for c in (planes, fits, las) if c is not None]
 
     def consume(returns):
-        stats(returns)
-        las(returns)
+        for consumer in consumers:
+            consumer(returns)
 
     try:
         counts = simulator.run_device(consume, progress)
@@ -97,7 +103,8 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         "tir_dropped": counts.tir_dropped,
         "misses": counts.misses,
         "wall_s": round(counts.wall_s, 4),
-        "rms_m": stats.rms_m(),
+        "rms_m": planes.rms_m() if planes is not None else {model: None for model in simulator.models},
+        **({"patches": fits.write(directory / PATCH_RASTER, scene)} if fits is not None else {}),
         "edge_buffer_m": buffer,
         **({"apex_angle_deg": cfg.sensor.apex_angle_deg} if cfg.instrument.deflector == "risley" else {}),
         "lines": {str(k): v for k, v in counts.per_line.items()},

@@ -67,12 +67,13 @@ def stamp_terrain(x: np.ndarray, y: np.ndarray, z: np.ndarray, craters, boulders
 
 def surface_scene(name: str, crs, origin, vertices: np.ndarray, triangles: np.ndarray, ground_z: float,
                   normal=(0.0, 0.0, 1.0)) -> Scene:
-    """A Scene of one "surface" face label (class 2; its plane through (0, 0, ground_z) with ``normal``)."""
+    """A Scene of one "surface" face label (class 2; its plane through (0, 0, ground_z) with ``normal``), not
+    planar: a LAS run over it scores patches of the ground, not the whole surface as one plane."""
     plane = plane_info(0, "surface", CLASS_GROUND, normal, (0.0, 0.0, ground_z))
     return Scene(name=name, crs=parse_crs(crs), origin=origin, vertices=vertices, triangles=triangles,
                  plane_id=np.zeros(len(triangles), dtype=np.int32),
                  classification=np.full(len(triangles), CLASS_GROUND, dtype=np.uint8),
-                 planes=[plane], ground_z=ground_z)
+                 planes=[plane], ground_z=ground_z, planar=False)
 
 
 def _power_law(rng: np.random.Generator, count: int, low: float, high: float, exponent: float) -> np.ndarray:

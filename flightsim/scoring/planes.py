@@ -76,6 +76,17 @@ class PlaneMoments:
         """A plane fit for every plane with at least ``min_points`` points."""
         return [self.fit(int(p)) for p in np.flatnonzero(self.count >= min_points)]
 
+    def rms_all(self, min_points: int = 3) -> np.ndarray:
+        """(P,) plane-fit RMS of every plane at once [m] (the least eigenvalue of each centred
+        covariance, batched); NaN for planes with fewer than ``min_points`` points."""
+        rms = np.full(len(self.count), np.nan)
+        keep = np.flatnonzero(self.count >= max(min_points, 3))
+        n = self.count[keep].astype(np.float64)
+        mean = self.first[keep] / n[:, None]
+        covariance = self.second[keep] / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
+        rms[keep] = np.sqrt(np.maximum(np.linalg.eigvalsh(covariance)[:, 0], 0.0))
+        return rms
+
     def fit(self, plane_id: int) -> PlaneFit:
         """Fit one plane from its sums."""
         n = int(self.count[plane_id])
