@@ -4,7 +4,9 @@ coordinates, merged into the DEM's mesh.
 The mesh is read by :func:`flightsim.scenes.meshio.load_mesh` (its faces grouped into planes); every one
 of its triangles becomes class 6 (building), each plane a "roof" (facing up, up to 80° steep), a
 "wall" (steeper) or a "surface" (facing down: a floor), so that plane scoring fits roofs and walls;
-each connected part of the mesh is one building. Every vertex must lie inside the DEM's horizontal
+each connected part of the mesh is one building. When the DEM carries per-triangle reflectance (a
+land-cover raster), the building triangles get class 6's (:data:`flightsim.scenes.landcover.REFLECTANCE`);
+without it they, like the ground, take the run's value. Every vertex must lie inside the DEM's horizontal
 extent, else ``InputError("scene.buildings", ...)``.
 """
 from __future__ import annotations
@@ -14,6 +16,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from flightsim.core.errors import InputError
+from flightsim.scenes.landcover import REFLECTANCE
 from flightsim.scenes.meshio import load_mesh
 from flightsim.scenes.scene import CLASS_BUILDING, Scene, plane_info
 
@@ -39,7 +42,15 @@ def add_buildings(scene: Scene, path: str) -> Scene:
                  plane_id=np.concatenate([scene.plane_id, mesh.plane_id + offset]),
                  classification=np.concatenate([scene.classification,
                                                 np.full(len(mesh.triangles), CLASS_BUILDING, dtype=np.uint8)]),
-                 planes=scene.planes + planes, ground_z=scene.ground_z)
+                 planes=scene.planes + planes, ground_z=scene.ground_z,
+                 reflectance=_reflectance(scene, len(mesh.triangles)))
+
+
+def _reflectance(scene: Scene, n_building: int) -> np.ndarray | None:
+    """The scene's per-triangle reflectance followed by class 6's for ``n_building`` triangles; None if it has none."""
+    if scene.reflectance is None:
+        return None
+    return np.concatenate([scene.reflectance, np.full(n_building, REFLECTANCE[CLASS_BUILDING], dtype=np.float32)])
 
 
 def _check_inside(scene: Scene, vertices: np.ndarray, path: str) -> None:

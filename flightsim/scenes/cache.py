@@ -1,15 +1,15 @@
 """Scenes read from files (meshes, height grids), kept on disk as ``.npz`` so that the next run over
 the same file starts in seconds.
 
-An entry holds the scene's arrays (vertices, triangles, plane ids, classes), its planes, origin,
-CRS (WKT), name and ground height, and the key it was made for: the cache format, the flightsim
-version, the source file's resolved path, size and modification time [ns], and every option that
-shapes the scene (with the size and modification time of any file an option names). An entry is
-used only when its key equals the one asked for and it reads back into a valid scene; anything
-else (missing, stale, truncated, corrupt) is ignored and the scene is loaded afresh and written
-again. Entries are written to a temporary name and renamed, so a reader never sees half an entry;
-entries whose source file is gone are removed when a new one is written. A cache folder that
-cannot be written only costs the saving.
+An entry holds the scene's arrays (vertices, triangles, plane ids, classes, per-triangle reflectance:
+empty when the scene has none), its planes, origin, CRS (WKT), name and ground height, and the key it
+was made for: the cache format, the flightsim version, the source file's resolved path, size and
+modification time [ns], and every option that shapes the scene (with the size and modification
+time of any file an option names). An entry is used only when its key equals the one asked for and
+it reads back into a valid scene; anything else (missing, stale, truncated, corrupt, or of an older
+format) is ignored and the scene is loaded afresh and written again. Entries are written to a
+temporary name and renamed, so a reader never sees half an entry; entries whose source file is gone
+are removed when a new one is written. A cache folder that cannot be written only costs the saving.
 
 The folder is ``$FLIGHTSIM_CACHE``, else ``~/.cache/flightsim/scenes``.
 """
@@ -29,8 +29,8 @@ from flightsim import __version__
 from flightsim.core.errors import InputError
 from flightsim.scenes.scene import PlaneInfo, Scene, parse_crs
 
-CACHE_FORMAT = 1
-"""Bumped whenever the stored arrays or the way scenes are read change meaning."""
+CACHE_FORMAT = 2
+"""Bumped whenever the stored arrays or the way scenes are read change meaning (2: per-triangle reflectance)."""
 
 _PLANE_FIELDS = ("kind", "classification", "normal", "point", "pitch_deg", "azimuth_deg", "building")
 
@@ -94,10 +94,12 @@ def _read_entry(entry: Path, key: str) -> Scene | None:
                                 pitch_deg=float(pitch), azimuth_deg=float(azimuth), building=int(b))
                       for k, (kind, c, n, p, pitch, azimuth, b)
                       in enumerate(zip(*(data[f"plane_{name}"] for name in _PLANE_FIELDS)))]
+            reflectance = data["reflectance"]
             return Scene(name=str(data["name"]), crs=parse_crs(str(data["crs"])), origin=data["origin"],
                          vertices=data["vertices"], triangles=data["triangles"], plane_id=data["plane_id"],
                          classification=data["classification"], planes=planes, ground_z=float(data["ground_z"]),
-                         dropped_degenerate=int(data["dropped_degenerate"]), planar=bool(data["planar"]))
+                         dropped_degenerate=int(data["dropped_degenerate"]), planar=bool(data["planar"]),
+                         reflectance=reflectance if reflectance.size else None)
     except (OSError, EOFError, KeyError, ValueError, TypeError, IndexError, zipfile.BadZipFile, InputError):
         return None
 
@@ -108,6 +110,7 @@ def _write_entry(folder: Path, entry: Path, key: str, scene: Scene) -> None:
         "key": np.array(key), "name": np.array(scene.name), "crs": np.array(scene.crs.to_wkt()),
         "origin": scene.origin, "vertices": scene.vertices, "triangles": scene.triangles,
         "plane_id": scene.plane_id, "classification": scene.classification,
+        "reflectance": np.zeros(0, dtype=np.float32) if scene.reflectance is None else scene.reflectance,
         "ground_z": np.array(scene.ground_z), "dropped_degenerate": np.array(scene.dropped_degenerate),
         "planar": np.array(scene.planar),
         **{f"plane_{name}": np.array([getattr(p, name) for p in scene.planes]) for name in _PLANE_FIELDS},

@@ -36,7 +36,8 @@ def dem_scene(path: str, crs, origin, cell_m: float, simplify_m: float = 0.0, la
               buildings: str = "") -> Scene:
     """The scene of the height grid at ``path`` (.tif/.tiff: its own CRS and geometry; .npy: ``crs``,
     centred on ``origin``, ``cell_m`` [m] apart), simplified to within ``simplify_m`` [m] (0: every cell),
-    classified by the ``landcover`` raster and with the ``buildings`` mesh (paths; "" for none)."""
+    classified by the ``landcover`` raster (which also sets each triangle's reflectance) and with the
+    ``buildings`` mesh (paths; "" for none)."""
     if Path(path).suffix.lower() == ".npy":
         heights, centre, step = _npy(path, cell_m), np.asarray(origin, dtype=np.float64)[:2], (cell_m, cell_m)
     else:
@@ -44,9 +45,10 @@ def dem_scene(path: str, crs, origin, cell_m: float, simplify_m: float = 0.0, la
     scene = grid_scene(Path(path).stem, heights, centre, step, crs, float(np.asarray(origin, dtype=np.float64)[2]),
                        simplify_m)
     if landcover:
-        from flightsim.scenes.landcover import landcover_classes
+        from flightsim.scenes.landcover import landcover_classes, triangle_reflectance
 
         scene.classification = landcover_classes(scene, landcover)
+        scene.reflectance = triangle_reflectance(scene)
     if buildings:
         from flightsim.scenes.buildings import add_buildings
 

@@ -15,9 +15,11 @@ reflectance at near-infrared wavelengths:
 | 11 | road surface | 0.15 |
 
 Triangles whose centroid falls outside the raster or on a nodata pixel keep their class (the DEM's
-ground, 2). The classes reach the LAS classification of every return; the detectors take one
-reflectance per run today (``photon.reflectance``, ``waveform.reflectance``), and
-:func:`triangle_reflectance` gives the per-triangle one for a detector that reads it.
+ground, 2). The classes reach the LAS classification of every return, and their reflectance
+(:func:`triangle_reflectance`) becomes the scene's per-triangle ``Scene.reflectance``, which the
+photon and waveform detectors read at each hit in place of the run's ``photon.reflectance`` and
+``waveform.reflectance`` (the photon detector's lidar equation takes ρ itself; the waveform's eq. 1
+takes its backscatter f = ρ/π).
 """
 from __future__ import annotations
 

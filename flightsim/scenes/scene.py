@@ -2,7 +2,8 @@
 
 A :class:`Scene` holds a triangle mesh in *local* coordinates [m] (world − origin, SPEC §2),
 so that the kernels can use float32 without losing precision. Every triangle belongs to one
-:class:`PlaneInfo` (a planar face: ground, road, roof, wall) and carries its ASPRS class.
+:class:`PlaneInfo` (a planar face: ground, road, roof, wall) and carries its ASPRS class, and may carry
+its own Lambertian reflectance.
 
 Scene builders:
 
@@ -129,6 +130,9 @@ class Scene:
         planar: whether each plane id labels a planar face (False: the ids only label parts of a
             curved surface, e.g. a terrain read with ``scene.planes = "none"``, and a plane fit
             through a part's points measures its curvature, not the points' error).
+        reflectance: (T,) float32 Lambertian albedo ρ of each triangle, in (0, 1] (a land-cover raster's,
+            :mod:`flightsim.scenes.landcover`), read by the photon and waveform detectors; None: every
+            face has the run's configured value (``photon.reflectance``, ``waveform.reflectance``).
     """
 
     name: str
@@ -142,6 +146,7 @@ class Scene:
     ground_z: float
     dropped_degenerate: int = field(default=0)
     planar: bool = field(default=True)
+    reflectance: np.ndarray | None = field(default=None, repr=False)
     _height_grid: HeightGrid | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -172,6 +177,8 @@ class Scene:
                 "scene", f"plane ids {self.plane_id.min()}..{self.plane_id.max()}",
                 f"plane ids in [0, {len(self.planes) - 1}]",
             )
+        if self.reflectance is not None:
+            self.reflectance = _albedos(self.reflectance, n_tri)
         if not isinstance(self.crs, pyproj.CRS):
             self.crs = parse_crs(self.crs)
         self.ground_z = float(self.ground_z)
@@ -510,6 +517,22 @@ def _check_half_extent(half_extent_m: float, minimum: float) -> float:
     if not (math.isfinite(value) and value > minimum):
         raise InputError("scene.half_extent_m", half_extent_m, allowed)
     return value
+
+
+def _albedos(value, n_tri: int) -> np.ndarray:
+    """``value`` as (T,) float32 Lambertian albedos, each in (0, 1], else InputError naming scene.reflectance."""
+    allowed = f"{n_tri} Lambertian albedos in (0, 1], one per triangle"
+    try:
+        given = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("scene.reflectance", value, allowed) from None
+    if given.shape != (n_tri,):
+        raise InputError("scene.reflectance", f"an array of shape {given.shape}", allowed)
+    rho = np.ascontiguousarray(given, dtype=np.float32)
+    bad = np.flatnonzero(~((rho > 0.0) & (rho <= 1.0)))  # NaN fails both
+    if len(bad):
+        raise InputError("scene.reflectance", f"{given[bad[0]]:g} at triangle {bad[0]}", allowed)
+    return rho
 
 
 def _finite_vector3(value, field: str) -> np.ndarray:
