@@ -4,7 +4,8 @@ Per pixel and pulse the photo-electrons arrive as an inhomogeneous Poisson proce
 gate [t_open, t_close] (times of flight [s]) of intensity
     λ(t) = r + n_s · φ((t − t₀)/σ)/σ + n_c · φ((t − t_c)/σ)/σ,
 r the noise rate (solar background plus dark counts) [Hz], n_s the expected signal photo-electrons
-(the lidar equation, :func:`expected_signal`), t₀ the echo's time of flight and σ its spread (the
+(the lidar equation, :func:`expected_signal`, with the Lambertian albedo of the triangle hit when the
+scene has one per triangle, else the run's), t₀ the echo's time of flight and σ its spread (the
 pulse's and the timing jitter, added in quadrature); n_c, t_c a corner-cube retroreflector's echo
 when the footprint lights one (:func:`retro_echo`; the sampler is built without it for scenes that
 have none). The pixel is live at t_open; after each
@@ -237,18 +238,23 @@ def retro_echo(position: wp.vec3d, photons: wp.float64, footprint: wp.float64, s
 
 
 @functools.cache
-def photon_slots_kernel(retro: bool):
-    """The kernel turning a traced chunk's slots into detections, with or without retroreflectors."""
+def photon_slots_kernel(retro: bool, per_face: bool):
+    """The kernel turning a traced chunk's slots into detections, with or without retroreflectors, and with
+    the scene's per-triangle reflectance (``per_face``) or the run's one value."""
 
     @wp.kernel(module="unique")
-    def photon_slots(det: PhotonDetector, reflectance: wp.float64, pulses: wp.array2d(dtype=wp.float64), per_pulse: int,
+    def photon_slots(det: PhotonDetector, reflectance: wp.float64, face_reflectance: wp.array(dtype=wp.float32),
+                     pulses: wp.array2d(dtype=wp.float64), per_pulse: int,
                      status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),
+                     faces: wp.array(dtype=wp.int32),
                      cos_incidence: wp.array(dtype=wp.float32), ccr_positions: wp.array(dtype=wp.vec3d),
                      ccr_photons: wp.float64, footprint: wp.float64, starts: wp.array(dtype=wp.vec3d),
                      directions: wp.array(dtype=wp.vec3d), delays: wp.array(dtype=wp.float32), drift: wp.float64,
                      times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8),
                      counts: wp.array(dtype=wp.int32)):
-        """The detections of each slot of a traced chunk: its return (if any) through the lidar equation, the
+        """The detections of each slot of a traced chunk: its return (if any) through the lidar equation, with
+        the Lambertian albedo of the triangle it hit (``face_reflectance[faces[slot]]``, with ``per_face``)
+        or the run's ``reflectance`` (without; ``face_reflectance`` is then a placeholder), the
         retroreflector its footprint lights most (``ccr_positions``, with ``retro``: ``starts`` and
         ``directions`` the beams' true rays; its range read through the ranging chain's drift and the
         beam's delay, as the surface's), background and dark counts over the whole gate. Keyed by (line
@@ -260,7 +266,10 @@ def photon_slots_kernel(retro: bool):
         echo = det.gate_open
         if status[slot] == STATUS_RETURN:
             r = wp.float64(ranges[slot])
-            n = expected_signal(det, r, wp.float64(cos_incidence[slot]), reflectance)
+            rho = reflectance
+            if wp.static(per_face):
+                rho = wp.float64(face_reflectance[faces[slot]])
+            n = expected_signal(det, r, wp.float64(cos_incidence[slot]), rho)
             echo = wp.float64(2.0) * r / LIGHT_SPEED
         key = (wp.int64(pulses[ROW_PULSE, p]) * wp.int64(per_pulse) + wp.int64(beam)) % wp.int64(2147483647)
         state = wp.rand_init(int(pulses[ROW_SEED, p]) ^ PHOTON_STREAM, int(key))

@@ -6,11 +6,15 @@ sub-ray k leaves along normalize(d + a_k u + b_k v), (a_k, b_k) = tan φ_k (cos 
 local east made normal to d and v = u × d (north for a nadir beam); it is cast against the mesh, its
 range refined on the hit triangle in float64, and its share of the received power
     g_k = w_k · link · cos θ_i / r²,   link = π f T_A² D² η_t η_r / 4     (the patent's eq. 1)
-added to the two samples around its delay 2r/c, split linearly (so each sub-ray's delay is kept to
-first order: its error is below dt²/(8σ²) of the echo). The waveform is then that impulse train
+(f the backscatter of eq. 1, ``waveform.reflectance``; over a scene with a Lambertian albedo ρ per
+triangle, f = ρ/π of the triangle the sub-ray hits, so π f = ρ and g_k = w_k · ρ T_A² D² η_t η_r / 4 ·
+cos θ_i / r²) added to the two samples around its delay 2r/c, split linearly (so each sub-ray's delay
+is kept to first order: its error is below dt²/(8σ²) of the echo). The waveform is then that impulse train
 convolved with the transmitted pulse P(t) = P_max exp(−(t − τ/2)²/2σ²) sampled at multiples of dt
 over ±PULSE_SIGMAS σ: the received power [W] at t = window start + i·dt.
 """
+import functools
+
 import warp as wp
 
 from kernels.frames import ROW_PULSE, ROW_SEED
@@ -28,6 +32,7 @@ class WaveformParams:
     """The waveform detector's constants (SI units)."""
 
     link: wp.float64  # π f T_A² D² η_t η_r / 4: received / transmitted power times r² / cos θ_i [m²]
+    # (per-triangle albedo, deposit_kernel(per_face=True): T_A² D² η_t η_r / 4, times the hit triangle's ρ = π f)
     dt: wp.float64  # sample interval [s]
     samples: wp.int32  # samples per waveform
     sigma: wp.float64  # the pulse's σ [s]
@@ -57,6 +62,7 @@ class MeshRefs:
     vertices64: wp.array(dtype=wp.vec3d)
     indices: wp.array(dtype=wp.int32)
     max_range: wp.float32
+    reflectance: wp.array(dtype=wp.float32)  # Lambertian albedo ρ of each triangle; a placeholder without per_face
 
 
 @wp.func
@@ -109,61 +115,71 @@ def _flush(impulses: wp.array2d(dtype=wp.float64), slot: int, i: int, low: wp.fl
         wp.atomic_add(impulses, slot, i + 1, high)
 
 
-@wp.kernel
-def deposit(m: MeshRefs, p: WaveformParams, starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3d),
-            window_start: wp.array(dtype=wp.float64), offsets: wp.array(dtype=wp.vec2d),
-            weights: wp.array(dtype=wp.float64), per_thread: int, impulses: wp.array2d(dtype=wp.float64),
-            received: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.int32)):
-    """Sub-rays ``group``·per_thread … of beam ``slot``, one after another: each cast, its share of the
-    received power g_k [1] added to the impulse train at its delay (linear split). Consecutive sub-rays
-    landing in the same sample (a ring of a flat footprint) are summed in registers and added once, and
-    the sums below once per thread, so the atomics do not queue on the few samples of a flat echo.
-    ``received[slot]`` gathers Σ g_k inside the window (column 0) and outside it (1), and over the hits
-    Σ w_k z_k [m] (2) and Σ w_k (3): the footprint-weighted mean height (local z). ``span[slot]``
-    narrows to the lowest and highest sample touched (start it at (samples, −1))."""
-    slot, group = wp.tid()
-    t0 = window_start[slot]
-    if t0 < wp.float64(0.0):
-        return
-    inside = wp.float64(0.0)
-    outside = wp.float64(0.0)
-    wz = wp.float64(0.0)
-    w = wp.float64(0.0)
-    run = int(-1)
-    low = wp.float64(0.0)
-    high = wp.float64(0.0)
-    first = int(p.samples)
-    last = int(-1)
-    for k in range(group * per_thread, wp.min((group + 1) * per_thread, offsets.shape[0])):
-        direction = subray_direction(directions[slot], offsets[k])
-        face, r, normal = cast64(m, starts[slot], direction)
-        if face >= 0:
-            g = weights[k] * p.link * wp.abs(wp.dot(normal, direction)) / (r * r)
-            wz += weights[k] * (starts[slot][2] + r * direction[2])
-            w += weights[k]
-            x = (wp.float64(2.0) * r / LIGHT_SPEED - t0) / p.dt
-            i = int(wp.floor(x))
-            f = x - wp.float64(i)
-            if i < 0 or i + 1 >= p.samples:
-                outside += g
-            else:
-                inside += g
-                first = wp.min(first, i)
-                last = wp.max(last, i + 1)
-                if i != run:
-                    _flush(impulses, slot, run, low, high)
-                    run = i
-                    low = wp.float64(0.0)
-                    high = wp.float64(0.0)
-                low += g * (wp.float64(1.0) - f)
-                high += g * f
-    _flush(impulses, slot, run, low, high)
-    wp.atomic_add(received, slot, 0, inside)
-    wp.atomic_add(received, slot, 1, outside)
-    wp.atomic_add(received, slot, 2, wz)
-    wp.atomic_add(received, slot, 3, w)
-    wp.atomic_min(span, slot, 0, first)
-    wp.atomic_max(span, slot, 1, last)
+@functools.cache
+def deposit_kernel(per_face: bool):
+    """The deposit kernel, with each sub-ray's link times the albedo of the triangle it hits (``per_face``:
+    ``m.reflectance``) or the run's one link."""
+
+    @wp.kernel(module="unique")
+    def deposit(m: MeshRefs, p: WaveformParams, starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3d),
+                window_start: wp.array(dtype=wp.float64), offsets: wp.array(dtype=wp.vec2d),
+                weights: wp.array(dtype=wp.float64), per_thread: int, impulses: wp.array2d(dtype=wp.float64),
+                received: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.int32)):
+        """Sub-rays ``group``·per_thread … of beam ``slot``, one after another: each cast, its share of the
+        received power g_k [1] added to the impulse train at its delay (linear split). Consecutive sub-rays
+        landing in the same sample (a ring of a flat footprint) are summed in registers and added once, and
+        the sums below once per thread, so the atomics do not queue on the few samples of a flat echo.
+        ``received[slot]`` gathers Σ g_k inside the window (column 0) and outside it (1), and over the hits
+        Σ w_k z_k [m] (2) and Σ w_k (3): the footprint-weighted mean height (local z). ``span[slot]``
+        narrows to the lowest and highest sample touched (start it at (samples, −1))."""
+        slot, group = wp.tid()
+        t0 = window_start[slot]
+        if t0 < wp.float64(0.0):
+            return
+        inside = wp.float64(0.0)
+        outside = wp.float64(0.0)
+        wz = wp.float64(0.0)
+        w = wp.float64(0.0)
+        run = int(-1)
+        low = wp.float64(0.0)
+        high = wp.float64(0.0)
+        first = int(p.samples)
+        last = int(-1)
+        for k in range(group * per_thread, wp.min((group + 1) * per_thread, offsets.shape[0])):
+            direction = subray_direction(directions[slot], offsets[k])
+            face, r, normal = cast64(m, starts[slot], direction)
+            if face >= 0:
+                link = p.link
+                if wp.static(per_face):
+                    link = p.link * wp.float64(m.reflectance[face])
+                g = weights[k] * link * wp.abs(wp.dot(normal, direction)) / (r * r)
+                wz += weights[k] * (starts[slot][2] + r * direction[2])
+                w += weights[k]
+                x = (wp.float64(2.0) * r / LIGHT_SPEED - t0) / p.dt
+                i = int(wp.floor(x))
+                f = x - wp.float64(i)
+                if i < 0 or i + 1 >= p.samples:
+                    outside += g
+                else:
+                    inside += g
+                    first = wp.min(first, i)
+                    last = wp.max(last, i + 1)
+                    if i != run:
+                        _flush(impulses, slot, run, low, high)
+                        run = i
+                        low = wp.float64(0.0)
+                        high = wp.float64(0.0)
+                    low += g * (wp.float64(1.0) - f)
+                    high += g * f
+        _flush(impulses, slot, run, low, high)
+        wp.atomic_add(received, slot, 0, inside)
+        wp.atomic_add(received, slot, 1, outside)
+        wp.atomic_add(received, slot, 2, wz)
+        wp.atomic_add(received, slot, 3, w)
+        wp.atomic_min(span, slot, 0, first)
+        wp.atomic_max(span, slot, 1, last)
+
+    return deposit
 
 
 @wp.kernel

@@ -153,8 +153,8 @@ class RunCounts:
 
 
 class SceneMeshes:
-    """A scene's acceleration structures on one device, built once: the triangle BVH, and a BVH of
-    the plane-boundary segments for edge-buffer queries (built on first use)."""
+    """A scene's acceleration structures on one device, built once: the triangle BVH, a BVH of the
+    plane-boundary segments for edge-buffer queries and the per-triangle reflectance (both on first use)."""
 
     def __init__(self, scene: Scene, device: str, bvh_constructor: str = "auto", leaf_size: int | None = None):
         self.scene = scene
@@ -172,7 +172,22 @@ class SceneMeshes:
                               wp.array(corners.max(axis=1) + pad, dtype=wp.vec3f, device=device))
         self.padded = wp.Bvh(*self._padded_boxes)
         self._boundary: tuple[wp.Bvh, wp.array, wp.array] | None = None
+        self._reflectance: wp.array | None = None
         self._grids: dict[float, trace.EdgeGrid] = {}
+
+    @property
+    def per_face(self) -> bool:
+        """Whether the scene carries a Lambertian albedo per triangle (else the detectors take the run's value)."""
+        return self.scene.reflectance is not None
+
+    @property
+    def reflectance(self) -> wp.array:
+        """float32 Lambertian albedo of each triangle on the device (uploaded on first use); a one-element
+        placeholder when the scene has none."""
+        if self._reflectance is None:
+            rho = self.scene.reflectance if self.per_face else np.ones(1, dtype=np.float32)
+            self._reflectance = wp.array(rho, dtype=wp.float32, device=self.device)
+        return self._reflectance
 
     @property
     def boundary(self) -> tuple[wp.Bvh, wp.array, wp.array]:
@@ -400,9 +415,10 @@ class Simulator:
                 wp.launch(trace.emit_rays_kernel(self.instrument.kernel, precise=True, pose=self.features.pose),
                           n_slots, inputs=[buffers.pulses, self.scan], outputs=[retro.starts, retro.directions],
                           device=self.device)
-            wp.launch(photon.photon_slots_kernel(retro.count > 0), n_slots,
-                      inputs=[det, self.cfg.photon.reflectance, buffers.pulses, self.beams_per_pulse, buffers.status,
-                              buffers.ranges, buffers.cos_incidence, retro.positions, retro.photons, retro.footprint,
+            wp.launch(photon.photon_slots_kernel(retro.count > 0, self.meshes.per_face), n_slots,
+                      inputs=[det, self.cfg.photon.reflectance, self.meshes.reflectance, buffers.pulses,
+                              self.beams_per_pulse, buffers.status, buffers.ranges, buffers.faces,
+                              buffers.cos_incidence, retro.positions, retro.photons, retro.footprint,
                               retro.starts, retro.directions, self.scan.ranging.delays, self.scan.ranging.drift],
                       outputs=[events.times, events.signal, events.counts], device=self.device)
             found = events.gather(n_slots, buffers.pulses, self.scan, self.instrument.kernel)
@@ -427,7 +443,7 @@ class Simulator:
         started = time.perf_counter()
         counts = RunCounts()
         det = self.instrument.detector
-        params, subrays = det.struct(), det.subrays(self.device)
+        params, subrays = det.struct(self.meshes.per_face), det.subrays(self.device)
         taps, first_lag = det.pulse_taps(self.device)
         refs = self._mesh_refs()
         budget = max(1, WAVEFORM_SAMPLES_PER_CHUNK[self.device_kind] // params.samples)
@@ -450,8 +466,9 @@ class Simulator:
             received.zero_()
             wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[span], device=self.device)
             groups = -(-len(subrays) // kw.SUBRAYS_PER_THREAD)
-            wp.launch(kw.deposit, (n, groups), inputs=[refs, params, starts, directions, window, subrays.offsets,
-                                                       subrays.weights, kw.SUBRAYS_PER_THREAD],
+            wp.launch(kw.deposit_kernel(self.meshes.per_face), (n, groups),
+                      inputs=[refs, params, starts, directions, window, subrays.offsets, subrays.weights,
+                              kw.SUBRAYS_PER_THREAD],
                       outputs=[impulses, received, span], device=self.device)
             wp.launch(kw.convolve, (n, params.samples), inputs=[impulses, span, taps, first_lag], outputs=[power],
                       device=self.device)
@@ -478,6 +495,7 @@ class Simulator:
         refs.mesh, refs.padded = self.meshes.mesh.id, self.meshes.padded.id
         refs.vertices64, refs.indices = self.meshes.vertices64, self.meshes.indices
         refs.max_range = self.cfg.sensor.max_range_m
+        refs.reflectance = self.meshes.reflectance
         return refs
 
     def _waveform_parts(self, chunk: list[Segment], slot: np.ndarray, window: np.ndarray, power: wp.array,

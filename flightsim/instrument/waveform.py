@@ -6,6 +6,11 @@ The sub-ray table (directions as offsets tan φ·(cos θ, sin θ) from the beam 
 share of the pulse energy) is the float64 reference model's footprint
 (:func:`flightsim.instrument.waveform_model.footprint`), so the device and the reference sample the
 same rays.
+
+Eq. 1's backscatter f is ``waveform.reflectance`` on every face, unless the scene carries a Lambertian
+albedo ρ per triangle (``Scene.reflectance``, from a land-cover raster): then each sub-ray's f is ρ/π
+of the triangle it hits (a Lambertian surface's bidirectional reflectance), and ``waveform.reflectance``
+is not used.
 """
 from __future__ import annotations
 
@@ -84,11 +89,16 @@ class WaveformDetector:
         return SubRays(wp.array(offsets, dtype=wp.vec2d, device=device),
                        wp.array(fp.weight, dtype=wp.float64, device=device))
 
-    def struct(self) -> kw.WaveformParams:
+    def struct(self, per_face: bool) -> kw.WaveformParams:
+        """The kernels' constants. ``link`` is eq. 1's π f T_A² D² η_t η_r / 4 with f = ``waveform.reflectance``;
+        with ``per_face`` (the scene carries a Lambertian albedo ρ per triangle, e.g. from land cover) each
+        triangle's backscatter is f = ρ/π, so π f = ρ and ``link`` is T_A² D² η_t η_r / 4, which the deposit
+        kernel multiplies by the hit triangle's ρ (``waveform.reflectance`` is then not used)."""
         s = self.cfg.waveform
         sys = system(s)
         params = kw.WaveformParams()
-        params.link = (np.pi * s.reflectance * s.atmosphere_transmission ** 2 * s.aperture_m ** 2
+        pi_f = 1.0 if per_face else np.pi * s.reflectance  # per face: π f = ρ, applied in the kernel
+        params.link = (pi_f * s.atmosphere_transmission ** 2 * s.aperture_m ** 2
                        * s.transmitter_efficiency * s.receiver_efficiency / 4.0)
         params.dt = s.sample_interval_s
         params.samples = s.samples
