@@ -206,7 +206,8 @@ class PhotonConfig:
     noise_hz: float = field(default=1.0e5, metadata=_num(0.0, 1.0e10, "Hz, background and dark counts per pixel"))
     dead_time_s: float = field(default=5.0e-8, metadata=_num(0.0, 1.0e-3, "s, non-paralyzable"))
     max_events: int = field(default=8, metadata=_num(1, 256, "detections per pixel and pulse", integer=True))
-    reflectance: float = field(default=0.2, metadata=_num(0.0, 1.0, "Lambertian, every face", lo_open=True))
+    reflectance: float = field(default=0.2, metadata=_num(0.0, 1.0, "Lambertian, every face unless scene.landcover "
+                                                                    "sets it", lo_open=True))
 
 
 @dataclass
@@ -227,7 +228,8 @@ class WaveformConfig:
     transmitter_efficiency: float = field(default=1.0, metadata=_num(0.0, 1.0, "η_t", lo_open=True))
     receiver_efficiency: float = field(default=1.0, metadata=_num(0.0, 1.0, "η_r", lo_open=True))
     atmosphere_transmission: float = field(default=1.0, metadata=_num(0.0, 1.0, "T_A, one way", lo_open=True))
-    reflectance: float = field(default=1.0, metadata=_num(0.0, 1.0, "f, backscatter of eq. 1, every face", lo_open=True))
+    reflectance: float = field(default=1.0, metadata=_num(0.0, 1.0, "f, backscatter of eq. 1, every face unless "
+                                                                    "scene.landcover sets it", lo_open=True))
     receiver_fwhm_s: float = field(default=0.0, metadata=_num(0.0, 1.0e-6, "s, Gaussian impulse response; 0 = none"))
     shot_noise: bool = False  # Poisson photo-electrons of signal and background in every sample
     wavelength_nm: float = field(default=1064.0, metadata=_num(100.0, 20000.0, "nm"))

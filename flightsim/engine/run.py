@@ -144,6 +144,7 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
         raise
     summary = {
         **_summary_head(cfg, simulator, counts),
+        "reflectance": _reflectance(cfg, scene, cfg.photon.reflectance),
         "photons": writer.count,
         "signal_photons": writer.signal,
         "photon_tiles": las.tiles,
@@ -174,6 +175,7 @@ def _waveforms_to_directory(cfg: RunConfig, scene, trajectories, directory: Path
         raise
     summary = {
         **_summary_head(cfg, simulator, counts),
+        "reflectance": _reflectance(cfg, scene, cfg.waveform.reflectance),
         "waveforms": writer.shots,
         "subray_returns": counts.returns,
         "returns": int(sum(len(r) for r in writer.returns)),
@@ -183,6 +185,14 @@ def _waveforms_to_directory(cfg: RunConfig, scene, trajectories, directory: Path
     }
     write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def _reflectance(cfg: RunConfig, scene, value: float) -> float | str:
+    """Where a photon or waveform run's reflectance came from: the scene's per-triangle albedo (a land-cover
+    raster's, or the scene's own), else the run's one ``value`` (ρ, or the waveform's f)."""
+    if scene.reflectance is None:
+        return value
+    return "per triangle (land cover)" if cfg.scene.landcover else "per triangle (scene)"
 
 
 def _summary_head(cfg: RunConfig, simulator, counts) -> dict:
