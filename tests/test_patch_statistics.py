@@ -171,3 +171,14 @@ def test_too_many_patches_are_refused_before_anything_is_written(dem, tmp_path):
     auto = patch_grid(scene, 0.0)
     assert auto.nx * auto.ny <= MAX_PATCHES
     assert auto.nx == math.ceil((high[0] - low[0]) / AUTO_PATCH_M)
+
+
+def test_buildings_on_a_dem_keep_it_curved(tmp_path):
+    from flightsim.scenes import testdem
+    from flightsim.scenes.dem import dem_scene
+
+    paths = testdem.write(tmp_path, size_m=400.0, cell_m=4.0)
+    bare = dem_scene(str(paths["dem"]), "EPSG:32648", (E0, N0, H0), 0.0)
+    built = dem_scene(str(paths["dem"]), "EPSG:32648", (E0, N0, H0), 0.0, buildings=str(paths["buildings"]))
+    assert len(built.triangles) > len(bare.triangles) and not built.planar and not bare.planar
+    assert patch_grid(built, 0.0) is not None

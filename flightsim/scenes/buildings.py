@@ -3,8 +3,9 @@ coordinates, merged into the DEM's mesh.
 
 The mesh is read by :func:`flightsim.scenes.meshio.load_mesh` (its faces grouped into planes); every one
 of its triangles becomes class 6 (building), each plane a "roof" (facing up, up to 80° steep), a
-"wall" (steeper) or a "surface" (facing down: a floor), so that plane scoring fits roofs and walls;
-each connected part of the mesh is one building. When the DEM carries per-triangle reflectance (a
+"wall" (steeper) or a "surface" (facing down: a floor); each connected part of the mesh is one building.
+The scene stays curved (``planar`` False, as the DEM): a LAS run scores patches of the ground, and a
+patch holding a building holds its roof and wall returns too. When the DEM carries per-triangle reflectance (a
 land-cover raster), the building triangles get class 6's (:data:`flightsim.scenes.landcover.REFLECTANCE`);
 without it they, like the ground, take the run's value. Every vertex must lie inside the DEM's horizontal
 extent, else ``InputError("scene.buildings", ...)``.
@@ -42,7 +43,8 @@ def add_buildings(scene: Scene, path: str) -> Scene:
                  plane_id=np.concatenate([scene.plane_id, mesh.plane_id + offset]),
                  classification=np.concatenate([scene.classification,
                                                 np.full(len(mesh.triangles), CLASS_BUILDING, dtype=np.uint8)]),
-                 planes=scene.planes + planes, ground_z=scene.ground_z,
+                 planes=scene.planes + planes, ground_z=scene.ground_z, planar=scene.planar,
+                 dropped_degenerate=scene.dropped_degenerate + mesh.dropped_degenerate,
                  reflectance=_reflectance(scene, len(mesh.triangles)))
 
 
