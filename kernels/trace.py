@@ -314,6 +314,24 @@ def _boundary_distance(boundary: wp.uint64, seg_a: wp.array(dtype=wp.vec3f), seg
     return best
 
 
+@wp.kernel
+def padded_boxes(
+    points: wp.array(dtype=wp.vec3f),  # mesh vertices [m, local]
+    indices: wp.array(dtype=wp.int32),  # 3 vertex indices per triangle
+    pad: wp.float32,  # margin added on every side [m]
+    lowers: wp.array(dtype=wp.vec3f),  # out: per triangle, lower box corner [m]
+    uppers: wp.array(dtype=wp.vec3f),  # out: per triangle, upper box corner [m]
+):
+    """The boxes of :func:`_fallback_hit`'s BVH: each triangle's bounds widened by ``pad``."""
+    t = wp.tid()
+    a = points[indices[3 * t]]
+    b = points[indices[3 * t + 1]]
+    c = points[indices[3 * t + 2]]
+    margin = wp.vec3f(pad, pad, pad)
+    lowers[t] = wp.min(wp.min(a, b), c) - margin
+    uppers[t] = wp.max(wp.max(a, b), c) + margin
+
+
 @wp.func
 def _fallback_hit(bvh: wp.uint64, vertices: wp.array(dtype=wp.vec3d), indices: wp.array(dtype=wp.int32),
                   start: wp.vec3d, direction: wp.vec3d, max_range: wp.float32):

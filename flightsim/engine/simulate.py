@@ -161,19 +161,28 @@ class SceneMeshes:
         self.device = device
         if bvh_constructor == "auto":  # measured fastest per device kind (README, run.bvh)
             bvh_constructor = "sah" if wp.get_device(device).is_cpu else "cubql"
-        self.mesh = wp.Mesh(points=wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3f, device=device),
+        points = scene.vertices.astype(np.float32)
+        self.mesh = wp.Mesh(points=wp.array(points, dtype=wp.vec3f, device=device),
                             indices=wp.array(scene.triangles.astype(np.int32).ravel(), dtype=wp.int32, device=device),
                             bvh_constructor=bvh_constructor, bvh_leaf_size=leaf_size)
         self.vertices64 = wp.array(scene.vertices, dtype=wp.vec3d, device=device)
         self.indices = self.mesh.indices
-        corners = scene.vertices[scene.triangles].astype(np.float32)
-        pad = np.float32(1e-6 * (1.0 + np.abs(corners).max()))
-        self._padded_boxes = (wp.array(corners.min(axis=1) - pad, dtype=wp.vec3f, device=device),
-                              wp.array(corners.max(axis=1) + pad, dtype=wp.vec3f, device=device))
-        self.padded = wp.Bvh(*self._padded_boxes)
+        self.padded = self._padded_bvh(scene, points, device)
         self._boundary: tuple[wp.Bvh, wp.array, wp.array] | None = None
         self._reflectance: wp.array | None = None
         self._grids: dict[float, trace.EdgeGrid] = {}
+
+    def _padded_bvh(self, scene: Scene, points: np.ndarray, device: str) -> wp.Bvh:
+        """BVH of the triangles' boxes padded by 1e-6·(1 + the largest |coordinate| of a triangle corner)
+        [m], for the fallback cast (:func:`kernels.trace._fallback_hit`); the boxes are made on the device."""
+        used = np.zeros(len(scene.vertices), dtype=bool)
+        used[scene.triangles.ravel()] = True
+        pad = np.float32(1e-6 * (1.0 + np.abs(points[used]).max()))
+        n = len(scene.triangles)
+        self._padded_boxes = (wp.empty(n, dtype=wp.vec3f, device=device), wp.empty(n, dtype=wp.vec3f, device=device))
+        wp.launch(trace.padded_boxes, n, inputs=[self.mesh.points, self.mesh.indices, pad],
+                  outputs=list(self._padded_boxes), device=device)
+        return wp.Bvh(*self._padded_boxes)
 
     @property
     def per_face(self) -> bool:
