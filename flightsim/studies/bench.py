@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.core.config import RunConfig, copy_config, set_value, validate
 from flightsim.scenes.edges import edge_buffer_m
 from flightsim.platforms.plan import build_scene, flight_trajectories
 from flightsim.engine.simulate import SceneMeshes, Simulator
@@ -29,8 +29,11 @@ from flightsim.core.warp_runtime import resolve_device
 from kernels import trace
 
 DELTA = 2.314
-SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform", "scale")
-SCALE_TRIANGLES = {"cuda": (1e4, 1e6, 1e7, 3.3e7), "cpu": (1e4, 1e6)}  # terrain sizes of the scale section
+SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform", "scale",
+            "survey")
+SCALE_TRIANGLES = {"cuda": (1e4, 1e6, 1e7, 5e7), "cpu": (1e4, 1e6)}  # terrain sizes of the scale section
+SURVEY_KM = {"cuda": 10.0, "cpu": 1.0}  # side of the survey section's square area
+SURVEY_CELL_M = 5.0  # the survey DEM's pixel size
 DISK_PROBE_BYTES = {"cuda": 2 << 30, "cpu": 512 << 20}  # written to measure the disk's sequential rate
 
 
@@ -316,8 +319,14 @@ def study(device: str, s: Sizes) -> dict:
 
 
 def las_output(device: str, s: Sizes) -> list[dict]:
-    """Points/s and peak memory of LAS runs of two lengths (memory must not grow with length)."""
-    return [_las_run(device, s.las_returns / scale) for scale in (10, 1)]
+    """Points/s and peak memory of LAS runs of two lengths (memory must not grow with length), and the
+    CLI's fixed start-up (interpreter, Warp, scene, kernels: a run of 0.01 s) that each of them pays."""
+    startup = _las_run(device, 5000.0 * 64 * 0.01)["wall_s"]
+    records = [_las_run(device, s.las_returns / scale) for scale in (10, 1)]
+    for r in records:
+        r["startup_s"] = startup
+        r["points_per_s_after_startup"] = r["points_written"] / max(r["wall_s"] - startup, 1e-9)
+    return records
 
 
 def _las_run(device: str, returns: float) -> dict:
@@ -340,9 +349,10 @@ def _las_run(device: str, returns: float) -> dict:
 
 
 def scale(device: str, s: Sizes) -> dict:
-    """Terrain meshes of 1e4 to 5e7 triangles (``flightsim.scenes.testdem``, 3 km square): scene build and
-    BVH time, statistics-mode and LAS-mode throughput of the 8×8 workload at 500 m, the bare ray cast of
-    the same rays, device memory; and the output disk's sequential write rate, measured in the same run."""
+    """Terrain of 1e4 to 5e7 triangles (``flightsim.scenes.testdem``, 3 km square, read from a GeoTIFF): the
+    time to ready a run (scene read without the cache, flight plan, BVH) and again from the scene cache,
+    statistics-mode and LAS-mode throughput of the 8×8 workload at 500 m, the bare ray cast of the same rays,
+    device memory; and the output disk's sequential write rate, measured in the same run."""
     kind = "cpu" if resolve_device(device) == "cpu" else "cuda"
     with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
         disk = disk_write_rate(Path(tmp) / "probe", DISK_PROBE_BYTES[kind])
@@ -368,19 +378,56 @@ def disk_write_rate(path: Path, size: int, block: int = 16 << 20) -> float:
     return written / wall
 
 
-def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
-    from flightsim.scenes.testdem import terrain
+def _terrain_file(triangles: int, size_m: float, folder: Path) -> Path:
+    """The testdem GeoTIFF of about ``triangles`` triangles (two per cell) over a ``size_m`` square."""
+    from flightsim.scenes import testdem
 
+    cells = max(1, round(float(np.sqrt(triangles / 2.0))))
+    return testdem.write(folder, size_m=size_m, cell_m=size_m / cells)["dem"]
+
+
+def _ready(cfg: RunConfig, device: str) -> tuple[dict, object, list, SceneMeshes]:
+    """Seconds to read ``cfg``'s scene, plan its flight and build its BVH, with the scene and its pieces."""
+    times = {}
     started = time.perf_counter()
-    scene = terrain(triangles)
-    build_s = time.perf_counter() - started
-    cfg = _scale_workload(device, s.scale_returns)
-    d = resolve_device(device)
+    scene = build_scene(cfg)
+    times["load_s"] = time.perf_counter() - started
     started = time.perf_counter()
-    meshes = SceneMeshes(scene, d, cfg.run.bvh)
-    wp.synchronize_device(d)
-    bvh_s = time.perf_counter() - started
     trajectories = flight_trajectories(cfg, scene)
+    times["plan_s"] = time.perf_counter() - started
+    started = time.perf_counter()
+    meshes = SceneMeshes(scene, resolve_device(device), cfg.run.bvh)
+    wp.synchronize_device(resolve_device(device))
+    times["bvh_build_s"] = time.perf_counter() - started
+    times["ready_s"] = sum(times.values())
+    started = time.perf_counter()
+    flight_trajectories(cfg, scene)  # again, the scene's height grid built: the per-line work alone
+    times["plan_ms_per_line"] = 1000.0 * (time.perf_counter() - started) / len(trajectories)
+    return times, scene, trajectories, meshes
+
+
+def _ready_from_cache(cfg: RunConfig, device: str, folder: Path) -> tuple[float, dict]:
+    """(seconds to read the scene and store it in an empty scene cache in ``folder``, :func:`_ready`'s times
+    of the next run, which reads it from there)."""
+    cached = copy_config(cfg)
+    set_value(cached, "run.scene_cache", True)
+    before = os.environ.get("FLIGHTSIM_CACHE")
+    os.environ["FLIGHTSIM_CACHE"] = str(folder)
+    try:
+        started = time.perf_counter()
+        build_scene(cached)  # a miss: read and stored
+        write_s = time.perf_counter() - started
+        return write_s, _ready(cached, device)[0]
+    finally:
+        os.environ.pop("FLIGHTSIM_CACHE") if before is None else os.environ.update(FLIGHTSIM_CACHE=before)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
+    dem = _terrain_file(triangles, 3000.0, tmp / f"dem-{triangles}")
+    cfg = _scale_workload(device, s.scale_returns, **{"scene.name": str(dem), "run.scene_cache": False})
+    cold, scene, trajectories, meshes = _ready(cfg, device)
+    cache_write_s, warm = _ready_from_cache(cfg, device, tmp / "scene-cache")
     sim = Simulator(cfg, scene, trajectories, meshes=meshes)
     wall, counts = timed_statistics(sim, repeats=1)
     sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
@@ -391,21 +438,23 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
     _las_run_into(las_sim, las_cfg, tmp / "warm-up")  # compiles the points path's kernels
     las_wall, las_counts, written = _las_run_into(las_sim, las_cfg, tmp / "las")
     points = las_counts.returns * len(las_sim.models)
-    return {"triangles": len(scene.triangles), "scene_build_s": build_s, "bvh_build_s": bvh_s,
+    shutil.rmtree(dem.parent)
+    return {"triangles": len(scene.triangles), **cold,
+            "cache_write_s": cache_write_s, "cached_load_s": warm["load_s"], "ready_cached_s": warm["ready_s"],
             "stats_returns_per_s": counts.returns / wall, "raycast_returns_per_s": hits / bare_wall,
             "stats_ratio": counts.returns / wall / (hits / bare_wall),
             "las_points_per_s": points / las_wall, "las_bytes_per_s": written / las_wall,
             "las_fraction_of_stats": las_counts.returns / las_wall / (counts.returns / wall),
-            "device_memory_mib": _device_memory_mib(d), "stats_kernels_s": kernels}
+            "device_memory_mib": _device_memory_mib(resolve_device(device)), "stats_kernels_s": kernels}
 
 
-def _scale_workload(device: str, returns: float) -> RunConfig:
+def _scale_workload(device: str, returns: float, **settings) -> RunConfig:
     """The scale section's flight: 50 s lines (2.8 km) back and forth over the same track across the 3 km
     terrain, 8×8 array at 500 m, as many as ``returns`` beams take (at most those of the statistics run)."""
     line_s = 50.0
     lines = max(1, round(returns / (5000.0 * 64 * line_s)))
     return workload(device, 8, returns, **{"scoring.edge_buffer_m": 0.0, "flight.duration_s": line_s,
-                                           "flight.lines": lines})
+                                           "flight.lines": lines, **settings})
 
 
 def _las_run_into(sim: Simulator, cfg: RunConfig, directory: Path):
@@ -421,6 +470,48 @@ def _las_run_into(sim: Simulator, cfg: RunConfig, directory: Path):
     written = sum((directory / model / name).stat().st_size for model, names in tiles.items() for name in names)
     shutil.rmtree(directory)
     return wall, counts, written
+
+
+def survey_area(device: str, s: Sizes) -> dict:
+    """A production survey as a user runs it: ``flightsim simulate`` (a fresh process) over a testdem square
+    of SURVEY_KM (10 km on a GPU: 100 km²) with its land cover and town, 5 m pixels, the default instrument
+    at 500 m following the terrain, lines spaced as ``flightsim survey`` spaces them (30 % sidelap), both
+    models to LAZ. Wall clock, points, bytes and peak memory of the whole command."""
+    from flightsim.core.config import to_toml
+    from flightsim.scenes import testdem
+    from flightsim.studies.survey import SurveySpec, plan_survey
+
+    kind = "cpu" if resolve_device(device) == "cpu" else "cuda"
+    km = SURVEY_KM[kind]
+    with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
+        paths = testdem.write(Path(tmp) / "dem", size_m=km * 1000.0, cell_m=SURVEY_CELL_M)
+        cfg = RunConfig()
+        for key, value in {"run.device": device, "output.laz": True, "run.scene_cache": False}.items():
+            set_value(cfg, key, value)
+        lines = plan_survey(validate(cfg), SurveySpec(size_km=km)).cfg.flight
+        settings = {"scene.name": str(paths["dem"]), "scene.landcover": str(paths["landcover"]),
+                    "scene.buildings": str(paths["buildings"]), "flight.terrain_following": True,
+                    "flight.lines": lines.lines, "flight.line_spacing_m": lines.line_spacing_m,
+                    "flight.duration_s": km * 1000.0 / (cfg.flight.speed_kmh / 3.6)}
+        for key, value in settings.items():
+            set_value(cfg, key, value)
+        (Path(tmp) / "survey.toml").write_text(to_toml(validate(cfg)))
+        command = [sys.executable, "-m", "flightsim", "simulate", "--config", str(Path(tmp) / "survey.toml"),
+                   "--out", str(Path(tmp) / "run")]
+        started = time.perf_counter()
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        _, status, usage = os.wait4(process.pid, 0)
+        wall = time.perf_counter() - started
+        if os.waitstatus_to_exitcode(status) != 0:
+            raise RuntimeError(f"survey benchmark failed: {' '.join(command)}: {process.stderr.read().decode()[-2000:]}")
+        summary = json.loads((Path(tmp) / "run" / "summary.json").read_text())
+        written = sum(f.stat().st_size for f in (Path(tmp) / "run").rglob("*.laz"))
+    points = sum(summary["points"].values())
+    return {"area_km2": km * km, "dem_cell_m": SURVEY_CELL_M, "lines": lines.lines, "line_km": km,
+            "beams": summary["beams_fired"], "points_written": points, "laz_bytes": written, "wall_s": wall,
+            "simulate_wall_s": summary["wall_s"], "points_per_s": points / wall,
+            "peak_rss_mib": usage.ru_maxrss / 1024.0, "tiles": sum(len(t) for t in summary["tiles"].values()),
+            "patch_rms_m": summary.get("patches", {}).get("rms_m")}
 
 
 def _device_memory_mib(device: str) -> float | None:
@@ -574,7 +665,7 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
                "cpu_count": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
     runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
                "pareto": pareto, "galvo": galvo, "spad": spad_frame,
-               "waveform": waveform_altimeter, "scale": scale}
+               "waveform": waveform_altimeter, "scale": scale, "survey": survey_area}
     for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)
