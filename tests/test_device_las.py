@@ -114,3 +114,21 @@ def test_a_disk_that_fills_up_leaves_no_tile(tmp_path, monkeypatch):
         simulate_to_directory(cfg, tmp_path / "run")
     left = [p.name for p in (tmp_path / "run").rglob("*") if p.is_file()]
     assert left == ["run.toml"]  # no tile, no temporary, no summary
+
+
+def test_laz_records_held_back_for_parallel_compression_give_the_same_bytes(tmp_path, monkeypatch):
+    """A LAZ tile compresses its records in batches (many chunks per call, spread over the cores); the
+    bytes must be those of compressing every write as it comes, and of batches cut short by the cap on
+    held bytes."""
+    cfg = _config("cpu", **{"output.laz": True, "run.chunk_pulses": 4999, "flight.duration_s": 4.0,
+                            "output.tile_size_m": 2000})  # tiles of several 50 000-point LAZ chunks
+    digests = {}
+    for name, batch, held in (("one by one", 1, las_tiles.LAZ_HELD_BYTES), ("batched", 60_000, 1 << 40),
+                              ("capped", 60_000, 200_000)):
+        monkeypatch.setattr(las_tiles, "LAZ_BATCH_POINTS", batch)
+        monkeypatch.setattr(las_tiles, "LAZ_HELD_BYTES", held)
+        simulate_to_directory(cfg, tmp_path / name.replace(" ", "-"))
+        digests[name] = _digests(tmp_path / name.replace(" ", "-"))
+    tiles = [las_tiles.read_points(p)[0] for p in sorted((tmp_path / "batched").rglob("*.laz"))]
+    assert max(len(t.x) for t in tiles) > 3 * las_tiles.LAZ_CHUNK_POINTS
+    assert digests["batched"] == digests["one by one"] == digests["capped"]

@@ -295,6 +295,7 @@ class TileWriter:
         if len(records) == 0:
             return
         self._tile(key).write(laspy.PackedPointRecord(records, self._template.point_format), lowest, highest)
+        self._bound_held(dtype.itemsize)
         self._counts[key] += len(records)
 
     def _record(self, points: PointBatch) -> laspy.PackedPointRecord:
@@ -314,6 +315,15 @@ class TileWriter:
         for las_name, field, _, _ in self._extra_dims():
             record[las_name] = getattr(points, field)
         return record
+
+    def _bound_held(self, record_bytes: int) -> None:
+        """Keep the LAZ records the open tiles hold back within :data:`LAZ_HELD_BYTES`: compress the
+        fullest tile's while they exceed it."""
+        while self._compress and self._open:
+            held = sum(tile.held_points for tile in self._open.values())
+            if held * record_bytes <= LAZ_HELD_BYTES:
+                return
+            max(self._open.values(), key=lambda tile: tile.held_points).flush()
 
     def close(self) -> dict[str, int]:
         """Finish every tile, rename it to its final name; returns {tile file name: point count}."""
@@ -379,12 +389,26 @@ class TileWriter:
         return tile
 
 
-class _TileFile:
-    """One tile's temporary file and the laspy writer (or appender) streaming into it."""
+LAZ_CHUNK_POINTS = 50_000
+"""Points per LAZ chunk (laspy's and lazrs's default), the unit lazrs compresses on one core."""
+LAZ_BATCH_POINTS = LAZ_CHUNK_POINTS * min(os.cpu_count() or 1, 16)
+"""A LAZ tile holds its records until it has this many, then compresses them in one call: lazrs's parallel
+compressor spreads the whole chunks of a call over every core (and holds the GIL while it does)."""
+LAZ_HELD_BYTES = 256 << 20
+"""Most record bytes a tile writer's open LAZ tiles hold back together."""
 
-    def __init__(self, file, sink: laspy.LasWriter | LasAppender) -> None:
+
+class _TileFile:
+    """One tile's temporary file and the laspy writer (or appender) streaming into it; a LAZ tile holds
+    records back until :data:`LAZ_BATCH_POINTS` (the bytes are those of writing them one by one: the
+    compressor cuts chunks by point count)."""
+
+    def __init__(self, file, sink: laspy.LasWriter | LasAppender, compress: bool) -> None:
         self._file = file
         self._sink = sink
+        self._batch = LAZ_BATCH_POINTS if compress else 0
+        self._held: list[laspy.PackedPointRecord] = []
+        self.held_points = 0
 
     @classmethod
     def create(cls, path: Path, header: laspy.LasHeader, compress: bool) -> _TileFile:
@@ -397,7 +421,7 @@ class _TileFile:
         except BaseException:
             file.close()
             raise
-        return cls(file, sink)
+        return cls(file, sink, compress)
 
     @classmethod
     def reopen(cls, path: Path, compress: bool) -> _TileFile:
@@ -408,7 +432,7 @@ class _TileFile:
         except BaseException:
             file.close()
             raise
-        return cls(file, sink)
+        return cls(file, sink, compress)
 
     def write(self, record: laspy.PackedPointRecord, lowest, highest) -> None:
         """Append records whose stored X, Y, Z range over [lowest, highest] (ints, mm).
@@ -417,19 +441,36 @@ class _TileFile:
         offset, counts by return number; every record is return 1 of 1, and no extra-bytes statistics
         are kept), without laspy's passes over the records: the bounds come from the caller.
         """
-        if isinstance(self._sink, laspy.LasWriter):
-            self._sink.point_writer.write_points(record)
+        if self._batch:
+            self._held.append(laspy.PackedPointRecord(record.array.copy(), record.point_format))
+            self.held_points += len(record)
+            if self.held_points >= self._batch:
+                self.flush()
         else:
-            self._sink.points_appender.append_points(record)
+            self._append(record)
         header = self._sink.header
         header.maxs = np.maximum(header.maxs, np.asarray(highest, dtype=np.int64) * header.scales + header.offsets)
         header.mins = np.minimum(header.mins, np.asarray(lowest, dtype=np.int64) * header.scales + header.offsets)
         header.number_of_points_by_return[0] += len(record)
         header.point_count += len(record)
 
+    def flush(self) -> None:
+        """Compress and write the records held back."""
+        if self._held:
+            format_ = self._held[0].point_format
+            self._append(laspy.PackedPointRecord(np.concatenate([r.array for r in self._held]), format_))
+            self._held, self.held_points = [], 0
+
+    def _append(self, record: laspy.PackedPointRecord) -> None:
+        if isinstance(self._sink, laspy.LasWriter):
+            self._sink.point_writer.write_points(record)
+        else:
+            self._sink.points_appender.append_points(record)
+
     def close(self) -> None:
-        """Finish the file (header, LAZ chunk table), flush it to disk and close it."""
+        """Finish the file (held records, header, LAZ chunk table), flush it to disk and close it."""
         try:
+            self.flush()
             self._sink.close()
             self._file.flush()
             os.fsync(self._file.fileno())
