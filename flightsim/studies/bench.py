@@ -325,7 +325,8 @@ def las_output(device: str, s: Sizes) -> list[dict]:
     records = [_las_run(device, s.las_returns / scale) for scale in (10, 1)]
     for r in records:
         r["startup_s"] = startup
-        r["points_per_s_after_startup"] = r["points_written"] / max(r["wall_s"] - startup, 1e-9)
+        after = r["wall_s"] - startup  # None where the run is too short to tell from its start-up
+        r["points_per_s_after_startup"] = r["points_written"] / after if after > 0.1 * r["wall_s"] else None
     return records
 
 
