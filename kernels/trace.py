@@ -38,6 +38,7 @@ CODE_MISS = wp.constant(-1)
 CODE_TIR = wp.constant(-2)
 CODE_EDGE = wp.constant(-3)  # a return within the edge buffer of its plane's boundary
 CODE_NEAR = wp.constant(-4)  # CODE_NEAR − plane id: a return on that plane still to be checked against the buffer
+CODE_SCORED = wp.constant(-100)  # _left_out's answer for a scored return (never stored: its group is)
 
 vec6d = wp.types.vector(6, wp.float64)
 
@@ -703,6 +704,17 @@ def reduce_kernel(f: Features):
     return reduce_records
 
 
+@wp.func
+def _left_out(status: wp.int32, edge_distance: wp.float32, edge_buffer: wp.float32) -> int:
+    """The reduction's code of a slot that is not scored (CODE_MISS: no return; CODE_EDGE: nearer a plane
+    boundary than ``edge_buffer`` > 0 [m]), else CODE_SCORED."""
+    if status != STATUS_RETURN:
+        return CODE_MISS
+    if edge_buffer > wp.float32(0.0) and edge_distance < edge_buffer:
+        return CODE_EDGE
+    return CODE_SCORED
+
+
 @wp.kernel
 def plane_codes(
     status: wp.array(dtype=wp.int32),
@@ -714,12 +726,10 @@ def plane_codes(
 ):
     """Points mode: the statistics reduction's code of each slot the points kernel traced."""
     slot = wp.tid()
-    if status[slot] != STATUS_RETURN:
-        codes[slot] = CODE_MISS
-    elif edge_buffer > wp.float32(0.0) and edge_distance[slot] < edge_buffer:
-        codes[slot] = CODE_EDGE
-    else:
-        codes[slot] = face_plane[faces[slot]]
+    code = _left_out(status[slot], edge_distance[slot], edge_buffer)
+    if code == CODE_SCORED:
+        code = face_plane[faces[slot]]
+    codes[slot] = code
 
 
 @wp.kernel
@@ -737,15 +747,13 @@ def patch_codes(
     """Points mode on curved ground: the statistics reduction's code of each slot is the square patch
     holding the return (x, y); returns beyond the grid count in its border patches."""
     slot = wp.tid()
-    if status[slot] != STATUS_RETURN:
-        codes[slot] = CODE_MISS
-    elif edge_buffer > wp.float32(0.0) and edge_distance[slot] < edge_buffer:
-        codes[slot] = CODE_EDGE
-    else:
+    code = _left_out(status[slot], edge_distance[slot], edge_buffer)
+    if code == CODE_SCORED:
         p = points[slot]
         i = wp.clamp(int(wp.floor((wp.float64(p[0]) - low[0]) / patch_m)), 0, nx - 1)
         j = wp.clamp(int(wp.floor((wp.float64(p[1]) - low[1]) / patch_m)), 0, ny - 1)
-        codes[slot] = j * nx + i
+        code = j * nx + i
+    codes[slot] = code
 
 
 @wp.func
