@@ -345,6 +345,37 @@ def test_a_second_run_reads_the_scene_from_the_cache(tmp_path, monkeypatch):
     same_scene(plan.build_scene(cfg), fresh)
 
 
+def test_the_cache_keeps_the_height_grid_so_a_second_run_does_not_build_it(tmp_path, monkeypatch):
+    cfg, _ = cached_config(tmp_path, monkeypatch)
+    built = plan.build_scene(cfg).height_grid
+    monkeypatch.setattr(HeightGrid, "build", refuse_to_load)
+    monkeypatch.setattr(plan, "load_mesh", refuse_to_load)
+    scene = plan.build_scene(cfg)
+    grid = scene.height_grid
+    assert (grid.x0, grid.y0, grid.cell_m) == (built.x0, built.y0, built.cell_m)
+    for name in ("top", "start", "members"):
+        assert np.array_equal(getattr(grid, name), getattr(built, name))
+    assert grid.vertices is scene.vertices and grid.triangles is scene.triangles
+    plan.flight_trajectories(cfg, scene)  # plans (clearance and all) from the stored grid
+
+
+def test_a_stored_height_grid_that_cannot_be_the_meshs_is_never_trusted(tmp_path, monkeypatch):
+    cfg, _ = cached_config(tmp_path, monkeypatch)
+    fresh = plan.build_scene(cfg)
+    (entry,) = (tmp_path / "cache").glob("*.npz")
+    with np.load(entry) as data:
+        arrays = dict(data)
+    arrays["grid_members"] = arrays["grid_members"].copy()
+    arrays["grid_members"][-1] = len(fresh.triangles)  # a triangle the mesh does not have
+    with open(entry, "wb") as fh:
+        np.savez(fh, **arrays)
+    calls = []
+    real = plan.load_mesh
+    monkeypatch.setattr(plan, "load_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
+    same_scene(plan.build_scene(cfg), fresh)
+    assert calls == [1]
+
+
 def test_a_changed_file_or_option_is_read_afresh(tmp_path, monkeypatch):
     cfg, path = cached_config(tmp_path, monkeypatch)
     plan.build_scene(cfg)

@@ -2,7 +2,8 @@
 the same file starts in seconds.
 
 An entry holds the scene's arrays (vertices, triangles, plane ids, classes, per-triangle reflectance:
-empty when the scene has none), its planes, origin, CRS (WKT), name and ground height, and the key it
+empty when the scene has none), its height grid (:mod:`flightsim.scenes.height_grid`, built when the
+entry is written: every flight plan reads it), its planes, origin, CRS (WKT), name and ground height, and the key it
 was made for: the cache format, the flightsim version, the source file's resolved path, size and
 modification time [ns], and every option that shapes the scene (with the size and modification
 time of any file an option names). An entry is used only when its key equals the one asked for and
@@ -29,10 +30,12 @@ from flightsim import __version__
 from flightsim.core.errors import InputError
 from flightsim.scenes.scene import PlaneInfo, Scene, parse_crs
 
-CACHE_FORMAT = 2
-"""Bumped whenever the stored arrays or the way scenes are read change meaning (2: per-triangle reflectance)."""
+CACHE_FORMAT = 3
+"""Bumped whenever the stored arrays or the way scenes are read change meaning (2: per-triangle reflectance,
+3: the height grid)."""
 
 _PLANE_FIELDS = ("kind", "classification", "normal", "point", "pitch_deg", "azimuth_deg", "building")
+_GRID_FIELDS = ("origin_cell", "top", "start", "members")
 
 
 def cache_folder() -> Path:
@@ -95,11 +98,13 @@ def _read_entry(entry: Path, key: str) -> Scene | None:
                       for k, (kind, c, n, p, pitch, azimuth, b)
                       in enumerate(zip(*(data[f"plane_{name}"] for name in _PLANE_FIELDS)))]
             reflectance = data["reflectance"]
-            return Scene(name=str(data["name"]), crs=parse_crs(str(data["crs"])), origin=data["origin"],
+            scene = Scene(name=str(data["name"]), crs=parse_crs(str(data["crs"])), origin=data["origin"],
                          vertices=data["vertices"], triangles=data["triangles"], plane_id=data["plane_id"],
                          classification=data["classification"], planes=planes, ground_z=float(data["ground_z"]),
                          dropped_degenerate=int(data["dropped_degenerate"]), planar=bool(data["planar"]),
                          reflectance=reflectance if reflectance.size else None)
+            scene.adopt_height_grid({name: data[f"grid_{name}"] for name in _GRID_FIELDS})
+            return scene
     except (OSError, EOFError, KeyError, ValueError, TypeError, IndexError, zipfile.BadZipFile, InputError):
         return None
 
@@ -113,6 +118,7 @@ def _write_entry(folder: Path, entry: Path, key: str, scene: Scene) -> None:
         "reflectance": np.zeros(0, dtype=np.float32) if scene.reflectance is None else scene.reflectance,
         "ground_z": np.array(scene.ground_z), "dropped_degenerate": np.array(scene.dropped_degenerate),
         "planar": np.array(scene.planar),
+        **{f"grid_{name}": array for name, array in scene.height_grid.arrays().items()},
         **{f"plane_{name}": np.array([getattr(p, name) for p in scene.planes]) for name in _PLANE_FIELDS},
     }
     temporary = None

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-TRIANGLES_PER_CELL = 2.0
+TRIANGLES_PER_CELL = 4.0
 """Cell size target: about this many triangles' worth of area per cell."""
 
 MAX_CELLS_PER_SIDE = 2048
@@ -53,30 +53,44 @@ class HeightGrid:
     @classmethod
     def build(cls, vertices: np.ndarray, triangles: np.ndarray) -> "HeightGrid":
         """The grid of a mesh: vertices (V, 3) [m], triangles (T, 3) indices."""
-        corners = vertices[triangles]
-        lo, hi = corners.min(axis=1), corners.max(axis=1)
-        x0, y0 = float(lo[:, 0].min()), float(lo[:, 1].min())
-        width, height = float(hi[:, 0].max()) - x0, float(hi[:, 1].max()) - y0
+        (lo_x, hi_x), (lo_y, hi_y), (_, hi_z) = (_extent(vertices[:, axis], triangles) for axis in range(3))
+        x0, y0 = float(lo_x.min()), float(lo_y.min())
+        width, height = float(hi_x.max()) - x0, float(hi_y.max()) - y0
         cell = _cell_size(width, height, len(triangles))
         while True:
             rows, cols = int(height // cell) + 1, int(width // cell) + 1
-            c_lo, r_lo = _index(lo[:, 0], x0, cell, cols), _index(lo[:, 1], y0, cell, rows)
-            c_hi, r_hi = _index(hi[:, 0], x0, cell, cols), _index(hi[:, 1], y0, cell, rows)
+            c_lo, c_hi = _index(lo_x, x0, cell, cols), _index(hi_x, x0, cell, cols)
+            r_lo, r_hi = _index(lo_y, y0, cell, rows), _index(hi_y, y0, cell, rows)
             n_cols, n_rows = c_hi - c_lo + 1, r_hi - r_lo + 1
-            listed = n_cols * n_rows
+            listed = n_cols.astype(np.int64) * n_rows
             if listed.sum() <= MAX_LISTED_PER_TRIANGLE * len(triangles) or max(rows, cols) == 1:
                 break
             cell *= math.sqrt(listed.sum() / (MAX_LISTED_PER_TRIANGLE * len(triangles))) * 1.01
-        triangle = np.repeat(np.arange(len(triangles)), listed)
-        k = np.arange(len(triangle)) - np.repeat(np.cumsum(listed) - listed, listed)
-        cell_of = (r_lo[triangle] + k // n_cols[triangle]) * cols + c_lo[triangle] + k % n_cols[triangle]
+        cell_of, members = _listing(c_lo, r_lo, n_cols, listed, cols)
         order = np.argsort(cell_of, kind="stable")
-        cell_of, members = cell_of[order], triangle[order]
+        cell_of, members = cell_of[order], members[order]
         start = np.searchsorted(cell_of, np.arange(rows * cols + 1))
         top = np.full(rows * cols, -np.inf)
         filled = np.flatnonzero(start[1:] > start[:-1])
-        top[filled] = np.maximum.reduceat(hi[members, 2], start[filled])
+        top[filled] = np.maximum.reduceat(hi_z[members], start[filled])
         return cls(x0, y0, cell, top.reshape(rows, cols), start, members, vertices, triangles)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The grid's own arrays (not the mesh), for :meth:`from_arrays`."""
+        return {"origin_cell": np.array([self.x0, self.y0, self.cell_m]), "top": self.top, "start": self.start,
+                "members": self.members}
+
+    @classmethod
+    def from_arrays(cls, arrays, vertices: np.ndarray, triangles: np.ndarray) -> "HeightGrid":
+        """The grid stored by :meth:`arrays` for this mesh; ValueError when the arrays cannot be its grid."""
+        x0, y0, cell = (float(v) for v in arrays["origin_cell"])
+        top, start, members = arrays["top"], arrays["start"], arrays["members"]
+        fits = (top.ndim == 2 and start.shape == (top.size + 1,) and members.ndim == 1 and cell > 0.0
+                and start[0] == 0 and start[-1] == len(members) and np.all(np.diff(start) >= 0)
+                and (len(members) == 0 or (members.min() >= 0 and members.max() < len(triangles))))
+        if not fits:
+            raise ValueError("stored height grid does not fit the mesh")
+        return cls(x0, y0, cell, top, start, members, vertices, triangles)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -164,8 +178,25 @@ def _cell_size(width: float, height: float, n_triangles: int) -> float:
 
 
 def _index(value: np.ndarray, origin: float, cell: float, n: int) -> np.ndarray:
-    """Cell index along one axis of each coordinate, clipped to [0, n − 1]."""
-    return np.clip(np.floor((value - origin) / cell), 0, n - 1).astype(np.int64)
+    """Cell index along one axis of each coordinate, clipped to [0, n − 1] (int32)."""
+    return np.clip(np.floor((value - origin) / cell), 0, n - 1).astype(np.int32)
+
+
+def _extent(values: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least and greatest of one vertex coordinate ``values`` (V,) over each triangle's corners, (T,) each."""
+    a, b, c = (values[triangles[:, k]] for k in range(3))
+    return np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+
+
+def _listing(c_lo: np.ndarray, r_lo: np.ndarray, n_cols: np.ndarray, listed: np.ndarray,
+             cols: int) -> tuple[np.ndarray, np.ndarray]:
+    """(cell, triangle) of every listing: triangle t in the ``listed[t]`` cells of its box, whose lowest
+    row and column are ``r_lo[t]``, ``c_lo[t]`` and which is ``n_cols[t]`` cells wide."""
+    triangle = np.repeat(np.arange(len(listed), dtype=np.int32), listed)
+    k = np.arange(len(triangle), dtype=np.int64) - np.repeat(np.cumsum(listed) - listed, listed)
+    width = n_cols[triangle]
+    cell = (r_lo[triangle] + k // width).astype(np.int64) * cols + c_lo[triangle] + k % width
+    return cell, triangle
 
 
 def _height_under(corners: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

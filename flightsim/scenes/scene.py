@@ -148,6 +148,7 @@ class Scene:
     planar: bool = field(default=True)
     reflectance: np.ndarray | None = field(default=None, repr=False)
     _height_grid: HeightGrid | None = field(default=None, init=False, repr=False, compare=False)
+    _bounds: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.origin = _finite_vector3(self.origin, "scene.origin")
@@ -184,8 +185,10 @@ class Scene:
         self.ground_z = float(self.ground_z)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper corners (3,) of the local bounding box [m]."""
-        return self.vertices.min(axis=0), self.vertices.max(axis=0)
+        """Lower and upper corners (3,) of the local bounding box [m] (found once)."""
+        if self._bounds is None:
+            self._bounds = (self.vertices.min(axis=0), self.vertices.max(axis=0))
+        return self._bounds[0].copy(), self._bounds[1].copy()
 
     def terrain_top(self, xmin: float, ymin: float, xmax: float, ymax: float) -> float:
         """Highest local z [m] of the scene's surface over a closed local rectangle; −inf if none.
@@ -208,6 +211,11 @@ class Scene:
         if self._height_grid is None:
             self._height_grid = HeightGrid.build(self.vertices, self.triangles)
         return self._height_grid
+
+    def adopt_height_grid(self, arrays) -> None:
+        """Use the stored grid ``arrays`` (:meth:`HeightGrid.arrays` of this mesh) as :attr:`height_grid`;
+        ValueError when they cannot be this mesh's grid."""
+        self._height_grid = HeightGrid.from_arrays(arrays, self.vertices, self.triangles)
 
     def world_to_local(self, xyz) -> np.ndarray:
         """World coordinates (..., 3) [m] → local float64 (..., 3) [m]."""
