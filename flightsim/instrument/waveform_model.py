@@ -34,9 +34,6 @@ import math
 from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
-from scipy.optimize import curve_fit
-from scipy.signal import fftconvolve, find_peaks, peak_widths
 
 from flightsim.core.errors import InputError
 
@@ -371,6 +368,8 @@ def echo_binned(system: WaveformSystem, rets: Returns, times_s: np.ndarray, binn
     histogram = np.bincount(bins - lo, weights=gains)
     n, length = times_s.size, histogram.size
     lags = np.arange(-(lo + length - 1), n - lo, dtype=np.float64)  # every j − k, output j, bin k
+    from scipy.signal import fftconvolve  # here, not at import: scipy.signal costs every run 0.6 s
+
     return fftconvolve(histogram, pulse_power_w(system, lags * dt))[length - 1:length - 1 + n]
 
 
@@ -454,6 +453,10 @@ def decompose(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray,
     """Gaussian decomposition: k = the local maxima of the echo smoothed by the pulse's σ (a matched
     filter) standing out by ``min_prominence`` of its maximum; then k Gaussians fitted by least squares
     (scipy ``curve_fit``), started at those maxima. Components in time order."""
+    from scipy.ndimage import gaussian_filter1d
+    from scipy.optimize import curve_fit
+    from scipy.signal import find_peaks, peak_widths
+
     sigma, dt = pulse_sigma_s(system), times_s[1] - times_s[0]
     smooth = gaussian_filter1d(echo, sigma / dt)
     peaks, _ = find_peaks(smooth, prominence=min_prominence * smooth.max())
