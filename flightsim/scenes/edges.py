@@ -17,15 +17,47 @@ from flightsim.scenes.scene import Scene
 _VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
 
 
-def _row_groups(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Group equal rows of an integer table: (group id of each row, size of each group), by lexsort."""
-    order = np.lexsort(rows.T[::-1])
-    ordered = rows[order]
+_HASH_MULTIPLIERS = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9], dtype=np.uint64)
+"""Odd 64-bit multipliers of the row hash in :func:`_row_groups` (the golden ratio's and xxHash's primes)."""
+
+
+def _sorted_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order, starts) of an integer table (R, ≤ 3): an order that puts equal rows side by side, and
+    whether each row in that order differs from the one before it (starts a group of equal rows).
+
+    Rows are sorted by a 64-bit hash (one sort instead of a lexicographic sort's one per column). Should
+    two different rows share a hash (which the check below always finds), the table is sorted
+    lexicographically instead, so the groups are exact either way."""
+    columns = rows.T.astype(np.uint64)
+    hashes = columns[0] * _HASH_MULTIPLIERS[0]
+    for column, multiplier in zip(columns[1:], _HASH_MULTIPLIERS[1:]):
+        hashes ^= hashes >> np.uint64(29)
+        hashes += column * multiplier
+    order = np.argsort(hashes)
+    ordered = hashes[order]
     starts = np.ones(len(rows), dtype=bool)
-    starts[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    starts[1:] = ordered[1:] != ordered[:-1]
+    later = np.flatnonzero(~starts)  # rows whose hash equals the previous row's: the rows must be equal too
+    if not np.array_equal(rows[order[later]], rows[order[later - 1]]):
+        order = np.lexsort(rows.T[::-1])
+        ordered = rows[order]
+        starts[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    return order, starts
+
+
+def _group_ids(rows: np.ndarray) -> np.ndarray:
+    """A group id per row of an integer table (R, ≤ 3), equal for equal rows only."""
+    order, starts = _sorted_rows(rows)
     group = np.empty(len(rows), dtype=np.int64)
     group[order] = np.cumsum(starts) - 1
-    return group, np.bincount(group)
+    return group
+
+
+def _lone_rows(rows: np.ndarray) -> np.ndarray:
+    """Indices, ascending, of the rows of an integer table (R, ≤ 3) that equal no other row."""
+    order, starts = _sorted_rows(rows)
+    ends = np.append(starts[1:], True)
+    return np.sort(order[starts & ends])
 
 
 def boundary_segments(scene: Scene) -> np.ndarray:
@@ -34,14 +66,12 @@ def boundary_segments(scene: Scene) -> np.ndarray:
     An edge bounds plane p when exactly one triangle of p uses it (matched by vertex position,
     so duplicated vertices do not create false boundaries). Degenerate edges are skipped.
     """
-    vertex, _ = _row_groups(np.round(scene.vertices / _VERTEX_KEY_M).astype(np.int64))
+    vertex = _group_ids(np.round(scene.vertices / _VERTEX_KEY_M).astype(np.int64))
     corners = np.concatenate([scene.triangles[:, [0, 1]], scene.triangles[:, [1, 2]], scene.triangles[:, [2, 0]]])
     ids = np.sort(vertex[corners], axis=1)
     keep = ids[:, 0] != ids[:, 1]
     records = np.column_stack([np.tile(scene.plane_id, 3), ids])[keep]
-    group, size = _row_groups(records)
-    single = size[group] == 1
-    return scene.vertices[corners[keep][single]]
+    return scene.vertices[corners[keep][_lone_rows(records)]]
 
 
 def max_distortion_rad(cfg: RunConfig, samples: int = 360) -> float:
