@@ -45,13 +45,16 @@ def as_edges(segments: np.ndarray) -> Counter:
     return Counter(tuple(sorted(tuple(np.round(p / 1e-6).astype(np.int64)) for p in s)) for s in segments)
 
 
-@pytest.mark.parametrize("colliding", [False, True])
+@pytest.mark.parametrize("path", ["packed", "colliding hashes", "rows"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_boundary_edges_are_those_one_triangle_of_a_plane_uses(seed, colliding, monkeypatch):
-    """Duplicated vertices make no false boundaries, the planes' shared borders count for both planes,
-    and a hash that puts every row in one bucket (forcing the exact fallback sort) gives the same edges."""
-    if colliding:
+def test_boundary_edges_are_those_one_triangle_of_a_plane_uses(seed, path, monkeypatch):
+    """Duplicated vertices make no false boundaries and the planes' shared borders count for both planes;
+    so do a hash that puts every row in one bucket (forcing the exact fallback sort) and edge keys too
+    wide to pack into an int64 (grouped row by row)."""
+    if path == "colliding hashes":
         monkeypatch.setattr(edges, "_HASH_MULTIPLIERS", np.zeros(3, dtype=np.uint64))
+    if path == "rows":
+        monkeypatch.setattr(edges, "_PACKED_KEYS", 0)
     scene = split_terrain(seed)
     segments = boundary_segments(scene)
     want = brute_force_boundaries(scene)

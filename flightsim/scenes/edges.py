@@ -17,6 +17,8 @@ from flightsim.scenes.scene import Scene
 _VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
 
 
+_PACKED_KEYS = 2**63 - 1
+"""Largest edge key that packs into an int64 (beyond it, edges are grouped row by row)."""
 _HASH_MULTIPLIERS = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9], dtype=np.uint64)
 """Odd 64-bit multipliers of the row hash in :func:`_row_groups` (the golden ratio's and xxHash's primes)."""
 
@@ -45,14 +47,6 @@ def _sorted_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order, starts
 
 
-def _group_ids(rows: np.ndarray) -> np.ndarray:
-    """A group id per row of an integer table (R, ≤ 3), equal for equal rows only."""
-    order, starts = _sorted_rows(rows)
-    group = np.empty(len(rows), dtype=np.int64)
-    group[order] = np.cumsum(starts) - 1
-    return group
-
-
 def _lone_rows(rows: np.ndarray) -> np.ndarray:
     """Indices, ascending, of the rows of an integer table (R, ≤ 3) that equal no other row."""
     order, starts = _sorted_rows(rows)
@@ -60,18 +54,45 @@ def _lone_rows(rows: np.ndarray) -> np.ndarray:
     return np.sort(order[starts & ends])
 
 
-def boundary_segments(scene: Scene) -> np.ndarray:
-    """(S, 2, 3) local end points [m] of every edge that bounds a plane.
+def _vertex_ids(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(id of each vertex, first vertex of each id): vertices share an id when their coordinates
+    rounded to _VERTEX_KEY_M are equal."""
+    order, starts = _sorted_rows(np.round(vertices / _VERTEX_KEY_M).astype(np.int64))
+    ids = np.empty(len(vertices), dtype=np.int64)
+    ids[order] = np.cumsum(starts) - 1
+    return ids, np.minimum.reduceat(order, np.flatnonzero(starts))
 
-    An edge bounds plane p when exactly one triangle of p uses it (matched by vertex position,
-    so duplicated vertices do not create false boundaries). Degenerate edges are skipped.
+
+def _lone_edges(plane: np.ndarray, lo: np.ndarray, hi: np.ndarray, n_ids: int) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) vertex ids of the edge records (plane, lo, hi) that occur once: packed into one int64
+    each and sorted (a table too wide to pack: grouped row by row)."""
+    n_planes = int(plane.max()) + 1 if len(plane) else 1
+    if n_planes * n_ids * n_ids > _PACKED_KEYS:
+        lone = _lone_rows(np.column_stack([plane, lo, hi]))
+        return lo[lone], hi[lone]
+    keys = np.sort((plane.astype(np.int64) * n_ids + lo) * n_ids + hi)
+    same = keys[1:] == keys[:-1]
+    once = np.ones(len(keys), dtype=bool)
+    once[1:] &= ~same
+    once[:-1] &= ~same
+    lone = keys[once]
+    return (lone // n_ids) % n_ids, lone % n_ids
+
+
+def boundary_segments(scene: Scene) -> np.ndarray:
+    """(S, 2, 3) local end points [m] of every edge that bounds a plane, in no particular order.
+
+    An edge bounds plane p when exactly one triangle of p uses it, vertices matched by position (so
+    duplicated vertices do not create false boundaries; an end point is the first vertex at its
+    position). Degenerate edges are skipped.
     """
-    vertex = _group_ids(np.round(scene.vertices / _VERTEX_KEY_M).astype(np.int64))
-    corners = np.concatenate([scene.triangles[:, [0, 1]], scene.triangles[:, [1, 2]], scene.triangles[:, [2, 0]]])
-    ids = np.sort(vertex[corners], axis=1)
-    keep = ids[:, 0] != ids[:, 1]
-    records = np.column_stack([np.tile(scene.plane_id, 3), ids])[keep]
-    return scene.vertices[corners[keep][_lone_rows(records)]]
+    ids, first = _vertex_ids(scene.vertices)
+    corner = ids[scene.triangles]
+    a, b = corner.T.ravel(), np.roll(corner, -1, axis=1).T.ravel()  # edges 0→1, 1→2, 2→0
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    keep = lo != hi
+    lo, hi = _lone_edges(np.tile(scene.plane_id, 3)[keep], lo[keep], hi[keep], len(first))
+    return np.stack([scene.vertices[first[lo]], scene.vertices[first[hi]]], axis=1)
 
 
 def max_distortion_rad(cfg: RunConfig, samples: int = 360) -> float:
