@@ -9,7 +9,7 @@ import pytest
 
 import reference_optics as ref
 from flightsim.core.config import RunConfig, load_toml, set_value, validate
-from flightsim.engine.run import simulate_to_directory
+from flightsim.engine.run import STAGES, simulate_to_directory
 
 
 def config(**settings) -> RunConfig:
@@ -99,6 +99,9 @@ def test_tiles_hold_what_the_summary_says_with_the_las_conventions(tmp_path):
     assert error.max() < 0.002  # exact model: numerical noise only
     assert summary["beams_fired"] == 9 * summary["pulses"]
     assert summary["beams_fired"] == summary["points"]["exact"] + summary["tir_dropped"] + summary["misses"]
+    stages = summary["stages_s"]
+    assert tuple(stages) == STAGES and min(stages.values()) >= 0.0
+    assert stages["trace"] >= summary["wall_s"] - 1e-3  # the traced chunks lie within the trace stage
 
 
 def test_run_toml_reproduces_the_run(tmp_path):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -12,6 +13,11 @@ from flightsim.core.config import MODELS, RunConfig, to_toml
 from flightsim.scenes.edges import edge_buffer_m
 from flightsim.core.errors import InputError
 from flightsim.platforms.plan import build_scene, flight_trajectories
+
+STAGES = ("scene", "plan", "setup", "trace", "finish")
+"""Where a LAS run's time goes (summary.json ``stages_s`` [s]): reading the scene, planning the flight (height
+grid, terrain following, clearance), the device set-up (BVHs, plane boundaries, output writers), tracing
+with every chunk's points handed to the writers, and finishing the tiles, the COPC file and the patch raster."""
 
 PATCH_RASTER = "patch_rms.tif"
 """Per-patch fit RMS of a LAS run over curved ground (:class:`flightsim.outputs.consumers.PatchStatistics`)."""
@@ -61,8 +67,11 @@ def _remove_run(directory: Path) -> None:
 def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = False,
                           progress: Callable[[int, int], None] | None = None) -> dict:
     """Run a validated config, write its tiles, run.toml and summary.json; return the summary."""
+    marks = [time.perf_counter()]
     scene = build_scene(cfg)
+    marks.append(time.perf_counter())
     trajectories = flight_trajectories(cfg, scene)
+    marks.append(time.perf_counter())
     # Warp is loaded only for input that passed the checks above, so that bad input fails fast
     from flightsim.outputs.consumers import PatchStatistics, PlaneStatistics, patch_grid
     from flightsim.outputs.copc import write_run_copc
@@ -90,13 +99,17 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         for consumer in consumers:
             consumer(returns)
 
+    marks.append(time.perf_counter())
     try:
         counts = simulator.run_device(consume, progress)
+        marks.append(time.perf_counter())
         tiles = las.close()
     except BaseException:
         las.abort()
         raise
     copc = write_run_copc(directory, tiles) if cfg.output.copc else None
+    patch_summary = fits.write(directory / PATCH_RASTER, scene) if fits is not None else None
+    marks.append(time.perf_counter())
     summary = {
         **_summary_head(cfg, simulator, counts),
         "points": {model: counts.returns for model in simulator.models},
@@ -104,7 +117,8 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         "misses": counts.misses,
         "wall_s": round(counts.wall_s, 4),
         "rms_m": planes.rms_m() if planes is not None else {model: None for model in simulator.models},
-        **({"patches": fits.write(directory / PATCH_RASTER, scene)} if fits is not None else {}),
+        **({"patches": patch_summary} if patch_summary is not None else {}),
+        "stages_s": {stage: round(end - start, 3) for stage, start, end in zip(STAGES, marks, marks[1:])},
         "edge_buffer_m": buffer,
         **({"apex_angle_deg": cfg.sensor.apex_angle_deg} if cfg.instrument.deflector == "risley" else {}),
         "lines": {str(k): v for k, v in counts.per_line.items()},

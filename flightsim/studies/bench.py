@@ -512,6 +512,7 @@ def survey_area(device: str, s: Sizes) -> dict:
             "beams": summary["beams_fired"], "points_written": points, "laz_bytes": written, "wall_s": wall,
             "simulate_wall_s": summary["wall_s"], "points_per_s": points / wall,
             "peak_rss_mib": usage.ru_maxrss / 1024.0, "tiles": sum(len(t) for t in summary["tiles"].values()),
+            "stages_s": summary["stages_s"],
             "patch_rms_m": summary.get("patches", {}).get("rms_m")}
 
 

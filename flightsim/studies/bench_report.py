@@ -208,10 +208,21 @@ def _survey(r: dict) -> list[str]:
             "peak RSS [MiB] |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
             f"| {x['area_km2']:g} | {x['dem_cell_m']:g} | {x['lines']} × {x['line_km']:g} km | {x['beams']:.3g} | "
             f"{x['points_written']:.3g} | {x['laz_bytes'] / 1e9:.2f} | {x['wall_s']:.1f} | {_fmt(x['points_per_s'])} | "
-            f"{x['peak_rss_mib']:.0f} |", "",
+            f"{x['peak_rss_mib']:.0f} |", "", *_survey_stages(x),
             "`flightsim simulate` in a fresh process over the testdem terrain (fractal relief, river, land cover, "
             "town) with terrain following, lines spaced as `flightsim survey` spaces them; wall: the whole "
             "command, scene read (no scene cache) to the last LAZ tile closed.", ""]
+
+
+def _survey_stages(x: dict) -> list[str]:
+    """Where the survey's time went (summary.json ``stages_s``), when the record has it."""
+    stages = x.get("stages_s")
+    if not stages:
+        return []
+    start_up = x["wall_s"] - sum(stages.values())
+    return ["| start-up | " + " | ".join(stages) + " |", "| --- " * (len(stages) + 1) + "|",
+            f"| {start_up:.1f} | " + " | ".join(f"{v:.1f}" for v in stages.values()) + " |", "",
+            "(seconds; start-up: the process until the config is read, and leaving it)", ""]
 
 
 def _skip(r: dict) -> list[str]:
