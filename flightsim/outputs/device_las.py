@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import queue
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -91,10 +92,12 @@ class DeviceLasOutput:
             self._jobs[model].put(tiles)
 
     def close(self) -> dict[str, dict[str, int]]:
-        """Finish every tile (atomic renames); return {model: {tile: points}}."""
+        """Finish every tile (atomic renames), the models' writers at once; return {model: {tile: points}}."""
         self._stop()
         self._raise_writer_error()
-        return {model: writer.close() for model, writer in self.writers.items()}
+        with ThreadPoolExecutor(len(self.writers)) as pool:
+            closed = {model: pool.submit(writer.close) for model, writer in self.writers.items()}
+        return {model: future.result() for model, future in closed.items()}
 
     def abort(self) -> None:
         """Stop the writers and remove every unfinished tile."""

@@ -498,11 +498,14 @@ class _TileFile:
         header.point_count += len(record)
 
     def flush(self) -> None:
-        """Compress and write the records held back."""
+        """Compress and write the records held back, and wait until the disk has them: a run's compressed
+        bytes reach the disk while it traces (batch by batch), not all in the final fsyncs of its tiles."""
         if self._held:
             format_ = self._held[0].point_format
             self._append(laspy.PackedPointRecord(np.concatenate([r.array for r in self._held]), format_))
             self._held, self.held_points = [], 0
+            self._file.flush()
+            os.fdatasync(self._file.fileno())
 
     def _append(self, record: laspy.PackedPointRecord) -> None:
         if isinstance(self._sink, laspy.LasWriter):
