@@ -316,6 +316,22 @@ def _boundary_distance(boundary: wp.uint64, seg_a: wp.array(dtype=wp.vec3f), seg
 
 
 @wp.kernel
+def corner_extent(
+    points: wp.array(dtype=wp.vec3f),  # mesh vertices [m, local]
+    indices: wp.array(dtype=wp.int32),  # 3 vertex indices per triangle
+    extent: wp.array(dtype=wp.float32),  # in/out (1,): the largest |coordinate| of a triangle corner [m]
+):
+    """Grow ``extent[0]`` (start it at 0) to the largest absolute coordinate of any triangle's corners:
+    the vertices the triangles use, not the unused ones."""
+    t = wp.tid()
+    largest = wp.float32(0.0)
+    for k in range(3):
+        p = points[indices[3 * t + k]]
+        largest = wp.max(largest, wp.max(wp.abs(p[0]), wp.max(wp.abs(p[1]), wp.abs(p[2]))))
+    wp.atomic_max(extent, 0, largest)
+
+
+@wp.kernel
 def padded_boxes(
     points: wp.array(dtype=wp.vec3f),  # mesh vertices [m, local]
     indices: wp.array(dtype=wp.int32),  # 3 vertex indices per triangle

@@ -161,3 +161,21 @@ def test_edge_distances_equal_a_brute_force_over_every_boundary_segment():
     assert 0.005 < np.mean(want < cap) < 0.5  # the run has points on both sides of the cap
     assert np.abs(got - want).max() < 1e-4  # float32 points and segments, coordinates of a few hundred m
     assert 0.0 < sim.scan.edge_grid.near.numpy().mean() < 0.2  # most of the field skips the query
+
+
+def test_fallback_boxes_are_the_triangle_bounds_padded_by_the_used_corners_extent():
+    """The fallback BVH's boxes: each triangle's bounds widened by 1e-6·(1 + the largest |coordinate| of a
+    corner some triangle uses), an unused far vertex left out, computed here in numpy."""
+    import dataclasses
+
+    from flightsim.engine.simulate import SceneMeshes
+    from flightsim.scenes.scene import DEFAULT_CRS, calibration_scene
+
+    scene = calibration_scene(300.0, np.array([409000.0, 3393000.0, 450.0]), DEFAULT_CRS)
+    scene = dataclasses.replace(scene, vertices=np.vstack([scene.vertices, [[1e5, -2e5, 3e4]]]))
+    meshes = SceneMeshes(scene, "cpu")
+    corners = scene.vertices.astype(np.float32)[scene.triangles]
+    pad = np.float32(1e-6 * (1.0 + np.abs(corners).max()))
+    assert 1e-4 < pad < 1e-3  # the far vertex would make it 2e-1
+    assert np.array_equal(meshes._padded_boxes[0].numpy(), corners.min(axis=1) - pad)
+    assert np.array_equal(meshes._padded_boxes[1].numpy(), corners.max(axis=1) + pad)

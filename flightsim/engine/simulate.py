@@ -167,18 +167,18 @@ class SceneMeshes:
                             bvh_constructor=bvh_constructor, bvh_leaf_size=leaf_size)
         self.vertices64 = wp.array(scene.vertices, dtype=wp.vec3d, device=device)
         self.indices = self.mesh.indices
-        self.padded = self._padded_bvh(scene, points, device)
+        self.padded = self._padded_bvh(scene, device)
         self._boundary: tuple[wp.Bvh, wp.array, wp.array] | None = None
         self._reflectance: wp.array | None = None
         self._grids: dict[float, trace.EdgeGrid] = {}
 
-    def _padded_bvh(self, scene: Scene, points: np.ndarray, device: str) -> wp.Bvh:
+    def _padded_bvh(self, scene: Scene, device: str) -> wp.Bvh:
         """BVH of the triangles' boxes padded by 1e-6·(1 + the largest |coordinate| of a triangle corner)
         [m], for the fallback cast (:func:`kernels.trace._fallback_hit`); the boxes are made on the device."""
-        used = np.zeros(len(scene.vertices), dtype=bool)
-        used[scene.triangles.ravel()] = True
-        pad = np.float32(1e-6 * (1.0 + np.abs(points[used]).max()))
         n = len(scene.triangles)
+        extent = wp.zeros(1, dtype=wp.float32, device=device)
+        wp.launch(trace.corner_extent, n, inputs=[self.mesh.points, self.mesh.indices], outputs=[extent], device=device)
+        pad = np.float32(1e-6 * (1.0 + to_host(extent)[0]))
         self._padded_boxes = (wp.empty(n, dtype=wp.vec3f, device=device), wp.empty(n, dtype=wp.vec3f, device=device))
         wp.launch(trace.padded_boxes, n, inputs=[self.mesh.points, self.mesh.indices, pad],
                   outputs=list(self._padded_boxes), device=device)
