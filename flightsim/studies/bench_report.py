@@ -184,7 +184,8 @@ def _scale(r: dict) -> list[str]:
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for e in x["scenes"]:
         memory = "–" if e["device_memory_mib"] is None else f"{e['device_memory_mib']:.0f}"
-        lines.append(f"| {e['triangles']:.3g} | {_optional(e, 'load_s', '.2f')} | {_optional(e, 'plan_s', '.2f')} | "
+        at = f" (at {e['git_commit']})" if "git_commit" in e else ""
+        lines.append(f"| {e['triangles']:.3g}{at} | {_optional(e, 'load_s', '.2f')} | {_optional(e, 'plan_s', '.2f')} | "
                      f"{_optional(e, 'plan_ms_per_line', '.2f')} | {e['bvh_build_s']:.2f} | "
                      f"{_optional(e, 'ready_s', '.2f')} | {_optional(e, 'cached_load_s', '.2f')} / "
                      f"{_optional(e, 'ready_cached_s', '.2f')} | "
@@ -196,7 +197,8 @@ def _scale(r: dict) -> list[str]:
                         "a second plan over the built grid) and the BVHs built; from cache: the same with the scene "
                         "read from the scene cache. LAS: both models, records packed on the device, one writer "
                         "thread per model; its wall runs until every tile is closed. Ratio: statistics-mode "
-                        "returns/s ÷ bare ray cast of the same rays.", ""]
+                        "returns/s ÷ bare ray cast of the same rays. A row measured at another commit than the "
+                        "section says so; its 'of disk' is against the disk rate measured in its own run.", ""]
 
 
 def _survey(r: dict) -> list[str]:
