@@ -60,3 +60,15 @@ def test_boundary_edges_are_those_one_triangle_of_a_plane_uses(seed, path, monke
     want = brute_force_boundaries(scene)
     assert max(want.values()) == 2  # the inner borders bound two planes
     assert as_edges(segments) == want
+    assert np.array_equal(segments, in_triangle_order(scene))
+
+
+def in_triangle_order(scene: Scene) -> np.ndarray:
+    """The bounding edges as the triangles draw them: every triangle's edge 0→1, then 1→2, then 2→0
+    (LAS bytes hold distances to them in float32, which depend on each segment's direction)."""
+    key = [tuple(np.round(v / 1e-6).astype(np.int64)) for v in scene.vertices]
+    records = [(int(plane), tuple(sorted((key[t[a]], key[t[b]]))), (t[a], t[b]))
+               for a, b in ((0, 1), (1, 2), (2, 0)) for t, plane in zip(scene.triangles, scene.plane_id)]
+    uses = Counter((plane, ends) for plane, ends, _ in records if ends[0] != ends[1])
+    return np.array([[scene.vertices[i], scene.vertices[j]] for plane, ends, (i, j) in records
+                     if ends[0] != ends[1] and uses[(plane, ends)] == 1])

@@ -17,6 +17,8 @@ from flightsim.scenes.scene import Scene
 _VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
 
 
+_LOW_BITS_TABLE = 1 << 20
+"""Entries of the table that narrows the search for the few lone edges' records (a power of two)."""
 _PACKED_KEYS = 2**63 - 1
 """Largest edge key that packs into an int64 (beyond it, edges are grouped row by row)."""
 _HASH_MULTIPLIERS = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9], dtype=np.uint64)
@@ -54,45 +56,52 @@ def _lone_rows(rows: np.ndarray) -> np.ndarray:
     return np.sort(order[starts & ends])
 
 
-def _vertex_ids(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(id of each vertex, first vertex of each id): vertices share an id when their coordinates
+def _vertex_ids(vertices: np.ndarray) -> np.ndarray:
+    """An id per vertex, 0 … (distinct positions − 1): vertices share an id when their coordinates
     rounded to _VERTEX_KEY_M are equal."""
     order, starts = _sorted_rows(np.round(vertices / _VERTEX_KEY_M).astype(np.int64))
     ids = np.empty(len(vertices), dtype=np.int64)
     ids[order] = np.cumsum(starts) - 1
-    return ids, np.minimum.reduceat(order, np.flatnonzero(starts))
+    return ids
 
 
-def _lone_edges(plane: np.ndarray, lo: np.ndarray, hi: np.ndarray, n_ids: int) -> tuple[np.ndarray, np.ndarray]:
-    """(lo, hi) vertex ids of the edge records (plane, lo, hi) that occur once: packed into one int64
-    each and sorted (a table too wide to pack: grouped row by row)."""
+def _lone_edges(plane: np.ndarray, lo: np.ndarray, hi: np.ndarray, n_ids: int) -> np.ndarray:
+    """Indices, ascending, of the edge records (plane, lo, hi) that occur once: each packed into one
+    int64 and sorted (a table too wide to pack: grouped row by row)."""
     n_planes = int(plane.max()) + 1 if len(plane) else 1
     if n_planes * n_ids * n_ids > _PACKED_KEYS:
-        lone = _lone_rows(np.column_stack([plane, lo, hi]))
-        return lo[lone], hi[lone]
-    keys = np.sort((plane.astype(np.int64) * n_ids + lo) * n_ids + hi)
-    same = keys[1:] == keys[:-1]
+        return _lone_rows(np.column_stack([plane, lo, hi]))
+    keys = (plane.astype(np.int64) * n_ids + lo) * n_ids + hi
+    ordered = np.sort(keys)
+    same = ordered[1:] == ordered[:-1]
     once = np.ones(len(keys), dtype=bool)
     once[1:] &= ~same
     once[:-1] &= ~same
-    lone = keys[once]
-    return (lone // n_ids) % n_ids, lone % n_ids
+    lone = ordered[once]
+    if len(lone) == 0:
+        return np.zeros(0, dtype=np.int64)
+    # their records: those whose key's low bits some lone key has (a small table), then a binary search
+    low = np.zeros(_LOW_BITS_TABLE, dtype=bool)
+    low[lone & (_LOW_BITS_TABLE - 1)] = True
+    candidates = np.flatnonzero(low[keys & (_LOW_BITS_TABLE - 1)])
+    at = np.minimum(np.searchsorted(lone, keys[candidates]), len(lone) - 1)
+    return candidates[lone[at] == keys[candidates]]
 
 
 def boundary_segments(scene: Scene) -> np.ndarray:
-    """(S, 2, 3) local end points [m] of every edge that bounds a plane, in no particular order.
+    """(S, 2, 3) local end points [m] of every edge that bounds a plane, in triangle order (edges 0→1 of
+    every triangle, then 1→2, then 2→0).
 
     An edge bounds plane p when exactly one triangle of p uses it, vertices matched by position (so
-    duplicated vertices do not create false boundaries; an end point is the first vertex at its
-    position). Degenerate edges are skipped.
+    duplicated vertices do not create false boundaries). Degenerate edges are skipped.
     """
-    ids, first = _vertex_ids(scene.vertices)
-    corner = ids[scene.triangles]
-    a, b = corner.T.ravel(), np.roll(corner, -1, axis=1).T.ravel()  # edges 0→1, 1→2, 2→0
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    keep = lo != hi
-    lo, hi = _lone_edges(np.tile(scene.plane_id, 3)[keep], lo[keep], hi[keep], len(first))
-    return np.stack([scene.vertices[first[lo]], scene.vertices[first[hi]]], axis=1)
+    ids = _vertex_ids(scene.vertices)
+    a, b = scene.triangles.T.ravel(), np.roll(scene.triangles, -1, axis=1).T.ravel()
+    id_a, id_b = ids[a], ids[b]
+    lo, hi = np.minimum(id_a, id_b), np.maximum(id_a, id_b)
+    keep = np.flatnonzero(lo != hi)
+    lone = keep[_lone_edges(np.tile(scene.plane_id, 3)[keep], lo[keep], hi[keep], int(ids.max()) + 1)]
+    return np.stack([scene.vertices[a[lone]], scene.vertices[b[lone]]], axis=1)
 
 
 def max_distortion_rad(cfg: RunConfig, samples: int = 360) -> float:
