@@ -226,6 +226,33 @@ def test_height_grid_bounds_and_exact_tops_over_rectangles():
         assert grid.top_bound(*rect) >= expected
 
 
+def grid_cases():
+    """Meshes whose grids differ in kind: a rough terrain, the same with big sloped triangles across many
+    cells, vertical walls and unused far vertices, and a single triangle."""
+    vertices, triangles = rough_terrain()
+    rng = np.random.default_rng(5)
+    big = rng.uniform(-10.0, 70.0, (12, 3, 3))
+    walls = np.repeat(rng.uniform(0.0, 58.0, (6, 1, 3)), 3, axis=1) + [[0, 0, 0], [4.0, 3.0, 0], [0, 0, 9.0]]
+    extra = np.concatenate([big, walls]).reshape(-1, 3)
+    far = np.array([[1e4, -3e4, 500.0]])
+    mixed_v = np.concatenate([vertices, extra, far])
+    mixed_t = np.concatenate([triangles, len(vertices) + np.arange(len(extra)).reshape(-1, 3)])
+    return {"terrain": (vertices, triangles), "mixed": (mixed_v, mixed_t),
+            "single": (np.array([[0.0, 0.0, 1.0], [3.0, 0.0, 2.0], [0.0, 2.0, 3.0]]), np.array([[0, 1, 2]]))}
+
+
+@pytest.mark.parametrize("case", ["terrain", "mixed", "single"])
+def test_the_device_builds_the_numpy_grid_bit_for_bit(case, device):
+    vertices, triangles = grid_cases()[case]
+    on_device, in_numpy = HeightGrid.build(vertices, triangles, device), HeightGrid.build(vertices, triangles)
+    assert (on_device.x0, on_device.y0, on_device.cell_m) == (in_numpy.x0, in_numpy.y0, in_numpy.cell_m)
+    for name in ("top", "start", "members"):
+        got, want = getattr(on_device, name), getattr(in_numpy, name)
+        assert got.dtype == want.dtype and np.array_equal(got, want), name
+    if case == "mixed":
+        assert np.diff(in_numpy.start).max() > 4 and np.isinf(in_numpy.top).any()  # crowded and empty cells
+
+
 def test_ground_height_is_the_surface_under_each_point():
     """A tilted plane z = 0.3x − 0.2y + 5 with a hole: the grid reads the plane, NaN off the mesh."""
     xy = np.arange(21) * 3.0

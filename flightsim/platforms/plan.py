@@ -92,7 +92,7 @@ def _from_file(cfg: RunConfig, load: Callable[[], Scene]) -> Scene:
     from flightsim.scenes.cache import cached_scene
 
     options = {f.name: getattr(cfg.scene, f.name) for f in dataclasses.fields(cfg.scene)}
-    return cached_scene(cfg.scene.name, options, load)
+    return cached_scene(cfg.scene.name, options, load, grid_device=cfg.run.device)
 
 
 def _planned_lines(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
@@ -197,6 +197,8 @@ def _hover(cfg: RunConfig, scene: Scene) -> Trajectory:
 
 def flight_trajectories(cfg: RunConfig, scene: Scene) -> list[Trajectory]:
     """The trajectories to fly: the trajectory file if one is given, a hover, else the line plan."""
+    if cfg.flight.body_rotation_period_s == 0.0:  # clearance and terrain following read the height grid
+        scene.build_height_grid(cfg.run.device)
     try:
         if cfg.flight.platform == "hover":
             trajectories = [_hover(cfg, scene)]

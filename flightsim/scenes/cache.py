@@ -43,7 +43,8 @@ def cache_folder() -> Path:
     return Path(os.environ.get("FLIGHTSIM_CACHE") or Path.home() / ".cache" / "flightsim" / "scenes")
 
 
-def cached_scene(path, options: dict, load: Callable[[], Scene], folder: Path | None = None) -> Scene:
+def cached_scene(path, options: dict, load: Callable[[], Scene], folder: Path | None = None,
+                 grid_device: str | None = None) -> Scene:
     """The scene of the file ``path`` from the cache, or ``load()`` (then stored for next time).
 
     Args:
@@ -52,6 +53,7 @@ def cached_scene(path, options: dict, load: Callable[[], Scene], folder: Path | 
             a string naming an existing file also keys the entry on that file's size and time.
         load: reads the scene afresh.
         folder: the cache folder; :func:`cache_folder` by default.
+        grid_device: the Warp device that builds the height grid of a scene read afresh (None: NumPy).
     """
     folder = cache_folder() if folder is None else Path(folder)
     key = _key(Path(path), options)
@@ -62,6 +64,8 @@ def cached_scene(path, options: dict, load: Callable[[], Scene], folder: Path | 
     scene = _read_entry(entry, key)
     if scene is None:
         scene = load()
+        if grid_device is not None:
+            scene.build_height_grid(grid_device)
         _write_entry(folder, entry, key, scene)
     return scene
 

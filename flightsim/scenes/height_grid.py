@@ -51,29 +51,11 @@ class HeightGrid:
     triangles: np.ndarray
 
     @classmethod
-    def build(cls, vertices: np.ndarray, triangles: np.ndarray) -> "HeightGrid":
-        """The grid of a mesh: vertices (V, 3) [m], triangles (T, 3) indices."""
-        (lo_x, hi_x), (lo_y, hi_y), (_, hi_z) = (_extent(vertices[:, axis], triangles) for axis in range(3))
-        x0, y0 = float(lo_x.min()), float(lo_y.min())
-        width, height = float(hi_x.max()) - x0, float(hi_y.max()) - y0
-        cell = _cell_size(width, height, len(triangles))
-        while True:
-            rows, cols = int(height // cell) + 1, int(width // cell) + 1
-            c_lo, c_hi = _index(lo_x, x0, cell, cols), _index(hi_x, x0, cell, cols)
-            r_lo, r_hi = _index(lo_y, y0, cell, rows), _index(hi_y, y0, cell, rows)
-            n_cols, n_rows = c_hi - c_lo + 1, r_hi - r_lo + 1
-            listed = n_cols.astype(np.int64) * n_rows
-            if listed.sum() <= MAX_LISTED_PER_TRIANGLE * len(triangles) or max(rows, cols) == 1:
-                break
-            cell *= math.sqrt(listed.sum() / (MAX_LISTED_PER_TRIANGLE * len(triangles))) * 1.01
-        cell_of, members = _listing(c_lo, r_lo, n_cols, listed, cols)
-        order = np.argsort(cell_of, kind="stable")
-        cell_of, members = cell_of[order], members[order]
-        start = np.searchsorted(cell_of, np.arange(rows * cols + 1))
-        top = np.full(rows * cols, -np.inf)
-        filled = np.flatnonzero(start[1:] > start[:-1])
-        top[filled] = np.maximum.reduceat(hi_z[members], start[filled])
-        return cls(x0, y0, cell, top.reshape(rows, cols), start, members, vertices, triangles)
+    def build(cls, vertices: np.ndarray, triangles: np.ndarray, device: str | None = None) -> "HeightGrid":
+        """The grid of a mesh: vertices (V, 3) [m], triangles (T, 3) indices; built with NumPy, or on a Warp
+        ``device`` ("cpu", "cuda:0", …: :mod:`kernels.height_grid`, the same arrays)."""
+        build = _numpy_grid if device is None else _device_grid
+        return cls(*build(vertices, triangles, device), vertices, triangles)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The grid's own arrays (not the mesh), for :meth:`from_arrays`."""
@@ -166,6 +148,88 @@ class HeightGrid:
         if not np.any(over):
             return -math.inf
         return highest_over(corners[over], hi[over, 2], xmin, ymin, xmax, ymax)
+
+
+def _numpy_grid(vertices: np.ndarray, triangles: np.ndarray, _device=None) -> tuple:
+    """(x0, y0, cell_m, top, start, members) of a mesh's grid, with NumPy."""
+    (lo_x, hi_x), (lo_y, hi_y), (_, hi_z) = (_extent(vertices[:, axis], triangles) for axis in range(3))
+    x0, y0 = float(lo_x.min()), float(lo_y.min())
+    boxes = {}
+
+    def listed_total(cell: float, rows: int, cols: int) -> int:
+        c_lo, c_hi = _index(lo_x, x0, cell, cols), _index(hi_x, x0, cell, cols)
+        r_lo, r_hi = _index(lo_y, y0, cell, rows), _index(hi_y, y0, cell, rows)
+        n_cols = c_hi - c_lo + 1
+        boxes.update(c_lo=c_lo, r_lo=r_lo, n_cols=n_cols, listed=n_cols.astype(np.int64) * (r_hi - r_lo + 1))
+        return int(boxes["listed"].sum())
+
+    cell, rows, cols = _grid_shape(float(hi_x.max()) - x0, float(hi_y.max()) - y0, len(triangles), listed_total)
+    cell_of, members = _listing(boxes["c_lo"], boxes["r_lo"], boxes["n_cols"], boxes["listed"], cols)
+    order = np.argsort(cell_of, kind="stable")
+    cell_of, members = cell_of[order], members[order]
+    start = np.searchsorted(cell_of, np.arange(rows * cols + 1))
+    top = np.full(rows * cols, -np.inf)
+    filled = np.flatnonzero(start[1:] > start[:-1])
+    top[filled] = np.maximum.reduceat(hi_z[members], start[filled])
+    return x0, y0, cell, top.reshape(rows, cols), start, members
+
+
+def _device_grid(vertices: np.ndarray, triangles: np.ndarray, device: str) -> tuple:
+    """(x0, y0, cell_m, top, start, members) of a mesh's grid, built on a Warp device: the arrays of
+    :func:`_numpy_grid`."""
+    import warp as wp
+
+    from flightsim.core.warp_runtime import resolve_device, to_host
+    from kernels import height_grid as kg
+
+    d, n = resolve_device(device), len(triangles)
+    indices = wp.array(np.ascontiguousarray(triangles, dtype=np.int32).ravel(), dtype=wp.int32, device=d)
+    lowers, uppers = wp.empty(n, dtype=wp.vec3d, device=d), wp.empty(n, dtype=wp.vec3d, device=d)
+    extent = wp.array([np.inf, np.inf, -np.inf, -np.inf], dtype=wp.float64, device=d)
+    wp.launch(kg.triangle_boxes, n, inputs=[wp.array(vertices, dtype=wp.vec3d, device=d), indices],
+              outputs=[lowers, uppers, extent], device=d)
+    x0, y0, x1, y1 = (float(v) for v in to_host(extent))
+    listed, total = wp.empty(n, dtype=wp.int32, device=d), wp.zeros(1, dtype=wp.int64, device=d)
+
+    def listed_total(cell: float, rows: int, cols: int) -> int:
+        total.zero_()
+        wp.launch(kg.listing_counts, n, inputs=[lowers, uppers, wp.float64(x0), wp.float64(y0), wp.float64(cell),
+                                                rows, cols], outputs=[listed, total], device=d)
+        return int(to_host(total)[0])
+
+    cell, rows, cols = _grid_shape(x1 - x0, y1 - y0, n, listed_total)
+    count = listed_total(cell, rows, cols)
+    if 2 * count >= 2**31:  # beyond int32 listings: the NumPy build
+        return _numpy_grid(vertices, triangles)
+    offsets = wp.empty(n, dtype=wp.int32, device=d)
+    wp.utils.array_scan(listed, offsets, inclusive=False)
+    cells, members = wp.empty(2 * count, dtype=wp.int32, device=d), wp.empty(2 * count, dtype=wp.int32, device=d)
+    wp.launch(kg.listings, n, inputs=[lowers, uppers, wp.float64(x0), wp.float64(y0), wp.float64(cell), rows, cols,
+                                      offsets], outputs=[cells, members], device=d)
+    wp.utils.radix_sort_pairs(cells, members, count, end_bit=max(1, (rows * cols - 1).bit_length()))
+    counts, start = wp.zeros(rows * cols, dtype=wp.int32, device=d), wp.empty(rows * cols, dtype=wp.int32, device=d)
+    wp.launch(kg.cell_counts, count, inputs=[cells], outputs=[counts], device=d)
+    wp.utils.array_scan(counts, start, inclusive=False)
+    top = wp.empty(rows * cols, dtype=wp.float64, device=d)
+    wp.launch(kg.cell_tops, rows * cols, inputs=[start, counts, members, uppers], outputs=[top], device=d)
+    sorted_members = wp.empty(count, dtype=wp.int32, device=d)
+    wp.copy(sorted_members, members, count=count)
+    return (x0, y0, cell, top.numpy().reshape(rows, cols), np.append(start.numpy().astype(np.int64), count),
+            sorted_members.numpy())
+
+
+def _grid_shape(width: float, height: float, n_triangles: int, listed_total) -> tuple[float, int, int]:
+    """(cell side [m], rows, columns) of the grid over a width × height [m] extent: about
+    TRIANGLES_PER_CELL triangles' share of the area per cell, widened while the triangles would be listed
+    more than MAX_LISTED_PER_TRIANGLE times each on average (``listed_total(cell, rows, cols)``: the
+    listings of a candidate grid)."""
+    cell = _cell_size(width, height, n_triangles)
+    while True:
+        rows, cols = int(height // cell) + 1, int(width // cell) + 1
+        total = listed_total(cell, rows, cols)
+        if total <= MAX_LISTED_PER_TRIANGLE * n_triangles or max(rows, cols) == 1:
+            return cell, rows, cols
+        cell *= math.sqrt(total / (MAX_LISTED_PER_TRIANGLE * n_triangles)) * 1.01
 
 
 def _cell_size(width: float, height: float, n_triangles: int) -> float:

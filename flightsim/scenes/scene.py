@@ -207,9 +207,16 @@ class Scene:
 
     @property
     def height_grid(self) -> HeightGrid:
-        """The scene's :class:`~flightsim.scenes.height_grid.HeightGrid`, built on first use."""
+        """The scene's :class:`~flightsim.scenes.height_grid.HeightGrid`, built on first use (with NumPy,
+        unless :meth:`build_height_grid` built it on a device first)."""
         if self._height_grid is None:
             self._height_grid = HeightGrid.build(self.vertices, self.triangles)
+        return self._height_grid
+
+    def build_height_grid(self, device: str) -> HeightGrid:
+        """:attr:`height_grid`, built on the Warp ``device`` ("cpu", "cuda", "cuda:N") if not built yet."""
+        if self._height_grid is None:
+            self._height_grid = HeightGrid.build(self.vertices, self.triangles, device)
         return self._height_grid
 
     def adopt_height_grid(self, arrays) -> None:
