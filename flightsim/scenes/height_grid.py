@@ -54,8 +54,8 @@ class HeightGrid:
     def build(cls, vertices: np.ndarray, triangles: np.ndarray, device: str | None = None) -> "HeightGrid":
         """The grid of a mesh: vertices (V, 3) [m], triangles (T, 3) indices; built with NumPy, or on a Warp
         ``device`` ("cpu", "cuda:0", …: :mod:`kernels.height_grid`, the same arrays)."""
-        build = _numpy_grid if device is None else _device_grid
-        return cls(*build(vertices, triangles, device), vertices, triangles)
+        arrays = _numpy_grid(vertices, triangles) if device is None else _device_grid(vertices, triangles, device)
+        return cls(*arrays, vertices, triangles)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The grid's own arrays (not the mesh), for :meth:`from_arrays`."""
@@ -150,7 +150,7 @@ class HeightGrid:
         return highest_over(corners[over], hi[over, 2], xmin, ymin, xmax, ymax)
 
 
-def _numpy_grid(vertices: np.ndarray, triangles: np.ndarray, _device=None) -> tuple:
+def _numpy_grid(vertices: np.ndarray, triangles: np.ndarray) -> tuple:
     """(x0, y0, cell_m, top, start, members) of a mesh's grid, with NumPy."""
     (lo_x, hi_x), (lo_y, hi_y), (_, hi_z) = (_extent(vertices[:, axis], triangles) for axis in range(3))
     x0, y0 = float(lo_x.min()), float(lo_y.min())
@@ -163,7 +163,7 @@ def _numpy_grid(vertices: np.ndarray, triangles: np.ndarray, _device=None) -> tu
         boxes.update(c_lo=c_lo, r_lo=r_lo, n_cols=n_cols, listed=n_cols.astype(np.int64) * (r_hi - r_lo + 1))
         return int(boxes["listed"].sum())
 
-    cell, rows, cols = _grid_shape(float(hi_x.max()) - x0, float(hi_y.max()) - y0, len(triangles), listed_total)
+    cell, rows, cols, _ = _grid_shape(float(hi_x.max()) - x0, float(hi_y.max()) - y0, len(triangles), listed_total)
     cell_of, members = _listing(boxes["c_lo"], boxes["r_lo"], boxes["n_cols"], boxes["listed"], cols)
     order = np.argsort(cell_of, kind="stable")
     cell_of, members = cell_of[order], members[order]
@@ -197,8 +197,7 @@ def _device_grid(vertices: np.ndarray, triangles: np.ndarray, device: str) -> tu
                                                 rows, cols], outputs=[listed, total], device=d)
         return int(to_host(total)[0])
 
-    cell, rows, cols = _grid_shape(x1 - x0, y1 - y0, n, listed_total)
-    count = listed_total(cell, rows, cols)
+    cell, rows, cols, count = _grid_shape(x1 - x0, y1 - y0, n, listed_total)  # `listed`: the last grid tried
     if 2 * count >= 2**31:  # beyond int32 listings: the NumPy build
         return _numpy_grid(vertices, triangles)
     offsets = wp.empty(n, dtype=wp.int32, device=d)
@@ -218,8 +217,8 @@ def _device_grid(vertices: np.ndarray, triangles: np.ndarray, device: str) -> tu
             sorted_members.numpy())
 
 
-def _grid_shape(width: float, height: float, n_triangles: int, listed_total) -> tuple[float, int, int]:
-    """(cell side [m], rows, columns) of the grid over a width × height [m] extent: about
+def _grid_shape(width: float, height: float, n_triangles: int, listed_total) -> tuple[float, int, int, int]:
+    """(cell side [m], rows, columns, listings) of the grid over a width × height [m] extent: about
     TRIANGLES_PER_CELL triangles' share of the area per cell, widened while the triangles would be listed
     more than MAX_LISTED_PER_TRIANGLE times each on average (``listed_total(cell, rows, cols)``: the
     listings of a candidate grid)."""
@@ -228,7 +227,7 @@ def _grid_shape(width: float, height: float, n_triangles: int, listed_total) -> 
         rows, cols = int(height // cell) + 1, int(width // cell) + 1
         total = listed_total(cell, rows, cols)
         if total <= MAX_LISTED_PER_TRIANGLE * n_triangles or max(rows, cols) == 1:
-            return cell, rows, cols
+            return cell, rows, cols, total
         cell *= math.sqrt(total / (MAX_LISTED_PER_TRIANGLE * n_triangles)) * 1.01
 
 
