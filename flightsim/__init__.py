@@ -6,6 +6,14 @@ Public API: :func:`load_config`, :func:`simulate`, :func:`sweep`, :func:`budget`
 
 __version__ = "0.1.0"
 
-from flightsim.api import SimulationResult, budget, load_config, simulate, sweep  # noqa: E402
-
 __all__ = ["SimulationResult", "__version__", "budget", "load_config", "simulate", "sweep"]
+
+
+def __getattr__(name: str):
+    """The public API, imported on first use: a process that needs only one part (a LAZ worker importing
+    the tile writer) does not pay for the rest (config, trajectories, SciPy)."""
+    if name in __all__:
+        from flightsim import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'flightsim' has no attribute {name!r}")

@@ -159,7 +159,8 @@ def test_a_worker_whose_disk_fills_up_leaves_no_tile(tmp_path, monkeypatch, star
 
 def test_a_real_write_error_in_a_worker_is_the_in_process_writers(tmp_path):
     """A file-size limit (inherited by the workers) makes the kernel refuse a tile's write: the parent
-    raises the exception the in-process writer raises, and abort() leaves nothing."""
+    raises the exception the in-process writer raises (compressing as a worker does, in its own thread),
+    and abort() leaves nothing."""
     points = _points(120_000, tiles=1)
     errors = {}
     for processes in (0, 1):
@@ -167,7 +168,7 @@ def test_a_real_write_error_in_a_worker_is_the_in_process_writers(tmp_path):
         soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
         resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 20, hard))  # 1 MiB; the tile needs ~3 MiB
         try:
-            writer = TileWriter(directory, UTM48N, **OPTIONS, processes=processes)
+            writer = TileWriter(directory, UTM48N, **OPTIONS, processes=processes, parallel_compression=False)
             if processes == 0:
                 errors[processes] = _error_of_writing(writer, points)
         finally:

@@ -2,22 +2,20 @@
 
 Depends only on numpy, scipy and the standard library (never on flightsim or warp).
 """
-from .attitude import euler_from_rotation, make_continuous, quaternion_from_matrix, rotation_body_to_enu
-from .errors import TrajectoryError
-from .lines import FlightLine, climb_limited, plan_parallel_lines
-from .timing import PulseTiming
-from .trajectory import COLUMNS, Trajectory
+import importlib
 
-__all__ = [
-    "COLUMNS",
-    "FlightLine",
-    "PulseTiming",
-    "Trajectory",
-    "TrajectoryError",
-    "climb_limited",
-    "euler_from_rotation",
-    "make_continuous",
-    "plan_parallel_lines",
-    "quaternion_from_matrix",
-    "rotation_body_to_enu",
-]
+_HOMES = {
+    "euler_from_rotation": "attitude", "make_continuous": "attitude", "quaternion_from_matrix": "attitude",
+    "rotation_body_to_enu": "attitude", "TrajectoryError": "errors", "FlightLine": "lines",
+    "climb_limited": "lines", "plan_parallel_lines": "lines", "PulseTiming": "timing", "COLUMNS": "trajectory",
+    "Trajectory": "trajectory",
+}
+__all__ = sorted(_HOMES)
+
+
+def __getattr__(name: str):
+    """Each name imported from its module on first use: importing one module (``trajectories.errors``)
+    does not import SciPy's rotations with the rest."""
+    if name in _HOMES:
+        return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
+    raise AttributeError(f"module 'trajectories' has no attribute {name!r}")

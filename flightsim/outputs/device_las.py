@@ -136,7 +136,7 @@ class DeviceLasOutput:
                                           b.faces, b.scan_angles, b.cos_incidence, b.edge_distance, b.true_points,
                                           points, self.tables],
                   outputs=[records, bounds], device=d)
-        host = self._host_buffer(model, n)
+        host = self._host_buffer(model, b.index.shape[0])
         wp.copy(host, records, count=n * self.kernel.words)
         key = to_host(tile_keys[:groups])  # waits for the copy above too (same stream)
         table = np.concatenate([to_host(starts[:groups]), to_host(lengths[:groups])])
@@ -158,7 +158,9 @@ class DeviceLasOutput:
                 self._free[model].put(tiles.records)
 
     def _host_buffer(self, model: str, n: int) -> wp.array:
-        """A free host buffer of at least ``n`` records (waits for a writer to release one)."""
+        """A free host buffer of at least ``n`` records (waits for a writer to release one). Asked for the
+        chunk's slot count, not its return count, so that each buffer is allocated and page-locked (slow) once
+        per run, not again whenever a chunk holds more returns than any before."""
         buffer = self._free[model].get()
         self._raise_writer_error()
         if buffer is None or buffer.shape[0] < n:

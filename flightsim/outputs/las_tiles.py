@@ -210,10 +210,10 @@ class TileWriter:
     LAZ is compressed in ``processes`` worker processes (:mod:`flightsim.outputs.laz_workers`) when that
     is at least 1: this process then only hands each write's records over, and never holds the GIL
     while lazrs compresses. Each tile belongs to one worker, which runs an in-process ``TileWriter``
-    with the same options for its tiles; the bytes are those of writing in this process. Each worker
-    keeps its own bounds: ``max_open_tiles`` open files, and :data:`LAZ_HELD_BYTES` of held records, so
-    a writer holds up to ``processes`` times those in all (plus one write in flight per worker), and
-    none in this process. This process renames the tiles once every worker has finished its files.
+    with the same options for its tiles, compressing each write as it arrives (lazrs's sequential
+    compressor); the bytes are those of writing in this process. Each worker keeps its own bound of
+    ``max_open_tiles`` open files and holds one write in flight; this process holds no records. It renames
+    the tiles once every worker has finished its files.
 
     Args:
         directory: output folder, created if missing.
@@ -228,6 +228,10 @@ class TileWriter:
         max_open_tiles: bound on simultaneously open tile files (>= 1), per worker process.
         processes: LAZ worker processes (>= 0; 0: compress in this process; ignored for LAS);
             None: :data:`LAZ_PROCESSES`.
+        parallel_compression: compress LAZ in this process over every core (lazrs's parallel compressor,
+            records held back in batches of :data:`LAZ_BATCH_POINTS`), or in the calling thread as each write
+            arrives (each worker process does: the processes are the parallelism, and a compressor's threads
+            in every one of them would only contend for the same cores). The bytes are the same.
     """
 
     def __init__(
@@ -242,6 +246,7 @@ class TileWriter:
         software: str = f"flightsim {__version__}",
         max_open_tiles: int = 64,
         processes: int | None = None,
+        parallel_compression: bool = True,
     ) -> None:
         self._tile_mm = _tile_size_mm(tile_size_m)
         if not isinstance(max_open_tiles, int) or max_open_tiles < 1:
@@ -252,6 +257,7 @@ class TileWriter:
         self._directory = Path(directory)
         self._directory.mkdir(parents=True, exist_ok=True)
         self._compress = bool(compress)
+        self._parallel = bool(parallel_compression)
         unknown = set(extras) - set(OPTIONAL_DIMS)
         if unknown:
             raise InputError("extras", sorted(unknown), f"names among {', '.join(OPTIONAL_DIMS)}")
@@ -266,7 +272,8 @@ class TileWriter:
         if self._compress and processes:
             self._workers = LazWorkers(processes, dict(
                 directory=str(self._directory), crs=crs, tile_size_m=tile_size_m, compress=True, extras=tuple(extras),
-                creation_date=creation_date, software=software, max_open_tiles=max_open_tiles, processes=0))
+                creation_date=creation_date, software=software, max_open_tiles=max_open_tiles, processes=0,
+                parallel_compression=False))
 
     def __enter__(self) -> TileWriter:
         return self
@@ -411,14 +418,14 @@ class TileWriter:
             _, oldest = self._open.popitem(last=False)
             oldest.close()
         if key in self._counts:
-            tile = _TileFile.reopen(self._temp_path(key), self._compress)
+            tile = _TileFile.reopen(self._temp_path(key), self._compress, self._parallel)
         else:
             header = copy.deepcopy(self._template)
             header.offsets = np.array(
                 [key[0] * self._tile_mm / _MM_PER_M, key[1] * self._tile_mm / _MM_PER_M, 0.0]
             )
             self._counts[key] = 0  # registered first, so that abort() removes a half-made file
-            tile = _TileFile.create(self._temp_path(key), header, self._compress)
+            tile = _TileFile.create(self._temp_path(key), header, self._compress, self._parallel)
         self._open[key] = tile
         return tile
 
@@ -441,41 +448,49 @@ cores the workers gave nothing back (the cores are all busy either way) for thei
 memory (~90 MB each, plus held records: see :data:`LAZ_HELD_BYTES`)."""
 
 
-class _TileFile:
-    """One tile's temporary file and the laspy writer (or appender) streaming into it; a LAZ tile holds
-    records back until :data:`LAZ_BATCH_POINTS` (the bytes are those of writing them one by one: the
-    compressor cuts chunks by point count)."""
+def _laz_backend(compress: bool, parallel: bool) -> laspy.LazBackend | None:
+    """lazrs's compressor over every core (parallel) or in the calling thread; None for LAS."""
+    if not compress:
+        return None
+    return laspy.LazBackend.LazrsParallel if parallel else laspy.LazBackend.Lazrs
 
-    def __init__(self, file, sink: laspy.LasWriter | LasAppender, compress: bool) -> None:
+
+class _TileFile:
+    """One tile's temporary file and the laspy writer (or appender) streaming into it. A LAZ tile compressed
+    over every core holds records back until :data:`LAZ_BATCH_POINTS`; one compressed in its writer's thread
+    compresses each write as it comes (the bytes are the same either way: the compressor cuts chunks by
+    point count). Compressed bytes are synced to disk as they are written, so that a run's output reaches
+    the disk while it traces rather than in the final fsyncs of its tiles."""
+
+    def __init__(self, file, sink: laspy.LasWriter | LasAppender, compress: bool, parallel: bool) -> None:
         self._file = file
         self._sink = sink
-        self._batch = LAZ_BATCH_POINTS if compress else 0
+        self._compress = compress
+        self._batch = LAZ_BATCH_POINTS if compress and parallel else 0
         self._held: list[laspy.PackedPointRecord] = []
         self.held_points = 0
 
     @classmethod
-    def create(cls, path: Path, header: laspy.LasHeader, compress: bool) -> _TileFile:
+    def create(cls, path: Path, header: laspy.LasHeader, compress: bool, parallel: bool) -> _TileFile:
         file = open(path, "w+b")
         try:
-            backend = laspy.LazBackend.LazrsParallel if compress else None
             sink = laspy.LasWriter(
-                file, header, do_compress=compress, laz_backend=backend, closefd=False
+                file, header, do_compress=compress, laz_backend=_laz_backend(compress, parallel), closefd=False
             )
         except BaseException:
             file.close()
             raise
-        return cls(file, sink, compress)
+        return cls(file, sink, compress, parallel)
 
     @classmethod
-    def reopen(cls, path: Path, compress: bool) -> _TileFile:
+    def reopen(cls, path: Path, compress: bool, parallel: bool) -> _TileFile:
         file = open(path, "r+b")
-        try:
-            backend = laspy.LazBackend.LazrsParallel if compress else None
-            sink = LasAppender(file, laz_backend=backend, closefd=False)
+        try:  # always lazrs's parallel appender: its sequential one (lazrs 0.8) fails on reopening a tile
+            sink = LasAppender(file, laz_backend=_laz_backend(compress, True), closefd=False)
         except BaseException:
             file.close()
             raise
-        return cls(file, sink, compress)
+        return cls(file, sink, compress, parallel)
 
     def write(self, record: laspy.PackedPointRecord, lowest, highest) -> None:
         """Append records whose stored X, Y, Z range over [lowest, highest] (ints, mm).
@@ -491,6 +506,8 @@ class _TileFile:
                 self.flush()
         else:
             self._append(record)
+            if self._compress:
+                self._sync()
         header = self._sink.header
         header.maxs = np.maximum(header.maxs, np.asarray(highest, dtype=np.int64) * header.scales + header.offsets)
         header.mins = np.minimum(header.mins, np.asarray(lowest, dtype=np.int64) * header.scales + header.offsets)
@@ -504,8 +521,12 @@ class _TileFile:
             format_ = self._held[0].point_format
             self._append(laspy.PackedPointRecord(np.concatenate([r.array for r in self._held]), format_))
             self._held, self.held_points = [], 0
-            self._file.flush()
-            os.fdatasync(self._file.fileno())
+            self._sync()
+
+    def _sync(self) -> None:
+        """Wait until the disk has every byte written so far."""
+        self._file.flush()
+        os.fdatasync(self._file.fileno())
 
     def _append(self, record: laspy.PackedPointRecord) -> None:
         if isinstance(self._sink, laspy.LasWriter):
