@@ -192,6 +192,40 @@ def _error_of_writing(writer: TileWriter, points: PointBatch) -> BaseException:
     raise AssertionError("the file-size limit did not stop the writer")
 
 
+def test_a_stalled_worker_holds_up_only_its_own_tiles(tmp_path, monkeypatch):
+    """With one worker stopped (SIGSTOP), writes to the other worker's tile go through and writes to its own
+    queue up to QUEUE_BYTES (a socket alone would block the writer at its buffer's few hundred kB); one more
+    waits until the worker runs again. The tiles are still those of one process."""
+    import threading
+
+    monkeypatch.setattr(laz_workers, "QUEUE_BYTES", 8 << 20)
+    points = _points(400_000, tiles=2)  # 48-byte records: ~4.8 MB per tile in each half
+    pieces = (slice(0, 100), slice(100, 200_000), slice(200_000, 400_000))
+    writer = TileWriter(tmp_path / "workers", UTM48N, **OPTIONS, processes=2)
+    writer.write(points.select(pieces[0]))
+    assert sorted(writer._workers._owner.values()) == [0, 1]  # one tile each (fewest bytes first)
+    stalled = writer._workers.processes[writer._workers._owner[(818, 6784)]]
+    stalled.send_signal(signal.SIGSTOP)
+    try:
+        queued = threading.Thread(target=writer.write, args=(points.select(pieces[1]),))
+        queued.start()
+        queued.join(timeout=60.0)
+        assert not queued.is_alive()  # ~4.8 MB queued for the stalled worker, the rest sent to the other
+        over = threading.Thread(target=writer.write, args=(points.select(pieces[2]),))
+        over.start()
+        over.join(timeout=2.0)
+        assert over.is_alive()  # another ~4.8 MB does not fit in the stalled worker's queue: it waits
+    finally:
+        stalled.send_signal(signal.SIGCONT)
+    over.join(timeout=60.0)
+    assert not over.is_alive()
+    writer.close()
+    with TileWriter(tmp_path / "one", UTM48N, **OPTIONS, processes=0) as reference:
+        for piece in pieces:
+            reference.write(points.select(piece))
+    assert _digests(tmp_path / "workers") == _digests(tmp_path / "one")
+
+
 @pytest.mark.parametrize("then", ["write", "close"])
 def test_a_killed_worker_is_named_not_waited_for(tmp_path, then):
     points = _points(40_000, tiles=2)
@@ -229,10 +263,11 @@ def test_workers_are_reaped_on_abort_and_garbage_collection(tmp_path):
     assert _reaped(processes)
 
 
-def test_a_worker_imports_no_warp():
-    """What a worker imports (its entry module and the tile writer) must not bring Warp in."""
+def test_a_worker_imports_no_warp_nor_scipy():
+    """What a worker imports (its entry module and the tile writer) must not bring Warp in, nor SciPy (the
+    package's API, config and trajectories are imported on first use, not with the tile writer)."""
     code = ("import sys, flightsim.outputs.laz_workers, flightsim.outputs.las_tiles; "
-            "print(sorted(m for m in sys.modules if m.split('.')[0] == 'warp'))")
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('warp', 'scipy')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
     assert out.stdout.strip() == "[]"

@@ -2,11 +2,15 @@
 
 lazrs holds the GIL of the process that calls it for as long as it compresses. A LAZ
 :class:`~flightsim.outputs.las_tiles.TileWriter` with workers therefore only hands each write's record
-bytes to a worker (socket writes, which release the GIL; a full socket blocks the sender, so memory
-stays bounded), and every worker runs an in-process ``TileWriter`` over the same directory for the
-tiles it owns. Each tile belongs to one worker (the first tile seen to worker 0, the next to worker 1,
-...), whose socket delivers a tile's records in the order they were written: the tiles are
-byte-identical to those written in one process.
+bytes to a worker, and every worker runs an in-process ``TileWriter`` over the same directory for the
+tiles it owns, compressing each write as it arrives. Each tile belongs to one worker (a new tile to the
+worker with the fewest record bytes so far), whose socket delivers a tile's records in the order they
+were written: the tiles are byte-identical to those written in one process.
+
+A write copies the records into its worker's queue and returns; one sender thread per worker feeds the
+worker's socket (``sendmsg``, which releases the GIL). A worker busy compressing therefore holds up
+only its own queue, not the writes meant for idle workers; a write waits only while its worker's queue
+holds :data:`QUEUE_BYTES` already, so memory stays bounded.
 
 A worker is a fresh interpreter (``sys.executable``, fork-free: this process may hold a CUDA context and
 threads) that imports this module, :mod:`flightsim.outputs.las_tiles` and what they import — not Warp,
@@ -32,11 +36,16 @@ import socket
 import struct
 import subprocess
 import sys
+import threading
 import traceback
 import weakref
+from collections import deque
 
 import numpy as np
 
+QUEUE_BYTES = 64 << 20
+"""Most record bytes waiting in this process for one worker (a write that would exceed it waits, unless
+the queue is empty)."""
 EXIT_WAIT_S = 60.0
 """How long a worker that has finished its tiles may take to exit before it is killed [s]."""
 _ENTRY = ("import json, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "  # the parent stops its workers
@@ -50,7 +59,7 @@ _NO_NUMBERS = (0,) * 8
 
 
 class LazWorkers:
-    """The worker processes that write the tiles of one LAZ ``TileWriter``.
+    """The worker processes that write the tiles of one LAZ ``TileWriter``, and a sender thread for each.
 
     An error in a worker (e.g. a full disk) is raised, as the same exception with the worker's traceback
     as a note, by the next :meth:`write` or by :meth:`finish`, and again by every later call; a worker
@@ -65,10 +74,12 @@ class LazWorkers:
     def __init__(self, count: int, writer_options: dict) -> None:
         self.processes: list[subprocess.Popen] = []  #: the worker processes, in worker order
         self._sockets: list[socket.socket] = []
-        self._stop = weakref.finalize(self, _kill, self.processes, self._sockets)
+        self._senders: list[_Sender] = []
+        self._stop = weakref.finalize(self, _kill, self.processes, self._sockets, self._senders)
         self._messages = select.poll()  # any worker's message (or end) is a failure until finish()
         self._worker_of_fd: dict[int, int] = {}
         self._owner: dict[tuple[int, int], int] = {}
+        self._assigned = [0] * count  # record bytes handed to each worker so far
         self._error: BaseException | None = None
         try:
             for _ in range(count):
@@ -78,13 +89,17 @@ class LazWorkers:
             raise
 
     def write(self, key: tuple[int, int], records: np.ndarray, lowest, highest) -> None:
-        """Hand ``records`` (a C-contiguous array) of tile ``key`` to the worker that owns the tile, with
-        the least and greatest stored X, Y, Z of the records [mm]."""
+        """Queue a copy of ``records`` (a C-contiguous array) of tile ``key`` for the worker that owns the
+        tile, with the least and greatest stored X, Y, Z of the records [mm]."""
         self._raise_failure()
         key = (int(key[0]), int(key[1]))
-        worker = self._owner.setdefault(key, len(self._owner) % len(self.processes))
+        worker = self._owner.get(key)
+        if worker is None:
+            worker = self._owner[key] = self._assigned.index(min(self._assigned))
+        body = records.view(np.uint8).reshape(-1).copy()
+        self._assigned[worker] += body.nbytes
         numbers = (*key, *(int(v) for v in lowest), *(int(v) for v in highest))
-        self._send(worker, _WRITE, numbers, memoryview(records.view(np.uint8)))
+        self._send(worker, _WRITE, numbers, body)
 
     def finish(self) -> None:
         """Have every worker finish its tile files under their temporary names, and wait until they have
@@ -93,6 +108,9 @@ class LazWorkers:
         try:
             for worker in range(len(self.processes)):
                 self._send(worker, _FINISH)
+            for worker, sender in enumerate(self._senders):
+                if not sender.drain():
+                    self._receive(worker)
             for worker in range(len(self.processes)):
                 self._receive(worker)
             for process in self.processes:
@@ -119,16 +137,13 @@ class LazWorkers:
         self.processes.append(process)
         self._sockets.append(parent)
         self._messages.register(parent, select.POLLIN)
-        _send_frame(parent, _OBJECT, body=memoryview(pickle.dumps(writer_options)))
+        self._senders.append(_Sender(parent))
+        self._send(len(self.processes) - 1, _OBJECT, body=np.frombuffer(pickle.dumps(writer_options), np.uint8))
 
-    def _send(self, worker: int, kind: int, numbers: tuple = _NO_NUMBERS, body: memoryview | None = None) -> None:
-        """Send a frame to ``worker``; if it has gone, raise why."""
-        try:
-            _send_frame(self._sockets[worker], kind, numbers, body)
-            return
-        except OSError:
-            pass  # the worker has gone: its message, or its death, says why
-        self._receive(worker)
+    def _send(self, worker: int, kind: int, numbers: tuple = _NO_NUMBERS, body: np.ndarray | None = None) -> None:
+        """Queue a frame for ``worker``; if it has gone, raise why."""
+        if not self._senders[worker].put((kind, numbers, body)):
+            self._receive(worker)  # the worker has gone: its message, or its death, says why
 
     def _raise_failure(self) -> None:
         """Raise the error a worker has reported (or its death), if any (one ``poll`` call)."""
@@ -151,6 +166,76 @@ class LazWorkers:
         if self._error is None:
             self._error = _worker_error(worker, process, message)
         raise self._error
+
+
+class _Sender:
+    """The thread that sends one worker its queued frames, in order; at most :data:`QUEUE_BYTES` of bodies
+    wait in its queue (a larger frame waits for an empty queue)."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+        self._frames: deque[tuple[int, tuple, np.ndarray | None]] = deque()
+        self._queued = 0  # body bytes in the queue
+        self._changed = threading.Condition()
+        self._failed = False  # a send failed: the worker has gone
+        self._stopped = False
+        self._thread = threading.Thread(target=self._run, daemon=True, name="LAZ worker sender")
+        self._thread.start()
+
+    def put(self, frame: tuple[int, tuple, np.ndarray | None]) -> bool:
+        """Queue ``frame`` (kind, head numbers, body), waiting for room; False if the worker has gone."""
+        size = _body_size(frame)
+        with self._changed:
+            self._changed.wait_for(lambda: self._failed or self._stopped or not self._queued
+                                   or self._queued + size <= QUEUE_BYTES)
+            if self._failed or self._stopped:
+                return False
+            self._frames.append(frame)
+            self._queued += size
+            self._changed.notify_all()
+        return True
+
+    def drain(self) -> bool:
+        """Wait until every queued frame is sent; False if the worker has gone first."""
+        with self._changed:
+            self._changed.wait_for(lambda: self._failed or self._stopped or not self._frames)
+            return not (self._failed or self._stopped)
+
+    def stop(self) -> None:
+        """Drop the queue and have the thread end once the send under way, if any, ends."""
+        with self._changed:
+            self._stopped = True
+            self._frames.clear()
+            self._changed.notify_all()
+
+    def join(self) -> None:
+        """Wait until the thread has ended (after :meth:`stop`, and its worker's end)."""
+        self._thread.join()
+
+    def _run(self) -> None:
+        while True:
+            with self._changed:
+                self._changed.wait_for(lambda: self._stopped or self._frames)
+                if self._stopped:
+                    return
+                frame = self._frames[0]
+            kind, numbers, body = frame
+            try:
+                _send_frame(self._sock, kind, numbers, None if body is None else memoryview(body))
+            except OSError:
+                with self._changed:
+                    self._failed = True
+                    self._changed.notify_all()
+                return
+            with self._changed:
+                if self._frames and self._frames[0] is frame:  # not dropped by stop() meanwhile
+                    self._frames.popleft()
+                    self._queued -= _body_size(frame)
+                self._changed.notify_all()
+
+
+def _body_size(frame: tuple[int, tuple, np.ndarray | None]) -> int:
+    return 0 if frame[2] is None else frame[2].nbytes
 
 
 def serve(fd: int) -> None:
@@ -239,11 +324,15 @@ def _worker_error(worker: int, process: subprocess.Popen, message: tuple) -> Bas
     return RuntimeError(f"{name} {how} without finishing its tiles")
 
 
-def _kill(processes: list[subprocess.Popen], sockets: list[socket.socket]) -> None:
-    """Kill and reap ``processes``, and close ``sockets``."""
+def _kill(processes: list[subprocess.Popen], sockets: list[socket.socket], senders: list[_Sender]) -> None:
+    """Stop ``senders``, kill and reap ``processes``, and close ``sockets``."""
+    for sender in senders:
+        sender.stop()
     for process in processes:
-        process.kill()  # a no-op for a process that has exited
+        process.kill()  # a no-op for a process that has exited (a sender blocked on it fails)
     for process in processes:
         process.wait()
+    for sender in senders:
+        sender.join()  # before its socket is closed: its descriptor is not reused under a send
     for sock in sockets:
         sock.close()
