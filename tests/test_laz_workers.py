@@ -144,8 +144,7 @@ def fill_up_disk_after(writes: int) -> None:
 def test_a_worker_whose_disk_fills_up_leaves_no_tile(tmp_path, monkeypatch, started):
     from flightsim.engine.run import simulate_to_directory
 
-    entry = laz_workers._ENTRY.replace("serve(int(sys.argv[1]))",
-                                       "__import__('test_laz_workers').fill_up_disk_after(5); serve(int(sys.argv[1]))")
+    entry = laz_workers._ENTRY.replace("serve(", "__import__('test_laz_workers').fill_up_disk_after(5); serve(")
     assert entry != laz_workers._ENTRY
     monkeypatch.setattr(laz_workers, "_ENTRY", entry)
     with pytest.raises(OSError, match="No space left") as raised:
@@ -157,11 +156,12 @@ def test_a_worker_whose_disk_fills_up_leaves_no_tile(tmp_path, monkeypatch, star
     assert started and all(_reaped(pool.processes) for pool in started)
 
 
-def test_a_real_write_error_in_a_worker_is_the_in_process_writers(tmp_path):
+def test_a_real_write_error_in_a_worker_is_the_in_process_writers(tmp_path, monkeypatch):
     """A file-size limit (inherited by the workers) makes the kernel refuse a tile's write: the parent
     raises the exception the in-process writer raises (compressing as a worker does, in its own thread),
     and abort() leaves nothing."""
     points = _points(120_000, tiles=1)
+    monkeypatch.setattr(laz_workers, "RING_BYTES", 256 << 10)  # the limit holds for the shared ring too
     errors = {}
     for processes in (0, 1):
         directory = tmp_path / str(processes)
@@ -194,11 +194,11 @@ def _error_of_writing(writer: TileWriter, points: PointBatch) -> BaseException:
 
 def test_a_stalled_worker_holds_up_only_its_own_tiles(tmp_path, monkeypatch):
     """With one worker stopped (SIGSTOP), writes to the other worker's tile go through and writes to its own
-    queue up to QUEUE_BYTES (a socket alone would block the writer at its buffer's few hundred kB); one more
-    waits until the worker runs again. The tiles are still those of one process."""
+    fill its ring, up to RING_BYTES; one more waits until the worker runs again. The tiles are still those
+    of one process."""
     import threading
 
-    monkeypatch.setattr(laz_workers, "QUEUE_BYTES", 8 << 20)
+    monkeypatch.setattr(laz_workers, "RING_BYTES", 8 << 20)
     points = _points(400_000, tiles=2)  # 48-byte records: ~4.8 MB per tile in each half
     pieces = (slice(0, 100), slice(100, 200_000), slice(200_000, 400_000))
     writer = TileWriter(tmp_path / "workers", UTM48N, **OPTIONS, processes=2)
@@ -210,11 +210,11 @@ def test_a_stalled_worker_holds_up_only_its_own_tiles(tmp_path, monkeypatch):
         queued = threading.Thread(target=writer.write, args=(points.select(pieces[1]),))
         queued.start()
         queued.join(timeout=60.0)
-        assert not queued.is_alive()  # ~4.8 MB queued for the stalled worker, the rest sent to the other
+        assert not queued.is_alive()  # ~4.8 MB in the stalled worker's ring, the rest gone to the other
         over = threading.Thread(target=writer.write, args=(points.select(pieces[2]),))
         over.start()
         over.join(timeout=2.0)
-        assert over.is_alive()  # another ~4.8 MB does not fit in the stalled worker's queue: it waits
+        assert over.is_alive()  # another ~4.8 MB does not fit in the stalled worker's ring: it waits
     finally:
         stalled.send_signal(signal.SIGCONT)
     over.join(timeout=60.0)
@@ -271,3 +271,25 @@ def test_a_worker_imports_no_warp_nor_scipy():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
     assert out.stdout.strip() == "[]"
+
+
+def test_the_ring_never_hands_out_bytes_in_use():
+    """Random takes and oldest-first releases: the pieces in use never overlap and stay inside the ring, and
+    a take refused while the ring is empty never happens (any piece up to the ring's size fits then)."""
+    rng = np.random.default_rng(3)
+    ring = laz_workers._Ring(1000)
+    live = []
+    for _ in range(20_000):
+        if live and rng.random() < 0.45:
+            ring.release()
+            live.pop(0)
+            continue
+        n = int(rng.integers(1, 400))
+        offset = ring.take(n)
+        if offset is None:
+            assert live  # refused only with pieces in use
+            continue
+        assert 0 <= offset and offset + n <= 1000
+        assert all(offset + n <= a or b <= offset for a, b in live), (offset, n, live)
+        live.append((offset, offset + n))
+    assert ring.take(1000) is None if live else ring.take(1000) == 0

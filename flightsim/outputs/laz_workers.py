@@ -1,16 +1,18 @@
 """LAZ tiles compressed in worker processes, so that compression never holds this process's GIL.
 
 lazrs holds the GIL of the process that calls it for as long as it compresses. A LAZ
-:class:`~flightsim.outputs.las_tiles.TileWriter` with workers therefore only hands each write's record
-bytes to a worker, and every worker runs an in-process ``TileWriter`` over the same directory for the
-tiles it owns, compressing each write as it arrives. Each tile belongs to one worker (a new tile to the
-worker with the fewest record bytes so far), whose socket delivers a tile's records in the order they
-were written: the tiles are byte-identical to those written in one process.
+:class:`~flightsim.outputs.las_tiles.TileWriter` with workers therefore only hands each write's records
+to a worker, and every worker runs an in-process ``TileWriter`` over the same directory for the tiles it
+owns, compressing each write as it arrives. Each tile belongs to one worker (a new tile goes to the worker
+with the fewest record bytes so far), which gets a tile's records in the order they were written: the
+tiles are byte-identical to those written in one process.
 
-A write copies the records into its worker's queue and returns; one sender thread per worker feeds the
-worker's socket (``sendmsg``, which releases the GIL). A worker busy compressing therefore holds up
-only its own queue, not the writes meant for idle workers; a write waits only while its worker's queue
-holds :data:`QUEUE_BYTES` already, so memory stays bounded.
+Records travel through shared memory: each worker has a ring of :data:`RING_BYTES` (a ``memfd`` both
+processes map). A write copies its records into the worker's ring (one ``memcpy``) and sends a small
+head over the worker's socket; the worker compresses straight from the ring and answers with a "freed"
+frame once it has. So a write waits only while its own worker's ring is full, never for another worker,
+and no record byte crosses a socket (which would move it in pieces of the socket buffer's few hundred
+kB, each a GIL hand-over in both processes).
 
 A worker is a fresh interpreter (``sys.executable``, fork-free: this process may hold a CUDA context and
 threads) that imports this module, :mod:`flightsim.outputs.las_tiles` and what they import — not Warp,
@@ -18,17 +20,19 @@ and not the parent's ``__main__`` (multiprocessing's spawn would re-run a script
 the parent's ``sys.path`` (on its command line), so it imports flightsim from where the parent does.
 
 Protocol on each worker's socket (a Unix socket pair), in frames of a fixed head (:data:`_FRAME`) and a
-body: the parent sends the ``TileWriter`` options (pickled), then one frame per write — tile key and
-bounds in the head, the records' bytes as the body, one ``sendmsg`` call — and finally a finish frame. A
-worker sends one pickled message and exits: ``("finished",)`` once its tile files are finished under
-their temporary names (the parent renames them), or ``("error", exception, traceback text)`` as soon as
-one of its writes fails (after deleting its temporaries). It ignores Ctrl-C (the parent stops it) and
-stops, deleting its temporaries, when the parent goes away.
+body: the parent sends the ``TileWriter`` options (pickled), then one head per write — tile key, bounds,
+and where the records lie in the ring — and finally a finish frame. The worker answers each write with a
+"freed" frame, and ends with one pickled message before it exits: ``("finished",)`` once its tile files
+are finished under their temporary names (the parent renames them), or ``("error", exception, traceback
+text)`` as soon as one of its writes fails (after deleting its temporaries). It ignores Ctrl-C (the
+parent stops it) and stops, deleting its temporaries, when the parent goes away.
 """
 from __future__ import annotations
 
 import contextlib
 import json
+import mmap
+import os
 import pickle
 import select
 import signal
@@ -36,30 +40,30 @@ import socket
 import struct
 import subprocess
 import sys
-import threading
 import traceback
 import weakref
 from collections import deque
 
 import numpy as np
 
-QUEUE_BYTES = 64 << 20
-"""Most record bytes waiting in this process for one worker (a write that would exceed it waits, unless
-the queue is empty)."""
+RING_BYTES = 64 << 20
+"""Shared-memory ring of record bytes per worker: a write waits while its worker's ring is full (one larger
+than half a ring goes in pieces)."""
 EXIT_WAIT_S = 60.0
 """How long a worker that has finished its tiles may take to exit before it is killed [s]."""
 _ENTRY = ("import json, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "  # the parent stops its workers
-          "sys.path[:] = json.loads(sys.argv[2]); "
-          "from flightsim.outputs.laz_workers import serve; serve(int(sys.argv[1]))")
-_FRAME = struct.Struct("<B8qQ")
-"""Head of a frame: its kind; a write's tile key (x, y indices) and least and greatest stored X, Y, Z [mm]
-(zeros in other frames); the byte length of the body that follows."""
-_OBJECT, _WRITE, _FINISH = 0, 1, 2  # frame kinds: a pickled object, records of one tile, no more records
-_NO_NUMBERS = (0,) * 8
+          "sys.path[:] = json.loads(sys.argv[3]); "
+          "from flightsim.outputs.laz_workers import serve; serve(int(sys.argv[1]), int(sys.argv[2]))")
+_FRAME = struct.Struct("<B10qQ")
+"""Head of a frame: its kind; a write's tile key (x, y indices), least and greatest stored X, Y, Z [mm], and
+the offset and length of its records in the ring (zeros in other frames); the byte length of the body that
+follows."""
+_OBJECT, _WRITE, _FINISH, _FREED = 0, 1, 2, 3  # a pickled object, records of one tile, no more records, a write done
+_NO_NUMBERS = (0,) * 10
 
 
 class LazWorkers:
-    """The worker processes that write the tiles of one LAZ ``TileWriter``, and a sender thread for each.
+    """The worker processes that write the tiles of one LAZ ``TileWriter``.
 
     An error in a worker (e.g. a full disk) is raised, as the same exception with the worker's traceback
     as a note, by the next :meth:`write` or by :meth:`finish`, and again by every later call; a worker
@@ -74,9 +78,9 @@ class LazWorkers:
     def __init__(self, count: int, writer_options: dict) -> None:
         self.processes: list[subprocess.Popen] = []  #: the worker processes, in worker order
         self._sockets: list[socket.socket] = []
-        self._senders: list[_Sender] = []
-        self._stop = weakref.finalize(self, _kill, self.processes, self._sockets, self._senders)
-        self._messages = select.poll()  # any worker's message (or end) is a failure until finish()
+        self._rings: list[_Ring] = []
+        self._stop = weakref.finalize(self, _kill, self.processes, self._sockets)
+        self._readable = select.poll()  # a worker's "freed" frames, its message, or its end
         self._worker_of_fd: dict[int, int] = {}
         self._owner: dict[tuple[int, int], int] = {}
         self._assigned = [0] * count  # record bytes handed to each worker so far
@@ -89,17 +93,24 @@ class LazWorkers:
             raise
 
     def write(self, key: tuple[int, int], records: np.ndarray, lowest, highest) -> None:
-        """Queue a copy of ``records`` (a C-contiguous array) of tile ``key`` for the worker that owns the
-        tile, with the least and greatest stored X, Y, Z of the records [mm]."""
+        """Copy ``records`` (a C-contiguous array) of tile ``key`` into the ring of the worker that owns the
+        tile and tell it so, with the least and greatest stored X, Y, Z of the records [mm]."""
         self._raise_failure()
         key = (int(key[0]), int(key[1]))
         worker = self._owner.get(key)
         if worker is None:
             worker = self._owner[key] = self._assigned.index(min(self._assigned))
-        body = records.view(np.uint8).reshape(-1).copy()
-        self._assigned[worker] += body.nbytes
-        numbers = (*key, *(int(v) for v in lowest), *(int(v) for v in highest))
-        self._send(worker, _WRITE, numbers, body)
+        data = records.reshape(-1).view(np.uint8)
+        self._assigned[worker] += data.nbytes
+        ring, piece = self._rings[worker], self._rings[worker].size // 2
+        piece -= piece % records.dtype.itemsize  # whole records in each piece
+        bounds = (*(int(v) for v in lowest), *(int(v) for v in highest))
+        for start in range(0, data.nbytes, piece):
+            part = data[start:start + piece]
+            while (offset := ring.take(part.nbytes)) is None:
+                self._read(worker, block=True)  # until the worker frees its oldest write
+            np.copyto(ring.array[offset:offset + part.nbytes], part)
+            self._send(worker, _WRITE, (*key, *bounds, offset, part.nbytes))
 
     def finish(self) -> None:
         """Have every worker finish its tile files under their temporary names, and wait until they have
@@ -108,11 +119,9 @@ class LazWorkers:
         try:
             for worker in range(len(self.processes)):
                 self._send(worker, _FINISH)
-            for worker, sender in enumerate(self._senders):
-                if not sender.drain():
-                    self._receive(worker)
             for worker in range(len(self.processes)):
-                self._receive(worker)
+                while self._read(worker, block=True) != "finished":
+                    pass
             for process in self.processes:
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     process.wait(EXIT_WAIT_S)
@@ -124,132 +133,118 @@ class LazWorkers:
         self._stop()
 
     def _start(self, writer_options: dict) -> None:
+        ring = _Ring(RING_BYTES)
         parent, child = socket.socketpair()
         try:
             with child:
                 process = subprocess.Popen(
-                    [sys.executable, "-c", _ENTRY, str(child.fileno()), json.dumps(sys.path)],
-                    pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL)
+                    [sys.executable, "-c", _ENTRY, str(child.fileno()), str(ring.fd), json.dumps(sys.path)],
+                    pass_fds=(child.fileno(), ring.fd), stdin=subprocess.DEVNULL)
         except BaseException:
             parent.close()
             raise
+        finally:
+            ring.close_fd()  # the mapping stays
         self._worker_of_fd[parent.fileno()] = len(self.processes)
         self.processes.append(process)
         self._sockets.append(parent)
-        self._messages.register(parent, select.POLLIN)
-        self._senders.append(_Sender(parent))
-        self._send(len(self.processes) - 1, _OBJECT, body=np.frombuffer(pickle.dumps(writer_options), np.uint8))
+        self._rings.append(ring)
+        self._readable.register(parent, select.POLLIN)
+        self._send(len(self.processes) - 1, _OBJECT, body=memoryview(pickle.dumps(writer_options)))
 
-    def _send(self, worker: int, kind: int, numbers: tuple = _NO_NUMBERS, body: np.ndarray | None = None) -> None:
-        """Queue a frame for ``worker``; if it has gone, raise why."""
-        if not self._senders[worker].put((kind, numbers, body)):
-            self._receive(worker)  # the worker has gone: its message, or its death, says why
+    def _send(self, worker: int, kind: int, numbers: tuple = _NO_NUMBERS, body: memoryview | None = None) -> None:
+        """Send a frame to ``worker``; if it has gone, raise why."""
+        try:
+            _send_frame(self._sockets[worker], kind, numbers, body)
+            return
+        except OSError:
+            pass  # the worker has gone: its message, or its death, says why
+        while True:
+            self._read(worker, block=True)  # raises once its message (or its end) comes
 
     def _raise_failure(self) -> None:
-        """Raise the error a worker has reported (or its death), if any (one ``poll`` call)."""
+        """Take in what the workers have sent (``poll`` calls, no waiting): rings freed, or the error a worker
+        has reported (or its death), which is raised."""
         if self._error is None:
-            for fd, _ in self._messages.poll(0):
-                self._receive(self._worker_of_fd[fd])
+            for fd, _ in self._readable.poll(0):
+                worker = self._worker_of_fd[fd]
+                while self._read(worker, block=False) is not None:
+                    pass
         if self._error is not None:
             raise self._error
 
-    def _receive(self, worker: int) -> None:
-        """Read the one message of ``worker``: return if it finished its tiles, else raise its error or,
-        if it died without one, a ``RuntimeError`` (kept, and raised again by later calls)."""
-        process = self.processes[worker]
+    def _read(self, worker: int, block: bool) -> str | None:
+        """Read one frame of ``worker`` (None without ``block`` if none is waiting): a "freed" frame frees the
+        ring's oldest write ("freed"); its message returns "finished" or raises its error or, if it died
+        without one, a ``RuntimeError`` (kept, and raised again by later calls)."""
+        sock = self._sockets[worker]
+        if not block and not select.select([sock], [], [], 0)[0]:
+            return None
         try:
-            message = _receive_object(self._sockets[worker])
+            kind, _, body = _receive_frame(sock)
+            message = ("freed",) if kind == _FREED else pickle.loads(body)
         except (EOFError, OSError):
             message = ("died",)
+        if message[0] == "freed":
+            self._rings[worker].release()
+            return "freed"
         if message[0] == "finished":
-            return
+            return "finished"
         if self._error is None:
-            self._error = _worker_error(worker, process, message)
+            self._error = _worker_error(worker, self.processes[worker], message)
         raise self._error
 
 
-class _Sender:
-    """The thread that sends one worker its queued frames, in order; at most :data:`QUEUE_BYTES` of bodies
-    wait in its queue (a larger frame waits for an empty queue)."""
+class _Ring:
+    """A shared-memory ring of ``size`` bytes (a ``memfd``, mapped here and in one worker) handed out in
+    contiguous pieces, and freed oldest first."""
 
-    def __init__(self, sock: socket.socket) -> None:
-        self._sock = sock
-        self._frames: deque[tuple[int, tuple, np.ndarray | None]] = deque()
-        self._queued = 0  # body bytes in the queue
-        self._changed = threading.Condition()
-        self._failed = False  # a send failed: the worker has gone
-        self._stopped = False
-        self._thread = threading.Thread(target=self._run, daemon=True, name="LAZ worker sender")
-        self._thread.start()
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.fd = os.memfd_create("flightsim-laz-ring")
+        os.ftruncate(self.fd, size)
+        self._map = mmap.mmap(self.fd, size)
+        self.array = np.frombuffer(self._map, dtype=np.uint8)  #: the ring's bytes
+        self._live: deque[tuple[int, int]] = deque()  # (start, end) of the pieces in use, oldest first
 
-    def put(self, frame: tuple[int, tuple, np.ndarray | None]) -> bool:
-        """Queue ``frame`` (kind, head numbers, body), waiting for room; False if the worker has gone."""
-        size = _body_size(frame)
-        with self._changed:
-            self._changed.wait_for(lambda: self._failed or self._stopped or not self._queued
-                                   or self._queued + size <= QUEUE_BYTES)
-            if self._failed or self._stopped:
-                return False
-            self._frames.append(frame)
-            self._queued += size
-            self._changed.notify_all()
-        return True
+    def close_fd(self) -> None:
+        os.close(self.fd)
 
-    def drain(self) -> bool:
-        """Wait until every queued frame is sent; False if the worker has gone first."""
-        with self._changed:
-            self._changed.wait_for(lambda: self._failed or self._stopped or not self._frames)
-            return not (self._failed or self._stopped)
+    def take(self, n: int) -> int | None:
+        """The offset of ``n`` (<= size) free contiguous bytes, now in use; None if there is no room yet."""
+        if not self._live:
+            start = 0
+        else:
+            oldest, head = self._live[0][0], self._live[-1][1]
+            if head > oldest:  # in use: [oldest, head)
+                start = head if head + n <= self.size else (0 if n <= oldest else None)
+            else:  # in use: [oldest, size) and [0, head)
+                start = head if head + n <= oldest else None
+        if start is not None:
+            self._live.append((start, start + n))
+        return start
 
-    def stop(self) -> None:
-        """Drop the queue and have the thread end once the send under way, if any, ends."""
-        with self._changed:
-            self._stopped = True
-            self._frames.clear()
-            self._changed.notify_all()
-
-    def join(self) -> None:
-        """Wait until the thread has ended (after :meth:`stop`, and its worker's end)."""
-        self._thread.join()
-
-    def _run(self) -> None:
-        while True:
-            with self._changed:
-                self._changed.wait_for(lambda: self._stopped or self._frames)
-                if self._stopped:
-                    return
-                frame = self._frames[0]
-            kind, numbers, body = frame
-            try:
-                _send_frame(self._sock, kind, numbers, None if body is None else memoryview(body))
-            except OSError:
-                with self._changed:
-                    self._failed = True
-                    self._changed.notify_all()
-                return
-            with self._changed:
-                if self._frames and self._frames[0] is frame:  # not dropped by stop() meanwhile
-                    self._frames.popleft()
-                    self._queued -= _body_size(frame)
-                self._changed.notify_all()
+    def release(self) -> None:
+        """Free the oldest piece in use."""
+        self._live.popleft()
 
 
-def _body_size(frame: tuple[int, tuple, np.ndarray | None]) -> int:
-    return 0 if frame[2] is None else frame[2].nbytes
-
-
-def serve(fd: int) -> None:
-    """Body of a worker process: write the tiles the parent hands over on the socket ``fd``, then finish
-    them or report the first error (see the module docstring)."""
+def serve(fd: int, ring_fd: int) -> None:
+    """Body of a worker process: write the tiles the parent hands over on the socket ``fd`` (records in the
+    shared ring ``ring_fd``), then finish them or report the first error (see the module docstring)."""
     from flightsim.outputs.las_tiles import TileWriter  # here: las_tiles imports this module
 
+    ring = np.frombuffer(mmap.mmap(ring_fd, 0), dtype=np.uint8)
+    os.close(ring_fd)
     with socket.socket(fileno=fd) as parent:
         writer = None
         try:
             writer = TileWriter(**_receive_object(parent))
             while (frame := _receive_frame(parent))[0] == _WRITE:
-                _, numbers, records = frame
-                writer.write_records(numbers[:2], records, numbers[2:5], numbers[5:])
+                numbers = frame[1]
+                offset, size = numbers[8:]
+                writer.write_records(numbers[:2], ring[offset:offset + size], numbers[2:5], numbers[5:8])
+                _send_frame(parent, _FREED)
             writer._finish_files()
         except BaseException as exc:  # includes EOFError: the parent has gone
             if writer is not None:
@@ -324,15 +319,11 @@ def _worker_error(worker: int, process: subprocess.Popen, message: tuple) -> Bas
     return RuntimeError(f"{name} {how} without finishing its tiles")
 
 
-def _kill(processes: list[subprocess.Popen], sockets: list[socket.socket], senders: list[_Sender]) -> None:
-    """Stop ``senders``, kill and reap ``processes``, and close ``sockets``."""
-    for sender in senders:
-        sender.stop()
+def _kill(processes: list[subprocess.Popen], sockets: list[socket.socket]) -> None:
+    """Kill and reap ``processes``, and close ``sockets``."""
     for process in processes:
-        process.kill()  # a no-op for a process that has exited (a sender blocked on it fails)
+        process.kill()  # a no-op for a process that has exited
     for process in processes:
         process.wait()
-    for sender in senders:
-        sender.join()  # before its socket is closed: its descriptor is not reused under a send
     for sock in sockets:
         sock.close()
