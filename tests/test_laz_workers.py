@@ -203,7 +203,7 @@ def test_a_stalled_worker_holds_up_only_its_own_tiles(tmp_path, monkeypatch):
     pieces = (slice(0, 100), slice(100, 200_000), slice(200_000, 400_000))
     writer = TileWriter(tmp_path / "workers", UTM48N, **OPTIONS, processes=2)
     writer.write(points.select(pieces[0]))
-    assert sorted(writer._workers._owner.values()) == [0, 1]  # one tile each (fewest bytes first)
+    assert sorted(writer._workers._owner.values()) == [0, 1]  # one tile each (in turn)
     stalled = writer._workers.processes[writer._workers._owner[(818, 6784)]]
     stalled.send_signal(signal.SIGSTOP)
     try:

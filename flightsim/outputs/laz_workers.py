@@ -3,9 +3,12 @@
 lazrs holds the GIL of the process that calls it for as long as it compresses. A LAZ
 :class:`~flightsim.outputs.las_tiles.TileWriter` with workers therefore only hands each write's records
 to a worker, and every worker runs an in-process ``TileWriter`` over the same directory for the tiles it
-owns, compressing each write as it arrives. Each tile belongs to one worker (a new tile goes to the worker
-with the fewest record bytes so far), which gets a tile's records in the order they were written: the
-tiles are byte-identical to those written in one process.
+owns, compressing each write as it arrives. Each tile belongs to one worker (the first tile seen to worker
+0, the next to worker 1, ...), which gets a tile's records in the order they were written: the tiles are
+byte-identical to those written in one process. Taking tiles in turn as they are first seen keeps a stretch
+of a flight line's neighbouring tiles on different workers; giving a new tile to the worker with the fewest
+bytes so far instead left the work of a chunk on a few workers (a 25 km² survey's trace stage on an H100
+machine: 22.8 s against 11.0 s).
 
 Records travel through shared memory: each worker has a ring of :data:`RING_BYTES` (a ``memfd`` both
 processes map). A write copies its records into the worker's ring (one ``memcpy``) and sends a small
@@ -83,7 +86,6 @@ class LazWorkers:
         self._readable = select.poll()  # a worker's "freed" frames, its message, or its end
         self._worker_of_fd: dict[int, int] = {}
         self._owner: dict[tuple[int, int], int] = {}
-        self._assigned = [0] * count  # record bytes handed to each worker so far
         self._error: BaseException | None = None
         try:
             for _ in range(count):
@@ -97,11 +99,8 @@ class LazWorkers:
         tile and tell it so, with the least and greatest stored X, Y, Z of the records [mm]."""
         self._raise_failure()
         key = (int(key[0]), int(key[1]))
-        worker = self._owner.get(key)
-        if worker is None:
-            worker = self._owner[key] = self._assigned.index(min(self._assigned))
+        worker = self._owner.setdefault(key, len(self._owner) % len(self.processes))
         data = records.reshape(-1).view(np.uint8)
-        self._assigned[worker] += data.nbytes
         ring, piece = self._rings[worker], self._rings[worker].size // 2
         piece -= piece % records.dtype.itemsize  # whole records in each piece
         bounds = (*(int(v) for v in lowest), *(int(v) for v in highest))
