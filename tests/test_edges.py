@@ -72,3 +72,26 @@ def in_triangle_order(scene: Scene) -> np.ndarray:
     uses = Counter((plane, ends) for plane, ends, _ in records if ends[0] != ends[1])
     return np.array([[scene.vertices[i], scene.vertices[j]] for plane, ends, (i, j) in records
                      if ends[0] != ends[1] and uses[(plane, ends)] == 1])
+
+
+def test_prefetched_boundaries_are_the_same_and_found_once(monkeypatch):
+    """Scene.prefetch_boundary_segments finds them in a thread; Scene.boundary_segments then hands over that
+    result (the same segments as a direct call, computed once); an error in the thread is raised there."""
+    calls = []
+    real = edges.boundary_segments
+    monkeypatch.setattr(edges, "boundary_segments", lambda scene: calls.append(1) or real(scene))
+    scene = split_terrain(0)
+    scene.prefetch_boundary_segments()
+    scene.prefetch_boundary_segments()
+    assert np.array_equal(scene.boundary_segments(), in_triangle_order(scene))
+    assert np.array_equal(scene.boundary_segments(), in_triangle_order(scene))
+    assert calls == [1]
+
+    def fail(scene):
+        raise MemoryError("no room for the edge keys")
+
+    monkeypatch.setattr(edges, "boundary_segments", fail)
+    broken = split_terrain(1)
+    broken.prefetch_boundary_segments()
+    with pytest.raises(MemoryError, match="edge keys"):
+        broken.boundary_segments()

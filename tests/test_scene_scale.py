@@ -414,7 +414,7 @@ def test_a_changed_file_or_option_is_read_afresh(tmp_path, monkeypatch):
     assert not plan.build_scene(cfg).planar
 
 
-@pytest.mark.parametrize("damage", ["garbage", "truncated", "other_key"])
+@pytest.mark.parametrize("damage", ["garbage", "truncated", "other_key", "compressed", "object_array"])
 def test_a_damaged_entry_is_never_trusted(tmp_path, monkeypatch, damage):
     cfg, path = cached_config(tmp_path, monkeypatch)
     fresh = plan.build_scene(cfg)
@@ -424,6 +424,13 @@ def test_a_damaged_entry_is_never_trusted(tmp_path, monkeypatch, damage):
         entry.write_bytes(b"not a zip file" * 10)
     elif damage == "truncated":
         entry.write_bytes(data[: len(data) // 2])
+    elif damage in ("compressed", "object_array"):  # an .npz, but not one the cache writes (it maps members)
+        with np.load(entry) as stored:
+            arrays = {name: stored[name] for name in stored.files}
+        if damage == "compressed":
+            np.savez_compressed(entry, **arrays)
+        else:
+            np.savez(entry, **{**arrays, "planar": np.array([True], dtype=object)})
     else:  # a valid entry made for another key, under this entry's name
         other = tmp_path / "other.obj"
         other.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")

@@ -69,6 +69,9 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     """Run a validated config, write its tiles, run.toml and summary.json; return the summary."""
     marks = [time.perf_counter()]
     scene = build_scene(cfg)
+    buffer = edge_buffer_m(cfg) if cfg.instrument.detector == "discrete" else 0.0
+    if buffer > 0.0:
+        scene.prefetch_boundary_segments()  # found while the flight is planned and the BVHs built
     marks.append(time.perf_counter())
     trajectories = flight_trajectories(cfg, scene)
     marks.append(time.perf_counter())
@@ -88,7 +91,6 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         return _photons_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
     if cfg.instrument.detector == "waveform":
         return _waveforms_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
-    buffer = edge_buffer_m(cfg)
     simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
     las = DeviceLasOutput(directory, cfg, simulator, edge_distance=buffer > 0.0)
     planes = PlaneStatistics(simulator, buffer) if scene.planar else None  # curved ground: patches only

@@ -22,7 +22,6 @@ from flightsim.engine.chunks import Segment, line_table, pack, segment_tables
 from flightsim.core.config import MODELS, RunConfig
 from flightsim.core.errors import InputError
 from flightsim.engine.coverage import pulse_windows
-from flightsim.scenes.edges import boundary_segments
 from flightsim.instrument.fan import trace_fan
 from flightsim.instrument.parts import HostInstrument
 from flightsim.instrument.ranging import has_systematics, range_errors, sigmas
@@ -202,7 +201,7 @@ class SceneMeshes:
     def boundary(self) -> tuple[wp.Bvh, wp.array, wp.array]:
         """(BVH of segment boxes, segment starts, segment ends)."""
         if self._boundary is None:
-            segments = boundary_segments(self.scene).astype(np.float32)
+            segments = self.scene.boundary_segments().astype(np.float32)
             if len(segments) == 0:  # a closed surface has no boundary: one far-away dummy segment
                 segments = np.full((1, 2, 3), 1e9, dtype=np.float32)
             a = wp.array(segments[:, 0], dtype=wp.vec3f, device=self.device)

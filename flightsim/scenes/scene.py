@@ -17,6 +17,7 @@ Real meshes are read by :mod:`flightsim.scenes.meshio`.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -149,6 +150,7 @@ class Scene:
     reflectance: np.ndarray | None = field(default=None, repr=False)
     _height_grid: HeightGrid | None = field(default=None, init=False, repr=False, compare=False)
     _bounds: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+    _boundaries: Future | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.origin = _finite_vector3(self.origin, "scene.origin")
@@ -185,10 +187,34 @@ class Scene:
         self.ground_z = float(self.ground_z)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper corners (3,) of the local bounding box [m] (found once)."""
+        """Lower and upper corners (3,) of the local bounding box [m] (found once, column by column: a
+        reduction along axis 0 of an (N, 3) array runs ~9× slower, 0.24 s for 5e6 vertices)."""
         if self._bounds is None:
-            self._bounds = (self.vertices.min(axis=0), self.vertices.max(axis=0))
+            columns = self.vertices.T
+            self._bounds = (np.array([c.min() for c in columns]), np.array([c.max() for c in columns]))
         return self._bounds[0].copy(), self._bounds[1].copy()
+
+    def boundary_segments(self) -> np.ndarray:
+        """(S, 2, 3) local end points [m] of the edges that bound a plane
+        (:func:`flightsim.scenes.edges.boundary_segments`), found once (or taken from
+        :meth:`prefetch_boundary_segments`'s thread, waiting for it if need be)."""
+        if self._boundaries is None:
+            from flightsim.scenes.edges import boundary_segments  # edges imports this module
+
+            self._boundaries = Future()
+            self._boundaries.set_result(boundary_segments(self))
+        return self._boundaries.result()
+
+    def prefetch_boundary_segments(self) -> None:
+        """Start finding :meth:`boundary_segments` in a background thread: its NumPy sorts and passes release
+        the GIL, so the run's planning and BVH builds go on meanwhile (an 8e6-triangle DEM's boundaries take
+        seconds)."""
+        if self._boundaries is None:
+            from flightsim.scenes.edges import boundary_segments
+
+            pool = ThreadPoolExecutor(1, thread_name_prefix="boundaries")
+            self._boundaries = pool.submit(boundary_segments, self)
+            pool.shutdown(wait=False)  # the thread ends with its one task
 
     def terrain_top(self, xmin: float, ymin: float, xmax: float, ymax: float) -> float:
         """Highest local z [m] of the scene's surface over a closed local rectangle; −inf if none.
