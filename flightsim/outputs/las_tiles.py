@@ -436,16 +436,17 @@ LAZ_BATCH_POINTS = LAZ_CHUNK_POINTS * min(os.cpu_count() or 1, 16)
 """A LAZ tile holds its records until it has this many, then compresses them in one call: lazrs's parallel
 compressor spreads the whole chunks of a call over every core (and holds the GIL while it does)."""
 LAZ_HELD_BYTES = 256 << 20
-"""Most record bytes a tile writer's open LAZ tiles hold back together; with worker processes, each worker's
-(a writer with 8 workers: up to 2 GiB)."""
+"""Most record bytes the open LAZ tiles of a writer compressing in its own process hold back together (worker
+processes hold none: they compress each write as it comes)."""
 LAZ_PROCESSES = min(8, (os.cpu_count() or 1) // 2) if (os.cpu_count() or 1) >= 4 else 0
 """Worker processes a LAZ tile writer compresses in by default: one per 2 cores, at most 8 (16 cores and up);
 none below 4 cores (compression in the writer's own process). lazrs holds the GIL of its process while it
 compresses; in workers it leaves the threads that drive the device and pack records running, and several
 tiles compress at once. A 100 km² survey (8.5e8 points, both models, 889 tiles) to LAZ on an H100 with 16
-cores took 143 s in-process, 76 s with 2 workers per writer, 62 s with 4 and 55 s with 8 (LAS: ~60 s). On 2
-cores the workers gave nothing back (the cores are all busy either way) for their start-up (~0.5 s) and
-memory (~90 MB each, plus held records: see :data:`LAZ_HELD_BYTES`)."""
+cores took 143 s in-process, 76 s with 2 workers per writer, 62 s with 4 and 55 s with 8 (LAS: ~60 s; with
+the workers' parallel compressor and held batches, before they compressed sequentially from shared memory:
+57 s for the whole command now). On 2 cores the workers gave nothing back (the cores are all busy either
+way) for their start-up and memory (~90 MB each, plus the 64 MB ring each shares with this process)."""
 
 
 def _laz_backend(compress: bool, parallel: bool) -> laspy.LazBackend | None:

@@ -213,9 +213,10 @@ def _survey(r: dict) -> list[str]:
             f"{x['peak_rss_mib']:.0f} |", "", *_survey_stages(x),
             "`flightsim simulate` in a fresh process over the testdem terrain (fractal relief, river, land cover, "
             "town) with terrain following, lines spaced as `flightsim survey` spaces them; wall: the whole "
-            "command, scene read (no scene cache) to the last LAZ tile closed. Peak RSS: the flightsim process "
-            "alone; from 4 cores up its LAZ worker processes (per model one per 2 cores, at most 8) add about "
-            "90 MB each plus the records they hold back, at most 256 MB each.", ""]
+            "command, scene read (no scene cache) to the last LAZ tile closed. Peak RSS: the flightsim process, "
+            "with the shared-memory rings (64 MB each) through which it hands records to its LAZ worker processes "
+            "(from 4 cores up, per model one per 2 cores, at most 8); the workers' own interpreters add about "
+            "90 MB each.", ""]
 
 
 def _survey_stages(x: dict) -> list[str]:
