@@ -443,10 +443,11 @@ LAZ_PROCESSES = min(8, (os.cpu_count() or 1) // 2) if (os.cpu_count() or 1) >= 4
 none below 4 cores (compression in the writer's own process). lazrs holds the GIL of its process while it
 compresses; in workers it leaves the threads that drive the device and pack records running, and several
 tiles compress at once. A 100 km² survey (8.5e8 points, both models, 889 tiles) to LAZ on an H100 with 16
-cores took 143 s in-process, 76 s with 2 workers per writer, 62 s with 4 and 55 s with 8 (LAS: ~60 s; with
-the workers' parallel compressor and held batches, before they compressed sequentially from shared memory:
-57 s for the whole command now). On 2 cores the workers gave nothing back (the cores are all busy either
-way) for their start-up and memory (~90 MB each, plus the 64 MB ring each shares with this process)."""
+cores took 143 s in-process, 76 s with 2 workers per writer, 62 s with 4 and 55 s with 8 (LAS: ~60 s), each
+worker then running lazrs's parallel compressor on held batches; compressing sequentially from shared memory,
+the whole command now takes 57 s (``results/bench.md``, Survey). On 2 cores the workers gave nothing back
+(the cores are all busy either way) for their start-up and memory (~90 MB each, plus the 64 MB ring each
+shares with this process)."""
 
 
 def _laz_backend(compress: bool, parallel: bool) -> laspy.LazBackend | None:

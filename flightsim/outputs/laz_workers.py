@@ -207,6 +207,7 @@ class _Ring:
         self._live: deque[tuple[int, int]] = deque()  # (start, end) of the pieces in use, oldest first
 
     def close_fd(self) -> None:
+        """Close this process's descriptor of the ring (the mapping stays; the worker has its own copy)."""
         os.close(self.fd)
 
     def take(self, n: int) -> int | None:
