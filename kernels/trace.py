@@ -795,6 +795,31 @@ def _flush(
 
 
 @wp.kernel
+def add_replicas(
+    counts: wp.array3d(dtype=wp.int64),  # per replica, model, group (reduce_kernel's sums)
+    first: wp.array3d(dtype=wp.vec3d),
+    second: wp.array3d(dtype=vec6d),
+    # Out: per model, group
+    total_counts: wp.array2d(dtype=wp.int64),
+    total_first: wp.array2d(dtype=wp.vec3d),
+    total_second: wp.array2d(dtype=vec6d),
+):
+    """Add the replicas of the reduction's sums, replica 0 first: one thread per (model, group), so only
+    the totals leave the device."""
+    model, group = wp.tid()
+    n = wp.int64(0)
+    s = wp.vec3d()
+    ss = vec6d()
+    for replica in range(counts.shape[0]):
+        n += counts[replica, model, group]
+        s += first[replica, model, group]
+        ss += second[replica, model, group]
+    total_counts[model, group] = n
+    total_first[model, group] = s
+    total_second[model, group] = ss
+
+
+@wp.kernel
 def flag_returns(status: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
     """flags[i] = 1 where slot i produced a return."""
     i = wp.tid()

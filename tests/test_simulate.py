@@ -179,3 +179,25 @@ def test_fallback_boxes_are_the_triangle_bounds_padded_by_the_used_corners_exten
     assert 1e-4 < pad < 1e-3  # the far vertex would make it 2e-1
     assert np.array_equal(meshes._padded_boxes[0].numpy(), corners.min(axis=1) - pad)
     assert np.array_equal(meshes._padded_boxes[1].numpy(), corners.max(axis=1) + pad)
+
+
+def test_replica_totals_add_every_copy_of_the_sums_in_float64():
+    import warp as wp
+
+    from flightsim.engine.simulate import replica_totals
+    from kernels.trace import vec6d
+
+    rng = np.random.default_rng(3)
+    replicas, models, groups = 9, 2, 5
+    counts = rng.integers(0, 1 << 40, (replicas, models, groups))
+    first = rng.normal(0.0, 1e3, (replicas, models, groups, 3))
+    second = rng.normal(0.0, 1e6, (replicas, models, groups, 6))
+    sums = [wp.array(counts, dtype=wp.int64, device="cpu"), wp.array(first, dtype=wp.vec3d, device="cpu"),
+            wp.array(second, dtype=vec6d, device="cpu")]
+    count, s, ss = replica_totals(sums)
+    expected_s, expected_ss = np.zeros((models, groups, 3)), np.zeros((models, groups, 6))
+    for r in range(replicas):  # replica 0 first, in float64
+        expected_s = expected_s + first[r]
+        expected_ss = expected_ss + second[r]
+    assert np.array_equal(count, counts.sum(axis=0))
+    assert np.array_equal(s, expected_s) and np.array_equal(ss, expected_ss)

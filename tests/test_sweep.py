@@ -68,7 +68,10 @@ def test_rms_increases_strictly_with_array_size_and_spacing(tmp_path):
     assert max(rms_of(rows, "exact")) < 0.002
 
 
-def test_device_statistics_equal_the_point_path(device):
+@pytest.mark.parametrize("replicas", [None, 7])
+def test_device_statistics_equal_the_point_path(device, replicas, monkeypatch):
+    if replicas:  # a GPU's copies of the sums, added on the device, also where the device is the CPU
+        monkeypatch.setattr(Simulator, "sum_replicas", lambda self, groups=None: replicas)
     cfg = RunConfig()
     set_value(cfg, "flight.duration_s", 3.0)
     set_value(cfg, "run.device", device)

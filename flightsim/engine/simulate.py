@@ -594,7 +594,7 @@ class Simulator:
                 b.near[0].zero_()
             wp.launch(reduce_records, (n_slots + spt - 1) // spt,
                       inputs=[*b.records, n_slots, spt, b.references], outputs=sums, device=d)
-        count, first, second = (a.numpy().sum(axis=0) for a in sums[:3])
+        count, first, second = replica_totals(sums[:3])
         counters = sums[3].numpy()
         moments = {}
         for k, model in enumerate(MODELS):
@@ -802,6 +802,17 @@ def _sliced(fields: dict, a: int, b: int) -> dict:
             return None
         return {k: x[a:b] for k, x in v.items()} if isinstance(v, dict) else v[a:b]
     return {k: cut(v) for k, v in fields.items()}
+
+
+def replica_totals(sums: list[wp.array]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reduction's (count, Σd, Σ upper triangle of ddᵀ) per model and group, its replicas added on
+    the device (replica 0 first, the order the host's sum took): (2, G), (2, G, 3), (2, G, 6)."""
+    counts, first, second = sums
+    shape, d = counts.shape[1:], counts.device
+    totals = [wp.empty(shape, dtype=wp.int64, device=d), wp.empty(shape, dtype=wp.vec3d, device=d),
+              wp.empty(shape, dtype=trace.vec6d, device=d)]
+    wp.launch(trace.add_replicas, shape, inputs=[counts, first, second], outputs=totals, device=d)
+    return tuple(a.numpy() for a in totals)
 
 
 def symmetric(upper: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import warp as wp
 from flightsim.core.atomic import replaced_atomically
 from flightsim.core.config import MODELS
 from flightsim.core.errors import InputError
-from flightsim.engine.simulate import SLOTS_PER_THREAD, symmetric
+from flightsim.engine.simulate import SLOTS_PER_THREAD, replica_totals, symmetric
 from flightsim.scoring.planes import PlaneMoments, pooled_rms
 from kernels import trace
 
@@ -57,7 +57,7 @@ class _DeviceMoments:
 
     def moments(self) -> dict[str, PlaneMoments]:
         """Each model's moments, the replicas added (one device → host copy)."""
-        count, first, second = (a.numpy().sum(axis=0) for a in self.sums[:3])
+        count, first, second = replica_totals(self.sums[:3])
         out = {}
         for k, model in enumerate(MODELS):
             if model in self.models:
