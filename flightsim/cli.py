@@ -348,7 +348,8 @@ def make_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="measure throughput, run time against error, and savings")
     bench.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     bench.add_argument("--quick", action="store_true", help="small sizes (under a minute on a CPU)")
-    bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto,galvo,spad,waveform,scale,survey")
+    bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto,galvo,"
+                       "spad,waveform,scale,reduce,survey")
     bench.add_argument("--out", required=True, help="directory for bench.json, bench.md, pareto.csv/png")
     bench.set_defaults(func=cmd_bench)
 

@@ -48,3 +48,17 @@ def test_stage_report_names_each_kernel_and_accounts_for_the_wall_time():
     assert rows["trace_records"][:2] == ["6e-07", "0.600"]  # seconds, ns per slot
     assert rows["host work and gaps (wall − kernels)"][0] == "2e-07"  # 1e-6 − 6e-7 − 2e-7
     assert rows["wall"][2].strip(" |") == "100%"
+
+
+def test_reduce_report_has_a_column_per_setting_and_says_where_memory_capped_the_copies():
+    from flightsim.studies.bench_report import markdown
+
+    ratios = [{"sum_replicas": 64, "slots_per_thread": 16, "replicas_used": 64, "ratio": 0.5},
+              {"sum_replicas": 2048, "slots_per_thread": 32, "replicas_used": 1000, "ratio": 0.625}]
+    row = {"case": "terrain 1e+06", "triangles": 999698, "planes": 1, "returns": 10, "raycast_returns_per_s": 6e9,
+           "ratios": ratios}
+    text = markdown({"cuda": {"gpu_name": "GPU", "device": "cuda:0", "git_commit": "x", "date": "d", "reduce": [row]}})
+    lines = text.splitlines()
+    header = next(line for line in lines if line.startswith("| case |"))
+    assert header.endswith("| R 64, 16 slots | R 2048, 32 slots |")
+    assert "| terrain 1e+06 | 1e+06 | 1 | 6e+09 | 0.500 | 0.625 (R 1000) |" in lines

@@ -286,6 +286,8 @@ class RunSettings:
     bvh_leaf_size: int = field(default=0, metadata=_num(0, 64, "triangles; 0 = Warp's default", integer=True))
     slots_per_thread: int = field(default=0, metadata=_num(0, 4096, "statistics mode; 0 = automatic",
                                                                 integer=True))
+    sum_replicas: int = field(default=0, metadata=_num(0, 4096, "statistics mode on a GPU: copies of the sums; "
+                                                       "0 = automatic", integer=True))
     max_registers: int = field(default=0, metadata=_num(0, 255, "registers per thread of the CUDA trace kernels; "
                                                          "0 = automatic", integer=True))
     scene_cache: bool = True  # keep scenes read from files in $FLIGHTSIM_CACHE (~/.cache/flightsim/scenes) as .npz

@@ -609,12 +609,12 @@ class Simulator:
 
     def sum_replicas(self, groups: int | None = None) -> int:
         """Copies of the per-group sums (``groups`` of them, the scene's planes by default) the reducing
-        threads spread their atomics over: one on the CPU (one thread per launch), up to SUM_REPLICAS on
-        a GPU within SUM_REPLICA_BYTES."""
+        threads spread their atomics over: one on the CPU (one thread per launch), ``run.sum_replicas`` or
+        else SUM_REPLICAS on a GPU, within SUM_REPLICA_BYTES."""
         if self.device_kind == "cpu":
             return 1
         per_copy = 2 * (len(self.scene.planes) if groups is None else groups) * (8 + 24 + 48)
-        return max(1, min(SUM_REPLICAS, SUM_REPLICA_BYTES // per_copy))
+        return max(1, min(self.cfg.run.sum_replicas or SUM_REPLICAS, SUM_REPLICA_BYTES // per_copy))
 
     # ------------------------------------------------------------------------------------------
 

@@ -30,8 +30,10 @@ from kernels import trace
 
 DELTA = 2.314
 SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform", "scale",
-            "survey")
+            "reduce", "survey")
 SCALE_TRIANGLES = {"cuda": (1e4, 1e6, 1e7, 5e7), "cpu": (1e4, 1e6)}  # terrain sizes of the scale section
+REDUCE_TRIANGLES = (1e6, 1e7)  # terrain sizes of the reduce section
+REDUCE_KNOBS = [(replicas, spt) for replicas in (64, 512, 2048) for spt in (16, 32)]  # (run.sum_replicas, run.slots_per_thread)
 SURVEY_KM = {"cuda": 10.0, "cpu": 1.0}  # side of the survey section's square area
 SURVEY_CELL_M = 5.0  # the survey DEM's pixel size
 DISK_PROBE_BYTES = {"cuda": 2 << 30, "cpu": 512 << 20}  # written to measure the disk's sequential rate
@@ -363,6 +365,52 @@ def scale(device: str, s: Sizes) -> dict:
     return {"disk_write_bytes_per_s": disk, "scenes": scenes}
 
 
+def reduce_knobs(device: str, s: Sizes) -> list[dict]:
+    """GPU statistics mode ÷ bare ray cast of the same rays for each (sum replicas, slots per reducing thread)
+    of REDUCE_KNOBS, on the calibration field (3×3, 8×8: planes change along a thread's slots) and on terrain
+    (REDUCE_TRIANGLES: every return adds to one plane). Each case's scene and BVH are built once; the
+    settings take turns, best of three each.
+
+    CUDA only: the CPU reduces with one copy of the sums and long runs of slots per thread.
+    """
+    if resolve_device(device) == "cpu":
+        return []
+    rows = []
+    with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
+        cases = [(f"calibration {a}×{a}", workload(device, a, s.scale_returns)) for a in s.arrays]
+        for n in REDUCE_TRIANGLES:
+            dem = _terrain_file(int(n), 3000.0, Path(tmp) / f"dem-{n:.0e}")
+            cases.append((f"terrain {n:.0e}", _scale_workload(device, s.scale_returns, **{
+                "scene.name": str(dem), "run.scene_cache": False})))
+        for case, cfg in cases:
+            rows.append(_reduce_row(case, cfg, device))
+    return rows
+
+
+def _reduce_row(case: str, cfg: RunConfig, device: str) -> dict:
+    meshes = SceneMeshes(build_scene(cfg), resolve_device(device), cfg.run.bvh)
+    sims = {knob: simulator(_with_run(cfg, sum_replicas=knob[0], slots_per_thread=knob[1]), meshes)
+            for knob in REDUCE_KNOBS}
+    walls = {knob: timed_statistics(sim, repeats=1)[0] for knob, sim in sims.items()}
+    for _ in range(2):
+        for knob, sim in sims.items():
+            wp.synchronize_device(sim.device)
+            _, counts = sim.run_statistics()
+            walls[knob] = min(walls[knob], counts.wall_s)
+    sample = min(counts.beams_fired, 1 << 24)
+    bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.beams_fired / sample)))
+    bare = hits / bare_wall
+    return {"case": case, "triangles": len(meshes.scene.triangles), "planes": len(meshes.scene.planes),
+            "returns": counts.returns, "raycast_returns_per_s": bare,
+            "ratios": [{"sum_replicas": r, "slots_per_thread": spt, "replicas_used": sims[r, spt].sum_replicas(),
+                        "ratio": counts.returns / walls[r, spt] / bare} for r, spt in REDUCE_KNOBS]}
+
+
+def _with_run(cfg: RunConfig, **run) -> RunConfig:
+    """``cfg`` with these run settings."""
+    return dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, **run))
+
+
 def disk_write_rate(path: Path, size: int, block: int = 16 << 20) -> float:
     """Sequential write rate of the disk holding ``path`` [bytes/s]: ``size`` bytes in ``block`` writes,
     fsync'ed, as the tile writers write."""
@@ -667,7 +715,7 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
                "cpu_count": os.cpu_count(), "date": time.strftime("%Y-%m-%d")}
     runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
                "pareto": pareto, "galvo": galvo, "spad": spad_frame,
-               "waveform": waveform_altimeter, "scale": scale, "survey": survey_area}
+               "waveform": waveform_altimeter, "scale": scale, "reduce": reduce_knobs, "survey": survey_area}
     for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)

@@ -58,7 +58,7 @@ def markdown(merged: dict) -> str:
             lines += ["Sections measured at (commit, date): " + ", ".join(
                 f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
         lines += (_throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r)
-                  + _spad(r) + _waveform(r) + _scale(r) + _survey(r))
+                  + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r))
     return "\n".join(lines) + "\n"
 
 
@@ -199,6 +199,27 @@ def _scale(r: dict) -> list[str]:
                         "thread per model; its wall runs until every tile is closed. Ratio: statistics-mode "
                         "returns/s ÷ bare ray cast of the same rays. A row measured at another commit than the "
                         "section says so; its 'of disk' is against the disk rate measured in its own run.", ""]
+
+
+def _reduce(r: dict) -> list[str]:
+    if not r.get("reduce"):
+        return []
+    knobs = [(x["sum_replicas"], x["slots_per_thread"]) for x in r["reduce"][0]["ratios"]]
+    lines = ["### Statistics reduction: copies of the sums × slots per reducing thread", "",
+             "Statistics-mode returns/s ÷ bare ray cast of the same rays (`run.sum_replicas`, "
+             "`run.slots_per_thread`; each case's scene and BVH built once, best of three).", "",
+             "| case | triangles | planes | bare ray cast /s | " + " | ".join(
+                 f"R {rep}, {spt} slots" for rep, spt in knobs) + " |", "| --- " * (4 + len(knobs)) + "|"]
+    for x in r["reduce"]:
+        lines.append(f"| {x['case']} | {x['triangles']:.3g} | {x['planes']} | {_fmt(x['raycast_returns_per_s'])} | "
+                     + " | ".join(_reduce_cell(k) for k in x["ratios"]) + " |")
+    return lines + [""]
+
+
+def _reduce_cell(k: dict) -> str:
+    """A ratio, with the copies of the sums actually used where device memory capped them."""
+    capped = k["replicas_used"] != k["sum_replicas"]
+    return f"{k['ratio']:.3f}" + (f" (R {k['replicas_used']})" if capped else "")
 
 
 def _survey(r: dict) -> list[str]:
