@@ -33,7 +33,8 @@ SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "
             "reduce", "survey")
 SCALE_TRIANGLES = {"cuda": (1e4, 1e6, 1e7, 5e7), "cpu": (1e4, 1e6)}  # terrain sizes of the scale section
 REDUCE_TRIANGLES = (1e6, 1e7)  # terrain sizes of the reduce section
-REDUCE_KNOBS = [(replicas, spt) for replicas in (64, 512, 2048) for spt in (16, 32)]  # (run.sum_replicas, run.slots_per_thread)
+# the reduce section's settings: (run.sum_replicas, run.slots_per_thread)
+REDUCE_KNOBS = [(replicas, spt) for replicas in (64, 512, 2048) for spt in (16, 32)]
 SURVEY_KM = {"cuda": 10.0, "cpu": 1.0}  # side of the survey section's square area
 SURVEY_CELL_M = 5.0  # the survey DEM's pixel size
 DISK_PROBE_BYTES = {"cuda": 2 << 30, "cpu": 512 << 20}  # written to measure the disk's sequential rate
@@ -388,9 +389,14 @@ def reduce_knobs(device: str, s: Sizes) -> list[dict]:
 
 
 def _reduce_row(case: str, cfg: RunConfig, device: str) -> dict:
+    """One case of :func:`reduce_knobs`: each setting's ratio, the settings sharing one scene and BVH."""
     meshes = SceneMeshes(build_scene(cfg), resolve_device(device), cfg.run.bvh)
-    sims = {knob: simulator(_with_run(cfg, sum_replicas=knob[0], slots_per_thread=knob[1]), meshes)
-            for knob in REDUCE_KNOBS}
+    sims = {}
+    for replicas, spt in REDUCE_KNOBS:
+        knob_cfg = copy_config(cfg)
+        set_value(knob_cfg, "run.sum_replicas", replicas)
+        set_value(knob_cfg, "run.slots_per_thread", spt)
+        sims[replicas, spt] = simulator(knob_cfg, meshes)
     walls = {knob: timed_statistics(sim, repeats=1)[0] for knob, sim in sims.items()}
     for _ in range(2):
         for knob, sim in sims.items():
@@ -404,11 +410,6 @@ def _reduce_row(case: str, cfg: RunConfig, device: str) -> dict:
             "returns": counts.returns, "raycast_returns_per_s": bare,
             "ratios": [{"sum_replicas": r, "slots_per_thread": spt, "replicas_used": sims[r, spt].sum_replicas(),
                         "ratio": counts.returns / walls[r, spt] / bare} for r, spt in REDUCE_KNOBS]}
-
-
-def _with_run(cfg: RunConfig, **run) -> RunConfig:
-    """``cfg`` with these run settings."""
-    return dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, **run))
 
 
 def disk_write_rate(path: Path, size: int, block: int = 16 << 20) -> float:
