@@ -4,7 +4,7 @@ detector, platform, error model) run by Warp kernels over triangle-mesh scenes.
 Public API: :func:`load_config`, :func:`simulate`, :func:`sweep`, :func:`budget` (see flightsim.api).
 """
 
-__version__ = "0.1.0"
+from flightsim.core.version import __version__
 
 __all__ = ["SimulationResult", "__version__", "budget", "load_config", "simulate", "sweep"]
 

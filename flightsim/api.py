@@ -13,7 +13,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from flightsim.core.config import RunConfig, copy_config, from_dict, load_toml, preset_config, set_value, validate
+from flightsim.engine.config import RunConfig, copy_config, set_value, validate
+from flightsim.engine.config_io import from_dict, load_toml, preset_config
 
 
 def load_config(source: str | Path | Mapping | RunConfig | None = None, *, instrument: str | None = None,
@@ -24,7 +25,7 @@ def load_config(source: str | Path | Mapping | RunConfig | None = None, *, instr
     it is laid over the built-in ``instrument`` ("risley", the default, or "change3"); then each
     ``overrides`` item {"section.field": value} is set. Raises InputError naming a bad field.
     """
-    base = preset_config(instrument) if instrument else RunConfig()
+    base = preset_config(instrument or "risley")
     if isinstance(source, RunConfig):
         cfg = copy_config(source)
     elif isinstance(source, Mapping):
@@ -61,7 +62,7 @@ def simulate(cfg: RunConfig, out: str | Path | None = None, with_truth: bool = F
 
         return simulate_to_directory(cfg, Path(out), overwrite=overwrite, progress=progress)
     from flightsim.engine.simulate import Simulator
-    from flightsim.platforms.plan import build_scene, flight_trajectories
+    from flightsim.engine.world import build_scene, flight_trajectories
 
     scene = build_scene(cfg)
     sim = Simulator(cfg, scene, flight_trajectories(cfg, scene), with_truth=with_truth)

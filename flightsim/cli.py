@@ -9,8 +9,9 @@ import sys
 import time
 from pathlib import Path
 
-from flightsim import __version__
-from flightsim.core.config import RunConfig, get_value, load_toml, preset_config, set_value, validate
+from flightsim.core.version import __version__
+from flightsim.engine.config import RunConfig, get_value, set_value, validate
+from flightsim.engine.config_io import load_toml, preset_config, to_toml
 from flightsim.scoring import score
 from flightsim.core.errors import InputError
 
@@ -20,8 +21,8 @@ EXIT_INVALID = 2
 CONFIG_FLAGS = [
     ("--scene", "scene", "scene.name", "calibration (default), plane, lunar, sandbox, ellipsoid, bump, or PATH.obj / PATH.ply"),
     ("--altitude", "altitude", "flight.altitude_m", "flying height above ground [m] (default 500)"),
-    ("--array", "array", "sensor.array", "beams per side of the N×N array, 1–64 (default 3)"),
-    ("--spacing-mrad", "spacing_mrad", "sensor.spacing_mrad", "angular spacing of the sub-beams [mrad] (default 2.314)"),
+    ("--array", "array", "fan.array", "beams per side of the N×N array, 1–64 (default 3)"),
+    ("--spacing-mrad", "spacing_mrad", "fan.spacing_mrad", "angular spacing of the sub-beams [mrad] (default 2.314)"),
     ("--duration", "duration", "flight.duration_s", "flight time per line [s] (default 10)"),
     ("--models", "models", "output.models", "georeferencing models to write: exact,nominal (default both)"),
     ("--device", "device", "run.device", "cpu (default), cuda or cuda:N"),
@@ -42,8 +43,8 @@ SURVEY_FLAGS = [("--scene", "scene", "scene.name", "what every scene tile holds:
     f for f in CONFIG_FLAGS if f[0] not in ("--scene", "--duration", "--trajectory")]
 SWEEP_AXES = [
     ("--altitudes", "altitudes", "flight.altitude_m", "altitudes above ground [m], e.g. 500,1000,1500"),
-    ("--arrays", "arrays", "sensor.array", "array sizes N, e.g. 2,3,4,5,6"),
-    ("--spacings-mrad", "spacings_mrad", "sensor.spacing_mrad", "sub-beam spacings [mrad], e.g. 2.314,4.628"),
+    ("--arrays", "arrays", "fan.array", "array sizes N, e.g. 2,3,4,5,6"),
+    ("--spacings-mrad", "spacings_mrad", "fan.spacing_mrad", "sub-beam spacings [mrad], e.g. 2.314,4.628"),
 ]
 
 
@@ -52,14 +53,14 @@ def _set_items(args: argparse.Namespace) -> list[tuple[str, str]]:
     for item in args.set or []:
         key, sep, value = item.partition("=")
         if not sep:
-            raise InputError("--set", item, "KEY=VALUE, e.g. sensor.refractive_index=1.45")
+            raise InputError("--set", item, "KEY=VALUE, e.g. risley.refractive_index=1.45")
         items.append((key.strip(), value.strip()))
     return items
 
 
 def base_config(args: argparse.Namespace, flags=CONFIG_FLAGS) -> RunConfig:
     """Config from --config (TOML), then the flags (unvalidated)."""
-    cfg = preset_config(args.instrument) if getattr(args, "instrument", None) else RunConfig()
+    cfg = preset_config(getattr(args, "instrument", None) or "risley")
     if args.config:
         cfg = load_toml(args.config, cfg)
     for _flag, dest, key, _help in flags:
@@ -104,13 +105,20 @@ def _add_config_flags(parser: argparse.ArgumentParser, flags=CONFIG_FLAGS) -> No
     for flag, dest, _key, help_text in flags:
         parser.add_argument(flag, dest=dest, help=help_text)
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="set any config field, e.g. --set sensor.refractive_index=1.45 (repeatable)")
+                        help="set any setting of the parts in use, e.g. --set risley.refractive_index=1.45 (repeatable; "
+                             "`flightsim config` lists them)")
 
 
 def _add_cluster_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, help="run on a local Dask cluster of N worker processes (N > 1)")
     parser.add_argument("--scheduler", help="run on the Dask cluster of this scheduler address, e.g. tcp://host:8786")
     parser.add_argument("--gpus", help="Dask workers pinned to GPUs, one per GPU (or --workers of them): all, or 0,1")
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    """Print the resolved config, every setting with its meaning, unit and range."""
+    print(to_toml(build_config(args), comments=True), end="")
+    return 0
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -181,7 +189,7 @@ def cmd_survey(args: argparse.Namespace) -> int:
     plan = plan_survey(cfg, spec)
     print(f"survey: {plan.grid.side_m / 1000:g} km × {plan.grid.side_m / 1000:g} km in {plan.grid.n ** 2} tiles, "
           f"{plan.cfg.flight.lines} lines {plan.cfg.flight.line_spacing_m:.1f} m apart, {len(plan.tasks)} tasks, "
-          f"{plan.pulses * cfg.sensor.array ** 2:,} beams", file=sys.stderr)
+          f"{plan.pulses * cfg.fan.array ** 2:,} beams", file=sys.stderr)
     with _cluster(args, len(plan.tasks)) as client:
         summary = run_survey(cfg, spec, Path(args.out), client=client, overwrite=args.overwrite,
                              progress=ProgressBar("survey"))
@@ -307,6 +315,11 @@ def make_parser() -> argparse.ArgumentParser:
                      description="GPU-first lidar simulator: instruments as parts, scenes, outputs, studies.")
     parser.add_argument("--version", action="version", version=f"flightsim {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    config = sub.add_parser("config", help="print the resolved config of an instrument, every setting explained "
+                                           "(a file to start from: flightsim config --instrument spad > run.toml)")
+    _add_config_flags(config)
+    config.set_defaults(func=cmd_config)
 
     sim = sub.add_parser("simulate", help="simulate a flight and write LAS tiles per georeferencing model")
     _add_config_flags(sim)

@@ -24,8 +24,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flightsim.core.config import RunConfig, set_value, validate  # noqa: E402
-from flightsim.platforms.plan import build_scene, flight_trajectories  # noqa: E402
+from flightsim.engine.config import RunConfig, set_value, validate  # noqa: E402
+from flightsim.engine.world import build_scene, flight_trajectories  # noqa: E402
 from flightsim.engine.simulate import Simulator  # noqa: E402
 from flightsim.core.warp_runtime import init_warp  # noqa: E402
 
@@ -35,8 +35,9 @@ CASES = {  # name: settings; the quick set is the first two at a tenth of the du
     "plane_5000m_3x3_far_north": {"scene.name": "plane", "scene.crs": "EPSG:32633",
                                   "scene.origin": [500000.0, 7000000.0, 120.0], "flight.altitude_m": 5000.0,
                                   "flight.duration_s": 5.0, "flight.roll_deg": 2.0, "flight.heading_deg": 30.0},
-    "calibration_1000m_8x8_noise": {"flight.altitude_m": 1000.0, "sensor.array": 8, "flight.duration_s": 5.0,
-                                    "sensor.range_noise_m": 0.05, "run.seed": 7},
+    "calibration_1000m_8x8_noise": {"flight.altitude_m": 1000.0, "fan.array": 8, "flight.duration_s": 5.0,
+                                    "instrument.errors": ["ranging"], "ranging.noise_m": 0.05,
+                                    "run.seed": 7},
     "calibration_500m_3x3_two_lines_float32": {"flight.lines": 2, "flight.duration_s": 5.0, "run.optics": "float32"},
 }
 

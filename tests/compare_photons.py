@@ -4,10 +4,10 @@
 """
 import numpy as np
 import flightsim
-from flightsim.core.config import PhotonConfig
+from flightsim.instrument.photon import PhotonSettings as PhotonConfig
 from flightsim.instrument.photon import detect
 from flightsim.engine.simulate import Simulator
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 
 s = PhotonConfig(noise_hz=1e6, dead_time_s=2e-8, max_events=16, tdc_bin_s=2.5e-10)
 n, t0 = np.full(200000, 1.5), np.full(200000, 1e-6)

@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.core.config import RunConfig
+from flightsim.engine.config import RunConfig
 from flightsim.engine.simulate import ReturnChunk
-from flightsim.outputs.device_las import beam_columns, tile_writers
+from flightsim.engine.instrument import Instrument
+from flightsim.outputs.device_las import tile_writers
 from flightsim.outputs.las_tiles import PointBatch
 from flightsim.scenes.scene import Scene
 from flightsim.scoring.planes import PlaneMoments
@@ -32,8 +33,8 @@ class HostLasOutput:
         self.plane_ids = scene.plane_id if plane_ids is None else plane_ids
         self.scene = scene
         self.timing = timing
-        self.n = beam_columns(cfg)
-        self.writers = tile_writers(directory, cfg, scene, edge_distance)
+        self.n = Instrument(cfg).emitter.beam_columns
+        self.writers = tile_writers(directory, cfg.output, scene, cfg.flight.start_gps_time, edge_distance)
 
     def __call__(self, chunk: ReturnChunk) -> None:
         shared = self._shared_fields(chunk)

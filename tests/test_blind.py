@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from flightsim.scoring.blind import extract_planes
-from flightsim.core.config import RunConfig, validate
+from flightsim.engine.config import RunConfig, validate
 from flightsim.outputs.las_tiles import read_points
 from flightsim.scoring.planes import fit_points
-from flightsim.platforms.plan import build_scene
+from flightsim.engine.world import build_scene
 
 ORIGIN = np.array([409_000.0, 3_393_000.0, 450.0])
 

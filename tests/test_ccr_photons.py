@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from flightsim.cli import main
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.simulate import Simulator
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 
 FOOTPRINT = 0.5 * 0.035e-3  # e⁻² half angle of a 0.035 mrad beam [rad]: w = 8.75 m at 500 km
 CCR_PHOTONS = 3.0
@@ -19,13 +19,13 @@ CCR_PHOTONS = 3.0
 
 def _pass(detector: str, ccr=(0.0, 0.0, 1.0), **settings) -> RunConfig:
     cfg = RunConfig()
-    for key, value in {"instrument.deflector": "fixed", "sensor.array": 1, "flight.platform": "orbit",
-                       "flight.altitude_m": 500e3, "flight.duration_s": 0.01, "sensor.prf_hz": 1.0e4,
-                       "sensor.max_range_m": 6e5, "sensor.divergence_mrad": 0.035, "scene.name": "plane",
-                       "instrument.detector": detector, "photon.gate_m": [499000.0, 501000.0],
-                       "photon.noise_hz": 1.0e3, "photon.dead_time_s": 3e-9, "photon.pulse_fwhm_s": 1.5e-9,
-                       "photon.pulse_energy_j": 1e-4, "scene.ccrs": [list(ccr)],
-                       "scene.ccr_photons": CCR_PHOTONS, "output.models": ["exact"], **settings}.items():
+    photon = {"photon.gate_m": [499000.0, 501000.0], "photon.noise_hz": 1.0e3, "photon.dead_time_s": 3e-9,
+              "photon.pulse_fwhm_s": 1.5e-9, "photon.pulse_energy_j": 1e-4}
+    for key, value in {"instrument.deflector": "fixed", "fan.array": 1, "flight.platform": "orbit",
+                       "flight.altitude_m": 500e3, "flight.duration_s": 0.01, "fixed.prf_hz": 1.0e4,
+                       "instrument.max_range_m": 6e5, "fan.divergence_mrad": 0.035, "scene.name": "plane",
+                       "instrument.detector": detector, "scene.ccrs": [list(ccr)], "scene.ccr_photons": CCR_PHOTONS,
+                       **(photon if detector == "photon" else {"output.models": ["exact"]}), **settings}.items():
         set_value(cfg, key, value)
     return validate(cfg)
 

@@ -23,16 +23,16 @@ def error_lines(result) -> list[str]:
 @pytest.mark.parametrize("args, field", [
     (["--altitude", "-5"], "flight.altitude_m"),
     (["--altitude", "nan"], "flight.altitude_m"),
-    (["--array", "0"], "sensor.array"),
-    (["--array", "65"], "sensor.array"),
-    (["--spacing-mrad", "inf"], "sensor.spacing_mrad"),
-    (["--spacing-mrad", "-1"], "sensor.spacing_mrad"),
+    (["--array", "0"], "fan.array"),
+    (["--array", "65"], "fan.array"),
+    (["--spacing-mrad", "inf"], "fan.spacing_mrad"),
+    (["--spacing-mrad", "-1"], "fan.spacing_mrad"),
     (["--duration", "0"], "flight.duration_s"),
     (["--scene", "nowhere"], "scene.name"),
     (["--models", "exact,fancy"], "output.models"),
     (["--set", "sensor.colour=red"], "sensor.colour"),
     (["--set", "scene.crs=EPSG:4326"], "scene.crs"),
-    (["--set", "sensor.apex_angle_deg=45"], "sensor.apex_angle_deg"),
+    (["--set", "risley.apex_angle_deg=45"], "risley.apex_angle_deg"),
 ])
 def test_invalid_input_exits_2_with_one_line_naming_the_field(tmp_path, args, field):
     result = flightsim("simulate", *args, "--out", str(tmp_path / "out"))

@@ -17,7 +17,8 @@ import pyproj
 import pytest
 
 from copcjs import read_with_copcjs
-from flightsim.core.config import RunConfig, load_toml, set_value, to_toml, validate
+from flightsim.engine.config import RunConfig, set_value, validate
+from flightsim.engine.config_io import load_toml, to_toml
 from flightsim.core.errors import InputError
 from flightsim.engine.run import simulate_to_directory
 from flightsim.outputs import copc as copc_module

@@ -1,7 +1,7 @@
 """Host-side culling: pulses that cannot reach the scene are never launched, and nothing is lost."""
 import numpy as np
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.run import simulate_to_directory
 
 
@@ -32,7 +32,7 @@ def test_culling_skips_pulses_out_of_reach_without_changing_any_point(tmp_path):
 
 
 def test_culling_is_conservative_for_a_banked_and_boresighted_sensor(tmp_path):
-    settings = {"flight.roll_deg": 12.0, "sensor.boresight_deg": "3,-2,1", "flight.heading_deg": 30.0}
+    settings = {"flight.roll_deg": 12.0, "instrument.boresight_deg": "3,-2,1", "flight.heading_deg": 30.0}
     culled = simulate_to_directory(pad_config(tmp_path, True, **settings), tmp_path / "culled")
     full = simulate_to_directory(pad_config(tmp_path, False, **settings), tmp_path / "full")
     assert culled["pulses_culled"] > 0

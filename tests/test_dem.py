@@ -52,7 +52,7 @@ def test_nodata_cells_leave_holes_and_npy_grids_use_the_cell(tmp_path):
 
 def test_waveform_over_a_dem_slope_has_the_closed_form_width(tmp_path):
     from flightsim.engine.simulate import Simulator
-    from flightsim.platforms.plan import build_scene, flight_trajectories
+    from flightsim.engine.world import build_scene, flight_trajectories
     from flightsim.studies.waveform import waveform_config
 
     s, cell, n = 0.1, 2.0, 161

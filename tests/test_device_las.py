@@ -10,21 +10,21 @@ import hashlib
 import numpy as np
 import pytest
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.run import simulate_to_directory
 from flightsim.engine.simulate import Simulator
 from flightsim.outputs import las_tiles
 from flightsim.outputs.consumers import PlaneStatistics
 from flightsim.outputs.device_las import DeviceLasOutput
-from flightsim.platforms.plan import build_scene, flight_trajectories
-from flightsim.scenes.edges import edge_buffer_m
+from flightsim.engine.world import build_scene, flight_trajectories
+from flightsim.engine.world import edge_buffer_m
 from host_reference import HostLasOutput, HostPlaneStatistics
 
 
 def _config(device: str, **settings) -> RunConfig:
     cfg = RunConfig()
     base = {"flight.duration_s": 0.25, "flight.lines": 2, "flight.line_spacing_m": 60.0, "output.tile_size_m": 40,
-            "sensor.range_noise_m": 0.03, "output.position_error": True, "run.device": device,
+            "instrument.errors": ["ranging"], "ranging.noise_m": 0.03, "output.position_error": True, "run.device": device,
             "run.chunk_pulses": 97}  # many chunks, each cutting lines and tiles at odd places
     for key, value in {**base, **settings}.items():
         set_value(cfg, key, value)
@@ -41,7 +41,7 @@ def _both_writers(cfg: RunConfig, tmp_path):
     scene = build_scene(cfg)
     buffer = edge_buffer_m(cfg)
     simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), with_truth=True, edge_buffer_m=buffer)
-    device = DeviceLasOutput(tmp_path / "dev", cfg, simulator, edge_distance=buffer > 0.0)
+    device = DeviceLasOutput(tmp_path / "dev", cfg.output, simulator, buffer > 0.0, cfg.flight.start_gps_time)
     simulator.run_device(device)
     device_tiles = device.close()
     host = HostLasOutput(tmp_path / "host", cfg, scene, simulator.timing, edge_distance=buffer > 0.0)

@@ -8,7 +8,7 @@ import cloudpickle
 import pytest
 
 from flightsim.engine import distributed
-from flightsim.core.config import RunConfig, set_value
+from flightsim.engine.config import RunConfig, set_value
 from flightsim.core.errors import InputError
 from flightsim.studies.sweep import SweepGrid, run_sweep
 
@@ -25,7 +25,7 @@ def grid() -> SweepGrid:
     base = RunConfig()
     set_value(base, "scene.name", "plane")
     set_value(base, "flight.duration_s", 0.5)
-    return SweepGrid(base, [("sensor.array", ["2", "3", "4"]), ("flight.altitude_m", ["500", "900"])])
+    return SweepGrid(base, [("fan.array", ["2", "3", "4"]), ("flight.altitude_m", ["500", "900"])])
 
 
 def rows(path, drop=("wall_s",)):

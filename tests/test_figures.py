@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from flightsim.studies import figures
-from flightsim.core.config import apex_for_cone
+from flightsim.instrument.risley_model import apex_for_cone
 from flightsim.core.errors import InputError
 
 DELTA = 2.314e-3  # [rad]

@@ -9,9 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from flightsim.core.config import RunConfig, validate
+from flightsim.engine.config import RunConfig, validate
 from flightsim.instrument import fsm_model
-from flightsim.instrument.emitters import FanEmitter
+from flightsim.instrument.fan import FanEmitter
 
 H = math.sqrt(0.5)
 
@@ -19,7 +19,7 @@ H = math.sqrt(0.5)
 def _spad_config(**fields) -> RunConfig:
     cfg = RunConfig()
     cfg.instrument.deflector = "fsm"
-    cfg.sensor.array, cfg.sensor.spacing_mrad = 32, 3.545  # 32 × 0.2031° = the paper's 6.5° field
+    cfg.fan.array, cfg.fan.spacing_mrad = 32, 3.545  # 32 × 0.2031° = the paper's 6.5° field
     cfg.output.models = ("exact",)
     cfg.scene.name = "plane"
     cfg.flight.platform = "hover"
@@ -51,7 +51,7 @@ SENSOR = np.array([[1.0, 0.0, 0.0], [0.0, H, -H], [0.0, H, H]])
 
 
 def test_at_rest_the_fan_leaves_as_emitted():
-    beams = FanEmitter(_spad_config()).directions()
+    beams = FanEmitter(_spad_config().fan).directions()
     _, direction, _ = fsm_model.trace(fsm_model.FsmGeometry(), 0.0, 0.0, beams)
     assert np.abs(direction - beams).max() < 1e-15
 
@@ -67,7 +67,7 @@ def test_tilts_turn_the_axis_by_the_reflection_law():
 
 def test_device_rays_match_the_papers_reflection_formula():
     from flightsim.engine.simulate import Simulator
-    from flightsim.platforms.plan import build_scene, flight_trajectories
+    from flightsim.engine.world import build_scene, flight_trajectories
 
     cfg = _spad_config(flight__duration_s=0.002, run__seed=3)
     scene = build_scene(cfg)
@@ -78,7 +78,7 @@ def test_device_rays_match_the_papers_reflection_formula():
     rot = np.asarray(pose["rot"], dtype=np.float64).reshape(3, 3)
     g = sim.instrument.deflector.geometry()
     tx, ty = fsm_model.scan_angles(g, np.arange(pulses))
-    beams = FanEmitter(cfg).directions()
+    beams = FanEmitter(cfg.fan).directions()
     expected = _paper_eq2(_incoming(beams)[None], tx[:, None], ty[:, None]) @ SENSOR.T
     got = (directions @ rot).reshape(pulses, 1024, 3)
     assert np.linalg.norm(np.cross(got, expected), axis=-1).max() < 2e-6  # float32 rays
@@ -90,7 +90,7 @@ def test_mode_a_covers_every_cell_of_the_1100_grid_in_one_frame():
     deflector_geometry = fsm_model.FsmGeometry(mode="A", span_rad=tuple(v * 1e-3 for v in cfg.fsm.span_mrad),
                                                lines=cfg.fsm.lines, frame_pulses=round(cfg.fsm.frame_s * cfg.fsm.prf_hz))
     assert deflector_geometry.frame_pulses == 43000
-    beams = FanEmitter(cfg).directions()
+    beams = FanEmitter(cfg.fan).directions()
     half, n = math.radians(3.25), 1100
     hit = np.zeros((n, n), dtype=bool)
     for first in range(0, 43000, 4300):
@@ -108,8 +108,8 @@ def test_mode_a_covers_every_cell_of_the_1100_grid_in_one_frame():
     ("fsm.mode=C", "fsm.mode"),
     ("fsm.span_mrad=2.6,500", "fsm.span_mrad"),
     ("fsm.aperture_mm=0.1", "fsm.aperture_mm"),
-    ("errors.encoder_arcsec=5", "errors.encoder_arcsec"),
-    ("errors.fsm_zero_arcsec=1,2,3", "errors.fsm_zero_arcsec"),
+    ("risley.encoder_arcsec=5", "risley.encoder_arcsec"),
+    ("fsm.zero_arcsec=1,2,3", "fsm.zero_arcsec"),
 ])
 def test_bad_fsm_input_exits_2_naming_the_field(tmp_path, setting, field):
     args = ["--set", "instrument.deflector=fsm", "--set", "output.models=exact", "--set", setting]
@@ -122,5 +122,5 @@ def test_bad_fsm_input_exits_2_naming_the_field(tmp_path, setting, field):
 
 def test_galvo_refuses_fsm_errors(tmp_path):
     run = subprocess.run([sys.executable, "-m", "flightsim", "simulate", "--instrument", "change3", "--set",
-                          "errors.fsm_noise_arcsec=3", "--out", str(tmp_path / "o")], capture_output=True, text=True)
-    assert run.returncode == 2 and "errors.fsm_noise_arcsec" in run.stderr
+                          "fsm.noise_arcsec=3", "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert run.returncode == 2 and "fsm.noise_arcsec" in run.stderr

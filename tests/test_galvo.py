@@ -9,7 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from flightsim.core.config import ARCSEC, preset_config, validate
+from flightsim.core.constants import ARCSEC
+from flightsim.engine.config import validate
+from flightsim.engine.config_io import preset_config
 from flightsim.instrument import galvo_model
 from flightsim.studies.budget import Frame, frame_config, monte_carlo, with_errors
 
@@ -116,9 +118,10 @@ def test_clock_drift_and_channel_delays_are_systematic(frame):
     error, _ = _range_errors(frame, channel_delay_m=0.05)
     per_channel = error.reshape(frame.pulses, frame.beams)
     assert np.abs(per_channel - per_channel[0]).max() < 3e-5  # one constant per channel
-    from flightsim.instrument.ranging import channel_delays
+    from flightsim.instrument.ranging import RangingErrors
 
-    assert per_channel[0] == pytest.approx(channel_delays(cfg, frame.beams), abs=3e-5)
+    assert per_channel[0] == pytest.approx(RangingErrors(cfg.ranging, cfg.run.seed).channel_delays(frame.beams),
+                                           abs=3e-5)
 
 
 def test_monte_carlo_agrees_with_first_order_propagation(frame):
@@ -139,8 +142,8 @@ def test_monte_carlo_agrees_with_first_order_propagation(frame):
 @pytest.mark.parametrize("setting, field", [
     ("instrument.deflector=prisms", "instrument.deflector"),
     ("galvo.aperture_mm=2", "galvo.aperture_mm"),
-    ("errors.c1_arcsec=5000", "errors.c1_arcsec"),
-    ("errors.b2_arcsec=12 arcsec", "errors.b2_arcsec"),
+    ("galvo.c1_arcsec=5000", "galvo.c1_arcsec"),
+    ("galvo.b2_arcsec=12 arcsec", "galvo.b2_arcsec"),
     ("galvo.field_deg=30,95", "galvo.field_deg"),
     ("output.models=exact,nominal", "output.models"),
 ])
@@ -154,12 +157,12 @@ def test_bad_instrument_input_exits_2_naming_the_field(tmp_path, setting, field)
 
 
 def test_galvo_errors_are_refused_on_the_risley_instrument():
-    from flightsim.core.config import RunConfig
+    from flightsim.engine.config import RunConfig
     from flightsim.core.errors import InputError
 
     cfg = RunConfig()
-    cfg.errors.b1_arcsec = 10.0
-    with pytest.raises(InputError, match="errors.b1_arcsec"):
+    cfg.galvo.b1_arcsec = 10.0
+    with pytest.raises(InputError, match="galvo.b1_arcsec"):
         validate(cfg)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flightsim.core.config import ARCSEC
+from flightsim.core.constants import ARCSEC
 from flightsim.instrument import galvo_model
 from flightsim.instrument.galvo_model import GalvoGeometry
 

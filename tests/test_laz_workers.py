@@ -21,7 +21,7 @@ import numpy as np
 import pyproj
 import pytest
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.outputs import las_tiles, laz_workers
 from flightsim.outputs.las_tiles import PointBatch, TileWriter, read_points
 
@@ -89,7 +89,7 @@ def test_workers_write_the_bytes_of_one_process(tmp_path):
 def _config(**settings) -> RunConfig:
     cfg = RunConfig()
     base = {"flight.duration_s": 0.25, "flight.lines": 2, "flight.line_spacing_m": 60.0, "output.tile_size_m": 40,
-            "sensor.range_noise_m": 0.03, "output.position_error": True, "output.laz": True, "run.device": "cpu",
+            "instrument.errors": ["ranging"], "ranging.noise_m": 0.03, "output.position_error": True, "output.laz": True, "run.device": "cpu",
             "run.chunk_pulses": 97}  # many chunks, each cutting lines and tiles at odd places
     for key, value in {**base, **settings}.items():
         set_value(cfg, key, value)

@@ -72,9 +72,9 @@ def test_change3_imager_over_the_zone_returns_every_beam_on_the_surface():
     import flightsim
 
     cfg = flightsim.load_config(instrument="change3", overrides={"scene.name": "lunar", "galvo.columns": 8,
-                                                                 "errors.channel_delay_m": 0.0, "errors.jitter_s": 0.0,
-                                                                 "errors.tdc_bin_s": 0.0, "errors.rise_time_s": 0.0,
-                                                                 "errors.clock_drift": 0.0})
+                                                                 "ranging.channel_delay_m": 0.0, "ranging.jitter_s": 0.0,
+                                                                 "ranging.tdc_bin_s": 0.0, "ranging.rise_time_s": 0.0,
+                                                                 "ranging.clock_drift": 0.0})
     result = flightsim.simulate(cfg, with_truth=True)
     assert result.counts.returns == result.counts.beams_fired == result.counts.pulses * 16
     # no errors on: each processed point is its true hit (float32 points at ~100 m: tens of µm)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import reference_optics as ref
-from flightsim.core.config import apex_for_cone
-from flightsim.instrument.fan import trace_fan
+from flightsim.instrument.risley_model import apex_for_cone
+from flightsim.instrument.risley_model import trace_fan
 
 N_BK7 = 1.5066
 APEX = apex_for_cone(math.radians(15.0), N_BK7)

@@ -10,10 +10,10 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from flightsim.cli import main
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.simulate import Simulator
 from flightsim.platforms.orbit import BODIES, Orbit, earth_rotation, eccentric_anomaly, gcrs_to_itrs, kepler_state
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 
 ARCSEC = math.pi / 648000
 
@@ -80,9 +80,10 @@ def test_earth_rotation_from_astropy_turns_about_the_pole_at_the_sidereal_rate()
 
 def _orbit_config(**settings) -> RunConfig:
     cfg = RunConfig()
-    for key, value in {"instrument.deflector": "fixed", "sensor.array": 1, "flight.platform": "orbit",
-                       "flight.altitude_m": 500e3, "flight.duration_s": 0.2, "sensor.prf_hz": 50.0,
-                       "sensor.max_range_m": 6e5, "scene.name": "plane", "output.models": ["exact"], **settings}.items():
+    for key, value in {"instrument.deflector": "fixed", "fan.array": 1, "flight.platform": "orbit",
+                       "flight.altitude_m": 500e3, "flight.duration_s": 0.2, "fixed.prf_hz": 50.0,
+                       "instrument.max_range_m": 6e5, "scene.name": "plane", "output.models": ["exact"],
+                       "instrument.errors": ["ranging", "pose"], **settings}.items():
         set_value(cfg, key, value)
     return validate(cfg)
 
@@ -108,7 +109,7 @@ def test_the_pass_is_above_the_scene_origin_at_mid_run_at_the_vis_viva_speed(e):
 
 
 def test_one_arcsecond_of_pointing_moves_the_ground_point_by_h_tan_one_arcsecond():
-    cfg = _orbit_config(**{"errors.boresight_arcsec": [1.0, 0.0, 0.0]})
+    cfg = _orbit_config(**{"pose.boresight_arcsec": [1.0, 0.0, 0.0]})
     scene = build_scene(cfg)
     sim = Simulator(cfg, scene, flight_trajectories(cfg, scene), with_truth=True)
     chunks = []
@@ -121,7 +122,7 @@ def test_one_arcsecond_of_pointing_moves_the_ground_point_by_h_tan_one_arcsecond
 
 
 def test_ranging_bias_adds_to_every_range():
-    plain, biased = _orbit_config(), _orbit_config(**{"errors.range_bias_m": 0.25})
+    plain, biased = _orbit_config(), _orbit_config(**{"ranging.range_bias_m": 0.25})
     ranges = []
     for cfg in (plain, biased):
         scene = build_scene(cfg)
@@ -133,7 +134,7 @@ def test_ranging_bias_adds_to_every_range():
 
 def test_moon_pass_at_200_km():
     cfg = _orbit_config(**{"flight.body": "moon", "flight.altitude_m": 200e3, "flight.inclination_deg": 90.0,
-                           "sensor.max_range_m": 3e5})
+                           "instrument.max_range_m": 3e5})
     scene = build_scene(cfg)
     chunks = []
     Simulator(cfg, scene, flight_trajectories(cfg, scene)).run(chunks.append)
@@ -147,6 +148,6 @@ def test_moon_pass_at_200_km():
 ])
 def test_bad_orbit_input_exits_2_naming_the_field(tmp_path, capsys, args, field):
     base = ["simulate", "--set", "flight.platform=orbit", "--set", "flight.altitude_m=500000", "--set",
-            "sensor.max_range_m=600000", "--duration", "0.01"]
+            "instrument.max_range_m=600000", "--duration", "0.01"]
     assert main(base + args + ["--out", str(tmp_path / "o")]) == 2
     assert field in capsys.readouterr().err

@@ -19,7 +19,7 @@ import laspy
 import numpy as np
 import pytest
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.run import simulate_to_directory
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,7 +45,8 @@ def tile_bytes(directory: Path) -> dict[str, bytes]:
 
 @pytest.mark.parametrize("noise_m", [0.0, 0.05])
 def test_same_config_and_seed_give_identical_las_bytes(tmp_path, noise_m):
-    cfg = config(flight__duration_s=0.4, sensor__range_noise_m=noise_m, run__seed=11, output__position_error=True)
+    cfg = config(flight__duration_s=0.4, instrument__errors="ranging", ranging__noise_m=noise_m, run__seed=11,
+                 output__position_error=True)
     first = simulate_to_directory(cfg, tmp_path / "a")
     second = simulate_to_directory(cfg, tmp_path / "b")
     a, b = tile_bytes(tmp_path / "a"), tile_bytes(tmp_path / "b")
@@ -57,7 +58,8 @@ def test_same_config_and_seed_give_identical_las_bytes(tmp_path, noise_m):
 def test_range_noise_depends_on_the_seed_only_not_on_chunking(tmp_path):
     runs = {}
     for name, seed, chunk in (("auto", 5, 0), ("small_chunks", 5, 97), ("other_seed", 6, 0)):
-        cfg = config(flight__duration_s=0.3, sensor__range_noise_m=0.05, run__seed=seed, run__chunk_pulses=chunk)
+        cfg = config(flight__duration_s=0.3, instrument__errors="ranging", ranging__noise_m=0.05, run__seed=seed,
+                     run__chunk_pulses=chunk)
         simulate_to_directory(cfg, tmp_path / name)
         runs[name] = tile_bytes(tmp_path / name)
     assert runs["auto"] == runs["small_chunks"]
@@ -105,7 +107,7 @@ def assert_every_tile_is_complete(directory: Path, reference: dict[str, bytes]) 
 
 
 SIMULATE = ["simulate", "--duration", "5", "--set", "run.chunk_pulses=500", "--set", "output.tile_size_m=100",
-            "--set", "sensor.range_noise_m=0.01", "--seed", "4"]
+            "--set", "instrument.errors=ranging", "--set", "ranging.noise_m=0.01", "--seed", "4"]
 
 
 def test_killed_simulation_leaves_only_complete_tiles_and_a_rerun_completes_it(tmp_path):

@@ -13,12 +13,12 @@ import pytest
 import rasterio
 from rasterio.transform import from_origin
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.engine.run import PATCH_RASTER, simulate_to_directory
 from flightsim.engine.simulate import Simulator
 from flightsim.outputs.consumers import AUTO_PATCH_M, MAX_PATCHES, MIN_PATCH_POINTS, PatchStatistics, patch_grid
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.scoring.planes import fit_groups
 
 E0, N0, H0 = 409000.0, 3393000.0, 450.0  # the default scene origin
@@ -38,7 +38,7 @@ def _curved_dem(path, cell=4.0, half=400.0):
 def _config(dem, device="cpu", **settings) -> RunConfig:
     cfg = RunConfig()
     base = {"scene.name": str(dem), "flight.duration_s": 0.3, "flight.lines": 2, "flight.line_spacing_m": 120.0,
-            "sensor.range_noise_m": 0.02, "run.device": device, "run.chunk_pulses": 131}
+            "instrument.errors": ["ranging"], "ranging.noise_m": 0.02, "run.device": device, "run.chunk_pulses": 131}
     for key, value in {**base, **settings}.items():
         set_value(cfg, key, value)
     return validate(cfg)
@@ -99,7 +99,8 @@ def test_patch_rms_on_flat_ground_is_the_ranging_noise_across_the_ground(tmp_pat
     degrees of freedom, so pooled² = Σ_p Σ_{i∈p} ((m − t)·n)² (n_p − 3)/n_p / Σ n_p, within sampling error."""
     slope = 0.2
     _tilted_dem(tmp_path / "tilted.tif", slope)
-    cfg = _config(tmp_path / "tilted.tif", **{"output.models": ["exact"], "sensor.range_noise_m": 0.05})
+    cfg = _config(tmp_path / "tilted.tif", **{"output.models": ["exact"], "instrument.errors": ["ranging"],
+                                                          "ranging.noise_m": 0.05})
     from flightsim import api
 
     run = api.simulate(cfg, with_truth=True)

@@ -11,7 +11,7 @@ import warp as wp
 from scipy.special import gammainc
 
 from flightsim.core.errors import InputError
-from flightsim.core.config import PhotonConfig
+from flightsim.instrument.photon import PhotonSettings as PhotonConfig
 from flightsim.instrument.photon import check_settings, detect, detector_struct, first_photon_bias_s, sigma_t
 from kernels import photon
 
@@ -142,7 +142,7 @@ def test_expected_signal_is_the_lidar_equation():
                                           ("gate_m", (600.0, 5.0)), ("max_events", 0)])
 def test_bad_detector_settings_name_the_field(field, value):
     with pytest.raises(InputError, match=f"photon.{field}"):
-        check_settings(dataclasses.replace(PhotonConfig(), **{field: value}))
+        check_settings("photon", dataclasses.replace(PhotonConfig(), **{field: value}))
 
 
 def test_traced_run_counts_the_lidar_equation_of_every_beam(tmp_path):
@@ -159,8 +159,8 @@ def test_traced_run_counts_the_lidar_equation_of_every_beam(tmp_path):
     frames, columns = 4, 8
     settings = ["instrument.detector=photon", f"galvo.columns={columns}", f"flight.duration_s={0.1 * frames}",
                 "photon.noise_hz=0", "photon.dead_time_s=0", "photon.max_events=64", "photon.pulse_energy_j=2e-9",
-                "errors.channel_delay_m=0", "errors.jitter_s=0", "errors.tdc_bin_s=0", "errors.rise_time_s=0",
-                "errors.clock_drift=0"]
+                "ranging.channel_delay_m=0", "ranging.jitter_s=0", "ranging.tdc_bin_s=0", "ranging.rise_time_s=0",
+                "ranging.clock_drift=0"]
     run = subprocess.run([sys.executable, "-m", "flightsim", "simulate", "--instrument", "change3", "--out",
                           str(tmp_path / "run"), *[a for s in settings for a in ("--set", s)]],
                          capture_output=True, text=True)

@@ -9,7 +9,7 @@ import pytest
 
 from flightsim.scoring.photon_grid import angle_cells, grid_points, xy_cells
 from flightsim.scoring.surface import signed_distances
-from flightsim.scenes.scene import plane_scene
+from flightsim.scenes.plane import plane_scene
 
 
 def _photons(rng, cells=40, signal=8, noise=30, sigma=0.05, slope=0.1):

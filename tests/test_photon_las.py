@@ -7,7 +7,8 @@ import numpy as np
 import pyproj
 import pytest
 
-from flightsim.core.config import preset_config, set_value, validate
+from flightsim.engine.config import set_value, validate
+from flightsim.engine.config_io import preset_config
 from flightsim.engine.run import simulate_to_directory
 
 

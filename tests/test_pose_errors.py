@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from flightsim.core.config import ARCSEC, RunConfig, copy_config, validate
+from flightsim.core.constants import ARCSEC
+from flightsim.engine.config import RunConfig, copy_config, validate
 from flightsim.studies.budget import Frame
 
 PULSES = 400
@@ -26,9 +27,14 @@ def frame() -> Frame:
     return Frame(cfg, pulses=PULSES)
 
 
+POSE_FIELDS = ("boresight_arcsec", "position_noise_m", "attitude_noise_arcsec")
+
+
 def _run(frame: Frame, **errors):
     cfg = copy_config(frame.cfg)
-    cfg.errors = dataclasses.replace(cfg.errors, **errors)
+    cfg.instrument.errors = ("pose",)
+    cfg.parts["pose"] = dataclasses.replace(cfg.pose, **{k: v for k, v in errors.items() if k in POSE_FIELDS})
+    cfg.parts["risley"] = dataclasses.replace(cfg.risley, **{k: v for k, v in errors.items() if k not in POSE_FIELDS})
     deviation, truth, sim = frame.local_deviations(validate(cfg))
     origin, rot = frame.poses(sim)
     pulse = np.arange(PULSES).repeat(frame.beams)
@@ -120,11 +126,11 @@ def test_risley_budget_monte_carlo_agrees_with_its_linearisation():
 
 @pytest.mark.parametrize("args, field", [
     (["budget", "--instrument", "lidar9", "--out", "OUT"], "--instrument"),
-    (["simulate", "--set", "errors.boresight_arcsec=1,2", "--out", "OUT"], "errors.boresight_arcsec"),
-    (["simulate", "--set", "errors.position_noise_m=-1", "--out", "OUT"], "errors.position_noise_m"),
-    (["simulate", "--set", "errors.encoder_arcsec=20", "--set", "run.optics=lut", "--out", "OUT"], "run.optics"),
-    (["simulate", "--instrument", "change3", "--set", "errors.encoder_arcsec=20", "--out", "OUT"],
-     "errors.encoder_arcsec"),
+    (["simulate", "--set", "pose.boresight_arcsec=1,2", "--out", "OUT"], "pose.boresight_arcsec"),
+    (["simulate", "--set", "pose.position_noise_m=-1", "--out", "OUT"], "pose.position_noise_m"),
+    (["simulate", "--set", "risley.encoder_arcsec=20", "--set", "run.optics=lut", "--out", "OUT"], "run.optics"),
+    (["simulate", "--instrument", "change3", "--set", "risley.encoder_arcsec=20", "--out", "OUT"],
+     "risley.encoder_arcsec"),
 ])
 def test_bad_error_input_exits_2_naming_the_field(tmp_path, args, field):
     import subprocess

@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import reference_optics as ref
-from flightsim.instrument.fan import trace_fan
+from flightsim.instrument.risley_model import trace_fan
 from flightsim.scenes.scene import CLASS_GROUND, Scene, parse_crs, plane_info
 from kernels.optics import back_face_normal, refract
 

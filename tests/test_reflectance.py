@@ -12,17 +12,18 @@ import pytest
 import rasterio
 from rasterio.transform import from_origin
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.engine.run import simulate_to_directory
 from flightsim.engine.simulate import Simulator
 from flightsim.instrument import waveform_model as model
 from flightsim.instrument.waveform import system
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.scenes import cache
 from flightsim.scenes.dem import dem_scene
 from flightsim.scenes.landcover import triangle_reflectance
-from flightsim.scenes.scene import DEFAULT_CRS, plane_scene
+from flightsim.scenes.plane import plane_scene
+from flightsim.scenes.scene import DEFAULT_CRS
 from flightsim.studies.waveform import waveform_config
 
 C = 299_792_458.0  # [m/s]
@@ -64,9 +65,9 @@ def _photon_cfg(dem: str, cover: str, **settings) -> RunConfig:
     """A single nadir beam flying east at ALTITUDE over the DEM's middle, 40 m of line, no background or dead time."""
     cfg = RunConfig()
     for key, value in {"scene.name": dem, "scene.landcover": cover, "scene.origin": [E0, N0, H0],
-                       "instrument.detector": "photon", "instrument.deflector": "fixed", "sensor.array": 1,
+                       "instrument.detector": "photon", "instrument.deflector": "fixed", "fan.array": 1,
                        "flight.altitude_m": ALTITUDE, "flight.heading_deg": 90.0, "flight.speed_kmh": 36.0,
-                       "flight.duration_s": 4.0, "sensor.prf_hz": 1000.0, "output.models": ["exact"],
+                       "flight.duration_s": 4.0, "fixed.prf_hz": 1000.0,
                        **PHOTON, **settings}.items():
         set_value(cfg, key, value)
     return validate(cfg)

@@ -3,8 +3,8 @@ instrument became a composition of parts, must not change.
 
 ``data/regression_pin.json`` holds the SHA-256 of every LAS tile of two short runs (the default
 run, and a variant that exercises range noise, a believed prism that differs from the true one,
-two lines, boresight, lever arm and the position-error extra through the legacy ``sensor.*`` and
-``processing.*`` keys), their summary counts and RMS, and the rows of a small sweep. The LAS bytes
+two lines, boresight, lever arm and the position-error extra, given today through the ranging error model,
+the wedge's ``believed_*`` settings and ``[instrument]``), their summary counts and RMS, and the rows of a small sweep. The LAS bytes
 and the counts must match exactly; RMS values to float64 rounding of a different summation order.
 """
 import csv
@@ -21,9 +21,10 @@ PIN = json.loads((Path(__file__).parent / "data" / "regression_pin.json").read_t
 RUNS = {
     "default": ["--duration", "0.3"],
     "variant": ["--duration", "0.2", "--array", "4", "--altitude", "700", "--seed", "3",
-                "--set", "sensor.range_noise_m=0.05", "--set", "processing.refractive_index=1.50",
-                "--set", "flight.lines=2", "--set", "sensor.boresight_deg=0.1,-0.2,0.3",
-                "--set", "sensor.lever_arm_m=0.5,0.2,-1", "--set", "output.position_error=true"],
+                "--set", "instrument.errors=ranging", "--set", "ranging.noise_m=0.05",
+                "--set", "risley.believed_refractive_index=1.50",
+                "--set", "flight.lines=2", "--set", "instrument.boresight_deg=0.1,-0.2,0.3",
+                "--set", "instrument.lever_arm_m=0.5,0.2,-1", "--set", "output.position_error=true"],
 }
 COUNTS = ("points", "pulses", "pulses_culled", "beams_fired", "tir_dropped", "misses")
 

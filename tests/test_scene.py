@@ -15,11 +15,10 @@ import pytest
 
 from flightsim.core.errors import InputError
 from flightsim.scenes.meshio import load_mesh, save_obj
-from flightsim.scenes.scene import (
-    DEFAULT_CRS, DEFAULT_ORIGIN, Scene, calibration_houses, calibration_min_half_extent,
-    calibration_scene, parse_crs, plane_info, plane_scene, required_half_extent,
-    triangulate_polygon_with_holes,
-)
+from flightsim.scenes.calibration import calibration_houses, calibration_min_half_extent, calibration_scene
+from flightsim.scenes.plane import plane_scene
+from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN, Scene, parse_crs, plane_info, required_half_extent
+from flightsim.scenes.triangulate import triangulate_polygon_with_holes
 
 HALF = 400.0
 

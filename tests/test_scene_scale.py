@@ -8,9 +8,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
-from flightsim.platforms import plan
+from flightsim.engine import world as plan
+from flightsim.platforms.lines import MAX_CLIMB_MPS
+from flightsim.scenes import mesh as scene_mesh
 from flightsim.scenes import cache, meshio
 from flightsim.scenes.height_grid import HeightGrid
 from flightsim.scenes.meshio import COPLANAR_ANGLE_DEG, COPLANAR_OFFSET_M, load_mesh
@@ -309,7 +311,7 @@ def test_terrain_following_keeps_the_altitude_over_the_ground_within_the_climb_r
     assert np.all(above >= 100.0 - 1e-6)
     speed = 200.0 / 3.6
     climb = np.abs(np.diff(line.position[:, 2])) / np.diff(line.gps_time)
-    assert np.all(climb <= plan.MAX_CLIMB_MPS + 1e-6)
+    assert np.all(climb <= MAX_CLIMB_MPS + 1e-6)
     assert np.any(above < 100.0 + 1e-6)  # it does come down to the altitude where the slope allows
     assert np.ptp(line.position[:, 2]) > 10.0 and speed * 9.0 > 400.0
 
@@ -368,7 +370,7 @@ def test_a_second_run_reads_the_scene_from_the_cache(tmp_path, monkeypatch):
     fresh = plan.build_scene(cfg)
     entries = list((tmp_path / "cache").glob("*.npz"))
     assert len(entries) == 1 and not list((tmp_path / "cache").glob(".*"))  # no temporary left
-    monkeypatch.setattr(plan, "load_mesh", refuse_to_load)
+    monkeypatch.setattr(scene_mesh, "load_mesh", refuse_to_load)
     same_scene(plan.build_scene(cfg), fresh)
 
 
@@ -376,7 +378,7 @@ def test_the_cache_keeps_the_height_grid_so_a_second_run_does_not_build_it(tmp_p
     cfg, _ = cached_config(tmp_path, monkeypatch)
     built = plan.build_scene(cfg).height_grid
     monkeypatch.setattr(HeightGrid, "build", refuse_to_load)
-    monkeypatch.setattr(plan, "load_mesh", refuse_to_load)
+    monkeypatch.setattr(scene_mesh, "load_mesh", refuse_to_load)
     scene = plan.build_scene(cfg)
     grid = scene.height_grid
     assert (grid.x0, grid.y0, grid.cell_m) == (built.x0, built.y0, built.cell_m)
@@ -397,8 +399,8 @@ def test_a_stored_height_grid_that_cannot_be_the_meshs_is_never_trusted(tmp_path
     with open(entry, "wb") as fh:
         np.savez(fh, **arrays)
     calls = []
-    real = plan.load_mesh
-    monkeypatch.setattr(plan, "load_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = scene_mesh.load_mesh
+    monkeypatch.setattr(scene_mesh, "load_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
     same_scene(plan.build_scene(cfg), fresh)
     assert calls == [1]
 
@@ -437,11 +439,11 @@ def test_a_damaged_entry_is_never_trusted(tmp_path, monkeypatch, damage):
         cache.cached_scene(other, {}, lambda: load_mesh(other, DEFAULT_CRS), tmp_path / "elsewhere")
         entry.write_bytes(next((tmp_path / "elsewhere").glob("*.npz")).read_bytes())
     calls = []
-    real = plan.load_mesh
-    monkeypatch.setattr(plan, "load_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = scene_mesh.load_mesh
+    monkeypatch.setattr(scene_mesh, "load_mesh", lambda *a, **k: calls.append(1) or real(*a, **k))
     same_scene(plan.build_scene(cfg), fresh)
     assert calls == [1]
-    monkeypatch.setattr(plan, "load_mesh", refuse_to_load)  # the entry was written again
+    monkeypatch.setattr(scene_mesh, "load_mesh", refuse_to_load)  # the entry was written again
     same_scene(plan.build_scene(cfg), fresh)
 
 

@@ -12,7 +12,7 @@ import laspy
 import numpy as np
 import pytest
 
-from flightsim.core.config import RunConfig, validate
+from flightsim.engine.config import RunConfig, validate
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_tiles import read_points
 from flightsim.scoring.planes import fit_points

@@ -5,7 +5,8 @@ from __future__ import annotations
 import h5py
 import numpy as np
 
-from flightsim.core.config import preset_config, set_value, validate
+from flightsim.engine.config import set_value, validate
+from flightsim.engine.config_io import preset_config
 from flightsim.engine.run import simulate_to_directory
 from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder
 

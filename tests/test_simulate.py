@@ -1,5 +1,4 @@
 """The simulator end to end: config → kernels → LAS tiles → plane RMS (SPEC §5, §6, §8, §10)."""
-import dataclasses
 import json
 import math
 
@@ -8,7 +7,8 @@ import numpy as np
 import pytest
 
 import reference_optics as ref
-from flightsim.core.config import RunConfig, load_toml, set_value, validate
+from flightsim.engine.config import RunConfig, config_dict, set_value, validate
+from flightsim.engine.config_io import load_toml
 from flightsim.engine.run import STAGES, simulate_to_directory
 
 
@@ -105,10 +105,10 @@ def test_tiles_hold_what_the_summary_says_with_the_las_conventions(tmp_path):
 
 
 def test_run_toml_reproduces_the_run(tmp_path):
-    cfg = config(flight__duration_s=0.2, sensor__array=4)
+    cfg = config(flight__duration_s=0.2, fan__array=4)
     first = simulate_to_directory(cfg, tmp_path / "a")
     again = validate(load_toml(tmp_path / "a" / "run.toml"))
-    assert dataclasses.asdict(again) == dataclasses.asdict(cfg)
+    assert config_dict(again) == config_dict(cfg)
     second = simulate_to_directory(again, tmp_path / "b")
     assert first["points"] == second["points"] and first["rms_m"] == second["rms_m"]
     for name in first["tiles"]["nominal"]:
@@ -118,8 +118,8 @@ def test_run_toml_reproduces_the_run(tmp_path):
 def test_total_internal_reflection_is_counted_and_never_emits_nan(tmp_path):
     # the apex is 1° short of the critical angle: the wide fan's far side reflects internally
     apex = math.degrees(math.asin(1 / 1.5066)) - 1.0
-    cfg = config(scene__name="plane", flight__duration_s=0.1, sensor__array=9, sensor__spacing_mrad=30.0,
-                 sensor__apex_angle_deg=apex, flight__altitude_m=300.0)
+    cfg = config(scene__name="plane", flight__duration_s=0.1, fan__array=9, fan__spacing_mrad=30.0,
+                 risley__apex_angle_deg=apex, flight__altitude_m=300.0)
     summary = simulate_to_directory(cfg, tmp_path)
     assert 0 < summary["tir_dropped"] < summary["beams_fired"]
     xyz, _ = read_model(tmp_path, "nominal")
@@ -169,7 +169,8 @@ def test_fallback_boxes_are_the_triangle_bounds_padded_by_the_used_corners_exten
     import dataclasses
 
     from flightsim.engine.simulate import SceneMeshes
-    from flightsim.scenes.scene import DEFAULT_CRS, calibration_scene
+    from flightsim.scenes.calibration import calibration_scene
+    from flightsim.scenes.scene import DEFAULT_CRS
 
     scene = calibration_scene(300.0, np.array([409000.0, 3393000.0, 450.0]), DEFAULT_CRS)
     scene = dataclasses.replace(scene, vertices=np.vstack([scene.vertices, [[1e5, -2e5, 3e4]]]))

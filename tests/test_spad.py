@@ -34,7 +34,7 @@ def _photons(cfg, on_device):
 def test_photons_are_the_same_on_the_device_and_on_the_host_whatever_the_chunks():
     import numpy as np
 
-    from flightsim.core.config import validate
+    from flightsim.engine.config import validate
 
     cfg = frame_config(100.0, "A", "cpu", 12)
     cfg.photon.noise_hz = 2e6  # ~8 background arrivals per gate: beyond the flat buffers' first size

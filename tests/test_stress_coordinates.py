@@ -15,8 +15,8 @@ import pytest
 import warp as wp
 
 import reference_optics as ref
-from flightsim.core.config import RunConfig, set_value, validate
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.config import RunConfig, set_value, validate
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.engine.run import simulate_to_directory
 from flightsim.engine.simulate import Simulator
 from kernels import frames
@@ -53,7 +53,7 @@ def exact_phase(cfg: RunConfig, t0: float, k: int) -> float:
     (From the pulse index, not the float64 pulse time: at 4.5e8 s that time is rounded to 6e-8 s,
     which at 20 Hz is 7.5e-6 rad, 1 cm on a 1.3 km scan circle.)
     """
-    s = cfg.sensor
+    s = cfg.risley
     turns = Fraction(s.rotation_hz) * (Fraction(t0) + Fraction(k) / Fraction(s.prf_hz))
     return 2 * math.pi * ((float(turns - math.floor(turns)) + math.radians(s.phase0_deg) / (2 * math.pi)) % 1.0)
 
@@ -61,11 +61,11 @@ def exact_phase(cfg: RunConfig, t0: float, k: int) -> float:
 def reference_ground_points(cfg: RunConfig, trajectory, pulse: np.ndarray, beam: np.ndarray,
                             ground_height: float) -> np.ndarray:
     """Float64 world position where beam ``beam`` (i·n + j) of pulse ``pulse`` meets the horizontal ground [m]."""
-    s, f = cfg.sensor, cfg.flight
+    s, fan, f = cfg.risley, cfg.fan, cfg.flight
     rotation = rotation_body_to_enu(*np.radians([f.roll_deg, f.pitch_deg, f.heading_deg]))
     t0 = trajectory.start_time
     position, _ = trajectory.interpolate(t0 + pulse / s.prf_hz)
-    s1_all = ref.fan_directions(s.array, s.spacing_mrad * 1e-3)
+    s1_all = ref.fan_directions(fan.array, fan.spacing_mrad * 1e-3)
     apex = math.radians(s.apex_angle_deg)
     out = np.empty((len(pulse), 3))
     for k in range(len(pulse)):
@@ -85,7 +85,7 @@ def test_exact_model_is_flat_and_every_point_within_a_millimetre_of_float64(tmp_
     crs, origin = ZONES[zone]
     cfg = config(scene__name="plane", scene__crs=crs, scene__origin=list(origin), flight__altitude_m=altitude,
                  flight__duration_s=0.1, flight__heading_deg=30.0, flight__roll_deg=2.0, flight__pitch_deg=-1.5,
-                 sensor__phase0_deg=17.0, output__models="exact", output__position_error=True)
+                 risley__phase0_deg=17.0, output__models="exact", output__position_error=True)
     # the LAS tiles: world coordinates on the 1 mm grid
     summary = simulate_to_directory(cfg, tmp_path)
     points = read_points(tmp_path)
@@ -127,8 +127,8 @@ def test_late_gps_time_gives_the_same_points_as_an_early_one_whole_turns_apart(t
     assert (Fraction(late) - Fraction(early)) * 20 % 1 == 0
     runs = {}
     for name, start in (("early", early), ("late", late)):
-        cfg = config(flight__start_gps_time=start, flight__duration_s=0.3, sensor__phase0_deg=41.0,
-                     sensor__range_noise_m=0.02, run__seed=3)
+        cfg = config(flight__start_gps_time=start, flight__duration_s=0.3, risley__phase0_deg=41.0,
+                     instrument__errors="ranging", ranging__noise_m=0.02, run__seed=3)
         simulate_to_directory(cfg, tmp_path / name)
         runs[name] = {m: las_fields(tmp_path / name, m) for m in ("exact", "nominal")}
     for model in ("exact", "nominal"):

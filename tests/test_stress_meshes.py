@@ -8,9 +8,9 @@ the surface does not have.
 import numpy as np
 import pytest
 
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.scenes.meshio import load_mesh
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.engine.run import simulate_to_directory
 from flightsim.scenes.scene import CLASS_GROUND, Scene, plane_info
 from flightsim.engine.simulate import Simulator
@@ -62,7 +62,7 @@ def test_zero_area_triangles_and_duplicated_vertices(tmp_path, soup):
     scene = load_mesh(mesh, "EPSG:32648", (409000.0, 3393000.0, 450.0))
     assert len(scene.triangles) == proper and scene.dropped_degenerate > 0
     assert len(scene.planes) == 1  # the whole square is one plane, with or without shared vertices
-    cfg = config(scene__name=str(mesh), flight__duration_s=0.5, sensor__array=4)
+    cfg = config(scene__name=str(mesh), flight__duration_s=0.5, fan__array=4)
     summary = simulate_to_directory(cfg, tmp_path / "out")
     assert summary["misses"] == 0 and summary["tir_dropped"] == 0
     assert summary["points"]["exact"] == summary["beams_fired"] == 16 * summary["pulses"]
@@ -90,7 +90,7 @@ def diamonds(scene: Scene, centres: np.ndarray, shared: str, half_width: float =
 
 @pytest.mark.parametrize("shared", ["vertex", "edge"])
 def test_beams_aimed_exactly_at_shared_vertices_and_edges_all_return(device, shared):
-    cfg = config(scene__name="plane", sensor__array=8, flight__duration_s=0.1, run__device=device)
+    cfg = config(scene__name="plane", fan__array=8, flight__duration_s=0.1, run__device=device)
     plane = build_scene(cfg)
     (trajectory,) = flight_trajectories(cfg, plane)
     chunks = []

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import reference_optics as ref
-from flightsim.core.config import RunConfig, set_value, validate
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.config import RunConfig, set_value, validate
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.engine.run import simulate_to_directory
 from flightsim.engine.simulate import Simulator
 
@@ -50,11 +50,11 @@ def simulate(cfg: RunConfig):
 def reference_rays(cfg: RunConfig, trajectory, scene, n_pulses: int):
     """Float64 local exit points and directions (pulses, beams, 3), and the TIR mask and its margin
     n·sin θ2' − 1 (pulses, beams), of the first ``n_pulses`` pulses along ``trajectory``."""
-    s = cfg.sensor
+    s, fan = cfg.risley, cfg.fan
     t0 = trajectory.start_time
     position, rotation = trajectory.interpolate(t0 + np.arange(n_pulses) / s.prf_hz)
     origin = scene.world_to_local(position)
-    s1 = ref.fan_directions(s.array, s.spacing_mrad * 1e-3)
+    s1 = ref.fan_directions(fan.array, fan.spacing_mrad * 1e-3)
     s2, _ = ref.refract_tangential(s1, np.array([0.0, 0.0, 1.0]), 1.0, s.refractive_index)
     apex = math.radians(s.apex_angle_deg)
     step = Fraction(s.rotation_hz) / Fraction(s.prf_hz)
@@ -91,7 +91,7 @@ def check_counts_and_finite(counts, returns, models):
 @pytest.mark.parametrize("optics", ["float64", "float32"])
 def test_fan_pushed_past_total_internal_reflection(optics):
     # 12×12 at 30 mrad through a wedge 1.5° short of the critical angle: about 40 % of the beams reflect
-    cfg = config(sensor__array=12, sensor__spacing_mrad=30.0, sensor__apex_angle_deg=CRITICAL_DEG - 1.5,
+    cfg = config(fan__array=12, fan__spacing_mrad=30.0, risley__apex_angle_deg=CRITICAL_DEG - 1.5,
                  flight__altitude_m=300.0, flight__duration_s=0.03, run__optics=optics)
     scene, trajectory, counts, returns = simulate(cfg)
     check_counts_and_finite(counts, returns, cfg.output.models)
@@ -113,9 +113,9 @@ def test_fan_pushed_past_total_internal_reflection(optics):
 
 def test_wedge_a_hundredth_of_a_degree_short_of_the_critical_angle(tmp_path):
     # the on-axis beam leaves Σ2 within 0.2° of grazing; the small fan's outer beams reflect
-    cfg = config(sensor__array=3, sensor__spacing_mrad=0.2, sensor__apex_angle_deg=CRITICAL_DEG - 0.01,
+    cfg = config(fan__array=3, fan__spacing_mrad=0.2, risley__apex_angle_deg=CRITICAL_DEG - 0.01,
                  flight__altitude_m=200.0, flight__duration_s=0.05, output__position_error=True)
-    assert cfg.sensor.cone_half_angle_deg > 45.0
+    assert cfg.risley.cone_half_angle_deg > 45.0
     summary = simulate_to_directory(cfg, tmp_path)
     scene, trajectory, counts, returns = simulate(cfg)
     check_counts_and_finite(counts, returns, cfg.output.models)
@@ -137,7 +137,7 @@ def test_rays_parallel_and_nearly_parallel_to_a_steep_slope(optics):
     # cone tan θ = 0.5 over a plane of slope 2 descending north: the beam that points north runs
     # exactly parallel to the ground (ray–plane denominator 0); its neighbours graze it far away
     cone = math.degrees(math.atan(0.5))
-    cfg = config(scene__slope=2.0, scene__margin_m=8000.0, sensor__cone_half_angle_deg=cone, sensor__array=5,
+    cfg = config(scene__slope=2.0, scene__margin_m=8000.0, risley__cone_half_angle_deg=cone, fan__array=5,
                  flight__duration_s=0.2, run__optics=optics)
     scene, trajectory, counts, returns = simulate(cfg)
     check_counts_and_finite(counts, returns, cfg.output.models)

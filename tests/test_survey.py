@@ -14,7 +14,7 @@ import pytest
 
 from flightsim.engine import distributed
 from flightsim.studies import survey
-from flightsim.core.config import RunConfig, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_tiles import read_points
 from host_reference import HostLasOutput
@@ -28,7 +28,7 @@ SPEC = SurveySpec(size_km=0.8, tile_m=400, lines=3, segment_m=300)
 
 def small_config(**settings) -> RunConfig:
     cfg = RunConfig()
-    for key, value in {"flight.altitude_m": 300, "sensor.prf_hz": 1000, "output.tile_size_m": 200, **settings}.items():
+    for key, value in {"flight.altitude_m": 300, "risley.prf_hz": 1000, "output.tile_size_m": 200, **settings}.items():
         set_value(cfg, key, value)
     return validate(cfg)
 
@@ -154,7 +154,7 @@ def test_a_survey_on_a_cluster_whose_workers_die_mid_write_gives_the_same_bytes(
 def test_survey_command_on_two_workers_reports_points_per_second_and_memory(tmp_path):
     out = tmp_path / "survey"
     args = [sys.executable, "-m", "flightsim", "survey", "--size-km", "0.8", "--tile-m", "400", "--altitude", "300",
-            "--models", "nominal", "--set", "sensor.prf_hz=500", "--workers", "2", "--out", str(out)]
+            "--models", "nominal", "--set", "risley.prf_hz=500", "--workers", "2", "--out", str(out)]
     done = subprocess.run(args, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     summary = json.loads((out / "survey.json").read_text())

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from flightsim.studies import sweep as sweep_module
-from flightsim.core.config import RunConfig, set_value, validate
-from flightsim.scenes.edges import edge_buffer_m
+from flightsim.engine.config import RunConfig, set_value, validate
+from flightsim.engine.world import edge_buffer_m
 from host_reference import HostPlaneStatistics
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.scoring.planes import pooled_rms
 from flightsim.engine.simulate import Simulator
 from flightsim.studies.sweep import SweepGrid, run_sweep
@@ -58,10 +58,10 @@ def test_rms_grows_linearly_with_altitude_at_the_papers_slope(altitude_rows):
 
 
 def test_rms_increases_strictly_with_array_size_and_spacing(tmp_path):
-    run_sweep(plane_grid(**{"sensor.array": ["2", "3", "4", "5", "6"]}), tmp_path / "a")
+    run_sweep(plane_grid(**{"fan.array": ["2", "3", "4", "5", "6"]}), tmp_path / "a")
     by_array = rms_of(read_rows(tmp_path / "a" / "sweep.csv"), "nominal")
     spacings = [f"{k * 2.314:.3f}" for k in range(1, 6)]
-    run_sweep(plane_grid(**{"sensor.spacing_mrad": spacings}), tmp_path / "s")
+    run_sweep(plane_grid(**{"fan.spacing_mrad": spacings}), tmp_path / "s")
     rows = read_rows(tmp_path / "s" / "sweep.csv")
     by_spacing = rms_of(rows, "nominal")
     assert np.all(np.diff(by_array) > 0) and np.all(np.diff(by_spacing) > 0)
@@ -95,7 +95,7 @@ def test_device_statistics_equal_the_point_path(device, replicas, monkeypatch):
 
 
 def test_a_crashed_sweep_resumes_without_losing_or_duplicating_rows(tmp_path, monkeypatch):
-    grid = plane_grid(**{"sensor.array": ["2", "3", "4"], "flight.altitude_m": ["500", "900"]})
+    grid = plane_grid(**{"fan.array": ["2", "3", "4"], "flight.altitude_m": ["500", "900"]})
     run_sweep(grid, tmp_path / "clean")
     real = sweep_module.run_configuration
     calls = []
@@ -125,9 +125,9 @@ def test_sweep_command_sweeps_any_setting_and_plots(tmp_path):
     assert result.returncode == 0, result.stderr
     rows = read_rows(out / "sweep.csv")
     assert list(rows[0])[:6] == ["altitude_m", "array", "spacing_mrad", "model", "rms_m", "points"]
-    assert {(r["array"], r["sensor.refractive_index"]) for r in rows} == {
+    assert {(r["array"], r["risley.refractive_index"]) for r in rows} == {
         ("2", "1.45"), ("2", "1.5066"), ("3", "1.45"), ("3", "1.5066")}
     assert len(rows) == 8 and (out / "rms_vs_array.png").stat().st_size > 1000
     bad = subprocess.run([sys.executable, "-m", "flightsim", "sweep", "--arrays", "2,65", "--out", str(tmp_path / "x")],
                          capture_output=True, text=True)
-    assert bad.returncode == 2 and "sensor.array" in bad.stderr and not (tmp_path / "x").exists()
+    assert bad.returncode == 2 and "fan.array" in bad.stderr and not (tmp_path / "x").exists()

@@ -13,7 +13,7 @@ from flightsim.cli import main
 from flightsim.engine.simulate import Simulator
 from flightsim.instrument import waveform_model as model
 from flightsim.instrument.waveform import system
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.studies.waveform import waveform_config
 
 C = 299_792_458.0
@@ -155,11 +155,11 @@ def test_bits_without_full_scale_exit_2(tmp_path, capsys):
 def test_risley_array_runs_with_the_waveform_detector_and_writes_returns(tmp_path):
     import laspy
 
-    from flightsim.core.config import RunConfig, set_value, validate
+    from flightsim.engine.config import RunConfig, set_value, validate
     from flightsim.engine.run import simulate_to_directory
 
     cfg = RunConfig()
-    for key, value in {"instrument.detector": "waveform", "scene.name": "plane", "sensor.array": 2,
+    for key, value in {"instrument.detector": "waveform", "scene.name": "plane", "fan.array": 2,
                        "flight.duration_s": 0.002, "waveform.half_divergence_rad": 1.5e-4, "waveform.n_rings": 4,
                        "waveform.n_sectors": 8, "waveform.sample_interval_s": 5e-11, "waveform.samples": 1024}.items():
         set_value(cfg, key, value)

@@ -13,23 +13,10 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flightsim.core.config import RunConfig
 from trajectories import PulseTiming, Trajectory
 
 MARGIN_RAD = math.radians(1.0)  # added to the fan's largest exit angle
 NO_CULLING_RAD = math.radians(80.0)  # cones wider than this reach everywhere: keep every pulse
-
-
-def max_off_axis_rad(cfg: RunConfig, samples: int = 72) -> float:
-    """Largest angle between any exiting sub-beam and the prism axis over a prism turn [rad]."""
-    from flightsim.instrument.fan import trace_fan
-
-    s = cfg.sensor
-    phi = np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False)
-    fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, s.refractive_index, math.radians(s.apex_angle_deg),
-                    s.thickness_mm * 1e-3, precision="float64")
-    angle = np.arctan2(np.hypot(fan.directions[..., 0], fan.directions[..., 1]), fan.directions[..., 2])
-    return float(angle[fan.ok].max()) if fan.ok.any() else 0.0
 
 
 def _reach(trajectory: Trajectory, local_position: np.ndarray, boresight: Rotation, cone: float,

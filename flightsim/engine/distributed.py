@@ -20,7 +20,7 @@ import resource
 import uuid
 from collections.abc import Iterator
 
-from flightsim.core.config import RunConfig, copy_config
+from flightsim.engine.config import RunConfig, copy_config
 from flightsim.core.errors import InputError
 
 DEVICE_ENV = "FLIGHTSIM_DEVICE"  # a worker's device, set per worker process

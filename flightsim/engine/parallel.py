@@ -9,7 +9,8 @@ from __future__ import annotations
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 
-from flightsim.core.config import RunConfig, from_dict, to_toml, validate
+from flightsim.engine.config import RunConfig, validate
+from flightsim.engine.config_io import from_dict, to_toml
 from flightsim.scoring.planes import PlaneMoments
 from flightsim.engine.simulate import RunCounts
 
@@ -20,8 +21,8 @@ def _simulator(cfg_toml: str):
     """This process's simulator for a config, built on first use and kept."""
     import tomllib
 
-    from flightsim.scenes.edges import edge_buffer_m
-    from flightsim.platforms.plan import build_scene, flight_trajectories
+    from flightsim.engine.world import edge_buffer_m
+    from flightsim.engine.world import build_scene, flight_trajectories
     from flightsim.engine.simulate import Simulator
 
     if _worker_state.get("key") != cfg_toml:

@@ -7,12 +7,14 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from flightsim import __version__
+from flightsim.core.version import __version__
 from flightsim.core.atomic import write_atomic
-from flightsim.core.config import MODELS, RunConfig, to_toml
-from flightsim.scenes.edges import edge_buffer_m
+from flightsim.core.constants import MODELS
+from flightsim.engine.config import RunConfig
+from flightsim.engine.config_io import to_toml
+from flightsim.engine.world import edge_buffer_m
 from flightsim.core.errors import InputError
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories
 
 STAGES = ("scene", "plan", "setup", "trace", "finish")
 """Where a LAS run's time goes (summary.json ``stages_s`` [s]): reading the scene, planning the flight (height
@@ -92,7 +94,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     if cfg.instrument.detector == "waveform":
         return _waveforms_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
     simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
-    las = DeviceLasOutput(directory, cfg, simulator, edge_distance=buffer > 0.0)
+    las = DeviceLasOutput(directory, cfg.output, simulator, buffer > 0.0, cfg.flight.start_gps_time)
     planes = PlaneStatistics(simulator, buffer) if scene.planar else None  # curved ground: patches only
     fits = PatchStatistics(simulator, patches, buffer) if patches is not None else None
     consumers = [c for c in (planes, fits, las) if c is not None]
@@ -122,7 +124,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         **({"patches": patch_summary} if patch_summary is not None else {}),
         "stages_s": {stage: round(end - start, 3) for stage, start, end in zip(STAGES, marks, marks[1:])},
         "edge_buffer_m": buffer,
-        **({"apex_angle_deg": cfg.sensor.apex_angle_deg} if cfg.instrument.deflector == "risley" else {}),
+        **({"apex_angle_deg": cfg.risley.apex_angle_deg} if cfg.instrument.deflector == "risley" else {}),
         "lines": {str(k): v for k, v in counts.per_line.items()},
         "tiles": tiles,
         **({"copc": copc} if copc is not None else {}),
@@ -143,9 +145,11 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
     simulator = Simulator(cfg, scene, trajectories)
     shutil.rmtree(directory / FOLDER, ignore_errors=True)  # tiles of a run being redone
     writer = PhotonWriter(directory, cfg_text, simulator.timing.prf_hz, scene.origin, scene.crs.to_wkt())
-    las = PhotonLas(directory, cfg, scene, simulator.timing)
-    writers = [writer, las] + ([Atl03Writer(directory, cfg, cfg_text, simulator.timing.prf_hz, scene)]
-                               if cfg.flight.platform == "orbit" else [])
+    body = cfg.flight.body if cfg.flight.platform == "orbit" else None
+    las = PhotonLas(directory, cfg.output, scene, simulator.timing, simulator.instrument.emitter.beam_columns, body,
+                    cfg.flight.start_gps_time)
+    writers = [writer, las] + ([Atl03Writer(directory, body, cfg_text, simulator.timing.prf_hz, scene)]
+                               if body is not None else [])
 
     def consume(chunk):
         for w in writers:
@@ -208,7 +212,7 @@ def _reflectance(cfg: RunConfig, scene, value: float) -> float | str:
     raster's, or the scene's own), else the run's one ``value`` (ρ, or the waveform's f)."""
     if scene.reflectance is None:
         return value
-    return "per triangle (land cover)" if cfg.scene.landcover else "per triangle (scene)"
+    return "per triangle (land cover)" if cfg.scene.values().get("landcover") else "per triangle (scene)"
 
 
 def _summary_head(cfg: RunConfig, simulator, counts) -> dict:

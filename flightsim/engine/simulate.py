@@ -19,13 +19,11 @@ import warp as wp
 from scipy.spatial.transform import Rotation
 
 from flightsim.engine.chunks import Segment, line_table, pack, segment_tables
-from flightsim.core.config import MODELS, RunConfig
+from flightsim.core.constants import MODELS
 from flightsim.core.errors import InputError
 from flightsim.engine.coverage import pulse_windows
-from flightsim.instrument.fan import trace_fan
-from flightsim.instrument.parts import HostInstrument
-from flightsim.instrument.ranging import has_systematics, range_errors, sigmas
-from flightsim.platforms.pose_errors import has_pose_errors, pose_errors
+from flightsim.engine.instrument import Instrument
+from flightsim.scoring.reduction import SLOTS_PER_THREAD, replica_totals, sum_replicas, symmetric
 from flightsim.scoring.planes import PlaneMoments
 from flightsim.scenes.scene import Scene
 from flightsim.core.warp_runtime import resolve_device, to_host
@@ -35,10 +33,7 @@ from trajectories import Trajectory
 SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
 POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # points mode: host memory grows with it
 WAVEFORM_SAMPLES_PER_CHUNK = {"cpu": 1 << 22, "cuda": 1 << 28}  # waveform mode: waveform samples per launch
-SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # statistics mode: consecutive slots per reducing thread
 MAX_REGISTERS = {"cpu": None, "cuda": 64}  # registers per thread of the trace kernels (None: the compiler's choice)
-SUM_REPLICAS = 512  # statistics mode on a GPU: copies of the per-plane sums, so busy planes' atomics spread
-SUM_REPLICA_BYTES = 1 << 26  # ... within this much device memory
 EDGE_GRID_CELLS = 4096  # the edge grid has at most this many cells along a side
 EDGE_GRIDS_KEPT = 4  # edge grids (one per edge cap) a SceneMeshes keeps
 
@@ -243,7 +238,7 @@ class Simulator:
     k0 ≤ k < k1 (a survey split into tasks gives each task its own pulses).
     """
 
-    def __init__(self, cfg: RunConfig, scene: Scene, trajectories: list[Trajectory], with_truth: bool = False,
+    def __init__(self, cfg, scene: Scene, trajectories: list[Trajectory], with_truth: bool = False,
                  edge_buffer_m: float = 0.0, meshes: SceneMeshes | None = None,
                  pulse_limits: dict[int, tuple[int, int]] | None = None):
         self.cfg = cfg
@@ -251,20 +246,19 @@ class Simulator:
         self.scene = scene
         self.trajectories = trajectories
         self.device = resolve_device(cfg.run.device)
-        s = cfg.sensor
-        self.instrument = HostInstrument(cfg)
+        self.instrument = Instrument(cfg)
         self.timing = self.instrument.deflector.timing()
-        self.models = tuple(cfg.output.models)
+        self.models = tuple(cfg.output.models) if "models" in cfg.output.names() else ("exact",)
         self.edge_buffer_m = edge_buffer_m
         self.features = trace.Features(
             exact="exact" in self.models, nominal="nominal" in self.models,
-            believed_is_truth=self.instrument.deflector.believed_is_truth and not has_pose_errors(cfg),
-            with_truth=with_truth, noisy=sigmas(cfg).gaussian > 0.0, ranging=has_systematics(cfg),
-            pose=has_pose_errors(cfg),
+            believed_is_truth=self.instrument.deflector.believed_is_truth and not self.instrument.pose.active,
+            with_truth=with_truth, noisy=self.instrument.ranging.sigmas().gaussian > 0.0,
+            ranging=self.instrument.ranging.has_systematics, pose=self.instrument.pose.active,
             edges=edge_buffer_m > 0.0, optics=cfg.run.optics,
         )
         self.rows = trace.pulse_rows(self.instrument.kernel, self.features.pose)
-        self.boresight_rotation = Rotation.from_euler("ZYX", s.boresight_deg[::-1], degrees=True)  # body←sensor
+        self.boresight_rotation = Rotation.from_euler("ZYX", cfg.instrument.boresight_deg[::-1], degrees=True)  # body←sensor
         self.boresight = wp.quatd(*self.boresight_rotation.as_quat())
         self.meshes = meshes or SceneMeshes(scene, self.device, cfg.run.bvh, cfg.run.bvh_leaf_size or None)
         self.scan = self._scan()
@@ -278,14 +272,14 @@ class Simulator:
         instrument, d = self.instrument, self.device
         scan = trace.scan_struct(instrument.kernel)()
         scan.mesh = self.meshes.mesh.id
-        scan.max_range = self.cfg.sensor.max_range_m
+        scan.max_range = self.cfg.instrument.max_range_m
         scan.per_pulse = self.beams_per_pulse
         scan.emitter = instrument.emitter.params(d)
         scan.truth = instrument.deflector.params(believed=False)
         scan.believed = instrument.deflector.params(believed=True)
-        scan.noise_sigma = sigmas(self.cfg).gaussian
-        scan.ranging = range_errors(self.cfg, self.beams_per_pulse, d)
-        scan.pose = pose_errors(self.cfg)
+        scan.noise_sigma = instrument.ranging.sigmas().gaussian
+        scan.ranging = instrument.ranging.struct(self.beams_per_pulse, d)
+        scan.pose = instrument.pose.struct()
         if self.features.edges:
             bvh, scan.boundary_a, scan.boundary_b = self.meshes.boundary
             scan.boundary = bvh.id
@@ -305,31 +299,27 @@ class Simulator:
         wp.launch(trace.beam_table_kernel(instrument.kernel), n_beams, inputs=[scan], device=self.device)
         return scan
 
-    def set_errors(self, cfg: RunConfig) -> None:
+    def set_errors(self, cfg) -> None:
         """Swap in the true and believed deflectors and the pose errors of ``cfg`` (same parts, same
         compiled features: a Monte Carlo draw) and rebuild the per-beam tables."""
-        instrument = HostInstrument(cfg)
+        instrument = Instrument(cfg)
         self.scan.truth = instrument.deflector.params(believed=False)
         self.scan.believed = instrument.deflector.params(believed=True)
-        self.scan.pose = pose_errors(cfg)
+        self.scan.pose = instrument.pose.struct()
         wp.launch(trace.beam_table_kernel(instrument.kernel), self.beams_per_pulse, inputs=[self.scan],
                   device=self.device)
 
     def _exit_table(self) -> tuple[wp.array, wp.array]:
         """Exit directions and points of every beam at M + 1 prism angles over a turn, for
-        ``optics = "lut"``; a 2×n² placeholder otherwise."""
-        s = self.cfg.sensor
-        if self.cfg.instrument.deflector != "risley":
+        ``optics = "lut"`` (a deflector with an exit table); a 2×beams placeholder otherwise."""
+        deflector = self.instrument.deflector
+        if not hasattr(deflector, "exit_table"):
             placeholder = np.zeros((2, self.beams_per_pulse, 3), dtype=np.float32)
             return (wp.array(placeholder, dtype=wp.vec3f, device=self.device),
                     wp.array(placeholder, dtype=wp.vec3f, device=self.device))
-        samples = self.cfg.run.lut_samples if self.features.optics == "lut" else 1
-        phi = np.linspace(0.0, 2.0 * np.pi, samples + 1)
-        fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, s.refractive_index, math.radians(s.apex_angle_deg),
-                        s.thickness_mm * 1e-3, "float64")
-        directions, exits = fan.directions * fan.ok[..., None], fan.exit_points
-        return (wp.array(directions.astype(np.float32), dtype=wp.vec3f, device=self.device),
-                wp.array(exits.astype(np.float32), dtype=wp.vec3f, device=self.device))
+        directions, exits = deflector.exit_table(self.cfg.run.lut_samples if self.features.optics == "lut" else 1)
+        return (wp.array(directions, dtype=wp.vec3f, device=self.device),
+                wp.array(exits, dtype=wp.vec3f, device=self.device))
 
     @property
     def max_registers(self) -> int | None:
@@ -414,7 +404,8 @@ class Simulator:
         det = self.instrument.detector.struct()
         ranges_only = dataclasses.replace(self.features, exact=False, nominal=False, edges=False)  # no georeferencing
         kernel = trace.points_kernel(ranges_only, self.instrument.kernel, max_registers=self.max_registers)
-        retro = _Retroreflectors(self.cfg, len(buffers.status), self.device)
+        retro = _Retroreflectors(self.cfg.scene, self.instrument.emitter.divergence_mrad, len(buffers.status),
+                                 self.device)
         for chunk in self._chunks(buffers.pulses, counts, progress):
             n_slots = sum(s.count for s in chunk) * self.beams_per_pulse
             wp.launch(kernel, n_slots, inputs=[buffers.pulses, self.scan], outputs=buffers.slot_outputs(),
@@ -502,7 +493,7 @@ class Simulator:
         refs = kw.MeshRefs()
         refs.mesh, refs.padded = self.meshes.mesh.id, self.meshes.padded.id
         refs.vertices64, refs.indices = self.meshes.vertices64, self.meshes.indices
-        refs.max_range = self.cfg.sensor.max_range_m
+        refs.max_range = self.cfg.instrument.max_range_m
         refs.reflectance = self.meshes.reflectance
         return refs
 
@@ -608,13 +599,10 @@ class Simulator:
         return moments, counts
 
     def sum_replicas(self, groups: int | None = None) -> int:
-        """Copies of the per-group sums (``groups`` of them, the scene's planes by default) the reducing
-        threads spread their atomics over: one on the CPU (one thread per launch), ``run.sum_replicas`` or
-        else SUM_REPLICAS on a GPU, within SUM_REPLICA_BYTES."""
-        if self.device_kind == "cpu":
-            return 1
-        per_copy = 2 * (len(self.scene.planes) if groups is None else groups) * (8 + 24 + 48)
-        return max(1, min(self.cfg.run.sum_replicas or SUM_REPLICAS, SUM_REPLICA_BYTES // per_copy))
+        """Copies of the per-group sums (``groups`` of them, the scene's planes by default) of the statistics
+        reduction (:func:`flightsim.scoring.reduction.sum_replicas`)."""
+        groups = len(self.scene.planes) if groups is None else groups
+        return sum_replicas(self.device_kind, groups, self.cfg.run.sum_replicas)
 
     # ------------------------------------------------------------------------------------------
 
@@ -666,7 +654,7 @@ class Simulator:
     @functools.cached_property
     def lines(self) -> frames.Lines:
         """Every line's samples on the device (built on first use, then kept)."""
-        return line_table(self.trajectories, self.scene, self.timing, self.boresight, self.cfg.sensor.lever_arm_m,
+        return line_table(self.trajectories, self.scene, self.timing, self.boresight, self.cfg.instrument.lever_arm_m,
                           self.cfg.run.seed, self.device)
 
     def poses64(self, line_id: int, first: int, count: int) -> wp.array:
@@ -740,12 +728,13 @@ class _Retroreflectors:
     """The scene's corner-cube retroreflectors as the photon kernel reads them, and the chunk's true beam
     rays they need (one-element placeholders when the scene has none)."""
 
-    def __init__(self, cfg: RunConfig, slots: int, device: str):
-        positions = np.asarray(cfg.scene.ccrs, dtype=np.float64).reshape(-1, 3)
+    def __init__(self, scene, divergence_mrad: float, slots: int, device: str):
+        """scene: the [scene] settings (ccrs, ccr_photons); divergence_mrad: the beams' full divergence [mrad]."""
+        positions = np.asarray(scene.ccrs, dtype=np.float64).reshape(-1, 3)
         self.count = len(positions)
         self.positions = wp.array(positions, dtype=wp.vec3d, device=device)
-        self.photons = cfg.scene.ccr_photons
-        self.footprint = cfg.sensor.divergence_mrad * 0.5e-3  # the e⁻² half angle [rad]
+        self.photons = scene.ccr_photons
+        self.footprint = divergence_mrad * 0.5e-3  # the e⁻² half angle [rad]
         size = slots if self.count else 1
         self.starts, self.directions = (wp.empty(size, dtype=wp.vec3d, device=device) for _ in range(2))
 
@@ -802,26 +791,6 @@ def _sliced(fields: dict, a: int, b: int) -> dict:
             return None
         return {k: x[a:b] for k, x in v.items()} if isinstance(v, dict) else v[a:b]
     return {k: cut(v) for k, v in fields.items()}
-
-
-def replica_totals(sums: list[wp.array]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The reduction's (count, Σd, Σ upper triangle of ddᵀ) per model and group, its replicas added on
-    the device (replica 0 first, the order the host's sum took): (2, G), (2, G, 3), (2, G, 6)."""
-    counts, first, second = sums
-    shape, d = counts.shape[1:], counts.device
-    totals = [wp.empty(shape, dtype=wp.int64, device=d), wp.empty(shape, dtype=wp.vec3d, device=d),
-              wp.empty(shape, dtype=trace.vec6d, device=d)]
-    wp.launch(trace.add_replicas, shape, inputs=[counts, first, second], outputs=totals, device=d)
-    return tuple(a.numpy() for a in totals)
-
-
-def symmetric(upper: np.ndarray) -> np.ndarray:
-    """(P, 6) upper triangles xx, xy, xz, yy, yz, zz → (P, 3, 3) symmetric matrices."""
-    rows, cols = np.triu_indices(3)
-    full = np.zeros((len(upper), 3, 3))
-    full[:, rows, cols] = upper
-    full[:, cols, rows] = upper
-    return full
 
 
 class _StatisticsBuffers:

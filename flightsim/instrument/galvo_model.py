@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flightsim.core.config import CHANGE3_CHANNELS_MRAD
+from flightsim.instrument.channels import CHANGE3_CHANNELS_MRAD
 
 PARAMS = ("b1", "b2", "b3", "c1", "n_h", "n_v", "range")  # the sources of the propagation, in Jacobian order
 SIGMA_Z_M = 0.20 / 3.0  # allowed 1σ of Z at 100 m: the 20 cm requirement taken as 3σ (seed paper §3)

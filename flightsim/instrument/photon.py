@@ -1,5 +1,5 @@
-"""Host side of the detectors: discrete returns, and the photon-counting SPAD pixel (kernels/photon.py)
-with its parameters checked and as the kernels' struct."""
+"""The photon-counting detector (``instrument.detector = "photon"``, ``[photon]``): a SPAD pixel with its own TDC
+behind every beam (kernels/photon.py), its parameters checked and as the kernels' struct."""
 from __future__ import annotations
 
 import math
@@ -8,8 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from flightsim.core.config import PhotonConfig, RunConfig, check_fields
 from flightsim.core.errors import InputError
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings, check_settings, setting
 from kernels import photon
 
 H = 6.62607015e-34  # Planck constant [J s]
@@ -17,47 +18,58 @@ C = 299_792_458.0  # [m/s]
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 
 
-class DiscreteDetector:
-    """One return per beam: the range of its hit (the default)."""
+@dataclass
+class PhotonSettings(Settings):
+    """One SPAD pixel with its own TDC per beam: the lidar equation's link, timing, background and dead time."""
 
-    def __init__(self, cfg: RunConfig):
-        self.cfg = cfg
+    wavelength_nm: float = setting(532.0, "laser wavelength", "nm", range=(100.0, 20000.0))
+    pulse_energy_j: float = setting(1.0e-9, "pulse energy per beam", "J", range=(0.0, 10.0), lo_open=True)
+    aperture_m: float = setting(0.05, "receiver diameter", "m", range=(0.0, 10.0), lo_open=True)
+    optics_transmission: float = setting(0.5, "receiver optics transmission", "", range=(0.0, 1.0), lo_open=True)
+    pde: float = setting(0.2, "photon detection efficiency", "", range=(0.0, 1.0), lo_open=True)
+    pulse_fwhm_s: float = setting(1.0e-9, "pulse width, full width at half maximum", "s", range=(0.0, 1.0e-6),
+                                  lo_open=True)
+    jitter_s: float = setting(1.0e-10, "timing jitter, 1 sigma", "s", range=(0.0, 1.0e-6))
+    tdc_bin_s: float = setting(0.0, "TDC resolution; 0 = exact times", "s", range=(0.0, 1.0e-6))
+    gate_m: tuple[float, float] = setting((5.0, 600.0), "range gate: start, end (one-way)", "m", length=2,
+                                          items=(0.0, 1.0e7))
+    noise_hz: float = setting(1.0e5, "background and dark counts per pixel", "Hz", range=(0.0, 1.0e10))
+    dead_time_s: float = setting(5.0e-8, "dead time, non-paralyzable", "s", range=(0.0, 1.0e-3))
+    max_events: int = setting(8, "detections kept per pixel and pulse", "detections", range=(1, 256))
+    reflectance: float = setting(0.2, "Lambertian albedo of every face, unless the scene carries its own "
+                                 "(scene.landcover)", "", range=(0.0, 1.0), lo_open=True)
 
-    def check(self) -> None:
-        """Nothing of its own to check."""
+    def check(self, context) -> None:
+        if not self.gate_m[0] < self.gate_m[1]:
+            raise InputError("photon.gate_m", ",".join(map(str, self.gate_m)),
+                             "start, end with 0 ≤ start < end ≤ 1e7 m")
+        if context is not None and context.optics == "lut":
+            raise InputError("run.optics", "lut", "float32 or float64 with the photon detector")
 
 
+@register("detector", "photon")
 class PhotonDetector:
     """A SPAD pixel with its own TDC behind every beam: ``[photon]``."""
 
-    def __init__(self, cfg: RunConfig):
-        self.cfg = cfg
+    settings = PhotonSettings
+    output = "photons"
+    scored = False
 
-    def check(self) -> None:
-        check_settings(self.cfg.photon)
-        if self.cfg.run.optics == "lut":
-            raise InputError("run.optics", "lut", "float32 or float64 with the photon detector")
+    def __init__(self, s: PhotonSettings):
+        self.s = s
 
     def struct(self) -> photon.PhotonDetector:
-        return detector_struct(self.cfg.photon)
+        return detector_struct(self.s)
 
 
-def check_settings(s: PhotonConfig) -> None:
-    """InputError naming the first ``[photon]`` field out of its range."""
-    check_fields("photon", s)
-    gate = tuple(s.gate_m)
-    if len(gate) != 2 or not all(isinstance(g, (int, float)) and math.isfinite(g) for g in gate) \
-            or not 0.0 <= gate[0] < gate[1] <= 1.0e7:
-        raise InputError("photon.gate_m", ",".join(map(str, gate)), "start, end with 0 ≤ start < end ≤ 1e7 m")
-
-
-def sigma_t(s: PhotonConfig) -> float:
+def sigma_t(s: PhotonSettings) -> float:
     """Echo spread: the pulse's σ and the jitter in quadrature [s]."""
     return math.hypot(s.pulse_fwhm_s * FWHM_TO_SIGMA, s.jitter_s)
 
 
-def detector_struct(s: PhotonConfig) -> photon.PhotonDetector:
-    check_settings(s)
+def detector_struct(s: PhotonSettings) -> photon.PhotonDetector:
+    """The kernels' struct of ``[photon]`` (checked first)."""
+    check_settings("photon", s)
     d = photon.PhotonDetector()
     d.photons_per_joule = s.wavelength_nm * 1e-9 / (H * C)
     d.pulse_energy = s.pulse_energy_j
@@ -81,7 +93,7 @@ class Detections:
     counts: np.ndarray
 
 
-def detect(s: PhotonConfig, n_signal, t0, seed: int = 0, first_slot: int = 0, device: str = "cpu") -> Detections:
+def detect(s: PhotonSettings, n_signal, t0, seed: int = 0, first_slot: int = 0, device: str = "cpu") -> Detections:
     """Sample the detections of slots with expected signal ``n_signal`` [photo-electrons] echoing at
     time of flight ``t0`` [s] (the detector alone, without a scene)."""
     n_signal = np.ascontiguousarray(n_signal, dtype=np.float64)

@@ -20,8 +20,9 @@ import math
 import numpy as np
 import warp as wp
 
-from flightsim.core.config import RunConfig, WaveformConfig, check_fields
 from flightsim.core.errors import InputError
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings, setting
 from flightsim.instrument import waveform_model as model
 from kernels import waveform as kw
 
@@ -31,7 +32,45 @@ C = 299_792_458.0  # [m/s]
 WAVEFORM_STREAM = 0x2F6A91  # seed key of the receiver noise
 
 
-def system(s: WaveformConfig, altitude_m: float = 1.0) -> model.WaveformSystem:
+@dataclasses.dataclass
+class WaveformSettings(Settings):
+    """Each beam's footprint sampled by sub-rays over its Gaussian profile exp(−2 tan²φ/α²), their echoes summed
+    into one waveform per beam; the defaults are the waveform patent's Chang'e-1-like altimeter."""
+
+    half_divergence_rad: float = setting(3.0e-4, "α: the 1/e² half angle of the beam", "rad", range=(0.0, 0.1),
+                                         lo_open=True)
+    pulse_fwhm_s: float = setting(7.0e-9, "pulse width, full width at half maximum", "s", range=(0.0, 1.0e-6),
+                                  lo_open=True)
+    peak_power_w: float = setting(0.05, "peak power of the transmitted pulse", "W", range=(0.0, 1.0e9), lo_open=True)
+    scheme: str = setting("polar", "footprint sub-rays: polar (the patent's rings × sectors), polar_midpoint, "
+                          "equal_energy", choices=model.SCHEMES)
+    n_rings: int = setting(60, "rings of the footprint", "rings", range=(1, 4096))
+    n_sectors: int = setting(120, "sectors of the footprint", "sectors", range=(1, 4096))
+    sample_interval_s: float = setting(1.0e-11, "waveform sample interval", "s", range=(0.0, 1.0e-6), lo_open=True)
+    samples: int = setting(32768, "samples per waveform", "samples", range=(16, 1 << 22))
+    aperture_m: float = setting(1.0, "receiver diameter D", "m", range=(0.0, 100.0), lo_open=True)
+    transmitter_efficiency: float = setting(1.0, "η_t", "", range=(0.0, 1.0), lo_open=True)
+    receiver_efficiency: float = setting(1.0, "η_r", "", range=(0.0, 1.0), lo_open=True)
+    atmosphere_transmission: float = setting(1.0, "T_A, one way", "", range=(0.0, 1.0), lo_open=True)
+    reflectance: float = setting(1.0, "f, the backscatter of eq. 1 on every face, unless the scene carries its own "
+                                 "albedo (scene.landcover)", "", range=(0.0, 1.0), lo_open=True)
+    receiver_fwhm_s: float = setting(0.0, "Gaussian impulse response of the receiver; 0 = none", "s",
+                                     range=(0.0, 1.0e-6))
+    shot_noise: bool = setting(False, "Poisson photo-electrons of signal and background in every sample")
+    wavelength_nm: float = setting(1064.0, "laser wavelength", "nm", range=(100.0, 20000.0))
+    quantum_efficiency: float = setting(0.4, "quantum efficiency of the detector", "", range=(0.0, 1.0), lo_open=True)
+    background_w: float = setting(0.0, "optical background at the detector", "W", range=(0.0, 1.0e3))
+    thermal_noise_w: float = setting(0.0, "receiver noise per sample, rms", "W", range=(0.0, 1.0e3))
+    bits: int = setting(0, "digitiser resolution; 0 = no digitiser", "bits", range=(0, 16))
+    full_scale_w: float = setting(0.0, "the digitiser's top code; needed with bits", "W", range=(0.0, 1.0e9))
+
+    def check(self, context) -> None:
+        system(self)
+        if self.bits and self.full_scale_w <= 0.0:
+            raise InputError("waveform.full_scale_w", self.full_scale_w, f"a power > 0 W with waveform.bits = {self.bits}")
+
+
+def system(s: WaveformSettings, altitude_m: float = 1.0) -> model.WaveformSystem:
     """The reference model's system of a ``[waveform]`` section (validated there, naming the field)."""
     return model.WaveformSystem(
         altitude_m=altitude_m, half_divergence_rad=s.half_divergence_rad, pulse_fwhm_s=s.pulse_fwhm_s,
@@ -52,22 +91,20 @@ class SubRays:
         return len(self.weights)
 
 
+@register("detector", "waveform")
 class WaveformDetector:
     """A full waveform per beam: ``[waveform]``."""
 
-    def __init__(self, cfg: RunConfig):
-        self.cfg = cfg
+    settings = WaveformSettings
+    output = None  # waveforms.h5 has no settings of its own
+    scored = False
 
-    def check(self) -> None:
-        s = self.cfg.waveform
-        check_fields("waveform", s)
-        system(s)
-        if s.bits and s.full_scale_w <= 0.0:
-            raise InputError("waveform.full_scale_w", s.full_scale_w, f"a power > 0 W with waveform.bits = {s.bits}")
+    def __init__(self, s: WaveformSettings):
+        self.s = s
 
     def receiver(self) -> kw.Receiver | None:
         """The noise and digitiser of ``[waveform]``, or None when the reading is the noiseless power."""
-        s = self.cfg.waveform
+        s = self.s
         if not (s.shot_noise or s.background_w or s.thermal_noise_w or s.bits):
             return None
         r = kw.Receiver()
@@ -81,10 +118,10 @@ class WaveformDetector:
 
     def footprint_deg(self) -> float:
         """Angle of the footprint's edge (tan φ = α) from its beam's axis [deg]."""
-        return math.degrees(math.atan(self.cfg.waveform.half_divergence_rad))
+        return math.degrees(math.atan(self.s.half_divergence_rad))
 
     def subrays(self, device: str) -> SubRays:
-        fp = model.footprint(system(self.cfg.waveform))
+        fp = model.footprint(system(self.s))
         offsets = np.column_stack([fp.x_m, fp.y_m])  # at unit altitude: tan φ (cos θ, sin θ)
         return SubRays(wp.array(offsets, dtype=wp.vec2d, device=device),
                        wp.array(fp.weight, dtype=wp.float64, device=device))
@@ -94,7 +131,7 @@ class WaveformDetector:
         with ``per_face`` (the scene carries a Lambertian albedo ρ per triangle, e.g. from land cover) each
         triangle's backscatter is f = ρ/π, so π f = ρ and ``link`` is T_A² D² η_t η_r / 4, which the deposit
         kernel multiplies by the hit triangle's ρ (``waveform.reflectance`` is then not used)."""
-        s = self.cfg.waveform
+        s = self.s
         sys = system(s)
         params = kw.WaveformParams()
         pi_f = 1.0 if per_face else np.pi * s.reflectance  # per face: π f = ρ, applied in the kernel
@@ -112,7 +149,7 @@ class WaveformDetector:
         lag in samples): the kernel the binned echo is convolved with [W]. With a Gaussian receiver impulse
         response of FWHM τ_r (unit area) the pulse stays Gaussian, its σ² grows by σ_r² and its peak falls
         by σ/σ' (the energy is kept); without one it is the transmitted P(t) of eq. 2."""
-        s = self.cfg.waveform
+        s = self.s
         sys = system(s)
         dt, sigma, centre = sys.sample_interval_s, model.pulse_sigma_s(sys), 0.5 * sys.pulse_fwhm_s
         widened = math.hypot(sigma, s.receiver_fwhm_s / model.FWHM_PER_SIGMA)

@@ -35,9 +35,10 @@ from flightsim.scoring.signal_finder import SignalFinder
 class Atl03Writer:
     """Appends PhotonChunks to ``directory/atl03.h5``; ``close()`` renames it into place."""
 
-    def __init__(self, directory: Path, cfg, cfg_text: str, prf_hz: float, scene):
+    def __init__(self, directory: Path, body: str, cfg_text: str, prf_hz: float, scene):
+        """body: the body orbited (earth, moon)."""
         self.product = H5Product(directory / "atl03.h5", config_toml=cfg_text)
-        self.cfg, self.prf_hz, self.scene = cfg, prf_hz, scene
+        self.body, self.prf_hz, self.scene = body, prf_hz, scene
         self.first: dict[int, np.ndarray] = {}  # each line's first photon (local), for dist_ph_along
         self.count = 0
 
@@ -49,7 +50,7 @@ class Atl03Writer:
         self.count += len(chunk)
 
     def _heights(self, group: str, chunk, rows: np.ndarray) -> None:
-        lat, lon, h = local_to_geodetic(self.cfg, self.scene, chunk.points[rows])
+        lat, lon, h = local_to_geodetic(self.body, self.scene, chunk.points[rows])
         start = self.first.setdefault(chunk.line_id, chunk.points[rows[0]].copy())
         along = np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1)
         self.product.append(f"{group}/heights", {
@@ -64,7 +65,7 @@ class Atl03Writer:
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         start = chunk.points[i] - (chunk.time_of_flight_s[i] * 149896229.0)[:, None] * d  # the beam's exit point
         t = (self.scene.ground_z - start[:, 2]) / d[:, 2]
-        lat, lon, h = local_to_geodetic(self.cfg, self.scene, start + t[:, None] * d)
+        lat, lon, h = local_to_geodetic(self.body, self.scene, start + t[:, None] * d)
         self.product.append(f"{group}/geolocation", {
             "delta_time": chunk.start_time + pulses / self.prf_hz, "reference_photon_lat": lat,
             "reference_photon_lon": lon, "reference_photon_h": h})

@@ -10,10 +10,10 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.atomic import replaced_atomically
-from flightsim.core.config import MODELS
+from flightsim.core.constants import MODELS
 from flightsim.core.errors import InputError
-from flightsim.engine.simulate import SLOTS_PER_THREAD, replica_totals, symmetric
 from flightsim.scoring.planes import PlaneMoments, pooled_rms
+from flightsim.scoring.reduction import SLOTS_PER_THREAD, replica_totals, symmetric
 from kernels import trace
 
 

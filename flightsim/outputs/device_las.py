@@ -18,8 +18,11 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from flightsim import __version__
-from flightsim.core.config import RunConfig
+from flightsim.core.constants import MODELS
+from flightsim.core.errors import InputError
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings, setting
+from flightsim.core.version import __version__
 from flightsim.core.warp_runtime import to_host
 from flightsim.outputs.las_tiles import TileWriter, gps_week_date
 from flightsim.scenes.scene import Scene
@@ -29,19 +32,35 @@ BUFFERS_PER_MODEL = 3  # host record buffers per model: one being filled, up to 
 INT32_MAX = np.iinfo(np.int32).max
 
 
-def tile_writers(directory: Path, cfg: RunConfig, scene: Scene, edge_distance: bool) -> dict[str, TileWriter]:
-    """One tile writer per georeferencing model, ``directory/<model>/``."""
-    extras = ("position_error",) * cfg.output.position_error + ("edge_distance",) * edge_distance
-    date = gps_week_date(cfg.flight.start_gps_time)
-    return {model: TileWriter(Path(directory) / model, scene.crs, tile_size_m=cfg.output.tile_size_m,
-                              compress=cfg.output.laz, extras=extras, creation_date=date,
+@dataclass
+class LasOutputSettings(Settings):
+    """The discrete returns' LAS tiles: which georeferencing models, tile size and compression, extra fields."""
+
+    table = "output"
+
+    models: tuple[str, ...] = setting(MODELS, "georeferencing models written, each to its own tile set: exact, "
+                                      "nominal (the rigid-array model, risley only)")
+    tile_size_m: int = setting(500, "side of a LAS tile", "m", range=(1, 100000))
+    laz: bool = setting(False, "compress the tiles to LAZ")
+    position_error: bool = setting(False, "add each point's true position error [m] as an extra field")
+    copc: bool = setting(False, "also one COPC file per model, <model>.copc.laz, from its tiles")
+
+    def check(self, context) -> None:
+        models = tuple(self.models)
+        if not models or any(m not in MODELS for m in models) or len(set(models)) != len(models):
+            raise InputError("output.models", ",".join(map(str, models)), "a non-empty subset of exact,nominal")
+
+
+def tile_writers(directory: Path, output, scene: Scene, start_gps_time: float,
+                 edge_distance: bool) -> dict[str, TileWriter]:
+    """One tile writer per georeferencing model of ``output`` (the [output] settings), ``directory/<model>/``; the
+    tiles are dated by the GPS week of ``start_gps_time`` [s]."""
+    extras = ("position_error",) * output.position_error + ("edge_distance",) * edge_distance
+    date = gps_week_date(start_gps_time)
+    return {model: TileWriter(Path(directory) / model, scene.crs, tile_size_m=output.tile_size_m,
+                              compress=output.laz, extras=extras, creation_date=date,
                               software=f"flightsim {__version__}")
-            for model in cfg.output.models}
-
-
-def beam_columns(cfg: RunConfig) -> int:
-    """Beam b is written as row b // columns, column b % columns (channels: row 0, column = channel)."""
-    return cfg.sensor.array if cfg.instrument.emitter == "fan" else 256
+            for model in output.models}
 
 
 @dataclass
@@ -55,22 +74,27 @@ class _Tiles:
     bounds: np.ndarray  # (groups, 6): least X, Y, Z and greatest X, Y, Z stored [mm]
 
 
+@register("output", "las")
 class DeviceLasOutput:
-    """Writes each model's points to its tile set from records packed on the device.
+    """Writes each model's points to its tile set from records packed on the device (``[output]`` of a
+    discrete-return run).
 
     Call it with each chunk's ``DeviceReturns``; then :meth:`close` (finish the tiles) or :meth:`abort`
     (remove them). An error in a writer thread (a full disk) is raised by the next call or by close.
     """
 
-    def __init__(self, directory: Path, cfg: RunConfig, simulator, edge_distance: bool,
+    settings = LasOutputSettings
+
+    def __init__(self, directory: Path, output, simulator, edge_distance: bool, start_gps_time: float,
                  plane_ids: np.ndarray | None = None):
-        """plane_ids: the plane id written for each triangle (default: the scene's own)."""
+        """output: the [output] settings; start_gps_time: the flight's [s] (dates the tiles); plane_ids: the plane
+        id written for each triangle (default: the scene's own)."""
         scene = simulator.scene
         self.device = simulator.device
         self.models = simulator.models
-        self.writers = tile_writers(directory, cfg, scene, edge_distance)
-        self.kernel = kl.pack_kernel(cfg.output.position_error, edge_distance)
-        self.tables = _tables(cfg, simulator, scene, plane_ids)
+        self.writers = tile_writers(directory, output, scene, start_gps_time, edge_distance)
+        self.kernel = kl.pack_kernel(output.position_error, edge_distance)
+        self.tables = _tables(output.tile_size_m, simulator, scene, plane_ids)
         self._device_arrays: dict[str, wp.array] = {}
         self._free = {m: queue.Queue() for m in self.models}
         for m in self.models:
@@ -195,15 +219,15 @@ class DeviceLasOutput:
                 thread.join()
 
 
-def _tables(cfg: RunConfig, simulator, scene: Scene, plane_ids: np.ndarray | None) -> kl.RecordTables:
+def _tables(tile_size_m: int, simulator, scene: Scene, plane_ids: np.ndarray | None) -> kl.RecordTables:
     """The per-run constants of the record kernels."""
     d = simulator.device
     tables = kl.RecordTables()
     tables.origin = wp.vec3d(*scene.origin)
-    tables.tile_mm = cfg.output.tile_size_m * 1000
+    tables.tile_mm = tile_size_m * 1000
     tables.prf_hz = simulator.timing.prf_hz
     tables.beams_per_pulse = simulator.beams_per_pulse
-    tables.beam_columns = beam_columns(cfg)
+    tables.beam_columns = simulator.instrument.emitter.beam_columns
     tables.face_class = wp.array(scene.classification.astype(np.int32), dtype=wp.int32, device=d)
     ids = scene.plane_id if plane_ids is None else plane_ids
     tables.face_plane = wp.array(np.asarray(ids, dtype=np.int32), dtype=wp.int32, device=d)

@@ -25,7 +25,7 @@ import rasterio
 from rasterio.crs import CRS as RasterioCRS
 from rasterio.transform import from_origin
 
-from flightsim import __version__
+from flightsim.core.version import __version__
 from flightsim.core.atomic import replaced_atomically
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_tiles import _quantized_mm, _tile_header_template, _validated_crs, gps_week_date, wkt1

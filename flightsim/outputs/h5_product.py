@@ -8,7 +8,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from flightsim import __version__
+from flightsim.core.version import __version__
 from flightsim.core.atomic import temporary_name
 
 ROWS_PER_CHUNK = 1 << 16  # HDF5 chunk of a 1-D dataset

@@ -43,7 +43,7 @@ from laspy.lasappender import LasAppender
 from laspy.vlrs.known import WktCoordinateSystemVlr
 from pyproj.enums import WktVersion
 
-from flightsim import __version__
+from flightsim.core.version import __version__
 from flightsim.core.errors import InputError
 from flightsim.outputs.laz_workers import LazWorkers
 

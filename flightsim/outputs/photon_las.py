@@ -21,11 +21,15 @@ pixel as the discrete tiles number beams, range the one-way range c·t/2 [m], pl
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pyproj
 
+from flightsim.core.errors import InputError
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings, setting
 from flightsim.outputs.las_tiles import PointBatch, TileWriter, gps_week_date
 from flightsim.platforms.orbit import local_to_geodetic
 from flightsim.scenes.scene import parse_crs
@@ -35,34 +39,60 @@ SIGNAL_CLASS, NOISE_CLASS = 1, 7  # ASPRS: unclassified, low noise
 FOLDER = "photons"
 
 
-def output_crs(cfg, scene) -> pyproj.CRS:
-    """The CRS the photon points are written in: output.crs, or the scene's when it is ""."""
-    return parse_crs(cfg.output.crs, field="output.crs") if cfg.output.crs else scene.crs
+@dataclass
+class PhotonOutputSettings(Settings):
+    """The photon events' LAS tiles (photons.h5 and, from orbit, atl03.h5 have no settings)."""
+
+    table = "output"
+
+    crs: str = setting("", "CRS of the photon LAS points: \"\" = the scene's, or any projected CRS in metres "
+                       "(from the Earth only)")
+    tile_size_m: int = setting(500, "side of a LAS tile", "m", range=(1, 100000))
+    laz: bool = setting(False, "compress the tiles to LAZ")
+
+    def check(self, context) -> None:
+        if not self.crs:
+            return
+        flight = context.settings("flight") if context is not None else None
+        if flight is not None and flight.platform == "orbit" and flight.body != "earth":
+            raise InputError("output.crs", self.crs, "\"\" (the scene's CRS) around the Moon")
+        parse_crs(self.crs, field="output.crs")
 
 
-def photon_world(cfg, scene, local: np.ndarray, crs: pyproj.CRS) -> np.ndarray:
-    """(n, 3) coordinates [m] of local points (n, 3) in ``crs`` (see the module docstring)."""
-    orbit_earth = cfg.flight.platform == "orbit" and cfg.flight.body == "earth"
-    if not orbit_earth and crs == scene.crs:
+def output_crs(crs: str, scene) -> pyproj.CRS:
+    """The CRS the photon points are written in: ``crs`` (output.crs), or the scene's when it is ""."""
+    return parse_crs(crs, field="output.crs") if crs else scene.crs
+
+
+def photon_world(body: str | None, scene, local: np.ndarray, crs: pyproj.CRS) -> np.ndarray:
+    """(n, 3) coordinates [m] of local points (n, 3) in ``crs``, from orbit around ``body`` (None: not from orbit;
+    see the module docstring)."""
+    if body != "earth" and crs == scene.crs:
         return scene.local_to_world(local)
-    lat, lon, h = local_to_geodetic(cfg, scene, local)
+    lat, lon, h = local_to_geodetic(body, scene, local)
     x, y = pyproj.Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)
     return np.column_stack([x, y, h])
 
 
+@register("output", "photons")
 class PhotonLas:
     """Appends PhotonChunks to LAS tiles in ``directory/photons``; ``close()`` renames them into place."""
 
-    def __init__(self, directory: Path, cfg, scene, timing):
-        self.cfg, self.scene, self.timing = cfg, scene, timing
-        self.crs = output_crs(cfg, scene)
-        self.n = cfg.sensor.array if cfg.instrument.emitter == "fan" else 256  # as the discrete tiles number beams
-        self.writer = TileWriter(Path(directory) / FOLDER, self.crs, tile_size_m=cfg.output.tile_size_m,
-                                 compress=cfg.output.laz, creation_date=gps_week_date(cfg.flight.start_gps_time))
+    settings = PhotonOutputSettings
+
+    def __init__(self, directory: Path, output, scene, timing, beam_columns: int, body: str | None,
+                 start_gps_time: float):
+        """output: the [output] settings; beam_columns: as the discrete tiles number beams (the emitter's); body: the
+        body orbited, None when not from orbit; start_gps_time: the flight's [s] (dates the tiles)."""
+        self.scene, self.timing, self.body = scene, timing, body
+        self.crs = output_crs(output.crs, scene)
+        self.n = beam_columns
+        self.writer = TileWriter(Path(directory) / FOLDER, self.crs, tile_size_m=output.tile_size_m,
+                                 compress=output.laz, creation_date=gps_week_date(start_gps_time))
         self.tiles: dict[str, int] = {}
 
     def __call__(self, chunk) -> None:
-        world = photon_world(self.cfg, self.scene, chunk.points, self.crs)
+        world = photon_world(self.body, self.scene, chunk.points, self.crs)
         d = chunk.directions.astype(np.float64)
         self.writer.write(PointBatch(
             x=world[:, 0], y=world[:, 1], z=world[:, 2],

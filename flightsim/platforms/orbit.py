@@ -1,4 +1,4 @@
-"""A spacecraft on a Keplerian orbit passing over the scene (``flight.platform = "orbit"``).
+"""The orbit platform (``flight.platform = "orbit"``): a spacecraft on a Keplerian orbit passing over the scene.
 
 Orbit: two-body, around ``flight.body``: the Earth (WGS84 through pyproj, μ = 3.986004418e14 m³/s²) or the
 Moon (a sphere of 1737.4 km, μ = 4.9048695e12 m³/s², one turn in 27.321661 d). Elements in the inertial
@@ -37,6 +37,9 @@ import numpy as np
 import pyproj
 
 from flightsim.core.errors import InputError
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings, setting
+from flightsim.platforms.flight import check_clearance
 from flightsim.platforms.rotating_body import attitude_angles
 from flightsim.scenes.scene import Scene
 from trajectories import Trajectory
@@ -229,9 +232,43 @@ def body_fixed_to_inertial(body: Body, epoch_gps: float, point: np.ndarray) -> n
     return point
 
 
+@dataclass
+class OrbitSettings(Settings):
+    """The orbit's central body and elements (the node and phase put the pass over the scene origin mid-run)."""
+
+    body: str = setting("earth", "the central body: earth (WGS84) or moon (a 1737.4 km sphere)", choices=("earth", "moon"))
+    inclination_deg: float = setting(92.0, "inclination", "deg", range=(0.0, 180.0))
+    eccentricity: float = setting(0.0, "eccentricity, below 1 (flight.altitude_m is the altitude of the pass over "
+                                  "the scene)", "", range=(0.0, 1.0))
+    perigee_arg_deg: float = setting(0.0, "argument of perigee from the ascending node", "deg", range=(-360.0, 360.0))
+
+
+@register("platform", "orbit")
+class OrbitPlatform:
+    """A pass of the ``[flight]`` section (common and orbit settings)."""
+
+    settings = OrbitSettings
+
+    def __init__(self, flight):
+        self.f = flight
+
+    def spans(self) -> tuple[float, float, float]:
+        """(half the ground track's length, 0, 0): the track, as a line of heading 0, for sizing the scene."""
+        f = self.f
+        return ground_speed_mps(BODIES[f.body], f.altitude_m, f.eccentricity) * f.duration_s / 2.0, 0.0, 0.0
+
+    def tilt_deg(self) -> float:
+        return 0.0
+
+    def trajectories(self, scene: Scene) -> list[Trajectory]:
+        track = orbit_trajectory(self.f, scene)
+        check_clearance(track, scene, self.f.altitude_m)
+        return [track]
+
+
 def orbit_trajectory(flight, scene: Scene) -> Trajectory:
-    """The nadir-pointing pass of ``flight`` (the config's FlightConfig) over the scene origin (mid-run:
-    flight.altitude_m above it along its normal), in the scene's tangent-plane world frame."""
+    """The nadir-pointing pass of ``flight`` (the [flight] section: common and orbit settings) over the scene
+    origin (mid-run: flight.altitude_m above it along its normal), in the scene's tangent-plane world frame."""
     body = BODIES[flight.body]
     lat0, lon0 = scene_geodetic(body, scene)
     centre = geodetic_to_body_fixed(body, lat0, lon0, scene.origin[2])
@@ -277,17 +314,18 @@ def scene_geodetic(body: Body, scene: Scene) -> tuple[float, float]:
     return float(lat), float(lon)
 
 
-def local_to_geodetic(cfg, scene: Scene, local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def local_to_geodetic(body_name: str | None, scene: Scene,
+                      local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(latitude, longitude [deg], height [m]) of local points (n, 3): through the tangent plane and the
-    body for the orbit platform (heights above the WGS84 ellipsoid or the Moon's sphere), else through
-    the scene's projected CRS (world = origin + local; heights as the scene's)."""
+    body ``body_name`` orbited (heights above the WGS84 ellipsoid or the Moon's sphere), else (None: not from
+    orbit) through the scene's projected CRS (world = origin + local; heights as the scene's)."""
     local = np.asarray(local, dtype=np.float64).reshape(-1, 3)
-    if cfg.flight.platform != "orbit":
+    if body_name is None:
         world = scene.local_to_world(local)
         lon, lat = pyproj.Transformer.from_crs(scene.crs, "EPSG:4326", always_xy=True).transform(world[:, 0],
                                                                                                   world[:, 1])
         return np.asarray(lat), np.asarray(lon), world[:, 2]
-    body = BODIES[cfg.flight.body]
+    body = BODIES[body_name]
     lat0, lon0 = scene_geodetic(body, scene)
     fixed = geodetic_to_body_fixed(body, lat0, lon0, scene.origin[2]) + local @ enu_rotation(lat0, lon0)
     if body.name == "earth":

@@ -35,7 +35,7 @@ from typing import Callable
 
 import numpy as np
 
-from flightsim import __version__
+from flightsim.core.version import __version__
 from flightsim.core.errors import InputError
 from flightsim.scenes.scene import PlaneInfo, Scene, parse_crs
 

@@ -15,11 +15,14 @@ with the ``gdalwarp`` command that reprojects it (:mod:`flightsim.scenes.raster`
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from flightsim.core.errors import InputError
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings, setting
 from flightsim.scenes.gridmesh import grid_triangles
 from flightsim.scenes.lunar import surface_scene
 from flightsim.scenes.scene import Scene
@@ -28,8 +31,39 @@ DEM_SUFFIXES = (".tif", ".tiff", ".npy")
 MAX_DEM_NODES = 6001 * 6001  # about 72 M triangles
 
 
-def is_dem(name: str) -> bool:
-    return Path(name).suffix.lower() in DEM_SUFFIXES
+@dataclass
+class DemSettings(Settings):
+    """A height grid read from a file, its simplification, land cover and buildings."""
+
+    cell_m: float = setting(1.0, "node spacing of a .npy height grid (a GeoTIFF has its own)", "m",
+                            range=(0.0, 1.0e5), lo_open=True)
+    simplify_m: float = setting(0.0, "largest vertical error of a simplified grid; 0 = two triangles per cell", "m",
+                                range=(0.0, 1.0e4))
+    landcover: str = setting("", "a GeoTIFF of ASPRS class codes in the grid's CRS (classes and reflectance of the "
+                             "triangles); \"\" = none")
+    buildings: str = setting("", "an .obj/.ply mesh of buildings in the grid's CRS world coordinates; \"\" = none")
+
+    def check(self, context) -> None:
+        for name, value, suffixes in (("scene.landcover", self.landcover, (".tif", ".tiff")),
+                                      ("scene.buildings", self.buildings, (".obj", ".ply"))):
+            if value and Path(value).suffix.lower() not in suffixes:
+                raise InputError(name, value, f"\"\" or a {'/'.join(suffixes)} file path")
+
+
+@register("scene", "dem")
+class DemScene:
+    """The height grid named by ``scene.name`` (a .tif/.tiff/.npy file), with ``[scene]``'s DEM settings."""
+
+    settings = DemSettings
+    sized = False
+    suffixes = DEM_SUFFIXES
+
+    def __init__(self, scene):
+        self.s = scene
+
+    def build(self, half_extent_m: float, seed: int) -> Scene:
+        s = self.s
+        return dem_scene(s.name, s.crs, s.origin, s.cell_m, s.simplify_m, s.landcover, s.buildings)
 
 
 def dem_scene(path: str, crs, origin, cell_m: float, simplify_m: float = 0.0, landcover: str = "",

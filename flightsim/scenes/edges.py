@@ -7,11 +7,9 @@ boundary segments whose boxes (in a BVH) come within the buffer of the point.
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
-from flightsim.core.config import RunConfig
 from flightsim.scenes.scene import Scene
 
 _VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
@@ -102,37 +100,3 @@ def boundary_segments(scene: Scene) -> np.ndarray:
     keep = np.flatnonzero(lo != hi)
     lone = keep[_lone_edges(np.tile(scene.plane_id, 3)[keep], lo[keep], hi[keep], int(ids.max()) + 1)]
     return np.stack([scene.vertices[a[lone]], scene.vertices[b[lone]]], axis=1)
-
-
-def max_distortion_rad(cfg: RunConfig, samples: int = 360) -> float:
-    """Largest angle between a sub-beam's true and rigid-array exit directions over a turn [rad]."""
-    from flightsim.instrument.fan import trace_fan
-
-    s = cfg.sensor
-    phi = np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False)
-    fan = trace_fan(phi, s.array, s.spacing_mrad * 1e-3, s.refractive_index, math.radians(s.apex_angle_deg),
-                    s.thickness_mm * 1e-3, precision="float64")
-    cross = np.linalg.norm(np.cross(fan.directions, fan.nominal), axis=-1)
-    angle = np.arctan2(cross, np.sum(fan.directions * fan.nominal, axis=-1))
-    return float(angle[fan.ok].max()) if fan.ok.any() else 0.0
-
-
-def default_edge_buffer_m(cfg: RunConfig) -> float:
-    """Edge buffer covering the footprint and the rigid-array distortion at the altitude flown [m].
-
-    Slant range r = h / cos θ; buffer = r·(divergence/2 + largest distortion angle).
-    """
-    s = cfg.sensor
-    if cfg.instrument.deflector != "risley":  # no rigid-array model: the footprint only
-        from flightsim.instrument.parts import HostInstrument
-
-        slant = cfg.flight.altitude_m / math.cos(min(HostInstrument(cfg).max_off_axis_rad(), math.radians(80.0)))
-        return slant * 0.5 * s.divergence_mrad * 1e-3
-    slant = cfg.flight.altitude_m / math.cos(math.radians(s.cone_half_angle_deg))
-    return slant * (0.5 * s.divergence_mrad * 1e-3 + max_distortion_rad(cfg))
-
-
-def edge_buffer_m(cfg: RunConfig) -> float:
-    """The run's edge buffer: the configured one, or the default when it is negative (automatic)."""
-    value = cfg.scoring.edge_buffer_m
-    return default_edge_buffer_m(cfg) if value < 0.0 else value

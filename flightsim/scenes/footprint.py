@@ -9,10 +9,13 @@ h π²/(2a²): 1.9 mm at the defaults.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from flightsim.core.errors import InputError
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings
 from flightsim.scenes.lunar import MAX_NODES, _grid_triangles, surface_scene
 from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN, Scene
 
@@ -38,3 +41,22 @@ def bump_scene(half_extent_m: float, origin=DEFAULT_ORIGIN, crs=DEFAULT_CRS) -> 
     x, y = np.meshgrid(axis, axis, indexing="xy")
     vertices = np.column_stack([x.ravel(), y.ravel(), bump_height(x, y).ravel()])
     return surface_scene("bump", crs, origin, vertices, _grid_triangles(nodes), 0.0)
+
+
+@dataclass
+class BumpSettings(Settings):
+    """Flat ground with the waveform patent's hill (no settings of its own)."""
+
+
+@register("scene", "bump")
+class BumpScene:
+    """The bump of ``[scene]``, sized to the flight."""
+
+    settings = BumpSettings
+    sized = True
+
+    def __init__(self, scene):
+        self.s = scene
+
+    def build(self, half_extent_m: float, seed: int) -> Scene:
+        return bump_scene(half_extent_m, self.s.origin, self.s.crs)

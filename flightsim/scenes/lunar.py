@@ -16,11 +16,14 @@ the centre.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from flightsim.core.errors import InputError
-from flightsim.scenes.scene import (CLASS_GROUND, DEFAULT_CRS, DEFAULT_ORIGIN, Scene, _check_half_extent,
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings, setting
+from flightsim.scenes.scene import (CLASS_GROUND, DEFAULT_CRS, DEFAULT_ORIGIN, Scene, check_half_extent,
                                     parse_crs, plane_info)
 
 MAX_NODES = 1025  # grid nodes per side at most (about 2.1 M triangles)
@@ -35,7 +38,7 @@ EJECTA_REACH = 4.0  # the ejecta blanket ends (continuously) at this many crater
 def lunar_scene(half_extent_m: float = 60.0, origin=DEFAULT_ORIGIN, crs=DEFAULT_CRS, seed: int = 0,
                 cell_m: float = 0.25, slope: float = 0.05) -> Scene:
     """The landing zone: a square of half side ``half_extent_m`` [m] centred on local (0, 0)."""
-    half = _check_half_extent(half_extent_m, 0.0)
+    half = check_half_extent(half_extent_m, 0.0)
     if not (math.isfinite(cell_m) and 0.01 <= cell_m <= 10.0):
         raise InputError("scene.cell_m", cell_m, "a grid cell in [0.01, 10] m")
     if not (math.isfinite(slope) and abs(slope) <= 2.0):
@@ -144,3 +147,24 @@ def _grid_triangles(nodes: int) -> np.ndarray:
     a = (j * nodes + i).ravel()
     b, c, d = a + 1, a + nodes + 1, a + nodes
     return np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])]).astype(np.int32)
+
+
+@dataclass
+class LunarSettings(Settings):
+    """The landing zone's tilt (its craters, boulders and roughness come from the run's seed)."""
+
+    slope: float = setting(0.0, "rise/run of the zone, descending towards grid north", "rise/run", range=(-2.0, 2.0))
+
+
+@register("scene", "lunar")
+class LunarScene:
+    """The lunar landing zone of ``[scene]``, sized to the flight."""
+
+    settings = LunarSettings
+    sized = True
+
+    def __init__(self, scene):
+        self.s = scene
+
+    def build(self, half_extent_m: float, seed: int) -> Scene:
+        return lunar_scene(half_extent_m, self.s.origin, self.s.crs, seed=seed, slope=self.s.slope)

@@ -22,10 +22,13 @@ Both are one face label ("surface", class 2 ground).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from flightsim.core.errors import InputError
+from flightsim.core.registry import register
+from flightsim.core.settings import Settings
 from flightsim.scenes import lunar
 from flightsim.scenes.lunar import (MAX_NODES, _grid_triangles, _power_law, _roughness, stamp_terrain,
                                     surface_scene)
@@ -183,3 +186,30 @@ def _subdivisions(value) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= value <= MAX_SUBDIVISIONS:
         raise InputError("scene.subdivisions", value, allowed)
     return int(value)
+
+
+@dataclass
+class SmallBodySettings(Settings):
+    """A fixed-size small-body scene (no settings of its own: its relief comes from the run's seed)."""
+
+
+@register("scene", "sandbox")
+class SandboxScene:
+    """The small-body sandbox of ``[scene]`` (12 m square)."""
+
+    settings = SmallBodySettings
+    sized = False
+
+    def __init__(self, scene):
+        self.s = scene
+
+    def build(self, half_extent_m: float, seed: int) -> Scene:
+        return sandbox_scene(self.s.origin, self.s.crs, seed=seed)
+
+
+@register("scene", "ellipsoid")
+class EllipsoidScene(SandboxScene):
+    """The paper's ellipsoidal small body of ``[scene]``."""
+
+    def build(self, half_extent_m: float, seed: int) -> Scene:
+        return ellipsoid_scene(self.s.origin, self.s.crs, seed=seed)

@@ -48,11 +48,11 @@ class ReferenceCheck:
         poses = self.sim.poses64(chunk.line_id, first, n_pulses)
         m = len(chunk)
         outputs = [wp.empty(m, dtype=wp.vec3d, device=d) for _ in range(4)]
-        s = self.sim.cfg.sensor
+        fan = self.sim.instrument.emitter
         wp.launch(reference.reference_returns, m, device=d, outputs=outputs, inputs=[
             poses, wp.array((chunk.pulse - first).astype(np.int32), dtype=wp.int32, device=d),
             wp.array(chunk.beam, dtype=wp.int32, device=d), wp.array(chunk.face, dtype=wp.int32, device=d),
-            self.sim.meshes.vertices64, self.sim.meshes.indices, s.array, s.spacing_mrad * 1e-3, self.truth, self.believed])
+            self.sim.meshes.vertices64, self.sim.meshes.indices, fan.n, fan.spacing_rad, self.truth, self.believed])
         true_ref, exact_ref, nominal_ref, origin = (a.numpy() for a in outputs)
         a = chunk.true_points - origin
         b = true_ref - origin

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from flightsim.core.config import RunConfig, copy_config, set_value, validate
-from flightsim.scenes.edges import edge_buffer_m
-from flightsim.platforms.plan import build_scene, flight_trajectories
+from flightsim.engine.config import RunConfig, copy_config, set_value, validate
+from flightsim.engine.world import edge_buffer_m
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.engine.simulate import SceneMeshes, Simulator
 from flightsim.core.warp_runtime import resolve_device
 from kernels import trace
@@ -73,7 +73,7 @@ def workload(device: str, array: int, returns: float, **settings) -> RunConfig:
     line over the same ground track, as many as it takes for ``returns`` beams."""
     cfg = RunConfig()
     per_line = 5000.0 * array * array * LINE_S
-    base = {"flight.altitude_m": 500.0, "sensor.array": array, "run.device": device,
+    base = {"flight.altitude_m": 500.0, "fan.array": array, "run.device": device,
             "flight.duration_s": min(LINE_S, max(0.2, returns / per_line * LINE_S)),
             "flight.lines": max(1, round(returns / per_line)), "flight.line_spacing_m": 0.01}
     for key, value in {**base, **settings}.items():
@@ -103,7 +103,7 @@ def bare_raycast(sim: Simulator, rays: int, repeats: int, subrays: bool = False)
     ``subrays``) ``repeats`` times with nothing else."""
     starts, directions = sim.sample_subrays(rays) if subrays else sim.sample_rays(rays)
     faces = wp.empty(starts.shape[0], dtype=wp.int32, device=sim.device)
-    args = dict(dim=starts.shape[0], inputs=[sim.meshes.mesh.id, starts, directions, sim.cfg.sensor.max_range_m],
+    args = dict(dim=starts.shape[0], inputs=[sim.meshes.mesh.id, starts, directions, sim.cfg.instrument.max_range_m],
                 outputs=[faces], device=sim.device)
     wp.launch(trace.cast_rays, **args)
     wp.synchronize_device(sim.device)
@@ -145,7 +145,7 @@ def galvo(device: str, s: Sizes) -> dict:
     """The Chang'e-3 galvo imager (its preset, ranging errors on) hovering 100 m over the plane and over
     the lunar landing zone in statistics mode, each against the bare ray cast of the same rays; and a
     Monte Carlo budget of full 30°×30° frames."""
-    from flightsim.core.config import preset_config
+    from flightsim.engine.config_io import preset_config
     from flightsim.studies.budget import Frame, frame_config, monte_carlo
 
     records = []
@@ -210,7 +210,7 @@ def waveform_altimeter(device: str, s: Sizes) -> list[dict]:
     cuda = resolve_device(device) != "cpu"
     records = []
     for scene, shots in (("flat", 20000 if cuda else 20), ("slope", 500 if cuda else 4)):
-        cfg = waveform_config(scene, device, **{"sensor.prf_hz": 1000.0, "flight.duration_s": (shots - 0.5) / 1000.0})
+        cfg = waveform_config(scene, device, **{"fixed.prf_hz": 1000.0, "flight.duration_s": (shots - 0.5) / 1000.0})
         sim = simulator(cfg)
         sim.run_waveforms(lambda found: None, on_device=True)
         counts = min((sim.run_waveforms(lambda found: None, on_device=True) for _ in range(2)), key=lambda c: c.wall_s)
@@ -272,7 +272,7 @@ def kernel_name(timing_name: str) -> str:
 
 
 def _two_process_record(cfg: RunConfig, sample: int, repeats: int) -> dict:
-    from flightsim.core.config import to_toml
+    from flightsim.engine.config_io import to_toml
     from flightsim.engine.parallel import ProcessPool
 
     pool = ProcessPool(2)
@@ -295,7 +295,7 @@ def _record(sim: Simulator, cfg: RunConfig, counts, wall: float, raycast_rate: f
     rate = counts.returns / wall
     return {
         "device": sim.device, "gpu_name": gpu_name(sim.device), "scene": cfg.scene.name,
-        "triangles": int(len(sim.scene.triangles)), "array": cfg.sensor.array, "processes": processes,
+        "triangles": int(len(sim.scene.triangles)), "array": cfg.fan.array, "processes": processes,
         "optics": cfg.run.optics, "pulses": counts.pulses, "returns": counts.returns, "wall_s": wall,
         "returns_per_s": rate, "raycast_returns_per_s": raycast_rate, "ratio": rate / raycast_rate,
         "git_commit": git_commit(),
@@ -527,7 +527,7 @@ def survey_area(device: str, s: Sizes) -> dict:
     of SURVEY_KM (10 km on a GPU: 100 km²) with its land cover and town, 5 m pixels, the default instrument
     at 500 m following the terrain, lines spaced as ``flightsim survey`` spaces them (30 % sidelap), both
     models to LAZ. Wall clock, points, bytes and peak memory of the whole command."""
-    from flightsim.core.config import to_toml
+    from flightsim.engine.config_io import to_toml
     from flightsim.scenes import testdem
     from flightsim.studies.survey import SurveySpec, plan_survey
 
@@ -580,7 +580,7 @@ def skipping(device: str, s: Sizes) -> list[dict]:
     for label, settings in (("exact model only", {"output.models": "exact"}),
                             ("nominal model only", {"output.models": "nominal"}),
                             ("edge buffer off", {"scoring.edge_buffer_m": 0.0}),
-                            ("range noise on (0.02 m)", {"sensor.range_noise_m": 0.02})):
+                            ("range noise on (0.02 m)", {"instrument.errors": "ranging", "ranging.noise_m": 0.02})):
         wall = timed_statistics(simulator(workload(device, 3, s.pareto_returns, **settings)))[0]
         rows.append({"what": label, "baseline_s": both, "variant_s": wall, "saving": 1 - wall / both})
     return rows
@@ -588,16 +588,24 @@ def skipping(device: str, s: Sizes) -> list[dict]:
 
 def _culling_saving(cfg: RunConfig) -> dict:
     scene = build_scene(cfg)  # sized for the nominal flight
-    long = validate(dataclasses.replace(cfg, flight=dataclasses.replace(cfg.flight, duration_s=4 * cfg.flight.duration_s)))
+    long = _with(cfg, {"flight.duration_s": 4 * cfg.flight.duration_s})
     walls = {}
     for cull in (True, False):
-        run_cfg = validate(dataclasses.replace(long, run=dataclasses.replace(long.run, cull=cull)))
+        run_cfg = _with(long, {"run.cull": cull})
         sim = Simulator(run_cfg, scene, flight_trajectories(run_cfg, scene), edge_buffer_m=edge_buffer_m(run_cfg))
         walls[cull], counts = timed_statistics(sim, repeats=1)
         if cull:
             culled = counts.pulses_culled / (counts.pulses + counts.pulses_culled)
     return {"what": f"culling a line 4x longer than the scene ({100 * culled:.0f}% of pulses culled)",
             "baseline_s": walls[False], "variant_s": walls[True], "saving": 1 - walls[True] / walls[False]}
+
+
+def _with(cfg: RunConfig, settings: dict) -> RunConfig:
+    """A validated copy of ``cfg`` with ``settings`` ({table.field: value}) set."""
+    out = copy_config(cfg)
+    for key, value in settings.items():
+        set_value(out, key, value)
+    return validate(out)
 
 
 def _mode_saving(cfg: RunConfig) -> dict:
@@ -616,8 +624,7 @@ def _mode_saving(cfg: RunConfig) -> dict:
 
 def _build_once_saving(cfg: RunConfig) -> dict:
     """A 5-configuration sweep with the scene, BVH and kernels built once vs per configuration."""
-    configs = [validate(dataclasses.replace(cfg, flight=dataclasses.replace(cfg.flight, altitude_m=a)))
-               for a in (500.0, 600.0, 700.0, 800.0, 900.0)]
+    configs = [_with(cfg, {"flight.altitude_m": a}) for a in (500.0, 600.0, 700.0, 800.0, 900.0)]
     extent_cfg = configs[-1]
     started = time.perf_counter()
     meshes = SceneMeshes(build_scene(extent_cfg), resolve_device(cfg.run.device))

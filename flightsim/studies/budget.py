@@ -19,10 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightsim.core.config import ARCSEC, RunConfig, copy_config, preset_config, validate
+from flightsim.core.constants import ARCSEC
+from flightsim.engine.config import RunConfig, copy_config, validate
+from flightsim.engine.config_io import preset_config
+from flightsim.engine.instrument import Instrument
 from flightsim.instrument import galvo_model
-from flightsim.instrument.parts import HostInstrument
-from flightsim.instrument.ranging import sigmas
+from flightsim.instrument.galvo import ANGLE_ERRORS
+from flightsim.instrument.ranging import RangingErrors, RangingSettings
 
 ANGLE_SOURCES = {"B1": "b1_arcsec", "B2": "b2_arcsec", "B3": "b3_arcsec", "C1": "c1_arcsec"}
 PAPER_ALLOWED_ARCSEC = {"B1": 42.9, "B2": 42.9, "B3": 42.9, "C1": 94.5}  # seed paper §3.3
@@ -44,21 +47,28 @@ def frame_config(base: RunConfig | None = None, distance_m: float = 100.0, colum
     cfg.flight.platform = "hover"
     cfg.flight.altitude_m = distance_m
     cfg.flight.roll_deg = cfg.flight.pitch_deg = cfg.flight.heading_deg = 0.0
-    cfg.sensor.boresight_deg = (0.0, 0.0, 0.0)
-    cfg.sensor.lever_arm_m = (0.0, 0.0, 0.0)
+    cfg.instrument.boresight_deg = (0.0, 0.0, 0.0)
+    cfg.instrument.lever_arm_m = (0.0, 0.0, 0.0)
     if columns:
         cfg.galvo.columns = columns
     cfg.flight.duration_s = cfg.galvo.frame_s
     cfg.output.models = ("exact",)
     cfg.run.device = device
-    cfg.errors = type(cfg.errors)(cfd_fraction=cfg.errors.cfd_fraction, snr=cfg.errors.snr)  # every source off
+    for name in ANGLE_ERRORS:  # every source off
+        setattr(cfg.galvo, name, 0.0)
+    cfg.parts["ranging"] = RangingSettings(cfd_fraction=cfg.ranging.cfd_fraction, snr=cfg.ranging.snr)
+    if "ranging" not in cfg.instrument.errors:
+        cfg.instrument.errors = (*cfg.instrument.errors, "ranging")
     return cfg
 
 
 def with_errors(cfg: RunConfig, **errors: float) -> RunConfig:
-    """A validated copy of ``cfg`` with ``[errors]`` fields set."""
+    """A validated copy of ``cfg`` with error sources set: the galvo's angle errors (``[galvo]``) and the ranging
+    chain's (``[ranging]``), by their settings' names."""
     out = copy_config(cfg)
-    out.errors = dataclasses.replace(out.errors, **errors)
+    galvo = {k: v for k, v in errors.items() if k in ANGLE_ERRORS}
+    out.parts["galvo"] = dataclasses.replace(out.galvo, **galvo)
+    out.parts["ranging"] = dataclasses.replace(out.ranging, **{k: v for k, v in errors.items() if k not in galvo})
     return validate(out)
 
 
@@ -68,13 +78,13 @@ class Frame:
 
     def __init__(self, cfg: RunConfig, pulses: int | None = None):
         from flightsim.engine.simulate import SceneMeshes
-        from flightsim.platforms.plan import build_scene, flight_trajectories
+        from flightsim.engine.world import build_scene, flight_trajectories
         from flightsim.core.warp_runtime import resolve_device
 
         self.cfg = validate(cfg)
         self.scene = build_scene(self.cfg)
         self.trajectories = flight_trajectories(self.cfg, self.scene)
-        instrument = HostInstrument(self.cfg)
+        instrument = Instrument(self.cfg)
         g = self.cfg.galvo
         self.pulses = pulses or g.strips * g.columns
         self.beams = instrument.beams_per_pulse
@@ -167,18 +177,18 @@ class MonteCarlo:
 
 def draw_sigmas(cfg: RunConfig, allowed_arcsec: dict[str, float]) -> dict[str, float]:
     """1σ of every source of a Monte Carlo budget: the angle errors [rad], the range [m] and the noise [rad]."""
-    s = sigmas(cfg)
+    s = RangingErrors(cfg.ranging).sigmas()
     return {"b1": allowed_arcsec["B1"] * ARCSEC, "b2": allowed_arcsec["B2"] * ARCSEC,
             "b3": allowed_arcsec["B3"] * ARCSEC, "c1": allowed_arcsec["C1"] * ARCSEC,
-            "n_h": cfg.errors.h_noise_arcsec * ARCSEC, "n_v": cfg.errors.v_noise_arcsec * ARCSEC,
-            "range": math.hypot(cfg.errors.channel_delay_m, s.random)}
+            "n_h": cfg.galvo.h_noise_arcsec * ARCSEC, "n_v": cfg.galvo.v_noise_arcsec * ARCSEC,
+            "range": math.hypot(cfg.ranging.channel_delay_m, s.random)}
 
 
 def monte_carlo(frame: Frame, draws: int, allowed_arcsec: dict[str, float] | None = None, seed: int = 0,
                 ranging: RunConfig | None = None) -> MonteCarlo:
     """N draws of every source at once, on the device: per draw the four angle errors ~ N(0, σ) and
-    each channel's fixed delay ~ N(0, channel_delay_m); per pulse the angle noise and per return the
-    random ranging errors of ``ranging``'s [errors] (default: the frame's config's).
+    each channel's fixed delay ~ N(0, channel_delay_m); per pulse the angle noise (of ``ranging``'s [galvo]) and
+    per return the random ranging errors of ``ranging``'s [ranging] (default: the frame's config's).
 
     One simulator serves every draw: only its truth struct, its delays and its noise seed change.
     """
@@ -187,23 +197,24 @@ def monte_carlo(frame: Frame, draws: int, allowed_arcsec: dict[str, float] | Non
     allowed = allowed_arcsec or PAPER_ALLOWED_ARCSEC
     source = ranging or frame.cfg
     base = with_errors(frame.cfg, **{ANGLE_SOURCES[s]: v for s, v in allowed.items()},
-                       **{k: getattr(source.errors, k) for k in ("h_noise_arcsec", "v_noise_arcsec", "channel_delay_m",
-                                                                 "clock_drift", "tdc_bin_s", "jitter_s", "rise_time_s",
-                                                                 "cfd_fraction", "snr")})
+                       **{k: getattr(source.galvo, k) for k in ("h_noise_arcsec", "v_noise_arcsec")},
+                       **{k: getattr(source.ranging, k) for k in ("channel_delay_m", "clock_drift", "tdc_bin_s",
+                                                                  "jitter_s", "rise_time_s", "cfd_fraction", "snr")})
     sim = frame.simulator(base)
     d = sim.device
     slots = frame.pulses * frame.beams
     sums, squares = (wp.zeros(slots, dtype=wp.vec3d, device=d) for _ in range(2))
     hits = wp.zeros(slots, dtype=wp.int32, device=d)
     rng = np.random.default_rng(seed)
-    delay_sigma = base.errors.channel_delay_m
+    delay_sigma = base.ranging.channel_delay_m
+    deflector = sim.instrument.deflector
     started = time.perf_counter()
     drawn_values = np.empty((draws, len(ANGLE_SOURCES)))
     for i in range(draws):
         drawn = {ANGLE_SOURCES[s]: float(rng.normal(0.0, allowed[s])) for s in ANGLE_SOURCES}
         drawn_values[i] = list(drawn.values())
-        sim.scan.truth = HostInstrument(dataclasses.replace(base, errors=dataclasses.replace(base.errors, **drawn))
-                                        ).deflector.params(believed=False)
+        sim.scan.truth = type(deflector)(dataclasses.replace(base.galvo, **drawn), sim.instrument.emitter).params(
+            believed=False)
         sim.scan.ranging.delays.assign(rng.normal(0.0, delay_sigma, frame.beams).astype(np.float32))
         sim.lines.seed.assign(np.array([(seed * 1_000_003 + i + 1) % (1 << 31)], dtype=np.int32))
         sim.accumulate_deviations(sums, squares, hits)

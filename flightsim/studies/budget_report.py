@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.core.atomic import write_atomic
-from flightsim.core.config import ARCSEC
+from flightsim.core.constants import ARCSEC
 from flightsim.instrument import galvo_model
-from flightsim.instrument.ranging import sigmas
+from flightsim.instrument.ranging import RangingErrors
 from flightsim.studies.budget import (ANGLE_SOURCES, AXES, PAPER_ALLOWED_ARCSEC, PAPER_TABLE1_CM, Frame, deterministic,
                                       draw_sigmas, frame_config, monte_carlo)
 
@@ -33,10 +33,10 @@ def run_budget(out: Path, device: str = "cpu", draws: int = 200, columns: int | 
     det = deterministic(frame)
     det_s = time.perf_counter() - started
     ranging_cfg = frame_config(device=device)  # the preset's ranging chain (frame_config zeroes it)
-    from flightsim.core.config import preset_config
+    from flightsim.engine.config_io import preset_config
 
     preset = preset_config("change3")
-    ranging_cfg.errors = preset.errors
+    ranging_cfg.parts["ranging"] = preset.ranging
     monte_carlo(frame, 2, seed=seed, ranging=ranging_cfg)  # compiles its kernels: the timing below excludes it
     mc = monte_carlo(frame, draws, seed=seed, ranging=ranging_cfg)
     sig = draw_sigmas(ranging_cfg, PAPER_ALLOWED_ARCSEC)
@@ -55,7 +55,7 @@ def run_budget(out: Path, device: str = "cpu", draws: int = 200, columns: int | 
 def _numbers(frame, det, mc, analytic, allowed, ranging_cfg, device, det_s) -> dict:
     ok = mc.hits > 1
     ratio = mc.std[ok] / np.where(analytic[ok] > 0, analytic[ok], np.nan)
-    s = sigmas(ranging_cfg)
+    s = RangingErrors(ranging_cfg.ranging).sigmas()
     return {
         "device": device, "host": platform.node(),
         "frame": {"strips": frame.cfg.galvo.strips, "columns": frame.cfg.galvo.columns, "channels": frame.beams,
@@ -68,9 +68,9 @@ def _numbers(frame, det, mc, analytic, allowed, ranging_cfg, device, det_s) -> d
                       for src, r in det.items()},
         "deterministic_wall_s": round(det_s, 3),
         "ranging_cm": {"tdc": s.tdc * 100, "jitter": s.jitter * 100, "cfd": s.cfd * 100, "random": s.random * 100,
-                       "delay": ranging_cfg.errors.channel_delay_m * 100,
-                       "sigma_r": math.hypot(ranging_cfg.errors.channel_delay_m, s.random) * 100,
-                       "clock_drift_at_100m_mm": ranging_cfg.errors.clock_drift * 100.0 * 1000.0,
+                       "delay": ranging_cfg.ranging.channel_delay_m * 100,
+                       "sigma_r": math.hypot(ranging_cfg.ranging.channel_delay_m, s.random) * 100,
+                       "clock_drift_at_100m_mm": ranging_cfg.ranging.clock_drift * 100.0 * 1000.0,
                        "paper": PAPER_RANGING_CM},
         "allowed": {k: (float(v) if np.ndim(v) == 0 else np.asarray(v, dtype=float).tolist())
                     for k, v in allowed.items()},
@@ -185,7 +185,7 @@ Differences, explained:
 | rising-edge jitter (20 ps per stamp) | {r['jitter']:.3f} | {r['paper']['jitter']} | (c/2)·√2·σ_t |
 | constant-fraction timing (k 0.3, t_r 7 ns, SNR 31) | {r['cfd']:.3f} | {r['paper']['cfd']} | (c/2)·(t_r/SNR)·√(1+k²) |
 | random total | {r['random']:.3f} | {r['paper']['random']} | root sum of squares |
-| fixed delay after calibration | {r['delay']:.3f} | 5 | config `errors.channel_delay_m` |
+| fixed delay after calibration | {r['delay']:.3f} | 5 | config `ranging.channel_delay_m` |
 | σ_r | {r['sigma_r']:.3f} | {r['paper']['sigma_r']} | √(delay² + random²) |
 
 - Jitter: the paper's 0.4 cm is (c/2)·20 ps·√2 rounded (start and stop each jitter).
@@ -241,7 +241,7 @@ def run_risley_budget(out: Path, device: str = "cpu", draws: int = 200, seed: in
 
     out.mkdir(parents=True, exist_ok=True)
     cfg = rb.frame_config(device=device, turns=turns)
-    frame = Frame(cfg, pulses=round(cfg.flight.duration_s * cfg.sensor.prf_hz))
+    frame = Frame(cfg, pulses=round(cfg.flight.duration_s * cfg.risley.prf_hz))
     det = rb.deterministic(frame)
     rb.monte_carlo(frame, 2, seed=seed)  # compiles its kernels: the timing below excludes it
     mc = rb.monte_carlo(frame, draws, seed=seed)
@@ -298,9 +298,9 @@ Deviation = processed point − true hit, local frame: E (across track), N (alon
 {sources}
 
 The processing believes the catalogue wedge (apex, index), the encoder's reading, the calibrated
-boresight and the POS trajectory; the truth carries the errors (`errors.encoder_arcsec`,
-`encoder_noise_arcsec`, `boresight_arcsec`, `position_noise_m`, `attitude_noise_arcsec`,
-`sensor.range_noise_m`, and `processing.apex_angle_deg`, `processing.refractive_index` off the sensor's).
+boresight and the POS trajectory; the truth carries the errors (`risley.encoder_arcsec`,
+`encoder_noise_arcsec`; `pose.boresight_arcsec`, `position_noise_m`, `attitude_noise_arcsec`;
+`ranging.noise_m`; and `risley.believed_apex_angle_deg`, `believed_refractive_index` off the true wedge's).
 
 ## Each systematic source alone at +1σ: max / min |deviation| [cm]
 

@@ -1,8 +1,8 @@
 """Figures of the seed paper's §4 (Figs. 5a, 5c, 6b, 8a, 8b, 9a, 10a), each a PNG beside the CSV it plots.
 
-The optics figures (5a, 5c, 6b) trace the fan in float64 with :func:`flightsim.instrument.fan.trace_fan`,
-using the default instrument of :class:`flightsim.core.config.SensorConfig` (3×3 fan, Δ = 2.314 mrad,
-n = 1.5066, 15° cone, d1 = 10 mm). The accuracy figures (8a, 8b, 9a, 10a) plot plane-fit RMS
+The optics figures (5a, 5c, 6b) trace the fan in float64 with :func:`flightsim.instrument.risley_model.trace_fan`,
+using the default fan and wedge (:class:`~flightsim.instrument.fan.FanSettings`,
+:class:`~flightsim.instrument.risley.RisleySettings`: 3×3 fan, Δ = 2.314 mrad, n = 1.5066, 15° cone, d1 = 10 mm). The accuracy figures (8a, 8b, 9a, 10a) plot plane-fit RMS
 tables written by the simulator's scoring and sweep commands. Every function returns
 ``(png_path, csv_path)``; beams are labelled 1-based like the paper, A_{i-j} for sub-beam
 (i − 1, j − 1) of SPEC §3 (i along the sensor x axis, j along y).
@@ -19,16 +19,17 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
 from flightsim.core.atomic import save_figure
-from flightsim.core.config import SensorConfig, apex_for_cone
 from flightsim.core.errors import InputError
-from flightsim.instrument.fan import ExitFan, trace_fan
+from flightsim.instrument.fan import FanSettings
+from flightsim.instrument.risley import RisleySettings
+from flightsim.instrument.risley_model import ExitFan, apex_for_cone, trace_fan
 
-_SENSOR = SensorConfig()
-ARRAY = _SENSOR.array
-SPACING_MRAD = _SENSOR.spacing_mrad
-N_GLASS = _SENSOR.refractive_index
-CONE_RAD = math.radians(_SENSOR.cone_half_angle_deg)
-THICKNESS_M = _SENSOR.thickness_mm * 1e-3
+_FAN, _WEDGE = FanSettings(), RisleySettings()
+ARRAY = _FAN.array
+SPACING_MRAD = _FAN.spacing_mrad
+N_GLASS = _WEDGE.refractive_index
+CONE_RAD = math.radians(_WEDGE.cone_half_angle_deg)
+THICKNESS_M = _WEDGE.thickness_mm * 1e-3
 MODEL_STYLE = {"nominal": dict(color="tab:red", marker="o", label="nominal (rigid array, uncorrected)"),
                "exact": dict(color="tab:blue", marker="s", label="exact (vector optics, corrected)")}
 PLANE_COLUMNS = ("altitude_m", "array", "spacing_mrad", "model", "plane_id", "kind", "n", "rms_m",

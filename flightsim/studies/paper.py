@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from flightsim.studies import figures
-from flightsim.core.config import RunConfig, set_value
+from flightsim.engine.config import RunConfig, set_value
 from flightsim.core.atomic import write_atomic
 from flightsim.studies.sweep import SweepGrid, run_sweep
 
@@ -34,8 +34,8 @@ def studies(device: str, plane_duration_s: float, field_duration_s: float) -> di
     return {
         "calibration": SweepGrid(_base("calibration", field_duration_s, device), []),
         "altitude": SweepGrid(plane, [("flight.altitude_m", ALTITUDES)]),
-        "array": SweepGrid(plane, [("sensor.array", ARRAYS)]),
-        "spacing": SweepGrid(plane, [("sensor.spacing_mrad", SPACINGS)]),
+        "array": SweepGrid(plane, [("fan.array", ARRAYS)]),
+        "spacing": SweepGrid(plane, [("fan.spacing_mrad", SPACINGS)]),
     }
 
 

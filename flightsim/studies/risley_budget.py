@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightsim.core.config import ARCSEC, RunConfig, copy_config, validate
+from flightsim.engine.config import RunConfig, copy_config, validate
 from flightsim.studies.budget import AXES, MonteCarlo, Frame, table
 
 ENU = ("E", "N", "U")
@@ -59,7 +59,8 @@ def frame_config(device: str = "cpu", turns: int = 5) -> RunConfig:
     cfg.output.models = ("exact",)
     cfg.run.device = device
     cfg.run.cull = False
-    cfg.flight.duration_s = turns / cfg.sensor.rotation_hz
+    cfg.flight.duration_s = turns / cfg.risley.rotation_hz
+    cfg.instrument.errors = ("ranging", "pose")
     return validate(cfg)
 
 
@@ -67,14 +68,14 @@ def with_sources(cfg: RunConfig, values: dict[str, float]) -> RunConfig:
     """A validated copy of ``cfg`` with each source of ``values`` ({name: value in its unit}) applied."""
     out = copy_config(cfg)
     v = {name: 0.0 for name in SOURCES} | values
-    s = out.sensor
-    out.errors = dataclasses.replace(out.errors, encoder_arcsec=v["encoder"], encoder_noise_arcsec=v["encoder_noise"],
-                                     boresight_arcsec=(v["roll"], v["pitch"], v["yaw"]),
-                                     position_noise_m=v["position"], attitude_noise_arcsec=v["attitude"])
-    out.sensor = dataclasses.replace(s, range_noise_m=v["range"])
+    s = out.risley
+    out.parts["pose"] = dataclasses.replace(out.pose, boresight_arcsec=(v["roll"], v["pitch"], v["yaw"]),
+                                            position_noise_m=v["position"], attitude_noise_arcsec=v["attitude"])
+    out.parts["ranging"] = dataclasses.replace(out.ranging, noise_m=v["range"])
     # the wedge is made off its catalogue values; the processing believes the catalogue
-    out.processing = dataclasses.replace(out.processing, apex_angle_deg=s.apex_angle_deg - v["apex"] / 3600.0,
-                                         refractive_index=s.refractive_index - v["index"])
+    out.parts["risley"] = dataclasses.replace(s, encoder_arcsec=v["encoder"], encoder_noise_arcsec=v["encoder_noise"],
+                                              believed_apex_angle_deg=s.apex_angle_deg - v["apex"] / 3600.0,
+                                              believed_refractive_index=s.refractive_index - v["index"])
     return validate(out)
 
 
@@ -157,8 +158,8 @@ def budget_numbers(frame: Frame, det: dict, mc: MonteCarlo, device: str) -> dict
     return {
         "device": device,
         "frame": {"pulses": frame.pulses, "beams": frame.beams, "altitude_m": frame.cfg.flight.altitude_m,
-                  "cone_half_angle_deg": frame.cfg.sensor.cone_half_angle_deg,
-                  "apex_angle_deg": frame.cfg.sensor.apex_angle_deg},
+                  "cone_half_angle_deg": frame.cfg.risley.cone_half_angle_deg,
+                  "apex_angle_deg": frame.cfg.risley.apex_angle_deg},
         "sources": {name: dataclasses.asdict(s) for name, s in SOURCES.items()},
         "deterministic_cm": summary_rows(det),
         "monte_carlo": {"draws": mc.draws, "wall_s": round(mc.wall_s, 3),

@@ -6,7 +6,7 @@ The pass is the straight, level track of the calibration model (flightsim.calibr
 `lines` platform at the orbit's ground speed and altitude over flat ground, so the simulator's photons and
 the calibration's geolocation describe the same instrument. Pointing biases enter as the boresight error
 of the true sensor axes (pitch: along track, forward; roll: across track, positive to the left, so
-δ_across = −roll); the ranging bias as errors.range_bias_m.
+δ_across = −roll); the ranging bias as ranging.range_bias_m.
 """
 from __future__ import annotations
 
@@ -17,7 +17,8 @@ import numpy as np
 
 from flightsim.calibration.ccr import CcrField, calibrate_least_squares, calibrate_patent, design_field
 from flightsim.calibration.geolocation import Bias, Track, footprint_offset, theoretical_radius
-from flightsim.core.config import RunConfig, preset_config, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
+from flightsim.engine.config_io import preset_config
 from flightsim.core.errors import InputError
 
 GROUND_SPEED_MPS = 7000.0  # ICESat-2-like
@@ -49,10 +50,11 @@ def pass_config(truth: Bias, field: CcrField, shots: int, device: str = "cpu", s
     (``orbit``)."""
     cfg = preset_config("atlas")
     h = cfg.flight.altitude_m
-    settings = {"flight.duration_s": (shots - 0.5) / cfg.sensor.prf_hz,
+    settings = {"flight.duration_s": (shots - 0.5) / cfg.fixed.prf_hz,
                 "scene.ccrs": [list(p) for p in field.positions_m], "scene.ccr_photons": CCR_PHOTONS,
-                "errors.boresight_arcsec": [-truth.across_arcsec, truth.along_arcsec, 0.0],
-                "errors.range_bias_m": truth.range_m, "photon.noise_hz": background_hz,
+                "instrument.errors": ["ranging", "pose"],
+                "pose.boresight_arcsec": [-truth.across_arcsec, truth.along_arcsec, 0.0],
+                "ranging.range_bias_m": truth.range_m, "photon.noise_hz": background_hz,
                 "photon.gate_m": [h - GATE_HALF_M, h + GATE_HALF_M], "photon.max_events": MAX_EVENTS,
                 "run.device": device, "run.seed": seed}
     if platform == "lines":
@@ -70,14 +72,14 @@ def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", see
     the simulator (the pass curves and its nadir turns by ~0.5 mrad over 3.5 km); the field is laid out
     along the straight line through the pass's first and last nadir points."""
     from flightsim.engine.simulate import Simulator
-    from flightsim.platforms.plan import build_scene, flight_trajectories
+    from flightsim.engine.world import build_scene, flight_trajectories
 
     base = preset_config("atlas")
     h = base.flight.altitude_m
-    radius = theoretical_radius(h, base.sensor.divergence_mrad * 1e-3)
+    radius = theoretical_radius(h, base.fan.divergence_mrad * 1e-3)
     design = design_field(radius, 2.0, h, min_triggered=min_triggered)
     span = LEAD_M * 2 + float(np.ptp(design.along_m))
-    shots = int(span / (GROUND_SPEED_MPS / base.sensor.prf_hz))
+    shots = int(span / (GROUND_SPEED_MPS / base.fixed.prf_hz))
     # the track from a config without CCRs (the flight does not depend on them)
     probe = pass_config(truth, CcrField(np.zeros((1, 3)), np.zeros(1)), shots, device, seed, background_hz, platform)
     scene = build_scene(probe)
@@ -104,7 +106,7 @@ def _track(sim, shots: int, platform: str) -> Track:
     poses = sim.poses64(sim.trajectories[0].line_id, 0, shots).numpy()
     origin, rot = np.asarray(poses["origin"], dtype=np.float64), np.asarray(poses["rot"], dtype=np.float64)
     nadir = origin - (origin[:, 2] / rot[:, 2, 2])[:, None] * rot[:, :, 2]  # the beam axis on the ground z = 0
-    h, rate = float(sim.cfg.flight.altitude_m), sim.cfg.sensor.prf_hz
+    h, rate = float(sim.cfg.flight.altitude_m), sim.cfg.fixed.prf_hz
     if platform == "lines":
         return Track(altitude_m=h, ground_speed_mps=GROUND_SPEED_MPS, rate_hz=rate, azimuth_deg=0.0,
                      origin_m=(float(nadir[0, 0]), float(nadir[0, 1])))

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.core.atomic import write_atomic
-from flightsim.core.config import RunConfig, preset_config, validate
+from flightsim.engine.config import RunConfig, validate
+from flightsim.engine.config_io import preset_config
 
 PAPER = {"mode_a": {"distance_m": 100.0, "grid": 1100, "frame_s": 0.86, "pulses": 43000, "accuracy_3sigma_cm": 2.86},
          "mode_b": {"distances_m": [83.0, 73.0, 63.0, 54.0, 44.0, 34.0], "mean_accuracy_3sigma_cm": 3.10,
@@ -114,7 +115,7 @@ def write_products(stem: Path, scene, sim, frame: "FramePoints", grid: int) -> l
 def frame_simulator(cfg: RunConfig):
     """(scene, Simulator) of a frame's config."""
     from flightsim.engine.simulate import Simulator
-    from flightsim.platforms.plan import build_scene, flight_trajectories
+    from flightsim.engine.world import build_scene, flight_trajectories
 
     scene = build_scene(cfg)
     return scene, Simulator(cfg, scene, flight_trajectories(cfg, scene))

@@ -32,13 +32,18 @@ from typing import Callable
 
 import numpy as np
 
-from flightsim import __version__
-from flightsim.core.config import MODELS, RunConfig, copy_config, to_toml, validate
+from flightsim.core.version import __version__
+from flightsim.core.constants import MODELS
+from flightsim.engine.config import RunConfig, copy_config, validate
+from flightsim.engine.config_io import to_toml
 from flightsim.core.errors import InputError
 from flightsim.outputs.device_las import DeviceLasOutput
-from flightsim.platforms.plan import MIN_CLEARANCE_M
+from flightsim.engine.instrument import Instrument
+from flightsim.platforms.flight import MIN_CLEARANCE_M
 from flightsim.core.atomic import write_atomic
-from flightsim.scenes.scene import Scene, calibration_min_half_extent, calibration_scene, parse_crs, plane_scene
+from flightsim.scenes.calibration import calibration_min_half_extent, calibration_scene
+from flightsim.scenes.plane import plane_scene
+from flightsim.scenes.scene import Scene, parse_crs
 from flightsim.engine.simulate import Simulator
 from trajectories import FlightLine, PulseTiming, TrajectoryError, plan_parallel_lines
 
@@ -192,10 +197,8 @@ class SurveyPlan:
 
 def plan_survey(cfg: RunConfig, spec: SurveySpec) -> SurveyPlan:
     """Lay out the tile grid, the flight lines and the tasks of a survey (validated config and spec)."""
-    from flightsim.engine.coverage import max_off_axis_rad
-
     spec = spec.validated()
-    f, s = cfg.flight, cfg.sensor
+    f, s = cfg.flight, cfg.risley
     _check_survey_config(cfg, spec)
     n = max(1, math.ceil(spec.size_km * 1000.0 / spec.tile_m - 1e-9))
     grid = TileGrid(cfg.scene.name, cfg.scene.crs, tuple(cfg.scene.origin), spec.tile_m, n)
@@ -211,10 +214,11 @@ def plan_survey(cfg: RunConfig, spec: SurveySpec) -> SurveyPlan:
     flown.flight.lines, flown.flight.line_spacing_m = lines, spacing
     flown.flight.duration_s = grid.side_m / (f.speed_kmh / 3.6)
     flown = validate(flown)
-    tilt = abs(f.roll_deg) + abs(f.pitch_deg) + abs(s.boresight_deg[0]) + abs(s.boresight_deg[1])
-    angle = math.degrees(max_off_axis_rad(cfg)) + tilt + REACH_MARGIN_DEG
+    boresight = cfg.instrument.boresight_deg
+    tilt = abs(f.roll_deg) + abs(f.pitch_deg) + abs(boresight[0]) + abs(boresight[1])
+    angle = math.degrees(Instrument(cfg).max_off_axis_rad()) + tilt + REACH_MARGIN_DEG
     if angle >= MAX_REACH_DEG:
-        raise InputError("sensor.cone_half_angle_deg", s.cone_half_angle_deg,
+        raise InputError("risley.cone_half_angle_deg", s.cone_half_angle_deg,
                          f"a scan whose beams stay within {MAX_REACH_DEG:g} deg of nadir (with tilt and fan)")
     reach = f.altitude_m * math.tan(math.radians(angle)) + cfg.scene.margin_m
     try:
@@ -223,16 +227,21 @@ def plan_survey(cfg: RunConfig, spec: SurveySpec) -> SurveyPlan:
                                       pitch_deg=f.pitch_deg, start_gps_time=f.start_gps_time)
     except TrajectoryError as exc:
         raise InputError(exc.field, exc.value, exc.allowed) from None
-    timing = _timing(flown)
+    timing = Instrument(flown).deflector.timing()
     tasks = [task for line in planned for task in _segments(line, grid, flown, spec, timing, reach)]
     return SurveyPlan(flown, spec, grid, swath, reach, tasks)
 
 
 def _check_survey_config(cfg: RunConfig, spec: SurveySpec) -> None:
     f = cfg.flight
+    for name, value, allowed in (("instrument.deflector", cfg.instrument.deflector, "risley"),
+                                 ("instrument.detector", cfg.instrument.detector, "discrete"),
+                                 ("flight.platform", f.platform, "lines")):
+        if value != allowed:
+            raise InputError(name, value, f"{allowed} for a survey (the airborne instrument's flight lines)")
     if cfg.scene.name not in ("calibration", "plane"):
         raise InputError("scene.name", cfg.scene.name, "calibration or plane (the content of every survey tile)")
-    if cfg.scene.slope != 0.0:
+    if cfg.scene.values().get("slope", 0.0) != 0.0:
         raise InputError("scene.slope", cfg.scene.slope, "0 for a survey (tiles of flat ground join up)")
     if f.trajectory:
         raise InputError("flight.trajectory", f.trajectory, "no trajectory file for a survey (it plans its lines)")
@@ -241,12 +250,6 @@ def _check_survey_config(cfg: RunConfig, spec: SurveySpec) -> None:
     if cfg.scene.name == "calibration" and spec.tile_m <= 2 * calibration_min_half_extent():
         raise InputError("survey.tile_m", spec.tile_m,
                          f"more than {2 * calibration_min_half_extent():g} m (the calibration block and a margin)")
-
-
-def _timing(cfg: RunConfig) -> PulseTiming:
-    s = cfg.sensor
-    return PulseTiming(prf_hz=s.prf_hz, rotation_hz=s.rotation_hz, phase0_rad=math.radians(s.phase0_deg),
-                       field_prefix="sensor")
 
 
 def _segments(line: FlightLine, grid: TileGrid, cfg: RunConfig, spec: SurveySpec, timing: PulseTiming,
@@ -303,9 +306,9 @@ def _simulate_segment(cfg: RunConfig, grid: TileGrid, task: SegmentTask, directo
     trajectory = task.line.trajectory(ground_height_m=grid.centre[2])
     simulator = Simulator(cfg, scene, [trajectory], with_truth=cfg.output.position_error,
                           pulse_limits={task.line.line_id: task.pulses})
-    parts_cfg = copy_config(cfg)
-    parts_cfg.output.laz = False  # parts are plain LAS; the merge writes the final format
-    las = DeviceLasOutput(directory, parts_cfg, simulator, edge_distance=False, plane_ids=global_plane)
+    parts = copy_config(cfg)
+    parts.output.laz = False  # parts are plain LAS; the merge writes the final format
+    las = DeviceLasOutput(directory, parts.output, simulator, False, cfg.flight.start_gps_time, plane_ids=global_plane)
     try:
         counts = simulator.run_device(las)
         tiles = las.close()

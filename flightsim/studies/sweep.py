@@ -15,7 +15,6 @@ and the client records each one's rows as it finishes, exactly as the serial loo
 from __future__ import annotations
 
 import csv
-import dataclasses
 import hashlib
 import io
 import itertools
@@ -26,13 +25,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
 
-from flightsim.core.config import RunConfig, canonical_key, copy_config, get_value, set_value, to_toml, validate
-from flightsim.scenes.edges import edge_buffer_m
+from flightsim.engine.config import RunConfig, canonical_key, config_dict, copy_config, get_value, set_value, validate
+from flightsim.engine.config_io import to_toml
+from flightsim.engine.world import edge_buffer_m
 from flightsim.core.errors import InputError
 from flightsim.core.atomic import save_figure, write_atomic
 
 SPEC_COLUMNS = ["altitude_m", "array", "spacing_mrad"]
-AXIS_KEYS = {"altitude_m": "flight.altitude_m", "array": "sensor.array", "spacing_mrad": "sensor.spacing_mrad"}
+AXIS_KEYS = {"altitude_m": "flight.altitude_m", "array": "fan.array", "spacing_mrad": "fan.spacing_mrad"}
 ROW_CORE = ["model", "rms_m", "points"]  # the SPEC's columns after the axes
 ROW_MORE = ["returns", "planes", "edge_buffer_m", "wall_s"]
 PLANE_TAIL = ["model", "plane_id", "kind", "n", "rms_m", "pitch_deg", "azimuth_deg"]
@@ -103,7 +103,7 @@ class SceneCache:
     """
 
     def __init__(self, configs: Iterable[RunConfig] = ()):
-        from flightsim.platforms.plan import scene_half_extent
+        from flightsim.engine.world import scene_half_extent
 
         self.extent: dict[str, float] = {}
         for cfg in configs:
@@ -114,11 +114,11 @@ class SceneCache:
     @staticmethod
     def scene_key(cfg: RunConfig) -> str:
         """Identity of a config's scene (its ``scene`` section)."""
-        return json.dumps(dataclasses.asdict(cfg.scene), sort_keys=True)
+        return json.dumps(cfg.scene.values(), sort_keys=True)
 
     def get(self, cfg: RunConfig, device: str):
         """(Scene, SceneMeshes) for a config's scene on ``device``."""
-        from flightsim.platforms.plan import build_scene
+        from flightsim.engine.world import build_scene
         from flightsim.engine.simulate import SceneMeshes
 
         scene_key = self.scene_key(cfg)
@@ -131,7 +131,7 @@ class SceneCache:
 
 def run_configuration(labels: dict, cfg: RunConfig, scenes: SceneCache) -> dict:
     """Simulate one configuration in statistics mode; return its sweep and plane rows."""
-    from flightsim.platforms.plan import flight_trajectories
+    from flightsim.engine.world import flight_trajectories
     from flightsim.scoring.planes import pooled_rms
     from flightsim.engine.simulate import Simulator
     from flightsim.core.warp_runtime import resolve_device
@@ -244,7 +244,7 @@ def run_sweep(grid: SweepGrid, out: Path, overwrite: bool = False,
     configuration as its result streams back.
     """
     configs = grid.configurations()
-    description = json.dumps({"axes": grid.axes, "base": dataclasses.asdict(grid.base)}, indent=2, default=str)
+    description = json.dumps({"axes": grid.axes, "base": config_dict(grid.base)}, indent=2, default=str)
     directory = SweepDirectory(out, description, overwrite)
     scenes = SceneCache(cfg for _, cfg in configs)
     todo = [(labels, cfg) for labels, cfg in configs if not directory.done(cfg)]

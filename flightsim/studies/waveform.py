@@ -10,18 +10,20 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.core.atomic import save_figure, write_atomic
-from flightsim.core.config import RunConfig, load_toml, preset_config, set_value, validate
+from flightsim.engine.config import RunConfig, set_value, validate
+from flightsim.engine.config_io import load_toml, preset_config
 from flightsim.instrument import waveform_model as model
 
-SCENES = {"flat": ("plane", 0.0), "slope": ("plane", model.PATENT_SLOPE), "bump": ("bump", 0.0)}
+SCENES = {"flat": ("plane", 0.0), "slope": ("plane", model.PATENT_SLOPE), "bump": ("bump", None)}
 COMMAND = "flightsim waveform --patent --device {device} --out results/waveform"
 
 
 def waveform_config(scene: str, device: str = "cpu", config: str | None = None, **settings) -> RunConfig:
     """The ``change1`` preset (or ``config`` over it) over ``scene``: flat, slope, bump or a mesh path."""
     cfg = load_toml(config, preset_config("change1")) if config else preset_config("change1")
-    name, slope = SCENES.get(scene, (scene, cfg.scene.slope))
-    for key, value in {"scene.name": name, "scene.slope": slope, "run.device": device, **settings}.items():
+    name, slope = SCENES.get(scene, (scene, None))
+    scene_settings = {"scene.name": name, **({"scene.slope": slope} if slope is not None else {})}
+    for key, value in {**scene_settings, "run.device": device, **settings}.items():
         set_value(cfg, key, value)
     return validate(cfg)
 

@@ -1,0 +1,29 @@
+"""A scene from its settings: the kind chosen by ``scene.name`` builds it; scenes read from files go through the
+scene cache (:mod:`flightsim.scenes.cache`)."""
+from __future__ import annotations
+
+from flightsim.core import registry
+from flightsim.core.errors import InputError
+from flightsim.scenes.scene import Scene, parse_crs
+from flightsim.scenes.settings import scene_choices, scene_kind
+
+
+def scene_part(scene):
+    """The scene kind part for the ``[scene]`` section ``scene`` (common and kind settings)."""
+    kind = scene_kind(scene.name)
+    if kind is None:
+        raise InputError("scene.name", scene.name, scene_choices())
+    return registry.part("scene", kind)(scene)
+
+
+def build_scene(scene, half_extent_m: float, seed: int = 0, use_cache: bool = True, device: str = "cpu") -> Scene:
+    """The scene of the ``[scene]`` section ``scene``: a built-in kind with ground of ``half_extent_m`` [m] where it
+    is sized to the flight (relief from ``seed``); a file through the scene cache when ``use_cache`` (keyed on
+    every scene setting and the files they name; its height grid built on ``device``)."""
+    parse_crs(scene.crs, field="scene.crs")
+    part = scene_part(scene)
+    if not getattr(part, "suffixes", ()) or not use_cache:
+        return part.build(half_extent_m, seed)
+    from flightsim.scenes.cache import cached_scene
+
+    return cached_scene(scene.name, scene.values(), lambda: part.build(half_extent_m, seed), grid_device=device)

@@ -1,0 +1,46 @@
+"""The settings every scene shares (``[scene]``: which scene, its CRS and origin, its retroreflectors), and the
+scene kind a name chooses (a built-in scene's name, or a file's suffix)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from flightsim.core import registry
+from flightsim.core.settings import Settings, setting
+from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN
+
+
+@dataclass
+class SceneSettings(Settings):
+    """What is scanned and where it lies; the scene kind's own settings join these."""
+
+    table = "scene"
+
+    name: str = setting("calibration", "a built-in scene, or the path of a mesh (.obj/.ply) or height grid "
+                        "(.tif/.tiff/.npy)")
+    crs: str = setting(DEFAULT_CRS, "the world's projected CRS in metres (a GeoTIFF brings its own)")
+    origin: tuple[float, float, float] = setting(DEFAULT_ORIGIN, "the local frame's origin: world E, N, H", "m",
+                                                 length=3, items=(-1.0e8, 1.0e8))
+    margin_m: float = setting(50.0, "ground added around what the flight reaches (built-in scenes)", "m",
+                              range=(0.0, 10000.0))
+    ccrs: tuple = setting((), "corner-cube retroreflectors: [east, north, up] local each (photon detector)", "m",
+                          points=True)
+    ccr_photons: float = setting(0.0, "photo-electrons a retroreflector returns at a footprint's centre", "",
+                                 range=(0.0, 1.0e6))
+
+
+def scene_kind(name: str) -> str | None:
+    """The scene kind of ``scene.name``: a built-in scene by name, a file kind by suffix; None if neither."""
+    kinds = registry.kinds("scene")
+    if name in kinds and not getattr(kinds[name], "suffixes", ()):
+        return name
+    suffix = Path(name).suffix.lower()
+    return next((kind for kind, part in kinds.items() if suffix and suffix in getattr(part, "suffixes", ())), None)
+
+
+def scene_choices() -> str:
+    """What scene.name accepts, in words."""
+    kinds = registry.kinds("scene")
+    names = [k for k, p in kinds.items() if not getattr(p, "suffixes", ())]
+    files = " or ".join("a " + "/".join(p.suffixes) + " file" for p in kinds.values() if getattr(p, "suffixes", ()))
+    return f"{', '.join(names)}, or the path of {files}"

@@ -1,0 +1,139 @@
+"""Polygon triangulation: ear clipping with holes bridged to the outer boundary (the calibration field's ground
+around its roads and houses)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def triangulate_polygon_with_holes(
+    outer: np.ndarray, holes: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate a simple polygon with disjoint polygonal holes, adding no vertices.
+
+    Args:
+        outer: (n, 2) boundary, either winding.
+        holes: (m, 2) boundaries, either winding, strictly inside ``outer`` and apart from each other.
+
+    Returns:
+        points (P, 2) = outer then holes, each ring re-ordered counter-clockwise (outer) or
+        clockwise (holes); triangles (T, 3) indices into points, counter-clockwise. Every
+        polygon edge is an edge of exactly one triangle.
+    """
+    rings = [_wound(outer, counter_clockwise=True)] + [_wound(h, counter_clockwise=False) for h in holes]
+    points = np.concatenate(rings)
+    polygon = list(range(len(outer)))
+    starts = np.cumsum([len(outer)] + [len(h) for h in holes])
+    pending = [list(range(starts[k], starts[k + 1])) for k in range(len(holes))]
+    pending.sort(key=lambda ring: -points[ring, 0].max())
+    while pending:
+        hole = pending.pop(0)
+        polygon = _bridge_hole(points, polygon, hole, pending)
+    return points, np.array(_clip_ears(points, polygon), dtype=np.int64).reshape(-1, 3)
+
+
+def _wound(ring, counter_clockwise: bool) -> np.ndarray:
+    """A polygon ring (n, 2) in the asked winding (shoelace sign)."""
+    ring = np.asarray(ring, dtype=np.float64)
+    x, y = ring[:, 0], ring[:, 1]
+    area = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+    return ring if (area > 0.0) == counter_clockwise else ring[::-1].copy()
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
+
+
+def _segments_cross(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether closed segments pq and ab share a point other than a common endpoint."""
+    shared = [x for x in (a, b) if np.array_equal(x, p) or np.array_equal(x, q)]
+    if shared:
+        return False
+    d1 = _cross(q - p, a - p)
+    d2 = _cross(q - p, b - p)
+    d3 = _cross(b - a, p - a)
+    d4 = _cross(b - a, q - a)
+    if ((d1 > 0) != (d2 > 0)) and ((d3 > 0) != (d4 > 0)) and d1 != 0 and d2 != 0 and d3 != 0 and d4 != 0:
+        return True
+    return any(
+        d == 0 and _on_segment(x, s0, s1)
+        for d, x, s0, s1 in ((d1, a, p, q), (d2, b, p, q), (d3, p, a, b), (d4, q, a, b))
+    )
+
+
+def _on_segment(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    return bool(min(a[0], b[0]) <= x[0] <= max(a[0], b[0]) and min(a[1], b[1]) <= x[1] <= max(a[1], b[1]))
+
+
+def _in_sector(points: np.ndarray, polygon: list[int], k: int, target: np.ndarray) -> bool:
+    """Whether the direction from polygon vertex k to ``target`` enters the polygon's interior."""
+    cur = points[polygon[k]]
+    a = points[polygon[(k + 1) % len(polygon)]] - cur
+    b = points[polygon[k - 1]] - cur
+    d = target - cur
+    if _cross(a, b) > 0.0:
+        return _cross(a, d) > 0.0 and _cross(d, b) > 0.0
+    return _cross(a, d) > 0.0 or _cross(d, b) > 0.0
+
+
+def _bridge_hole(points: np.ndarray, polygon: list[int], hole: list[int], others: list[list[int]]) -> list[int]:
+    """Splice ``hole`` into ``polygon`` through the shortest segment that crosses no edge."""
+    edges = [(polygon[i], polygon[(i + 1) % len(polygon)]) for i in range(len(polygon))]
+    for ring in [hole] + others:
+        edges += [(ring[i], ring[(i + 1) % len(ring)]) for i in range(len(ring))]
+    candidates = sorted(
+        (float(np.sum((points[polygon[k]] - points[m]) ** 2)), j, k)
+        for j, m in enumerate(hole) for k in range(len(polygon))
+    )
+    for _, j, k in candidates:
+        m, v = points[hole[j]], points[polygon[k]]
+        if not _in_sector(points, polygon, k, m):
+            continue
+        if any(_segments_cross(m, v, points[e0], points[e1]) for e0, e1 in edges):
+            continue
+        ring = hole[j:] + hole[:j]
+        return polygon[:k + 1] + ring + [hole[j], polygon[k]] + polygon[k + 1:]
+    raise RuntimeError("no visible vertex to bridge a hole; holes must lie strictly inside and apart")
+
+
+def _clip_ears(points: np.ndarray, polygon: list[int]) -> list[tuple[int, int, int]]:
+    """Ear clipping of a counter-clockwise (weakly) simple polygon; picks the fattest ear first."""
+    polygon = list(polygon)
+    triangles = []
+    while len(polygon) > 3:
+        best, best_quality = -1, -1.0
+        for i in range(len(polygon)):
+            quality = _ear_quality(points, polygon, i)
+            if quality > best_quality:
+                best, best_quality = i, quality
+        if best < 0:
+            raise RuntimeError("ear clipping found no ear; the polygon is not simple")
+        n = len(polygon)
+        triangles.append((polygon[best - 1], polygon[best], polygon[(best + 1) % n]))
+        del polygon[best]
+    triangles.append(tuple(polygon))
+    return triangles
+
+
+def _ear_quality(points: np.ndarray, polygon: list[int], i: int) -> float:
+    """Smallest angle [rad] of the ear at polygon vertex i, or −1 if it is not an ear."""
+    n = len(polygon)
+    ia, ib, ic = polygon[i - 1], polygon[i], polygon[(i + 1) % n]
+    a, b, c = points[ia], points[ib], points[ic]
+    if _cross(b - a, c - b) <= 0.0:
+        return -1.0
+    corners = (a, b, c)
+    for k in polygon:
+        x = points[k]
+        if any(np.array_equal(x, y) for y in corners):
+            continue
+        if _cross(b - a, x - a) >= 0.0 and _cross(c - b, x - b) >= 0.0 and _cross(a - c, x - c) >= 0.0:
+            return -1.0
+    return min(_angle(a, b, c), _angle(b, c, a), _angle(c, a, b))
+
+
+def _angle(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+    """Angle [rad] at vertex a of triangle abc."""
+    u, w = b - a, c - a
+    return math.atan2(abs(_cross(u, w)), float(np.dot(u, w)))

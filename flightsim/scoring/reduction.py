@@ -1,0 +1,41 @@
+"""The statistics reduction's host side: how many copies of the per-group sums the reducing threads spread their
+atomics over, and the totals of those copies (added on the device)."""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from kernels import trace
+
+SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # consecutive slots per reducing thread
+SUM_REPLICAS = 512  # copies of the per-group sums on a GPU, so busy groups' atomics spread
+SUM_REPLICA_BYTES = 1 << 26  # ... within this much device memory
+
+
+def sum_replicas(device_kind: str, groups: int, asked: int = 0) -> int:
+    """Copies of the sums of ``groups`` groups: one on the CPU (one thread per launch), ``asked`` (run.sum_replicas)
+    or else SUM_REPLICAS on a GPU, within SUM_REPLICA_BYTES."""
+    if device_kind == "cpu":
+        return 1
+    per_copy = 2 * groups * (8 + 24 + 48)
+    return max(1, min(asked or SUM_REPLICAS, SUM_REPLICA_BYTES // per_copy))
+
+
+def replica_totals(sums: list[wp.array]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reduction's (count, Σd, Σ upper triangle of ddᵀ) per model and group, its replicas added on
+    the device (replica 0 first, the order the host's sum took): (2, G), (2, G, 3), (2, G, 6)."""
+    counts, first, second = sums
+    shape, d = counts.shape[1:], counts.device
+    totals = [wp.empty(shape, dtype=wp.int64, device=d), wp.empty(shape, dtype=wp.vec3d, device=d),
+              wp.empty(shape, dtype=trace.vec6d, device=d)]
+    wp.launch(trace.add_replicas, shape, inputs=[counts, first, second], outputs=totals, device=d)
+    return tuple(a.numpy() for a in totals)
+
+
+def symmetric(upper: np.ndarray) -> np.ndarray:
+    """(P, 6) upper triangles xx, xy, xz, yy, yz, zz → (P, 3, 3) symmetric matrices."""
+    rows, cols = np.triu_indices(3)
+    full = np.zeros((len(upper), 3, 3))
+    full[:, rows, cols] = upper
+    full[:, cols, rows] = upper
+    return full
