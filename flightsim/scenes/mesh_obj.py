@@ -15,7 +15,8 @@ from flightsim.scenes.mesh_format import MeshFormatError, class_from_name
 
 def read_obj(data: bytes) -> dict:
     """The dict of :func:`flightsim.scenes.meshio._read` for the bytes of an OBJ file: ``v``/``f``/``g``/``o``
-    records (others are skipped), vectorised when every record is plain ASCII numbers, else (and for every error, so that its message names the line) line by line."""
+    records (others are skipped), vectorised when every record is plain ASCII numbers, else (and for every
+    error, so that its message names the line) line by line."""
     if b"\x00" in data:
         raise MeshFormatError("binary data in an OBJ file")
     fast = _read_obj_vectorised(data)
@@ -54,7 +55,8 @@ def _read_obj_lines(data: bytes) -> dict:
 
 def _obj_mesh(vertices: np.ndarray, corners: np.ndarray, sizes: np.ndarray, group: np.ndarray,
               names: list[str]) -> dict:
-    """The dict of :func:`flightsim.scenes.meshio._read` for an OBJ file: ``names`` are the groups in order of first use (id = index)."""
+    """The dict of :func:`flightsim.scenes.meshio._read` for an OBJ file: ``names`` are the groups in order of
+    first use (id = index)."""
     group_class = np.array([class_from_name(n) for n in names], dtype=np.uint8)
     return {
         "vertices": vertices,
