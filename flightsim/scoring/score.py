@@ -124,7 +124,8 @@ def score_points(batch: PointBatch, mode: str = "truth", edge_buffer_m: float | 
 
 
 def _score_truth(batch: PointBatch, xyz: np.ndarray, buffer: float | None, source: str) -> ScoreResult:
-    from flightsim.scoring.blind import auto_edge_buffer_m, boundary_distance_m, neighbourhoods
+    from flightsim.scoring.blind_edges import auto_edge_buffer_m, boundary_distance_m
+    from flightsim.scoring.blind_neighbours import neighbourhoods
 
     labels = batch.plane_id.astype(np.int64)
     member = labels >= 0
