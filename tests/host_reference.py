@@ -14,7 +14,7 @@ import numpy as np
 from flightsim.core.config import RunConfig
 from flightsim.engine.simulate import ReturnChunk
 from flightsim.outputs.device_las import beam_columns, tile_writers
-from flightsim.outputs.las_tiles import PointBatch
+from flightsim.outputs.las_points import PointBatch
 from flightsim.scenes.scene import Scene
 from flightsim.scoring.planes import PlaneMoments
 from trajectories import PulseTiming

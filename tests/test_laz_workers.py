@@ -23,7 +23,8 @@ import pytest
 
 from flightsim.core.config import RunConfig, set_value, validate
 from flightsim.outputs import las_tiles, laz_workers
-from flightsim.outputs.las_tiles import PointBatch, TileWriter, read_points
+from flightsim.outputs.las_points import PointBatch, read_points
+from flightsim.outputs.las_tiles import TileWriter
 
 UTM48N = pyproj.CRS.from_epsg(32648)
 TILE_M = 500.0

@@ -21,7 +21,8 @@ import warp as wp
 from flightsim import __version__
 from flightsim.core.config import RunConfig
 from flightsim.core.warp_runtime import to_host
-from flightsim.outputs.las_tiles import TileWriter, gps_week_date
+from flightsim.outputs.las_format import gps_week_date
+from flightsim.outputs.las_tiles import TileWriter
 from flightsim.scenes.scene import Scene
 from kernels import las_records as kl
 

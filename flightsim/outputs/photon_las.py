@@ -26,7 +26,9 @@ from pathlib import Path
 import numpy as np
 import pyproj
 
-from flightsim.outputs.las_tiles import PointBatch, TileWriter, gps_week_date
+from flightsim.outputs.las_format import gps_week_date
+from flightsim.outputs.las_points import PointBatch
+from flightsim.outputs.las_tiles import TileWriter
 from flightsim.platforms.orbit import local_to_geodetic
 from flightsim.scenes.scene import parse_crs
 

@@ -33,7 +33,7 @@ from flightsim.core.errors import InputError
 from flightsim.scoring.planes import PlaneFit, fit_groups, pooled_rms
 
 if TYPE_CHECKING:
-    from flightsim.outputs.las_tiles import PointBatch
+    from flightsim.outputs.las_points import PointBatch
 
 # laspy, pyproj and scipy are imported where used, so that registering the command costs nothing
 
@@ -259,7 +259,7 @@ def score_paths(paths: Sequence[str | os.PathLike], mode: str = "truth", out: st
                 edge_buffer_m: float | None = None) -> list[ScoreResult]:
     """Score LAS files and run directories (see :func:`find_sources`); write DIR/planes.csv and
     DIR/score.json when ``out`` is given."""
-    from flightsim.outputs.las_tiles import read_points
+    from flightsim.outputs.las_points import read_points
 
     if mode not in MODES:
         raise InputError("--mode", mode, " or ".join(MODES))
