@@ -11,6 +11,7 @@ import numpy as np
 from flightsim.calibration.geolocation import ARCSEC, Track
 from flightsim.core.errors import InputError
 
+
 @dataclass(frozen=True)
 class CcrField:
     """Known CCRs: reflecting points (n, 3) ENU [m] and their heights above the ground [m]."""

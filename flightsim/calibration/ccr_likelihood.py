@@ -13,6 +13,7 @@ from flightsim.calibration.ccr_field import CcrField
 from flightsim.calibration.ccr_tracks import Identification
 from flightsim.calibration.geolocation import ARCSEC, Bias, Track, footprint_offset
 
+
 @dataclass(frozen=True)
 class LeastSquaresCalibration:
     """The generic estimator's result."""

@@ -12,6 +12,7 @@ from flightsim.calibration.ccr_field import CcrField
 from flightsim.calibration.geolocation import Track, geolocate
 from flightsim.core.errors import InputError
 
+
 @dataclass(frozen=True)
 class CcrTrack:
     """The photon track of one triggered CCR."""

@@ -8,6 +8,7 @@ import numpy as np
 from flightsim.scoring.blind_neighbours import compact, group_indices, touching_pairs
 from flightsim.scoring.planes import fit_groups, group_moments
 
+
 def merge(points, neighbours, labels, noise, gap, params) -> np.ndarray:
     """Merge neighbouring segments whose joint plane fits about as well as their separate ones,
     or as well as the object's noise scale (the distortion can offset or tilt the parts of one

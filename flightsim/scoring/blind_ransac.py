@@ -12,6 +12,7 @@ from scipy.sparse.csgraph import connected_components
 from flightsim.scoring.blind_neighbours import compact, group_indices
 from flightsim.scoring.planes import fit_groups, fit_points
 
+
 def split_non_planar(points, neighbours, normals, residual, labels, params) -> np.ndarray:
     """Re-segment by RANSAC each grown segment whose plane fits much worse than its points'
     own neighbourhoods (growing leaked across a ridge or a step)."""
