@@ -15,7 +15,7 @@ from flightsim.engine.config import RunConfig
 from flightsim.engine.simulate import ReturnChunk
 from flightsim.engine.instrument import Instrument
 from flightsim.outputs.device_las import tile_writers
-from flightsim.outputs.las_tiles import PointBatch
+from flightsim.outputs.las_points import PointBatch
 from flightsim.scenes.scene import Scene
 from flightsim.scoring.planes import PlaneMoments
 from trajectories import PulseTiming

@@ -8,7 +8,7 @@ import pytest
 
 from flightsim.scoring.blind import extract_planes
 from flightsim.engine.config import RunConfig, validate
-from flightsim.outputs.las_tiles import read_points
+from flightsim.outputs.las_points import read_points
 from flightsim.scoring.planes import fit_points
 from flightsim.engine.world import build_scene
 

@@ -25,7 +25,7 @@ import pytest
 from flightsim.calibration import (ARCSEC, Altimeter, Bias, CcrField, Track, calibrate_least_squares,
                                    calibrate_patent, common_tangents, design_field, geolocate, ground_shift_m,
                                    identify_ccr_tracks, measured_range, simulate_pass, theoretical_radius)
-from flightsim.calibration import ccr
+from flightsim.calibration import ccr, ccr_lines, ccr_tracks
 from flightsim.calibration.geolocation import footprint_centre
 from flightsim.core.errors import InputError
 
@@ -141,14 +141,14 @@ def test_common_tangents_against_independent_construction(seed):
 
 
 def test_exact_chords_put_the_centroids_on_the_centre_line():
-    line = ccr.Line(np.array([10.0, -5.0]), 20.0)
+    line = ccr_lines.Line(np.array([10.0, -5.0]), 20.0)
     rng = np.random.default_rng(1)
     s, d = rng.uniform(-300, 300, 12), rng.uniform(-0.95, 0.95, 12) * W
     en = line.point_en + s[:, None] * line.direction + d[:, None] * line.normal
     field = CcrField(np.column_stack([en, np.ones(12)]), np.ones(12))
     x = np.arange(-W, W, 1e-4)  # brute-force chord: where a footprint of radius W centred on the line covers the CCR
     chords = [np.ptp(x[np.hypot(x, di) <= W]) for di in d]
-    tracks = [ccr.CcrTrack(j, np.zeros(0, int), 0, 0, chords[j], 0.0, 1.0, 0.0) for j in range(12)]
+    tracks = [ccr_tracks.CcrTrack(j, np.zeros(0, int), 0, 0, chords[j], 0.0, 1.0, 0.0) for j in range(12)]
     np.testing.assert_allclose(ccr.centroid_circle_radius(chords, W), np.abs(d), atol=0.02)
     centroids = ccr.footprint_centroids(field, tracks, W, line)
     np.testing.assert_allclose(line.signed_distance(centroids), 0.0, atol=0.02)

@@ -23,7 +23,7 @@ from flightsim.core.errors import InputError
 from flightsim.engine.run import simulate_to_directory
 from flightsim.outputs import copc as copc_module
 from flightsim.outputs.copc import NODE_GRID, write_copc
-from flightsim.outputs.las_tiles import read_points
+from flightsim.outputs.las_points import read_points
 
 MM = 1e-3
 SMALL_CAP = 200  # points per node in the deep octree written from the run's tiles

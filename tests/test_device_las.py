@@ -13,7 +13,7 @@ import pytest
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.run import simulate_to_directory
 from flightsim.engine.simulate import Simulator
-from flightsim.outputs import las_tiles
+from flightsim.outputs import las_points, las_tiles
 from flightsim.outputs.consumers import PlaneStatistics
 from flightsim.outputs.device_las import DeviceLasOutput
 from flightsim.engine.world import build_scene, flight_trajectories
@@ -129,6 +129,6 @@ def test_laz_records_held_back_for_parallel_compression_give_the_same_bytes(tmp_
         monkeypatch.setattr(las_tiles, "LAZ_HELD_BYTES", held)
         simulate_to_directory(cfg, tmp_path / name.replace(" ", "-"))
         digests[name] = _digests(tmp_path / name.replace(" ", "-"))
-    tiles = [las_tiles.read_points(p)[0] for p in sorted((tmp_path / "batched").rglob("*.laz"))]
+    tiles = [las_points.read_points(p)[0] for p in sorted((tmp_path / "batched").rglob("*.laz"))]
     assert max(len(t.x) for t in tiles) > 3 * las_tiles.LAZ_CHUNK_POINTS
     assert digests["batched"] == digests["one by one"] == digests["capped"]

@@ -16,7 +16,9 @@ import pytest
 
 from copcjs import read_with_copcjs
 from flightsim.core.errors import InputError
-from flightsim.outputs.las_tiles import PointBatch, TileWriter, gps_week_date, read_points
+from flightsim.outputs.las_format import gps_week_date
+from flightsim.outputs.las_points import PointBatch, read_points
+from flightsim.outputs.las_tiles import TileWriter
 
 UTM48N = pyproj.CRS.from_epsg(32648)
 CREATED = datetime.date(2021, 3, 17)
@@ -257,7 +259,7 @@ def _read_with_laszip(path: Path) -> tuple[dict, dict]:
 def test_independent_reader_laszip(tmp_path, compress):
     batch = random_batch(1500, position_error=True)
     write_tiles(tmp_path, batch, compress=compress, extras=("position_error",))
-    # extra bytes after the 30-byte format-6 record, in the order documented by las_tiles
+    # extra bytes after the 30-byte format-6 record, in the order documented by las_format
     extra_dtype = np.dtype(
         [("beam_row", "u1"), ("beam_col", "u1"), ("prism_angle", "<f4"), ("range", "<f4"),
          ("plane_id", "<i4"), ("position_error", "<f4")]

@@ -23,7 +23,8 @@ import pytest
 
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.outputs import las_tiles, laz_workers
-from flightsim.outputs.las_tiles import PointBatch, TileWriter, read_points
+from flightsim.outputs.las_points import PointBatch, read_points
+from flightsim.outputs.las_tiles import TileWriter
 
 UTM48N = pyproj.CRS.from_epsg(32648)
 TILE_M = 500.0
@@ -266,7 +267,7 @@ def test_workers_are_reaped_on_abort_and_garbage_collection(tmp_path):
 def test_a_worker_imports_no_warp_nor_scipy():
     """What a worker imports (its entry module and the tile writer) must not bring Warp in, nor SciPy (the
     package's API, config and trajectories are imported on first use, not with the tile writer)."""
-    code = ("import sys, flightsim.outputs.laz_workers, flightsim.outputs.las_tiles; "
+    code = ("import sys, flightsim.outputs.laz_serve; "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('warp', 'scipy')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})

@@ -12,10 +12,11 @@ from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.engine import world as plan
 from flightsim.platforms.lines import MAX_CLIMB_MPS
+from flightsim.scenes import cache, mesh_obj, mesh_ply, meshio
 from flightsim.scenes import mesh as scene_mesh
-from flightsim.scenes import cache, meshio
 from flightsim.scenes.height_grid import HeightGrid
-from flightsim.scenes.meshio import COPLANAR_ANGLE_DEG, COPLANAR_OFFSET_M, load_mesh
+from flightsim.scenes.mesh_planes import COPLANAR_ANGLE_DEG, COPLANAR_OFFSET_M
+from flightsim.scenes.meshio import load_mesh
 from flightsim.scenes.scene import DEFAULT_CRS
 from test_properties import clipped_top  # the exact terrain top over a rectangle, by polygon clipping
 from trajectories import climb_limited, plan_parallel_lines
@@ -84,14 +85,14 @@ def obj_files(draw):
 def test_vectorised_obj_reader_reads_what_was_written_and_agrees_with_the_line_reader(case):
     text, vertices, faces, groups = case
     data = text.encode("utf-8")
-    fast = meshio._read_obj_vectorised(data)
+    fast = mesh_obj._read_obj_vectorised(data)
     assert fast is not None
     assert np.array_equal(fast["vertices"], np.array(vertices))
     assert fast["corners"].tolist() == [i for f in faces for i in f]
     assert fast["sizes"].tolist() == [len(f) for f in faces]
     names = [""] + list(dict.fromkeys(g for g in groups if g))
     assert fast["group"].tolist() == [names.index(g) for g in groups]
-    slow = meshio._read_obj_lines(data)
+    slow = mesh_obj._read_obj_lines(data)
     for key, value in slow.items():
         assert np.array_equal(fast[key], value) if isinstance(value, np.ndarray) else fast[key] == value
 
@@ -104,8 +105,8 @@ def test_vectorised_obj_reader_reads_what_was_written_and_agrees_with_the_line_r
     b"v 0 0 inf\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
 ])
 def test_unusual_obj_text_goes_to_the_line_reader(text):
-    assert meshio._read_obj_vectorised(text) is None
-    meshio._read_obj(text)  # the line reader takes it (or reports the line)
+    assert mesh_obj._read_obj_vectorised(text) is None
+    mesh_obj.read_obj(text)  # the line reader takes it (or reports the line)
 
 
 def test_the_common_obj_forms_never_need_the_line_reader(tmp_path, monkeypatch):
@@ -113,7 +114,7 @@ def test_the_common_obj_forms_never_need_the_line_reader(tmp_path, monkeypatch):
             "g ground\nusemtl grass\nf 1/1/1 2/1/1 3/1/1\nf -4//1 -2//1 -1//1\n")
     path = tmp_path / "common.obj"
     path.write_text(text)
-    monkeypatch.setattr(meshio, "_read_obj_lines", None)
+    monkeypatch.setattr(mesh_obj, "_read_obj_lines", None)
     scene = load_mesh(path, DEFAULT_CRS)
     assert len(scene.triangles) == 2 and scene.classification.tolist() == [2, 2]
 
@@ -128,8 +129,8 @@ def test_ascii_ply_faces_of_one_size_are_read_at_once_and_still_refuse_non_integ
     path = tmp_path / "terrain.ply"
     path.write_text(head + body)
     read_at_once = []
-    one_size = meshio._ply_ascii_uniform_lists
-    monkeypatch.setattr(meshio, "_ply_ascii_uniform_lists",
+    one_size = mesh_ply._ply_ascii_uniform_lists
+    monkeypatch.setattr(mesh_ply, "_ply_ascii_uniform_lists",
                         lambda *args: read_at_once.append(one_size(*args)) or read_at_once[-1])
     raw = meshio._read(path)
     assert len(read_at_once) == 1 and read_at_once[0] is not None  # the faces, not row by row

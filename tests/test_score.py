@@ -14,7 +14,7 @@ import pytest
 
 from flightsim.engine.config import RunConfig, validate
 from flightsim.core.errors import InputError
-from flightsim.outputs.las_tiles import read_points
+from flightsim.outputs.las_points import read_points
 from flightsim.scoring.planes import fit_points
 from flightsim.scoring.score import TABLE_COLUMNS, score_points
 
@@ -209,7 +209,7 @@ def test_truth_mode_without_edge_distances_estimates_the_boundary(tmp_path):
 def test_truth_mode_needs_plane_ids():
     rng = np.random.default_rng(0)
     xyz = tilted_plane(100, 0.1, 0.0, 0.01, rng)
-    from flightsim.outputs.las_tiles import PointBatch
+    from flightsim.outputs.las_points import PointBatch
 
     n = len(xyz)
     batch = PointBatch(x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], gps_time=np.zeros(n), point_source_id=np.zeros(n, int),

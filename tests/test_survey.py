@@ -16,7 +16,7 @@ from flightsim.engine import distributed
 from flightsim.studies import survey
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
-from flightsim.outputs.las_tiles import read_points
+from flightsim.outputs.las_points import read_points
 from host_reference import HostLasOutput
 from flightsim.engine.simulate import Simulator
 from flightsim.studies.survey import SurveySpec, plan_survey, run_survey

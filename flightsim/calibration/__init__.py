@@ -4,9 +4,11 @@ geolocation model of its eq. (1) (:mod:`.geolocation`), the patent's six steps a
 maximum-likelihood estimator (:mod:`.ccr`), and synthetic passes to test them (:mod:`.synthetic`).
 Plain float64 NumPy/SciPy on arrays in a local east-north-up frame [m].
 """
-from flightsim.calibration.ccr import (CcrField, FieldDesign, Identification, LeastSquaresCalibration,
-                                       PatentCalibration, calibrate_least_squares, calibrate_patent,
-                                       common_tangents, design_field, identify_ccr_tracks)
+from flightsim.calibration.ccr import PatentCalibration, calibrate_patent
+from flightsim.calibration.ccr_field import CcrField, FieldDesign, design_field
+from flightsim.calibration.ccr_likelihood import LeastSquaresCalibration, calibrate_least_squares
+from flightsim.calibration.ccr_lines import common_tangents
+from flightsim.calibration.ccr_tracks import Identification, identify_ccr_tracks
 from flightsim.calibration.geolocation import (ARCSEC, Bias, Track, geolocate, ground_shift_m, measured_range,
                                                theoretical_radius)
 from flightsim.calibration.synthetic import Altimeter, SyntheticPass, simulate_pass

@@ -5,14 +5,14 @@ The photons are plain arrays (shot index, measured range) and the CCRs known poi
 frame of :mod:`.geolocation` (east, north, up [m]); every function geolocates with that module's
 reduced eq. (1). The patent's method, one function per step, each returning what it found:
 
-1. :func:`identify_ccr_tracks` — which CCR each CCR photon track belongs to (the ranges of the CCR
+1. :func:`.ccr_tracks.identify_ccr_tracks` — which CCR each CCR photon track belongs to (the ranges of the CCR
    photons against the ground photons' give their height above ground, matched to the CCRs' true
    heights; the flight direction orders the CCRs along track) [patent ¶5, claim 2];
 2. :func:`coarse_calibration` — the CCR with the longest photon track is the best one; taking the
    footprint centre as passing over it gives a coarse calibration [¶4, claim 1];
 3. :func:`coarse_centre_line` — the photons re-geolocated with it give the coarse footprint centre
    line, whose azimuth is taken as the true one [¶4, ¶7];
-4. :func:`common_tangents`, :func:`best_centre_line` — a CCR whose photon track is L long lies
+4. :func:`.ccr_lines.common_tangents`, :func:`best_centre_line` — a CCR whose photon track is L long lies
    d = √(R² − (L/2)²) from the footprint centre line (the chord of a footprint of radius R), so the
    line is tangent to the "CCR centroid circle" of radius d about the CCR; of the four common
    tangents of two CCRs' circles the one closest in azimuth to the coarse line is kept [¶6–7, ¶11];
@@ -23,10 +23,10 @@ reduced eq. (1). The patent's method, one function per step, each returning what
 6. :func:`solve_bias` — the fine centroids are ground control points of eq. (1): the pointing
    (and ranging) correction is their least-squares solution [¶4, ¶17–19].
 
-:func:`calibrate_patent` runs all six. :func:`calibrate_least_squares` is a generic estimator of
-the same three parameters from the same photons (the maximum likelihood of every searched shot's
-count of CCR photons, and of the CCR photons' ranges), with Fisher-information covariances.
-:func:`design_field` sizes a CCR field.
+:func:`calibrate_patent` runs all six. :func:`.ccr_likelihood.calibrate_least_squares` is a generic
+estimator of the same three parameters from the same photons (the maximum likelihood of every searched
+shot's count of CCR photons, and of the CCR photons' ranges), with Fisher-information covariances.
+:func:`.ccr_field.design_field` sizes a CCR field (:class:`.ccr_field.CcrField`).
 
 The source text lost its formula images: the centroid formula (¶13) is reconstructed from the
 definitions around it (the CCR moved by its centroid-circle radius d perpendicular to the line,
@@ -42,212 +42,18 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import poisson
 
-from flightsim.calibration.geolocation import (ARCSEC, Bias, Track, footprint_centre, footprint_offset,
-                                               geolocate)
+from flightsim.calibration.ccr_field import CcrField
+from flightsim.calibration.ccr_lines import Line, Tangents, axial_difference_deg, common_tangents, fit_line
+from flightsim.calibration.ccr_tracks import CcrTrack, Identification, identify_ccr_tracks
+from flightsim.calibration.geolocation import Bias, Track, footprint_centre, geolocate
 from flightsim.core.errors import InputError
 
 RADIUS_STEP_M = 0.1  # step of the footprint radius set [m] (patent ¶9)
 _ROUND_OFF_M = 1e-9  # least residual scatter of a least-squares fit [m]
-_TOUCH = 1e-12  # relative tolerance of two circles touching (one tangent where two meet)
 
 
-@dataclass(frozen=True)
-class CcrField:
-    """Known CCRs: reflecting points (n, 3) ENU [m] and their heights above the ground [m]."""
-
-    positions_m: np.ndarray
-    heights_m: np.ndarray
-
-    def __post_init__(self):
-        positions = np.asarray(self.positions_m, dtype=np.float64)
-        heights = np.asarray(self.heights_m, dtype=np.float64)
-        if positions.ndim != 2 or positions.shape[1] != 3 or not np.all(np.isfinite(positions)):
-            raise InputError("field.positions_m", f"shape {positions.shape}", "finite (n, 3) ENU points [m]")
-        if heights.shape != (len(positions),) or not np.all(np.isfinite(heights) & (heights >= 0)):
-            raise InputError("field.heights_m", heights.tolist(), f"{len(positions)} finite heights >= 0 [m]")
-        object.__setattr__(self, "positions_m", positions)
-        object.__setattr__(self, "heights_m", heights)
-
-    def __len__(self) -> int:
-        return len(self.positions_m)
-
-    @classmethod
-    def from_track_frame(cls, track: Track, along_m, across_m, heights_m, ground_height_m: float = 0.0):
-        """CCRs at (along, across) track coordinates [m], ``heights_m`` above flat ground."""
-        en = track.from_track_frame(along_m, across_m)
-        heights = np.broadcast_to(np.asarray(heights_m, dtype=np.float64), en.shape[:1])
-        return cls(np.column_stack([en, ground_height_m + heights]), heights.copy())
-
-
-# --- lines in the (E, N) plane ------------------------------------------------------------------
-
-
-def axial_difference_deg(a_deg, b_deg):
-    """Difference of two line azimuths (defined modulo 180°), in [−90°, 90°) [deg]."""
-    return (np.asarray(a_deg) - np.asarray(b_deg) + 90.0) % 180.0 - 90.0
-
-
-@dataclass(frozen=True)
-class Line:
-    """A line in the (E, N) plane: a point on it [m] and its azimuth in [0°, 180°) [deg]."""
-
-    point_en: np.ndarray
-    azimuth_deg: float
-
-    @property
-    def direction(self) -> np.ndarray:
-        """Unit vector along the line, (sin az, cos az)."""
-        az = math.radians(self.azimuth_deg)
-        return np.array([math.sin(az), math.cos(az)])
-
-    @property
-    def normal(self) -> np.ndarray:
-        """Unit normal, to the right of :attr:`direction`."""
-        d = self.direction
-        return np.array([d[1], -d[0]])
-
-    def signed_distance(self, points_en) -> np.ndarray:
-        """Distance of points (n, 2) from the line, + on the side of :attr:`normal` [m]."""
-        return (np.asarray(points_en, dtype=np.float64)[..., :2] - self.point_en) @ self.normal
-
-
-def _line_from_direction(point_en, direction_en) -> Line:
-    return Line(np.asarray(point_en, dtype=np.float64),
-                float(math.degrees(math.atan2(direction_en[0], direction_en[1])) % 180.0))
-
-
-def fit_line(points_en, weights=None) -> tuple[Line, float]:
-    """Total-least-squares line through points (n ≥ 2, 2) [m], each weighted (default 1), and
-    the weighted RMS distance of the points from it [m]."""
-    p = np.asarray(points_en, dtype=np.float64)[:, :2]
-    w = np.ones(len(p)) if weights is None else np.asarray(weights, dtype=np.float64)
-    centre = (w @ p) / w.sum()
-    _, s, vt = np.linalg.svd((p - centre) * np.sqrt(w)[:, None], full_matrices=False)
-    rms = s[1] / math.sqrt(w.sum()) if len(s) > 1 else 0.0
-    return _line_from_direction(centre, vt[0]), float(rms)
-
-
-# --- step 1: CCR track identification --------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class CcrTrack:
-    """The photon track of one triggered CCR."""
-
-    ccr: int  # index into the field
-    photons: np.ndarray  # indices of its photons into the photon arrays
-    first_shot: int
-    last_shot: int
-    length_m: float  # along-track length: shots holding its photons × shot spacing [m]
-    mid_shot: float  # mean shot of its photons: the footprint centre's closest approach to the CCR
-    height_above_ground_m: float  # median height of its photons over the local ground [m]
-    ground_height_m: float  # local ground level of the nominally geolocated photons [m]
-
-
-@dataclass(frozen=True)
-class Identification:
-    """Step 1's result: the triggered CCRs' tracks in flight order, each photon's CCR (or −1),
-    and what the search looked at (the generic estimator's input)."""
-
-    tracks: tuple[CcrTrack, ...]
-    labels: np.ndarray  # (n,) CCR of each photon in a track, or −1
-    candidates: np.ndarray  # (n,) CCR whose height and shot window each photon matches, or −1
-    windows: dict[int, tuple[int, int]]  # first and last shot searched for each reachable CCR
-
-
-def _ground_level(heights: np.ndarray) -> float:
-    """Mode of photon heights (0.5 m bins), refined by the median within ±1 m of it [m]."""
-    edges = np.arange(heights.min(), heights.max() + 1.0, 0.5)
-    counts, edges = np.histogram(heights, bins=edges)
-    mode = edges[np.argmax(counts)] + 0.25
-    return float(np.median(heights[np.abs(heights - mode) <= 1.0]))
-
-
-def _largest_run(shots: np.ndarray, max_gap_shots: int) -> np.ndarray:
-    """Mask of the photons in the run of shots (gaps of at most ``max_gap_shots``) with most photons."""
-    order = np.argsort(shots, kind="stable")
-    run = np.concatenate([[0], np.cumsum(np.diff(shots[order]) > max_gap_shots + 1)])
-    best = np.argmax(np.bincount(run))
-    mask = np.zeros(shots.size, dtype=bool)
-    mask[order[run == best]] = True
-    return mask
-
-
-def _is_signal(n_run: int, run_shots: int, n_candidates: int, window_shots: int, false_alarm: float) -> bool:
-    """Whether n_run photons over run_shots shots are unlikely (< false_alarm) to be background, its
-    rate per shot taken from the window's other candidates (at least one)."""
-    rate = max(n_candidates - n_run, 1) / max(window_shots - run_shots, 1)
-    return bool(poisson.sf(n_run - 1, rate * run_shots) < false_alarm)
-
-
-def _candidates(track, shot, height, field, reach, height_tol_m, ground_window_m):
-    """Each photon's candidate CCR (closest in height among those matching), each CCR's local
-    ground level and searched shot window."""
-    along = shot * track.spacing_m
-    ccr_along, ccr_across = track.to_track_frame(field.positions_m)
-    labels, mismatch = np.full(shot.size, -1), np.full(shot.size, np.inf)
-    grounds, windows = {}, {}
-    for j in np.flatnonzero(np.abs(ccr_across) <= reach):
-        near = np.abs(along - ccr_along[j]) <= ground_window_m
-        if not near.any():
-            continue
-        grounds[int(j)] = _ground_level(height[near])
-        windows[int(j)] = (math.ceil((ccr_along[j] - reach) / track.spacing_m),
-                           math.floor((ccr_along[j] + reach) / track.spacing_m))
-        m = np.abs(height - grounds[j] - field.heights_m[j])
-        take = (np.abs(along - ccr_along[j]) <= reach) & (m <= height_tol_m) & (m < mismatch)
-        labels[take], mismatch[take] = j, m[take]
-    return labels, grounds, windows
-
-
-def identify_ccr_tracks(track: Track, shot, range_m, field: CcrField, *, footprint_radius_m: float,
-                        search_m: float = 30.0, height_tol_m: float = 0.4, max_gap_shots: int = 3,
-                        min_photons: int = 5, false_alarm: float = 1e-6,
-                        ground_window_m: float = 150.0) -> Identification:
-    """Step 1: find each triggered CCR's photon track (patent ¶5, claim 2).
-
-    Photons are geolocated with the nominal model; a CCR's candidates are the photons whose height
-    over the local ground (the ground photons' mode within ``ground_window_m`` along track: a range
-    difference, free of the ranging bias) is within ``height_tol_m`` of the CCR's true height, on
-    shots whose nominal footprint passes within ``search_m`` + 1.5·R of it along the flight direction
-    (``search_m``: the a priori bound on the footprint's displacement [m]). A photon matching several
-    CCRs goes to the closest in height. Each CCR keeps its run of shots (gaps of at most
-    ``max_gap_shots``) with the most photons, if it holds ``min_photons`` or more and background
-    alone would give as many with probability below ``false_alarm``. The track's length is the
-    number of shots holding its photons times the shot spacing.
-
-    Raises:
-        InputError: no CCR photon track found (argument ``range_m``).
-    """
-    shot, range_m = np.asarray(shot), np.asarray(range_m, dtype=np.float64)
-    height = geolocate(track, shot, range_m)[:, 2]
-    labels, grounds, windows = _candidates(track, shot, height, field, search_m + 1.5 * footprint_radius_m,
-                                           height_tol_m, ground_window_m)
-    candidates = labels.copy()
-    tracks = []
-    for j in sorted(windows, key=lambda j: windows[j][0]):
-        idx = np.flatnonzero(candidates == j)
-        keep = _largest_run(shot[idx], max_gap_shots) if idx.size else np.zeros(0, dtype=bool)
-        labels[idx[~keep]] = -1
-        idx = idx[keep]
-        first, last = (int(shot[idx].min()), int(shot[idx].max())) if idx.size else (0, -1)
-        k0, k1 = windows[j]
-        n_candidates = int(np.sum(candidates == j))
-        if idx.size < min_photons or not _is_signal(idx.size, last - first + 1, n_candidates, k1 - k0 + 1,
-                                                    false_alarm):
-            labels[idx] = -1
-            continue
-        tracks.append(CcrTrack(j, idx, first, last, np.unique(shot[idx]).size * track.spacing_m,
-                               float(shot[idx].mean()), float(np.median(height[idx]) - grounds[j]),
-                               grounds[j]))
-    if not tracks:
-        raise InputError("range_m", f"{shot.size} photons", "photons returned by at least one CCR of the field")
-    return Identification(tuple(tracks), labels, candidates, windows)
-
-
-# --- steps 2 and 6: ground control points in eq. (1) ---------------------------------------------
+# --- steps 2 and 6: ground control points in eq. (1) ----------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -352,7 +158,7 @@ def coarse_calibration(track: Track, shot, range_m, field: CcrField,
     return CoarseCalibration(best, solution)
 
 
-# --- step 3: coarse centre line ------------------------------------------------------------------
+# --- step 3: coarse centre line -------------------------------------------------------------------
 
 
 def coarse_centre_line(track: Track, shot, range_m, bias: Bias) -> Line:
@@ -361,60 +167,7 @@ def coarse_centre_line(track: Track, shot, range_m, bias: Bias) -> Line:
     return fit_line(geolocate(track, shot, range_m, bias)[:, :2])[0]
 
 
-# --- step 4: common tangents of two CCR centroid circles ----------------------------------------
-
-
-@dataclass(frozen=True)
-class Tangents:
-    """Common tangent lines of two circles: points of tangency on each and each line's azimuth."""
-
-    point1_en: np.ndarray  # (k, 2) [m]
-    point2_en: np.ndarray  # (k, 2) [m]
-    normal_en: np.ndarray  # (k, 2) unit normals
-    kinds: tuple[str, ...]  # "external" (both circles on one side) or "internal"
-
-    @property
-    def azimuth_deg(self) -> np.ndarray:
-        """Azimuth of each line in [0°, 180°) [deg]."""
-        return np.degrees(np.arctan2(self.normal_en[:, 1], -self.normal_en[:, 0])) % 180.0
-
-    def line(self, i: int) -> Line:
-        """Tangent i as a :class:`Line`."""
-        n = self.normal_en[i]
-        return _line_from_direction(self.point1_en[i], (n[1], -n[0]))
-
-
-def common_tangents(centre1, radius1: float, centre2, radius2: float) -> Tangents:
-    """The common tangents of two circles (patent ¶6): 4 when they are apart, 3 when touching
-    outside, 2 when they cross, 1 when touching inside, 0 when one holds the other.
-
-    A line n·x = p (|n| = 1) is tangent to circle i when n·c_i − p = σ_i r_i; with σ1 = 1,
-    n·(c2 − c1) = σ2 r2 − r1 fixes n up to the side of the centre line (σ2 = +1: external
-    tangents, −1: internal). The points of tangency are c_i − σ_i r_i n.
-    """
-    c1, c2 = np.asarray(centre1, dtype=np.float64), np.asarray(centre2, dtype=np.float64)
-    if not (radius1 >= 0 and radius2 >= 0):
-        raise InputError("radius", (radius1, radius2), "two radii >= 0 [m]")
-    d = c2 - c1
-    dist = math.hypot(*d)
-    if dist == 0.0:
-        raise InputError("centre2", c2.tolist(), "a centre different from centre1")
-    e, e_perp = d / dist, np.array([-d[1], d[0]]) / dist
-    p1, p2, normals, kinds = [], [], [], []
-    for sigma2, kind in ((1.0, "external"), (-1.0, "internal")):
-        cos_t = (sigma2 * radius2 - radius1) / dist
-        if abs(cos_t) > 1.0 + _TOUCH:
-            continue
-        touching = abs(cos_t) >= 1.0 - _TOUCH
-        sin_t = 0.0 if touching else math.sqrt(1.0 - cos_t * cos_t)
-        for side in ((1.0,) if touching else (1.0, -1.0)):
-            n = cos_t * e + side * sin_t * e_perp
-            p1.append(c1 - radius1 * n)
-            p2.append(c2 - sigma2 * radius2 * n)
-            normals.append(n)
-            kinds.append(kind)
-    return Tangents(np.array(p1).reshape(-1, 2), np.array(p2).reshape(-1, 2),
-                    np.array(normals).reshape(-1, 2), tuple(kinds))
+# --- step 4: the centre line, tangent to two CCR centroid circles ---------------------------------
 
 
 def centroid_circle_radius(length_m, radius_m: float) -> np.ndarray:
@@ -478,7 +231,7 @@ def best_centre_line(field: CcrField, tracks, radius_m: float, spacing_m: float,
                             tangents.line(chosen))
 
 
-# --- step 5: radius iteration ----------------------------------------------------------------
+# --- step 5: radius iteration ---------------------------------------------------------------------
 
 
 def radius_set(radius_m: float, half_width_m: float) -> np.ndarray:
@@ -531,7 +284,7 @@ def iterate_radius(field: CcrField, tracks, radii_m, spacing_m: float, coarse_li
                            footprint_centroids(field, tracks, radii[chosen], centre_line))
 
 
-# --- the whole method ------------------------------------------------------------------------
+# --- the whole method -----------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -575,155 +328,3 @@ def calibrate_patent(track: Track, shot, range_m, field: CcrField, *, footprint_
     fine = solve_bias(track, shot, range_m, field, ident.tracks, radius.centroids_en, coarse.solution.bias,
                       radius.line, centroid_weights(ident.tracks, radius.radius_m, track.spacing_m))
     return PatentCalibration(ident, coarse, coarse_line, choice, radius, fine)
-
-
-# --- generic estimator: maximum likelihood of the CCR detections and ranges ---------------------
-
-
-@dataclass(frozen=True)
-class LeastSquaresCalibration:
-    """The generic estimator's result."""
-
-    bias: Bias
-    covariance: np.ndarray  # (3, 3) of (δa [arcsec], δc [arcsec], b [m]), the inverse Fisher information
-    footprint_radius_m: float  # fitted e⁻² radius w of the footprint's energy profile [m]
-    ccr_photons_per_shot: float  # fitted CCR response N0 (mean photons at the footprint centre)
-    background_per_shot: float  # fitted λ_b, background photons per shot in a CCR's height window
-    range_sigma_m: float  # scatter of the CCR photons' ranges about the fit [m]
-    n_trials: int  # (shot, CCR) photon counts in the likelihood
-    n_photons: int  # CCR photon ranges in the likelihood
-
-    @property
-    def sigma(self) -> np.ndarray:
-        """Standard deviations of (δa [arcsec], δc [arcsec], b [m])."""
-        return np.sqrt(np.diag(self.covariance))
-
-
-def _detection_trials(shot, identification: Identification):
-    """Every searched (shot, CCR) pair of the pass and its count of candidate photons."""
-    shots, ccr, counts = [], [], []
-    for j, (k0, k1) in identification.windows.items():
-        k = np.arange(max(k0, int(shot.min())), min(k1, int(shot.max())) + 1)
-        if k.size == 0:
-            continue
-        shots.append(k)
-        ccr.append(np.full(k.size, j))
-        counts.append(np.bincount(shot[identification.candidates == j] - k[0], minlength=k.size)[: k.size])
-    return np.concatenate(shots), np.concatenate(ccr), np.concatenate(counts)
-
-
-def _photon_rate(track, shots, points, x):
-    """Mean matching photons per shot λ = N0·exp(−2r²/w²) + λ_b, x = (δa, δc, w, ln N0, ln λ_b)."""
-    r = footprint_offset(track, shots, points, Bias(x[0], x[1]))
-    return np.exp(x[3] - 2.0 * (r / x[2]) ** 2) + np.exp(x[4])
-
-
-def _deviance_residuals(lam, counts):
-    """Signed √(2(y ln(y/λ) − (y − λ))) of Poisson counts y of mean λ: Σ r² = −2 ln L + const."""
-    y_log = np.where(counts > 0, counts * np.log(np.maximum(counts, 1) / lam), 0.0)
-    return np.sign(counts - lam) * np.sqrt(np.maximum(2.0 * (y_log - (counts - lam)), 0.0))
-
-
-def _fisher(track, shots, points, x):
-    """Fisher information of x from Poisson counts: Σ (∂λ/∂x)(∂λ/∂x)ᵀ / λ."""
-    jac = np.empty((shots.size, x.size))
-    for i in range(x.size):
-        h = 1e-4 * max(1.0, abs(x[i]))
-        up, down = x.copy(), x.copy()
-        up[i] += h
-        down[i] -= h
-        jac[:, i] = (_photon_rate(track, shots, points, up) - _photon_rate(track, shots, points, down)) / (2.0 * h)
-    return jac.T @ (jac / _photon_rate(track, shots, points, x)[:, None])
-
-
-def calibrate_least_squares(track: Track, shot, range_m, field: CcrField, identification: Identification,
-                            *, footprint_radius_m: float, start: Bias = Bias()) -> LeastSquaresCalibration:
-    """Generic estimator of the pointing and ranging biases from the CCR photons.
-
-    Pointing: on every shot searched for every reachable CCR (``identification.windows``), the
-    number of candidate photons (matching the CCR's height) is Poisson with mean λ = N0·exp(−2r²/w²)
-    + λ_b, r the CCR's distance from the footprint centre that eq. (1) gives for (δa, δc) and λ_b
-    the background in the CCR's height window (no dead time: a multi-channel detector, as ATLAS's
-    16 channels per strong beam). (δa, δc, w, ln N0, ln λ_b) maximise the likelihood, as
-    ``scipy.optimize.least_squares`` on the deviance residuals, started from ``start`` at the best
-    of a grid of δc over ±1.5·R/H (``start``: e.g. the patent's coarse calibration, step 2).
-    Triggered or not, every CCR in reach counts. Ranging: a CCR photon's range is |X_ccr − P_laser|
-    + b whatever the pointing, so b is the mean range residual of the tracks' photons.
-    Covariance: the inverse Fisher information, (JᵀJ)⁻¹ with J the Jacobian of (λ − y)/√λ for the
-    pointing, and σ²/n for b (σ the ranges' scatter).
-    """
-    shot, range_m = np.asarray(shot), np.asarray(range_m, dtype=np.float64)
-    shots, ccr, counts = _detection_trials(shot, identification)
-    points = field.positions_m[ccr]
-
-    def residuals(x):
-        return _deviance_residuals(_photon_rate(track, shots, points, x), counts)
-
-    half = 1.5 * footprint_radius_m / track.altitude_m / ARCSEC
-    grid = [np.array([start.along_arcsec, c, footprint_radius_m, 2.0, math.log(0.01)])
-            for c in start.across_arcsec + np.linspace(-half, half, 13)]
-    x0 = min(grid, key=lambda x: float(np.sum(residuals(x) ** 2)))
-    fit = least_squares(residuals, x0, bounds=([-np.inf, -np.inf, 0.1 * footprint_radius_m, -5.0, -20.0],
-                                               [np.inf, np.inf, 10.0 * footprint_radius_m, 10.0, 2.0]))
-    cov_pointing = np.linalg.inv(_fisher(track, shots, points, fit.x))[:2, :2]
-    photons = np.flatnonzero(identification.labels >= 0)
-    ccr_points = field.positions_m[identification.labels[photons]]
-    dr = range_m[photons] - np.linalg.norm(ccr_points - track.position(shot[photons]), axis=-1)
-    b, s = float(dr.mean()), float(dr.std(ddof=1))
-    cov = np.zeros((3, 3))
-    cov[:2, :2], cov[2, 2] = cov_pointing, s * s / dr.size
-    return LeastSquaresCalibration(Bias(float(fit.x[0]), float(fit.x[1]), b), cov, float(fit.x[2]),
-                                   float(math.exp(fit.x[3])), float(math.exp(fit.x[4])), s,
-                                   int(shots.size), int(dr.size))
-
-
-# --- CCR field design ------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class FieldDesign:
-    """A CCR field in track coordinates relative to the nominal track (see :func:`design_field`)."""
-
-    across_spacing_m: float  # s [m]
-    along_spacing_m: float  # Δx [m]
-    along_m: np.ndarray  # (n,) along-track positions from the first CCR [m]
-    across_m: np.ndarray  # (n,) across-track offsets from the nominal track, + right [m]
-
-    @property
-    def n_ccr(self) -> int:
-        return int(self.along_m.size)
-
-
-def design_field(footprint_radius_m: float, pointing_sigma_arcsec: float, altitude_m: float, *,
-                 min_triggered: int = 3, n_sigma: float = 3.0, usable_fraction: float = 0.9,
-                 reach_factor: float = 1.5) -> FieldDesign:
-    """Number, across-track spacing and along-track stagger of CCRs for a footprint of radius R
-    and an a priori pointing uncertainty σ per axis.
-
-    Rule: the footprint centre line lies within U = H·tan(n_sigma·σ) of the nominal track; a CCR
-    at distance d from it gives a usable track when d < κR (κ = ``usable_fraction``: the track is
-    then at least 2R√(1 − κ²) long). An open interval of length (m + 1)·s holds at least m points
-    of a lattice of spacing s, so across-track spacing s = 2κR/(m + 1) triggers at least m =
-    ``min_triggered`` CCRs wherever the line falls, if the lattice spans ±(U + κR):
-    n = ⌈2(U + κR)/s⌉ + 1 CCRs. Each CCR's photons fall within ζR + U of its along-track position
-    (ζ = ``reach_factor``: beyond r = 1.5w a CCR of N0 ≤ 10 returns < 0.11 photons per shot), so an
-    along-track stagger Δx = 2(ζR + U) keeps every track in its own window and identification
-    unambiguous. The CCRs run diagonally (across offset growing along track), so the triggered ones
-    lie on both sides of the line in flight order, as step 5's azimuth criterion needs.
-    """
-    for name, value in (("footprint_radius_m", footprint_radius_m), ("altitude_m", altitude_m),
-                        ("n_sigma", n_sigma), ("reach_factor", reach_factor)):
-        if not (math.isfinite(value) and value > 0):
-            raise InputError(name, value, "a finite number > 0")
-    if not (math.isfinite(pointing_sigma_arcsec) and pointing_sigma_arcsec >= 0):
-        raise InputError("pointing_sigma_arcsec", pointing_sigma_arcsec, "a finite number >= 0 [arcsec]")
-    if not (isinstance(min_triggered, int) and min_triggered >= 2):
-        raise InputError("min_triggered", min_triggered, "an integer >= 2 (step 4 needs two CCRs)")
-    if not (0 < usable_fraction < 1):
-        raise InputError("usable_fraction", usable_fraction, "a number in (0, 1)")
-    reach = usable_fraction * footprint_radius_m
-    u = altitude_m * math.tan(n_sigma * pointing_sigma_arcsec * ARCSEC)
-    s = 2.0 * reach / (min_triggered + 1)
-    n = int(math.ceil(2.0 * (u + reach) / s)) + 1
-    dx = 2.0 * (reach_factor * footprint_radius_m + u)
-    return FieldDesign(s, dx, dx * np.arange(n), -(u + reach) + s * np.arange(n))

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightsim.calibration.ccr import CcrField
+from flightsim.calibration.ccr_field import CcrField
 from flightsim.calibration.geolocation import Bias, Track, footprint_centre, footprint_offset, measured_range
 from flightsim.core.errors import InputError
 

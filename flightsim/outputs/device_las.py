@@ -24,7 +24,8 @@ from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.core.version import __version__
 from flightsim.core.warp_runtime import to_host
-from flightsim.outputs.las_tiles import TileWriter, gps_week_date
+from flightsim.outputs.las_format import gps_week_date
+from flightsim.outputs.las_tiles import TileWriter
 from flightsim.scenes.scene import Scene
 from kernels import las_records as kl
 

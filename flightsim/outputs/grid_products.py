@@ -28,7 +28,7 @@ from rasterio.transform import from_origin
 from flightsim.core.version import __version__
 from flightsim.core.atomic import replaced_atomically
 from flightsim.core.errors import InputError
-from flightsim.outputs.las_tiles import _quantized_mm, _tile_header_template, _validated_crs, gps_week_date, wkt1
+from flightsim.outputs.las_format import _quantized_mm, _tile_header_template, _validated_crs, gps_week_date, wkt1
 
 if TYPE_CHECKING:
     from flightsim.scoring.photon_grid import GridPoints

@@ -3,23 +3,8 @@
 Points are cut into square tiles named by their lower-left corner (``409000_3392500.las``) and
 streamed to one laspy writer per tile, so memory does not grow with the length of a run.
 
-Format of every tile:
-
-- LAS 1.4, point data record format 6, scale 0.001 m on x, y, z; offsets at the tile's
-  lower-left corner (x, y) and 0 (z).
-- Global encoding: adjusted standard GPS time (bit 0) and WKT CRS (bit 4).
-- CRS: one ``LASF_Projection``/2112 VLR holding OGC WKT1 (``WKT1_GDAL``). LAS 1.4 R15 defines
-  that record as the coordinate-system WKT of OGC 01-009 (Coordinate Transformation Services,
-  section 7), i.e. WKT1; only the LAS 1.5 draft admits any OGC WKT version. laspy's
-  ``LasHeader.add_crs`` writes ``crs.to_wkt()``, which pyproj makes WKT2_2019
-  (``PROJCRS[..., ENSEMBLE[...]]``): readers built on older GDAL/PROJ, LAStools or ESRI cannot
-  parse it and open the tile without a CRS. WKT1 with its ``AUTHORITY["EPSG", ...]`` nodes is
-  what PDAL and GDAL write for LAS 1.4, and round-trips to the same EPSG CRS.
-- Extra bytes (``LASF_Spec``/4): ``beam_row`` u1, ``beam_col`` u1, ``prism_angle`` f4 [deg],
-  ``range`` f4 [m] (one-way), ``plane_id`` i4 (-1: none), and ``position_error`` f4 [m] when asked;
-  no min/max statistics are claimed (option bits 0).
-- Identity fields are fixed (system identifier ``flightsim``, zero GUID, file source id 0,
-  creation date given by the caller), so identical input gives byte-identical files.
+The format of every tile (LAS 1.4, point format 6, 1 mm, WKT1 CRS, extra bytes, fixed identity
+fields) is :mod:`.las_format`'s; the points come as :class:`.las_points.PointBatch`.
 
 A tile is written to ``.<name>.part`` in the output directory, fsync'ed, and renamed to its final
 name only by :meth:`TileWriter.close`; :meth:`TileWriter.abort` deletes the temporaries.
@@ -27,169 +12,23 @@ name only by :meth:`TileWriter.close`; :meth:`TileWriter.abort` deletes the temp
 from __future__ import annotations
 
 import copy
-import dataclasses
 import datetime
-import math
 import os
-import warnings
 from collections import OrderedDict
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import laspy
 import numpy as np
 import pyproj
 from laspy.lasappender import LasAppender
-from laspy.vlrs.known import WktCoordinateSystemVlr
-from pyproj.enums import WktVersion
 
 from flightsim.core.version import __version__
 from flightsim.core.errors import InputError
+from flightsim.outputs.las_format import (_EXTRA_DIMS, _MM_PER_M, OPTIONAL_DIMS, SCAN_ANGLE_UNIT_DEG, _quantized_mm,
+                                          _tile_header_template, _tile_size_mm, _validated_crs)
+from flightsim.outputs.las_points import PointBatch
 from flightsim.outputs.laz_workers import LazWorkers
-
-SCALE_M = 0.001
-"""Coordinate resolution of every tile [m]."""
-SCAN_ANGLE_UNIT_DEG = 0.006
-"""Unit of the LAS 1.4 scan-angle field [deg]."""
-SYSTEM_IDENTIFIER = "flightsim"
-GPS_EPOCH = datetime.date(1980, 1, 6)
-ADJUSTED_GPS_OFFSET_S = 1.0e9
-"""Adjusted standard GPS time = standard GPS time − this [s]."""
-MAX_TILE_SIZE_M = 1_000_000
-_MM_PER_M = 1000
-
-# (LAS extra-bytes name, PointBatch field, dtype, description with units; at most 32 bytes)
-_EXTRA_DIMS = (
-    ("beam_row", "beam_row", np.uint8, "DOE sub-beam row i [index]"),
-    ("beam_col", "beam_col", np.uint8, "DOE sub-beam column j [index]"),
-    ("prism_angle", "prism_angle_deg", np.float32, "wedge prism angle phi [deg]"),
-    ("range", "range_m", np.float32, "one-way range exit->hit [m]"),
-    ("plane_id", "plane_id", np.int32, "scene plane id, -1 = none [id]"),
-)
-# fields written only when a run asks for them, by LAS extra-bytes name
-OPTIONAL_DIMS = {
-    "position_error": ("position_error", "position_error_m", np.float32, "true 3-D position error [m]"),
-    "edge_distance": ("edge_distance", "edge_distance_m", np.float32, "true hit to plane edge [m]"),
-}
-
-
-@dataclasses.dataclass
-class PointBatch:
-    """Equal-length 1-D arrays, one entry per returned point.
-
-    Arrays are converted to the dtypes below on construction: an integer field takes integers
-    that fit its dtype (floats are an error, never truncated), a float field takes any numbers.
-    The ``None``-able fields are ``None`` for points read from LAS files without our extra bytes.
-    """
-
-    x: np.ndarray  #: world easting [m], float64
-    y: np.ndarray  #: world northing [m], float64
-    z: np.ndarray  #: world height [m], float64
-    gps_time: np.ndarray  #: adjusted standard GPS time [s], float64 (NaN: not in the file)
-    point_source_id: np.ndarray  #: flight line, uint16
-    classification: np.ndarray  #: ASPRS class, uint8
-    scan_angle_deg: np.ndarray  #: signed off-nadir angle [deg], float32
-    intensity: np.ndarray  #: uint16
-    beam_row: np.ndarray | None  #: DOE row i, uint8
-    beam_col: np.ndarray | None  #: DOE column j, uint8
-    prism_angle_deg: np.ndarray | None  #: prism angle φ [deg], float32
-    range_m: np.ndarray | None  #: one-way range [m], float32
-    plane_id: np.ndarray  #: scene plane id, int32 (-1: none / unknown)
-    position_error_m: np.ndarray | None = None  #: true 3-D position error [m], float32
-    edge_distance_m: np.ndarray | None = None  #: true hit to its plane's boundary, capped [m], float32
-
-    def __post_init__(self) -> None:
-        n = None
-        for field in dataclasses.fields(self):
-            value = getattr(self, field.name)
-            if value is None:
-                if field.name not in _OPTIONAL_FIELDS:
-                    raise ValueError(f"PointBatch.{field.name} must be an array, not None")
-                continue
-            array = _converted(field.name, np.asarray(value))
-            if array.ndim != 1:
-                raise ValueError(f"PointBatch.{field.name} must be 1-D, got shape {array.shape}")
-            if n is None:
-                n = len(array)
-            elif len(array) != n:
-                raise ValueError(f"PointBatch.{field.name} has {len(array)} entries, x has {n}")
-            setattr(self, field.name, array)
-
-    def __len__(self) -> int:
-        return len(self.x)
-
-    def select(self, mask: np.ndarray) -> PointBatch:
-        """The points picked by a boolean mask or an index array."""
-        return PointBatch(
-            **{
-                name: None if value is None else value[mask]
-                for name, value in self._arrays().items()
-            }
-        )
-
-    @staticmethod
-    def concatenate(batches: Sequence[PointBatch]) -> PointBatch:
-        """All points of ``batches`` in order; an optional field is None if any batch lacks it."""
-        if not batches:
-            raise ValueError("PointBatch.concatenate needs at least one batch")
-        columns = {}
-        for name in _FIELD_DTYPES:
-            parts = [getattr(batch, name) for batch in batches]
-            columns[name] = None if any(p is None for p in parts) else np.concatenate(parts)
-        return PointBatch(**columns)
-
-    def _arrays(self) -> dict[str, np.ndarray | None]:
-        return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
-
-
-_FIELD_DTYPES = {
-    "x": np.float64,
-    "y": np.float64,
-    "z": np.float64,
-    "gps_time": np.float64,
-    "point_source_id": np.uint16,
-    "classification": np.uint8,
-    "scan_angle_deg": np.float32,
-    "intensity": np.uint16,
-    "beam_row": np.uint8,
-    "beam_col": np.uint8,
-    "prism_angle_deg": np.float32,
-    "range_m": np.float32,
-    "plane_id": np.int32,
-    "position_error_m": np.float32,
-    "edge_distance_m": np.float32,
-}
-_OPTIONAL_FIELDS = frozenset(
-    {"beam_row", "beam_col", "prism_angle_deg", "range_m", "position_error_m", "edge_distance_m"}
-)
-
-
-def _converted(name: str, array: np.ndarray) -> np.ndarray:
-    """``array`` as the dtype of field ``name``: integers must fit, floats never become ints."""
-    dtype = np.dtype(_FIELD_DTYPES[name])
-    if dtype.kind in "iu":
-        if array.dtype.kind not in "biu":
-            raise ValueError(f"PointBatch.{name} must hold integers, got {array.dtype}")
-        info = np.iinfo(dtype)
-        if array.size and (array.min() < info.min or array.max() > info.max):
-            raise ValueError(f"PointBatch.{name} has values outside the {dtype} range")
-    elif array.dtype.kind not in "biuf":
-        raise ValueError(f"PointBatch.{name} must hold numbers, got {array.dtype}")
-    return array.astype(dtype, copy=False)
-
-
-def gps_week_date(gps_time_adjusted: float) -> datetime.date:
-    """Calendar date of an adjusted standard GPS time [s] (standard GPS seconds − 1e9).
-
-    The date is that of the GPS time scale, counted from the GPS epoch 1980-01-06 00:00:00;
-    no leap seconds are applied, so within 18 s after midnight it is one day ahead of UTC.
-    """
-    seconds = float(gps_time_adjusted) + ADJUSTED_GPS_OFFSET_S
-    if not math.isfinite(seconds) or seconds < 0.0:
-        raise InputError(
-            "gps_time_adjusted", gps_time_adjusted, "a finite adjusted standard GPS time >= -1e9 s"
-        )
-    return GPS_EPOCH + datetime.timedelta(days=math.floor(seconds / 86400.0))
 
 
 class TileWriter:
@@ -223,7 +62,7 @@ class TileWriter:
         compress: write LAZ (``.laz``, lazrs backend) instead of LAS.
         extras: optional extra-bytes fields to add, names from ``OPTIONAL_DIMS``
             (``position_error``, ``edge_distance``); batches must carry them.
-        creation_date: header creation date (e.g. :func:`gps_week_date` of the run's first pulse).
+        creation_date: header creation date (e.g. :func:`.las_format.gps_week_date` of the run's first pulse).
         software: header generating-software string (at most 32 ASCII characters).
         max_open_tiles: bound on simultaneously open tile files (>= 1), per worker process.
         processes: LAZ worker processes (>= 0; 0: compress in this process; ignored for LAS);
@@ -549,148 +388,6 @@ class _TileFile:
     def discard(self) -> None:
         """Close the file without finishing it (its contents are to be deleted)."""
         self._file.close()
-
-
-def read_points(
-    paths: str | os.PathLike | Iterable[str | os.PathLike],
-) -> tuple[PointBatch, pyproj.CRS | None]:
-    """All points of one or more LAS/LAZ files (1.2–1.4), and their CRS.
-
-    Fields absent from a file are filled in: ``gps_time`` NaN, ``plane_id`` -1, and
-    ``beam_row``/``beam_col``/``prism_angle_deg``/``range_m``/``position_error_m``/``edge_distance_m`` None (None
-    for all files if any file lacks the field). The CRS is the one the files declare (None if
-    none does; an unparsable CRS record is ignored with a warning); files declaring different
-    CRSs are refused.
-    """
-    if isinstance(paths, (str, os.PathLike)):
-        paths = [paths]
-    paths = list(paths)
-    if not paths:
-        raise InputError("paths", paths, "at least one LAS/LAZ file")
-    batches = []
-    crs = None
-    for path in paths:
-        try:
-            las = laspy.read(path)
-        except (OSError, laspy.LaspyException) as err:
-            raise InputError("path", str(path), f"a readable LAS/LAZ file ({err})") from err
-        batches.append(_batch_from_las(las))
-        file_crs = _file_crs(las.header, path)
-        if file_crs is not None:
-            if crs is not None and file_crs != crs:
-                allowed = f"a file in the same CRS as the others ({crs.name})"
-                raise InputError("path", str(path), allowed)
-            crs = file_crs
-    return PointBatch.concatenate(batches), crs
-
-
-def _batch_from_las(las: laspy.LasData) -> PointBatch:
-    names = set(las.point_format.dimension_names)
-    n = len(las.points)
-
-    def extra(las_name: str) -> np.ndarray | None:
-        return np.asarray(las[las_name]) if las_name in names else None
-
-    if "scan_angle" in names:  # point formats 6-10: int16 in 0.006 deg
-        scan_angle = np.asarray(las["scan_angle"], dtype=np.float64) * SCAN_ANGLE_UNIT_DEG
-    else:  # point formats 0-5: int8 in whole degrees
-        scan_angle = np.asarray(las["scan_angle_rank"], dtype=np.float64)
-    plane_id = extra("plane_id")
-    return PointBatch(
-        x=np.asarray(las.x, dtype=np.float64),
-        y=np.asarray(las.y, dtype=np.float64),
-        z=np.asarray(las.z, dtype=np.float64),
-        gps_time=np.asarray(las["gps_time"]) if "gps_time" in names else np.full(n, np.nan),
-        point_source_id=np.asarray(las["point_source_id"]),
-        classification=np.asarray(las["classification"]),
-        scan_angle_deg=scan_angle.astype(np.float32),
-        intensity=np.asarray(las["intensity"]),
-        beam_row=extra("beam_row"),
-        beam_col=extra("beam_col"),
-        prism_angle_deg=extra("prism_angle"),
-        range_m=extra("range"),
-        plane_id=np.full(n, -1, dtype=np.int32) if plane_id is None else plane_id,
-        position_error_m=extra("position_error"),
-        edge_distance_m=extra("edge_distance"),
-    )
-
-
-def _file_crs(header: laspy.LasHeader, path) -> pyproj.CRS | None:
-    try:
-        return header.parse_crs()
-    except pyproj.exceptions.CRSError as err:
-        warnings.warn(f"{path}: ignoring a CRS record pyproj cannot parse ({err})", stacklevel=3)
-        return None
-
-
-def _tile_size_mm(tile_size_m: float) -> int:
-    allowed = f"a whole number of metres in [1, {MAX_TILE_SIZE_M}]"
-    try:
-        size = float(tile_size_m)
-    except (TypeError, ValueError):
-        raise InputError("tile_size_m", tile_size_m, allowed) from None
-    if not (math.isfinite(size) and size.is_integer() and 1 <= size <= MAX_TILE_SIZE_M):
-        raise InputError("tile_size_m", tile_size_m, allowed)
-    return int(size) * _MM_PER_M
-
-
-def _validated_crs(crs) -> pyproj.CRS:
-    """``crs`` as a pyproj CRS that is projected, in metres, and has a WKT1 form."""
-    allowed = "a projected CRS in metres that has an OGC WKT1 form (e.g. EPSG:32648)"
-    try:
-        crs = pyproj.CRS.from_user_input(crs)
-    except pyproj.exceptions.CRSError:
-        raise InputError("crs", crs, allowed) from None
-    horizontal_units = {axis.unit_name for axis in crs.axis_info[:2]}
-    if not crs.is_projected or not horizontal_units <= {"metre", "meter"}:
-        raise InputError("crs", crs.name, allowed)
-    if wkt1(crs) is None:
-        raise InputError("crs", crs.name, allowed)
-    return crs
-
-
-def wkt1(crs: pyproj.CRS) -> str | None:
-    """The OGC WKT1 (GDAL flavour) of ``crs``, or None where PROJ has none (pyproj may raise instead)."""
-    try:
-        return crs.to_wkt(WktVersion.WKT1_GDAL)
-    except pyproj.exceptions.CRSError:
-        return None
-
-
-def _tile_header_template(
-    crs: pyproj.CRS, creation_date: datetime.date, software: str, dims: tuple[tuple, ...]
-) -> laspy.LasHeader:
-    """Header shared by every tile (all but the offsets)."""
-    if not isinstance(creation_date, datetime.date):
-        raise InputError("creation_date", creation_date, "a datetime.date")
-    if not (isinstance(software, str) and software.isascii() and len(software) <= 32):
-        raise InputError("software", software, "an ASCII string of at most 32 characters")
-    header = laspy.LasHeader(version="1.4", point_format=6)
-    header.system_identifier = SYSTEM_IDENTIFIER
-    header.generating_software = software
-    header.creation_date = creation_date
-    header.file_source_id = 0  # a tile mixes flight lines; point_source_id carries the line
-    header.scales = np.array([SCALE_M, SCALE_M, SCALE_M])
-    header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
-    header.global_encoding.wkt = True
-    header.vlrs.append(WktCoordinateSystemVlr(wkt1(crs)))
-    header.add_extra_dims(
-        [laspy.ExtraBytesParams(name, dtype, description) for name, _, dtype, description in dims]
-    )
-    # laspy 2.7 flags min/max as valid but tracks them wrongly for 1-D fields (the first value of
-    # each write; laspy issue #346): claim no statistics rather than wrong ones.
-    for vlr in header.vlrs.get("ExtraBytesVlr"):  # none when ``dims`` is empty
-        for descriptor in vlr.extra_bytes_structs:
-            descriptor.options = 0
-    return header
-
-
-def _quantized_mm(values: np.ndarray, name: str) -> np.ndarray:
-    """``values`` [m] rounded to the 1 mm grid, as int64 [mm]."""
-    scaled = np.rint(values / SCALE_M)
-    if not np.all(np.abs(scaled) < 2.0**62):
-        raise ValueError(f"{name} must be finite world coordinates [m]")
-    return scaled.astype(np.int64)
 
 
 def _tile_groups(ix: np.ndarray, iy: np.ndarray):

@@ -18,17 +18,11 @@ and no record byte crosses a socket (which would move it in pieces of the socket
 kB, each a GIL hand-over in both processes).
 
 A worker is a fresh interpreter (``sys.executable``, fork-free: this process may hold a CUDA context and
-threads) that imports this module, :mod:`flightsim.outputs.las_tiles` and what they import — not Warp,
+threads) that imports :mod:`.laz_serve`, :mod:`flightsim.outputs.las_tiles` and what they import — not Warp,
 and not the parent's ``__main__`` (multiprocessing's spawn would re-run a script's top level). It takes
 the parent's ``sys.path`` (on its command line), so it imports flightsim from where the parent does.
 
-Protocol on each worker's socket (a Unix socket pair), in frames of a fixed head (:data:`_FRAME`) and a
-body: the parent sends the ``TileWriter`` options (pickled), then one head per write — tile key, bounds,
-and where the records lie in the ring — and finally a finish frame. The worker answers each write with a
-"freed" frame, and ends with one pickled message before it exits: ``("finished",)`` once its tile files
-are finished under their temporary names (the parent renames them), or ``("error", exception, traceback
-text)`` as soon as one of its writes fails (after deleting its temporaries). It ignores Ctrl-C (the
-parent stops it) and stops, deleting its temporaries, when the parent goes away.
+The frames on each worker's socket are :mod:`.laz_protocol`'s; a worker's body is :func:`.laz_serve.serve`.
 """
 from __future__ import annotations
 
@@ -40,14 +34,14 @@ import pickle
 import select
 import signal
 import socket
-import struct
 import subprocess
 import sys
-import traceback
 import weakref
 from collections import deque
 
 import numpy as np
+
+from flightsim.outputs.laz_protocol import FINISH, FREED, NO_NUMBERS, OBJECT, WRITE, receive_frame, send_frame
 
 RING_BYTES = 64 << 20
 """Shared-memory ring of record bytes per worker: a write waits while its worker's ring is full (one larger
@@ -56,13 +50,7 @@ EXIT_WAIT_S = 60.0
 """How long a worker that has finished its tiles may take to exit before it is killed [s]."""
 _ENTRY = ("import json, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "  # the parent stops its workers
           "sys.path[:] = json.loads(sys.argv[3]); "
-          "from flightsim.outputs.laz_workers import serve; serve(int(sys.argv[1]), int(sys.argv[2]))")
-_FRAME = struct.Struct("<B10qQ")
-"""Head of a frame: its kind; a write's tile key (x, y indices), least and greatest stored X, Y, Z [mm], and
-the offset and length of its records in the ring (zeros in other frames); the byte length of the body that
-follows."""
-_OBJECT, _WRITE, _FINISH, _FREED = 0, 1, 2, 3  # a pickled object, records of one tile, no more records, a write done
-_NO_NUMBERS = (0,) * 10
+          "from flightsim.outputs.laz_serve import serve; serve(int(sys.argv[1]), int(sys.argv[2]))")
 
 
 class LazWorkers:
@@ -109,7 +97,7 @@ class LazWorkers:
             while (offset := ring.take(part.nbytes)) is None:
                 self._read(worker, block=True)  # until the worker frees its oldest write
             np.copyto(ring.array[offset:offset + part.nbytes], part)
-            self._send(worker, _WRITE, (*key, *bounds, offset, part.nbytes))
+            self._send(worker, WRITE, (*key, *bounds, offset, part.nbytes))
 
     def finish(self) -> None:
         """Have every worker finish its tile files under their temporary names, and wait until they have
@@ -117,7 +105,7 @@ class LazWorkers:
         self._raise_failure()
         try:
             for worker in range(len(self.processes)):
-                self._send(worker, _FINISH)
+                self._send(worker, FINISH)
             for worker in range(len(self.processes)):
                 while self._read(worker, block=True) != "finished":
                     pass
@@ -149,12 +137,12 @@ class LazWorkers:
         self._sockets.append(parent)
         self._rings.append(ring)
         self._readable.register(parent, select.POLLIN)
-        self._send(len(self.processes) - 1, _OBJECT, body=memoryview(pickle.dumps(writer_options)))
+        self._send(len(self.processes) - 1, OBJECT, body=memoryview(pickle.dumps(writer_options)))
 
-    def _send(self, worker: int, kind: int, numbers: tuple = _NO_NUMBERS, body: memoryview | None = None) -> None:
+    def _send(self, worker: int, kind: int, numbers: tuple = NO_NUMBERS, body: memoryview | None = None) -> None:
         """Send a frame to ``worker``; if it has gone, raise why."""
         try:
-            _send_frame(self._sockets[worker], kind, numbers, body)
+            send_frame(self._sockets[worker], kind, numbers, body)
             return
         except OSError:
             pass  # the worker has gone: its message, or its death, says why
@@ -180,8 +168,8 @@ class LazWorkers:
         if not block and not select.select([sock], [], [], 0)[0]:
             return None
         try:
-            kind, _, body = _receive_frame(sock)
-            message = ("freed",) if kind == _FREED else pickle.loads(body)
+            kind, _, body = receive_frame(sock)
+            message = ("freed",) if kind == FREED else pickle.loads(body)
         except (EOFError, OSError):
             message = ("died",)
         if message[0] == "freed":
@@ -227,78 +215,6 @@ class _Ring:
     def release(self) -> None:
         """Free the oldest piece in use."""
         self._live.popleft()
-
-
-def serve(fd: int, ring_fd: int) -> None:
-    """Body of a worker process: write the tiles the parent hands over on the socket ``fd`` (records in the
-    shared ring ``ring_fd``), then finish them or report the first error (see the module docstring)."""
-    from flightsim.outputs.las_tiles import TileWriter  # here: las_tiles imports this module
-
-    ring = np.frombuffer(mmap.mmap(ring_fd, 0), dtype=np.uint8)
-    os.close(ring_fd)
-    with socket.socket(fileno=fd) as parent:
-        writer = None
-        try:
-            writer = TileWriter(**_receive_object(parent))
-            while (frame := _receive_frame(parent))[0] == _WRITE:
-                numbers = frame[1]
-                offset, size = numbers[8:]
-                writer.write_records(numbers[:2], ring[offset:offset + size], numbers[2:5], numbers[5:8])
-                _send_frame(parent, _FREED)
-            writer._finish_files()
-        except BaseException as exc:  # includes EOFError: the parent has gone
-            if writer is not None:
-                writer.abort()
-            with contextlib.suppress(OSError):
-                _send_frame(parent, _OBJECT, body=memoryview(pickle.dumps(("error", *_portable(exc)))))
-            return
-        _send_frame(parent, _OBJECT, body=memoryview(pickle.dumps(("finished",))))
-
-
-def _send_frame(sock: socket.socket, kind: int, numbers: tuple = _NO_NUMBERS, body: memoryview | None = None) -> None:
-    """Send one frame: head and body in one ``sendmsg`` call (the GIL released while it blocks), finished
-    by ``sendall`` where a signal cut it short."""
-    body = memoryview(b"") if body is None else body
-    head = _FRAME.pack(kind, *numbers, body.nbytes)
-    sent = sock.sendmsg([head, body])
-    if sent < len(head):
-        sock.sendall(head[sent:])
-    if sent < len(head) + body.nbytes:
-        sock.sendall(body[max(0, sent - len(head)):])
-
-
-def _receive_frame(sock: socket.socket) -> tuple[int, tuple, np.ndarray]:
-    """The next frame: its kind, the numbers of its head, and its body (uint8)."""
-    kind, *numbers, size = _FRAME.unpack(_receive_exactly(sock, _FRAME.size))
-    return kind, tuple(numbers), _receive_exactly(sock, size)
-
-
-def _receive_object(sock: socket.socket):
-    """The object of the next frame (a pickled one)."""
-    return pickle.loads(_receive_frame(sock)[2])
-
-
-def _receive_exactly(sock: socket.socket, size: int) -> np.ndarray:
-    """The next ``size`` bytes (uint8); ``EOFError`` if the peer closes first."""
-    data = np.empty(size, dtype=np.uint8)
-    view, got = memoryview(data), 0
-    while got < size:
-        n = sock.recv_into(view[got:])
-        if n == 0:
-            raise EOFError("the peer closed its socket")
-        got += n
-    return data
-
-
-def _portable(exc: BaseException) -> tuple[BaseException, str]:
-    """``exc`` (or, where it does not survive pickling, a ``RuntimeError`` naming its type and message)
-    and its formatted traceback."""
-    where = "".join(traceback.format_exception(exc))
-    try:
-        pickle.loads(pickle.dumps(exc))
-    except Exception:
-        exc = RuntimeError(f"{type(exc).__module__}.{type(exc).__qualname__}: {exc}")
-    return exc, where
 
 
 def _worker_error(worker: int, process: subprocess.Popen, message: tuple) -> BaseException:

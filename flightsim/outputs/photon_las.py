@@ -30,7 +30,9 @@ import pyproj
 from flightsim.core.errors import InputError
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
-from flightsim.outputs.las_tiles import PointBatch, TileWriter, gps_week_date
+from flightsim.outputs.las_format import gps_week_date
+from flightsim.outputs.las_points import PointBatch
+from flightsim.outputs.las_tiles import TileWriter
 from flightsim.platforms.orbit import local_to_geodetic
 from flightsim.scenes.scene import parse_crs
 

@@ -33,7 +33,7 @@ from flightsim.core.errors import InputError
 from flightsim.scoring.planes import PlaneFit, fit_groups, pooled_rms
 
 if TYPE_CHECKING:
-    from flightsim.outputs.las_tiles import PointBatch
+    from flightsim.outputs.las_points import PointBatch
 
 # laspy, pyproj and scipy are imported where used, so that registering the command costs nothing
 
@@ -124,7 +124,8 @@ def score_points(batch: PointBatch, mode: str = "truth", edge_buffer_m: float | 
 
 
 def _score_truth(batch: PointBatch, xyz: np.ndarray, buffer: float | None, source: str) -> ScoreResult:
-    from flightsim.scoring.blind import auto_edge_buffer_m, boundary_distance_m, neighbourhoods
+    from flightsim.scoring.blind_edges import auto_edge_buffer_m, boundary_distance_m
+    from flightsim.scoring.blind_neighbours import neighbourhoods
 
     labels = batch.plane_id.astype(np.int64)
     member = labels >= 0
@@ -258,7 +259,7 @@ def score_paths(paths: Sequence[str | os.PathLike], mode: str = "truth", out: st
                 edge_buffer_m: float | None = None) -> list[ScoreResult]:
     """Score LAS files and run directories (see :func:`find_sources`); write DIR/planes.csv and
     DIR/score.json when ``out`` is given."""
-    from flightsim.outputs.las_tiles import read_points
+    from flightsim.outputs.las_points import read_points
 
     if mode not in MODES:
         raise InputError("--mode", mode, " or ".join(MODES))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flightsim.calibration.ccr import CcrField, calibrate_least_squares, calibrate_patent, design_field
+from flightsim.calibration import CcrField, calibrate_least_squares, calibrate_patent, design_field
 from flightsim.calibration.geolocation import Bias, Track, footprint_offset, theoretical_radius
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.config_io import preset_config
@@ -39,7 +39,7 @@ class CalibrationPass:
     range_m: np.ndarray  # measured one-way range of every photon [m]
     kind: np.ndarray  # truth: 0 noise, 1 ground, 2 CCR
     patent: object  # flightsim.calibration.ccr.PatentCalibration
-    least_squares: object  # flightsim.calibration.ccr.LeastSquaresCalibration
+    least_squares: object  # flightsim.calibration.ccr_likelihood.LeastSquaresCalibration
     range_bias_m: tuple[float, float]  # the ranging bias with the CCR echoes' first-photon pile-up removed, σ [m]
 
 
