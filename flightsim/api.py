@@ -49,7 +49,7 @@ class SimulationResult:
     pulse: np.ndarray  # (n,) pulse index within its line
     beam: np.ndarray  # (n,) beam index (DOE i·n + j, or channel)
     range_m: np.ndarray  # (n,) observed one-way range [m]
-    counts: Any  # flightsim.engine.simulate.RunCounts
+    counts: Any  # flightsim.engine.tracer.RunCounts
     scene: Any  # flightsim.scenes.scene.Scene
 
 
@@ -61,13 +61,14 @@ def simulate(cfg: RunConfig, out: str | Path | None = None, with_truth: bool = F
         from flightsim.engine.run import simulate_to_directory
 
         return simulate_to_directory(cfg, Path(out), overwrite=overwrite, progress=progress)
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.readouts.points import Points
+    from flightsim.engine.tracer import Tracer
     from flightsim.engine.world import build_scene, flight_trajectories
 
     scene = build_scene(cfg)
-    sim = Simulator(cfg, scene, flight_trajectories(cfg, scene), with_truth=with_truth)
+    sim = Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=with_truth)
     parts = []
-    counts = sim.run(parts.append, progress)
+    counts = sim.run(Points(), parts.append, progress)
     join = (lambda get: np.concatenate([get(p) for p in parts]) if parts else np.empty(0))
     points = {m: scene.local_to_world(join(lambda p: p.points[m]).reshape(-1, 3)) for m in sim.models}
     truth = scene.local_to_world(join(lambda p: p.true_points).reshape(-1, 3)) if with_truth else None

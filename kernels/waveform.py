@@ -18,7 +18,7 @@ import functools
 import warp as wp
 
 from kernels.frames import ROW_PULSE, ROW_SEED
-from kernels.trace import _fallback_hit, _refine_hit
+from kernels.mesh_hits import fallback_hit, refine_hit
 
 wp.set_module_options({"enable_backward": False})
 
@@ -71,12 +71,12 @@ def cast64(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
     hit = wp.mesh_query_ray(m.mesh, wp.vec3f(start), wp.vec3f(direction), m.max_range)
     face = hit.face
     if not hit.result:
-        face, t_second = _fallback_hit(m.padded, m.vertices64, m.indices, start, direction, m.max_range)
+        face, t_second = fallback_hit(m.padded, m.vertices64, m.indices, start, direction, m.max_range)
     if face < 0:
         return -1, wp.float64(0.0), wp.vec3d()
     v0 = m.vertices64[m.indices[3 * face]]
     normal = wp.normalize(wp.cross(m.vertices64[m.indices[3 * face + 1]] - v0, m.vertices64[m.indices[3 * face + 2]] - v0))
-    return face, _refine_hit(m.vertices64, m.indices, face, start, direction), normal
+    return face, refine_hit(m.vertices64, m.indices, face, start, direction), normal
 
 
 @wp.func

@@ -26,8 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from flightsim.engine.config import RunConfig, set_value, validate  # noqa: E402
 from flightsim.engine.world import build_scene, flight_trajectories  # noqa: E402
-from flightsim.engine.simulate import Simulator  # noqa: E402
+from flightsim.engine.tracer import Tracer  # noqa: E402
 from flightsim.core.warp_runtime import init_warp  # noqa: E402
+from flightsim.engine.readouts.points import Points
 
 TOLERANCE_M = 1e-3
 CASES = {  # name: settings; the quick set is the first two at a tenth of the duration
@@ -55,7 +56,7 @@ def config(settings: dict, device: str, quick: bool) -> RunConfig:
 def simulate(cfg: RunConfig) -> tuple[dict[str, dict[tuple, np.ndarray]], dict]:
     """{model: {(line, pulse, beam): world point}} and the run's counts."""
     scene = build_scene(cfg)
-    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene))
+    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene))
     keys, points = [], {model: [] for model in simulator.models}
 
     def consume(chunk):
@@ -64,7 +65,7 @@ def simulate(cfg: RunConfig) -> tuple[dict[str, dict[tuple, np.ndarray]], dict]:
             points[model].append(scene.local_to_world(chunk.points[model]))
 
     started = time.perf_counter()
-    counts = simulator.run(consume)
+    counts = simulator.run(Points(), consume)
     wall = time.perf_counter() - started
     keys = np.concatenate(keys) if keys else np.zeros((0, 3), dtype=np.int64)
     out = {model: (keys, np.concatenate(p) if p else np.zeros((0, 3))) for model, p in points.items()}

@@ -6,8 +6,9 @@ import numpy as np
 import flightsim
 from flightsim.instrument.photon import PhotonSettings as PhotonConfig
 from flightsim.instrument.photon import detect
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.engine.world import build_scene, flight_trajectories
+from flightsim.engine.readouts.photons import Photons
 
 s = PhotonConfig(noise_hz=1e6, dead_time_s=2e-8, max_events=16, tdc_bin_s=2.5e-10)
 n, t0 = np.full(200000, 1.5), np.full(200000, 1e-6)
@@ -18,9 +19,9 @@ runs = {}
 for device in ("cpu", "cuda"):
     cfg = flightsim.load_config(instrument="spad", overrides={"flight.duration_s": 0.004, "run.device": device})
     scene = build_scene(cfg)
-    sim = Simulator(cfg, scene, flight_trajectories(cfg, scene))
+    sim = Tracer(cfg, scene, flight_trajectories(cfg, scene))
     parts = []
-    sim.run_photons(parts.append)
+    sim.run(Photons(), parts.append)
     runs[device] = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ("pulse", "pixel", "time_of_flight_s", "signal")}
 c, g = runs["cpu"], runs["cuda"]
 print("traced: photons", len(c["pulse"]), len(g["pulse"]), "same events", all(np.array_equal(c[k], g[k]) for k in ("pulse", "pixel", "signal")),

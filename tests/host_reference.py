@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.engine.config import RunConfig
-from flightsim.engine.simulate import ReturnChunk
+from flightsim.engine.readouts.points import ReturnChunk
 from flightsim.engine.instrument import Instrument
 from flightsim.outputs.device_las import tile_writers
 from flightsim.outputs.las_points import PointBatch

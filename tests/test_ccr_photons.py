@@ -10,8 +10,10 @@ import pytest
 
 from flightsim.cli import main
 from flightsim.engine.config import RunConfig, set_value, validate
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.engine.world import build_scene, flight_trajectories
+from flightsim.engine.readouts.points import Points
+from flightsim.engine.readouts.photons import Photons
 
 FOOTPRINT = 0.5 * 0.035e-3  # e⁻² half angle of a 0.035 mrad beam [rad]: w = 8.75 m at 500 km
 CCR_PHOTONS = 3.0
@@ -36,9 +38,9 @@ def test_ccr_photons_follow_the_footprint_profile_along_the_track(ccr):
     long as Σ_k 1 − exp(−n_k) shots with n_k = N0·exp(−2 d_k²/w²), d_k the footprint centre's distance."""
     discrete = _pass("discrete", ccr)
     scene = build_scene(discrete)
-    sim = Simulator(discrete, scene, flight_trajectories(discrete, scene), with_truth=True)
+    sim = Tracer(discrete, scene, flight_trajectories(discrete, scene), with_truth=True)
     hits = []
-    sim.run(hits.append)
+    sim.run(Points(), hits.append)
     truth = np.concatenate([c.true_points for c in hits])  # footprint centres (the beam's true hits)
     offset = np.linalg.norm(truth[:, :2] - np.asarray(ccr[:2]), axis=1)  # footprint centre to the CCR
     expected = CCR_PHOTONS * np.exp(-2.0 * offset ** 2 / (FOOTPRINT * 500e3) ** 2)
@@ -46,7 +48,7 @@ def test_ccr_photons_follow_the_footprint_profile_along_the_track(ccr):
 
     cfg = _pass("photon", ccr)
     chunks = []
-    Simulator(cfg, scene, flight_trajectories(cfg, scene)).run_photons(chunks.append)
+    Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Photons(), chunks.append)
     pulse = np.concatenate([c.pulse for c in chunks])
     flag = np.concatenate([c.signal for c in chunks])  # bool: signal of any kind
     kinds = np.concatenate([c.kind for c in chunks])
@@ -68,7 +70,7 @@ def _events(device: str):
     cfg = _pass("photon", **{"run.device": device})
     scene = build_scene(cfg)
     chunks = []
-    Simulator(cfg, scene, flight_trajectories(cfg, scene)).run_photons(chunks.append)
+    Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Photons(), chunks.append)
     return {k: np.concatenate([getattr(c, k) for c in chunks]) for k in ("pulse", "kind", "time_of_flight_s")}
 
 

@@ -11,6 +11,7 @@ from rasterio.transform import from_origin
 
 from flightsim.core.errors import InputError
 from flightsim.scenes.dem import dem_scene
+from flightsim.engine.readouts.waveforms import Waveforms
 
 
 def _write_tif(path, heights, west, north, cell, crs="EPSG:32648", nodata=None):
@@ -51,7 +52,7 @@ def test_nodata_cells_leave_holes_and_npy_grids_use_the_cell(tmp_path):
 
 
 def test_waveform_over_a_dem_slope_has_the_closed_form_width(tmp_path):
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.tracer import Tracer
     from flightsim.engine.world import build_scene, flight_trajectories
     from flightsim.studies.waveform import waveform_config
 
@@ -63,7 +64,7 @@ def test_waveform_over_a_dem_slope_has_the_closed_form_width(tmp_path):
                                                           "waveform.samples": 8192})
     scene = build_scene(cfg)
     parts = []
-    Simulator(cfg, scene, flight_trajectories(cfg, scene)).run_waveforms(parts.append)
+    Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Waveforms(), parts.append)
     power = parts[0].power_w[0].astype(np.float64)
     t = np.arange(power.size) * 5e-11
     mean = np.sum(t * power) / power.sum()

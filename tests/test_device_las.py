@@ -12,12 +12,13 @@ import pytest
 
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.run import simulate_to_directory
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.outputs import las_points, las_tiles
 from flightsim.outputs.consumers import PlaneStatistics
 from flightsim.outputs.device_las import DeviceLasOutput
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.engine.world import edge_buffer_m
+from flightsim.engine.readouts.points import Points
 from host_reference import HostLasOutput, HostPlaneStatistics
 
 
@@ -40,12 +41,12 @@ def _both_writers(cfg: RunConfig, tmp_path):
     """Tiles of the same run from the device path (``dev``) and the host reference (``host``)."""
     scene = build_scene(cfg)
     buffer = edge_buffer_m(cfg)
-    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), with_truth=True, edge_buffer_m=buffer)
+    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=True, edge_buffer_m=buffer)
     device = DeviceLasOutput(tmp_path / "dev", cfg.output, simulator, buffer > 0.0, cfg.flight.start_gps_time)
-    simulator.run_device(device)
+    simulator.run(Points(on_device=True), device)
     device_tiles = device.close()
     host = HostLasOutput(tmp_path / "host", cfg, scene, simulator.timing, edge_distance=buffer > 0.0)
-    simulator.run(host)
+    simulator.run(Points(), host)
     return device_tiles, host.close()
 
 
@@ -69,11 +70,11 @@ def test_device_plane_moments_equal_numpys(device):
     cfg = _config(device, **{"output.position_error": False})
     scene = build_scene(cfg)
     buffer = edge_buffer_m(cfg)
-    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer)
+    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer)
     on_device = PlaneStatistics(simulator, buffer)
-    counts = simulator.run_device(on_device)
+    counts = simulator.run(Points(on_device=True), on_device)
     host = HostPlaneStatistics(scene, simulator.models, buffer)
-    simulator.run(host)
+    simulator.run(Points(), host)
     moments = on_device.sums.moments()
     for model in ("exact", "nominal"):
         reference = host.moments[model]
@@ -88,9 +89,9 @@ def test_device_plane_moments_equal_numpys(device):
 def test_returns_per_line_are_counted_on_the_device(device):
     cfg = _config(device, **{"flight.lines": 3})
     scene = build_scene(cfg)
-    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene))
+    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene))
     chunks = []
-    counts = simulator.run(chunks.append)
+    counts = simulator.run(Points(), chunks.append)
     per_line = {}
     for chunk in chunks:
         per_line[chunk.line_id] = per_line.get(chunk.line_id, 0) + len(chunk)

@@ -66,12 +66,12 @@ def test_tilts_turn_the_axis_by_the_reflection_law():
 
 
 def test_device_rays_match_the_papers_reflection_formula():
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.tracer import Tracer
     from flightsim.engine.world import build_scene, flight_trajectories
 
     cfg = _spad_config(flight__duration_s=0.002, run__seed=3)
     scene = build_scene(cfg)
-    sim = Simulator(cfg, scene, flight_trajectories(cfg, scene))
+    sim = Tracer(cfg, scene, flight_trajectories(cfg, scene))
     pulses = 100
     _, directions = (a.numpy().astype(np.float64) for a in sim.sample_rays(pulses * 1024))
     pose = sim.poses64(1, 0, 1).numpy()[0]

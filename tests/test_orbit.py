@@ -11,9 +11,10 @@ from scipy.integrate import solve_ivp
 
 from flightsim.cli import main
 from flightsim.engine.config import RunConfig, set_value, validate
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.platforms.orbit import BODIES, Orbit, earth_rotation, eccentric_anomaly, gcrs_to_itrs, kepler_state
 from flightsim.engine.world import build_scene, flight_trajectories
+from flightsim.engine.readouts.points import Points
 
 ARCSEC = math.pi / 648000
 
@@ -111,9 +112,9 @@ def test_the_pass_is_above_the_scene_origin_at_mid_run_at_the_vis_viva_speed(e):
 def test_one_arcsecond_of_pointing_moves_the_ground_point_by_h_tan_one_arcsecond():
     cfg = _orbit_config(**{"pose.boresight_arcsec": [1.0, 0.0, 0.0]})
     scene = build_scene(cfg)
-    sim = Simulator(cfg, scene, flight_trajectories(cfg, scene), with_truth=True)
+    sim = Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=True)
     chunks = []
-    counts = sim.run(chunks.append)
+    counts = sim.run(Points(), chunks.append)
     assert counts.returns == counts.beams_fired == 11
     shift = np.concatenate([np.linalg.norm(c.points["exact"] - c.true_points, axis=1) for c in chunks])
     ranges = np.concatenate([c.range_m for c in chunks]).astype(np.float64)
@@ -127,7 +128,7 @@ def test_ranging_bias_adds_to_every_range():
     for cfg in (plain, biased):
         scene = build_scene(cfg)
         chunks = []
-        Simulator(cfg, scene, flight_trajectories(cfg, scene)).run(chunks.append)
+        Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Points(), chunks.append)
         ranges.append(np.concatenate([c.range_m for c in chunks]).astype(np.float64))
     assert ranges[1] - ranges[0] == pytest.approx(np.full(11, 0.25), abs=0.04)  # float32 ranges near 500 km: 3 cm steps
 
@@ -137,7 +138,7 @@ def test_moon_pass_at_200_km():
                            "instrument.max_range_m": 3e5})
     scene = build_scene(cfg)
     chunks = []
-    Simulator(cfg, scene, flight_trajectories(cfg, scene)).run(chunks.append)
+    Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Points(), chunks.append)
     ranges = np.concatenate([c.range_m for c in chunks])
     assert len(ranges) == 11 and np.abs(ranges - 200e3).max() < 5.0  # the tangent plane drops ≤ 1 m over the pass
 

@@ -16,10 +16,11 @@ from rasterio.transform import from_origin
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.engine.run import PATCH_RASTER, simulate_to_directory
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.outputs.consumers import AUTO_PATCH_M, MAX_PATCHES, MIN_PATCH_POINTS, PatchStatistics, patch_grid
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.scoring.planes import fit_groups
+from flightsim.engine.readouts.points import Points
 
 E0, N0, H0 = 409000.0, 3393000.0, 450.0  # the default scene origin
 RADIUS_M = 600.0  # curvature radius of the test surface along east
@@ -64,12 +65,12 @@ def test_device_patch_fits_equal_numpys_two_pass_fits(dem, device):
     assert not scene.planar
     grid = patch_grid(scene, cfg.scoring.patch_m)
     assert grid.patch_m == AUTO_PATCH_M
-    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene))
+    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene))
     fits = PatchStatistics(simulator, grid)
-    simulator.run_device(fits)
+    simulator.run(Points(on_device=True), fits)
     rms, count = fits.rms_grids()
     chunks = []
-    simulator.run(chunks.append)
+    simulator.run(Points(), chunks.append)
     points = {m: np.concatenate([c.points[m] for c in chunks]) for m in ("exact", "nominal")}
     label = _patch_of(points["exact"], grid)
     assert np.array_equal(np.bincount(label, minlength=grid.nx * grid.ny), count.ravel())

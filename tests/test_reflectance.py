@@ -15,7 +15,7 @@ from rasterio.transform import from_origin
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.engine.run import simulate_to_directory
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.instrument import waveform_model as model
 from flightsim.instrument.waveform import system
 from flightsim.engine.world import build_scene, flight_trajectories
@@ -25,6 +25,8 @@ from flightsim.scenes.landcover import triangle_reflectance
 from flightsim.scenes.plane import plane_scene
 from flightsim.scenes.scene import DEFAULT_CRS
 from flightsim.studies.waveform import waveform_config
+from flightsim.engine.readouts.waveforms import Waveforms
+from flightsim.engine.readouts.photons import Photons
 
 C = 299_792_458.0  # [m/s]
 H_PLANCK = 6.62607015e-34  # [J s]
@@ -84,9 +86,9 @@ def _photons(cfg: RunConfig, scene=None):
     """(photons per pulse, local x of each pulse's nadir [m], the photon chunks) of a photon run over ``scene``."""
     scene = build_scene(cfg) if scene is None else scene
     trajectories = flight_trajectories(cfg, scene)
-    sim = Simulator(cfg, scene, trajectories)
+    sim = Tracer(cfg, scene, trajectories)
     chunks = []
-    counts = sim.run_photons(chunks.append)
+    counts = sim.run(Photons(), chunks.append)
     pulse = np.concatenate([c.pulse for c in chunks])
     (line,) = trajectories
     position, _ = line.interpolate(sim.timing.pulse_times(line.start_time, np.arange(counts.pulses)))
@@ -128,7 +130,7 @@ def test_photons_of_a_uniform_per_triangle_reflectance_are_those_of_the_run_valu
 
 def _waveform(cfg: RunConfig, scene):
     parts = []
-    Simulator(cfg, scene, flight_trajectories(cfg, scene)).run_waveforms(parts.append)
+    Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Waveforms(), parts.append)
     (chunk,) = parts
     return chunk
 

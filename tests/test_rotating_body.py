@@ -12,7 +12,7 @@ from flightsim.cli import main
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.config_io import load_toml, to_toml
 from flightsim.core.errors import InputError
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.platforms import rotating_body
 from flightsim.engine.world import build_scene, flight_trajectories
 
@@ -64,7 +64,7 @@ def _hover_point(scene, cfg, t: float) -> np.ndarray:
 
 def _simulator(cfg):
     scene = build_scene(cfg)
-    return scene, Simulator(cfg, scene, flight_trajectories(cfg, scene))
+    return scene, Tracer(cfg, scene, flight_trajectories(cfg, scene))
 
 
 @pytest.mark.parametrize("fields", [{}, {"flight__descent_mps": 2.0},

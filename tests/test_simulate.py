@@ -10,6 +10,7 @@ import reference_optics as ref
 from flightsim.engine.config import RunConfig, config_dict, set_value, validate
 from flightsim.engine.config_io import load_toml
 from flightsim.engine.run import STAGES, simulate_to_directory
+from flightsim.engine.readouts.points import Points
 
 
 def config(**settings) -> RunConfig:
@@ -147,7 +148,7 @@ def test_edge_distances_equal_a_brute_force_over_every_boundary_segment():
     sim = simulator(workload("cpu", 3, 6e4), with_truth=True)
     cap = sim.edge_buffer_m
     chunks = []
-    sim.run(chunks.append)
+    sim.run(Points(), chunks.append)
     got = np.concatenate([c.edge_distance_m for c in chunks]).astype(np.float64)
     points = np.concatenate([c.true_points for c in chunks])
     segments = boundary_segments(sim.scene)
@@ -168,7 +169,7 @@ def test_fallback_boxes_are_the_triangle_bounds_padded_by_the_used_corners_exten
     corner some triangle uses), an unused far vertex left out, computed here in numpy."""
     import dataclasses
 
-    from flightsim.engine.simulate import SceneMeshes
+    from flightsim.engine.meshes import SceneMeshes
     from flightsim.scenes.calibration import calibration_scene
     from flightsim.scenes.scene import DEFAULT_CRS
 
@@ -185,8 +186,8 @@ def test_fallback_boxes_are_the_triangle_bounds_padded_by_the_used_corners_exten
 def test_replica_totals_add_every_copy_of_the_sums_in_float64():
     import warp as wp
 
-    from flightsim.engine.simulate import replica_totals
-    from kernels.trace import vec6d
+    from flightsim.scoring.reduction import replica_totals
+    from kernels.statistics import vec6d
 
     rng = np.random.default_rng(3)
     replicas, models, groups = 9, 2, 5

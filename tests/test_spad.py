@@ -4,6 +4,7 @@ from __future__ import annotations
 import pytest
 
 from flightsim.studies.spad import frame_config, run_frame
+from flightsim.engine.readouts.photons import Photons
 
 
 def test_one_mode_b_dwell_gives_a_point_per_beam_at_the_pile_up_bias():
@@ -24,10 +25,10 @@ def _photons(cfg, on_device):
     _, sim = frame_simulator(cfg)
     parts = []
     if on_device:
-        sim.run_photons(lambda f: parts.append((f.time_of_flight_s.numpy().copy(), f.signal.numpy().astype(bool))),
-                        on_device=True)
+        sim.run(Photons(on_device=True),
+                lambda f: parts.append((f.time_of_flight_s.numpy().copy(), f.signal.numpy().astype(bool))))
     else:
-        sim.run_photons(lambda c: parts.append((c.time_of_flight_s, c.signal)))
+        sim.run(Photons(), lambda c: parts.append((c.time_of_flight_s, c.signal)))
     return tuple(np.concatenate([p[k] for p in parts]) for k in (0, 1))
 
 

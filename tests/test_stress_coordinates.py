@@ -18,7 +18,8 @@ import reference_optics as ref
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.engine.run import simulate_to_directory
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
+from flightsim.engine.readouts.points import Points
 from kernels import frames
 from trajectories import PulseTiming
 from trajectories.attitude import rotation_body_to_enu
@@ -100,7 +101,7 @@ def test_exact_model_is_flat_and_every_point_within_a_millimetre_of_float64(tmp_
     scene = build_scene(cfg)
     (trajectory,) = flight_trajectories(cfg, scene)
     chunks = []
-    Simulator(cfg, scene, [trajectory]).run(chunks.append)
+    Tracer(cfg, scene, [trajectory]).run(Points(), chunks.append)
     pulse = np.concatenate([c.pulse for c in chunks])
     beam = np.concatenate([c.beam for c in chunks])
     world = scene.local_to_world(np.concatenate([c.points["exact"] for c in chunks]))

@@ -13,7 +13,8 @@ from flightsim.scenes.meshio import load_mesh
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.engine.run import simulate_to_directory
 from flightsim.scenes.scene import CLASS_GROUND, Scene, plane_info
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
+from flightsim.engine.readouts.points import Points
 
 MM = 1e-3
 
@@ -94,13 +95,13 @@ def test_beams_aimed_exactly_at_shared_vertices_and_edges_all_return(device, sha
     plane = build_scene(cfg)
     (trajectory,) = flight_trajectories(cfg, plane)
     chunks = []
-    Simulator(cfg, plane, [trajectory], with_truth=True).run(chunks.append)
+    Tracer(cfg, plane, [trajectory], with_truth=True).run(Points(), chunks.append)
     hits = np.concatenate([c.true_points for c in chunks])  # where each beam meets z = 0
     assert len(hits) == 64 * 501
     # the same beams over patches whose shared vertex (or edge) is exactly where each beam lands
     patches = diamonds(plane, hits, shared)
     chunks = []
-    counts = Simulator(cfg, patches, [trajectory], with_truth=True).run(chunks.append)
+    counts = Tracer(cfg, patches, [trajectory], with_truth=True).run(Points(), chunks.append)
     assert counts.beams_fired == len(hits) and counts.tir_dropped == 0
     assert counts.misses == 0, f"{counts.misses} of {counts.beams_fired} beams fell through a shared {shared}"
     landed = np.concatenate([c.true_points for c in chunks])

@@ -17,7 +17,8 @@ import reference_optics as ref
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.engine.run import simulate_to_directory
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
+from flightsim.engine.readouts.points import Points
 
 MM = 1e-3
 N_BK7 = 1.5066
@@ -36,7 +37,7 @@ def simulate(cfg: RunConfig):
     scene = build_scene(cfg)
     (trajectory,) = flight_trajectories(cfg, scene)
     chunks = []
-    counts = Simulator(cfg, scene, [trajectory]).run(chunks.append)
+    counts = Tracer(cfg, scene, [trajectory]).run(Points(), chunks.append)
     cat = lambda get: np.concatenate([get(c) for c in chunks])  # noqa: E731
     returns = {
         "pulse": cat(lambda c: c.pulse), "beam": cat(lambda c: c.beam), "range": cat(lambda c: c.range_m),

@@ -18,8 +18,9 @@ from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_points import read_points
 from host_reference import HostLasOutput
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.studies.survey import SurveySpec, plan_survey, run_survey
+from flightsim.engine.readouts.points import Points
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import this test module
 
@@ -79,9 +80,9 @@ def test_tasks_give_the_points_of_one_undivided_simulation(serial, tmp_path):
     scene, global_plane = grid.assemble(everything, (1, 1))
     lines = {t.line.line_id: t.line for t in plan.tasks}
     trajectories = [line.trajectory(ground_height_m=grid.centre[2]) for line in lines.values()]
-    simulator = Simulator(plan.cfg, scene, trajectories)
+    simulator = Tracer(plan.cfg, scene, trajectories)
     las = HostLasOutput(tmp_path, plan.cfg, scene, simulator.timing, edge_distance=False, plane_ids=global_plane)
-    counts = simulator.run(las)
+    counts = simulator.run(Points(), las)
     las.close()
     assert summary["pulses"] == counts.pulses and summary["points"]["exact"] == counts.returns > 300_000
     n_planes = len(grid.template().planes)

@@ -12,8 +12,10 @@ from flightsim.engine.world import edge_buffer_m
 from host_reference import HostPlaneStatistics
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.scoring.planes import pooled_rms
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.studies.sweep import SweepGrid, run_sweep
+from flightsim.engine.readouts.statistics import run_statistics
+from flightsim.engine.readouts.points import Points
 
 DELTA = "2.314"
 
@@ -71,17 +73,17 @@ def test_rms_increases_strictly_with_array_size_and_spacing(tmp_path):
 @pytest.mark.parametrize("replicas", [None, 7])
 def test_device_statistics_equal_the_point_path(device, replicas, monkeypatch):
     if replicas:  # a GPU's copies of the sums, added on the device, also where the device is the CPU
-        monkeypatch.setattr(Simulator, "sum_replicas", lambda self, groups=None: replicas)
+        monkeypatch.setattr(Tracer, "sum_replicas", lambda self, groups=None: replicas)
     cfg = RunConfig()
     set_value(cfg, "flight.duration_s", 3.0)
     set_value(cfg, "run.device", device)
     cfg = validate(cfg)
     scene = build_scene(cfg)
     buffer = edge_buffer_m(cfg)
-    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer)
+    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer)
     host = HostPlaneStatistics(scene, simulator.models, buffer)
-    point_counts = simulator.run(host)
-    device_moments, device_counts = simulator.run_statistics()
+    point_counts = simulator.run(Points(), host)
+    device_moments, device_counts = run_statistics(simulator)
     assert device_counts.returns == point_counts.returns
     assert device_counts.edge_excluded == point_counts.returns - int(host.moments["exact"].count.sum()) > 0
     for model, tolerance in (("nominal", dict(rel=1e-6)), ("exact", dict(abs=1e-7))):

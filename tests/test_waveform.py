@@ -10,11 +10,12 @@ import pytest
 import warp as wp
 
 from flightsim.cli import main
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.tracer import Tracer
 from flightsim.instrument import waveform_model as model
 from flightsim.instrument.waveform import system
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.studies.waveform import waveform_config
+from flightsim.engine.readouts.waveforms import Waveforms
 
 C = 299_792_458.0
 H = 200e3
@@ -28,7 +29,7 @@ def _shot(scene: str, device: str = "cpu", **settings):
     cfg = waveform_config(scene, device, **{**SMALL, **settings})
     scene_mesh = build_scene(cfg)
     parts = []
-    Simulator(cfg, scene_mesh, flight_trajectories(cfg, scene_mesh)).run_waveforms(parts.append)
+    Tracer(cfg, scene_mesh, flight_trajectories(cfg, scene_mesh)).run(Waveforms(), parts.append)
     (chunk,) = parts
     times = chunk.window_start_s[0] + cfg.waveform.sample_interval_s * np.arange(cfg.waveform.samples)
     return cfg, times, chunk.power_w[0].astype(np.float64), chunk.received[0]

@@ -15,6 +15,9 @@ from flightsim.scenes.scene import Scene
 from kernels import frames
 from trajectories import PulseTiming, Trajectory
 
+SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
+POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # readouts that bring every return to the host
+
 
 @dataclass(frozen=True)
 class Segment:

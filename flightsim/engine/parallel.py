@@ -1,7 +1,7 @@
 """One run's statistics split over several CPU processes.
 
 Warp runs a CPU launch on one thread, so a CPU run uses more cores by giving each process every
-n-th chunk of pulses (:meth:`Simulator.run_statistics` ``share``) and adding the per-plane sums.
+n-th chunk of pulses (:meth:`Tracer.run_statistics` ``share``) and adding the per-plane sums.
 Workers are started once and keep their scene, BVH and kernels for every task they get.
 """
 from __future__ import annotations
@@ -12,7 +12,8 @@ from concurrent.futures import ProcessPoolExecutor
 from flightsim.engine.config import RunConfig, validate
 from flightsim.engine.config_io import from_dict, to_toml
 from flightsim.scoring.planes import PlaneMoments
-from flightsim.engine.simulate import RunCounts
+from flightsim.engine.readouts.statistics import run_statistics
+from flightsim.engine.tracer import RunCounts
 
 _worker_state: dict = {}
 
@@ -23,25 +24,25 @@ def _simulator(cfg_toml: str):
 
     from flightsim.engine.world import edge_buffer_m
     from flightsim.engine.world import build_scene, flight_trajectories
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.tracer import Tracer
 
     if _worker_state.get("key") != cfg_toml:
         cfg = validate(from_dict(tomllib.loads(cfg_toml)))
         scene = build_scene(cfg)
         _worker_state["key"] = cfg_toml
-        _worker_state["sim"] = Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=edge_buffer_m(cfg))
+        _worker_state["sim"] = Tracer(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=edge_buffer_m(cfg))
     return _worker_state["sim"]
 
 
 def _share(cfg_toml: str, share: tuple[int, int]):
-    moments, counts = _simulator(cfg_toml).run_statistics(share=share)
+    moments, counts = run_statistics(_simulator(cfg_toml), share=share)
     return {m: (v.count, v.first, v.second) for m, v in moments.items()}, counts
 
 
 def _warm(cfg_toml: str) -> None:
     """Build the simulator and compile its kernels (runs the first chunk only)."""
     sim = _simulator(cfg_toml)
-    sim.run_statistics(share=(0, 1 << 30))
+    run_statistics(sim, share=(0, 1 << 30))
 
 
 class ProcessPool:

@@ -81,7 +81,8 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
     from flightsim.outputs.consumers import PatchStatistics, PlaneStatistics, patch_grid
     from flightsim.outputs.copc import write_run_copc
     from flightsim.outputs.device_las import DeviceLasOutput
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.readouts.points import Points
+    from flightsim.engine.tracer import Tracer
     from flightsim.core.warp_runtime import resolve_device
 
     resolve_device(cfg.run.device)  # every input is checked before the output directory is touched
@@ -93,7 +94,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
         return _photons_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
     if cfg.instrument.detector == "waveform":
         return _waveforms_to_directory(cfg, scene, trajectories, directory, cfg_text, progress)
-    simulator = Simulator(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
+    simulator = Tracer(cfg, scene, trajectories, with_truth=cfg.output.position_error, edge_buffer_m=buffer)
     las = DeviceLasOutput(directory, cfg.output, simulator, buffer > 0.0, cfg.flight.start_gps_time)
     planes = PlaneStatistics(simulator, buffer) if scene.planar else None  # curved ground: patches only
     fits = PatchStatistics(simulator, patches, buffer) if patches is not None else None
@@ -105,7 +106,7 @@ def simulate_to_directory(cfg: RunConfig, directory: Path, overwrite: bool = Fal
 
     marks.append(time.perf_counter())
     try:
-        counts = simulator.run_device(consume, progress)
+        counts = simulator.run(Points(on_device=True), consume, progress)
         marks.append(time.perf_counter())
         tiles = las.close()
     except BaseException:
@@ -137,12 +138,13 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
                           progress: Callable[[int, int], None] | None) -> dict:
     """Photon mode: every detection into photons.h5, LAS tiles in photons/ (in output.crs) and, from orbit, the
     ATL03-style atl03.h5, then summary.json."""
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.readouts.photons import Photons
+    from flightsim.engine.tracer import Tracer
     from flightsim.outputs.atl03_h5 import Atl03Writer
     from flightsim.outputs.photon_las import FOLDER, PhotonLas
     from flightsim.outputs.photons_h5 import PhotonWriter
 
-    simulator = Simulator(cfg, scene, trajectories)
+    simulator = Tracer(cfg, scene, trajectories)
     shutil.rmtree(directory / FOLDER, ignore_errors=True)  # tiles of a run being redone
     writer = PhotonWriter(directory, cfg_text, simulator.timing.prf_hz, scene.origin, scene.crs.to_wkt())
     body = cfg.flight.body if cfg.flight.platform == "orbit" else None
@@ -156,7 +158,7 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
             w(chunk)
 
     try:
-        counts = simulator.run_photons(consume, progress)
+        counts = simulator.run(Photons(), consume, progress)
         names = [w.close() for w in writers]
     except BaseException:
         for w in writers:
@@ -179,16 +181,17 @@ def _photons_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, 
 def _waveforms_to_directory(cfg: RunConfig, scene, trajectories, directory: Path, cfg_text: str,
                             progress: Callable[[int, int], None] | None) -> dict:
     """Waveform mode: every beam's waveform, its geolocation and ranging into waveforms.h5, then summary.json."""
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.readouts.waveforms import Waveforms
+    from flightsim.engine.tracer import Tracer
     from flightsim.instrument.waveform import system
     from flightsim.outputs.waveforms_h5 import WaveformWriter
 
-    simulator = Simulator(cfg, scene, trajectories)
+    simulator = Tracer(cfg, scene, trajectories)
     taps, first_lag = simulator.instrument.detector.pulse_taps("cpu")
     tx = (taps.numpy(), first_lag * cfg.waveform.sample_interval_s)
     writer = WaveformWriter(directory, cfg_text, system(cfg.waveform), simulator.timing.prf_hz, scene, tx)
     try:
-        counts = simulator.run_waveforms(writer, progress)
+        counts = simulator.run(Waveforms(), writer, progress)
         names = writer.close()
     except BaseException:
         writer.abort()

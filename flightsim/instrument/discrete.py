@@ -18,6 +18,7 @@ class DiscreteDetector:
     """One return per beam."""
 
     settings = DiscreteSettings
+    readouts = ("points", "statistics", "deviations")  # the engine's readouts it provides; a run to files uses the first
     output = "las"  # the [output] kind of its runs
     scored = True  # its runs are scored by plane fits ([scoring])
 

@@ -52,6 +52,7 @@ class PhotonDetector:
     """A SPAD pixel with its own TDC behind every beam: ``[photon]``."""
 
     settings = PhotonSettings
+    readouts = ("photons",)
     output = "photons"
     scored = False
 

@@ -22,7 +22,7 @@ import warp as wp
 
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
-from kernels import trace
+from kernels import error_models
 
 C = 299_792_458.0  # [m/s]
 
@@ -98,9 +98,9 @@ class RangingErrors:
         rng = np.random.default_rng([self.seed, 0x5EED])
         return self.s.range_bias_m + rng.normal(0.0, self.s.channel_delay_m, beams)
 
-    def struct(self, beams: int, device: str) -> trace.RangeErrors:
+    def struct(self, beams: int, device: str) -> error_models.RangeErrors:
         """The kernels' struct of the ranging chain's systematic and quantisation errors."""
-        errors = trace.RangeErrors()
+        errors = error_models.RangeErrors()
         errors.tdc_bin = C / 2.0 * self.s.tdc_bin_s
         errors.drift = self.s.clock_drift
         errors.delays = wp.array(self.channel_delays(beams).astype(np.float32), dtype=wp.float32, device=device)

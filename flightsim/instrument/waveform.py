@@ -96,6 +96,7 @@ class WaveformDetector:
     """A full waveform per beam: ``[waveform]``."""
 
     settings = WaveformSettings
+    readouts = ("waveforms",)
     output = None  # waveforms.h5 has no settings of its own
     scored = False
 

@@ -14,7 +14,7 @@ from flightsim.core.constants import MODELS
 from flightsim.core.errors import InputError
 from flightsim.scoring.planes import PlaneMoments, pooled_rms
 from flightsim.scoring.reduction import SLOTS_PER_THREAD, replica_totals, symmetric
-from kernels import trace
+from kernels import statistics
 
 
 AUTO_PATCH_M = 25.0
@@ -27,7 +27,7 @@ MIN_PATCH_POINTS = 10
 
 class _DeviceMoments:
     """Per-group float64 moments of each model's points on the device (the statistics-mode reduction,
-    :func:`kernels.trace.reduce_kernel`), fed one chunk of codes at a time: the group of each slot."""
+    :func:`kernels.statistics.reduce_kernel`), fed one chunk of codes at a time: the group of each slot."""
 
     def __init__(self, simulator, references: np.ndarray):
         """references: (G, 3) float64 reference point of each group [m, local]."""
@@ -38,8 +38,8 @@ class _DeviceMoments:
         self.references = wp.array(self.reference_points, dtype=wp.vec3d, device=d)
         shape = (simulator.sum_replicas(len(references)), 2, len(references))
         self.sums = [wp.zeros(shape, dtype=wp.int64, device=d), wp.zeros(shape, dtype=wp.vec3d, device=d),
-                     wp.zeros(shape, dtype=trace.vec6d, device=d), wp.zeros(3, dtype=wp.int32, device=d)]
-        self.reduce = trace.reduce_kernel(simulator.features)
+                     wp.zeros(shape, dtype=statistics.vec6d, device=d), wp.zeros(3, dtype=wp.int32, device=d)]
+        self.reduce = statistics.reduce_kernel(simulator.features)
         self.codes: wp.array | None = None
 
     def codes_for(self, n_slots: int) -> wp.array:
@@ -82,7 +82,7 @@ class PlaneStatistics:
 
     def __call__(self, returns) -> None:
         b, n = returns.buffers, returns.n_slots
-        wp.launch(trace.plane_codes, n, inputs=[b.status, b.faces, b.edge_distance, self.face_plane,
+        wp.launch(statistics.plane_codes, n, inputs=[b.status, b.faces, b.edge_distance, self.face_plane,
                                                 self.edge_buffer_m], outputs=[self.sums.codes_for(n)],
                   device=self.sums.device)
         self.sums.add(returns)
@@ -162,7 +162,7 @@ class PatchStatistics:
 
     def __call__(self, returns) -> None:
         b, n, g = returns.buffers, returns.n_slots, self.grid
-        wp.launch(trace.patch_codes, n,
+        wp.launch(statistics.patch_codes, n,
                   inputs=[b.status, b.model_points[self.selector], b.edge_distance, self.edge_buffer_m,
                           wp.vec2d(*g.low), g.patch_m, g.nx, g.ny],
                   outputs=[self.sums.codes_for(n)], device=self.sums.device)

@@ -1,6 +1,6 @@
 """LAS tiles at the device's speed: records packed on the device, written by writer threads.
 
-For each chunk the points kernel leaves on the device (:class:`~flightsim.engine.simulate.DeviceReturns`),
+For each chunk the points kernel leaves on the device (:class:`~flightsim.engine.readouts.points.DeviceReturns`),
 every georeferencing model's returns are packed into finished LAS records already grouped by tile
 (:mod:`kernels.las_records`), copied once into a page-locked host buffer, and handed to that model's
 writer thread, which appends each tile's records to its file (:meth:`TileWriter.write_records`) while

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.core.constants import ARCSEC
-from kernels import trace
+from kernels import error_models
 
 
 @dataclass
@@ -54,9 +54,9 @@ class PoseErrors:
         roll, pitch, yaw = (v * ARCSEC for v in self.s.boresight_arcsec)
         return Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
 
-    def struct(self) -> trace.PoseErrors:
+    def struct(self) -> error_models.PoseErrors:
         """The kernels' struct of the pose errors."""
-        out = trace.PoseErrors()
+        out = error_models.PoseErrors()
         out.mount = wp.mat33d(*self.mount_rotation().ravel())
         out.position_sigma = self.s.position_noise_m
         out.attitude_sigma = self.s.attitude_noise_arcsec * ARCSEC

@@ -65,7 +65,7 @@ def grid_points(xyz, cells, bin_m: float, min_count: int, window_m: float, devic
 
 class PhotonFrame:
     """A frame's photon positions and beam angle cells, gathered on the device chunk by chunk
-    (``add`` takes a simulate.DevicePhotons), then gridded into points with ``grid``; ``reset`` starts
+    (``add`` takes a :class:`~flightsim.engine.readouts.photons.DevicePhotons`), then gridded into points with ``grid``; ``reset`` starts
     the next frame in the same device and host memory.
 
     The points of ``grid`` are views of the frame's page-locked host buffers (the copy from the device

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from kernels import trace
+from kernels import statistics
 
 SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # consecutive slots per reducing thread
 SUM_REPLICAS = 512  # copies of the per-group sums on a GPU, so busy groups' atomics spread
@@ -27,8 +27,8 @@ def replica_totals(sums: list[wp.array]) -> tuple[np.ndarray, np.ndarray, np.nda
     counts, first, second = sums
     shape, d = counts.shape[1:], counts.device
     totals = [wp.empty(shape, dtype=wp.int64, device=d), wp.empty(shape, dtype=wp.vec3d, device=d),
-              wp.empty(shape, dtype=trace.vec6d, device=d)]
-    wp.launch(trace.add_replicas, shape, inputs=[counts, first, second], outputs=totals, device=d)
+              wp.empty(shape, dtype=statistics.vec6d, device=d)]
+    wp.launch(statistics.add_replicas, shape, inputs=[counts, first, second], outputs=totals, device=d)
     return tuple(a.numpy() for a in totals)
 
 

@@ -11,7 +11,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from flightsim.engine.simulate import ReturnChunk, Simulator
+from flightsim.engine.readouts.points import ReturnChunk
+from flightsim.engine.readouts.points import Points
+from flightsim.engine.tracer import Tracer
 from kernels import reference
 
 
@@ -31,12 +33,12 @@ class ErrorStats:
 
 
 class ReferenceCheck:
-    """A consumer for :meth:`Simulator.run` that compares every return with the float64 reference.
+    """A consumer for :meth:`Tracer.run` that compares every return with the float64 reference.
 
     The simulator must have been built with ``with_truth=True``.
     """
 
-    def __init__(self, simulator: Simulator):
+    def __init__(self, simulator: Tracer):
         self.sim = simulator
         self.truth, self.believed = simulator.scan.truth, simulator.scan.believed
         self.stats = ErrorStats()
@@ -61,8 +63,8 @@ class ReferenceCheck:
         self.stats.add(pointing, {m: np.linalg.norm(chunk.points[m] - refs[m], axis=1) for m in chunk.points})
 
 
-def measure_errors(simulator: Simulator) -> ErrorStats:
+def measure_errors(simulator: Tracer) -> ErrorStats:
     """Run the simulator in points mode and return the largest errors against the float64 reference."""
     check = ReferenceCheck(simulator)
-    simulator.run(check)
+    simulator.run(Points(), check)
     return check.stats

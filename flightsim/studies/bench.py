@@ -24,7 +24,12 @@ import warp as wp
 from flightsim.engine.config import RunConfig, copy_config, set_value, validate
 from flightsim.engine.world import edge_buffer_m
 from flightsim.engine.world import build_scene, flight_trajectories
-from flightsim.engine.simulate import SceneMeshes, Simulator
+from flightsim.engine.meshes import SceneMeshes
+from flightsim.engine.readouts.photons import Photons
+from flightsim.engine.readouts.statistics import run_statistics
+from flightsim.engine.readouts.waveforms import Waveforms, sample_subrays
+from flightsim.engine.readouts.points import Points
+from flightsim.engine.tracer import Tracer
 from flightsim.core.warp_runtime import resolve_device
 from kernels import trace
 
@@ -81,27 +86,27 @@ def workload(device: str, array: int, returns: float, **settings) -> RunConfig:
     return validate(cfg)
 
 
-def simulator(cfg: RunConfig, meshes: SceneMeshes | None = None, **kw) -> Simulator:
+def simulator(cfg: RunConfig, meshes: SceneMeshes | None = None, **kw) -> Tracer:
     scene = meshes.scene if meshes else build_scene(cfg)
-    return Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=edge_buffer_m(cfg), meshes=meshes,
+    return Tracer(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=edge_buffer_m(cfg), meshes=meshes,
                      **kw)
 
 
-def timed_statistics(sim: Simulator, repeats: int = 2):
+def timed_statistics(sim: Tracer, repeats: int = 2):
     """(best wall [s], counts) of run_statistics after a first run that compiles and warms up."""
-    sim.run_statistics()
+    run_statistics(sim)
     best, counts = float("inf"), None
     for _ in range(repeats):
         wp.synchronize_device(sim.device)
-        _, counts = sim.run_statistics()
+        _, counts = run_statistics(sim)
         best = min(best, counts.wall_s)
     return best, counts
 
 
-def bare_raycast(sim: Simulator, rays: int, repeats: int, subrays: bool = False) -> tuple[float, int]:
+def bare_raycast(sim: Tracer, rays: int, repeats: int, subrays: bool = False) -> tuple[float, int]:
     """(wall [s], hits) of casting the run's first ``rays`` rays (the waveform detector's sub-rays with
     ``subrays``) ``repeats`` times with nothing else."""
-    starts, directions = sim.sample_subrays(rays) if subrays else sim.sample_rays(rays)
+    starts, directions = sample_subrays(sim, rays) if subrays else sim.sample_rays(rays)
     faces = wp.empty(starts.shape[0], dtype=wp.int32, device=sim.device)
     args = dict(dim=starts.shape[0], inputs=[sim.meshes.mesh.id, starts, directions, sim.cfg.instrument.max_range_m],
                 outputs=[faces], device=sim.device)
@@ -187,7 +192,7 @@ def spad_frame(device: str, s: Sizes) -> dict:
     simulate_frame(sim, frame)
     runs = [simulate_frame(sim, frame) for _ in range(3)]
     counts, points, wall = min(runs, key=lambda r: r[2])
-    photons_only = min(sim.run_photons(lambda found: None, on_device=True).wall_s for _ in range(2))
+    photons_only = min(sim.run(Photons(on_device=True), lambda found: None).wall_s for _ in range(2))
     sample = min(counts.beams_fired, 1 << 24)
     repeats = max(1, round(counts.beams_fired / sample))
     bare_wall, _ = bare_raycast(sim, sample, repeats)
@@ -212,9 +217,9 @@ def waveform_altimeter(device: str, s: Sizes) -> list[dict]:
     for scene, shots in (("flat", 20000 if cuda else 20), ("slope", 500 if cuda else 4)):
         cfg = waveform_config(scene, device, **{"fixed.prf_hz": 1000.0, "flight.duration_s": (shots - 0.5) / 1000.0})
         sim = simulator(cfg)
-        sim.run_waveforms(lambda found: None, on_device=True)
-        counts = min((sim.run_waveforms(lambda found: None, on_device=True) for _ in range(2)), key=lambda c: c.wall_s)
-        kernels = _kernel_times(lambda: sim.run_waveforms(lambda found: None, on_device=True)) if cuda else {}
+        sim.run(Waveforms(on_device=True), lambda found: None)
+        counts = min((sim.run(Waveforms(on_device=True), lambda found: None) for _ in range(2)), key=lambda c: c.wall_s)
+        kernels = _kernel_times(lambda: sim.run(Waveforms(on_device=True), lambda found: None)) if cuda else {}
         sample = min(counts.returns, 1 << 24)
         bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.returns / sample)), subrays=True)
         rate, bare = counts.returns / counts.wall_s, hits / bare_wall
@@ -239,7 +244,7 @@ def stages(device: str, s: Sizes) -> list[dict]:
         sim = simulator(workload(device, array, s.returns / 4))
         wall, counts = timed_statistics(sim, repeats=1)
         wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
-        sim.run_statistics()
+        run_statistics(sim)
         kernels: dict[str, float] = {}
         for result in wp.timing_end():
             name = kernel_name(result.name)
@@ -291,7 +296,7 @@ def _two_process_record(cfg: RunConfig, sample: int, repeats: int) -> dict:
         pool.close()
 
 
-def _record(sim: Simulator, cfg: RunConfig, counts, wall: float, raycast_rate: float, processes: int) -> dict:
+def _record(sim: Tracer, cfg: RunConfig, counts, wall: float, raycast_rate: float, processes: int) -> dict:
     rate = counts.returns / wall
     return {
         "device": sim.device, "gpu_name": gpu_name(sim.device), "scene": cfg.scene.name,
@@ -401,7 +406,7 @@ def _reduce_row(case: str, cfg: RunConfig, device: str) -> dict:
     for _ in range(2):
         for knob, sim in sims.items():
             wp.synchronize_device(sim.device)
-            _, counts = sim.run_statistics()
+            _, counts = run_statistics(sim)
             walls[knob] = min(walls[knob], counts.wall_s)
     sample = min(counts.beams_fired, 1 << 24)
     bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.beams_fired / sample)))
@@ -478,13 +483,13 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
     cfg = _scale_workload(device, s.scale_returns, **{"scene.name": str(dem), "run.scene_cache": False})
     cold, scene, trajectories, meshes = _ready(cfg, device)
     cache_write_s, warm = _ready_from_cache(cfg, device, tmp / "scene-cache")
-    sim = Simulator(cfg, scene, trajectories, meshes=meshes)
+    sim = Tracer(cfg, scene, trajectories, meshes=meshes)
     wall, counts = timed_statistics(sim, repeats=1)
     sample = min(counts.beams_fired, 1 << (24 if sim.device_kind == "cuda" else 20))
     bare_wall, hits = bare_raycast(sim, sample, max(1, round(counts.beams_fired / sample)))
-    kernels = _kernel_times(sim.run_statistics) if sim.device_kind == "cuda" else None
+    kernels = _kernel_times(lambda: run_statistics(sim)) if sim.device_kind == "cuda" else None
     las_cfg = _scale_workload(device, s.scale_las_returns)
-    las_sim = Simulator(las_cfg, scene, trajectories[:las_cfg.flight.lines], meshes=meshes)
+    las_sim = Tracer(las_cfg, scene, trajectories[:las_cfg.flight.lines], meshes=meshes)
     _las_run_into(las_sim, las_cfg, tmp / "warm-up")  # compiles the points path's kernels
     las_wall, las_counts, written = _las_run_into(las_sim, las_cfg, tmp / "las")
     points = las_counts.returns * len(las_sim.models)
@@ -507,14 +512,14 @@ def _scale_workload(device: str, returns: float, **settings) -> RunConfig:
                                            "flight.lines": lines, **settings})
 
 
-def _las_run_into(sim: Simulator, cfg: RunConfig, directory: Path):
+def _las_run_into(sim: Tracer, cfg: RunConfig, directory: Path):
     """(wall [s] until every tile is closed, counts, bytes written) of a LAS-mode run into ``directory``,
     which is removed afterwards."""
     from flightsim.outputs.device_las import DeviceLasOutput
 
     started = time.perf_counter()
     las = DeviceLasOutput(directory, cfg, sim, edge_distance=False)
-    counts = sim.run_device(las)
+    counts = sim.run(Points(on_device=True), las)
     tiles = las.close()
     wall = time.perf_counter() - started
     written = sum((directory / model / name).stat().st_size for model, names in tiles.items() for name in names)
@@ -592,7 +597,7 @@ def _culling_saving(cfg: RunConfig) -> dict:
     walls = {}
     for cull in (True, False):
         run_cfg = _with(long, {"run.cull": cull})
-        sim = Simulator(run_cfg, scene, flight_trajectories(run_cfg, scene), edge_buffer_m=edge_buffer_m(run_cfg))
+        sim = Tracer(run_cfg, scene, flight_trajectories(run_cfg, scene), edge_buffer_m=edge_buffer_m(run_cfg))
         walls[cull], counts = timed_statistics(sim, repeats=1)
         if cull:
             culled = counts.pulses_culled / (counts.pulses + counts.pulses_culled)
@@ -610,9 +615,9 @@ def _with(cfg: RunConfig, settings: dict) -> RunConfig:
 
 def _mode_saving(cfg: RunConfig) -> dict:
     sim = simulator(cfg)
-    sim.run(lambda chunk: None)
+    sim.run(Points(), lambda chunk: None)
     started = time.perf_counter()
-    counts = sim.run(lambda chunk: None)
+    counts = sim.run(Points(), lambda chunk: None)
     points_wall = time.perf_counter() - started
     stats_wall, _ = timed_statistics(sim, repeats=1)
     per_return = 8 + 4 * 4 + 4 + 12 * len(sim.models) + 4  # slot, range, face, angle, cos, edge, points, flags
@@ -629,12 +634,12 @@ def _build_once_saving(cfg: RunConfig) -> dict:
     started = time.perf_counter()
     meshes = SceneMeshes(build_scene(extent_cfg), resolve_device(cfg.run.device))
     for c in configs:
-        simulator(c, meshes).run_statistics()
+        run_statistics(simulator(c, meshes))
     shared = time.perf_counter() - started
     started = time.perf_counter()
     for c in configs:
         scene = build_scene(extent_cfg)
-        Simulator(c, scene, flight_trajectories(c, scene), edge_buffer_m=edge_buffer_m(c)).run_statistics()
+        run_statistics(Tracer(c, scene, flight_trajectories(c, scene), edge_buffer_m=edge_buffer_m(c)))
     rebuilt = time.perf_counter() - started
     return {"what": "scene + BVH built once for a 5-configuration sweep (kernels are cached per process)",
             "baseline_s": rebuilt, "variant_s": shared, "saving": 1 - shared / rebuilt}

@@ -23,6 +23,8 @@ from flightsim.core.constants import ARCSEC
 from flightsim.engine.config import RunConfig, copy_config, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.engine.instrument import Instrument
+from flightsim.engine.readouts.deviations import Deviations
+from flightsim.engine.readouts.points import Points
 from flightsim.instrument import galvo_model
 from flightsim.instrument.galvo import ANGLE_ERRORS
 from flightsim.instrument.ranging import RangingErrors, RangingSettings
@@ -77,7 +79,7 @@ class Frame:
     frame): the scene, the trajectory and simulators with truth."""
 
     def __init__(self, cfg: RunConfig, pulses: int | None = None):
-        from flightsim.engine.simulate import SceneMeshes
+        from flightsim.engine.meshes import SceneMeshes
         from flightsim.engine.world import build_scene, flight_trajectories
         from flightsim.core.warp_runtime import resolve_device
 
@@ -92,9 +94,9 @@ class Frame:
         self.geometry = instrument.deflector.geometry() if self.cfg.instrument.deflector == "galvo" else None
 
     def simulator(self, cfg: RunConfig):
-        from flightsim.engine.simulate import Simulator
+        from flightsim.engine.tracer import Tracer
 
-        return Simulator(cfg, self.scene, self.trajectories, with_truth=True, meshes=self.meshes,
+        return Tracer(cfg, self.scene, self.trajectories, with_truth=True, meshes=self.meshes,
                          pulse_limits={self.trajectories[0].line_id: (0, self.pulses)})
 
     def poses(self, sim) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +122,7 @@ class Frame:
             deviation[index] = chunk.points["exact"] - chunk.true_points
             truth[index] = chunk.true_points
 
-        sim.run(consume)
+        sim.run(Points(), consume)
         return deviation, truth, sim
 
     def deviations(self, cfg: RunConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -217,7 +219,7 @@ def monte_carlo(frame: Frame, draws: int, allowed_arcsec: dict[str, float] | Non
             believed=False)
         sim.scan.ranging.delays.assign(rng.normal(0.0, delay_sigma, frame.beams).astype(np.float32))
         sim.lines.seed.assign(np.array([(seed * 1_000_003 + i + 1) % (1 << 31)], dtype=np.int32))
-        sim.accumulate_deviations(sums, squares, hits)
+        sim.run(Deviations(sums, squares, hits))
     wp.synchronize_device(d)
     wall = time.perf_counter() - started
     n = hits.numpy().astype(np.float64)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from flightsim.engine.config import RunConfig, copy_config, validate
+from flightsim.engine.readouts.deviations import Deviations
 from flightsim.studies.budget import AXES, MonteCarlo, Frame, table
 
 ENU = ("E", "N", "U")
@@ -125,7 +126,7 @@ def monte_carlo(frame: Frame, draws: int, seed: int = 0) -> MonteCarlo:
         drawn = {name: float(rng.normal(0.0, sigma)) for name, sigma in systematic.items()}
         sim.set_errors(with_sources(frame.cfg, noise | drawn))
         sim.lines.seed.assign(np.array([(seed * 1_000_003 + i + 1) % (1 << 31)], dtype=np.int32))
-        sim.accumulate_deviations(sums, squares, hits)
+        sim.run(Deviations(sums, squares, hits))
     wp.synchronize_device(d)
     wall = time.perf_counter() - started
     n = hits.numpy().astype(np.float64)

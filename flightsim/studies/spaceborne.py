@@ -71,7 +71,8 @@ def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", see
     the ``orbit`` platform the calibration takes each shot's believed laser position and body axes from
     the simulator (the pass curves and its nadir turns by ~0.5 mrad over 3.5 km); the field is laid out
     along the straight line through the pass's first and last nadir points."""
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.readouts.photons import Photons
+    from flightsim.engine.tracer import Tracer
     from flightsim.engine.world import build_scene, flight_trajectories
 
     base = preset_config("atlas")
@@ -83,12 +84,12 @@ def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", see
     # the track from a config without CCRs (the flight does not depend on them)
     probe = pass_config(truth, CcrField(np.zeros((1, 3)), np.zeros(1)), shots, device, seed, background_hz, platform)
     scene = build_scene(probe)
-    track = _track(Simulator(probe, scene, flight_trajectories(probe, scene)), shots, platform)
+    track = _track(Tracer(probe, scene, flight_trajectories(probe, scene)), shots, platform)
     field = CcrField.from_track_frame(track, LEAD_M + design.along_m, design.across_m,
                                       np.resize([1.0, 1.5, 2.0], design.n_ccr))
     cfg = pass_config(truth, field, shots, device, seed, background_hz, platform)
     chunks = []
-    Simulator(cfg, scene, flight_trajectories(cfg, scene)).run_photons(chunks.append)
+    Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Photons(), chunks.append)
     shot = np.concatenate([c.pulse for c in chunks])
     range_m = np.concatenate([c.time_of_flight_s for c in chunks]) * (299_792_458.0 / 2.0)
     kind = np.concatenate([c.kind for c in chunks])

@@ -113,12 +113,12 @@ def write_products(stem: Path, scene, sim, frame: "FramePoints", grid: int) -> l
 
 
 def frame_simulator(cfg: RunConfig):
-    """(scene, Simulator) of a frame's config."""
-    from flightsim.engine.simulate import Simulator
+    """(scene, Tracer) of a frame's config."""
+    from flightsim.engine.tracer import Tracer
     from flightsim.engine.world import build_scene, flight_trajectories
 
     scene = build_scene(cfg)
-    return scene, Simulator(cfg, scene, flight_trajectories(cfg, scene))
+    return scene, Tracer(cfg, scene, flight_trajectories(cfg, scene))
 
 
 @dataclass
@@ -144,10 +144,12 @@ def simulate_frame(sim, frame) -> tuple:
     ``frame`` (a :func:`photon_frame`, reset here), all on the device; only the points reach the host
     (views of the frame's buffers, valid until its next use). The wall time runs from the first launch
     to the points on the host."""
+    from flightsim.engine.readouts.photons import Photons
+
     cfg = sim.cfg
     started = time.perf_counter()
     frame.reset()
-    counts = sim.run_photons(frame.add, on_device=True)
+    counts = sim.run(Photons(on_device=True), frame.add)
     p = cfg.photon
     sigma_m = math.hypot(p.pulse_fwhm_s / 2.3548, p.jitter_s) * 1.5e8
     result = frame.grid(bin_m=max(2.0 * sigma_m, p.tdc_bin_s * 1.5e8), min_count=MIN_PHOTONS,

@@ -6,7 +6,7 @@ flown by parallel north–south lines whose spacing is the swath width (the scan
 2·h·tan θ) less the sidelap.
 
 Each line is cut along track into segments of ``segment_m``. One task simulates one segment: its
-pulses only (``Simulator(pulse_limits=...)``, so every pulse belongs to exactly one task), over a
+pulses only (``Tracer(pulse_limits=...)``, so every pulse belongs to exactly one task), over a
 scene assembled from just the tiles its beams can reach (the reach radius h·tan(θ_max + tilt + 1°)
 plus the scene margin around its ground track, the local origin being the tile under the middle
 of the segment). It writes its points per LAS tile into part files in a directory of its own,
@@ -44,7 +44,8 @@ from flightsim.core.atomic import write_atomic
 from flightsim.scenes.calibration import calibration_min_half_extent, calibration_scene
 from flightsim.scenes.plane import plane_scene
 from flightsim.scenes.scene import Scene, parse_crs
-from flightsim.engine.simulate import Simulator
+from flightsim.engine.readouts.points import Points
+from flightsim.engine.tracer import Tracer
 from trajectories import FlightLine, PulseTiming, TrajectoryError, plan_parallel_lines
 
 PARTS = ".parts"  # per-task part files, under the output directory
@@ -304,13 +305,13 @@ def segment_task(cfg: RunConfig, grid: TileGrid, task: SegmentTask, out: str) ->
 def _simulate_segment(cfg: RunConfig, grid: TileGrid, task: SegmentTask, directory: Path) -> dict:
     scene, global_plane = grid.assemble(list(task.tiles), task.origin_tile)
     trajectory = task.line.trajectory(ground_height_m=grid.centre[2])
-    simulator = Simulator(cfg, scene, [trajectory], with_truth=cfg.output.position_error,
+    simulator = Tracer(cfg, scene, [trajectory], with_truth=cfg.output.position_error,
                           pulse_limits={task.line.line_id: task.pulses})
     parts = copy_config(cfg)
     parts.output.laz = False  # parts are plain LAS; the merge writes the final format
     las = DeviceLasOutput(directory, parts.output, simulator, False, cfg.flight.start_gps_time, plane_ids=global_plane)
     try:
-        counts = simulator.run_device(las)
+        counts = simulator.run(Points(on_device=True), las)
         tiles = las.close()
     except BaseException:
         las.abort()

@@ -119,7 +119,7 @@ class SceneCache:
     def get(self, cfg: RunConfig, device: str):
         """(Scene, SceneMeshes) for a config's scene on ``device``."""
         from flightsim.engine.world import build_scene
-        from flightsim.engine.simulate import SceneMeshes
+        from flightsim.engine.meshes import SceneMeshes
 
         scene_key = self.scene_key(cfg)
         key = (scene_key, self.extent.get(scene_key), device)
@@ -133,15 +133,16 @@ def run_configuration(labels: dict, cfg: RunConfig, scenes: SceneCache) -> dict:
     """Simulate one configuration in statistics mode; return its sweep and plane rows."""
     from flightsim.engine.world import flight_trajectories
     from flightsim.scoring.planes import pooled_rms
-    from flightsim.engine.simulate import Simulator
+    from flightsim.engine.readouts.statistics import run_statistics
+    from flightsim.engine.tracer import Tracer
     from flightsim.core.warp_runtime import resolve_device
 
     started = time.perf_counter()
     device = resolve_device(cfg.run.device)
     scene, meshes = scenes.get(cfg, device)
     buffer = edge_buffer_m(cfg)
-    simulator = Simulator(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer, meshes=meshes)
-    moments, counts = simulator.run_statistics()
+    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer, meshes=meshes)
+    moments, counts = run_statistics(simulator)
     wall = time.perf_counter() - started
     rows, planes = [], []
     for model, m in moments.items():

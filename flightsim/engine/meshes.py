@@ -1,0 +1,105 @@
+"""A scene's acceleration structures on one device: the triangle BVH, the padded-box BVH of the fallback cast, the
+plane-boundary segments and edge grids of the edge buffer, and the per-triangle reflectance."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from flightsim.core.warp_runtime import to_host
+from flightsim.scenes.scene import Scene
+from kernels import edges, mesh_hits
+
+EDGE_GRID_CELLS = 4096  # the edge grid has at most this many cells along a side
+EDGE_GRIDS_KEPT = 4  # edge grids (one per edge cap) a SceneMeshes keeps
+
+
+class SceneMeshes:
+    """A scene's acceleration structures on one device, built once: the triangle BVH, a BVH of the
+    plane-boundary segments for edge-buffer queries and the per-triangle reflectance (both on first use)."""
+
+    def __init__(self, scene: Scene, device: str, bvh_constructor: str = "auto", leaf_size: int | None = None):
+        self.scene = scene
+        self.device = device
+        if bvh_constructor == "auto":  # measured fastest per device kind (README, run.bvh)
+            bvh_constructor = "sah" if wp.get_device(device).is_cpu else "cubql"
+        points = scene.vertices.astype(np.float32)
+        self.mesh = wp.Mesh(points=wp.array(points, dtype=wp.vec3f, device=device),
+                            indices=wp.array(scene.triangles.astype(np.int32).ravel(), dtype=wp.int32, device=device),
+                            bvh_constructor=bvh_constructor, bvh_leaf_size=leaf_size)
+        self.vertices64 = wp.array(scene.vertices, dtype=wp.vec3d, device=device)
+        self.indices = self.mesh.indices
+        self.padded = self._padded_bvh(scene, device)
+        self._boundary: tuple[wp.Bvh, wp.array, wp.array] | None = None
+        self._reflectance: wp.array | None = None
+        self._grids: dict[float, edges.EdgeGrid] = {}
+
+    def _padded_bvh(self, scene: Scene, device: str) -> wp.Bvh:
+        """BVH of the triangles' boxes padded by 1e-6·(1 + the largest |coordinate| of a triangle corner)
+        [m], for the fallback cast (:func:`kernels.mesh_hits.fallback_hit`); the boxes are made on the device."""
+        n = len(scene.triangles)
+        extent = wp.zeros(1, dtype=wp.float32, device=device)
+        wp.launch(mesh_hits.corner_extent, n, inputs=[self.mesh.points, self.mesh.indices], outputs=[extent],
+                  device=device)
+        pad = np.float32(1e-6 * (1.0 + to_host(extent)[0]))
+        self._padded_boxes = (wp.empty(n, dtype=wp.vec3f, device=device), wp.empty(n, dtype=wp.vec3f, device=device))
+        wp.launch(mesh_hits.padded_boxes, n, inputs=[self.mesh.points, self.mesh.indices, pad],
+                  outputs=list(self._padded_boxes), device=device)
+        return wp.Bvh(*self._padded_boxes)
+
+    @property
+    def per_face(self) -> bool:
+        """Whether the scene carries a Lambertian albedo per triangle (else the detectors take the run's value)."""
+        return self.scene.reflectance is not None
+
+    @property
+    def reflectance(self) -> wp.array:
+        """float32 Lambertian albedo of each triangle on the device (uploaded on first use); a one-element
+        placeholder when the scene has none."""
+        if self._reflectance is None:
+            rho = self.scene.reflectance if self.per_face else np.ones(1, dtype=np.float32)
+            self._reflectance = wp.array(rho, dtype=wp.float32, device=self.device)
+        return self._reflectance
+
+    @property
+    def boundary(self) -> tuple[wp.Bvh, wp.array, wp.array]:
+        """(BVH of segment boxes, segment starts, segment ends)."""
+        if self._boundary is None:
+            segments = self.scene.boundary_segments().astype(np.float32)
+            if len(segments) == 0:  # a closed surface has no boundary: one far-away dummy segment
+                segments = np.full((1, 2, 3), 1e9, dtype=np.float32)
+            a = wp.array(segments[:, 0], dtype=wp.vec3f, device=self.device)
+            b = wp.array(segments[:, 1], dtype=wp.vec3f, device=self.device)
+            lowers = wp.array(segments.min(axis=1), dtype=wp.vec3f, device=self.device)
+            uppers = wp.array(segments.max(axis=1), dtype=wp.vec3f, device=self.device)
+            self._boundary = (wp.Bvh(lowers, uppers), a, b)
+        return self._boundary
+
+    def edge_grid(self, cap_m: float) -> edges.EdgeGrid:
+        """The grid of cells a plane boundary may come within ``cap_m`` of (built on first use per cap;
+        the last few are kept, as a sweep's configurations share few caps)."""
+        if cap_m not in self._grids:
+            if len(self._grids) >= EDGE_GRIDS_KEPT:
+                self._grids.pop(next(iter(self._grids)))
+            self._grids[cap_m] = self._build_edge_grid(cap_m)
+        return self._grids[cap_m]
+
+    def _build_edge_grid(self, cap_m: float) -> edges.EdgeGrid:
+        lower, upper = self.scene.bounds()
+        extent = float(max(upper[0] - lower[0], upper[1] - lower[1])) + 2.0 * cap_m
+        cell = max(cap_m, extent / EDGE_GRID_CELLS, 1e-6)
+        shape = tuple(int(math.ceil((upper[k] - lower[k] + 2.0 * cap_m) / cell)) + 1 for k in (0, 1))
+        grid = edges.EdgeGrid()
+        grid.near = wp.zeros(shape, dtype=wp.uint8, device=self.device)
+        grid.origin = wp.vec2f(float(lower[0]) - cap_m, float(lower[1]) - cap_m)
+        grid.inv_cell = 1.0 / cell
+        _, a, b = self.boundary
+        wp.launch(edges.mark_near_cells, a.shape[0], inputs=[a, b, cap_m], outputs=[grid], device=self.device)
+        return grid
+
+    def none_grid(self) -> edges.EdgeGrid:
+        """An empty edge grid, for runs without an edge buffer."""
+        grid = edges.EdgeGrid()
+        grid.near = wp.zeros((1, 1), dtype=wp.uint8, device=self.device)
+        return grid

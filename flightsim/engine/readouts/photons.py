@@ -1,0 +1,157 @@
+"""The photons readout of the photon-counting detector: every beam traced to its range, its return turned into the
+detections of its SPAD pixel on the device (kernels/photon.py: the lidar equation, the echo's spread, background,
+dark counts and dead time over the range gate; corner-cube retroreflectors of the scene), each detection placed on
+its believed beam."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from flightsim.core.registry import register
+from flightsim.core.warp_runtime import to_host
+from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, SLOTS_PER_CHUNK, Segment
+from flightsim.engine.readouts.points import PointBuffers, trace_points
+from kernels import photon, trace
+
+
+@dataclass
+class PhotonChunk:
+    """The photon detections of one chunk of pulses of one flight line (host arrays, one row per photon)."""
+
+    line_id: int
+    start_time: float  # adjusted standard GPS time of the line's pulse 0 [s]
+    pulse: np.ndarray  # (m,) int64 pulse index within the line
+    pixel: np.ndarray  # (m,) int32 beam (pixel) index
+    time_of_flight_s: np.ndarray  # (m,) float64 [s]
+    signal: np.ndarray  # (m,) bool: the photon came from the pulse (truth), else background or dark count
+    kind: np.ndarray  # (m,) int8 truth: 0 background or dark count, 1 the surface's echo, 2 a retroreflector's
+    points: np.ndarray  # (m, 3) float64 local [m]: the photon placed on its believed beam at c·t/2
+    directions: np.ndarray  # (m, 3) float32 local unit direction of the photon's believed beam
+
+    def __len__(self) -> int:
+        return len(self.pulse)
+
+
+@dataclass
+class DevicePhotons:
+    """The photon detections of one chunk on the device, ordered by slot (valid until the next chunk)."""
+
+    count: int
+    slot: wp.array  # int32 slot within the chunk (pulse of the chunk · beams per pulse + beam)
+    time_of_flight_s: wp.array  # float64 [s]
+    signal: wp.array  # int8 truth: 0 background or dark count, 1 the surface's echo, 2 a retroreflector's
+    points: wp.array  # vec3d local [m]: placed on its believed beam at c·t/2
+    directions: wp.array  # vec3f local unit direction of the photon's believed beam
+
+
+class Retroreflectors:
+    """The scene's corner-cube retroreflectors as the photon kernel reads them, and the chunk's true beam
+    rays they need (one-element placeholders when the scene has none)."""
+
+    def __init__(self, scene, divergence_mrad: float, slots: int, device: str):
+        """scene: the [scene] settings (ccrs, ccr_photons); divergence_mrad: the beams' full divergence [mrad]."""
+        positions = np.asarray(scene.ccrs, dtype=np.float64).reshape(-1, 3)
+        self.count = len(positions)
+        self.positions = wp.array(positions, dtype=wp.vec3d, device=device)
+        self.photons = scene.ccr_photons
+        self.footprint = divergence_mrad * 0.5e-3  # the e⁻² half angle [rad]
+        size = slots if self.count else 1
+        self.starts, self.directions = (wp.empty(size, dtype=wp.vec3d, device=device) for _ in range(2))
+
+
+class PhotonBuffers:
+    """Device arrays of the photons readout: each slot's detections, and the flat compacted events (sized for
+    FLAT_EVENTS_PER_SLOT detections per slot at first, grown when a chunk holds more)."""
+
+    FLAT = {"slot": wp.int32, "tof": wp.float64, "flag": wp.int8, "points": wp.vec3d, "directions": wp.vec3f}
+    FLAT_EVENTS_PER_SLOT = 2
+
+    def __init__(self, slots: int, max_events: int, device: str):
+        self.device = device
+        self.times = wp.empty((slots, max_events), dtype=wp.float64, device=device)
+        self.signal = wp.empty((slots, max_events), dtype=wp.int8, device=device)
+        self.counts = wp.empty(slots, dtype=wp.int32, device=device)
+        self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
+        self.capacity = 0
+        self._reserve(slots * min(max_events, self.FLAT_EVENTS_PER_SLOT))
+
+    def _reserve(self, n: int) -> None:
+        """Flat arrays for at least ``n`` detections (their contents are not kept)."""
+        if n <= self.capacity:
+            return
+        self.capacity = max(n, self.capacity + self.capacity // 2)
+        for name, dtype in self.FLAT.items():
+            setattr(self, name, wp.empty(self.capacity, dtype=dtype, device=self.device))
+
+    def gather(self, n_slots: int, pulses: wp.array, scan, instrument) -> DevicePhotons:
+        """Compact every slot's detections (ordered by slot) and place each on its believed beam, on the device."""
+        counts, offsets = self.counts[:n_slots], self.offsets[:n_slots]
+        wp.utils.array_scan(counts, offsets, inclusive=False)
+        n = int(to_host(offsets[n_slots - 1:])[0] + to_host(counts[n_slots - 1:])[0])
+        self._reserve(n)
+        wp.launch(photon.gather_events, n_slots, inputs=[counts, offsets, self.times, self.signal],
+                  outputs=[self.slot, self.tof, self.flag], device=self.device)
+        if n:
+            wp.launch(trace.photon_points_kernel(instrument), n, inputs=[pulses, scan, self.slot[:n], self.tof[:n]],
+                      outputs=[self.points, self.directions], device=self.device)
+        return DevicePhotons(n, self.slot[:n], self.tof[:n], self.flag[:n], self.points[:n], self.directions[:n])
+
+
+@register("readout", "photons")
+class Photons:
+    """The detections of every SPAD pixel. ``consume`` gets each flight line's part of each chunk as a host
+    :class:`PhotonChunk`, or with ``on_device`` each chunk's :class:`DevicePhotons`; ``RunCounts.returns`` counts
+    the photons."""
+
+    kind = "photons"
+
+    def __init__(self, on_device: bool = False):
+        self.on_device = on_device
+
+    def begin(self, tracer) -> wp.array:
+        budget = SLOTS_PER_CHUNK if self.on_device else POINT_SLOTS_PER_CHUNK  # on the host, photons fill memory
+        self.buffers = PointBuffers(tracer, tracer.pulses_per_launch(budget))
+        slots = len(self.buffers.status)
+        settings = tracer.instrument.detector.s
+        self.events = PhotonBuffers(slots, settings.max_events, tracer.device)
+        self.detector, self.reflectance = tracer.instrument.detector.struct(), settings.reflectance
+        self.retro = Retroreflectors(tracer.cfg.scene, tracer.instrument.emitter.divergence_mrad, slots, tracer.device)
+        self.ranges_only = dataclasses.replace(tracer.features, exact=False, nominal=False, edges=False)
+        return self.buffers.pulses
+
+    def chunk(self, tracer, segments: list[Segment], n_slots: int, counts, consume) -> None:
+        b, retro, d = self.buffers, self.retro, tracer.device
+        trace_points(tracer, b, n_slots, self.ranges_only)  # ranges only: no georeferencing
+        if retro.count:
+            wp.launch(trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose),
+                      n_slots, inputs=[b.pulses, tracer.scan], outputs=[retro.starts, retro.directions], device=d)
+        meshes = tracer.meshes
+        wp.launch(photon.photon_slots_kernel(retro.count > 0, meshes.per_face), n_slots,
+                  inputs=[self.detector, self.reflectance, meshes.reflectance, b.pulses, tracer.beams_per_pulse,
+                          b.status, b.ranges, b.faces, b.cos_incidence, retro.positions, retro.photons, retro.footprint,
+                          retro.starts, retro.directions, tracer.scan.ranging.delays, tracer.scan.ranging.drift],
+                  outputs=[self.events.times, self.events.signal, self.events.counts], device=d)
+        found = self.events.gather(n_slots, b.pulses, tracer.scan, tracer.instrument.kernel)
+        counts.returns += found.count
+        if self.on_device:
+            consume(found)
+            return
+        for part in _host_photons(tracer, segments, found):
+            counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
+            consume(part)
+
+    def end(self, tracer, counts) -> wp.array:
+        return self.buffers.counters
+
+
+def _host_photons(tracer, segments: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
+    """Bring a chunk's detections (ordered by slot) to the host, split by flight line."""
+    slot = found.slot[:found.count].numpy().astype(np.int64)
+    tof, kind = found.time_of_flight_s.numpy(), found.signal.numpy()
+    points, directions = found.points.numpy(), found.directions.numpy()
+    return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], kind[a:b] > 0, kind[a:b],
+                        points[a:b], directions[a:b])
+            for trajectory, pulse, beam, a, b in tracer.by_line(segments, slot)]

@@ -1,0 +1,169 @@
+"""The points readout of the discrete detector: one return per beam, each chunk's returns compacted on the device;
+only the returns cross to the host (or nothing, for consumers on the device: the LAS records, the plane sums)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from flightsim.core.constants import MODELS
+from flightsim.core.registry import register
+from flightsim.core.warp_runtime import to_host
+from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, Segment
+from kernels import compaction, trace
+
+
+@dataclass
+class ReturnChunk:
+    """The returns of one chunk of pulses of one flight line (host arrays, one row per return)."""
+
+    line_id: int
+    start_time: float  # adjusted standard GPS time of the line's pulse 0 [s]
+    pulse: np.ndarray  # (m,) int64 pulse index within the line
+    beam: np.ndarray  # (m,) int32 sub-beam index i·n + j
+    range_m: np.ndarray  # (m,) float32 one-way range, exit point to hit [m]
+    face: np.ndarray  # (m,) int32 triangle hit
+    scan_angle_deg: np.ndarray  # (m,) float32 signed off-nadir angle [deg]
+    cos_incidence: np.ndarray  # (m,) float32
+    edge_distance_m: np.ndarray | None  # (m,) float32 true hit to its plane boundary, capped [m]
+    points: dict[str, np.ndarray]  # georeferencing model -> (m, 3) float64 local [m]
+    true_points: np.ndarray | None  # (m, 3) float64 local [m], when asked for
+
+    def __len__(self) -> int:
+        return len(self.pulse)
+
+
+@dataclass
+class DeviceReturns:
+    """The returns of one chunk of pulses left on the device: the points kernel's per-slot outputs in ``buffers``
+    (``buffers.pulses`` is the chunk's pulse table) and ``buffers.index[:count]``, the slot of each return in slot
+    order. Valid until the consumer returns."""
+
+    segments: list[Segment]  # the chunk's pieces of flight lines, in pulse order
+    n_slots: int  # slots traced (pulses × beams per pulse)
+    count: int  # returns
+    buffers: "PointBuffers"
+
+
+class PointBuffers:
+    """Device arrays for one chunk of the points kernel, allocated once per run and reused."""
+
+    def __init__(self, tracer, pulses: int):
+        device, slots = tracer.device, pulses * tracer.beams_per_pulse
+        self.device = device
+        self.pulses = tracer.pulse_table(pulses)
+        self.status = wp.empty(slots, dtype=wp.int32, device=device)
+        self.ranges = wp.empty(slots, dtype=wp.float32, device=device)
+        self.faces = wp.empty(slots, dtype=wp.int32, device=device)
+        self.scan_angles = wp.empty(slots, dtype=wp.float32, device=device)
+        self.cos_incidence = wp.empty(slots, dtype=wp.float32, device=device)
+        self.edge_distance = wp.empty(slots, dtype=wp.float32, device=device)
+        self.true_points = wp.empty(slots, dtype=wp.vec3f, device=device)
+        self.model_points = {m: wp.empty(slots, dtype=wp.vec3f, device=device) for m in MODELS}
+        self.counters = wp.zeros(3, dtype=wp.int32, device=device)
+        self.flags = wp.empty(slots, dtype=wp.int32, device=device)
+        self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
+        self.index = wp.empty(slots, dtype=wp.int32, device=device)
+        self.compacted: dict[int, wp.array] = {}
+
+    def slot_outputs(self) -> list[wp.array]:
+        """The points kernel's outputs, in its argument order."""
+        return [self.status, self.ranges, self.faces, self.scan_angles, self.cos_incidence, self.edge_distance,
+                self.true_points, self.model_points["exact"], self.model_points["nominal"], self.counters]
+
+    def compact_index(self, n_slots: int) -> int:
+        """Flag and prefix-sum the returning slots; fill ``index``; return the number of returns."""
+        flags, offsets = self.flags[:n_slots], self.offsets[:n_slots]
+        wp.launch(compaction.flag_returns, n_slots, inputs=[self.status[:n_slots]], outputs=[flags], device=self.device)
+        wp.utils.array_scan(flags, offsets, inclusive=False)
+        last = np.concatenate([flags[n_slots - 1:n_slots].numpy(), offsets[n_slots - 1:n_slots].numpy()])
+        wp.launch(compaction.slot_indices, n_slots, inputs=[flags, offsets], outputs=[self.index], device=self.device)
+        return int(last.sum())
+
+    def returns_per_segment(self, segments: list[Segment], beams_per_pulse: int) -> list[int]:
+        """Returns of each segment of the chunk last compacted (from the prefix sums, a few ints back)."""
+        bounds = np.cumsum([0] + [s.count for s in segments]) * beams_per_pulse
+        before = wp.array(bounds.astype(np.int32), dtype=wp.int32, device=self.device)
+        wp.launch(compaction.returns_before, len(bounds), inputs=[self.flags, self.offsets, int(bounds[-1]), before],
+                  device=self.device)
+        return np.diff(to_host(before)).tolist()
+
+    def gather(self, src: wp.array, n_slots: int, n_returns: int) -> np.ndarray:
+        """Compact ``src`` on the device and copy only the returns to the host."""
+        dst = self.compacted.get(id(src))
+        if dst is None:
+            dst = self.compacted[id(src)] = wp.empty(src.shape[0], dtype=src.dtype, device=self.device)
+        wp.launch(compaction.compact_slots, n_slots, inputs=[self.flags[:n_slots], self.offsets[:n_slots],
+                                                             src[:n_slots]], outputs=[dst], device=self.device)
+        return dst[:n_returns].numpy()
+
+
+def trace_points(tracer, buffers: PointBuffers, n_slots: int, features: trace.Features | None = None) -> None:
+    """Launch the points kernel (``features``, default the tracer's) over a traced chunk's slots."""
+    kernel = trace.points_kernel(features or tracer.features, tracer.instrument.kernel,
+                                 max_registers=tracer.max_registers)
+    wp.launch(kernel, n_slots, inputs=[buffers.pulses, tracer.scan], outputs=buffers.slot_outputs(),
+              device=tracer.device)
+
+
+@register("readout", "points")
+class Points:
+    """One return per beam. ``consume`` gets each flight line's part of each chunk as a host :class:`ReturnChunk`,
+    or with ``on_device`` each chunk's :class:`DeviceReturns`; ``RunCounts.returns`` counts the returns and
+    ``per_line`` them by line (on the device)."""
+
+    kind = "points"
+
+    def __init__(self, on_device: bool = False):
+        self.on_device = on_device
+
+    def begin(self, tracer) -> wp.array:
+        self.buffers = PointBuffers(tracer, tracer.pulses_per_launch(POINT_SLOTS_PER_CHUNK))
+        return self.buffers.pulses
+
+    def chunk(self, tracer, segments: list[Segment], n_slots: int, counts, consume) -> None:
+        buffers = self.buffers
+        trace_points(tracer, buffers, n_slots)
+        returns = DeviceReturns(segments, n_slots, buffers.compact_index(n_slots), buffers)
+        for segment, n in zip(segments, buffers.returns_per_segment(segments, tracer.beams_per_pulse)):
+            line_id = tracer.trajectories[segment.line].line_id
+            counts.per_line[line_id] = counts.per_line.get(line_id, 0) + n
+            counts.returns += n
+        if self.on_device:
+            consume(returns)
+            return
+        for part in host_returns(tracer, returns):
+            consume(part)
+
+    def end(self, tracer, counts) -> wp.array:
+        return self.buffers.counters
+
+
+def host_returns(tracer, returns: DeviceReturns) -> list[ReturnChunk]:
+    """Compact a chunk's returning slots on the device, bring them to the host, split by line."""
+    buffers, n_slots, n_returns = returns.buffers, returns.n_slots, returns.count
+    slots = buffers.index.numpy()[:n_returns].astype(np.int64)
+    gather = buffers.gather
+    f = tracer.features
+    fields = dict(
+        range_m=gather(buffers.ranges, n_slots, n_returns),
+        face=gather(buffers.faces, n_slots, n_returns),
+        scan_angle_deg=gather(buffers.scan_angles, n_slots, n_returns),
+        cos_incidence=gather(buffers.cos_incidence, n_slots, n_returns),
+        edge_distance_m=gather(buffers.edge_distance, n_slots, n_returns) if f.edges else None,
+        points={m: gather(buffers.model_points[m], n_slots, n_returns).astype(np.float64) for m in tracer.models},
+        true_points=gather(buffers.true_points, n_slots, n_returns).astype(np.float64) if f.with_truth else None,
+    )
+    return [ReturnChunk(line_id=trajectory.line_id, start_time=trajectory.start_time, pulse=pulse, beam=beam,
+                        **_sliced(fields, a, b))
+            for trajectory, pulse, beam, a, b in tracer.by_line(returns.segments, slots)]
+
+
+def _sliced(fields: dict, a: int, b: int) -> dict:
+    """Rows a:b of every array in a dict of arrays, dicts of arrays and Nones."""
+    def cut(v):
+        if v is None:
+            return None
+        return {k: x[a:b] for k, x in v.items()} if isinstance(v, dict) else v[a:b]
+    return {k: cut(v) for k, v in fields.items()}

@@ -1,0 +1,289 @@
+"""Statistics mode on the device: each slot's record (the plane it hit and its points), the settling of records near
+plane boundaries, and the reduction of the records to per-plane float64 moments (several copies of the sums,
+added at the end); the plane and patch codes of the points path's reductions."""
+import functools
+
+import warp as wp
+
+from kernels.edges import boundary_distance, near_boundary
+from kernels.parts import Instrument
+from kernels.trace import (COUNT_EDGE, COUNT_MISS, COUNT_TIR, STATUS_MISS, STATUS_RETURN, STATUS_TIR, Features,
+                           scan_struct, slot_function)
+
+wp.set_module_options({"enable_backward": False})
+
+# statistics-mode record codes of slots that do not count (a plane id otherwise)
+CODE_MISS = wp.constant(-1)
+CODE_TIR = wp.constant(-2)
+CODE_EDGE = wp.constant(-3)  # a return within the edge buffer of its plane's boundary
+CODE_NEAR = wp.constant(-4)  # CODE_NEAR − plane id: a return on that plane still to be checked against the buffer
+CODE_SCORED = wp.constant(-100)  # _left_out's answer for a scored return (never stored: its group is)
+
+
+vec6d = wp.types.vector(6, wp.float64)
+
+
+@wp.func
+def _outer6(d: wp.vec3d):
+    """Upper triangle of d·dᵀ: xx, xy, xz, yy, yz, zz."""
+    return vec6d(d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2])
+
+
+@functools.cache
+def records_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
+    """Statistics mode, step 1: one thread per slot traces and georeferences its beam and writes a
+    compact record: the plane it hit (or why it does not count) and its points.
+
+    One slot per thread keeps a warp's rays as coherent as the bare ray cast's and the per-thread
+    state small. A return the edge grid cannot place clear of the plane boundaries is written as
+    CODE_NEAR − plane and listed, with its true point, for :data:`check_edges` to settle (a short
+    dense list, so the boundary queries do not hold up whole warps of returns that need none); the
+    per-plane sums are left to :func:`reduce_kernel`.
+    """
+    trace_slot = slot_function(f, instrument)
+    Scan = scan_struct(instrument)
+
+    @wp.kernel(module="unique", cuda_max_registers=max_registers)
+    def trace_records(
+        # In:
+        pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
+        scan: Scan,
+        face_plane: wp.array(dtype=wp.int32),  # plane id of each triangle
+        # Out: per slot
+        codes: wp.array(dtype=wp.int32),  # plane id, CODE_MISS, CODE_TIR, or CODE_NEAR − plane id
+        exact_points: wp.array(dtype=wp.vec3f),  # [m, local]
+        nominal_points: wp.array(dtype=wp.vec3f),
+        # Out: the list of CODE_NEAR slots (append only; near_count[0] holds its length)
+        near_count: wp.array(dtype=wp.int32),
+        near_slots: wp.array(dtype=wp.int32),
+        near_points: wp.array(dtype=wp.vec3f),  # their true points [m, local]
+    ):
+        slot = wp.tid()
+        per_pulse = scan.per_pulse
+        code, r, face, direction, p_exact, p_nominal, p_true = trace_slot(pulses, slot // per_pulse,
+                                                                          slot % per_pulse, scan)
+        if code == STATUS_TIR:
+            codes[slot] = CODE_TIR
+        elif code == STATUS_MISS:
+            codes[slot] = CODE_MISS
+        else:
+            plane = face_plane[face]
+            if wp.static(f.edges):
+                if near_boundary(scan.edge_grid, p_true):
+                    plane = CODE_NEAR - plane
+                    k = wp.atomic_add(near_count, 0, 1)
+                    near_slots[k] = slot
+                    near_points[k] = p_true
+            codes[slot] = plane
+            if wp.static(f.exact):
+                exact_points[slot] = p_exact
+            if wp.static(f.nominal):
+                nominal_points[slot] = p_nominal
+
+    return trace_records
+
+
+@functools.cache
+def check_edges_kernel(instrument: Instrument):
+    """The kernel settling near-boundary records (:func:`_check_edges`) for one instrument's scan struct."""
+    Scan = scan_struct(instrument)
+
+    @wp.kernel(module="unique")
+    def check_edges(
+        scan: Scan,
+        edge_buffer: wp.float32,  # returns closer than this to a plane boundary do not count [m]
+        near_count: wp.array(dtype=wp.int32),
+        near_slots: wp.array(dtype=wp.int32),
+        near_points: wp.array(dtype=wp.vec3f),  # [m, local]
+        # In and out:
+        codes: wp.array(dtype=wp.int32),
+    ):
+        """Settle the records the edge grid could not: CODE_NEAR − plane becomes the plane, or CODE_EDGE
+        where the true hit lies within the edge buffer of a plane boundary. One thread per listed slot
+        (threads past the list's length do nothing)."""
+        k = wp.tid()
+        if k < near_count[0]:
+            slot = near_slots[k]
+            distance = boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, near_points[k],
+                                          scan.edge_cap)
+            codes[slot] = wp.where(distance < edge_buffer, CODE_EDGE, CODE_NEAR - codes[slot])
+
+    return check_edges
+
+
+@functools.cache
+def reduce_kernel(f: Features):
+    """Statistics mode, step 2: per-plane float64 moments of the records of a chunk.
+
+    Each thread takes a run of consecutive slots (consecutive beams of a pulse, then the next
+    pulse: the order in which the beams' footprints lie closest) and keeps running sums while the
+    plane stays the same, adding them to the global sums (atomics) only when the plane changes.
+    Neighbouring threads mostly hold the same plane too, so thread t adds to replica t mod R of the
+    sums (R = the sums' first dimension), spreading the atomics on a busy plane over R addresses;
+    the host adds the replicas.
+    """
+
+    @wp.kernel(module="unique")
+    def reduce_records(
+        # In:
+        codes: wp.array(dtype=wp.int32),
+        exact_points: wp.array(dtype=wp.vec3f),
+        nominal_points: wp.array(dtype=wp.vec3f),
+        n_slots: wp.int32,
+        slots_per_thread: wp.int32,
+        references: wp.array(dtype=wp.vec3d),  # reference point of each plane [m, local]
+        # Out: per replica, per model (exact [0], nominal [1]), per plane
+        counts: wp.array3d(dtype=wp.int64),
+        first: wp.array3d(dtype=wp.vec3d),  # Σ (p − ref)
+        second: wp.array3d(dtype=vec6d),  # Σ upper triangle of (p − ref)(p − ref)ᵀ
+        counters: wp.array(dtype=wp.int32),  # [TIR, misses, edge-excluded]
+    ):
+        begin = wp.tid() * slots_per_thread
+        end = wp.min(begin + slots_per_thread, n_slots)
+        replica = wp.tid() % counts.shape[0]
+        plane = int(-1)
+        n = wp.int64(0)
+        s_exact = wp.vec3d()
+        s_nominal = wp.vec3d()
+        ss_exact = vec6d()
+        ss_nominal = vec6d()
+        tir = int(0)
+        miss = int(0)
+        excluded = int(0)
+        for slot in range(begin, end):
+            code = codes[slot]
+            if code == CODE_TIR:
+                tir += 1
+            elif code == CODE_MISS:
+                miss += 1
+            elif code == CODE_EDGE:
+                excluded += 1
+            else:
+                if code != plane:
+                    if plane >= 0:
+                        _flush(counts, first, second, replica, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
+                    plane = code
+                    n = wp.int64(0)
+                    s_exact = wp.vec3d()
+                    s_nominal = wp.vec3d()
+                    ss_exact = vec6d()
+                    ss_nominal = vec6d()
+                n += wp.int64(1)
+                ref = references[plane]
+                if wp.static(f.exact):
+                    d = wp.vec3d(exact_points[slot]) - ref
+                    s_exact += d
+                    ss_exact += _outer6(d)
+                if wp.static(f.nominal):
+                    d = wp.vec3d(nominal_points[slot]) - ref
+                    s_nominal += d
+                    ss_nominal += _outer6(d)
+        if plane >= 0:
+            _flush(counts, first, second, replica, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
+        if tir > 0:
+            wp.atomic_add(counters, COUNT_TIR, tir)
+        if miss > 0:
+            wp.atomic_add(counters, COUNT_MISS, miss)
+        if excluded > 0:
+            wp.atomic_add(counters, COUNT_EDGE, excluded)
+
+    return reduce_records
+
+
+@wp.func
+def _left_out(status: wp.int32, edge_distance: wp.float32, edge_buffer: wp.float32) -> int:
+    """The reduction's code of a slot that is not scored (CODE_MISS: no return; CODE_EDGE: nearer a plane
+    boundary than ``edge_buffer`` > 0 [m]), else CODE_SCORED."""
+    if status != STATUS_RETURN:
+        return CODE_MISS
+    if edge_buffer > wp.float32(0.0) and edge_distance < edge_buffer:
+        return CODE_EDGE
+    return CODE_SCORED
+
+
+@wp.kernel
+def plane_codes(
+    status: wp.array(dtype=wp.int32),
+    faces: wp.array(dtype=wp.int32),
+    edge_distance: wp.array(dtype=wp.float32),
+    face_plane: wp.array(dtype=wp.int32),
+    edge_buffer: wp.float32,  # > 0: returns nearer a plane boundary than this are left out [m]
+    codes: wp.array(dtype=wp.int32),  # out: the plane of a return, else a CODE_* (reduce_kernel's input)
+):
+    """Points mode: the statistics reduction's code of each slot the points kernel traced."""
+    slot = wp.tid()
+    code = _left_out(status[slot], edge_distance[slot], edge_buffer)
+    if code == CODE_SCORED:
+        code = face_plane[faces[slot]]
+    codes[slot] = code
+
+
+@wp.kernel
+def patch_codes(
+    status: wp.array(dtype=wp.int32),
+    points: wp.array(dtype=wp.vec3f),  # the return positions that pick the patch [m, local]
+    edge_distance: wp.array(dtype=wp.float32),
+    edge_buffer: wp.float32,  # > 0: returns nearer a plane boundary than this are left out [m]
+    low: wp.vec2d,  # local (x, y) of the patch grid's lower-left corner [m]
+    patch_m: wp.float64,  # side of a patch [m]
+    nx: wp.int32,  # patches along x
+    ny: wp.int32,  # patches along y
+    codes: wp.array(dtype=wp.int32),  # out: the patch (row-major from ``low``) of a return, else a CODE_*
+):
+    """Points mode on curved ground: the statistics reduction's code of each slot is the square patch
+    holding the return (x, y); returns beyond the grid count in its border patches."""
+    slot = wp.tid()
+    code = _left_out(status[slot], edge_distance[slot], edge_buffer)
+    if code == CODE_SCORED:
+        p = points[slot]
+        i = wp.clamp(int(wp.floor((wp.float64(p[0]) - low[0]) / patch_m)), 0, nx - 1)
+        j = wp.clamp(int(wp.floor((wp.float64(p[1]) - low[1]) / patch_m)), 0, ny - 1)
+        code = j * nx + i
+    codes[slot] = code
+
+
+@wp.func
+def _flush(
+    counts: wp.array3d(dtype=wp.int64),
+    first: wp.array3d(dtype=wp.vec3d),
+    second: wp.array3d(dtype=vec6d),
+    replica: int,
+    plane: int,
+    n: wp.int64,
+    s_exact: wp.vec3d,
+    ss_exact: vec6d,
+    s_nominal: wp.vec3d,
+    ss_nominal: vec6d,
+):
+    """Add one thread's running sums for ``plane`` to a replica of the global per-plane sums."""
+    wp.atomic_add(counts, replica, 0, plane, n)
+    wp.atomic_add(counts, replica, 1, plane, n)
+    wp.atomic_add(first, replica, 0, plane, s_exact)
+    wp.atomic_add(first, replica, 1, plane, s_nominal)
+    wp.atomic_add(second, replica, 0, plane, ss_exact)
+    wp.atomic_add(second, replica, 1, plane, ss_nominal)
+
+
+@wp.kernel
+def add_replicas(
+    counts: wp.array3d(dtype=wp.int64),  # per replica, model, group (reduce_kernel's sums)
+    first: wp.array3d(dtype=wp.vec3d),
+    second: wp.array3d(dtype=vec6d),
+    # Out: per model, group
+    total_counts: wp.array2d(dtype=wp.int64),
+    total_first: wp.array2d(dtype=wp.vec3d),
+    total_second: wp.array2d(dtype=vec6d),
+):
+    """Add the replicas of the reduction's sums, replica 0 first: one thread per (model, group), so only
+    the totals leave the device."""
+    model, group = wp.tid()
+    n = wp.int64(0)
+    s = wp.vec3d()
+    ss = vec6d()
+    for replica in range(counts.shape[0]):
+        n += counts[replica, model, group]
+        s += first[replica, model, group]
+        ss += second[replica, model, group]
+    total_counts[model, group] = n
+    total_first[model, group] = s
+    total_second[model, group] = ss
