@@ -1,12 +1,13 @@
 """flightsim: GPU-first lidar simulator. An instrument is a composition of parts (emitter, deflector,
 detector, platform, error model) run by Warp kernels over triangle-mesh scenes.
 
-Public API: :func:`load_config`, :func:`simulate`, :func:`sweep`, :func:`budget` (see flightsim.api).
+Public API: :func:`load_config`, :func:`simulate` (a :class:`Result` with every product), :func:`sweep`,
+:func:`budget`, and :func:`register_part` for parts defined outside the package (see flightsim.api).
 """
 
 from flightsim.core.version import __version__
 
-__all__ = ["SimulationResult", "__version__", "budget", "load_config", "simulate", "sweep"]
+__all__ = ["Result", "Returns", "__version__", "budget", "load_config", "register_part", "simulate", "sweep"]
 
 
 def __getattr__(name: str):

@@ -2,17 +2,30 @@
 
     import flightsim
     cfg = flightsim.load_config(instrument="change3", overrides={"scene.name": "lunar"})
-    result = flightsim.simulate(cfg)          # points in memory
-    result.points["exact"]                    # (n, 3) world coordinates [m]
+    result = flightsim.simulate(cfg)          # every product of the run
+    result.points["exact"]                    # laspy.LasData: the exact model's LAS points
+    result.stats["rms_m"]                     # what summary.json holds
+    result.write("run")                       # exactly what `flightsim simulate --out run` writes
+
+A run always goes through the products the command line writes; without ``out`` they are written to a temporary
+directory that lives as long as the result, and read on first use: ``points`` (per georeferencing model, a
+``laspy.LasData`` of every tile), ``waveforms`` and ``photons`` (``xarray.Dataset`` with GEDI L1B and ATL03 names,
+:mod:`flightsim.outputs.datasets`), ``stats`` (the summary) and, for discrete returns, ``returns`` (each return's
+float64 points, ids and range, and the true hits with ``with_truth``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+import shutil
+import tempfile
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from flightsim.core.registry import register as register_part  # noqa: F401  (parts from outside: the API's)
 from flightsim.engine.config import RunConfig, copy_config, set_value, validate
 from flightsim.engine.config_io import from_dict, load_toml, preset_config
 
@@ -22,8 +35,8 @@ def load_config(source: str | Path | Mapping | RunConfig | None = None, *, instr
     """A validated run config.
 
     source: a TOML path, a dict of tables ({"flight": {"altitude_m": 700}}), a RunConfig, or None;
-    it is laid over the built-in ``instrument`` ("risley", the default, or "change3"); then each
-    ``overrides`` item {"section.field": value} is set. Raises InputError naming a bad field.
+    it is laid over the built-in ``instrument`` (a preset: "risley", the default, "change3", "spad", "change1",
+    "atlas"); then each ``overrides`` item {"table.setting": value} is set. Raises InputError naming a bad field.
     """
     base = preset_config(instrument or "risley")
     if isinstance(source, RunConfig):
@@ -40,8 +53,9 @@ def load_config(source: str | Path | Mapping | RunConfig | None = None, *, instr
 
 
 @dataclass
-class SimulationResult:
-    """The returns of a run, in memory (world coordinates in float64)."""
+class Returns:
+    """Every return of a discrete-return run as the tracer made it (world coordinates in float64, before the LAS
+    tiles' 1 mm grid)."""
 
     points: dict[str, np.ndarray]  # georeferencing model -> (n, 3) world E, N, H [m]
     true_points: np.ndarray | None  # (n, 3) true hits, world [m] (with_truth)
@@ -49,35 +63,104 @@ class SimulationResult:
     pulse: np.ndarray  # (n,) pulse index within its line
     beam: np.ndarray  # (n,) beam index (DOE i·n + j, or channel)
     range_m: np.ndarray  # (n,) observed one-way range [m]
-    counts: Any  # flightsim.engine.tracer.RunCounts
-    scene: Any  # flightsim.scenes.scene.Scene
+
+
+@dataclass
+class Result:
+    """The products of a run: read from ``directory`` on first use."""
+
+    directory: Path
+    stats: dict  # summary.json
+    cfg: RunConfig
+    returns: Returns | None = None
+    counts: Any = None  # flightsim.engine.tracer.RunCounts
+    scene: Any = None  # flightsim.scenes.scene.Scene
+    _temporary: Any = field(default=None, repr=False)  # the TemporaryDirectory holding the products
+
+    @functools.cached_property
+    def points(self) -> dict:
+        """{model: laspy.LasData} of every tile of each georeferencing model (empty for other detectors)."""
+        from flightsim.outputs.datasets import las_points
+
+        return {model: las_points(sorted((self.directory / model).glob("*.la[sz]")))
+                for model in self.stats.get("points", {})}
+
+    @functools.cached_property
+    def waveforms(self):
+        """xarray.Dataset of every waveform (dims shot × sample, GEDI L1B names), or None."""
+        from flightsim.outputs.datasets import waveform_dataset
+
+        path = self.directory / "waveforms.h5"
+        return waveform_dataset(path) if path.is_file() else None
+
+    @functools.cached_property
+    def photons(self):
+        """xarray.Dataset of every photon (dim photon, ATL03 names), or None."""
+        from flightsim.outputs.datasets import photon_dataset
+
+        if not (self.directory / "photons.h5").is_file():
+            return None
+        return photon_dataset(self.directory)
+
+    def write(self, directory: str | Path, overwrite: bool = False) -> Path:
+        """Copy the run's files into ``directory`` (what ``flightsim simulate --out`` writes); its path."""
+        from flightsim.engine.run import prepare_output
+
+        target = Path(directory)
+        if target.resolve() == self.directory.resolve():
+            return target
+        prepare_output(target, (self.directory / "run.toml").read_text(encoding="utf-8"), overwrite)
+        for item in sorted(self.directory.iterdir(), key=lambda p: p.name == "summary.json"):  # the marker last
+            copy = shutil.copytree if item.is_dir() else shutil.copy2
+            copy(item, target / item.name)
+        return target
 
 
 def simulate(cfg: RunConfig, out: str | Path | None = None, with_truth: bool = False,
-             progress: Callable[[int, int], None] | None = None, overwrite: bool = False):
-    """Run a validated config. With ``out``: write LAS tiles, run.toml and summary.json there and return
-    the summary (as ``flightsim simulate``); without: return a :class:`SimulationResult`."""
-    if out is not None:
-        from flightsim.engine.run import simulate_to_directory
+             progress: Callable[[int, int], None] | None = None, overwrite: bool = False) -> Result:
+    """Run a validated config and return its :class:`Result`. With ``out`` the products are written there (as
+    ``flightsim simulate``), else to a temporary directory owned by the result. A discrete-return run keeps every
+    return in ``Result.returns`` (with the true hits when ``with_truth``)."""
+    from flightsim.engine.run import execute
 
-        return simulate_to_directory(cfg, Path(out), overwrite=overwrite, progress=progress)
-    from flightsim.engine.readouts.points import Points
-    from flightsim.engine.tracer import Tracer
-    from flightsim.engine.world import build_scene, flight_trajectories
+    temporary = None if out is not None else tempfile.TemporaryDirectory(prefix="flightsim-")
+    directory = Path(out) if out is not None else Path(temporary.name) / "run"
+    keeper = _ReturnKeeper(cfg.detector_part.readouts[0] == "points")
+    run = execute(cfg, directory, overwrite=overwrite, progress=progress, tap=keeper if keeper.active else None,
+                  with_truth=with_truth)
+    if "empty" in run.summary:
+        warnings.warn(f"the run made nothing: {run.summary['empty']}", RuntimeWarning, stacklevel=2)
+    return Result(directory, run.summary, cfg, keeper.returns(run.tracer, with_truth), run.counts, run.tracer.scene,
+                  temporary)
 
-    scene = build_scene(cfg)
-    sim = Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=with_truth)
-    parts = []
-    counts = sim.run(Points(), parts.append, progress)
-    join = (lambda get: np.concatenate([get(p) for p in parts]) if parts else np.empty(0))
-    points = {m: scene.local_to_world(join(lambda p: p.points[m]).reshape(-1, 3)) for m in sim.models}
-    truth = scene.local_to_world(join(lambda p: p.true_points).reshape(-1, 3)) if with_truth else None
-    return SimulationResult(points, truth, join(lambda p: np.full(len(p), p.line_id)), join(lambda p: p.pulse),
-                            join(lambda p: p.beam), join(lambda p: p.range_m), counts, scene)
+
+class _ReturnKeeper:
+    """Keeps the host copy of every return a points readout hands the product."""
+
+    def __init__(self, active: bool):
+        self.active, self.parts = active, []
+
+    def __call__(self, tracer, returns) -> None:
+        from flightsim.engine.readouts.points import host_returns
+
+        self.parts.extend(host_returns(tracer, returns))
+
+    def returns(self, tracer, with_truth: bool) -> Returns | None:
+        if not self.active:
+            return None
+        parts, scene = self.parts, tracer.scene
+
+        def join(get):
+            return np.concatenate([get(p) for p in parts]) if parts else np.empty(0)
+
+        points = {m: scene.local_to_world(join(lambda p: p.points[m]).reshape(-1, 3)) for m in tracer.models}
+        truth = scene.local_to_world(join(lambda p: p.true_points).reshape(-1, 3)) if with_truth else None
+        return Returns(points, truth, join(lambda p: np.full(len(p), p.line_id)), join(lambda p: p.pulse),
+                       join(lambda p: p.beam), join(lambda p: p.range_m))
 
 
 def sweep(base: RunConfig, axes: Mapping[str, list], out: str | Path, overwrite: bool = False) -> Path:
-    """Plane-fit RMS over the grid of ``axes`` {"section.field": [values]} (statistics mode, no LAS);
+    """Plane-fit RMS over the grid of ``axes`` {"table.setting": [values]} (statistics readout, no LAS);
     writes the sweep table under ``out`` (resumable) and returns its path."""
     from flightsim.studies.sweep import SweepGrid, run_sweep
 

@@ -115,6 +115,12 @@ def _add_cluster_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gpus", help="Dask workers pinned to GPUs, one per GPU (or --workers of them): all, or 0,1")
 
 
+def _nothing_made(summary: dict, out) -> int:
+    """A run that made nothing: say why on stderr (summary.json holds it too) and exit 2."""
+    print(f"flightsim: nothing made: {summary['empty']} (summary.json in {out} records it)", file=sys.stderr)
+    return EXIT_INVALID
+
+
 def cmd_config(args: argparse.Namespace) -> int:
     """Print the resolved config, every setting with its meaning, unit and range."""
     print(to_toml(build_config(args), comments=True), end="")
@@ -128,6 +134,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     summary = simulate_to_directory(cfg, Path(args.out), overwrite=args.overwrite,
                                     progress=ProgressBar("simulate"))
+    if "empty" in summary:
+        return _nothing_made(summary, args.out)
     if "photons" in summary:
         print(f"{summary['photons']} photons ({summary['signal_photons']} signal) from {summary['pulses']} pulses "
               f"in {summary['wall_s']:.2f} s; written to {args.out}")
@@ -265,6 +273,8 @@ def cmd_waveform(args: argparse.Namespace) -> int:
         print((Path(args.out) / "REPORT.md").read_text())
         return 0
     summary = run_one(args.scene, Path(args.out), args.device, args.config, args.overwrite, **settings)
+    if "empty" in summary:
+        return _nothing_made(summary, args.out)
     print(f"{summary['waveforms']} waveforms ({summary['subray_returns']} sub-ray returns) in {summary['wall_s']:.2f} s; "
           f"written to {args.out}")
     return 0

@@ -78,8 +78,8 @@ def test_change3_imager_over_the_zone_returns_every_beam_on_the_surface():
     result = flightsim.simulate(cfg, with_truth=True)
     assert result.counts.returns == result.counts.beams_fired == result.counts.pulses * 16
     # no errors on: each processed point is its true hit (float32 points at ~100 m: tens of µm)
-    assert np.abs(result.points["exact"] - result.true_points).max() < 1e-4
-    local = result.true_points - result.scene.origin
+    assert np.abs(result.returns.points["exact"] - result.returns.true_points).max() < 1e-4
+    local = result.returns.true_points - result.scene.origin
     lo, hi = result.scene.bounds()
     assert (local[:, 2] >= lo[2] - 1e-6).all() and (local[:, 2] <= hi[2] + 1e-6).all()
-    assert result.range_m.min() > 90.0
+    assert result.returns.range_m.min() > 90.0

@@ -15,7 +15,8 @@ from rasterio.transform import from_origin
 
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
-from flightsim.engine.run import PATCH_RASTER, simulate_to_directory
+from flightsim.engine.products.las import PATCH_RASTER
+from flightsim.engine.run import simulate_to_directory
 from flightsim.engine.tracer import Tracer
 from flightsim.outputs.consumers import AUTO_PATCH_M, MAX_PATCHES, MIN_PATCH_POINTS, PatchStatistics, patch_grid
 from flightsim.engine.world import build_scene, flight_trajectories
@@ -106,12 +107,12 @@ def test_patch_rms_on_flat_ground_is_the_ranging_noise_across_the_ground(tmp_pat
 
     run = api.simulate(cfg, with_truth=True)
     normal = np.array([-slope, 0.0, 1.0]) / math.hypot(slope, 1.0)
-    across = (run.points["exact"].astype(np.float64) - run.true_points) @ normal
+    across = (run.returns.points["exact"] - run.returns.true_points) @ normal
     summary = simulate_to_directory(cfg, tmp_path / "run")
     assert summary["points"]["exact"] == len(across)
     scene = build_scene(cfg)
     grid = patch_grid(scene, 0.0)
-    label = _patch_of(run.points["exact"] - scene.origin, grid)
+    label = _patch_of(run.returns.points["exact"] - scene.origin, grid)
     n_p = np.bincount(label)
     kept = n_p[label] >= MIN_PATCH_POINTS
     expected = math.sqrt(np.sum(across[kept] ** 2 * (1 - 3 / n_p[label[kept]])) / kept.sum())

@@ -169,12 +169,12 @@ def test_ranges_follow_the_spinning_ellipsoid():
     cfg = _config(fixed__prf_hz=4.0)  # pulse 60 fires at exactly P/4
     result = flightsim.simulate(cfg)
     scene = result.scene
-    assert len(result.pulse) == result.counts.pulses > 60  # every pulse hits the body, none culled
+    assert len(result.returns.pulse) == result.counts.pulses > 60  # every pulse hits the body, none culled
     vertices = scene.vertices
     radius = np.linalg.norm(vertices, axis=1)
     unit = vertices / radius[:, None]
     rough = np.abs(radius - 1.0 / np.sqrt(((unit / np.array([A, C, C])) ** 2).sum(axis=1)))
-    for k, range_m in zip(result.pulse, result.range_m):
+    for k, range_m in zip(result.returns.pulse, result.returns.range_m):
         t = k / cfg.fixed.prf_hz
         spin = _spin(-OMEGA * t)
         origin, direction = spin @ _hover_point(scene, cfg, t), spin @ np.array([0.0, 0.0, -1.0])
@@ -182,7 +182,7 @@ def test_ranges_follow_the_spinning_ellipsoid():
         near = np.linalg.norm(vertices - (origin + smooth * direction), axis=1) < 10.0
         assert abs(range_m - smooth) <= rough[near].max() + 0.05, t  # facets ≤ 4 m over R ≥ 58 m: sag ≤ 3.5 cm
         assert abs(range_m - _ray_mesh(origin, direction, scene)) <= 2e-3, t
-    ranges = dict(zip(result.pulse.tolist(), result.range_m.tolist()))
+    ranges = dict(zip(result.returns.pulse.tolist(), result.returns.range_m.tolist()))
     assert ranges[0] == pytest.approx(ALTITUDE, abs=2.5)  # the roughness stays within 5 RMS (test_smallbody_scene)
     assert ranges[60] == pytest.approx(C + ALTITUDE - A, abs=2.5)
 

@@ -53,7 +53,7 @@ def test_flat_and_tilted_geotiffs_give_the_points_of_the_builtin_plane(tmp_path,
     _tilted_dem(tmp_path / "dem.tif", slope)  # non-square 2 m × 3 m pixels
     plane = api.simulate(api.load_config(overrides={**SHORT, "scene.name": "plane", "scene.slope": slope}))
     dem = api.simulate(api.load_config(overrides={**SHORT, "scene.name": str(tmp_path / "dem.tif")}))
-    a, b = plane.points["exact"], dem.points["exact"]
+    a, b = plane.returns.points["exact"], dem.returns.points["exact"]
     assert len(a) == len(b) > 1000
     assert np.abs(a - b).max() < 2e-3  # float32 local coordinates, hundreds of metres from the origin
     assert np.abs(b[:, 2] - (H0 - slope * (b[:, 1] - N0))).max() < 2e-3  # on the plane the raster describes
@@ -69,7 +69,7 @@ def test_nodata_holes_are_holes_no_returns_from_them(tmp_path):
     runs = {}
     for name in ("full", "hole"):
         cfg = api.load_config(overrides={**SHORT, "scene.name": str(tmp_path / f"{name}.tif")})
-        runs[name] = api.simulate(cfg, with_truth=True)
+        runs[name] = api.simulate(cfg, with_truth=True).returns
     inside = {k: ((r.true_points[:, 0] > w) & (r.true_points[:, 0] < e) & (r.true_points[:, 1] > s)
                   & (r.true_points[:, 1] < n)) for k, r in runs.items()}
     assert inside["full"].sum() > 300  # the scan crosses the hole

@@ -2,8 +2,8 @@
 output registers here under its role and name, and a run config is composed from them.
 
 A part is a class with a ``settings`` attribute (a :class:`flightsim.core.settings.Settings` dataclass;
-an empty one when it has none); a readout (what a detector makes of the traced beams, run by the engine's
-tracer) has no settings. Built-in parts register when their package's ``catalog`` module is
+an empty one when it has none); the engine's readouts (what a detector makes of the traced beams) and products
+(what a run writes from a readout) have none. Built-in parts register when their package's ``catalog`` module is
 imported; parts installed from outside register through the entry-point group ``flightsim.parts``
 (``[project.entry-points."flightsim.parts"] my_scanner = "my_package.scanner:MyScanner"``: the object is
 a part class carrying ``role`` and ``kind``, or a module that calls :func:`register` when imported),
@@ -16,7 +16,8 @@ from typing import Any, Mapping
 
 from flightsim.core.errors import InputError
 
-ROLES = ("emitter", "deflector", "detector", "errors", "platform", "scene", "output", "readout")
+ROLES = ("emitter", "deflector", "detector", "errors", "platform", "scene", "output", "readout", "product")
+ENGINE_ROLES = ("readout", "product")  # the engine's parts: no settings of their own
 INSTRUMENT_ROLES = ("emitter", "deflector", "detector", "errors")  # parts with a table of their own
 SECTIONS = ("instrument", "scene", "flight", "output", "scoring", "run")  # the config's fixed tables
 ENTRY_POINT_GROUP = "flightsim.parts"
@@ -33,7 +34,7 @@ def register(role: str, kind: str, part: type | None = None):
         raise ValueError(f"unknown part role {role!r}: one of {', '.join(ROLES)}")
 
     def add(cls: type) -> type:
-        if role != "readout" and not hasattr(cls, "settings"):
+        if role not in ENGINE_ROLES and not hasattr(cls, "settings"):
             raise TypeError(f"part {kind!r} ({cls.__qualname__}) has no 'settings' class")
         if role in INSTRUMENT_ROLES:
             clash = [r for r in INSTRUMENT_ROLES if r != role and kind in _parts[r]]

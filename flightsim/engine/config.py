@@ -40,13 +40,13 @@ class InstrumentSettings(Settings):
     table = "instrument"
 
     emitter: str = setting("fan", "the beams of a pulse (its settings: the table of that name)",
-                           choices=lambda: tuple(registry.kinds("emitter")))
+                           choices=lambda: tuple(sorted(registry.kinds("emitter"))))
     deflector: str = setting("risley", "what turns the beams into the scan (its settings: the table of that name)",
-                             choices=lambda: tuple(registry.kinds("deflector")))
+                             choices=lambda: tuple(sorted(registry.kinds("deflector"))))
     detector: str = setting("discrete", "what a beam that hits becomes (its settings: the table of that name)",
-                            choices=lambda: tuple(registry.kinds("detector")))
+                            choices=lambda: tuple(sorted(registry.kinds("detector"))))
     errors: tuple[str, ...] = setting((), "error models on the truth (their settings: the tables of those names)",
-                                      item=str, choices=lambda: tuple(registry.kinds("errors")))
+                                      item=str, choices=lambda: tuple(sorted(registry.kinds("errors"))))
     max_range_m: float = setting(30000.0, "longest range a beam is traced", "m", range=(0.0, 1.0e6), lo_open=True)
     boresight_deg: tuple[float, float, float] = setting((0.0, 0.0, 0.0), "roll, pitch, yaw of the sensor in the "
                                                         "body frame", "deg", length=3, items=(-10.0, 10.0))

@@ -29,6 +29,22 @@ def _reach(trajectory: Trajectory, local_position: np.ndarray, boresight: Rotati
     return np.where(half_angle < NO_CULLING_RAD, depth * np.tan(np.minimum(half_angle, NO_CULLING_RAD)), np.inf)
 
 
+def _gap(local_position: np.ndarray, bounds: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Horizontal distance of each sample to the scene's bounding rectangle [m] (0 inside)."""
+    lo, hi = bounds
+    dx = np.maximum(np.maximum(lo[0] - local_position[:, 0], local_position[:, 0] - hi[0]), 0.0)
+    dy = np.maximum(np.maximum(lo[1] - local_position[:, 1], local_position[:, 1] - hi[1]), 0.0)
+    return np.hypot(dx, dy)
+
+
+def miss_distance(trajectory: Trajectory, local_position: np.ndarray, bounds: tuple[np.ndarray, np.ndarray],
+                  cone_rad: float, boresight: Rotation) -> float:
+    """How far the beams' reach stays from the scene's bounding rectangle over a trajectory's samples [m]: the
+    least gap less reach (without the culling margin); ≤ 0 where they can reach it."""
+    reach = _reach(trajectory, local_position, boresight, cone_rad, bounds[0][2])
+    return float(np.min(_gap(local_position, bounds) - reach))
+
+
 def pulse_windows(trajectory: Trajectory, local_position: np.ndarray, bounds: tuple[np.ndarray, np.ndarray],
                   timing: PulseTiming, cone_rad: float, boresight: Rotation) -> list[tuple[int, int]]:
     """Ranges [k0, k1) of pulse indices (from the trajectory's first pulse) that can reach the scene.
@@ -36,11 +52,8 @@ def pulse_windows(trajectory: Trajectory, local_position: np.ndarray, bounds: tu
     local_position: (n, 3) trajectory positions in the scene's local frame [m]; bounds: the
     scene's local (lo, hi) corners; cone_rad: the fan's largest off-axis angle [rad].
     """
-    lo, hi = bounds
-    reach = _reach(trajectory, local_position, boresight, cone_rad + MARGIN_RAD, lo[2])
-    dx = np.maximum(np.maximum(lo[0] - local_position[:, 0], local_position[:, 0] - hi[0]), 0.0)
-    dy = np.maximum(np.maximum(lo[1] - local_position[:, 1], local_position[:, 1] - hi[1]), 0.0)
-    gap = np.hypot(dx, dy)  # horizontal distance to the scene's rectangle [m]
+    reach = _reach(trajectory, local_position, boresight, cone_rad + MARGIN_RAD, bounds[0][2])
+    gap = _gap(local_position, bounds)  # horizontal distance to the scene's rectangle [m]
     step = np.linalg.norm(np.diff(local_position[:, :2], axis=0), axis=1)
     # a segment may come closer than its ends by up to half its length
     near = np.minimum(gap[:-1] - reach[:-1], gap[1:] - reach[1:]) - 0.5 * step <= 0.0

@@ -94,9 +94,10 @@ class PhotonBuffers:
         self._reserve(n)
         wp.launch(photon.gather_events, n_slots, inputs=[counts, offsets, self.times, self.signal],
                   outputs=[self.slot, self.tof, self.flag], device=self.device)
-        if n:
-            wp.launch(trace.photon_points_kernel(instrument), n, inputs=[pulses, scan, self.slot[:n], self.tof[:n]],
-                      outputs=[self.points, self.directions], device=self.device)
+        if n == 0:  # Warp arrays cannot be sliced to nothing
+            return DevicePhotons(0, *(wp.empty(0, dtype=dtype, device=self.device) for dtype in self.FLAT.values()))
+        wp.launch(trace.photon_points_kernel(instrument), n, inputs=[pulses, scan, self.slot[:n], self.tof[:n]],
+                  outputs=[self.points, self.directions], device=self.device)
         return DevicePhotons(n, self.slot[:n], self.tof[:n], self.flag[:n], self.points[:n], self.directions[:n])
 
 
@@ -149,7 +150,7 @@ class Photons:
 
 def _host_photons(tracer, segments: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
     """Bring a chunk's detections (ordered by slot) to the host, split by flight line."""
-    slot = found.slot[:found.count].numpy().astype(np.int64)
+    slot = found.slot.numpy().astype(np.int64)
     tof, kind = found.time_of_flight_s.numpy(), found.signal.numpy()
     points, directions = found.points.numpy(), found.directions.numpy()
     return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], kind[a:b] > 0, kind[a:b],

@@ -79,7 +79,8 @@ class Waveforms:
     """A full waveform per beam. ``consume`` gets each flight line's part of each chunk as a host
     :class:`WaveformChunk` (beams whose central ray reached the scene), or with ``on_device`` each chunk's
     :class:`DeviceWaveforms`; ``RunCounts.returns`` counts the sub-rays cast by beams whose central ray reached
-    the scene (on the device: every sub-ray launched)."""
+    the scene (on the device: every sub-ray launched), ``RunCounts.misses`` the beams whose central ray missed it
+    (on the host only)."""
 
     kind = "waveforms"
 
@@ -92,6 +93,7 @@ class Waveforms:
         self.taps, self.first_lag = det.pulse_taps(tracer.device)
         self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
         self.buffers = _Buffers(tracer, self.params)
+        self.misses = 0
         return self.buffers.pulses
 
     def chunk(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
@@ -124,6 +126,7 @@ class Waveforms:
         found = b.window.numpy()[:n]
         slot = np.flatnonzero(found >= 0.0)
         counts.returns += len(slot) * len(self.subrays)
+        self.misses += n - len(slot)
         rows = {name: a.numpy()[slot] for name, a in (("power", b.power), ("received", b.received),
                                                        ("start", b.starts), ("direction", b.directions))}
         for trajectory, pulse, beam, lo, hi in tracer.by_line(segments, slot):
@@ -134,7 +137,7 @@ class Waveforms:
             consume(part)
 
     def end(self, tracer, counts) -> wp.array:
-        return wp.zeros(3, dtype=wp.int32, device=tracer.device)
+        return wp.array([0, self.misses, 0], dtype=wp.int32, device=tracer.device)
 
 
 def sample_subrays(tracer, max_rays: int) -> tuple[wp.array, wp.array]:
