@@ -2,7 +2,6 @@
 channels fanned along the emitter's y axis (the Chang'e-3 imager's 16 beams, seed paper §2.3)."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
