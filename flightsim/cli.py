@@ -182,7 +182,8 @@ def cmd_survey(args: argparse.Namespace) -> int:
         set_value(cfg, key, value)
     cfg = validate(cfg)
     from flightsim.core.progress import ProgressBar
-    from flightsim.studies.survey import SurveySpec, plan_survey, run_survey
+    from flightsim.studies.survey import run_survey
+    from flightsim.studies.survey_plan import SurveySpec, plan_survey
 
     spec = SurveySpec(size_km=args.size_km, tile_m=args.tile_m, sidelap=args.sidelap, lines=args.lines,
                       segment_m=args.segment_m)

@@ -19,7 +19,8 @@ from flightsim.core.errors import InputError
 from flightsim.outputs.las_points import read_points
 from host_reference import HostLasOutput
 from flightsim.engine.simulate import Simulator
-from flightsim.studies.survey import SurveySpec, plan_survey, run_survey
+from flightsim.studies.survey import run_survey
+from flightsim.studies.survey_plan import SurveySpec, plan_survey
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import this test module
 
