@@ -190,7 +190,8 @@ def cmd_survey(args: argparse.Namespace) -> int:
         set_value(cfg, key, value)
     cfg = validate(cfg)
     from flightsim.core.progress import ProgressBar
-    from flightsim.studies.survey import SurveySpec, plan_survey, run_survey
+    from flightsim.studies.survey import run_survey
+    from flightsim.studies.survey_plan import SurveySpec, plan_survey
 
     spec = SurveySpec(size_km=args.size_km, tile_m=args.tile_m, sidelap=args.sidelap, lines=args.lines,
                       segment_m=args.segment_m)
@@ -321,11 +322,20 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def make_parser() -> argparse.ArgumentParser:
+    """The command line's parser: one subcommand each, in the order ``flightsim --help`` lists them."""
     parser = _Parser(prog="flightsim",
                      description="GPU-first lidar simulator: instruments as parts, scenes, outputs, studies.")
     parser.add_argument("--version", action="version", version=f"flightsim {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    _add_run_commands(sub)
+    score.register(sub)
+    _add_study_commands(sub)
+    _add_instrument_commands(sub)
+    return parser
 
+
+def _add_run_commands(sub) -> None:
+    """config, simulate, sweep and survey: runs of a config."""
     config = sub.add_parser("config", help="print the resolved config of an instrument, every setting explained "
                                            "(a file to start from: flightsim config --instrument spad > run.toml)")
     _add_config_flags(config)
@@ -360,8 +370,9 @@ def make_parser() -> argparse.ArgumentParser:
     _add_cluster_flags(survey)
     survey.set_defaults(func=cmd_survey)
 
-    score.register(sub)
 
+def _add_study_commands(sub) -> None:
+    """paper, bench, budget and spad: the studies that reproduce a paper or measure the simulator."""
     paper = sub.add_parser("paper", help="reproduce the seed paper's study: sweeps, figures and a report")
     paper.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     paper.add_argument("--out", required=True, help="output directory (e.g. results/paper)")
@@ -392,6 +403,9 @@ def make_parser() -> argparse.ArgumentParser:
     spad.add_argument("--out", required=True, help="directory for REPORT.md and spad.json")
     spad.set_defaults(func=cmd_spad)
 
+
+def _add_instrument_commands(sub) -> None:
+    """waveform and calibrate (the altimeters' studies), and info."""
     waveform = sub.add_parser("waveform", help="full-waveform echoes of the large-footprint lunar altimeter "
                                                "(the change1 preset)")
     waveform.add_argument("--scene", default="flat", help="flat (default), slope, bump, or PATH.obj / PATH.ply")
@@ -413,7 +427,6 @@ def make_parser() -> argparse.ArgumentParser:
 
     info = sub.add_parser("info", help="versions, devices and the kernel cache")
     info.set_defaults(func=cmd_info)
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -193,7 +193,7 @@ CASES: dict[str, dict] = {
     # the seed paper's optics figures (5a, 5c, 6b): their CSVs
     "figures_optics": {
         "steps": [
-            {"call": "flightsim.studies.figures:optics_figures", "args": ["{work}/figures"]},
+            {"call": "flightsim.studies.figures_optics:optics_figures", "args": ["{work}/figures"]},
         ],
     },
     # a survey of one scene tile, two segments per line (parts merged per LAS tile), LAS; and to LAZ

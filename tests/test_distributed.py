@@ -10,6 +10,7 @@ import pytest
 from flightsim.engine import distributed
 from flightsim.engine.config import RunConfig, set_value
 from flightsim.core.errors import InputError
+from flightsim.studies import sweep
 from flightsim.studies.sweep import SweepGrid, run_sweep
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import this test module
@@ -55,8 +56,8 @@ def die_after_the_work(marker: str, real, *args):
 def test_distributed_sweep_equals_the_serial_sweep_though_a_worker_is_killed(client, tmp_path, monkeypatch):
     run_sweep(grid(), tmp_path / "serial")
     marker = tmp_path / "killed"
-    monkeypatch.setattr(distributed, "configuration_task",
-                        functools.partial(die_after_the_work, str(marker), distributed.configuration_task))
+    monkeypatch.setattr(sweep, "configuration_task",
+                        functools.partial(die_after_the_work, str(marker), sweep.configuration_task))
     workers = set(client.scheduler_info()["workers"])
     run_sweep(grid(), tmp_path / "dask", client=client)
     assert int(marker.read_text()) != os.getpid()  # a worker process ran the first task and died

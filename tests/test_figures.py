@@ -1,11 +1,12 @@
-"""Paper figures (flightsim/studies/figures.py): the data they write, against closed forms and symmetry."""
+"""Paper figures (flightsim/studies/figures.py and figures_optics.py): the data they write, against closed forms
+and symmetry."""
 import csv
 import math
 
 import numpy as np
 import pytest
 
-from flightsim.studies import figures
+from flightsim.studies import figures, figures_optics
 from flightsim.instrument.risley_model import apex_for_cone
 from flightsim.core.errors import InputError
 
@@ -42,8 +43,8 @@ def assert_png(path) -> None:
 @pytest.fixture(scope="module")
 def optics(tmp_path_factory):
     out = tmp_path_factory.mktemp("optics")
-    return {"5a": figures.fig5a(out), "5c": figures.fig5c(out), "6b": figures.fig6b(out),
-            "6b2k": figures.fig6b(out / "h2000", altitude_m=2000.0)}
+    return {"5a": figures_optics.fig5a(out), "5c": figures_optics.fig5c(out), "6b": figures_optics.fig6b(out),
+            "6b2k": figures_optics.fig6b(out / "h2000", altitude_m=2000.0)}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -116,7 +117,7 @@ def test_fig5c_columns_incident_grid_and_exit_angles_match_fig5a(optics):
 def test_shape_change_is_the_largest_pair_angle_change():
     # at φ = 45° the fan stretches along its (1, 1) diagonal: A_{1-1} and A_{3-3} part most,
     # each by about (M − 1)·√2Δ from the centre
-    change = figures.shape_change_urad(45.0)
+    change = figures_optics.shape_change_urad(45.0)
     assert change == pytest.approx(2 * (MAGNIFICATION - 1) * math.sqrt(2) * DELTA * 1e6, rel=5e-3)
 
 

@@ -18,9 +18,10 @@ from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_points import read_points
 from host_reference import HostLasOutput
-from flightsim.engine.tracer import Tracer
-from flightsim.studies.survey import SurveySpec, plan_survey, run_survey
 from flightsim.engine.readouts.points import Points
+from flightsim.engine.tracer import Tracer
+from flightsim.studies.survey import run_survey
+from flightsim.studies.survey_plan import SurveySpec, plan_survey
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import this test module
 

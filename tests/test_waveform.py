@@ -12,6 +12,7 @@ import warp as wp
 from flightsim.cli import main
 from flightsim.engine.tracer import Tracer
 from flightsim.instrument import waveform_model as model
+from flightsim.instrument.waveform_surfaces import PlaneSurface
 from flightsim.instrument.waveform import system
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.studies.waveform import waveform_config
@@ -72,7 +73,7 @@ def test_received_energy_is_the_lidar_equation_and_the_echo_matches_the_referenc
     assert received[0] == pytest.approx(lidar, rel=1e-3)
     assert received[1] == 0.0
     sys = system(cfg.waveform, altitude_m=H)
-    rets = model.sample_returns(sys, model.footprint(sys), model.PlaneSurface(0.0))
+    rets = model.sample_returns(sys, model.footprint(sys), PlaneSurface(0.0))
     assert received[0] == pytest.approx(rets.gain.sum(), rel=1e-9)
     reference = model.echo_analytic(sys, rets, times)
     dt, sigma = cfg.waveform.sample_interval_s, model.pulse_sigma_s(sys)

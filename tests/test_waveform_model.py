@@ -21,6 +21,7 @@ from scipy.integrate import quad
 
 from flightsim.core.errors import InputError
 from flightsim.instrument import waveform_model as wm
+from flightsim.instrument.waveform_surfaces import BumpSurface, PlaneSurface
 
 C = 299_792_458.0
 H, ALPHA, TAU, P_MAX = 200e3, 3e-4, 7e-9, 0.05  # the patent's embodiment
@@ -70,7 +71,7 @@ def test_patent_grid_has_7200_cells_out_to_the_edge():
 
 
 def test_flat_echo_is_the_pulse_delayed_by_the_footprint_mean_range():
-    rets, times, echo = _echo(SYSTEM, wm.PlaneSurface(0.0))
+    rets, times, echo = _echo(SYSTEM, PlaneSurface(0.0))
     m = wm.measure(SYSTEM, times, echo)
     assert m.fwhm_s == pytest.approx(TAU, rel=1e-3, abs=0)
     assert m.rms_width_s == pytest.approx(SIGMA_P, rel=1e-4, abs=0)
@@ -85,7 +86,7 @@ def test_flat_echo_is_the_pulse_delayed_by_the_footprint_mean_range():
 def test_slope_widens_the_echo_by_the_across_slope_extent():
     s = wm.PATENT_SLOPE
     for system in (SYSTEM, wm.PATENT):
-        _, times, echo = _echo(system, wm.PlaneSurface(s))
+        _, times, echo = _echo(system, PlaneSurface(s))
         expected = math.sqrt(SIGMA_P ** 2 + (2.0 * s * SIGMA_X_M / C) ** 2)  # 33.31 ns
         assert wm.rms_width_s(times, echo) == pytest.approx(expected, rel=1e-3, abs=0)
         assert wm.rms_width_s(times, echo) != pytest.approx(math.sqrt(SIGMA_P ** 2 + (2 * s * 0.5 * R / C) ** 2),
@@ -100,13 +101,13 @@ def test_received_power_is_the_lidar_equation_over_the_footprint(scheme, rel):
     obliquity = 1.0 - 1.5 * (0.5 * R ** 2 * MEAN_U) / H ** 2  # E[cos θ_i · H²/r²] = E[(1 + ρ²/H²)^(−3/2)]
     for all_energy, inside in ((True, 1.0), (False, 1.0 - E2)):
         system = wm.WaveformSystem(footprint_holds_all_energy=all_energy, **parts)
-        rets, times, echo = _echo(system, wm.PlaneSurface(0.0))
+        rets, times, echo = _echo(system, PlaneSurface(0.0))
         assert np.sum(rets.gain) * P_MAX == pytest.approx(lidar * inside * obliquity * P_MAX, rel=rel, abs=0)
         assert np.sum(echo) * system.sample_interval_s == pytest.approx(
             np.sum(rets.gain) * wm.pulse_energy_j(system), rel=1e-9, abs=0)  # the echo holds each sample's pulse energy
 
 
-@pytest.mark.parametrize("surface", [wm.PlaneSurface(0.0), wm.BumpSurface()], ids=["flat", "bump"])
+@pytest.mark.parametrize("surface", [PlaneSurface(0.0), BumpSurface()], ids=["flat", "bump"])
 def test_binned_path_converges_to_the_analytic_echo_as_dt_shrinks(surface):
     errors = {"linear": [], "nearest": []}
     dts = (4e-11, 2e-11, 1e-11, 5e-12)
@@ -130,19 +131,19 @@ def test_flat_centroid_converges_in_rings_at_second_order():
     errors = []
     for rings in (8, 16, 32, 64):
         system = wm.WaveformSystem(n_rings=rings, n_sectors=8, sample_interval_s=1e-10)
-        _, times, echo = _echo(system, wm.PlaneSurface(0.0))
+        _, times, echo = _echo(system, PlaneSurface(0.0))
         errors.append(wm.measure(system, times, echo).centroid_range_m - H - DELTA_M)
     order = np.log2(np.abs(np.array(errors[:-1]) / np.array(errors[1:])))
     assert order == pytest.approx([2.0, 2.0, 2.0], abs=0.05)  # ring midpoints: Δρ²/12 bias in E[ρ²]
     system = wm.WaveformSystem(n_rings=8, n_sectors=8, scheme="equal_energy", sample_interval_s=1e-10)
-    _, times, echo = _echo(system, wm.PlaneSurface(0.0))
+    _, times, echo = _echo(system, PlaneSurface(0.0))
     assert wm.measure(system, times, echo).centroid_range_m - H == pytest.approx(DELTA_M, abs=1e-9)  # RMS radii
 
 
 def test_slope_echo_converges_as_rings_and_sectors_grow():
     def echo(rings, times=None):
         system = wm.WaveformSystem(n_rings=rings, n_sectors=2 * rings, sample_interval_s=1e-10)
-        rets = wm.sample_returns(system, wm.footprint(system), wm.PlaneSurface(wm.PATENT_SLOPE))
+        rets = wm.sample_returns(system, wm.footprint(system), PlaneSurface(wm.PATENT_SLOPE))
         times = wm.time_base(system, rets) if times is None else times
         return times, wm.echo_analytic(system, rets, times)
 
@@ -153,7 +154,7 @@ def test_slope_echo_converges_as_rings_and_sectors_grow():
 
 
 def test_bump_is_met_on_its_surface_and_its_truth():
-    bump = wm.BumpSurface()
+    bump = BumpSurface()
     fp = wm.footprint(SYSTEM)
     rets = wm.sample_returns(SYSTEM, fp, bump)
     x, y, z = rets.point_m.T
@@ -174,7 +175,7 @@ def test_decomposition_recovers_gaussians():
     echo = sum(a * np.exp(-0.5 * ((t - t0) / s) ** 2) for t0, a, s in truth)
     found = wm.decompose(SYSTEM, t, echo)
     assert [(g.time_s, g.amplitude_w, g.sigma_s) for g in found] == [pytest.approx(g, rel=1e-6, abs=0) for g in truth]
-    _, times, flat = _echo(SYSTEM, wm.PlaneSurface(0.0))
+    _, times, flat = _echo(SYSTEM, PlaneSurface(0.0))
     (only,) = wm.decompose(SYSTEM, times, flat)
     assert only.sigma_s == pytest.approx(SIGMA_P, rel=1e-4, abs=0)
     assert only.time_s == pytest.approx(0.5 * TAU + 2.0 * (H + DELTA_M) / C, abs=1e-14)
@@ -208,7 +209,7 @@ def test_bad_input_names_its_field(field, value):
 
 
 @pytest.mark.parametrize("make, field", [
-    (lambda: wm.BumpSurface(radius_m=0.0), "surface.radius_m"), (lambda: wm.PlaneSurface(math.nan), "surface.slope"),
+    (lambda: BumpSurface(radius_m=0.0), "surface.radius_m"), (lambda: PlaneSurface(math.nan), "surface.slope"),
     (lambda: wm.echo_binned(SYSTEM, None, np.zeros(3), "cubic"), "waveform.binning"),
 ])
 def test_bad_surface_or_binning_names_its_field(make, field):

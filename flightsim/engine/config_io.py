@@ -3,7 +3,8 @@
 
 ``run.toml`` (:func:`to_toml`) holds the tables of the parts in use only, floats with full precision, so that
 ``--config DIR/run.toml`` reproduces a run byte for byte. Files of the first format are read through
-:mod:`flightsim.engine.legacy`.
+:mod:`flightsim.engine.legacy` (which moves each setting to its part's table), then the settings of kinds the
+run does not use are dropped here.
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ def from_dict(data: dict, base: RunConfig | None = None) -> RunConfig:
     settings are errors, first-format tables are moved to where their settings live now."""
     cfg = copy_config(base) if base is not None else RunConfig()
     if legacy.is_legacy(data):
-        data = legacy.migrate(data)
+        data = _drop_idle_kind_settings(legacy.migrate(data))
     for table in _ordered(data):
         values = data[table]
         if not isinstance(values, dict):
@@ -40,6 +41,26 @@ def from_dict(data: dict, base: RunConfig | None = None) -> RunConfig:
         for key in keys:
             set_value(cfg, f"{table}.{key}", values[key])
     return cfg
+
+
+def _drop_idle_kind_settings(data: dict) -> dict:
+    """The first format wrote every flight, scene, output and scoring setting; those of kinds not in use keep
+    their defaults and are dropped here (the config refuses a value given to a kind it does not use)."""
+    probe = RunConfig()
+    for key in ("instrument", "flight", "scene"):
+        for name, value in data.get(key, {}).items():
+            if key == "instrument" or name in ("platform", "name"):
+                set_value(probe, f"{key}.{name}", value)
+    detector = getattr(probe.detector_part, "scored", True)
+    for table in ("scene", "flight", "output", "scoring"):
+        values = data.get(table, {})
+        section = getattr(probe, table)
+        in_use = set(section.names()) if table != "scoring" else (set(values) if detector else set())
+        for name in list(values):
+            never_used = f"{table}.{name}" == "output.models"  # only discrete runs georeference by models
+            if name not in in_use and (never_used or legacy.holds_old_default(f"{table}.{name}", values[name])):
+                del values[name]
+    return data
 
 
 def load_toml(path: str | Path, base: RunConfig | None = None) -> RunConfig:

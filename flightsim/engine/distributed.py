@@ -32,9 +32,6 @@ CONNECT_TIMEOUT_S = 30.0
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False,
                  "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 
-_scenes = None  # this worker process's SceneCache, kept across tasks
-
-
 # ---------------------------------------------------------------------------------------------
 # the cluster
 
@@ -166,33 +163,20 @@ def run_futures(client, submitted: list) -> Iterator[tuple[object, object]]:
 
 
 # ---------------------------------------------------------------------------------------------
-# sweeps
+# batches of work
 
 
-def configuration_task(items: list[tuple[dict, RunConfig]], extents: dict[str, float]) -> list[dict]:
-    """Worker side: run a batch of sweep configurations with this process's scenes."""
-    from flightsim.studies.sweep import SceneCache, run_configuration
+def run_batches(client, task, items: list, *args, batch: int = 1,
+                name: str = "batch") -> Iterator[tuple[object, object]]:
+    """(item, result) of every item of ``items`` as its batch finishes on the cluster.
 
-    global _scenes
-    if _scenes is None:
-        _scenes = SceneCache()
-    _scenes.extent.update(extents)
-    return [run_configuration(labels, worker_device(cfg), _scenes) for labels, cfg in items]
-
-
-def run_configurations(client, todo: list[tuple[dict, RunConfig]], extents: dict[str, float],
-                       batch: int = 1) -> Iterator[tuple[RunConfig, dict]]:
-    """(config, result) of every configuration of ``todo`` as it finishes on the cluster.
-
-    One task per ``batch`` consecutive configurations; ``extents`` are the sweep's scene extents
-    (:class:`flightsim.studies.sweep.SceneCache`), so that workers build the scenes the serial path builds.
+    One task ``task(batch_items, *args)`` per ``batch`` consecutive items, returning one result per item
+    (a study's worker side, such as a sweep's configurations); each task's key is ``<name>-<token>-<k>``.
     """
     if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
         raise InputError("--batch", batch, "an integer >= 1")
     token = uuid.uuid4().hex[:8]
-    batches = [todo[k:k + batch] for k in range(0, len(todo), batch)]
-    futures = {client.submit(configuration_task, items, extents, key=f"configurations-{token}-{k}"): items
-               for k, items in enumerate(batches)}
+    batches = [items[k:k + batch] for k in range(0, len(items), batch)]
+    futures = {client.submit(task, chunk, *args, key=f"{name}-{token}-{k}"): chunk for k, chunk in enumerate(batches)}
     for future, results in run_futures(client, list(futures)):
-        for (_labels, cfg), result in zip(futures[future], results):
-            yield cfg, result
+        yield from zip(futures[future], results)

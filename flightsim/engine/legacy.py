@@ -5,6 +5,9 @@ A setting of a part the run does not use (a prism value in a waveform altimeter'
 first format; it is dropped when it holds the first format's default (or, for the prism, the value the
 defaults derive), and refused otherwise, naming the setting, where it belongs and that the instrument does
 not use it. A ranging or pose error that is set turns on the ``ranging`` or ``pose`` error model.
+
+Plain tables in, plain tables out: this module uses no config, so the config modules call it
+(:mod:`flightsim.engine.config_io` reads files through it, ``config.set_value`` asks it where an old key moved).
 """
 from __future__ import annotations
 
@@ -119,7 +122,10 @@ def _idle(old: str, value: Any, sensor: dict) -> bool:
 
 
 def migrate(data: dict) -> dict:
-    """The tables of a first-format config in the present format (InputError naming a setting that cannot move)."""
+    """The tables of a first-format config in the present format (InputError naming a setting that cannot move).
+
+    Every flight, scene, output and scoring setting is kept: dropping those of kinds the run does not use
+    needs the config itself (:func:`flightsim.engine.config_io.from_dict` does it)."""
     instrument = dict(data.get("instrument", {}))
     emitter, deflector = instrument.get("emitter", "fan"), instrument.get("deflector", "risley")
     detector = instrument.get("detector", "discrete")
@@ -154,29 +160,13 @@ def migrate(data: dict) -> dict:
             out.setdefault(new_table, {})[new_name] = value
     if errors:
         instrument["errors"] = errors
-    return _drop_idle_kind_settings(out)
+    return out
 
 
-def _drop_idle_kind_settings(data: dict) -> dict:
-    """The first format wrote every flight, scene, output and scoring setting; those of kinds not in use keep
-    their defaults and are dropped here (the config refuses a value given to a kind it does not use)."""
-    from flightsim.engine.config import RunConfig, set_value
-
-    probe = RunConfig()
-    for key in ("instrument", "flight", "scene"):
-        for name, value in data.get(key, {}).items():
-            if key == "instrument" or name in ("platform", "name"):
-                set_value(probe, f"{key}.{name}", value)
-    detector = getattr(probe.detector_part, "scored", True)
-    for table in ("scene", "flight", "output", "scoring"):
-        values = data.get(table, {})
-        section = getattr(probe, table)
-        in_use = set(section.names()) if table != "scoring" else (set(values) if detector else set())
-        for name in list(values):
-            never_used = f"{table}.{name}" == "output.models"  # only discrete runs georeference by models
-            if name not in in_use and (never_used or _same(values[name], OLD_DEFAULTS.get(f"{table}.{name}", object()))):
-                del values[name]
-    return data
+def holds_old_default(dotted: str, value: Any) -> bool:
+    """Whether ``table.field`` holds the value the first format wrote for it by default (False for a setting
+    the first format gave no default)."""
+    return _same(value, OLD_DEFAULTS.get(dotted, object()))
 
 
 def moved(dotted: str) -> str | None:

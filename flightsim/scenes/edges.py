@@ -7,10 +7,12 @@ boundary segments whose boxes (in a BVH) come within the buffer of the point.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from flightsim.scenes.scene import Scene
+if TYPE_CHECKING:  # only named in annotations: a Scene calls this module (Scene.boundary_segments)
+    from flightsim.scenes.scene import Scene
 
 _VERTEX_KEY_M = 1e-6  # vertices closer than this count as one when matching edges [m]
 

@@ -22,6 +22,7 @@ import pyproj
 from pyproj.enums import WktVersion
 
 from flightsim.core.errors import InputError
+from flightsim.scenes import edges
 from flightsim.scenes.height_grid import HeightGrid
 
 DEFAULT_ORIGIN: tuple[float, float, float] = (409000.0, 3393000.0, 450.0)
@@ -190,10 +191,8 @@ class Scene:
         (:func:`flightsim.scenes.edges.boundary_segments`), found once (or taken from
         :meth:`prefetch_boundary_segments`'s thread, waiting for it if need be)."""
         if self._boundaries is None:
-            from flightsim.scenes.edges import boundary_segments  # edges imports this module
-
             self._boundaries = Future()
-            self._boundaries.set_result(boundary_segments(self))
+            self._boundaries.set_result(edges.boundary_segments(self))
         return self._boundaries.result()
 
     def prefetch_boundary_segments(self) -> None:
@@ -201,10 +200,8 @@ class Scene:
         the GIL, so the run's planning and BVH builds go on meanwhile (an 8e6-triangle DEM's boundaries take
         seconds)."""
         if self._boundaries is None:
-            from flightsim.scenes.edges import boundary_segments
-
             pool = ThreadPoolExecutor(1, thread_name_prefix="boundaries")
-            self._boundaries = pool.submit(boundary_segments, self)
+            self._boundaries = pool.submit(edges.boundary_segments, self)
             pool.shutdown(wait=False)  # the thread ends with its one task
 
     def terrain_top(self, xmin: float, ymin: float, xmax: float, ymax: float) -> float:

@@ -127,20 +127,15 @@ def _maps(frame, det, mc, analytic, out: Path) -> None:
 
 
 def _report(n: dict) -> str:
-    t = n["table1_cm"]
-    rows = []
-    for src in ("B1", "B2", "B3", "C1"):
-        for axis in AXES:
-            d, m, p = t[src]["device"][axis], t[src]["model"][axis], t[src]["paper"][axis]
-            rows.append(f"| {src} | {axis} | {d[0]:.2f} / {d[1]:.2f} | {m[0]:.2f} / {m[1]:.2f} | "
-                        f"{p[0]:.2f} / {p[1]:.2f} |")
-    allx = t["all"]["device"]
-    r = n["ranging_cm"]
-    a = n["allowed"]
-    mc = n["monte_carlo"]
-    f = n["frame"]
-    w = n["table1_cm_34deg_model"]
-    ds = mc["drawn_sigma_arcsec"]
+    """REPORT.md of the Chang'e-3 budget from its numbers (budget.json): the instrument, Table 1 beside the
+    paper's, the ranging chain, the allowed errors and the Monte Carlo against first-order propagation."""
+    return (_report_heading(n) + _table1_section(n) + _ranging_section(n) + _allowed_section(n)
+            + _monte_carlo_section(n))
+
+
+def _report_heading(n: dict) -> str:
+    """The title, the command that regenerates the report, and the instrument and frame simulated."""
+    mc, f = n["monte_carlo"], n["frame"]
     return f"""# Chang'e-3 laser 3D imager: full-link error budget
 
 Regenerate: `{COMMAND.format(draws=mc['draws'], device=n['device'])}` (device `{n['device']}`).
@@ -151,7 +146,21 @@ plane square to its optical axis. Deviation = processed point − true hit; X ho
 Z along the optical axis (the paper's frame). Each angle source alone at the paper's allowed 1σ
 (B1 = B2 = B3 = 42.9″, C1 = 94.5″), as the paper's Table 1 does ("1倍中误差为误差量").
 
-## Table 1: max / min |deviation| over the frame [cm]
+"""
+
+
+def _table1_section(n: dict) -> str:
+    """Table 1 (each angle source alone: max / min |deviation| [cm], device, float64 model and paper), explained."""
+    t = n["table1_cm"]
+    rows = []
+    for src in ("B1", "B2", "B3", "C1"):
+        for axis in AXES:
+            d, m, p = t[src]["device"][axis], t[src]["model"][axis], t[src]["paper"][axis]
+            rows.append(f"| {src} | {axis} | {d[0]:.2f} / {d[1]:.2f} | {m[0]:.2f} / {m[1]:.2f} | "
+                        f"{p[0]:.2f} / {p[1]:.2f} |")
+    allx = t["all"]["device"]
+    w = n["table1_cm_34deg_model"]
+    return f"""## Table 1: max / min |deviation| over the frame [cm]
 
 | source | axis | device (Warp, exact reflection) | float64 model (NumPy) | paper |
 | --- | --- | --- | --- | --- |
@@ -177,7 +186,13 @@ Differences, explained:
 - Device against the float64 model: the device traces float32 rays and writes float32 points; the
   two tables agree to the rounding of float32 coordinates at 100 m (a few µm).
 
-## Ranging chain (§2.1) [cm]
+"""
+
+
+def _ranging_section(n: dict) -> str:
+    """The ranging chain's terms [cm] beside the paper's (§2.1)."""
+    r = n["ranging_cm"]
+    return f"""## Ranging chain (§2.1) [cm]
 
 | source | ours | paper | formula |
 | --- | --- | --- | --- |
@@ -194,7 +209,13 @@ Differences, explained:
 - Clock drift e_df = 2×10⁻⁶: {r['clock_drift_at_100m_mm']:.2f} mm at 100 m (R·e_df). The paper calls it
   negligible; its "order of 10⁻⁷ m" does not follow from its own formula (R·e_df = 0.2 mm at 100 m).
 
-## Allowed errors (§3.3)
+"""
+
+
+def _allowed_section(n: dict) -> str:
+    """The allowed angle errors [arcsec] for σz = 20 cm / 3 (§3.3), with the paper's and our σ_r."""
+    r, a = n["ranging_cm"], n["allowed"]
+    return f"""## Allowed errors (§3.3)
 
 σz = 20 cm / 3 = {a['ours_sigma_z_m'] * 100:.2f} cm must hold at every point of the frame; with equal angle errors on both
 mirrors (eq. 20) the binding point is a corner, and σB = σθ / (1 + sec γ + tan γ) (eq. 22) at its
@@ -210,7 +231,14 @@ With the paper's σ_r, σθ is within 0.5 % of its 94.5″; σB is 3 % above its
 not state the γ it used, and 42.9″ = 94.5″ / (1 + sec γ + tan γ) needs γ = 10.5° rather than the
 binding corner's 7.9°.
 
-## Monte Carlo (device) against first-order propagation (float64)
+"""
+
+
+def _monte_carlo_section(n: dict) -> str:
+    """The device's Monte Carlo σ against the float64 model's first-order σ, slot by slot."""
+    mc = n["monte_carlo"]
+    ds = mc["drawn_sigma_arcsec"]
+    return f"""## Monte Carlo (device) against first-order propagation (float64)
 
 {mc['draws']} draws of every source at once (B1, B2, B3, C1 ~ N(0, allowed σ); each channel's
 delay ~ N(0, 5 cm); TDC, jitter and constant-fraction noise per return) in {mc['wall_s']:.2f} s (compilation excluded)
@@ -275,14 +303,19 @@ def _risley_maps(frame, det, mc, rb, out: Path) -> None:
 
 
 def _risley_report(n: dict, rb) -> str:
+    """REPORT.md of the Risley budget from its numbers (budget.json): the sources, each systematic one alone,
+    then every source at once (first-order shares and the Monte Carlo)."""
+    return _risley_sources_section(n) + _risley_combined_section(n)
+
+
+def _risley_sources_section(n: dict) -> str:
+    """The title, the instrument, the sources and their 1σ, and each systematic source alone at +1σ [cm]."""
     f, mc = n["frame"], n["monte_carlo"]
     sources = "\n".join(f"| {name} | {s['sigma']:g} {s['unit']} | {'per run' if s['systematic'] else 'per pulse'} | "
                         f"{s['basis']} |" for name, s in n["sources"].items())
     rows = "\n".join(f"| {r['source']} | {r['E'][0]:.2f} / {r['E'][1]:.2f} | {r['N'][0]:.2f} / {r['N'][1]:.2f} | "
                      f"{r['U'][0]:.2f} / {r['U'][1]:.2f} | {r['horizontal_max_cm']:.2f} |"
                      for r in n["deterministic_cm"])
-    shares = "\n".join(f"| {name} | " + " | ".join(f"{100 * v:.1f} %" for v in s) + " |"
-                       for name, s in n["linearised_share_of_variance"].items())
     return f"""# Error budget of the airborne Risley instrument (seed 001)
 
 Regenerate: `{RISLEY_COMMAND.format(draws=mc['draws'], device=n['device'])}`.
@@ -313,7 +346,16 @@ sensor origin, believed − true = R (Mᵀ − I) Rᵀ (T − O) to float32 roun
 turns the on-axis beam about the vertical by exactly the error (no height change in level flight);
 the noise sources have their σ.
 
-## Every source at once
+"""
+
+
+def _risley_combined_section(n: dict) -> str:
+    """Every source at once: each one's first-order share of the variance, and the Monte Carlo σ [cm] against
+    the linearised σ."""
+    mc = n["monte_carlo"]
+    shares = "\n".join(f"| {name} | " + " | ".join(f"{100 * v:.1f} %" for v in s) + " |"
+                       for name, s in n["linearised_share_of_variance"].items())
+    return f"""## Every source at once
 
 Share of the frame-mean variance, first order (E, N, U):
 

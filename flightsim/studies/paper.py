@@ -10,7 +10,7 @@ import csv
 import time
 from pathlib import Path
 
-from flightsim.studies import figures
+from flightsim.studies import figures, figures_optics
 from flightsim.engine.config import RunConfig, set_value
 from flightsim.core.atomic import write_atomic
 from flightsim.studies.sweep import SweepGrid, run_sweep
@@ -47,7 +47,7 @@ def reproduce(out: Path, device: str = "cpu", plane_duration_s: float = 2.0, fie
     started = time.perf_counter()
     tables = {name: run_sweep(grid, out / "sweeps" / name, overwrite=overwrite)
               for name, grid in studies(device, plane_duration_s, field_duration_s).items()}
-    figures.optics_figures(out)
+    figures_optics.optics_figures(out)
     figures.fig8a(tables["calibration"].with_name("planes.csv"), out)
     figures.fig8b(tables["altitude"], out)
     figures.fig9a(tables["array"], out)

@@ -27,6 +27,7 @@ from typing import Callable, Iterable
 
 from flightsim.engine.config import RunConfig, canonical_key, config_dict, copy_config, get_value, set_value, validate
 from flightsim.engine.config_io import to_toml
+from flightsim.engine.distributed import run_batches, worker_device
 from flightsim.engine.world import edge_buffer_m
 from flightsim.core.errors import InputError
 from flightsim.core.atomic import save_figure, write_atomic
@@ -157,6 +158,19 @@ def run_configuration(labels: dict, cfg: RunConfig, scenes: SceneCache) -> dict:
     return {"rows": rows, "planes": planes}
 
 
+_scenes: SceneCache | None = None  # a worker process's scenes, kept across the tasks it runs
+
+
+def configuration_task(items: list[tuple[dict, RunConfig]], extents: dict[str, float]) -> list[dict]:
+    """Worker side: run a batch of sweep configurations on this worker's device with this process's scenes,
+    built as wide as the sweep's ``extents`` (:class:`SceneCache`) so that they equal the serial path's."""
+    global _scenes
+    if _scenes is None:
+        _scenes = SceneCache()
+    _scenes.extent.update(extents)
+    return [run_configuration(labels, worker_device(cfg), _scenes) for labels, cfg in items]
+
+
 # ---------------------------------------------------------------------------------------------
 # the sweep directory
 
@@ -269,9 +283,9 @@ def _results(todo: list[tuple[dict, RunConfig]], scenes: SceneCache, client, bat
         for labels, cfg in todo:
             yield cfg, run_configuration(labels, cfg, scenes)
     else:
-        from flightsim.engine.distributed import run_configurations
-
-        yield from run_configurations(client, todo, scenes.extent, batch)
+        for (_labels, cfg), result in run_batches(client, configuration_task, todo, scenes.extent, batch=batch,
+                                                  name="configurations"):
+            yield cfg, result
 
 
 def plot_sweep(sweep_csv: Path, out_dir: Path) -> list[Path]:

@@ -13,6 +13,7 @@ from flightsim.core.atomic import save_figure, write_atomic
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.config_io import load_toml, preset_config
 from flightsim.instrument import waveform_model as model
+from flightsim.instrument.waveform_surfaces import BumpSurface, PlaneSurface
 
 SCENES = {"flat": ("plane", 0.0), "slope": ("plane", model.PATENT_SLOPE), "bump": ("bump", None)}
 COMMAND = "flightsim waveform --patent --device {device} --out results/waveform"
@@ -59,8 +60,8 @@ def run_patent(out: Path, device: str = "cpu", **settings) -> dict:
         summary = simulate_to_directory(cfg, out / name, overwrite=True)
         shot = read_shot(out / name / "waveforms.h5")
         sys = system(cfg.waveform, altitude_m=cfg.flight.altitude_m)  # above the scenes' ground z = 0
-        surface = {"flat": model.PlaneSurface(0.0), "slope": model.PlaneSurface(model.PATENT_SLOPE),
-                   "bump": model.BumpSurface()}[name]
+        surface = {"flat": PlaneSurface(0.0), "slope": PlaneSurface(model.PATENT_SLOPE),
+                   "bump": BumpSurface()}[name]
         reference = model.echo_analytic(sys, model.sample_returns(sys, model.footprint(sys), surface), shot["times_s"])
         literal = model.echo_analytic(
             model.PATENT, model.sample_returns(model.PATENT, model.footprint(model.PATENT), surface), shot["times_s"]) \
