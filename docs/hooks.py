@@ -45,6 +45,8 @@ from flightsim.core import registry  # noqa: E402
 from flightsim.core.settings import Settings, allowed_text, toml_value  # noqa: E402
 from flightsim.engine import config as config_module  # noqa: E402  (imports register the built-in parts)
 from flightsim.engine.config_io import PRESETS, preset_config, preset_path  # noqa: E402
+from flightsim.engine.products import catalog as _products  # noqa: E402,F401  (registers the products)
+from flightsim.engine.readouts import catalog as _readouts  # noqa: E402,F401  (registers the readouts)
 from flightsim.platforms.flight import FlightSettings  # noqa: E402
 from flightsim.scenes.settings import SceneSettings  # noqa: E402
 from flightsim.scoring.settings import ScoringSettings  # noqa: E402
@@ -52,7 +54,9 @@ from flightsim.scoring.settings import ScoringSettings  # noqa: E402
 MARKER = re.compile(r"<!--\s*flightsim:\s*([\w-]+)(?:\s+([\w-]+))?\s*-->")
 RESULT_SUFFIXES = (".md", ".png", ".csv", ".json", ".toml")
 ROLE_TITLES = {"emitter": "Emitters", "deflector": "Deflectors", "detector": "Detectors", "errors": "Error models",
-               "platform": "Platforms", "scene": "Scene kinds", "output": "Outputs"}
+               "platform": "Platforms", "scene": "Scene kinds", "output": "Outputs", "readout": "Readouts",
+               "product": "Products"}
+SETTINGS_ROLES = tuple(role for role in registry.ROLES if role not in registry.ENGINE_ROLES)
 SECTION_SETTINGS = {"instrument": config_module.InstrumentSettings, "scene": SceneSettings,
                     "flight": FlightSettings, "scoring": ScoringSettings, "run": config_module.RunSettings}
 SECTION_OF_ROLE = {"scene": "scene", "platform": "flight", "output": "output"}
@@ -214,7 +218,7 @@ def parts_page() -> str:
         for role, kind, _ in composition(name):
             used.setdefault((role, kind), []).append(name)
     out = []
-    for role in registry.ROLES:
+    for role in SETTINGS_ROLES:
         out.append(f"## {ROLE_TITLES[role]}\n")
         for kind, part in registry.kinds(role).items():
             users = ", ".join(f"[{n}](instruments/{n}.md)" for n in used.get((role, kind), [])) or "none"
@@ -223,7 +227,21 @@ def parts_page() -> str:
                        f"- host class {_autoref(part.__module__ + '.' + part.__qualname__)}, settings "
                        f"{_autoref(part.settings.__module__ + '.' + part.settings.__qualname__)}\n"
                        f"- built-in instruments using it: {users}\n\n{settings_table(part.settings)}")
-    return "\n".join(out)
+    return "\n".join(out + engine_parts())
+
+
+def engine_parts() -> list[str]:
+    """The engine's parts, which have no settings: the readouts (named by the detectors that provide them) and the
+    products a run to files writes from them."""
+    out = []
+    for role in registry.ENGINE_ROLES:
+        out.append(f"## {ROLE_TITLES[role]}\n")
+        for kind, part in registry.kinds(role).items():
+            owners = [k for k, d in registry.kinds("detector").items() if kind in getattr(d, "readouts", ())]
+            out.append(f"### `{kind}` {{#{anchor(role, kind)}}}\n\n{_text(_doc(part))}\n\n"
+                       f"- detectors: {', '.join(f'`{o}`' for o in owners) or 'none'}\n"
+                       f"- class {_autoref(part.__module__ + '.' + part.__qualname__)}\n")
+    return out
 
 
 def section_table(table: str) -> str:
