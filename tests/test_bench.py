@@ -4,7 +4,8 @@ import json
 import pytest
 
 from flightsim.studies.accuracy import measure_errors
-from flightsim.studies.bench import run_bench, simulator, workload
+from flightsim.studies.bench import run_bench
+from flightsim.studies.bench_common import simulator, workload
 
 
 @pytest.mark.parametrize("altitude", [500.0, 5000.0])
@@ -35,7 +36,7 @@ def test_bench_writes_records_with_the_fields_the_issue_names(tmp_path):
 
 
 def test_stage_report_names_each_kernel_and_accounts_for_the_wall_time():
-    from flightsim.studies.bench import kernel_name
+    from flightsim.studies.bench_common import kernel_name
     from flightsim.studies.bench_report import markdown
 
     assert kernel_name("forward kernel records_kernel__locals__trace_records_1a2b3c4") == "trace_records"
