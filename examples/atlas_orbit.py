@@ -1,5 +1,5 @@
 """An ATLAS-like photon-counting altimeter in a 500 km orbit over a plane: a 0.05 s pass (500 shots); the photons,
-and the mean height of those the signal finder marks as ground (``signal_conf_ph == 4``, ATL03 names)."""
+and the mean height of those the signal finder marks as ground (signal_conf_ph == 4, in ATL03 names)."""
 import argparse
 
 import flightsim
@@ -14,4 +14,4 @@ if args.out:
     result.write(args.out)
 photons = result.photons
 ground = photons["h_ph"][photons["signal_conf_ph"] == 4]
-print(f"atlas: {photons.sizes['photon']} photons, {ground.size} ground photons at mean height {float(ground.mean()):.3f} m")
+print(f"atlas: {photons.sizes['photon']} photons, {ground.size} on the ground at mean height {float(ground.mean()):.3f} m")

@@ -1,5 +1,5 @@
 """The Chang'e-1 waveform altimeter at 200 km over a sloping plane: three shots (4 Hz for half a second), each a full
-received waveform; the shot count and each shot's half-power range from ``result.waveforms`` (GEDI L1B names)."""
+received waveform; the shot count and each shot's half-power range from result.waveforms (GEDI L1B names)."""
 import argparse
 
 import flightsim

@@ -3,13 +3,14 @@
 A Palmer scanner draws a cone: the laser fires along the spin axis at a mirror whose normal is tilted by τ from that
 axis, and the mirror spins, so the reflected beam turns around the axis at 2τ from it (a circle on the ground beneath
 a hovering sensor, an ellipse when the sensor is tilted, overlapping loops from a moving aircraft). The whole part is
-in this file: its settings (the ``[palmer]`` table), its kernel side (a ``@wp.struct`` and the ``@wp.func`` stages
-of a :class:`kernels.parts.Deflector`) and its host class, registered with ``flightsim.register_part``. Run as a
-script it flies a short line over the calibration field and prints the points and the plane RMS; installed as a
-plug-in (the ``flightsim.parts`` entry point) the command line gets ``instrument.deflector = "palmer"`` too.
+in this file: its settings (the `[palmer]` table), its kernel side (a `@wp.struct` and the `@wp.func` stages of a
+`kernels.parts.Deflector`) and its host class, registered with `flightsim.register_part`. Run as a script it flies
+one second over the calibration field and prints the points and the plane RMS of the exact model (the only one: a
+Palmer scanner has no rigid-array nominal model). Installed as a plug-in (the `flightsim.parts` entry point) it
+gives the command line `instrument.deflector = "palmer"` too; [Write a part](../write-a-part.md) walks through it.
 
-Geometry (sensor frame: +z the scan axis, towards the scene; x forward at φ = 0): the source fires up the spin axis
-(along −z) at the mirror's centre, the sensor origin; at scan phase φ the mirror's normal is the tilted normal
+Geometry (sensor frame: +z the scan axis, towards the scene; x forward): the source fires up the spin axis (along
+−z) at the mirror's centre, the sensor origin; at scan phase φ the mirror's normal is the tilted normal
 (sin τ, 0, cos τ) turned by φ about z, n(φ) = (sin τ cos φ, sin τ sin φ, cos τ), and each beam leaves by exact
 vector reflection, d' = d − 2 (d·n) n: the on-axis beam along (sin 2τ cos φ, sin 2τ sin φ, cos 2τ).
 """
@@ -24,7 +25,6 @@ import numpy as np
 import warp as wp
 
 import flightsim
-from flightsim.core.errors import InputError
 from flightsim.core.settings import Settings, setting
 from flightsim.instrument.base import footprint_buffer_m
 from kernels.frames import ROW_PHI, put3
@@ -46,16 +46,6 @@ class PalmerSettings(Settings):
     phase0_deg: float = setting(0.0, "mirror azimuth φ at GPS time 0 (φ = 0 sends the beam along the sensor's +x)",
                                 "deg", range=(-360.0, 360.0))
 
-    def check(self, context) -> None:
-        """The exact model only: no rigid-array (nominal) model, and no exit table for the lut optics."""
-        if context is None:
-            return
-        if "nominal" in context.models:
-            raise InputError("output.models", ",".join(context.models), "exact (the palmer deflector has no "
-                             "rigid-array nominal model)")
-        if context.optics == "lut":
-            raise InputError("run.optics", "lut", "float32 or float64 (the palmer deflector has no lut table)")
-
 
 # --- the kernel side: a struct and the three stages ----------------------------------------------------------
 
@@ -75,7 +65,7 @@ def palmer_beam_stage(s1: Any, m: Palmer):
 
 @wp.func
 def palmer_pulse_stage(table: wp.array2d(dtype=wp.float64), row: int, p: int, m: Palmer):
-    """Per pulse: the mirror's normal n(φ) at the pulse's scan phase (the pose rows' ROW_PHI) into rows row … row + 2."""
+    """Per pulse: the mirror's normal n(φ) at the pulse's scan phase (ROW_PHI) into rows row … row + 2."""
     phi = table[ROW_PHI, p]
     sin_tilt = wp.sin(m.tilt)
     put3(table, row, p, wp.vec3d(sin_tilt * wp.cos(phi), sin_tilt * wp.sin(phi), wp.cos(m.tilt)))
@@ -83,7 +73,7 @@ def palmer_pulse_stage(table: wp.array2d(dtype=wp.float64), row: int, p: int, m:
 
 @wp.func
 def palmer_finish(s: Any, table: wp.array2d(dtype=wp.float64), row: int, p: int, m: Palmer):
-    """Per beam and pulse: (exit direction d − 2 (d·n) n, exit point: the mirror's centre, ok: met from the front)."""
+    """Per beam and pulse: (exit direction d − 2 (d·n) n, exit point: the mirror's centre, ok: hit from the front)."""
     n = get3_as(table, row, p, s)
     along = wp.dot(s, n)
     return s - type(s[0])(2.0) * along * n, type(s)(), along < type(s[0])(0.0)
@@ -97,7 +87,7 @@ PALMER = Deflector("palmer", Palmer, 3, palmer_beam_stage, palmer_pulse_stage, p
 
 @flightsim.register_part("deflector", "palmer")
 class PalmerScanner:
-    """The ``[palmer]`` mirror in front of any emitter; the processing believes the true mirror."""
+    """The `[palmer]` mirror in front of any emitter; the processing believes the true mirror."""
 
     settings = PalmerSettings
     kernel = PALMER
@@ -120,13 +110,13 @@ class PalmerScanner:
         return m
 
     def exit_directions(self, phi: np.ndarray) -> np.ndarray:
-        """(phases, beams, 3) exit directions of every beam at scan phases ``phi`` [rad], float64 (the host's copy)."""
+        """(phases, beams, 3) exit directions of every beam at scan phases `phi` [rad], float64 (the host's copy)."""
         d = self.emitter.directions() * np.array([1.0, -1.0, -1.0])
         tau = math.radians(self.s.tilt_deg)
         n = np.stack([math.sin(tau) * np.cos(phi), math.sin(tau) * np.sin(phi), np.full_like(phi, math.cos(tau))], -1)
         return d[None] - 2.0 * np.einsum("bk,pk->pb", d, n)[..., None] * n[:, None, :]
 
-    def max_off_axis_rad(self, samples: int = 72) -> float:
+    def max_off_axis_rad(self, samples: int = 360) -> float:
         """Largest angle of any exit beam from the scan axis over a turn [rad]."""
         d = self.exit_directions(np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False))
         return float(np.arccos(np.clip(d[..., 2], -1.0, 1.0)).max())
