@@ -25,9 +25,20 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from flightsim.core.registry import register as register_part  # noqa: F401  (parts from outside: the API's)
+from flightsim.core import registry
 from flightsim.engine.config import RunConfig, copy_config, set_value, validate
 from flightsim.engine.config_io import from_dict, load_toml, preset_config
+
+
+def register_part(role: str, kind: str, part: type | None = None):
+    """Register a part defined outside the package as ``kind`` of ``role`` (a class decorator:
+    ``@flightsim.register_part("deflector", "palmer")``), after the built-in parts, so a kind that clashes with one
+    of them (a deflector called "fan", "risley" or "scene") is refused here, with
+    :class:`flightsim.core.registry.KindClash`. See :func:`flightsim.core.registry.register`."""
+    from flightsim.engine.products import catalog as _products  # noqa: F401  (the built-in parts of every role)
+    from flightsim.engine.readouts import catalog as _readouts  # noqa: F401
+
+    return registry.register(role, kind, part)
 
 
 def load_config(source: str | Path | Mapping | RunConfig | None = None, *, instrument: str | None = None,

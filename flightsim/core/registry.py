@@ -11,6 +11,7 @@ or by calling :func:`register` before the config is loaded.
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -26,21 +27,32 @@ _parts: dict[str, dict[str, type]] = {role: {} for role in ROLES}
 _plugins_loaded = False
 
 
+class KindClash(ValueError):
+    """A part kind that another part already has, or that would share a config table with another part or a
+    section."""
+
+
 def register(role: str, kind: str, part: type | None = None):
     """Register ``part`` as ``kind`` of ``role`` (usable as a class decorator: ``@register("deflector",
-    "palmer")``). An instrument part's kind names its config table, so it must be unique among the
-    instrument roles and differ from the config's sections."""
+    "palmer")``). A kind is taken once per role (registering the same class again is harmless), and an
+    instrument part's kind names its config table, so it must be unique among the instrument roles and differ
+    from the config's sections; a clash raises :class:`KindClash`."""
     if role not in ROLES:
         raise ValueError(f"unknown part role {role!r}: one of {', '.join(ROLES)}")
+    if not isinstance(kind, str) or not re.fullmatch(r"[A-Za-z0-9_-]+", kind):
+        raise ValueError(f"part kind {kind!r}: letters, digits, _ and - only (it names a config table or choice)")
 
     def add(cls: type) -> type:
         if role not in ENGINE_ROLES and not hasattr(cls, "settings"):
             raise TypeError(f"part {kind!r} ({cls.__qualname__}) has no 'settings' class")
+        taken = _parts[role].get(kind)
+        if taken is not None and taken is not cls:
+            raise KindClash(f"{role} kind {kind!r} is taken by {taken.__module__}.{taken.__qualname__}")
         if role in INSTRUMENT_ROLES:
             clash = [r for r in INSTRUMENT_ROLES if r != role and kind in _parts[r]]
             if clash or kind in SECTIONS:
-                raise ValueError(f"{role} kind {kind!r} would share its config table with "
-                                 f"{'the ' + clash[0] + ' ' + kind if clash else 'the [' + kind + '] section'}")
+                raise KindClash(f"{role} kind {kind!r} would share its config table with "
+                                f"{'the ' + clash[0] + ' ' + kind if clash else 'the [' + kind + '] section'}")
         cls.role, cls.kind = role, kind
         _parts[role][kind] = cls
         return cls
@@ -48,9 +60,18 @@ def register(role: str, kind: str, part: type | None = None):
     return add(part) if part is not None else add
 
 
+def _plugin_error(ep, exc: Exception, importing: bool) -> InputError:
+    """One line naming the plug-in (its entry point) and what went wrong."""
+    expected = ("a part kind of its own" if isinstance(exc, KindClash) else
+                "a module that imports" if importing else "a part class with a role and a kind")
+    return InputError(f"plug-in {ep.name}", ep.value,
+                      f"{expected} ({type(exc).__name__}: {' '.join(str(exc).split())})")
+
+
 def load_plugins() -> None:
-    """Import the parts installed under the entry-point group (once); a plug-in that fails to load is an
-    InputError naming it."""
+    """Import the parts installed under the entry-point group (once): each entry point names a part class
+    (carrying ``role`` and ``kind``) or a module that registers its parts on import. A plug-in that fails to load,
+    or whose kind clashes, is an InputError naming it."""
     global _plugins_loaded
     if _plugins_loaded:
         return
@@ -61,10 +82,12 @@ def load_plugins() -> None:
         try:
             loaded = ep.load()
         except Exception as exc:  # a broken plug-in must not take the command line down with a traceback
-            raise InputError(f"plug-in {ep.name}", ep.value,
-                             f"a module that imports ({type(exc).__name__}: {exc})") from None
-        if isinstance(loaded, type) and hasattr(loaded, "role") and hasattr(loaded, "kind"):
-            register(loaded.role, loaded.kind, loaded)
+            raise _plugin_error(ep, exc, importing=True) from None
+        if isinstance(loaded, type):  # a part class (a module registered its parts as it was imported)
+            try:
+                register(getattr(loaded, "role", None), getattr(loaded, "kind", None), loaded)
+            except (ValueError, TypeError) as exc:
+                raise _plugin_error(ep, exc, importing=False) from None
 
 
 def kinds(role: str) -> dict[str, type]:

@@ -443,6 +443,20 @@ def _check_composition(cfg: RunConfig) -> None:
                          f"{', '.join(cfg.parts_in_use())}; set instrument.{role} to use it)")
 
 
+def _check_deflector(cfg: RunConfig, ctx: Context) -> None:
+    """The engine's side of the deflector protocol: the nominal model needs a deflector with a rigid-array model
+    (``rigid_nominal``), the lut optics one with an exit table (``exit_table``); a deflector's own check may say so
+    first. Without this a deflector lacking them (a plug-in's, the fixed one) would get points from rows it never
+    wrote."""
+    deflector = registry.part("deflector", cfg.instrument.deflector)
+    if "nominal" in ctx.models and not deflector.rigid_nominal:
+        raise InputError("output.models", ",".join(ctx.models),
+                         f"exact (the {deflector.kind} deflector has no rigid-array nominal model)")
+    if ctx.optics == "lut" and not hasattr(deflector, "exit_table"):
+        raise InputError("run.optics", ctx.optics, f"float32 or float64 (the {deflector.kind} deflector has no "
+                                                   f"exit table for lut)")
+
+
 def validate(cfg: RunConfig) -> RunConfig:
     """Check every setting of the parts in use; return the resolved config (derived values filled in) or raise
     InputError naming the field."""
@@ -454,6 +468,7 @@ def validate(cfg: RunConfig) -> RunConfig:
     check_settings("run", cfg.run, ctx)
     for kind in cfg.parts_in_use():
         check_settings(kind, getattr(cfg, kind), ctx)
+    _check_deflector(cfg, ctx)
     resolved = copy_config(cfg)
     for kind in resolved.parts_in_use():
         resolved.parts[kind] = getattr(resolved, kind).resolved()
