@@ -202,7 +202,8 @@ def _install(site: Path, modules: dict[str, str], entry_points: dict[str, str]) 
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: flightsim-test-plugin\nVersion: 0.1\n")
     lines = "".join(f"{name} = {target}\n" for name, target in entry_points.items())
     (info / "entry_points.txt").write_text(f"[{registry.ENTRY_POINT_GROUP}]\n{lines}", encoding="utf-8")
-    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(site)]))
+    paths = [str(ROOT), str(site), os.environ.get("PYTHONPATH")]   # keep where the interpreter finds Warp
+    return dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, paths)))
 
 
 def _flightsim(args: list[str], env: dict) -> subprocess.CompletedProcess:
