@@ -3,6 +3,7 @@ use is refused naming it, presets document themselves, and run.toml files of the
 from __future__ import annotations
 
 import dataclasses
+import re
 import subprocess
 import sys
 import tomllib
@@ -108,6 +109,40 @@ def test_a_config_file_missing_a_part_table_gets_its_defaults_and_the_compositio
                                          '[output]\nmodels = ["exact"]\n')
     cfg = validate(load_toml(tmp_path / "galvo.toml"))
     assert dataclasses.astuple(cfg.galvo.resolved()) == dataclasses.astuple(type(cfg.galvo)().resolved())
+
+
+def _preset_without(tmp_path, monkeypatch, table: str | None, text: str | None = None) -> None:
+    """The built-in presets in tmp_path, spad.toml without one of its tables (or replaced by text)."""
+    from flightsim.engine import config_io
+
+    for name in PRESETS:
+        source = config_io.preset_path(name).read_text(encoding="utf-8")
+        if name == "spad":
+            blocks = re.split(r"(?m)^(?=\[)", source)  # the preamble, then one block per table
+            source = text if text is not None else "".join(b for b in blocks if not b.startswith(f"[{table}]"))
+            assert text is not None or tomllib.loads(source).keys() == tomllib.loads(
+                config_io.preset_path(name).read_text(encoding="utf-8")).keys() - {table}
+        (tmp_path / f"{name}.toml").write_text(source, encoding="utf-8")
+    monkeypatch.setattr(config_io, "PRESET_DIR", tmp_path)
+
+
+def test_a_preset_file_missing_a_part_table_flies_that_part_s_defaults(tmp_path, monkeypatch):
+    _preset_without(tmp_path, monkeypatch, "fsm")
+    cfg = validate(preset_config("spad"))
+    assert cfg.instrument.deflector == "fsm"
+    assert dataclasses.astuple(cfg.fsm.resolved()) == dataclasses.astuple(type(cfg.fsm)().resolved())
+
+
+def test_a_preset_file_missing_its_instrument_table_exits_2_naming_the_orphan_table(tmp_path, monkeypatch, capsys):
+    _preset_without(tmp_path, monkeypatch, "instrument")  # the default composition: fan, risley, discrete
+    line = _error(["config", "--instrument", "spad"], capsys)
+    assert "fsm" in line and "risley" in line, line
+
+
+def test_an_unreadable_preset_file_exits_2_naming_it(tmp_path, monkeypatch, capsys):
+    _preset_without(tmp_path, monkeypatch, None, text="[instrument\nemitter = 'fan'\n")
+    line = _error(["config", "--instrument", "spad"], capsys)
+    assert "--instrument" in line and "spad.toml" in line, line
 
 
 def test_a_preset_s_tables_do_not_follow_a_part_the_user_replaces():

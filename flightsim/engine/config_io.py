@@ -91,6 +91,10 @@ def preset_config(name: str) -> RunConfig:
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise InputError("--instrument", name, f"a readable preset ({path}: {exc})") from None
     cfg = from_dict(data)
+    orphan = cfg.given_unused()
+    if orphan is not None:
+        raise InputError("--instrument", name, f"a preset whose part tables are its parts' ({path} has "
+                         f"[{orphan[0]}], which its instrument ({', '.join(cfg.parts_in_use())}) does not use)")
     cfg.mark_baseline()
     return cfg
 
