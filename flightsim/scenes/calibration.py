@@ -13,6 +13,7 @@ from flightsim.core.registry import register
 from flightsim.core.settings import Settings
 from flightsim.scenes.scene import (CLASS_BUILDING, CLASS_GROUND, CLASS_ROAD, DEFAULT_CRS, DEFAULT_ORIGIN, PlaneInfo,
                                     Scene, check_half_extent, parse_crs, plane_info)
+from flightsim.scenes.settings import ScenePart
 from flightsim.scenes.triangulate import triangulate_polygon_with_holes
 
 ROAD_WIDTH_M = 10.0
@@ -28,14 +29,11 @@ class CalibrationSettings(Settings):
 
 
 @register("scene", "calibration")
-class CalibrationScene:
+class CalibrationScene(ScenePart):
     """The calibration field of ``[scene]``, its ground sized to the flight (at least the houses' block)."""
 
     settings = CalibrationSettings
     sized = True
-
-    def __init__(self, scene):
-        self.s = scene
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
         half = max(half_extent_m, calibration_min_half_extent() + self.s.margin_m)

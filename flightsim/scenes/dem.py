@@ -26,6 +26,7 @@ from flightsim.core.settings import Settings, setting
 from flightsim.scenes.gridmesh import grid_triangles
 from flightsim.scenes.lunar import surface_scene
 from flightsim.scenes.scene import Scene
+from flightsim.scenes.settings import ScenePart
 
 DEM_SUFFIXES = (".tif", ".tiff", ".npy")
 MAX_DEM_NODES = 6001 * 6001  # about 72 M triangles
@@ -51,15 +52,11 @@ class DemSettings(Settings):
 
 
 @register("scene", "dem")
-class DemScene:
+class DemScene(ScenePart):
     """The height grid named by ``scene.name`` (a .tif/.tiff/.npy file), with ``[scene]``'s DEM settings."""
 
     settings = DemSettings
-    sized = False
     suffixes = DEM_SUFFIXES
-
-    def __init__(self, scene):
-        self.s = scene
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
         s = self.s

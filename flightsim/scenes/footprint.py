@@ -18,6 +18,7 @@ from flightsim.core.registry import register
 from flightsim.core.settings import Settings
 from flightsim.scenes.lunar import MAX_NODES, _grid_triangles, surface_scene
 from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN, Scene
+from flightsim.scenes.settings import ScenePart
 
 BUMP_HEIGHT_M = 5.0
 BUMP_RADIUS_M = 20.0
@@ -49,14 +50,11 @@ class BumpSettings(Settings):
 
 
 @register("scene", "bump")
-class BumpScene:
+class BumpScene(ScenePart):
     """The bump of ``[scene]``, sized to the flight."""
 
     settings = BumpSettings
     sized = True
-
-    def __init__(self, scene):
-        self.s = scene
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
         return bump_scene(half_extent_m, self.s.origin, self.s.crs)

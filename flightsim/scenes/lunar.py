@@ -25,6 +25,7 @@ from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.scenes.scene import (CLASS_GROUND, DEFAULT_CRS, DEFAULT_ORIGIN, Scene, check_half_extent,
                                     parse_crs, plane_info)
+from flightsim.scenes.settings import ScenePart
 
 MAX_NODES = 1025  # grid nodes per side at most (about 2.1 M triangles)
 CRATER_K = 0.03  # N(>D) = K·D⁻² craters per m² (D in m)
@@ -157,14 +158,11 @@ class LunarSettings(Settings):
 
 
 @register("scene", "lunar")
-class LunarScene:
+class LunarScene(ScenePart):
     """The lunar landing zone of ``[scene]``, sized to the flight."""
 
     settings = LunarSettings
     sized = True
-
-    def __init__(self, scene):
-        self.s = scene
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
         return lunar_scene(half_extent_m, self.s.origin, self.s.crs, seed=seed, slope=self.s.slope)

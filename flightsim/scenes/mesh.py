@@ -9,6 +9,7 @@ from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.scenes.meshio import load_mesh
 from flightsim.scenes.scene import Scene
+from flightsim.scenes.settings import ScenePart
 
 MESH_SUFFIXES = (".obj", ".ply")
 
@@ -23,15 +24,11 @@ class MeshSettings(Settings):
 
 
 @register("scene", "mesh")
-class MeshScene:
+class MeshScene(ScenePart):
     """The mesh file named by ``scene.name``."""
 
     settings = MeshSettings
-    sized = False
     suffixes = MESH_SUFFIXES
-
-    def __init__(self, scene):
-        self.s = scene
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
         if not Path(self.s.name).is_file():

@@ -12,6 +12,7 @@ from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.scenes.scene import (CLASS_GROUND, DEFAULT_CRS, DEFAULT_ORIGIN, Scene, check_half_extent, parse_crs,
                                     plane_info)
+from flightsim.scenes.settings import ScenePart
 
 
 @dataclass
@@ -22,14 +23,11 @@ class PlaneSettings(Settings):
 
 
 @register("scene", "plane")
-class PlaneScene:
+class PlaneScene(ScenePart):
     """A plane of ``[scene]`` (common and plane settings), sized to the flight."""
 
     settings = PlaneSettings
     sized = True
-
-    def __init__(self, scene):
-        self.s = scene
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
         return plane_scene(half_extent_m, self.s.origin, self.s.crs, slope=self.s.slope)

@@ -29,6 +29,22 @@ class SceneSettings(Settings):
                                  range=(0.0, 1.0e6))
 
 
+class ScenePart:
+    """A scene kind: ``build`` makes its Scene from ``[scene]`` (``self.s``: the settings every scene shares and
+    the kind's own). ``sized``: its ground grows with what the flight reaches (``half_extent_m``); ``suffixes``:
+    the file suffixes that choose it (a built-in scene has none and is chosen by name)."""
+
+    sized = False
+    suffixes: tuple[str, ...] = ()
+
+    def __init__(self, scene):
+        self.s = scene
+
+    def build(self, half_extent_m: float, seed: int):
+        """The scene, in its local frame (``half_extent_m``: the half side the flight reaches [m])."""
+        raise NotImplementedError
+
+
 def scene_kind(name: str) -> str | None:
     """The scene kind of ``scene.name``: a built-in scene by name, a file kind by suffix; None if neither."""
     kinds = registry.kinds("scene")

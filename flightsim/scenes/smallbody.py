@@ -33,6 +33,7 @@ from flightsim.scenes import lunar
 from flightsim.scenes.lunar import (MAX_NODES, _grid_triangles, _power_law, _roughness, stamp_terrain,
                                     surface_scene)
 from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN, Scene
+from flightsim.scenes.settings import ScenePart
 
 SANDBOX_REFLECTANCE = 0.2
 """Lambertian reflectance of the sandbox surface (the paper's sandbox reflectance, 0.2); the
@@ -194,14 +195,10 @@ class SmallBodySettings(Settings):
 
 
 @register("scene", "sandbox")
-class SandboxScene:
+class SandboxScene(ScenePart):
     """The small-body sandbox of ``[scene]`` (12 m square)."""
 
     settings = SmallBodySettings
-    sized = False
-
-    def __init__(self, scene):
-        self.s = scene
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
         return sandbox_scene(self.s.origin, self.s.crs, seed=seed)
