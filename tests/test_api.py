@@ -67,6 +67,8 @@ def test_waveforms_are_a_gedi_l1b_dataset_of_the_file():
             assert np.array_equal(ds["rxwaveform"][shot].values, g["rxwaveform"][start:start + count])
         assert np.array_equal(ds["shot_number"].values, g["shot_number"][:])
     assert result.points == {} and result.photons is None and result.returns is None
+    # 3 shots of 4096 float32 samples and ~45 per-shot datasets: small chunks (a 64k-row chunk each made 23 MB)
+    assert (result.directory / "waveforms.h5").stat().st_size < 1_000_000
 
 
 def test_photons_from_orbit_are_the_atl03_heights():

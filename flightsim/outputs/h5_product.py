@@ -11,7 +11,8 @@ import numpy as np
 from flightsim.core.version import __version__
 from flightsim.core.atomic import temporary_name
 
-ROWS_PER_CHUNK = 1 << 16  # HDF5 chunk of a 1-D dataset
+ROWS_PER_CHUNK = 1 << 16  # largest HDF5 chunk of a 1-D dataset [rows]
+MIN_ROWS_PER_CHUNK = 1 << 10  # smallest: a one-shot product stays small (a chunk is stored whole)
 
 
 class H5Product:
@@ -30,7 +31,8 @@ class H5Product:
         for name, values in columns.items():
             values = np.asarray(values)
             if name not in g:
-                chunks = (ROWS_PER_CHUNK,) if values.ndim == 1 else True
+                rows = min(ROWS_PER_CHUNK, max(MIN_ROWS_PER_CHUNK, len(values)))  # the first rows' count: a hint
+                chunks = (rows,) if values.ndim == 1 else True
                 g.create_dataset(name, shape=(0,) + values.shape[1:], maxshape=(None,) + values.shape[1:],
                                  dtype=values.dtype, chunks=chunks,
                                  **({"compression": "gzip", "shuffle": True} if compress else {}))
