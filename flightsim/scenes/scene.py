@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pyproj
@@ -126,6 +127,10 @@ class Scene:
         reflectance: (T,) float32 Lambertian albedo ρ of each triangle, in (0, 1] (a land-cover raster's,
             :mod:`flightsim.scenes.landcover`), read by the photon and waveform detectors; None: every
             face has the run's configured value (``photon.reflectance``, ``waveform.reflectance``).
+        canopy: leaf area in voxels over the mesh (:class:`flightsim.scenes.canopy.VoxelCanopy`, local frame),
+            crossed by every ray before the surface it hits; None: no vegetation.
+        cloud: the ALS point cloud the scene was made from (:class:`flightsim.scenes.pointcloud.PointCloud`,
+            local frame), which large-footprint waveforms may sum directly; None: none.
     """
 
     name: str
@@ -140,6 +145,8 @@ class Scene:
     dropped_degenerate: int = field(default=0)
     planar: bool = field(default=True)
     reflectance: np.ndarray | None = field(default=None, repr=False)
+    canopy: Any = field(default=None, repr=False)
+    cloud: Any = field(default=None, repr=False)
     _height_grid: HeightGrid | None = field(default=None, init=False, repr=False, compare=False)
     _bounds: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
     _boundaries: Future | None = field(default=None, init=False, repr=False, compare=False)
