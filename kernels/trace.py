@@ -214,6 +214,23 @@ def _no_return(status: wp.int32, direction: wp.vec3f):
     return s
 
 
+@wp.func
+def _a_return(r: wp.float32, face: wp.int32, direction: wp.vec3f, p_exact: wp.vec3f, p_nominal: wp.vec3f,
+              p_true: wp.vec3f, d_exact: wp.vec3f, d_nominal: wp.vec3f):
+    """A slot's return (the fields of :class:`SlotTrace`)."""
+    s = SlotTrace()
+    s.status = STATUS_RETURN
+    s.r = r
+    s.face = face
+    s.direction = direction
+    s.p_exact = p_exact
+    s.p_nominal = p_nominal
+    s.p_true = p_true
+    s.d_exact = d_exact
+    s.d_nominal = d_nominal
+    return s
+
+
 @functools.cache
 def slot_function(f: Features, instrument: Instrument):
     """Build the per-slot body shared by the points, the statistics and the canopy kernels."""
@@ -306,17 +323,8 @@ def slot_function(f: Features, instrument: Instrument):
         if not ok_exact:
             # the believed deflector cannot send this beam out: processing cannot place it
             return _no_return(STATUS_TIR, zero)
-        out = SlotTrace()
-        out.status = STATUS_RETURN
-        out.r = wp.float32(r)
-        out.face = face
-        out.direction = wp.vec3f(direction)
-        out.p_exact = wp.vec3f(p_exact)
-        out.p_nominal = wp.vec3f(p_nominal)
-        out.p_true = wp.vec3f(true_point)
-        out.d_exact = wp.vec3f(d_exact)
-        out.d_nominal = wp.vec3f(d_nominal)
-        return out
+        return _a_return(wp.float32(r), face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
+                         wp.vec3f(true_point), wp.vec3f(d_exact), wp.vec3f(d_nominal))
 
     return trace_slot
 
