@@ -209,27 +209,28 @@ def waveform_metrics(rx: np.ndarray, ground: np.ndarray, heights: np.ndarray,
     """Ground elevation and relative heights of waveforms (F, S) over sample heights (F, S) or (S,) [m].
 
     ``ground_z``: the centroid height of the ground component. ``rh<p>``: the height at which the energy of
-    ``rx`` accumulated from the lowest sample up reaches p % of the total (linear between samples), minus
-    ``ground_z`` (GEDI's rh metrics with the true ground). NaN where a waveform has no (ground) energy.
+    ``rx`` accumulated from the lowest sample up reaches p % of the total, minus ``ground_z`` (GEDI's rh
+    metrics with the true ground); each sample holds its energy evenly over its bin (between the midpoints to
+    its neighbours), so the accumulated energy is linear within a bin. NaN where a waveform has no (ground)
+    energy.
     """
     rx, ground = np.atleast_2d(rx).astype(np.float64), np.atleast_2d(ground).astype(np.float64)
     heights = np.broadcast_to(heights, rx.shape).astype(np.float64)
     order = np.argsort(heights, axis=1, kind="stable")
     h, energy = np.take_along_axis(heights, order, 1), np.take_along_axis(rx, order, 1)
-    g_total = ground.sum(axis=1)
+    middle = (h[:, 1:] + h[:, :-1]) / 2.0
+    edges = np.column_stack([2.0 * h[:, 0] - middle[:, 0], middle, 2.0 * h[:, -1] - middle[:, -1]])
     with np.errstate(invalid="ignore", divide="ignore"):
-        ground_z = (ground * heights).sum(axis=1) / g_total
-        cumulative = np.cumsum(energy, axis=1) / energy.sum(axis=1, keepdims=True)
+        ground_z = (ground * heights).sum(axis=1) / ground.sum(axis=1)
+        cumulative = np.column_stack([np.zeros(len(rx)), np.cumsum(energy, axis=1)]) / energy.sum(1, keepdims=True)
     out = {"ground_z": ground_z}
     rows = np.arange(len(rx))
     for p in percentiles:
         level = p / 100.0
-        above = np.argmax(cumulative >= level - 1e-12, axis=1)
-        below = np.maximum(above - 1, 0)
-        c0 = np.where(above > 0, cumulative[rows, below], 0.0)
-        c1 = cumulative[rows, above]
+        above = np.maximum(np.argmax(cumulative >= level, axis=1), 1)  # the first edge the energy reaches it at
+        c0, c1 = cumulative[rows, above - 1], cumulative[rows, above]
         fraction = np.where(c1 > c0, (level - c0) / np.where(c1 > c0, c1 - c0, 1.0), 1.0)
-        height = h[rows, below] + fraction * (h[rows, above] - h[rows, below])
+        height = edges[rows, above - 1] + fraction * (edges[rows, above] - edges[rows, above - 1])
         out[f"rh{p:g}"] = height - ground_z
     return out
 
