@@ -108,10 +108,10 @@ def read_point_cloud(path, crs=None, origin=None, ground: str = "classified", ce
             world, classes, returns = _read_points(reader, chunk_points)
     except (laspy.errors.LaspyException, OSError, ValueError) as error:
         raise InputError("scene.name", path, f"a LAS/LAZ file laspy can read ({error})") from None
-    cloud_crs = file_crs if file_crs is not None else _given_crs(crs, path)
     if len(world) == 0:
         raise InputError("scene.name", path, "a point cloud with at least one point that is not noise "
                                              f"(classes {' and '.join(map(str, NOISE_CLASSES))} are dropped)")
+    cloud_crs = file_crs if file_crs is not None else _given_crs(crs, path)
     if ground == "lowest":
         from flightsim.scenes.cloud_ground import lowest_per_cell
 
