@@ -71,7 +71,8 @@ def test_flat_ground_off_nadir_widens_by_the_footprint_across_the_slant(device):
     beam = CloudBeam(zenith_deg=theta, azimuth_deg=35.0, centre_z_m=h)
     start, samples = 30.0, 160
     ranges = start + np.arange(samples) * STEP
-    u = beam.cut_sigmas ** 2 / 2.0  # the cut footprint's variance along one axis: σ_f² (1 − U e^−U / (1 − e^−U))
+    # the cut footprint's variance along one axis: σ_f² (1 − U e^−U / (1 − e^−U)), U = cut² / 2
+    u = beam.cut_sigmas ** 2 / 2.0
     across = beam.footprint_sigma_m ** 2 * (1.0 - u * math.exp(-u) / (1.0 - math.exp(-u)))
     expected = math.sqrt(beam.range_sigma_m() ** 2 + across * math.tan(math.radians(theta)) ** 2)
     model, kernel = _both(device, cloud, [[1.0, 2.0]], z_top, start, samples, beam)

@@ -32,6 +32,7 @@ clockwise from grid north: d = (sin θ sin α, sin θ cos α, −cos θ)):
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,7 +79,7 @@ class CloudBeam:
                              ("zenith_deg", 0.0, 60.0), ("azimuth_deg", -360.0, 360.0),
                              ("centre_z_m", -1e5, 1e5), ("cut_sigmas", COVER_SIGMAS, 6.0)):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
+            if not (_real(value) and math.isfinite(value) and lo <= value <= hi):
                 raise InputError(f"cloud_waveform.{name}", value, f"a finite number in [{lo:g}, {hi:g}]")
 
     def direction(self) -> np.ndarray:
@@ -102,20 +103,25 @@ def check_request(centres_xy, z_top: float, window_start_m, dt_s: float, samples
     starts = np.broadcast_to(np.asarray(window_start_m, dtype=np.float64), (len(centres),)).copy()
     if not np.isfinite(starts).all():
         raise InputError("cloud_waveform.window_start_m", window_start_m, "finite ranges [m], one or one per footprint")
-    if not (isinstance(z_top, (int, float)) and math.isfinite(z_top)):
+    if not (_real(z_top) and math.isfinite(z_top)):
         raise InputError("cloud_waveform.z_top", z_top, "a finite local height [m]")
-    if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and 1e-13 <= dt_s <= 1e-6):
+    if not (_real(dt_s) and math.isfinite(dt_s) and 1e-13 <= dt_s <= 1e-6):
         raise InputError("cloud_waveform.dt_s", dt_s, "a sample interval in [1e-13, 1e-6] s")
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or not 1 <= samples <= MAX_SAMPLES:
         raise InputError("cloud_waveform.samples", samples, f"an integer in [1, {MAX_SAMPLES}]")
     return centres, starts
 
 
+def _real(value) -> bool:
+    """A real number (a NumPy scalar too), not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def point_weights(cloud: PointCloud, rho_ground: float, rho_canopy: float, normalise: bool) -> np.ndarray:
     """(N,) float64 weight of each point: its class's reflectance, divided by the last returns in its
     NORMALISE_CELL_M cell when ``normalise`` (a cell without one leaves its points' weights as they are)."""
     for name, rho in (("scene.rho_ground", rho_ground), ("scene.rho_canopy", rho_canopy)):
-        if not (isinstance(rho, (int, float)) and 0.0 < rho <= 1.0):
+        if not (_real(rho) and 0.0 < rho <= 1.0):
             raise InputError(name, rho, "a reflectance in (0, 1]")
     weights = np.where(cloud.ground, float(rho_ground), float(rho_canopy))
     if normalise:

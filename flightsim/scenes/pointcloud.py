@@ -70,6 +70,17 @@ class PointCloud:
     crs: pyproj.CRS
     origin: np.ndarray
 
+    def __post_init__(self) -> None:
+        self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float64)
+        self.origin = _finite3(self.origin)
+        if self.xyz.ndim != 2 or self.xyz.shape[1] != 3 or not np.isfinite(self.xyz).all():
+            raise InputError("scene.cloud", f"points of shape {self.xyz.shape}", "(N, 3) finite local x, y, z [m]")
+        for name in ("classification", "return_number", "number_of_returns"):
+            values = np.ascontiguousarray(getattr(self, name), dtype=np.uint8)
+            if values.shape != (len(self.xyz),):
+                raise InputError("scene.cloud", f"{name} of shape {values.shape}", f"one per point ({len(self.xyz)})")
+            setattr(self, name, values)
+
     def __len__(self) -> int:
         return len(self.xyz)
 
@@ -166,8 +177,9 @@ def _file_crs(header, path: str) -> pyproj.CRS | None:
     if crs is None:
         return None
     if crs.is_geographic:
+        command = _reproject_command(header, path)
         raise InputError("scene.name", path, "a point cloud in a projected CRS in metres (this one is geographic, "
-                                             f"{crs.name}; reproject it first, e.g. {_reproject_command(header, path)})")
+                                             f"{crs.name}; reproject it first, e.g. {command})")
     try:
         return parse_crs(crs, "scene.name")
     except InputError as error:
