@@ -109,7 +109,7 @@ def test_unclassified_clouds_need_a_classifier_or_the_lowest_point_per_cell(tmp_
     assert cloud.origin[2] == pytest.approx(world[lowest, 2].min())  # the lowest ground
 
 
-def test_empty_clouds_are_refused(tmp_path):
+def test_empty_and_broken_clouds_are_refused(tmp_path):
     noise = np.column_stack([np.full(4, E0), np.full(4, N0), np.arange(4.0)])
     _write_cloud(tmp_path / "noise.las", noise, [7, 18, 7, 18])
     with pytest.raises(InputError, match="at least one point that is not noise"):
@@ -118,8 +118,10 @@ def test_empty_clouds_are_refused(tmp_path):
     with pytest.raises(InputError, match="at least one point"):
         read_point_cloud(tmp_path / "none.las")
     (tmp_path / "junk.laz").write_bytes(b"not a point cloud")
-    with pytest.raises(InputError, match="laspy can read"):
-        read_point_cloud(tmp_path / "junk.laz")
+    (tmp_path / "cut.laz").write_bytes((DATA / "cloud_plot.laz").read_bytes()[:50_000])  # its points cut short
+    for name in ("junk.laz", "cut.laz"):
+        with pytest.raises(InputError, match="laspy can read"):
+            read_point_cloud(tmp_path / name)
     with pytest.raises(InputError, match=r"\.las or \.laz"):
         read_point_cloud(tmp_path / "plot.xyz")
 

@@ -117,8 +117,11 @@ def read_point_cloud(path, crs=None, origin=None, ground: str = "classified", ce
         with laspy.open(path) as reader:
             file_crs = _file_crs(reader.header, path)
             world, classes, returns = _read_points(reader, chunk_points)
-    except (laspy.errors.LaspyException, OSError, ValueError) as error:
-        raise InputError("scene.name", path, f"a LAS/LAZ file laspy can read ({error})") from None
+    except InputError:
+        raise
+    except Exception as error:  # laspy's, lazrs's (RuntimeError) and laszip's errors of a broken file
+        raise InputError("scene.name", path, f"a LAS/LAZ file laspy can read ({type(error).__name__}: "
+                                             f"{' '.join(str(error).split())})") from None
     if len(world) == 0:
         raise InputError("scene.name", path, "a point cloud with at least one point that is not noise "
                                              f"(classes {' and '.join(map(str, NOISE_CLASSES))} are dropped)")
