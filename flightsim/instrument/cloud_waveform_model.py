@@ -45,7 +45,6 @@ C = 299_792_458.0  # speed of light [m/s]
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 GEDI_PULSE_FWHM_S = 15e-9  # gediRat's pFWHM default [s]: σ_p = 6.37 ns, 0.955 m in range
 GEDI_FOOTPRINT_SIGMA_M = 5.5  # gediRat's fSigma default [m]: 86 % of the energy within a 22 m diameter
-GEDI_SAMPLE_S = 1e-9  # GEDI's digitiser interval [s]: 0.15 m of range (gediRat's res)
 NORMALISE_CELL_M = 1.5  # gediRat's gridRes for normCover [m]
 COVER_SIGMAS = 3.0  # a footprint with no point within this many σ_f of its axis is outside the cloud
 MODEL_PULSE_SIGMAS = 7.0  # the model sums each pulse over ±7 σ_r (the rest: 2.6e-12 of its energy)
