@@ -179,3 +179,13 @@ def test_the_cloud_scene_kind_reads_its_settings_from_the_config():
                        ("scene.cloud_dem", "dem.png")):
         with pytest.raises(InputError, match=key.replace(".", r"\.")):
             flightsim.load_config(overrides={"scene.name": path, key: value})
+
+
+def test_a_cloud_scene_keeps_its_points_however_often_it_is_built(tmp_path, monkeypatch):
+    import flightsim
+    from flightsim.scenes.build import build_scene
+
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "cache"))
+    cfg = flightsim.load_config(overrides={"scene.name": str(DATA / "cloud_plot.laz")})
+    first, second = (build_scene(cfg.scene, 0.0, use_cache=True) for _ in range(2))
+    assert len(first.cloud) == len(second.cloud) == 13_475

@@ -22,7 +22,7 @@ def build_scene(scene, half_extent_m: float, seed: int = 0, use_cache: bool = Tr
     every scene setting and the files they name; its height grid built on ``device``)."""
     parse_crs(scene.crs, field="scene.crs")
     part = scene_part(scene)
-    if not getattr(part, "suffixes", ()) or not use_cache:
+    if not getattr(part, "suffixes", ()) or not use_cache or not part.cacheable:
         return part.build(half_extent_m, seed)
     from flightsim.scenes.cache import cached_scene
 

@@ -255,6 +255,7 @@ class CloudScene(ScenePart):
 
     settings = CloudSettings
     suffixes = CLOUD_SUFFIXES
+    cacheable = False  # the scene cache keeps meshes, not the points
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
         from flightsim.scenes.cloud_ground import ground_scene
