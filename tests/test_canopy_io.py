@@ -69,21 +69,16 @@ def test_netcdf_in_xyz_order_descending_north_with_a_rioxarray_grid_mapping(tmp_
 
 
 def test_netcdf4_hdf5_file_is_read(tmp_path):
-    """A NetCDF-4 file (HDF5 with dimension scales) as netCDF4 or h5netcdf write it, (z, y, x), float fill."""
-    import h5py
+    """A NetCDF-4 file (HDF5, as netCDF4 and h5netcdf write it), (z, y, x), with a float fill value."""
+    import xarray as xr
 
     lad = _lad()
-    with h5py.File(tmp_path / "c.nc", "w") as f:
-        for name, a, n in (("x", 0, 4), ("y", 1, 3), ("z", 2, 5)):
-            d = f.create_dataset(name, data=_centres(a, n))
-            d.make_scale(name)
-            d.attrs["units"] = np.bytes_(b"m")
-        v = f.create_dataset("lad", data=np.ascontiguousarray(lad.transpose(2, 1, 0)), fillvalue=np.float32(-9999))
-        v.attrs["_FillValue"] = np.float32(-9999)
-        for i, name in enumerate("zyx"):
-            v.dims[i].attach_scale(f[name])
-        f.attrs["crs"] = pyproj.CRS(CRS).to_wkt()
-        f.attrs["leaf_angles"] = "erectophile"
+    coords = {name: (name, _centres(a, n), {"units": "m"}) for name, a, n in (("x", 0, 4), ("y", 1, 3), ("z", 2, 5))}
+    ds = xr.Dataset({"lad": (("z", "y", "x"), np.ascontiguousarray(lad.transpose(2, 1, 0)))}, coords=coords,
+                    attrs={"crs": pyproj.CRS(CRS).to_wkt(), "leaf_angles": "erectophile"})
+    ds.to_netcdf(tmp_path / "c.nc", engine="h5netcdf", encoding={"lad": {"_FillValue": np.float32(-9999)}})
+    with open(tmp_path / "c.nc", "rb") as fh:
+        assert fh.read(4) == b"\x89HDF"
     canopy = read_canopy(tmp_path / "c.nc", CRS, ORIGIN)
     _same(canopy, VoxelCanopy(lad, LOWER_WORLD - ORIGIN, CELL, leaf_angles="erectophile"))
 
@@ -219,3 +214,18 @@ def test_bad_paths_and_tags(tmp_path):
     _raises(tmp_path / "flat.tif", "scene.canopy.layer_height_m", "0.0", "thickness > 0")
     _raises(_npz(tmp_path / "cell.npz", cell=np.array([1.0, -1.0, 1.0])), "scene.canopy.cell", "-1.0", "cell.npz")
     _raises(_npz(tmp_path / "angles.npz", leaf_angles=np.array("conical")), "scene.canopy.leaf_angles", "conical")
+
+
+def test_scene_canopy_lays_the_grid_over_any_scene(tmp_path, capsys):
+    import flightsim
+    from flightsim.cli import main
+    from flightsim.scenes.build import build_scene
+
+    grid = VoxelCanopy(_lad(), LOWER_WORLD - ORIGIN, CELL, leaf_reflectance=0.3)
+    write_canopy_npz(tmp_path / "c.npz", grid, CRS, ORIGIN)
+    cfg = flightsim.load_config(overrides={"scene.name": "plane", "scene.canopy": str(tmp_path / "c.npz")})
+    scene = build_scene(cfg.scene, 50.0)
+    _same(scene.canopy, grid)
+    assert build_scene(flightsim.load_config().scene, 50.0).canopy is None
+    assert main(["config", "--set", "scene.canopy=leaves.png"]) == 2
+    assert "scene.canopy" in capsys.readouterr().err

@@ -14,9 +14,8 @@ projected CRS, turned into the scene's local frame (world − origin):
     ``crs`` attribute (WKT) of ``lad`` or of the file, or the ``crs_wkt``/``spatial_ref`` attribute of the
     grid-mapping variable (``lad``'s ``grid_mapping``, or one named ``spatial_ref`` or ``crs``, as rioxarray
     and GDAL write it); leaf properties from attributes ``leaf_angles``, ``leaf_reflectance``,
-    ``leaf_transmittance`` of the file. NetCDF-3 files are read by xarray's scipy engine; NetCDF-4 (HDF5)
-    files by xarray's netCDF4 or h5netcdf engine where one is installed, else by h5py (variables of the root
-    group, dimensions from their dimension scales).
+    ``leaf_transmittance`` of the file. NetCDF-3 files are read by xarray's scipy engine, NetCDF-4 (HDF5)
+    files by its h5netcdf engine.
 ``.tif``/``.tiff`` (a GeoTIFF stack, read with rasterio)
     one band per layer, the bottom layer first, north-up; the vertical grid from the tags
     ``layer_height_m`` (the layer thickness) and ``base_height_m`` (world H of the bottom of layer 1) of the
@@ -28,7 +27,7 @@ first: the resampling of leaf area is the user's choice), one in a geographic CR
 voxels without leaves to 0. Every problem is an ``InputError`` of ``scene.canopy``.
 
 :func:`write_canopy_npz` and :func:`write_canopy_nc` write a :class:`VoxelCanopy` (the NetCDF as NetCDF-3
-with xarray's scipy engine, which needs no NetCDF library); both files appear complete or not at all.
+with xarray's scipy engine, which every NetCDF reader reads); both files appear complete or not at all.
 """
 from __future__ import annotations
 
@@ -52,9 +51,6 @@ AXIS_NAMES = {
     2: ("z", "height", "elevation", "h", "up"),
 }
 METRE_UNITS = ("m", "metre", "meter", "metres", "meters")
-HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-_NETCDF4_BOOKKEEPING = ("CLASS", "NAME", "DIMENSION_LIST", "REFERENCE_LIST", "_Netcdf4Dimid", "_Netcdf4Coordinates",
-                        "_NCProperties", "_FillValue")
 
 
 @dataclass
@@ -264,49 +260,7 @@ def _open_netcdf(path: Path):
         with xr.open_dataset(path, decode_times=False) as ds:
             return ds.load()
     except (ValueError, OSError, TypeError, RuntimeError) as error:
-        with open(path, "rb") as fh:
-            hdf5 = fh.read(8) == HDF5_SIGNATURE
-        if not hdf5:
-            raise InputError(FIELD, str(path), f"a NetCDF file xarray can read ({error})") from None
-    try:
-        return _hdf5_dataset(path)
-    except (OSError, ValueError, KeyError, TypeError) as error:
-        raise InputError(FIELD, str(path), f"a NetCDF-4 file that h5py can read ({error})") from None
-
-
-def _hdf5_dataset(path: Path):
-    """The variables of the root group of a NetCDF-4 (HDF5) file as an xarray Dataset, read with h5py:
-    each dataset's dimensions are the names of its attached dimension scales, its ``_FillValue`` becomes NaN."""
-    import h5py
-    import xarray as xr
-
-    def text(value):
-        return value.decode() if isinstance(value, bytes | np.bytes_) else value
-
-    def attributes(obj) -> dict:
-        return {key: text(value) for key, value in obj.attrs.items() if key not in _NETCDF4_BOOKKEEPING}
-
-    variables = {}
-    with h5py.File(path, "r") as f:
-        for name, item in f.items():
-            if not isinstance(item, h5py.Dataset):
-                continue
-            if "not a netCDF variable" in str(text(item.attrs.get("NAME", b""))):
-                continue  # a dimension without a coordinate variable
-            if text(item.attrs.get("CLASS", b"")) == "DIMENSION_SCALE":
-                dims = [name]  # a coordinate variable: its own dimension
-            else:
-                dims = [scales[0].name.rsplit("/", 1)[-1] if len(scales) else f"phony_dim_{size}"
-                        for scales, size in zip(item.dims, item.shape)]
-            data = item[()]
-            fill = item.attrs.get("_FillValue")
-            if fill is not None and np.issubdtype(np.asarray(data).dtype, np.floating):
-                data = np.where(data == fill, np.nan, data)
-            variables[name] = (tuple(dims), data, attributes(item))
-        root = attributes(f)
-    coords = {k: v for k, v in variables.items() if v[0] == (k,)}
-    data_vars = {k: v for k, v in variables.items() if k not in coords}
-    return xr.Dataset(data_vars, coords=coords, attrs=root)
+        raise InputError(FIELD, str(path), f"a NetCDF file xarray can read ({error})") from None
 
 
 def _read_geotiff(path: Path) -> _Grid:

@@ -6,7 +6,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from flightsim.core import registry
+from flightsim.core.errors import InputError
 from flightsim.core.settings import Settings, setting
+from flightsim.scenes.canopy_io import SUFFIXES as CANOPY_SUFFIXES
 from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN
 
 
@@ -27,6 +29,12 @@ class SceneSettings(Settings):
                           points=True)
     ccr_photons: float = setting(0.0, "photo-electrons a retroreflector returns at a footprint's centre", "",
                                  range=(0.0, 1.0e6))
+    canopy: str = setting("", "leaf area density voxels over the scene: a .npz, .nc (NetCDF) or .tif (GeoTIFF "
+                          "stack) grid with its leaf properties (flightsim/scenes/canopy_io.py); \"\" = none")
+
+    def check(self, context) -> None:
+        if self.canopy and Path(self.canopy).suffix.lower() not in CANOPY_SUFFIXES:
+            raise InputError("scene.canopy", self.canopy, "\"\" or a " + "/".join(CANOPY_SUFFIXES) + " file path")
 
 
 class ScenePart:
