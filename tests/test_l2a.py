@@ -8,6 +8,7 @@ with the smoothing Gaussian of σ_k) has σ_s = √(s² + σ_k²) and peak A·s/
 """
 from __future__ import annotations
 
+import h5py
 import numpy as np
 import pytest
 from scipy.optimize import brentq
@@ -15,6 +16,7 @@ from scipy.special import ndtr, ndtri
 
 from flightsim.core.errors import InputError
 from flightsim.outputs.l2a import FILL, L2ASettings, l2a_metrics, truth_rh
+from flightsim.outputs.l2a_h5 import write_l2a
 
 C = 299_792_458.0
 DT, N, PULSE_S = 0.5e-9, 1000, 6e-9
@@ -172,3 +174,70 @@ def test_bad_input_is_refused_by_name(change, field):
 def test_truth_rh_refuses_negative_energy():
     with pytest.raises(InputError, match="invalid profile"):
         truth_rh(-np.ones((1, N)), [TOP], [0.0], [0.0])
+
+
+# --- l2a.h5 --------------------------------------------------------------------------------------
+
+# Names of GEDI L2A's BEAMxxxx datasets (GEDI L2A data dictionary, as listed by readers of the product:
+# rGEDI's getLevel2AM, SlideRule's gedi02a fields, Earth Engine's LARSE/GEDI/GEDI02_A_002 properties).
+GEDI_L2A_NAMES = {"shot_number", "beam", "delta_time", "rh", "elev_lowestmode", "elev_highestreturn",
+                  "lat_lowestmode", "lon_lowestmode", "lat_highestreturn", "lon_highestreturn",
+                  "num_detectedmodes", "sensitivity", "quality_flag", "energy_total"}
+
+
+def _beam(shots: int, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    out = _run(_wave(GROUND, CANOPY)[None, :] + rng.normal(0.0, 0.005, (shots, N)))
+    out.update(shot_number=(np.uint64(3) << np.uint64(32)) + np.arange(shots, dtype=np.uint64),
+               delta_time=1000.0 + 0.02 * np.arange(shots), pulse_sigma_s=PULSE_S, rho_ground=0.4)
+    return out
+
+
+def test_l2a_h5_round_trips_with_gedi_names_and_types(tmp_path):
+    beams = {0: _beam(3, 1), 5: _beam(2, 2)}
+    truth = {5: {"elev_ground": np.full(2, 47.5), "rh": np.tile(np.arange(101.0) / 10, (2, 1))}}
+    path = write_l2a(tmp_path / "l2a.h5", beams, truth, {"config_toml": "x = 1"})
+    with h5py.File(path) as f:
+        assert sorted(f) == ["BEAM0000", "BEAM0005"] and f.attrs["config_toml"] == "x = 1"
+        for b, name in ((0, "BEAM0000"), (5, "BEAM0005")):
+            g = f[name]
+            assert {k for k in g if k != "truth"} == GEDI_L2A_NAMES
+            assert g.attrs["pulse_sigma_s"] == PULSE_S and g.attrs["rho_ground"] == 0.4
+            assert (g["beam"][()] == b).all() and g["beam"].dtype == np.uint16
+            assert g["shot_number"].dtype == np.uint64 and g["rh"].dtype == np.float32
+            assert g["quality_flag"].dtype == np.uint8 and g["num_detectedmodes"].dtype == np.uint8
+            np.testing.assert_array_equal(g["shot_number"][()], beams[b]["shot_number"])
+            np.testing.assert_array_equal(g["elev_lowestmode"][()], beams[b]["elev_lowestmode"])
+            np.testing.assert_array_equal(g["rh"][()], beams[b]["rh"].astype(np.float32))
+            assert g["rh"].attrs["units"] == "m"
+        assert "truth" not in f["BEAM0000"]
+        np.testing.assert_array_equal(f["BEAM0005/truth/rh"][()], truth[5]["rh"].astype(np.float32))
+        np.testing.assert_array_equal(f["BEAM0005/truth/elev_ground"][()], 47.5)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["l2a.h5"]
+
+
+@pytest.mark.parametrize("beams, truth, field", [
+    ({0: {"shot_number": np.zeros(1, np.uint64)}}, None, r"beams\[0\].delta_time"),
+    ({-1: {}}, None, "beams"),
+    ({0: {"colour": 1}}, None, r"beams\[0\]"),
+    ({}, None, "beams"),
+    (None, {7: {}}, "truth"),
+    (None, {0: {"elev_ground": np.zeros(3)}}, r"truth\[0\].rh"),
+    (None, {0: {"elev_ground": np.zeros(3), "rh": np.zeros((3, 100))}}, r"truth\[0\].rh"),
+])
+def test_l2a_h5_refuses_bad_input_and_writes_nothing(tmp_path, beams, truth, field):
+    with pytest.raises(InputError, match=f"invalid {field}"):
+        write_l2a(tmp_path / "l2a.h5", {0: _beam(3, 1)} if beams is None else beams, truth)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_l2a_h5_refuses_nan_and_a_fractional_shot_number(tmp_path):
+    beam = _beam(2, 3)
+    beam["sensitivity"] = np.array([0.95, np.nan])
+    with pytest.raises(InputError, match=r"invalid beams\[1\].sensitivity"):
+        write_l2a(tmp_path / "l2a.h5", {1: beam})
+    beam = _beam(2, 3)
+    beam["shot_number"] = np.array([1.5, 2.0])
+    with pytest.raises(InputError, match=r"invalid beams\[1\].shot_number"):
+        write_l2a(tmp_path / "l2a.h5", {1: beam})
+    assert list(tmp_path.iterdir()) == []
