@@ -108,8 +108,8 @@ def test_noisy_waveforms_rh50_and_rh98_within_the_noise_tolerance():
 
 def test_a_ground_only_waveform_spans_its_threshold_crossings():
     """One mode of the pulse's σ (flat ground), noise-free but with a known σ_n: rh100 is the smoothed echo's
-    front crossing above the centre, Δz·σ_s·√(2 ln(A_s/(3σ_n))) with σ_s = √2·σ_pulse, A_s = A/√2 (3.1 pulse σ
-    here), rh0 the back crossing below, and rh50 the centre itself."""
+    front crossing above the centre, Δz·σ_s·√(2 ln(A_s/(3σ_n))) with σ_s = √2·σ_pulse, A_s = A/√2 (3.1 pulse
+    σ here), rh0 the back crossing below, and rh50 the centre itself."""
     sigma_n, mode = 0.02, (600.3, 1.0, SIG)
     out = _run(_wave(mode)[None, :], noise=(0.0, sigma_n))
     assert abs(out["elev_lowestmode"][0] - (TOP - mode[0] * DZ)) < 0.01

@@ -9,12 +9,12 @@ Vegetation Along-Track Products (ATL08)", Release 002 and later), §4 "Algorithm
    puts there with probability ``dragann_p`` (Poisson). The background density is that of each along-track
    window of ``dragann_window_m``: the mean count of its height bins of ``dragann_bin_m`` over the photons'
    height range, leaving out the bins above median + 3·√(median + 1) (the signal, which must fill less than
-   half the range, as in an ATL03 telemetry band), per metre along and in height. DRAGANN instead picks its radius and threshold from the histogram of neighbour
-   counts. The ellipse is long (100 m × 3 m) so that a canopy's top, where half the ellipse is empty, still
-   stands out of a daytime background; the price is that a canopy gap shorter than about 50 m along track
-   passes for canopy. Signal photons are the dense ones and those of ATL03 ``signal_conf_ph`` ≥
-   ``min_signal_conf`` (ATL03's confidence misses much of a canopy, which is spread over its height); the
-   rest are noise (0).
+   half the range, as in an ATL03 telemetry band), per metre along and in height. DRAGANN instead picks its
+   radius and threshold from the histogram of neighbour counts. The ellipse is long (100 m × 3 m) so that a
+   canopy's top, where half the ellipse is empty, still stands out of a daytime background; the price is
+   that a canopy gap shorter than about 50 m along track passes for canopy. Signal photons are the dense
+   ones and those of ATL03 ``signal_conf_ph`` ≥ ``min_signal_conf`` (ATL03's confidence misses much of a
+   canopy, which is spread over its height); the rest are noise (0).
 2. **Coarse ground surface** (ATBD §4.10 "finding the initial ground estimate", iterative filtering then
    smoothing): in along-track windows of ``window_m`` the ``ground_percentile`` of the signal heights, a
    median filter over ``smooth_windows`` windows (empty windows interpolated), then ``refinements`` passes

@@ -11,7 +11,8 @@ between ``elevation_bin0`` and ``elevation_lastbin``, and so are latitude and lo
 1. **Noise**: mean m and standard deviation σ of the first and last ``noise_samples`` samples pooled (GEDI
    L1B reports them from the waveform's noise-only part), or as given.
 2. **Smoothing**: a Gaussian of σ = ``smoothing_sigmas`` × the pulse σ (GEDI's setting group a1 smooths with
-   6.5 samples of 1 ns, about the GEDI pulse's σ).
+   6.5 samples of 1 ns, about the GEDI pulse's σ; a1's values here are those of the GEDI L2A user guide's
+   table of algorithm setting groups).
 3. **Signal start and end**: the first sample of the smoothed waveform above m + ``front_threshold``·σ is the
    signal start (the highest return), the last above m + ``back_threshold``·σ the signal end; crossings
    interpolated linearly between samples. The thresholds are GEDI a1's front 3σ and back 6σ, with the raw
