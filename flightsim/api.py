@@ -74,6 +74,8 @@ class Returns:
     pulse: np.ndarray  # (n,) pulse index within its line
     beam: np.ndarray  # (n,) beam index (DOE i·n + j, or channel)
     range_m: np.ndarray  # (n,) observed one-way range [m]
+    return_number: np.ndarray  # (n,) 1 = first (over a canopy a beam has several returns), uint8
+    number_of_returns: np.ndarray  # (n,) returns of the beam, uint8
 
 
 @dataclass
@@ -166,8 +168,14 @@ class _ReturnKeeper:
 
         points = {m: scene.local_to_world(join(lambda p: p.points[m]).reshape(-1, 3)) for m in tracer.models}
         truth = scene.local_to_world(join(lambda p: p.true_points).reshape(-1, 3)) if with_truth else None
+        def echo(p, name):
+            value = getattr(p, name)
+            return np.ones(len(p), np.uint8) if value is None else value
+
         return Returns(points, truth, join(lambda p: np.full(len(p), p.line_id)), join(lambda p: p.pulse),
-                       join(lambda p: p.beam), join(lambda p: p.range_m))
+                       join(lambda p: p.beam), join(lambda p: p.range_m),
+                       join(lambda p: echo(p, "return_number")).astype(np.uint8),
+                       join(lambda p: echo(p, "number_of_returns")).astype(np.uint8))
 
 
 def sweep(base: RunConfig, axes: Mapping[str, list], out: str | Path, overwrite: bool = False) -> Path:

@@ -3,16 +3,16 @@ from typing import Any
 
 import warp as wp
 
-from kernels.trace import STATUS_RETURN
+from kernels.trace import STATUS_LEAF, STATUS_RETURN
 
 wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
 def flag_returns(status: wp.array(dtype=wp.int32), flags: wp.array(dtype=wp.int32)):
-    """flags[i] = 1 where slot i produced a return."""
+    """flags[i] = 1 where slot i produced a return (of a surface or of leaves)."""
     i = wp.tid()
-    flags[i] = wp.where(status[i] == STATUS_RETURN, 1, 0)
+    flags[i] = wp.where(status[i] == STATUS_RETURN or status[i] == STATUS_LEAF, 1, 0)
 
 
 @wp.kernel

@@ -41,6 +41,7 @@ class RecordTables:
     tile_mm: wp.int64  # tile edge [mm]
     prf_hz: wp.float64  # pulse rate [Hz]
     beams_per_pulse: wp.int32
+    returns_per_beam: wp.int32  # slots per beam (over a canopy: the detector's max_returns)
     beam_columns: wp.int32  # beam index b → row b / columns, column b % columns
     face_class: wp.array(dtype=wp.int32)  # ASPRS class of each triangle
     face_plane: wp.array(dtype=wp.int32)  # plane id written for each triangle
@@ -118,8 +119,9 @@ def _low16(v: wp.int64):
 
 
 @functools.cache
-def pack_kernel(position_error: bool, edge_distance: bool):
-    """The record-packing kernel with the optional extra bytes compiled in or out."""
+def pack_kernel(position_error: bool, edge_distance: bool, multi_return: bool = False):
+    """The record-packing kernel with the optional extra bytes compiled in or out, and each record's return
+    number and number of returns from ``returns`` (``multi_return``) or 1 of 1."""
     words = BASE_WORDS + int(position_error) + int(edge_distance)
 
     @wp.kernel(module="unique")
@@ -140,14 +142,16 @@ def pack_kernel(position_error: bool, edge_distance: bool):
         edge: wp.array(dtype=wp.float32),
         truth: wp.array(dtype=wp.vec3f),
         points: wp.array(dtype=wp.vec3f),
+        returns: wp.array(dtype=wp.int32),  # per slot: return number | number of returns << 4 (multi_return)
         tables: RecordTables,
         records: wp.array2d(dtype=wp.uint32),  # out: one row of words per record
         bounds: wp.array2d(dtype=wp.int32),  # out: per tile min X, Y, Z, max X, Y, Z (atomics)
     ):
         p = wp.tid()
         slot = index[order[p]]
-        pulse = slot / tables.beams_per_pulse
-        beam = slot - pulse * tables.beams_per_pulse
+        beam_slot = slot / tables.returns_per_beam
+        pulse = beam_slot / tables.beams_per_pulse
+        beam = beam_slot - pulse * tables.beams_per_pulse
         r = frames.last_at_or_below(starts, 0, runs + 1, p)
         key = tile_keys[r]
         tx = wp.int64(ix0 + key / rows) * tables.tile_mm
@@ -179,7 +183,10 @@ def pack_kernel(position_error: bool, edge_distance: bool):
         records[p, 0] = wp.cast(xs, wp.uint32)
         records[p, 1] = wp.cast(ys, wp.uint32)
         records[p, 2] = wp.cast(zs, wp.uint32)
-        records[p, 3] = intensity | (RETURN_BITS << wp.uint32(16))
+        echo = RETURN_BITS
+        if wp.static(multi_return):
+            echo = wp.uint32(returns[slot])
+        records[p, 3] = intensity | (echo << wp.uint32(16))
         records[p, 4] = wp.uint32(tables.face_class[face]) | ((wp.cast(angle, wp.uint32) & wp.uint32(0xFFFF)) << wp.uint32(16))
         records[p, 5] = wp.uint32(tables.line_source[line]) | (_low16(bits) << wp.uint32(16))
         records[p, 6] = wp.uint32((bits >> wp.int64(16)) & wp.int64(0xFFFFFFFF))

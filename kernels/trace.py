@@ -28,6 +28,7 @@ wp.set_module_options({"enable_backward": False})
 STATUS_MISS = wp.constant(0)
 STATUS_RETURN = wp.constant(1)
 STATUS_TIR = wp.constant(2)
+STATUS_LEAF = wp.constant(3)  # a return from leaves (kernels.canopy_returns): compacted with the others, never scored
 HALF_LIGHT_SPEED = wp.constant(wp.float64(149896229.0))  # c / 2 [m/s]: one-way range per time of flight
 
 COUNT_TIR = 0

@@ -19,8 +19,8 @@ from flightsim.engine.config_io import PRESETS, load_toml, preset_config, to_tom
 
 LEGACY = Path(__file__).parent / "data" / "legacy"  # run.toml of each preset as the first format wrote it
 TABLES = {
-    "risley": {"instrument", "fan", "risley", "scene", "flight", "output", "scoring", "run"},
-    "change3": {"instrument", "channels", "galvo", "ranging", "scene", "flight", "output", "scoring", "run"},
+    "risley": {"instrument", "fan", "risley", "discrete", "scene", "flight", "output", "scoring", "run"},
+    "change3": {"instrument", "channels", "galvo", "discrete", "ranging", "scene", "flight", "output", "scoring", "run"},
     "spad": {"instrument", "fan", "fsm", "photon", "scene", "flight", "output", "run"},
     "change1": {"instrument", "fan", "fixed", "waveform", "scene", "flight", "run"},
     "atlas": {"instrument", "fan", "fixed", "photon", "scene", "flight", "output", "run"},

@@ -24,6 +24,11 @@ def empty_reason(tracer, counts) -> str:
     if counts.tir_dropped == counts.beams_fired:
         return (f"every one of the {counts.beams_fired} beams was totally internally reflected in the "
                 f"{cfg.instrument.deflector} deflector: none left the instrument")
+    if counts.dark > 0 and counts.dark + counts.misses + counts.tir_dropped == counts.beams_fired:
+        d = cfg.discrete
+        return (f"{counts.dark} beams hit the scene but every echo under the canopy stayed below discrete.threshold "
+                f"= {d.threshold:g} (the surfaces' albedo discrete.reflectance = {d.reflectance:g} dimmed by the "
+                f"leaves, the leaves' reflectance {tracer.scene.canopy.leaf_reflectance:g}): lower the threshold")
     if counts.misses + counts.tir_dropped < counts.beams_fired:
         return _hits_without_output(tracer, counts)
     return _uncovered(tracer, counts)

@@ -43,6 +43,9 @@ class RunCounts:
     tir_dropped: int = 0
     misses: int = 0
     edge_excluded: int = 0  # statistics: returns left out for lying within the edge buffer
+    beams_returned: int = 0  # through a canopy: beams with at least one return
+    leaf_returns: int = 0  # ... returns from leaves
+    dark: int = 0  # ... beams that hit a surface but whose every echo stayed below the detector's threshold
     wall_s: float = 0.0
     per_line: dict[int, int] = field(default_factory=dict)
 
@@ -165,6 +168,14 @@ class Tracer:
     @property
     def beams_per_pulse(self) -> int:
         return self.instrument.beams_per_pulse
+
+    @property
+    def returns_per_beam(self) -> int:
+        """Slots per beam of the points readout: the discrete detector's ``max_returns`` over a scene with a
+        canopy, else 1."""
+        if self.scene.canopy is None or self.cfg.instrument.detector != "discrete":
+            return 1
+        return self.cfg.discrete.max_returns
 
     @property
     def device_kind(self) -> str:

@@ -26,6 +26,7 @@ from flightsim.core.version import __version__
 from flightsim.core.warp_runtime import to_host
 from flightsim.outputs.las_format import gps_week_date
 from flightsim.outputs.las_tiles import TileWriter
+from flightsim.scenes.canopy import LEAF_CLASSES
 from flightsim.scenes.scene import Scene
 from kernels import las_records as kl
 
@@ -94,8 +95,9 @@ class DeviceLasOutput:
         self.device = simulator.device
         self.models = simulator.models
         self.writers = tile_writers(directory, output, scene, start_gps_time, edge_distance)
-        self.kernel = kl.pack_kernel(output.position_error, edge_distance)
+        self.kernel = kl.pack_kernel(output.position_error, edge_distance, scene.canopy is not None)
         self.tables = _tables(output.tile_size_m, simulator, scene, plane_ids)
+        self._none = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._device_arrays: dict[str, wp.array] = {}
         self._free = {m: queue.Queue() for m in self.models}
         for m in self.models:
@@ -159,7 +161,7 @@ class DeviceLasOutput:
         records = self._array("records", (n, self.kernel.words), wp.uint32)
         wp.launch(self.kernel, n, inputs=[index, order, starts, tile_keys, groups, ix0, iy0, rows, b.pulses, b.ranges,
                                           b.faces, b.scan_angles, b.cos_incidence, b.edge_distance, b.true_points,
-                                          points, self.tables],
+                                          points, self._none if b.returns is None else b.returns, self.tables],
                   outputs=[records, bounds], device=d)
         host = self._host_buffer(model, b.index.shape[0])
         wp.copy(host, records, count=n * self.kernel.words)
@@ -228,10 +230,14 @@ def _tables(tile_size_m: int, simulator, scene: Scene, plane_ids: np.ndarray | N
     tables.tile_mm = tile_size_m * 1000
     tables.prf_hz = simulator.timing.prf_hz
     tables.beams_per_pulse = simulator.beams_per_pulse
+    tables.returns_per_beam = simulator.returns_per_beam
     tables.beam_columns = simulator.instrument.emitter.beam_columns
-    tables.face_class = wp.array(scene.classification.astype(np.int32), dtype=wp.int32, device=d)
     ids = scene.plane_id if plane_ids is None else plane_ids
-    tables.face_plane = wp.array(np.asarray(ids, dtype=np.int32), dtype=wp.int32, device=d)
+    classes, ids = scene.classification.astype(np.int32), np.asarray(ids, dtype=np.int32)
+    if scene.canopy is not None:  # leaf returns' faces follow the triangles (kernels.canopy_returns.leaf_face)
+        classes, ids = np.concatenate([classes, LEAF_CLASSES]), np.concatenate([ids, [-1] * len(LEAF_CLASSES)])
+    tables.face_class = wp.array(classes, dtype=wp.int32, device=d)
+    tables.face_plane = wp.array(ids.astype(np.int32), dtype=wp.int32, device=d)
     tables.line_start = wp.array([t.start_time for t in simulator.trajectories], dtype=wp.float64, device=d)
     tables.line_source = wp.array([t.line_id for t in simulator.trajectories], dtype=wp.int32, device=d)
     return tables

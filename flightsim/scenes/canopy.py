@@ -26,6 +26,10 @@ G_TABLE_SIZE = 257
 """Entries of the G(μ) table handed to the device."""
 
 
+LEAF_CLASSES = (3, 4, 5)
+"""ASPRS classes of leaf returns: low, medium, high vegetation (by height above the surface under them,
+:mod:`kernels.canopy_returns`)."""
+
 @dataclass
 class VoxelCanopy:
     """Leaf area density in voxels, local frame.

@@ -61,6 +61,7 @@ class LasProduct:
             "points": {model: counts.returns for model in models},
             "tir_dropped": counts.tir_dropped,
             "misses": counts.misses,
+            **(self._canopy(counts) if self.tracer.returns_per_beam > 1 else {}),
             "rms_m": self.planes.rms_m() if self.planes is not None else {model: None for model in models},
             **({"patches": patches} if patches is not None else {}),
             "edge_buffer_m": self.buffer,
@@ -68,6 +69,13 @@ class LasProduct:
             "tiles": tiles,
             **({"copc": copc} if copc is not None else {}),
         }
+
+    @staticmethod
+    def _canopy(counts) -> dict:
+        """What a canopy did to the beams: beams_fired = beams_returned + dark + tir_dropped + misses, and the
+        points are the beams' returns, leaves' and surfaces'."""
+        return {"beams_returned": counts.beams_returned, "leaf_returns": counts.leaf_returns,
+                "surface_returns": counts.returns - counts.leaf_returns, "dark": counts.dark}
 
     def empty(self, counts) -> bool:
         return counts.returns == 0

@@ -1,5 +1,7 @@
-"""The points readout of the discrete detector: one return per beam, each chunk's returns compacted on the device;
-only the returns cross to the host (or nothing, for consumers on the device: the LAS records, the plane sums)."""
+"""The points readout of the discrete detector: one return per beam (over a canopy, up to the detector's
+``max_returns``: ``max_returns`` slots per beam, :mod:`kernels.canopy_returns`), each chunk's returns compacted on
+the device; only the returns cross to the host (or nothing, for consumers on the device: the LAS records, the plane
+sums)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -11,7 +13,7 @@ from flightsim.core.constants import MODELS
 from flightsim.core.registry import register
 from flightsim.core.warp_runtime import to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, Segment
-from kernels import compaction, trace
+from kernels import canopy_returns, compaction, trace
 
 
 @dataclass
@@ -29,6 +31,8 @@ class ReturnChunk:
     edge_distance_m: np.ndarray | None  # (m,) float32 true hit to its plane boundary, capped [m]
     points: dict[str, np.ndarray]  # georeferencing model -> (m, 3) float64 local [m]
     true_points: np.ndarray | None  # (m, 3) float64 local [m], when asked for
+    return_number: np.ndarray | None = None  # (m,) uint8, 1 = first; None: one return per beam
+    number_of_returns: np.ndarray | None = None  # (m,) uint8 returns of the beam
 
     def __len__(self) -> int:
         return len(self.pulse)
@@ -47,11 +51,12 @@ class DeviceReturns:
 
 
 class PointBuffers:
-    """Device arrays for one chunk of the points kernel, allocated once per run and reused."""
+    """Device arrays for one chunk of the points kernel, allocated once per run and reused; ``per_beam`` slots per
+    beam (the returns a beam may have)."""
 
-    def __init__(self, tracer, pulses: int):
-        device, slots = tracer.device, pulses * tracer.beams_per_pulse
-        self.device = device
+    def __init__(self, tracer, pulses: int, per_beam: int = 1):
+        device, slots = tracer.device, pulses * tracer.beams_per_pulse * per_beam
+        self.device, self.per_beam = device, per_beam
         self.pulses = tracer.pulse_table(pulses)
         self.status = wp.empty(slots, dtype=wp.int32, device=device)
         self.ranges = wp.empty(slots, dtype=wp.float32, device=device)
@@ -61,16 +66,18 @@ class PointBuffers:
         self.edge_distance = wp.empty(slots, dtype=wp.float32, device=device)
         self.true_points = wp.empty(slots, dtype=wp.vec3f, device=device)
         self.model_points = {m: wp.empty(slots, dtype=wp.vec3f, device=device) for m in MODELS}
-        self.counters = wp.zeros(3, dtype=wp.int32, device=device)
+        self.counters = wp.zeros(canopy_returns.COUNTERS if per_beam > 1 else 3, dtype=wp.int32, device=device)
+        self.returns = wp.empty(slots, dtype=wp.int32, device=device) if per_beam > 1 else None
         self.flags = wp.empty(slots, dtype=wp.int32, device=device)
         self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
         self.index = wp.empty(slots, dtype=wp.int32, device=device)
         self.compacted: dict[int, wp.array] = {}
 
     def slot_outputs(self) -> list[wp.array]:
-        """The points kernel's outputs, in its argument order."""
+        """The points kernel's outputs, in its argument order (the canopy kernel's: the return numbers too)."""
+        returns = [] if self.returns is None else [self.returns]
         return [self.status, self.ranges, self.faces, self.scan_angles, self.cos_incidence, self.edge_distance,
-                self.true_points, self.model_points["exact"], self.model_points["nominal"], self.counters]
+                self.true_points, self.model_points["exact"], self.model_points["nominal"], *returns, self.counters]
 
     def compact_index(self, n_slots: int) -> int:
         """Flag and prefix-sum the returning slots; fill ``index``; return the number of returns."""
@@ -83,7 +90,7 @@ class PointBuffers:
 
     def returns_per_segment(self, segments: list[Segment], beams_per_pulse: int) -> list[int]:
         """Returns of each segment of the chunk last compacted (from the prefix sums, a few ints back)."""
-        bounds = np.cumsum([0] + [s.count for s in segments]) * beams_per_pulse
+        bounds = np.cumsum([0] + [s.count for s in segments]) * beams_per_pulse * self.per_beam
         before = wp.array(bounds.astype(np.int32), dtype=wp.int32, device=self.device)
         wp.launch(compaction.returns_before, len(bounds), inputs=[self.flags, self.offsets, int(bounds[-1]), before],
                   device=self.device)
@@ -100,11 +107,38 @@ class PointBuffers:
 
 
 def trace_points(tracer, buffers: PointBuffers, n_slots: int, features: trace.Features | None = None) -> None:
-    """Launch the points kernel (``features``, default the tracer's) over a traced chunk's slots."""
-    kernel = trace.points_kernel(features or tracer.features, tracer.instrument.kernel,
-                                 max_registers=tracer.max_registers)
+    """Launch the points kernel (``features``, default the tracer's) over a traced chunk's slots; over a canopy
+    the canopy kernel, one thread per beam."""
+    f = features or tracer.features
+    if buffers.per_beam > 1:
+        leaves = tracer.kept("canopy_returns", lambda: CanopyReturns(tracer, buffers))
+        kernel = canopy_returns.canopy_points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
+        wp.launch(kernel, n_slots // buffers.per_beam, inputs=[buffers.pulses, tracer.scan, *leaves.inputs()],
+                  outputs=buffers.slot_outputs(), device=tracer.device)
+        return
+    kernel = trace.points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
     wp.launch(kernel, n_slots, inputs=[buffers.pulses, tracer.scan], outputs=buffers.slot_outputs(),
               device=tracer.device)
+
+
+class CanopyReturns:
+    """The canopy kernel's inputs besides the scan: the canopy on the device, the detector's trigger, the surface's
+    albedo per triangle (or none) and a scratch row of leaf echoes per slot."""
+
+    def __init__(self, tracer, buffers: PointBuffers):
+        s, scene = tracer.cfg.discrete, tracer.scene
+        det = canopy_returns.EchoDetection()
+        det.threshold, det.min_separation, det.max_returns = s.threshold, s.min_separation_m, s.max_returns
+        det.leaf_reflectance, det.reflectance = scene.canopy.leaf_reflectance, s.reflectance
+        det.triangles = len(scene.triangles)
+        self.det = det
+        self.canopy = scene.canopy.to_device(tracer.device)
+        self.reflectance = (tracer.meshes.reflectance if tracer.meshes.per_face
+                            else wp.zeros(0, dtype=wp.float32, device=tracer.device))
+        self.echoes = wp.empty(buffers.status.shape[0], dtype=canopy_returns.Echo, device=tracer.device)
+
+    def inputs(self) -> list:
+        return [self.canopy, self.det, self.reflectance, self.echoes]
 
 
 @register("readout", "points")
@@ -119,11 +153,14 @@ class Points:
         self.on_device = on_device
 
     def begin(self, tracer) -> wp.array:
-        self.buffers = PointBuffers(tracer, tracer.pulses_per_launch(POINT_SLOTS_PER_CHUNK))
+        per_beam = tracer.returns_per_beam
+        pulses = max(1, tracer.pulses_per_launch(POINT_SLOTS_PER_CHUNK) // per_beam)
+        self.buffers = PointBuffers(tracer, pulses, per_beam)
         return self.buffers.pulses
 
     def chunk(self, tracer, segments: list[Segment], n_slots: int, counts, consume) -> None:
         buffers = self.buffers
+        n_slots *= buffers.per_beam  # the tracer counts beams
         trace_points(tracer, buffers, n_slots)
         returns = DeviceReturns(segments, n_slots, buffers.compact_index(n_slots), buffers)
         for segment, n in zip(segments, buffers.returns_per_segment(segments, tracer.beams_per_pulse)):
@@ -137,6 +174,10 @@ class Points:
             consume(part)
 
     def end(self, tracer, counts) -> wp.array:
+        if self.buffers.per_beam > 1:
+            c = self.buffers.counters.numpy()
+            counts.dark, counts.beams_returned = int(c[canopy_returns.COUNT_DARK]), int(c[canopy_returns.COUNT_RETURNED])
+            counts.leaf_returns = int(c[canopy_returns.COUNT_LEAF])
         return self.buffers.counters
 
 
@@ -145,6 +186,7 @@ def host_returns(tracer, returns: DeviceReturns) -> list[ReturnChunk]:
     buffers, n_slots, n_returns = returns.buffers, returns.n_slots, returns.count
     slots = buffers.index.numpy()[:n_returns].astype(np.int64)
     gather = buffers.gather
+    echo = None if buffers.returns is None else gather(buffers.returns, n_slots, n_returns)
     f = tracer.features
     fields = dict(
         range_m=gather(buffers.ranges, n_slots, n_returns),
@@ -154,10 +196,12 @@ def host_returns(tracer, returns: DeviceReturns) -> list[ReturnChunk]:
         edge_distance_m=gather(buffers.edge_distance, n_slots, n_returns) if f.edges else None,
         points={m: gather(buffers.model_points[m], n_slots, n_returns).astype(np.float64) for m in tracer.models},
         true_points=gather(buffers.true_points, n_slots, n_returns).astype(np.float64) if f.with_truth else None,
+        return_number=None if echo is None else (echo & 15).astype(np.uint8),
+        number_of_returns=None if echo is None else (echo >> 4).astype(np.uint8),
     )
     return [ReturnChunk(line_id=trajectory.line_id, start_time=trajectory.start_time, pulse=pulse, beam=beam,
                         **_sliced(fields, a, b))
-            for trajectory, pulse, beam, a, b in tracer.by_line(returns.segments, slots)]
+            for trajectory, pulse, beam, a, b in tracer.by_line(returns.segments, slots // buffers.per_beam)]
 
 
 def _sliced(fields: dict, a: int, b: int) -> dict:

@@ -1,0 +1,243 @@
+"""Discrete returns through a turbid canopy: each beam's surface hit and the echoes of the leaves above it.
+
+A beam of unit energy crossing voxels of leaf area density u (extinction κ = G(μ) u per metre, G the leaf
+angle distribution's projection, :mod:`kernels.canopy`) keeps exp(−τ) of its energy after an optical depth
+τ; a voxel the beam crosses for a length ℓ intercepts exp(−τ_before)·(1 − exp(−κℓ)) of it, and the leaves
+send back ``leaf_reflectance`` times what they intercept; the surface under them returns exp(−τ_total)·ρ·cos θ
+(ρ the triangle's albedo, or the detector's ``reflectance``). Returning light comes back through the same gaps
+(the hot spot of a monostatic lidar), so it is not dimmed twice.
+
+The detector (:class:`EchoDetection`) triggers on the leading edge: walking down the beam, the leaf echo
+gathered since the detector was last armed reaches ``threshold`` (in units of a white Lambertian target filling
+the footprint at normal incidence) at the range where the return is placed (exactly, within the voxel: the
+intercepted energy grows as 1 − exp(−κs)); the detector is then blind for ``min_separation`` metres, and what
+the leaves send back meanwhile is lost. The surface returns if its echo reaches the threshold and it lies
+beyond the blind stretch of the last leaf return. At most ``max_returns`` are kept, the first ones.
+
+A return lies on the beam at its range: the true point p_true − Δ·direction, and each model's point
+p − Δ·d (:class:`kernels.trace.SlotTrace`), Δ its distance above the surface hit along the beam, so a leaf
+return shares the beam's ranging errors. Its class is 3, 4 or 5 (low, medium, high vegetation: below
+:data:`LOW_VEGETATION_M`, below :data:`MEDIUM_VEGETATION_M` or higher above the surface hit, vertically),
+written as the face index ``triangles + class − 3`` (:func:`leaf_face`), so per-face tables extended by three
+rows label it.
+"""
+import functools
+
+import warp as wp
+
+from kernels.canopy import Canopy, g_of, walk_begin, walk_next
+from kernels.parts import Instrument
+from kernels.trace import (COUNT_MISS, COUNT_TIR, STATUS_LEAF, STATUS_MISS, STATUS_RETURN, STATUS_TIR, Features,
+                           scan_struct, signed_off_nadir, slot_function)
+from kernels.edges import boundary_distance, near_boundary
+from kernels.frames import ROW_RIGHT, get3
+
+wp.set_module_options({"enable_backward": False})
+
+COUNT_DARK = 2  # counters: beams that hit the surface but whose every echo stayed below the threshold
+COUNT_RETURNED = 3  # beams with at least one return
+COUNT_LEAF = 4  # leaf returns
+COUNTERS = 5
+LOW_VEGETATION_M = wp.constant(wp.float64(0.5))
+MEDIUM_VEGETATION_M = wp.constant(wp.float64(2.0))
+
+
+@wp.struct
+class EchoDetection:
+    """The discrete detector's trigger, in units of a white Lambertian target filling the footprint."""
+
+    threshold: wp.float64  # echo a return needs (> 0)
+    min_separation: wp.float64  # the detector's blind stretch after a return [m]
+    max_returns: wp.int32  # returns kept per beam (the slots per beam)
+    leaf_reflectance: wp.float64  # what leaves send back of what they intercept
+    reflectance: wp.float64  # the surface's albedo where the scene has none per triangle
+    triangles: wp.int32  # the mesh's triangles: leaf returns' faces follow them
+
+
+@wp.struct
+class Echo:
+    """A leaf return found on the way down: its distance above the surface along the beam [m] and its echo."""
+
+    above: wp.float64
+    strength: wp.float64
+
+
+@wp.func
+def leaf_face(triangles: wp.int32, height: wp.float64) -> wp.int32:
+    """The face index of a leaf return ``height`` [m] above the surface, vertically (classes 3, 4, 5)."""
+    if height < LOW_VEGETATION_M:
+        return triangles
+    if height < MEDIUM_VEGETATION_M:
+        return triangles + 1
+    return triangles + 2
+
+
+@wp.func
+def box_depth(c: Canopy, point: wp.vec3d, up: wp.vec3d) -> wp.float64:
+    """How far the ray ``point + s · up`` (unit ``up``, s ≥ 0) runs before it leaves the canopy's box (0 when it
+    starts outside and never enters, or the canopy is absent)."""
+    if c.present == 0:
+        return wp.float64(0.0)
+    far = wp.float64(1.0e30)
+    near = wp.float64(0.0)
+    for a in range(3):
+        lo = c.lower[a]
+        hi = c.lower[a] + wp.float64(c.dims[a]) * c.cell[a]
+        if wp.abs(up[a]) < wp.float64(1.0e-300):
+            if point[a] < lo or point[a] > hi:
+                return wp.float64(0.0)
+        else:
+            t0 = (lo - point[a]) / up[a]
+            t1 = (hi - point[a]) / up[a]
+            near = wp.max(near, wp.min(t0, t1))
+            far = wp.min(far, wp.max(t0, t1))
+    if far <= near:
+        return wp.float64(0.0)
+    return far
+
+
+@wp.func
+def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec3d, depth: wp.float64,
+                 echoes: wp.array(dtype=Echo), base: int):
+    """Walk the beam down from ``top`` (``depth`` [m] above the surface hit) and write its leaf returns into
+    ``echoes[base:]`` (each one's echo: the threshold it reached and what the leaves sent back while the detector
+    was blind after it); returns (their count, the transmission left at the surface, the end of the last blind
+    stretch as a distance down from ``top`` [m])."""
+    g = g_of(c, direction)
+    transmission = wp.float64(1.0)
+    gathered = wp.float64(0.0)
+    armed = wp.float64(0.0)  # distance down from top at which the detector listens again
+    count = int(0)
+    w = walk_begin(c, top, direction, wp.float64(0.0), depth)
+    while w.done == 0:
+        kappa = g * wp.float64(w.lad)
+        s = w.t_in
+        while kappa > wp.float64(0.0) and s < w.t_out:
+            # over the next x metres of this voxel the leaves send back T(s) (1 − exp(−κ x)) ρ_l
+            room = det.leaf_reflectance * transmission * wp.exp(-kappa * (s - w.t_in))
+            if s < armed:  # blind: the echo joins the last return's
+                end = wp.min(armed, w.t_out)
+                if count <= det.max_returns:
+                    e = echoes[base + count - 1]
+                    e.strength += room * (wp.float64(1.0) - wp.exp(-kappa * (end - s)))
+                    echoes[base + count - 1] = e
+                s = end
+            else:
+                need = det.threshold - gathered
+                full = room * (wp.float64(1.0) - wp.exp(-kappa * (w.t_out - s)))
+                if full < need:
+                    gathered += full
+                    s = w.t_out
+                else:
+                    x = -wp.log(wp.float64(1.0) - need / room) / kappa
+                    count += 1
+                    if count <= det.max_returns:
+                        e = Echo()
+                        e.above = depth - (s + x)
+                        e.strength = det.threshold
+                        echoes[base + count - 1] = e
+                    gathered = wp.float64(0.0)
+                    armed = s + x + det.min_separation
+                    s = s + x
+        transmission *= wp.exp(-kappa * (w.t_out - w.t_in))
+        w = walk_next(c, w)
+    return wp.min(count, det.max_returns), transmission, armed
+
+
+@functools.cache
+def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
+    """The points kernel of a scene with a canopy: one thread per beam, ``max_returns`` slots per beam."""
+    trace_slot = slot_function(f, instrument)
+    Scan = scan_struct(instrument)
+
+    @wp.kernel(module="unique", cuda_max_registers=max_registers)
+    def trace_canopy_points(
+        pulses: wp.array2d(dtype=wp.float64),
+        scan: Scan,
+        canopy: Canopy,
+        det: EchoDetection,
+        face_reflectance: wp.array(dtype=wp.float32),  # the surface's albedo per triangle (empty: none)
+        echoes: wp.array(dtype=Echo),  # scratch: max_returns per beam
+        # Out: per slot (beam · max_returns + k), as the points kernel's
+        status: wp.array(dtype=wp.int32),
+        ranges: wp.array(dtype=wp.float32),
+        faces: wp.array(dtype=wp.int32),
+        scan_angles: wp.array(dtype=wp.float32),
+        intensity: wp.array(dtype=wp.float32),  # the echo [white Lambertian target], written as cos_incidence
+        edge_distance: wp.array(dtype=wp.float32),
+        true_points: wp.array(dtype=wp.vec3f),
+        exact_points: wp.array(dtype=wp.vec3f),
+        nominal_points: wp.array(dtype=wp.vec3f),
+        returns: wp.array(dtype=wp.int32),  # per slot: return number | number of returns << 4
+        counters: wp.array(dtype=wp.int32),  # [TIR, misses, dark beams, beams with returns, leaf returns]
+    ):
+        beam_slot = wp.tid()
+        per_pulse = scan.per_pulse
+        pulse = beam_slot // per_pulse
+        k_max = det.max_returns
+        base = beam_slot * k_max
+        for k in range(k_max):
+            status[base + k] = STATUS_MISS
+        s = trace_slot(pulses, pulse, beam_slot % per_pulse, scan)
+        if s.status == STATUS_TIR:
+            status[base] = STATUS_TIR
+            wp.atomic_add(counters, COUNT_TIR, 1)
+            return
+        if s.status == STATUS_MISS:
+            wp.atomic_add(counters, COUNT_MISS, 1)
+            return
+        direction = wp.vec3d(s.direction)
+        hit = wp.vec3d(s.p_true)
+        depth = wp.min(box_depth(canopy, hit, -direction), wp.float64(s.r))
+        top = hit - depth * direction
+        n, transmission, armed = leaf_returns(canopy, det, top, direction, depth, echoes, base)
+        rho = det.reflectance
+        if face_reflectance.shape[0] > 0:
+            rho = wp.float64(face_reflectance[s.face])
+        normal = wp.vec3d(wp.mesh_eval_face_normal(scan.mesh, s.face))
+        surface = transmission * rho * wp.abs(wp.dot(direction, normal))
+        ground = int(0)
+        if surface >= det.threshold and armed <= depth and n < k_max:
+            ground = 1
+        total = n + ground
+        if total == 0:
+            wp.atomic_add(counters, COUNT_DARK, 1)
+            return
+        wp.atomic_add(counters, COUNT_RETURNED, 1)
+        if n > 0:
+            wp.atomic_add(counters, COUNT_LEAF, n)
+        angle = signed_off_nadir(s.direction, wp.vec3f(get3(pulses, ROW_RIGHT, pulse)))
+        surface_edge = scan.edge_cap
+        if wp.static(f.edges):
+            if near_boundary(scan.edge_grid, s.p_true):
+                surface_edge = boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, s.p_true,
+                                                 scan.edge_cap)
+        for k in range(total):
+            slot = base + k
+            above = wp.float64(0.0)
+            strength = surface
+            code = STATUS_RETURN
+            face = s.face
+            edge = surface_edge
+            if k < n:
+                e = echoes[base + k]
+                above = e.above
+                strength = e.strength
+                code = STATUS_LEAF
+                face = leaf_face(det.triangles, above * wp.abs(direction[2]))
+            status[slot] = code
+            ranges[slot] = s.r - wp.float32(above)
+            faces[slot] = face
+            scan_angles[slot] = angle
+            intensity[slot] = wp.float32(wp.min(strength, wp.float64(1.0)))
+            edge_distance[slot] = edge
+            returns[slot] = (k + 1) | (total << 4)
+            lift = wp.float32(above)
+            if wp.static(f.with_truth):
+                true_points[slot] = s.p_true - lift * s.direction
+            if wp.static(f.exact):
+                exact_points[slot] = s.p_exact - lift * s.d_exact
+            if wp.static(f.nominal):
+                nominal_points[slot] = s.p_nominal - lift * s.d_nominal
+
+    return trace_canopy_points
