@@ -355,6 +355,12 @@ def test_cli_refuses_bad_forest_settings_in_one_line(tmp_path, setting, field):
     assert not (tmp_path / "out").exists()
 
 
+def test_cli_refuses_an_output_under_a_file(tmp_path):
+    (tmp_path / "taken").write_text("not a directory")
+    result = flightsim("forest", "--set", "scene.forest_size_m=20", "--out", str(tmp_path / "taken" / "out"))
+    assert result.returncode == 2 and result.stderr.count("\n") == 1 and "--out" in result.stderr
+
+
 def test_config_lists_the_forest_settings():
     result = flightsim("config", "--set", "scene.name=forest")
     assert result.returncode == 0, result.stderr

@@ -93,11 +93,17 @@ def forest_settings(settings) -> ForestSettings:
     return own
 
 
+def forest_ground(s: ForestSettings) -> PlaneGround:
+    """The ground the stand stands on: a plane of ``forest_slope`` (a DEM's ground, with the same methods, would
+    be chosen here)."""
+    return PlaneGround(s.forest_slope)
+
+
 def stand(settings, seed: int) -> Trees:
     """The trees of ``settings``' forest from ``seed``: the same for the same settings and seed."""
     s = forest_settings(settings)
     spec = StandSpec(**{name: getattr(s, "forest_" + name) for name in field_names(StandSpec)})
-    return grow_stand(spec, seed, PlaneGround(s.forest_slope))
+    return grow_stand(spec, seed, forest_ground(s))
 
 
 def forest_scene(settings, half_extent_m: float, seed: int) -> Scene:
@@ -105,7 +111,7 @@ def forest_scene(settings, half_extent_m: float, seed: int) -> Scene:
     of half side ``half_extent_m`` [m] or the stand's half side plus the margin, whichever is larger."""
     s = forest_settings(settings)
     trees = stand(s, seed)
-    ground = PlaneGround(s.forest_slope)
+    ground = forest_ground(s)
     half = max(check_half_extent(half_extent_m, 0.0), s.forest_size_m / 2.0 + settings.margin_m)
     mesh = join(ground_mesh(ground, half),
                 stand_mesh(trees, s.forest_segments, crowns=s.forest_crowns == "mesh", ground=ground))
@@ -118,13 +124,12 @@ def forest_scene(settings, half_extent_m: float, seed: int) -> Scene:
 def _planes(trees: Trees, slope: float, crowns: bool) -> list[PlaneInfo]:
     """Plane 0 the ground; 1 + i the stem of tree i; 1 + n + i its crown when the crowns are meshed (the kind
     "surface", normal up, through the tree's foot)."""
-    planes = [plane_info(0, "ground", CLASS_GROUND, (0.0, slope, 1.0), (0.0, 0.0, 0.0))]
     up = np.array([0.0, 0.0, 1.0])
     feet = np.column_stack([trees.x, trees.y, trees.base_z])
-    for offset, cls in ((1, CLASS_STEM), (1 + len(trees), CLASS_CROWN))[:2 if crowns else 1]:
-        planes += [PlaneInfo(id=offset + i, kind="surface", classification=cls, normal=up, point=feet[i],
-                             pitch_deg=0.0, azimuth_deg=float("nan")) for i in range(len(trees))]
-    return planes
+    parts = [(1, CLASS_STEM)] + ([(1 + len(trees), CLASS_CROWN)] if crowns else [])
+    return [plane_info(0, "ground", CLASS_GROUND, (0.0, slope, 1.0), (0.0, 0.0, 0.0))] + [
+        PlaneInfo(id=first + i, kind="surface", classification=cls, normal=up, point=feet[i], pitch_deg=0.0,
+                  azimuth_deg=float("nan")) for first, cls in parts for i in range(len(trees))]
 
 
 def _canopy(trees: Trees, s: ForestSettings):

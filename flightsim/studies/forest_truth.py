@@ -139,8 +139,6 @@ def run_forest(out: Path, items=(), seed: int | None = None, chm_cell_m: float =
     ``seed`` into ``out``; returns forest.json's content. Everything is computed before any file is written."""
     cfg = forest_config(items, seed)
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("--out", str(out), "a directory (this is a file)")
     s, crs = cfg.scene, parse_crs(cfg.scene.crs)
     origin = np.asarray(s.origin, dtype=np.float64)
     trees = stand(s, cfg.run.seed)
@@ -154,7 +152,10 @@ def run_forest(out: Path, items=(), seed: int | None = None, chm_cell_m: float =
         "leaf_area_density_m2_m3": trees.lad, "canopy_cover": canopy_cover(trees), "chm_cell_m": chm_cell_m,
         "voxels": list(lad.shape), "voxel_m": float(cell[0]), "files": list(FILES),
     }
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError("--out", str(out), f"a directory that can be made ({exc.strerror})") from None
     write_geotiff(out / "chm.tif", heights, (west + origin[0], north + origin[1]), chm_cell_m, crs)
     write_atomic(out / "trees.csv", trees_csv(trees, origin))
     write_npz(out / "canopy.npz", {"lad": lad, "lower_world": lower + origin, "cell": cell,
