@@ -293,7 +293,8 @@ def test_forest_scene_holds_ground_stems_and_mesh_crowns():
     n = len(trees)
     assert scene.name == "forest" and not scene.planar and scene.canopy is None
     assert len(scene.planes) == 1 + 2 * n and scene.plane_id.max() == 2 * n
-    assert set(scene.classification[scene.plane_id == 0]) == {2} and set(scene.classification[scene.plane_id > 0]) == {5}
+    assert set(scene.classification[scene.plane_id == 0]) == {2}
+    assert set(scene.classification[scene.plane_id > 0]) == {5}
     lo, hi = scene.bounds()
     assert lo[:2] == pytest.approx([-70.0, -70.0]) and hi[2] == pytest.approx(trees.height.max())
 
