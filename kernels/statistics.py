@@ -60,8 +60,8 @@ def records_kernel(f: Features, instrument: Instrument, max_registers: int | Non
     ):
         slot = wp.tid()
         per_pulse = scan.per_pulse
-        code, r, face, direction, p_exact, p_nominal, p_true = trace_slot(pulses, slot // per_pulse,
-                                                                          slot % per_pulse, scan)
+        s = trace_slot(pulses, slot // per_pulse, slot % per_pulse, scan)
+        code, face, p_exact, p_nominal, p_true = s.status, s.face, s.p_exact, s.p_nominal, s.p_true
         if code == STATUS_TIR:
             codes[slot] = CODE_TIR
         elif code == STATUS_MISS:

@@ -189,9 +189,51 @@ def _lut_lookup(directions: wp.array2d(dtype=wp.vec3f), exits: wp.array2d(dtype=
     return s3, exits[i, column] + w * (exits[i + 1, column] - exits[i, column]), ok
 
 
+@wp.struct
+class SlotTrace:
+    """One slot's traced beam: its status and, for a return, what every readout may need of it."""
+
+    status: wp.int32  # STATUS_RETURN, STATUS_MISS or STATUS_TIR
+    r: wp.float32  # observed one-way range, exit point to hit, with the ranging errors [m]
+    face: wp.int32  # triangle hit (-1: none)
+    direction: wp.vec3f  # the true ray's unit direction (local)
+    p_exact: wp.vec3f  # the return georeferenced by the exact model [m, local]
+    p_nominal: wp.vec3f  # ... by the rigid-array model
+    p_true: wp.vec3f  # the true hit [m, local]
+    d_exact: wp.vec3f  # d p_exact / d r: the exact model's unit ray (a return at r' lies at p + (r' - r) d)
+    d_nominal: wp.vec3f  # ... the rigid-array model's
+
+
+@wp.func
+def _no_return(status: wp.int32, direction: wp.vec3f):
+    """A slot without a return (a miss along ``direction``, or a beam the deflector cannot send out)."""
+    s = SlotTrace()
+    s.status = status
+    s.face = -1
+    s.direction = direction
+    return s
+
+
+@wp.func
+def _a_return(r: wp.float32, face: wp.int32, direction: wp.vec3f, p_exact: wp.vec3f, p_nominal: wp.vec3f,
+              p_true: wp.vec3f, d_exact: wp.vec3f, d_nominal: wp.vec3f):
+    """A slot's return (the fields of :class:`SlotTrace`)."""
+    s = SlotTrace()
+    s.status = STATUS_RETURN
+    s.r = r
+    s.face = face
+    s.direction = direction
+    s.p_exact = p_exact
+    s.p_nominal = p_nominal
+    s.p_true = p_true
+    s.d_exact = d_exact
+    s.d_nominal = d_nominal
+    return s
+
+
 @functools.cache
 def slot_function(f: Features, instrument: Instrument):
-    """Build the per-slot body shared by the points and the statistics kernels."""
+    """Build the per-slot body shared by the points, the statistics and the canopy kernels."""
 
     deflector = instrument.deflector
     Scan = scan_struct(instrument)
@@ -209,8 +251,7 @@ def slot_function(f: Features, instrument: Instrument):
     def trace_slot(pulses: wp.array2d(dtype=wp.float64), p: int, beam: int, scan: Scan):
         """Trace beam ``beam`` of pulse ``p`` (a column of the chunk's pulse table).
 
-        Returns (status, range [m], face, direction, exact point, nominal point, true point);
-        points in the local frame [m].
+        Returns its :class:`SlotTrace`; points in the local frame [m].
         """
         zero = wp.vec3f(0.0, 0.0, 0.0)
         origin = vec(get3(pulses, ROW_ORIGIN, p))
@@ -221,7 +262,7 @@ def slot_function(f: Features, instrument: Instrument):
         else:
             s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), pulses, row_truth, p, scan.truth)
         if not ok:
-            return STATUS_TIR, 0.0, -1, zero, zero, zero, zero
+            return _no_return(STATUS_TIR, zero)
         true_origin = origin
         true_rot = rot
         if wp.static(f.pose):  # the pulse's true pose, drawn once per pulse by pulse_optics
@@ -236,7 +277,7 @@ def slot_function(f: Features, instrument: Instrument):
             face, t_second = fallback_hit(scan.padded, scan.vertices64, scan.indices, wp.vec3d(start),
                                            wp.vec3d(direction), scan.max_range)
             if face < 0:
-                return STATUS_MISS, 0.0, -1, wp.vec3f(direction), zero, zero, zero
+                return _no_return(STATUS_MISS, wp.vec3f(direction))
             t_hit = wp.float32(t_second)
         if wp.static(precise):
             t = refine_hit(scan.vertices64, scan.indices, face, start, direction)
@@ -259,26 +300,31 @@ def slot_function(f: Features, instrument: Instrument):
         # georeference the observation (scan state, beam, r) with the deflector the processing believes in
         p_exact = vec()
         p_nominal = vec()
+        d_exact = vec()
+        d_nominal = vec()
         ok_exact = True
         if wp.static(f.exact):
             if wp.static(f.believed_is_truth):
+                d_exact = direction
                 p_exact = start + r * direction
             else:
                 s3b, exit_b, ok_exact = deflector.finish(vec(scan.beam_believed[beam]), pulses, row_believed, p,
                                                          scan.believed)
+                d_exact = rot * s3b
                 p_exact = origin + rot * (exit_b + r * s3b)
         if wp.static(f.nominal):
             q = scan.beam_rigid[beam]
             rigid = quat(real(q[0]), real(q[1]), real(q[2]), real(q[3]))
-            p_nominal = origin + rot * (vec(get3(pulses, row_exit, p))
-                                        + r * wp.quat_rotate(rigid, vec(get3(pulses, row_direction, p))))
+            axis = wp.quat_rotate(rigid, vec(get3(pulses, row_direction, p)))
+            d_nominal = rot * axis
+            p_nominal = origin + rot * (vec(get3(pulses, row_exit, p)) + r * axis)
         if wp.static(deflector.rigid_nominal):
             ok_exact = ok_exact and pulses[row_ok, p] != wp.float64(0.0)
         if not ok_exact:
             # the believed deflector cannot send this beam out: processing cannot place it
-            return STATUS_TIR, 0.0, -1, zero, zero, zero, zero
-        return (STATUS_RETURN, wp.float32(r), face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
-                wp.vec3f(true_point))
+            return _no_return(STATUS_TIR, zero)
+        return _a_return(wp.float32(r), face, wp.vec3f(direction), wp.vec3f(p_exact), wp.vec3f(p_nominal),
+                         wp.vec3f(true_point), wp.vec3f(d_exact), wp.vec3f(d_nominal))
 
     return trace_slot
 
@@ -309,7 +355,9 @@ def points_kernel(f: Features, instrument: Instrument, max_registers: int | None
         slot = wp.tid()
         per_pulse = scan.per_pulse
         pulse = slot // per_pulse
-        code, r, face, direction, p_exact, p_nominal, p_true = trace_slot(pulses, pulse, slot % per_pulse, scan)
+        s = trace_slot(pulses, pulse, slot % per_pulse, scan)
+        code, r, face, direction = s.status, s.r, s.face, s.direction
+        p_exact, p_nominal, p_true = s.p_exact, s.p_nominal, s.p_true
         status[slot] = code
         if code == STATUS_TIR:
             wp.atomic_add(counters, COUNT_TIR, 1)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from flightsim.core import registry
 from flightsim.core.errors import InputError
+from flightsim.scenes.canopy_io import read_canopy
 from flightsim.scenes.scene import Scene, parse_crs
 from flightsim.scenes.settings import scene_choices, scene_kind
 
@@ -19,11 +20,16 @@ def scene_part(scene):
 def build_scene(scene, half_extent_m: float, seed: int = 0, use_cache: bool = True, device: str = "cpu") -> Scene:
     """The scene of the ``[scene]`` section ``scene``: a built-in kind with ground of ``half_extent_m`` [m] where it
     is sized to the flight (relief from ``seed``); a file through the scene cache when ``use_cache`` (keyed on
-    every scene setting and the files they name; its height grid built on ``device``)."""
+    every scene setting and the files they name; its height grid built on ``device``); with the leaf area grid of
+    ``scene.canopy`` over it, read every time."""
     parse_crs(scene.crs, field="scene.crs")
     part = scene_part(scene)
-    if not getattr(part, "suffixes", ()) or not use_cache:
-        return part.build(half_extent_m, seed)
-    from flightsim.scenes.cache import cached_scene
+    if not getattr(part, "suffixes", ()) or not use_cache or not part.cacheable:
+        built = part.build(half_extent_m, seed)
+    else:
+        from flightsim.scenes.cache import cached_scene
 
-    return cached_scene(scene.name, scene.values(), lambda: part.build(half_extent_m, seed), grid_device=device)
+        built = cached_scene(scene.name, scene.values(), lambda: part.build(half_extent_m, seed), grid_device=device)
+    if scene.canopy:
+        built.canopy = read_canopy(scene.canopy, built.crs, built.origin)
+    return built

@@ -6,7 +6,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from flightsim.core import registry
+from flightsim.core.errors import InputError
 from flightsim.core.settings import Settings, setting
+from flightsim.scenes.canopy_io import SUFFIXES as CANOPY_SUFFIXES
 from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN
 
 
@@ -16,9 +18,9 @@ class SceneSettings(Settings):
 
     table = "scene"
 
-    name: str = setting("calibration", "a built-in scene, or the path of a mesh (.obj/.ply) or height grid "
-                        "(.tif/.tiff/.npy)")
-    crs: str = setting(DEFAULT_CRS, "the world's projected CRS in metres (a GeoTIFF brings its own)")
+    name: str = setting("calibration", "a built-in scene, or the path of a mesh (.obj/.ply), height grid "
+                        "(.tif/.tiff/.npy) or ALS point cloud (.las/.laz, COPC too)")
+    crs: str = setting(DEFAULT_CRS, "the world's projected CRS in metres (a GeoTIFF or point cloud brings its own)")
     origin: tuple[float, float, float] = setting(DEFAULT_ORIGIN, "the local frame's origin: world E, N, H", "m",
                                                  length=3, items=(-1.0e8, 1.0e8))
     margin_m: float = setting(50.0, "ground added around what the flight reaches (built-in scenes)", "m",
@@ -27,15 +29,24 @@ class SceneSettings(Settings):
                           points=True)
     ccr_photons: float = setting(0.0, "photo-electrons a retroreflector returns at a footprint's centre", "",
                                  range=(0.0, 1.0e6))
+    canopy: str = setting("", "leaf area density voxels over the scene: a .npz, .nc (NetCDF) or .tif (GeoTIFF "
+                          "stack) grid with its leaf properties (flightsim/scenes/canopy_io.py); \"\" = none")
+
+    def check(self, context) -> None:
+        if self.canopy and Path(self.canopy).suffix.lower() not in CANOPY_SUFFIXES:
+            raise InputError("scene.canopy", self.canopy, "\"\" or a " + "/".join(CANOPY_SUFFIXES) + " file path")
 
 
 class ScenePart:
     """A scene kind: ``build`` makes its Scene from ``[scene]`` (``self.s``: the settings every scene shares and
     the kind's own). ``sized``: its ground grows with what the flight reaches (``half_extent_m``); ``suffixes``:
-    the file suffixes that choose it (a built-in scene has none and is chosen by name)."""
+    the file suffixes that choose it (a built-in scene has none and is chosen by name); ``cacheable``: whether
+    the scene cache may keep a file kind's Scene (it keeps the mesh, labels and height grid, not a canopy or
+    point cloud)."""
 
     sized = False
     suffixes: tuple[str, ...] = ()
+    cacheable = True  # a file kind whose Scene the scene cache can hold (its mesh and labels only)
 
     def __init__(self, scene):
         self.s = scene

@@ -1,0 +1,399 @@
+"""GEDI L2A-like elevation and height metrics from full waveforms (NumPy and SciPy only).
+
+Sources: the GEDI L1/L2 waveform ATBD (Hofton & Blair 2019, "Algorithm Theoretical Basis Document for GEDI
+Transmit and Receive Waveform Processing for L1 and L2 Products", v1.0), the GEDI L2A data dictionary for the
+names, and for the sensitivity Hancock et al. 2019 ("The GEDI simulator", Earth and Space Science 6) as coded in
+the GEDI simulator (``gediMetric.c``: ``findBlairSense``, ``gaussThresholds``).
+
+Per waveform (sample 0 is bin0, the first received and the highest; elevations are linear in the sample index
+between ``elevation_bin0`` and ``elevation_lastbin``, and so are latitude and longitude):
+
+1. **Noise**: mean m and standard deviation σ of the first and last ``noise_samples`` samples pooled (GEDI
+   L1B reports them from the waveform's noise-only part), or as given.
+2. **Smoothing**: a Gaussian of σ = ``smoothing_sigmas`` × the pulse σ (GEDI's setting group a1 smooths with
+   6.5 samples of 1 ns, about the GEDI pulse's σ; a1's values here are those of the GEDI L2A user guide's
+   table of algorithm setting groups).
+3. **Signal start and end**: the first sample of the smoothed waveform above m + ``front_threshold``·σ is the
+   signal start (the highest return), the last above m + ``back_threshold``·σ the signal end; crossings
+   interpolated linearly between samples. The thresholds are GEDI a1's front 3σ and back 6σ, with the raw
+   waveform's σ (as GEDI's thresholds use L1B's noise σ; the smoothed noise is several times smaller). A
+   threshold never falls below ``noise_floor`` × the smoothed peak above m: only a noise-free waveform (σ = 0)
+   meets that floor.
+4. **Modes**: the maxima of the smoothed waveform (its derivative crossing zero from + to −) between signal
+   start and end and above the front threshold; ``num_detectedmodes`` counts them.
+5. **Gaussian decomposition**: the waveform minus m over the signal (± 3 pulse σ) fitted by a sum of one
+   Gaussian per mode (``scipy.optimize.least_squares``, analytic Jacobian; amplitudes ≥ 0, widths ≥ half the
+   pulse σ), started from the modes. The **lowest mode** (the ground) is the lowest fitted component whose
+   smoothed peak would clear the front threshold; ``elev_lowestmode``, ``lat_lowestmode``, ``lon_lowestmode``
+   are at its centre. GEDI a1 takes the lowest mode's location from the smoothed waveform's zero crossing; the
+   fit removes the pull of a nearby canopy mode and of the smoothing.
+6. **RH**: ``rh[k]`` (k = 0…100 %) is the height above the lowest mode's centre where the energy of the
+   waveform minus m, accumulated upwards from the signal end (trapezoids between samples), reaches k % of the
+   energy between signal end and start: rh0 is the signal end, rh100 the signal start (``elev_highestreturn``).
+   As in GEDI, energy below the lowest mode's centre counts, so rh1… are negative over bare ground (about
+   half the ground return lies below its centre).
+7. **Sensitivity** (Hancock et al. 2019; GEDI's "maximum canopy cover that can be penetrated"):
+   1 − (n_N + n_S)·σ·√(2π)·σ_eff / E, the energy of the weakest ground return the thresholds would still find,
+   amplitude (n_N + n_S)·σ and width σ_eff = √(σ_pulse² + (2·σ_footprint·tan 2°/c)²) (a 2° slope across the
+   footprint), over the waveform's energy E = Σ(w − m) (all in samples). n_N = Φ⁻¹(1 − p_FA·0.15/30): a false
+   alarm probability ``p_false_alarm`` per 30 m of 0.15 m bins; n_S = Φ⁻¹(1 − ``p_miss``): 3.48 + 1.28 with
+   the simulator's 0.05 and 0.1. Clipped to [0, 1] (0 when E ≤ 0, 1 when σ = 0).
+8. **quality_flag** = 1 where a signal was found and sensitivity ≥ ``min_sensitivity`` (GEDI: 0.9 over land;
+   GEDI's flag also weighs surface and DEM checks that a simulation has no use for).
+
+Shots without a signal have ``quality_flag`` 0, ``num_detectedmodes`` 0 and :data:`FILL` in every elevation,
+position and rh. ``energy_total`` is Σ(w − m)·dt over the whole waveform [W·s when w is in W].
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.optimize import least_squares
+from scipy.special import ndtri
+
+from flightsim.core.errors import InputError
+from flightsim.core.settings import Settings, check_settings, setting
+
+C = 299_792_458.0  # speed of light [m/s]
+FILL = -9999.0  # elevations, positions and rh of a shot without a signal
+RH_LEVELS = 101  # rh0 … rh100
+_BIN_M, _WINDOW_M = 0.15, 30.0  # the sensitivity's false-alarm window: 30 m of 0.15 m bins (GEDI simulator)
+_FIT_PAD = 3.0  # the fit window reaches this many pulse σ beyond signal start and end
+_MIN_WIDTH = 0.5  # least fitted width [pulse σ]
+
+
+@dataclass
+class L2ASettings(Settings):
+    """GEDI L2A waveform interpretation, algorithm setting group a1."""
+
+    table: ClassVar[str] = "l2a"
+    front_threshold: float = setting(3.0, "signal start: smoothed waveform above noise mean + this many σ", "σ",
+                                     range=(0.0, 100.0))
+    back_threshold: float = setting(6.0, "signal end: smoothed waveform above noise mean + this many σ", "σ",
+                                    range=(0.0, 100.0))
+    smoothing_sigmas: float = setting(1.0, "σ of the Gaussian smoothing, in pulse σ", range=(0.0, 100.0),
+                                      lo_open=True)
+    noise_samples: int = setting(64, "samples at each end of a waveform that give its noise mean and σ",
+                                 range=(2, 1 << 20))
+    noise_floor: float = setting(1e-6, "least threshold above the noise mean, a fraction of the smoothed peak",
+                                 range=(0.0, 1.0), lo_open=True)
+    footprint_sigma_m: float = setting(5.5, "footprint σ in the sensitivity's ground return width", "m",
+                                       range=(0.0, 1e4))
+    p_false_alarm: float = setting(0.05, "sensitivity: false alarm probability per 30 m", range=(0.0, 1.0),
+                                   lo_open=True)
+    p_miss: float = setting(0.1, "sensitivity: probability of missing the weakest ground", range=(0.0, 1.0),
+                            lo_open=True)
+    min_sensitivity: float = setting(0.9, "quality_flag needs a sensitivity of at least this", range=(0.0, 1.0))
+    max_modes: int = setting(20, "most modes fitted per waveform (GEDI rx_max_mode_count)", range=(1, 200))
+
+
+@dataclass(frozen=True)
+class _Shots:
+    """Validated input: waveforms minus their noise mean, noise σ and smoothed waveforms (sample units)."""
+
+    y: np.ndarray  # (S, N) waveform − noise mean
+    sigma: np.ndarray  # (S,) noise σ
+    smooth: np.ndarray  # (S, N) smoothed y
+    pulse: float  # pulse σ [samples]
+    kernel: float  # σ of the smoothing [samples]
+
+
+def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin0, longitude_bin0,
+                latitude_lastbin, longitude_lastbin, pulse_sigma_s: float, noise: tuple | None = None,
+                settings: L2ASettings | None = None) -> dict[str, np.ndarray]:
+    """GEDI L2A metrics of S waveforms of N samples (the module docstring gives the algorithm).
+
+    Args:
+        rx: (S, N) received waveforms [W or any linear unit], finite; sample 0 is bin0 (the highest).
+        dt_s: sample interval [s], > 0.
+        elevation_bin0, elevation_lastbin: (S,) elevation of the first and last sample [m], bin0 higher.
+        latitude_bin0, longitude_bin0, latitude_lastbin, longitude_lastbin: (S,) their positions [deg].
+        pulse_sigma_s: σ of the transmitted pulse [s], > 0.
+        noise: (mean, σ) of the noise, each a number or (S,) [rx units]; None: from the waveforms' ends.
+        settings: :class:`L2ASettings` (GEDI a1 by default).
+
+    Returns: GEDI L2A names, (S,) arrays unless stated: ``rh`` (S, 101) [m], ``elev_lowestmode``,
+    ``elev_highestreturn`` [m], ``lat_lowestmode``, ``lon_lowestmode``, ``lat_highestreturn``,
+    ``lon_highestreturn`` [deg], ``num_detectedmodes`` (uint8), ``sensitivity``, ``quality_flag`` (uint8),
+    ``energy_total`` [rx units · s]; float64 elsewhere, :data:`FILL` where no signal.
+    """
+    s = settings if settings is not None else L2ASettings()
+    check_settings("l2a", s)
+    shots, dt = _prepare(rx, dt_s, pulse_sigma_s, noise, s)
+    geo = _geometry(len(shots.y), elevation_bin0=elevation_bin0, elevation_lastbin=elevation_lastbin,
+                    latitude_bin0=latitude_bin0, longitude_bin0=longitude_bin0, latitude_lastbin=latitude_lastbin,
+                    longitude_lastbin=longitude_lastbin)
+    front, back = _thresholds(shots, s)
+    start, end, found = _signal_bounds(shots.smooth, front, back)
+    shot, loc = _modes(shots.smooth, front, start, end)
+    count = np.bincount(shot, minlength=len(shots.y))
+    found &= count > 0
+    ground = _lowest_modes(shots, shot, loc, start, end, front, found, s.max_modes)
+    out = _positions(geo, shots.y.shape[1], ground, start, found)
+    out["rh"] = _rh(shots.y, _elevations(geo, shots.y.shape[1]), start, end, out["elev_lowestmode"], found)
+    out["num_detectedmodes"] = np.where(found, np.minimum(count, 255), 0).astype(np.uint8)
+    energy = shots.y.sum(axis=1)
+    out["sensitivity"] = _sensitivity(energy, shots.sigma, shots.pulse, dt, s)
+    out["quality_flag"] = (found & (out["sensitivity"] >= s.min_sensitivity)).astype(np.uint8)
+    out["energy_total"] = energy * dt
+    return out
+
+
+def truth_rh(profile, elevation_bin0, elevation_lastbin, ground_elevation) -> np.ndarray:
+    """(S, 101) rh [m] of noise-free energy profiles above the true ground, for the product's truth group.
+
+    rh[k] is the height above ``ground_elevation`` where the profile's energy, accumulated upwards from its
+    lowest non-zero sample (trapezoids), reaches k % of the whole (rh0: that sample; rh100: the highest
+    non-zero sample); :data:`FILL` for a profile without energy.
+
+    Args:
+        profile: (S, N) received energy per sample without noise, ≥ 0, finite; sample 0 the highest.
+        elevation_bin0, elevation_lastbin: (S,) elevation of the first and last sample [m], bin0 higher.
+        ground_elevation: (S,) the true ground elevation [m].
+    """
+    p = _waveforms(profile, "profile")
+    if p.min() < 0.0:
+        raise InputError("profile", f"minimum {p.min():g}", "energies >= 0")
+    geo = _geometry(len(p), elevation_bin0=elevation_bin0, elevation_lastbin=elevation_lastbin,
+                    ground_elevation=ground_elevation)
+    positive = p > 0.0
+    found = positive.any(axis=1)
+    start = np.argmax(positive, axis=1).astype(np.float64)
+    end = (p.shape[1] - 1 - np.argmax(positive[:, ::-1], axis=1)).astype(np.float64)
+    return _rh(p, _elevations(geo, p.shape[1]), start, end, geo["ground_elevation"], found)
+
+
+# --- input -----------------------------------------------------------------------------------------
+
+
+def _waveforms(values, name: str) -> np.ndarray:
+    """``values`` as (S, N) finite float64 with S >= 1 and N >= 3."""
+    try:
+        w = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(name, type(values).__name__, "an (S, N) array of numbers") from None
+    if w.ndim != 2 or w.shape[0] < 1 or w.shape[1] < 3:
+        raise InputError(name, f"shape {w.shape}", "(S, N) with S >= 1 shots and N >= 3 samples")
+    if not np.isfinite(w).all():
+        raise InputError(name, f"{np.count_nonzero(~np.isfinite(w))} non-finite samples", "finite samples")
+    return w
+
+
+def _positive(name: str, value) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(name, value, "a finite number > 0") from None
+    if not (math.isfinite(number) and number > 0.0):
+        raise InputError(name, value, "a finite number > 0")
+    return number
+
+
+def _column(name: str, value, n: int) -> np.ndarray:
+    """A number or (n,) values as (n,) finite float64."""
+    try:
+        a = np.broadcast_to(np.asarray(value, dtype=np.float64), (n,))
+    except (TypeError, ValueError):
+        raise InputError(name, f"shape {np.shape(value)}", f"a number or ({n},) finite values") from None
+    if not np.isfinite(a).all():
+        raise InputError(name, "a non-finite value", f"({n},) finite values")
+    return a.astype(np.float64)
+
+
+def _geometry(n: int, **columns) -> dict[str, np.ndarray]:
+    """Per-shot columns, each (n,) finite; bin0 above the last bin."""
+    out = {}
+    for name, value in columns.items():
+        if np.shape(value) != (n,):
+            raise InputError(name, f"shape {np.shape(value)}", f"({n},), one value per waveform")
+        out[name] = _column(name, value, n)
+    if not (out["elevation_bin0"] > out["elevation_lastbin"]).all():
+        raise InputError("elevation_lastbin", "not below elevation_bin0", "each last bin lower than its bin0 [m]")
+    return out
+
+
+def _prepare(rx, dt_s, pulse_sigma_s, noise, s: L2ASettings) -> tuple[_Shots, float]:
+    """The waveforms minus their noise mean, the noise σ and the smoothed waveforms; the sample interval."""
+    w = _waveforms(rx, "rx")
+    dt = _positive("dt_s", dt_s)
+    pulse = _positive("pulse_sigma_s", pulse_sigma_s) / dt
+    n = len(w)
+    if noise is None:
+        k = s.noise_samples
+        if w.shape[1] < 2 * k + 1:
+            raise InputError("rx", f"shape {w.shape}", f"N > 2·l2a.noise_samples = {2 * k} samples, or give noise")
+        ends = np.concatenate([w[:, :k], w[:, -k:]], axis=1)
+        mean, sigma = ends.mean(axis=1), ends.std(axis=1, ddof=1)
+    else:
+        if not isinstance(noise, (tuple, list)) or len(noise) != 2:
+            raise InputError("noise", noise, "(mean, σ): numbers or (S,) arrays")
+        mean, sigma = _column("noise mean", noise[0], n), _column("noise σ", noise[1], n)
+        if sigma.min() < 0.0:
+            raise InputError("noise σ", sigma.min(), "σ >= 0")
+    y = w - mean[:, None]
+    kernel = s.smoothing_sigmas * pulse
+    return _Shots(y, sigma, gaussian_filter1d(y, kernel, axis=1, mode="nearest"), pulse, kernel), dt
+
+
+# --- signal, modes, lowest mode --------------------------------------------------------------------
+
+
+def _thresholds(shots: _Shots, s: L2ASettings) -> tuple[np.ndarray, np.ndarray]:
+    """Front and back thresholds above the noise mean (S,), each at least noise_floor × the smoothed peak."""
+    floor = s.noise_floor * np.maximum(shots.smooth.max(axis=1), 0.0)
+    return (np.maximum(s.front_threshold * shots.sigma, floor),
+            np.maximum(s.back_threshold * shots.sigma, floor))
+
+
+def _crossing(sm: np.ndarray, rows: np.ndarray, i: np.ndarray, j: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """Fractional sample between i and j = i ± 1 where the row's smoothed waveform crosses ``level``."""
+    a, b = sm[rows, i], sm[rows, j]
+    frac = np.where(b != a, (level - a) / np.where(b != a, b - a, 1.0), 0.0)
+    return i + np.clip(frac, 0.0, 1.0) * (j - i)
+
+
+def _signal_bounds(sm, front, back) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Signal start (first smoothed sample above front) and end (last above back), fractional; found."""
+    above_f, above_b = sm > front[:, None], sm > back[:, None]
+    found = above_f.any(axis=1) & above_b.any(axis=1)
+    rows, last = np.arange(len(sm)), sm.shape[1] - 1
+    i0 = np.argmax(above_f, axis=1)
+    i1 = last - np.argmax(above_b[:, ::-1], axis=1)
+    start = _crossing(sm, rows, i0, np.maximum(i0 - 1, 0), front)
+    end = _crossing(sm, rows, i1, np.minimum(i1 + 1, last), back)
+    return start, end, found
+
+
+def _modes(sm, front, start, end) -> tuple[np.ndarray, np.ndarray]:
+    """(shot, fractional sample) of every maximum of the smoothed waveforms above the front threshold and
+    within the signal, in order of shot then sample; the sample refined by a parabola through three."""
+    d = np.diff(sm, axis=1)
+    peak = np.zeros(sm.shape, dtype=bool)
+    peak[:, 1:-1] = (d[:, :-1] > 0.0) & (d[:, 1:] <= 0.0)
+    index = np.arange(sm.shape[1])[None, :]
+    peak &= (sm > front[:, None]) & (index >= np.floor(start)[:, None]) & (index <= np.ceil(end)[:, None])
+    shot, i = np.nonzero(peak)
+    left, mid, right = sm[shot, i - 1], sm[shot, i], sm[shot, i + 1]
+    curve = left - 2.0 * mid + right
+    offset = np.where(curve < 0.0, 0.5 * (left - right) / np.where(curve < 0.0, curve, -1.0), 0.0)
+    return shot, i + np.clip(offset, -0.5, 0.5)
+
+
+def _lowest_modes(shots: _Shots, shot, loc, start, end, front, found, max_modes: int) -> np.ndarray:
+    """Fractional sample of each waveform's lowest mode after the Gaussian fit (NaN where no signal)."""
+    ground = np.full(len(shots.y), np.nan)
+    bounds = np.searchsorted(shot, np.arange(len(shots.y) + 1))
+    for k in np.flatnonzero(found):
+        modes = loc[bounds[k]:bounds[k + 1]]
+        ground[k] = _fit_lowest(shots, k, modes, start[k], end[k], front[k], max_modes)
+    return ground
+
+
+def _fit_lowest(shots: _Shots, k: int, modes: np.ndarray, start: float, end: float, front: float,
+                max_modes: int) -> float:
+    """The lowest detectable component of a Gaussian fit to shot k started from its modes [samples]."""
+    y, pulse = shots.y[k], shots.pulse
+    if len(modes) > max_modes:  # the strongest, and always the lowest
+        strongest = np.argsort(shots.smooth[k, np.rint(modes[:-1]).astype(int)])[::-1][:max_modes - 1]
+        modes = np.append(np.sort(modes[strongest]), modes[-1])
+    a = int(max(0, math.floor(start - _FIT_PAD * pulse)))
+    b = int(min(len(y), math.ceil(end + _FIT_PAD * pulse) + 1))
+    x, target, m = np.arange(a, b, dtype=np.float64), y[a:b], len(modes)
+    p0 = np.concatenate([np.maximum(y[np.rint(modes).astype(int)], front), modes, np.full(m, pulse)])
+    lower = np.concatenate([np.zeros(m), np.full(m, float(a)), np.full(m, _MIN_WIDTH * pulse)])
+    upper = np.concatenate([np.full(m, np.inf), np.full(m, float(b - 1)), np.full(m, float(b - a))])
+    fit = least_squares(_residual, np.clip(p0, lower, upper), jac=_jacobian, bounds=(lower, upper),
+                        args=(x, target), x_scale="jac")
+    amp, centre, width = np.split(fit.x, 3)
+    seen = amp * width / np.hypot(width, shots.kernel) > front  # its peak in the smoothed waveform
+    return float(centre[seen].max()) if seen.any() else float(modes[-1])
+
+
+def _gaussians(p: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, ...]:
+    amp, centre, width = np.split(p, 3)
+    u = (x[None, :] - centre[:, None]) / width[:, None]
+    e = np.exp(-0.5 * u * u)
+    return amp[:, None], width[:, None], u, e
+
+
+def _residual(p: np.ndarray, x: np.ndarray, target: np.ndarray) -> np.ndarray:
+    amp, _, _, e = _gaussians(p, x)
+    return (amp * e).sum(axis=0) - target
+
+
+def _jacobian(p: np.ndarray, x: np.ndarray, target: np.ndarray) -> np.ndarray:
+    amp, width, u, e = _gaussians(p, x)
+    return np.concatenate([e, amp * e * u / width, amp * e * u * u / width], axis=0).T
+
+
+# --- positions, rh, sensitivity --------------------------------------------------------------------
+
+
+def _elevations(geo: dict, n: int) -> np.ndarray:
+    """(S, N) elevation of every sample [m], linear from bin0 to the last bin."""
+    return geo["elevation_bin0"][:, None] + np.outer(
+        geo["elevation_lastbin"] - geo["elevation_bin0"], np.arange(n) / (n - 1))
+
+
+def _at(geo: dict, n: int, name: str, sample: np.ndarray) -> np.ndarray:
+    """Column ``name``_bin0 … ``name``_lastbin interpolated at fractional samples."""
+    first, last = geo[f"{name}_bin0"], geo[f"{name}_lastbin"]
+    return first + (last - first) * sample / (n - 1)
+
+
+def _positions(geo: dict, n: int, ground: np.ndarray, start: np.ndarray, found: np.ndarray) -> dict:
+    """Elevation, latitude and longitude of the lowest mode and of the highest return; FILL where no signal."""
+    g, top = np.where(found, ground, 0.0), np.where(found, start, 0.0)
+    out = {}
+    for tag, sample in (("lowestmode", g), ("highestreturn", top)):
+        out[f"elev_{tag}"] = _at(geo, n, "elevation", sample)
+        out[f"lat_{tag}"] = _at(geo, n, "latitude", sample)
+        out[f"lon_{tag}"] = _at(geo, n, "longitude", sample)
+    return {name: np.where(found, value, FILL) for name, value in out.items()}
+
+
+def _rh(y, elevation, start, end, ground, found) -> np.ndarray:
+    """(S, 101) heights [m] above ``ground`` where the energy of y between ``end`` and ``start`` (fractional
+    samples), accumulated upwards in trapezoids between samples, reaches 0 … 100 %; FILL where not found."""
+    s, n = y.shape
+    index = np.arange(n)[None, :]
+    inside = (index >= np.ceil(start)[:, None]) & (index <= np.floor(end)[:, None])
+    pair = inside[:, :-1] & inside[:, 1:]
+    step = np.where(pair, 0.5 * (y[:, :-1] + y[:, 1:]), 0.0)
+    upward = np.cumsum(step[:, ::-1], axis=1)  # column r: the energy from the bottom up to sample N-2-r
+    total = upward[:, -1]
+    found = found & (total > 0.0)
+    share = np.clip(np.maximum.accumulate(upward / np.where(found, total, 1.0)[:, None], axis=1), 0.0, 1.0)
+    share = np.concatenate([np.zeros((s, 1)), share], axis=1)  # column r: sample N-1-r
+    levels = np.arange(1, RH_LEVELS - 1) / (RH_LEVELS - 1)
+    offset = 2.0 * np.arange(s)[:, None]
+    r = np.searchsorted((share + offset).ravel(), (levels[None, :] + offset).ravel()).reshape(s, -1)
+    r = np.clip(r - np.arange(s)[:, None] * n, 1, n - 1)
+    lo, hi = np.take_along_axis(share, r - 1, axis=1), np.take_along_axis(share, r, axis=1)
+    frac = np.where(hi > lo, (levels[None, :] - lo) / np.where(hi > lo, hi - lo, 1.0), 0.0)
+    sample = (n - 1) - (r - 1 + np.clip(frac, 0.0, 1.0))
+    edges = np.column_stack([np.where(found, end, 0.0), sample, np.where(found, start, 0.0)])
+    heights = _interp_rows(elevation, edges) - ground[:, None]
+    return np.where(found[:, None], heights, FILL)
+
+
+def _interp_rows(values: np.ndarray, sample: np.ndarray) -> np.ndarray:
+    """Each row of ``values`` linearly interpolated at that row's fractional samples."""
+    i = np.clip(np.floor(sample).astype(np.int64), 0, values.shape[1] - 2)
+    t = sample - i
+    return (1.0 - t) * np.take_along_axis(values, i, axis=1) + t * np.take_along_axis(values, i + 1, axis=1)
+
+
+def _sensitivity(energy, sigma, pulse: float, dt: float, s: L2ASettings) -> np.ndarray:
+    """Hancock et al. (2019) beam sensitivity of each waveform (energy and σ in samples, pulse σ in samples)."""
+    n_noise = ndtri(1.0 - s.p_false_alarm * _BIN_M / _WINDOW_M)
+    n_signal = ndtri(1.0 - s.p_miss)
+    spread = 2.0 * s.footprint_sigma_m * math.tan(math.radians(2.0)) / C / dt  # footprint on a 2° slope [samples]
+    width = math.hypot(pulse, spread)
+    weakest = (n_noise + n_signal) * sigma * math.sqrt(2.0 * math.pi) * width
+    value = 1.0 - weakest / np.where(energy > 0.0, energy, 1.0)
+    return np.where(energy > 0.0, np.clip(value, 0.0, 1.0), np.where(sigma > 0.0, 0.0, 1.0))

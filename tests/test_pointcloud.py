@@ -1,0 +1,191 @@
+"""ALS point clouds: reading LAS/LAZ (CRS from the file, refused when geographic or missing, noise dropped,
+ground classified or the lowest per cell, empty clouds refused), the ground surface against the synthetic
+truth it was sampled from, a DEM beside the cloud, and the ``cloud`` scene kind through the config.
+
+``tests/data/cloud_plot.laz`` (LAS 1.4, point format 6, EPSG:32648: 7,350 ground and 6,125 canopy returns over
+35 m × 35 m and 40 noise points, 82 kB) was written by ``_write_cloud(path, *_forest_plot())`` below."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pyproj
+import pytest
+import rasterio
+from rasterio.transform import from_origin
+
+from flightsim.core.errors import InputError
+from flightsim.scenes.cloud_ground import ground_scene
+from flightsim.scenes.pointcloud import read_point_cloud
+
+DATA = Path(__file__).parent / "data"
+E0, N0 = 409_000.0, 3_393_000.0  # a corner in UTM 48N
+
+
+def _write_cloud(path, xyz, classes, crs="EPSG:32648", version="1.4", returns=None) -> None:
+    header = laspy.LasHeader(point_format=6 if version == "1.4" else 1, version=version)
+    header.scales, header.offsets = [0.001] * 3, np.floor(xyz.min(axis=0))
+    if crs is not None:
+        header.add_crs(pyproj.CRS(crs))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.classification = np.asarray(classes, dtype=np.uint8)
+    if returns is not None:
+        las.return_number, las.number_of_returns = returns
+    las.write(str(path))
+
+
+def _surface(e, n):
+    """The synthetic ground: world height [m] at world E, N [m]."""
+    return 300.0 + 0.08 * (e - E0) - 0.05 * (n - N0) + 0.6 * np.sin((e - E0) / 13.0) * np.cos((n - N0) / 17.0)
+
+
+def _forest_plot(seed=5, side=35.0, hole=None):
+    """(world xyz, classes, returns) of ground returns at 6/m² on the synthetic ground (none within the square
+    ``hole`` = (e0, n0, e1, n1)), canopy returns 5–25 m above it at 5/m², and 20 low and 20 high noise points."""
+    rng = np.random.default_rng(seed)
+    ground = rng.uniform(0.0, side, (int(6 * side * side), 2)) + (E0, N0)
+    if hole is not None:
+        e0, n0, e1, n1 = hole
+        ground = ground[~((ground[:, 0] > e0) & (ground[:, 0] < e1) & (ground[:, 1] > n0) & (ground[:, 1] < n1))]
+    canopy = rng.uniform(0.0, side, (int(5 * side * side), 2)) + (E0, N0)
+    noise = rng.uniform(0.0, side, (40, 2)) + (E0, N0)
+    xyz = np.concatenate([np.column_stack([ground, _surface(*ground.T)]),
+                          np.column_stack([canopy, _surface(*canopy.T) + rng.uniform(5.0, 25.0, len(canopy))]),
+                          np.column_stack([noise, _surface(*noise.T) + np.repeat([-30.0, 80.0], 20)])])
+    classes = np.concatenate([np.full(len(ground), 2), np.full(len(canopy), 5), np.repeat([7, 18], 20)])
+    number = np.concatenate([np.full(len(ground), 2), np.ones(len(canopy) + 40)]).astype(np.uint8)
+    return xyz, classes, "EPSG:32648", "1.4", (number, np.full(len(xyz), 2, dtype=np.uint8))
+
+
+def test_crs_origin_noise_and_returns_from_the_file(tmp_path):
+    xyz, classes, *_ = _forest_plot()
+    _write_cloud(tmp_path / "plot.las", xyz, classes, crs="EPSG:32633", version="1.2")  # GeoTIFF keys
+    cloud = read_point_cloud(tmp_path / "plot.las", chunk_points=1000)
+    assert cloud.crs.to_epsg() == 32633
+    kept = ~np.isin(classes, (7, 18))
+    world = np.round(xyz[kept], 3)  # the file's 1 mm quantisation
+    expected_origin = [(world[:, 0].min() + world[:, 0].max()) / 2, (world[:, 1].min() + world[:, 1].max()) / 2,
+                       world[classes[kept] == 2, 2].min()]
+    assert np.allclose(cloud.origin, expected_origin, atol=1e-9)
+    assert np.abs(cloud.xyz + cloud.origin - world).max() < 1e-6
+    assert np.array_equal(cloud.classification, classes[kept])
+    assert (cloud.return_number == 1).all() and (cloud.number_of_returns == 1).all()  # format 1 left them at 0
+    given = read_point_cloud(tmp_path / "plot.las", crs="EPSG:4326", origin=(E0, N0, 0.0))  # the file's CRS wins
+    assert given.crs.to_epsg() == 32633 and np.array_equal(given.origin, [E0, N0, 0.0])
+
+
+def test_a_geographic_or_missing_crs_is_refused_with_the_command_that_fixes_it(tmp_path):
+    lonlat = np.column_stack([np.linspace(105.01, 105.02, 50), np.linspace(30.61, 30.62, 50), np.zeros(50)])
+    _write_cloud(tmp_path / "deg.laz", lonlat, np.full(50, 2), crs="EPSG:4326")
+    with pytest.raises(InputError, match=r"geographic.*pdal translate .*out_srs=EPSG:32648"):
+        read_point_cloud(tmp_path / "deg.laz")
+    feet = np.column_stack([np.full(5, 2e6), np.full(5, 5e5), np.zeros(5)])
+    _write_cloud(tmp_path / "feet.las", feet, np.full(5, 2), crs="EPSG:2227")  # California zone 3, US survey feet
+    with pytest.raises(InputError, match="metres.*reproject"):
+        read_point_cloud(tmp_path / "feet.las")
+    xyz, classes, *_ = _forest_plot()
+    _write_cloud(tmp_path / "bare.las", xyz, classes, crs=None)
+    with pytest.raises(InputError, match=r"scene\.crs.*a_srs"):
+        read_point_cloud(tmp_path / "bare.las")
+    assert read_point_cloud(tmp_path / "bare.las", crs="EPSG:32648").crs.to_epsg() == 32648
+
+
+def test_unclassified_clouds_need_a_classifier_or_the_lowest_point_per_cell(tmp_path):
+    rng = np.random.default_rng(2)
+    xyz = np.column_stack([rng.uniform(0, 10, 3000) + E0, rng.uniform(0, 10, 3000) + N0, rng.uniform(0, 20, 3000)])
+    _write_cloud(tmp_path / "raw.laz", xyz, np.ones(3000))
+    with pytest.raises(InputError, match=r"filters\.smrf.*lasground"):
+        read_point_cloud(tmp_path / "raw.laz")
+    cloud = read_point_cloud(tmp_path / "raw.laz", ground="lowest", cell_m=2.0)
+    world = cloud.xyz + cloud.origin
+    cells = np.floor((world[:, :2] - world[:, :2].min(axis=0)) / 2.0)  # 2 m cells from the lower-left corner
+    lowest = []
+    for cell in np.unique(cells, axis=0):  # the lowest point of each cell, found the slow way
+        inside = np.flatnonzero((cells == cell).all(axis=1))
+        lowest.append(inside[np.argmin(world[inside, 2])])
+    assert np.array_equal(np.sort(np.flatnonzero(cloud.ground)), np.sort(lowest))
+    assert cloud.origin[2] == pytest.approx(world[lowest, 2].min())  # the lowest ground
+
+
+def test_empty_and_broken_clouds_are_refused(tmp_path):
+    noise = np.column_stack([np.full(4, E0), np.full(4, N0), np.arange(4.0)])
+    _write_cloud(tmp_path / "noise.las", noise, [7, 18, 7, 18])
+    with pytest.raises(InputError, match="at least one point that is not noise"):
+        read_point_cloud(tmp_path / "noise.las")
+    laspy.LasData(laspy.LasHeader(point_format=6, version="1.4")).write(str(tmp_path / "none.las"))
+    with pytest.raises(InputError, match="at least one point"):
+        read_point_cloud(tmp_path / "none.las")
+    (tmp_path / "junk.laz").write_bytes(b"not a point cloud")
+    (tmp_path / "cut.laz").write_bytes((DATA / "cloud_plot.laz").read_bytes()[:50_000])  # its points cut short
+    for name in ("junk.laz", "cut.laz"):
+        with pytest.raises(InputError, match="laspy can read"):
+            read_point_cloud(tmp_path / name)
+    with pytest.raises(InputError, match=r"\.las or \.laz"):
+        read_point_cloud(tmp_path / "plot.xyz")
+
+
+def test_ground_surface_follows_the_synthetic_truth_and_fills_a_hole(tmp_path):
+    hole = (E0 + 12.0, N0 + 14.0, E0 + 22.0, N0 + 24.0)  # 10 m × 10 m without ground returns (a building)
+    xyz, classes, *_ = _forest_plot(seed=9, hole=hole)
+    _write_cloud(tmp_path / "plot.laz", xyz, classes)
+    cloud = read_point_cloud(tmp_path / "plot.laz")
+    scene = ground_scene(cloud, "plot", 1.0)
+    world = scene.local_to_world(scene.vertices)
+    truth = _surface(world[:, 0], world[:, 1])
+    # a cell's mean sits off its centre by up to half its diagonal (one point in a corner) on slopes of up to 0.13
+    assert np.abs(world[:, 2] - truth).max() < 0.1 and np.sqrt(np.mean((world[:, 2] - truth) ** 2)) < 0.02
+    inside = (world[:, 0] > hole[0] + 1) & (world[:, 0] < hole[2] - 1) & (world[:, 1] > hole[1] + 1) & (
+        world[:, 1] < hole[3] - 1)
+    assert inside.sum() > 50 and np.abs(world[inside, 2] - truth[inside]).max() < 0.06  # linear across the hole
+    assert scene.cloud is cloud and np.array_equal(scene.origin, cloud.origin) and not scene.planar
+    assert (scene.classification == 2).all()
+    lo, hi = cloud.bounds()
+    assert (scene.vertices[:, :2].min(axis=0) <= lo[:2] + 0.5 + 1e-9).all()
+    assert (scene.vertices[:, :2].max(axis=0) >= hi[:2] - 0.5 - 1e-9).all()
+
+
+def test_a_dem_beside_the_cloud_is_its_ground(tmp_path):
+    xyz, classes, *_ = _forest_plot()
+    _write_cloud(tmp_path / "plot.laz", xyz, classes)
+    cloud = read_point_cloud(tmp_path / "plot.laz")
+    i, j = np.mgrid[0:40, 0:40]
+    east, north = E0 - 2.0 + (j + 0.5), N0 + 38.0 - (i + 0.5)
+    for name, crs in (("dem.tif", "EPSG:32648"), ("other.tif", "EPSG:32647")):
+        with rasterio.open(tmp_path / name, "w", driver="GTiff", width=40, height=40, count=1, dtype="float64",
+                           crs=crs, transform=from_origin(E0 - 2.0, N0 + 38.0, 1.0, 1.0)) as dst:
+            dst.write(_surface(east, north), 1)
+    scene = ground_scene(cloud, "plot", 1.0, str(tmp_path / "dem.tif"))
+    world = scene.local_to_world(scene.vertices)
+    assert np.array_equal(scene.origin, cloud.origin) and len(world) == 1600
+    assert np.abs(world[:, 2] - _surface(world[:, 0], world[:, 1])).max() < 1e-6
+    with pytest.raises(InputError, match="cloud_dem.*cloud's CRS"):
+        ground_scene(cloud, "plot", 1.0, str(tmp_path / "other.tif"))
+
+
+def test_the_cloud_scene_kind_reads_its_settings_from_the_config():
+    import flightsim
+    from flightsim.scenes.build import scene_part
+
+    path = str(DATA / "cloud_plot.laz")
+    cfg = flightsim.load_config(overrides={"scene.name": path, "scene.cloud_cell_m": 2.0})
+    assert (cfg.scene.rho_ground, cfg.scene.rho_canopy, cfg.scene.cloud_normalise) == (0.4, 0.57, False)
+    scene = scene_part(cfg.scene).build(0.0, 0)
+    assert scene.crs.to_epsg() == 32648 and len(scene.cloud) == 13_475
+    assert not np.isin(scene.cloud.classification, (7, 18)).any()
+    assert np.allclose(np.diff(np.unique(scene.vertices[:, 0])), 2.0)
+    for key, value in (("scene.rho_ground", 0.0), ("scene.cloud_ground", "highest"),
+                       ("scene.cloud_dem", "dem.png")):
+        with pytest.raises(InputError, match=key.replace(".", r"\.")):
+            flightsim.load_config(overrides={"scene.name": path, key: value})
+
+
+def test_a_cloud_scene_keeps_its_points_however_often_it_is_built(tmp_path, monkeypatch):
+    import flightsim
+    from flightsim.scenes.build import build_scene
+
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "cache"))
+    cfg = flightsim.load_config(overrides={"scene.name": str(DATA / "cloud_plot.laz")})
+    first, second = (build_scene(cfg.scene, 0.0, use_cache=True) for _ in range(2))
+    assert len(first.cloud) == len(second.cloud) == 13_475
