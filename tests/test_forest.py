@@ -153,6 +153,7 @@ def test_voxel_leaf_area_is_the_analytic_crown_volume_times_lad(shape):
     lad, lower, cell = stand_voxels(trees, 1.0)
     analytic = trees.lad * np.sum(SHAPE_FACTOR[shape] * math.pi * trees.crown_radius ** 2 * trees.crown_length)
     leaf_area = lad.sum(dtype=np.float64) * np.prod(cell)
+    assert lad.min() >= 0.0
     assert leaf_area == pytest.approx(analytic, rel=1e-5)  # the brief asks 0.5 %
     assert leaf_area / 100.0 ** 2 == pytest.approx(3.0, rel=1e-5)  # the stand LAI, within 1 % asked
     assert lai_map(lad, cell).sum() * cell[0] * cell[1] == pytest.approx(leaf_area, rel=1e-9)
@@ -300,13 +301,14 @@ def test_forest_scene_holds_ground_stems_and_mesh_crowns():
 
 
 def test_forest_scene_with_voxel_crowns_carries_the_stand_canopy():
-    pytest.importorskip("flightsim.scenes.canopy")
-    s = _Section(forest_size_m=40.0)
+    s = _Section(forest_size_m=40.0, forest_leaf_angles="planophile", forest_voxel_m=0.5)
     scene = forest_scene(s, 200.0, 3)
-    lad, lower, cell = stand_voxels(stand(s, 3), 1.0)
+    lad, lower, cell = stand_voxels(stand(s, 3), 0.5)
     assert scene.plane_id.max() == len(stand(s, 3))  # stems only in the mesh
     assert np.array_equal(scene.canopy.lad, lad) and np.array_equal(scene.canopy.lower, lower)
-    assert scene.canopy.leaf_reflectance == 0.45 and scene.canopy.leaf_angles == "spherical"
+    assert np.array_equal(scene.canopy.cell, [0.5, 0.5, 0.5])
+    assert scene.canopy.leaf_reflectance == 0.45 and scene.canopy.leaf_angles == "planophile"
+    assert forest_scene(_Section(forest_size_m=40.0, forest_lai=0.0), 200.0, 3).canopy is None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -336,6 +338,12 @@ def test_cli_writes_the_four_truth_files_identically_for_the_same_seed(tmp_path)
         assert chm.crs.to_epsg() == 32648 and chm.shape == (40, 40)
         assert (chm.bounds.left, chm.bounds.top) == (409000.0 - 20.0, 3393000.0 + 20.0)
         assert chm.read(1).max() == pytest.approx(max(float(r.split(",")[4]) for r in rows[1:]), abs=1e-4)
+    from flightsim.scenes.canopy_io import read_canopy
+
+    read = read_canopy(tmp_path / "a" / "canopy.npz", "EPSG:32648", (409000.0, 3393000.0, 450.0))
+    built = forest_scene(_Section(forest_size_m=40.0, forest_slope=0.1), 30.0, 4).canopy
+    assert np.array_equal(read.lad, built.lad) and read.lower == pytest.approx(built.lower, abs=1e-9)
+    assert (read.leaf_angles, read.leaf_reflectance, read.leaf_transmittance) == ("spherical", 0.45, 0.45)
     canopy = np.load(tmp_path / "a" / "canopy.npz")
     assert canopy["lad"].dtype == np.float32 and "PROJCRS" in str(canopy["crs"])
     assert canopy["lad"].sum(dtype=np.float64) * np.prod(canopy["cell"]) / 40.0 ** 2 == pytest.approx(3.0, rel=1e-5)

@@ -19,9 +19,11 @@ import numpy as np
 from flightsim.core.errors import InputError
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, check_settings, field_names, setting
+from flightsim.scenes.canopy import VoxelCanopy
 from flightsim.scenes.forest import CROWN_SHAPES, MAX_PACKING, PlaneGround, StandSpec, Trees, grow_stand
 from flightsim.scenes.forest_mesh import CLASS_CROWN, CLASS_STEM, ground_mesh, join, stand_mesh
 from flightsim.scenes.forest_voxels import stand_voxels
+from flightsim.scenes.leaf_angles import DISTRIBUTIONS
 from flightsim.scenes.scene import CLASS_GROUND, PlaneInfo, Scene, check_half_extent, parse_crs, plane_info
 from flightsim.scenes.settings import ScenePart
 
@@ -53,6 +55,8 @@ class ForestSettings(Settings):
                                                                                                           "mesh"))
     forest_voxel_m: float = setting(1.0, "side of the leaf area voxels", "m", range=(0.05, 20.0))
     forest_segments: int = setting(12, "sides around a stem or a mesh crown", range=(4, 64))
+    forest_leaf_angles: str = setting("spherical", "leaf inclination distribution (de Wit) of the crowns",
+                                      choices=DISTRIBUTIONS)
     forest_leaf_reflectance: float = setting(0.45, "leaf hemispherical reflectance at the laser's wavelength", "",
                                              range=(0.0, 1.0))
     forest_leaf_transmittance: float = setting(0.45, "leaf hemispherical transmittance at the laser's wavelength",
@@ -136,8 +140,6 @@ def _canopy(trees: Trees, s: ForestSettings):
     """The crowns' leaf area as a VoxelCanopy (voxel crowns with leaves), else None."""
     if s.forest_crowns != "voxels" or len(trees) == 0 or trees.lad <= 0.0:
         return None
-    from flightsim.scenes.canopy import VoxelCanopy
-
     lad, lower, cell = stand_voxels(trees, s.forest_voxel_m)
-    return VoxelCanopy(lad=lad, lower=lower, cell=cell, leaf_angles="spherical",
+    return VoxelCanopy(lad=lad, lower=lower, cell=cell, leaf_angles=s.forest_leaf_angles,
                        leaf_reflectance=s.forest_leaf_reflectance, leaf_transmittance=s.forest_leaf_transmittance)

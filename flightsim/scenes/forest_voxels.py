@@ -136,6 +136,7 @@ def _crown_volumes(trees: Trees, chunk: np.ndarray, lower: np.ndarray, shape, ce
     z = a[:, None] + (b - a)[:, None] * _SUB
     r = trees.crown_radius[tree][:, None] * crown_radius_at(trees.shape, (z - bottom[:, None]) / length[:, None])
     area = disc_square_area(r, *(cols[key][column][:, None] for key in ("x0", "x1", "y0", "y1")))
+    area = np.clip(area, 0.0, cell * cell)  # rounding: a corner barely touched must not give −1e-16
     inside = (area @ _JAC) * (b - a)
     k = np.clip(np.floor((0.5 * (a + b) - lower[2]) / cell).astype(np.int64), 0, shape[2] - 1)
     flat = (cols["i"][column] * shape[1] + cols["j"][column]) * shape[2] + k

@@ -13,7 +13,9 @@ Written into the output directory, each file atomically, the same bytes for the 
   crown_radius_m, crown_base_height_m, dbh_m.
 - ``canopy.npz``: the leaf area density voxels of :func:`~flightsim.scenes.forest_voxels.stand_voxels`: ``lad``
   float32 (nx, ny, nz) [m²/m³] indexed east, north, up; ``lower_world`` (3,) world E, N, H of voxel (0, 0, 0)'s
-  lower corner [m]; ``cell`` (3,) [m]; ``crs`` the CRS as WKT.
+  lower corner [m]; ``cell`` (3,) [m]; ``crs`` the CRS as WKT; the leaves' ``leaf_angles``, ``leaf_reflectance``
+  and ``leaf_transmittance``: the format of :mod:`flightsim.scenes.canopy_io`, so ``scene.canopy = ".../canopy.npz"``
+  lays the stand's leaves over any scene.
 - ``forest.json``: the ``[scene]`` settings and seed, the stem count and density, the target and achieved
   stand LAI (voxel leaf area / stand area), the crowns' leaf area density and the canopy cover (fraction of the
   stand square under a crown's vertical projection: the union of the crown discs, integrated over COVER_ROWS
@@ -159,6 +161,8 @@ def run_forest(out: Path, items=(), seed: int | None = None, chm_cell_m: float =
     write_geotiff(out / "chm.tif", heights, (west + origin[0], north + origin[1]), chm_cell_m, crs)
     write_atomic(out / "trees.csv", trees_csv(trees, origin))
     write_npz(out / "canopy.npz", {"lad": lad, "lower_world": lower + origin, "cell": cell,
-                                   "crs": np.array(crs.to_wkt())})
+                                   "crs": np.array(crs.to_wkt()), "leaf_angles": np.array(s.forest_leaf_angles),
+                                   "leaf_reflectance": np.float64(s.forest_leaf_reflectance),
+                                   "leaf_transmittance": np.float64(s.forest_leaf_transmittance)})
     write_atomic(out / "forest.json", json.dumps(summary, indent=2, sort_keys=True) + "\n")
     return summary
