@@ -298,6 +298,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_forest(args: argparse.Namespace) -> int:
+    from flightsim.studies.forest_truth import run_forest
+
+    summary = run_forest(Path(args.out), _set_items(args), seed=args.seed, chm_cell_m=args.chm_cell_m)
+    print(f"{summary['stems']} trees, LAI {summary['lai_achieved']:.3f} (target {summary['lai_target']:g}), "
+          f"canopy cover {summary['canopy_cover']:.3f}; {', '.join(summary['files'])} written to {args.out}")
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     import laspy
     import numpy
@@ -372,7 +381,8 @@ def _add_run_commands(sub) -> None:
 
 
 def _add_study_commands(sub) -> None:
-    """paper, bench, budget and spad: the studies that reproduce a paper or measure the simulator."""
+    """paper, bench, budget, spad and forest: the studies that reproduce a paper, measure the simulator or give a
+    scene's truth."""
     paper = sub.add_parser("paper", help="reproduce the seed paper's study: sweeps, figures and a report")
     paper.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     paper.add_argument("--out", required=True, help="output directory (e.g. results/paper)")
@@ -402,6 +412,15 @@ def _add_study_commands(sub) -> None:
     spad.add_argument("--pulses", type=int, help="pulses per frame (default: the paper's 43,000; fewer for a quick run)")
     spad.add_argument("--out", required=True, help="directory for REPORT.md and spad.json")
     spad.set_defaults(func=cmd_spad)
+
+    forest = sub.add_parser("forest", help="truth of a procedural forest stand: canopy height model, trees, leaf "
+                                           "area voxels (chm.tif, trees.csv, canopy.npz, forest.json)")
+    forest.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="a [scene] setting of the forest, e.g. --set scene.forest_lai=4 (repeatable)")
+    forest.add_argument("--seed", type=int, help="random seed of the stand (default 0)")
+    forest.add_argument("--chm-cell-m", type=float, default=1.0, help="cell of the canopy height model [m] (default 1)")
+    forest.add_argument("--out", required=True, help="directory for the four files")
+    forest.set_defaults(func=cmd_forest)
 
 
 def _add_instrument_commands(sub) -> None:

@@ -1,2 +1,3 @@
 """The built-in scene kinds, registered by importing their modules."""
-from flightsim.scenes import calibration, dem, footprint, lunar, mesh, plane, pointcloud, smallbody  # noqa: F401
+from flightsim.scenes import (calibration, dem, footprint, forest_scene, lunar, mesh, plane, pointcloud,  # noqa: F401
+                              smallbody)
