@@ -31,6 +31,7 @@ with xarray's scipy engine, which every NetCDF reader reads); both files appear 
 """
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -92,16 +93,19 @@ def read_canopy(path, crs, origin) -> VoxelCanopy:
 
 def write_canopy_npz(path, canopy: VoxelCanopy, crs, origin) -> Path:
     """Write ``canopy`` (local frame of a scene of CRS ``crs``, origin ``origin``) as an .npz grid in world
-    coordinates, atomically; returns the path."""
+    coordinates, atomically (the same grid gives the same bytes); returns the path."""
     path = Path(path)
     scene_crs = crs if isinstance(crs, pyproj.CRS) else parse_crs(crs)
     arrays = dict(lad=canopy.lad, lower_world=canopy.lower + np.asarray(origin, dtype=np.float64),
                   cell=canopy.cell, crs=np.array(scene_crs.to_wkt()), leaf_angles=np.array(canopy.leaf_angles),
                   leaf_reflectance=np.float64(canopy.leaf_reflectance),
                   leaf_transmittance=np.float64(canopy.leaf_transmittance))
-    with replaced_atomically(path) as tmp:
-        with open(tmp, "wb") as fh:  # a file object: np.savez adds no ".npz" to the temporary name
-            np.savez_compressed(fh, **arrays)
+    with replaced_atomically(path) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, array in arrays.items():  # np.savez's layout, with fixed member dates: the bytes are the grid's
+            member = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+            member.compress_type = zipfile.ZIP_DEFLATED
+            with archive.open(member, "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(array), allow_pickle=False)
     return path
 
 

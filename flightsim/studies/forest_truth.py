@@ -25,16 +25,17 @@ from __future__ import annotations
 
 import json
 import math
-import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from flightsim.core.atomic import replaced_atomically, write_atomic
+from flightsim.core.atomic import write_atomic
 from flightsim.core.errors import InputError
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.outputs.grid_products import write_geotiff
+from flightsim.scenes.canopy import VoxelCanopy
+from flightsim.scenes.canopy_io import write_canopy_npz
 from flightsim.scenes.forest import Trees, box_cells, crown_top
 from flightsim.scenes.forest_scene import stand
 from flightsim.scenes.forest_voxels import stand_voxels
@@ -126,16 +127,6 @@ def trees_csv(trees: Trees, origin) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """An .npz (read by ``numpy.load``) whose bytes depend on the arrays alone (fixed member dates), atomically."""
-    with replaced_atomically(path) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED) as archive:
-        for name, array in arrays.items():
-            member = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
-            member.compress_type = zipfile.ZIP_DEFLATED
-            with archive.open(member, "w", force_zip64=True) as fh:
-                np.lib.format.write_array(fh, np.asanyarray(array), allow_pickle=False)
-
-
 def run_forest(out: Path, items=(), seed: int | None = None, chm_cell_m: float = 1.0) -> dict:
     """Write the four truth files of the forest of ``items`` (``[scene]`` settings as (key, value) pairs) and
     ``seed`` into ``out``; returns forest.json's content. Everything is computed before any file is written."""
@@ -160,9 +151,7 @@ def run_forest(out: Path, items=(), seed: int | None = None, chm_cell_m: float =
         raise InputError("--out", str(out), f"a directory that can be made ({exc.strerror})") from None
     write_geotiff(out / "chm.tif", heights, (west + origin[0], north + origin[1]), chm_cell_m, crs)
     write_atomic(out / "trees.csv", trees_csv(trees, origin))
-    write_npz(out / "canopy.npz", {"lad": lad, "lower_world": lower + origin, "cell": cell,
-                                   "crs": np.array(crs.to_wkt()), "leaf_angles": np.array(s.forest_leaf_angles),
-                                   "leaf_reflectance": np.float64(s.forest_leaf_reflectance),
-                                   "leaf_transmittance": np.float64(s.forest_leaf_transmittance)})
+    write_canopy_npz(out / "canopy.npz", VoxelCanopy(lad, lower, cell, s.forest_leaf_angles, s.forest_leaf_reflectance,
+                                                     s.forest_leaf_transmittance), crs, origin)
     write_atomic(out / "forest.json", json.dumps(summary, indent=2, sort_keys=True) + "\n")
     return summary
