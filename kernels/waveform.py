@@ -17,6 +17,7 @@ import functools
 
 import warp as wp
 
+from kernels.canopy import Canopy, g_of, walk_begin, walk_next
 from kernels.frames import ROW_PULSE, ROW_SEED
 from kernels.mesh_hits import fallback_hit, refine_hit
 
@@ -38,6 +39,7 @@ class WaveformParams:
     sigma: wp.float64  # the pulse's σ [s]
     centre: wp.float64  # the pulse's centre after its start, τ/2 [s]
     peak_power: wp.float64  # P_max [W]
+    leaf_link: wp.float64  # through a canopy: T_A² D² η_t η_r / 4 times the leaves' reflectance ρ_l [m²]
 
 
 @wp.struct
@@ -115,16 +117,61 @@ def _flush(impulses: wp.array2d(dtype=wp.float64), slot: int, i: int, low: wp.fl
         wp.atomic_add(impulses, slot, i + 1, high)
 
 
+@wp.func
+def leaf_echo(c: Canopy, p: WaveformParams, start: wp.vec3d, direction: wp.vec3d, t_end: wp.float64,
+              weight: wp.float64, t0: wp.float64, impulses: wp.array2d(dtype=wp.float64), slot: int):
+    """A sub-ray's echo from the leaves between its start and ``t_end`` [m]: in a voxel of extinction κ entered
+    with transmission T at t_a, the stretch [u, v] sends back w ρ_l T (e^{−κ(u − t_a)} − e^{−κ(v − t_a)}) · link/r²
+    (leaves scatter as a Lambertian surface of albedo ρ_l facing the beam; light returns through the same gaps),
+    cut at the sample boundaries and each piece split linearly between the two samples around its middle.
+    Returns (the transmission left at t_end, the echo inside the window, outside it, first and last sample)."""
+    g = g_of(c, direction)
+    transmission = wp.float64(1.0)
+    inside = wp.float64(0.0)
+    outside = wp.float64(0.0)
+    first = int(p.samples)
+    last = int(-1)
+    metres_per_sample = wp.float64(0.5) * LIGHT_SPEED * p.dt
+    w = walk_begin(c, start, direction, wp.float64(0.0), t_end)
+    while w.done == 0:
+        kappa = g * wp.float64(w.lad)
+        if kappa > wp.float64(0.0):
+            u = w.t_in
+            while u < w.t_out:
+                x = (wp.float64(2.0) * u / LIGHT_SPEED - t0) / p.dt
+                v = wp.min(w.t_out, u + (wp.floor(x) + wp.float64(1.0) - x) * metres_per_sample)
+                v = wp.max(v, u + wp.float64(1.0e-9))  # a boundary met by rounding: step on
+                mid = wp.float64(0.5) * (u + v)
+                e = weight * p.leaf_link * transmission * (wp.exp(-kappa * (u - w.t_in)) - wp.exp(-kappa * (v - w.t_in)))
+                e = e / (mid * mid)
+                xm = (wp.float64(2.0) * mid / LIGHT_SPEED - t0) / p.dt
+                i = int(wp.floor(xm))
+                if i < 0 or i + 1 >= p.samples:
+                    outside += e
+                else:
+                    f = xm - wp.float64(i)
+                    _flush(impulses, slot, i, e * (wp.float64(1.0) - f), e * f)
+                    inside += e
+                    first = wp.min(first, i)
+                    last = wp.max(last, i + 1)
+                u = v
+            transmission *= wp.exp(-kappa * (w.t_out - w.t_in))
+        w = walk_next(c, w)
+    return transmission, inside, outside, first, last
+
+
 @functools.cache
-def deposit_kernel(per_face: bool):
+def deposit_kernel(per_face: bool, canopy: bool = False):
     """The deposit kernel, with each sub-ray's link times the albedo of the triangle it hits (``per_face``:
-    ``m.reflectance``) or the run's one link."""
+    ``m.reflectance``) or the run's one link; through the leaves of ``leaves`` (``canopy``: :func:`leaf_echo`, the
+    surface's echo dimmed by the transmission left) or not (compiled out)."""
 
     @wp.kernel(module="unique")
-    def deposit(m: MeshRefs, p: WaveformParams, starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3d),
-                window_start: wp.array(dtype=wp.float64), offsets: wp.array(dtype=wp.vec2d),
-                weights: wp.array(dtype=wp.float64), per_thread: int, impulses: wp.array2d(dtype=wp.float64),
-                received: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.int32)):
+    def deposit(m: MeshRefs, p: WaveformParams, leaves: Canopy, starts: wp.array(dtype=wp.vec3d),
+                directions: wp.array(dtype=wp.vec3d), window_start: wp.array(dtype=wp.float64),
+                offsets: wp.array(dtype=wp.vec2d), weights: wp.array(dtype=wp.float64), per_thread: int,
+                impulses: wp.array2d(dtype=wp.float64), received: wp.array2d(dtype=wp.float64),
+                span: wp.array2d(dtype=wp.int32)):
         """Sub-rays ``group``·per_thread … of beam ``slot``, one after another: each cast, its share of the
         received power g_k [1] added to the impulse train at its delay (linear split). Consecutive sub-rays
         landing in the same sample (a ring of a flat footprint) are summed in registers and added once, and
@@ -148,10 +195,21 @@ def deposit_kernel(per_face: bool):
         for k in range(group * per_thread, wp.min((group + 1) * per_thread, offsets.shape[0])):
             direction = subray_direction(directions[slot], offsets[k])
             face, r, normal = cast64(m, starts[slot], direction)
+            transmission = wp.float64(1.0)
+            if wp.static(canopy):
+                t_end = wp.float64(m.max_range)
+                if face >= 0:
+                    t_end = r
+                transmission, e_in, e_out, e_first, e_last = leaf_echo(leaves, p, starts[slot], direction, t_end,
+                                                                       weights[k], t0, impulses, slot)
+                inside += e_in
+                outside += e_out
+                first = wp.min(first, e_first)
+                last = wp.max(last, e_last)
             if face >= 0:
-                link = p.link
+                link = p.link * transmission
                 if wp.static(per_face):
-                    link = p.link * wp.float64(m.reflectance[face])
+                    link = link * wp.float64(m.reflectance[face])
                 g = weights[k] * link * wp.abs(wp.dot(normal, direction)) / (r * r)
                 wz += weights[k] * (starts[slot][2] + r * direction[2])
                 w += weights[k]

@@ -127,11 +127,13 @@ class WaveformDetector:
         return SubRays(wp.array(offsets, dtype=wp.vec2d, device=device),
                        wp.array(fp.weight, dtype=wp.float64, device=device))
 
-    def struct(self, per_face: bool) -> kw.WaveformParams:
+    def struct(self, per_face: bool, leaf_reflectance: float = 0.0) -> kw.WaveformParams:
         """The kernels' constants. ``link`` is eq. 1's π f T_A² D² η_t η_r / 4 with f = ``waveform.reflectance``;
         with ``per_face`` (the scene carries a Lambertian albedo ρ per triangle, e.g. from land cover) each
         triangle's backscatter is f = ρ/π, so π f = ρ and ``link`` is T_A² D² η_t η_r / 4, which the deposit
-        kernel multiplies by the hit triangle's ρ (``waveform.reflectance`` is then not used)."""
+        kernel multiplies by the hit triangle's ρ (``waveform.reflectance`` is then not used). ``leaf_link`` is
+        T_A² D² η_t η_r / 4 times ``leaf_reflectance``, the canopy's leaves' albedo (they scatter as a Lambertian
+        surface facing the beam)."""
         s = self.s
         sys = system(s)
         params = kw.WaveformParams()
@@ -143,6 +145,8 @@ class WaveformDetector:
         params.sigma = model.pulse_sigma_s(sys)
         params.centre = 0.5 * s.pulse_fwhm_s
         params.peak_power = s.peak_power_w
+        params.leaf_link = leaf_reflectance * (s.atmosphere_transmission ** 2 * s.aperture_m ** 2
+                                               * s.transmitter_efficiency * s.receiver_efficiency / 4.0)
         return params
 
     def pulse_taps(self, device: str) -> tuple[wp.array, int]:

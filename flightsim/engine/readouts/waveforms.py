@@ -10,6 +10,7 @@ import warp as wp
 
 from flightsim.core.registry import register
 from flightsim.engine.chunks import Segment
+from flightsim.scenes.canopy import no_canopy
 from kernels import trace
 from kernels import waveform as kw
 
@@ -89,7 +90,11 @@ class Waveforms:
 
     def begin(self, tracer) -> wp.array:
         det = tracer.instrument.detector
-        self.params, self.subrays = det.struct(tracer.meshes.per_face), det.subrays(tracer.device)
+        canopy = tracer.scene.canopy
+        self.params = det.struct(tracer.meshes.per_face, 0.0 if canopy is None else canopy.leaf_reflectance)
+        self.subrays = det.subrays(tracer.device)
+        self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
+        self.canopy = canopy is not None
         self.taps, self.first_lag = det.pulse_taps(tracer.device)
         self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
         self.buffers = _Buffers(tracer, self.params)
@@ -105,8 +110,8 @@ class Waveforms:
         b.received.zero_()
         wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[b.span], device=d)
         groups = -(-len(self.subrays) // kw.SUBRAYS_PER_THREAD)
-        wp.launch(kw.deposit_kernel(tracer.meshes.per_face), (n, groups),
-                  inputs=[self.refs, params, b.starts, b.directions, b.window, self.subrays.offsets,
+        wp.launch(kw.deposit_kernel(tracer.meshes.per_face, self.canopy), (n, groups),
+                  inputs=[self.refs, params, self.leaves, b.starts, b.directions, b.window, self.subrays.offsets,
                           self.subrays.weights, kw.SUBRAYS_PER_THREAD],
                   outputs=[b.impulses, b.received, b.span], device=d)
         wp.launch(kw.convolve, (n, params.samples), inputs=[b.impulses, b.span, self.taps, self.first_lag],
