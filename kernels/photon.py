@@ -26,6 +26,8 @@ import math
 
 import warp as wp
 
+from kernels.canopy import Canopy
+from kernels.canopy_photons import LeafRay, leaf_sum, transmission_to
 from kernels.frames import ROW_PULSE, ROW_SEED
 from kernels.trace import STATUS_RETURN
 
@@ -114,29 +116,47 @@ def _uniform64(state: wp.uint32):
     return (wp.float64(bits) + wp.float64(0.5)) / wp.float64(4294967296.0), state
 
 
+@wp.func
+def _source(v: wp.float64, surface: wp.float64, lit: wp.float64, green: wp.float64, noise: wp.float64):
+    """Which process a detection came from, drawn in proportion to the rates at its time (``v`` uniform in (0, 1)):
+    1 the surface, 2 a retroreflector, 3 the leaves, 0 background or dark counts."""
+    share = v * (surface + lit + green + noise)
+    if share < surface:
+        return wp.int8(1)
+    if share < surface + lit:
+        return wp.int8(2)
+    if share < surface + lit + green:
+        return wp.int8(3)
+    return wp.int8(0)
+
+
 @functools.cache
-def sampler(retro: bool):
-    """The photon sampler's device functions, with the retroreflector's echo (``retro``) or without it
-    (compiled out: the surface-only sampler of the SPAD frames pays nothing for it); returns detect."""
+def sampler(retro: bool, leaves: bool = False):
+    """The photon sampler's device functions, with the retroreflector's echo (``retro``) and the leaves' along the
+    beam (``leaves``: :mod:`kernels.canopy_photons`, whose integral up to the gate's opening is ``leaf.at_open``)
+    or without them (compiled out: the surface-only sampler of the SPAD frames pays nothing for them); returns
+    detect."""
 
     @wp.func
-    def integrated_intensity(det: PhotonDetector, t: wp.float64, e: Echoes):
+    def integrated_intensity(det: PhotonDetector, t: wp.float64, e: Echoes, c: Canopy, leaf: LeafRay):
         """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]."""
         value = det.noise_rate * (t - det.gate_open) + e.n0 * (_normal_cdf((t - e.t0) / det.sigma_t) - e.cdf0)
         if wp.static(retro):
             value += e.n1 * (_normal_cdf((t - e.t1) / det.sigma_t) - e.cdf1)
+        if wp.static(leaves):
+            value += leaf_sum(c, leaf, det.sigma_t, t, 0) - leaf.at_open
         return value
 
 
     @wp.func
-    def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes):
+    def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes, c: Canopy, leaf: LeafRay):
         """Λ⁻¹(target) for Λ's dominant part (the surface echo's): the noise line where the target lies before
         or after the echo (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to its centre."""
         reach = wp.float64(ECHO_SIGMAS) * det.sigma_t
         start = wp.max(lo, e.t0 - reach)
-        before = integrated_intensity(det, lo, e) + det.noise_rate * (start - lo)
+        before = integrated_intensity(det, lo, e, c, leaf) + det.noise_rate * (start - lo)
         if target <= before or e.n0 <= wp.float64(0.0):
-            return lo + (target - integrated_intensity(det, lo, e)) / det.noise_rate
+            return lo + (target - integrated_intensity(det, lo, e, c, leaf)) / det.noise_rate
         after = det.noise_rate * (e.t0 + reach - det.gate_open) + e.n0 * (wp.float64(1.0) - ECHO_CDF_LOW - e.cdf0)
         if target >= after:
             return e.t0 + reach + (target - after) / det.noise_rate
@@ -146,14 +166,14 @@ def sampler(retro: bool):
 
 
     @wp.func
-    def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes):
+    def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes, c: Canopy, leaf: LeafRay):
         """The time of flight t ≥ lo at which Λ(t) = target ≤ Λ(gate close) (safeguarded Newton)."""
         hi = det.gate_close
-        t = _first_guess(det, target, lo, e)
+        t = _first_guess(det, target, lo, e, c, leaf)
         if not (t > lo and t < hi):
             t = lo
         for _ in range(INVERSION_STEPS):
-            f = integrated_intensity(det, t, e) - target
+            f = integrated_intensity(det, t, e, c, leaf) - target
             if f == wp.float64(0.0):
                 return t
             if f < wp.float64(0.0):
@@ -163,6 +183,8 @@ def sampler(retro: bool):
             rate = det.noise_rate + echo_rate(det, t, e.t0, e.n0)
             if wp.static(retro):
                 rate += echo_rate(det, t, e.t1, e.n1)
+            if wp.static(leaves):
+                rate += leaf_sum(c, leaf, det.sigma_t, t, 1)
             step = wp.float64(0.5) * (lo + hi)
             if rate > wp.float64(0.0):
                 newton = t - f / rate
@@ -174,35 +196,33 @@ def sampler(retro: bool):
         return t
 
     @wp.func
-    def detect(det: PhotonDetector, state: wp.uint32, e: Echoes, row: int,
+    def detect(det: PhotonDetector, state: wp.uint32, e: Echoes, c: Canopy, leaf: LeafRay, row: int,
                times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8)):
         """Sample one pixel's detections of one pulse (its echoes ``e``) into row ``row`` of ``times`` [s] and
-        ``signal`` (0 noise, 1 the surface's echo, 2 the retroreflector's), in time order; return their count."""
+        ``signal`` (0 noise, 1 the surface's echo, 2 the retroreflector's, 3 the leaves'), in time order; return
+        their count."""
         live = det.gate_open
-        total = integrated_intensity(det, det.gate_close, e)
+        total = integrated_intensity(det, det.gate_close, e, c, leaf)
         count = int(0)
         while count < det.max_events and live < det.gate_close:
             u, state = _uniform64(state)
-            target = integrated_intensity(det, live, e) - wp.log(u)
+            target = integrated_intensity(det, live, e, c, leaf) - wp.log(u)
             if target >= total:
                 break
-            t = _invert(det, target, live, e)
+            t = _invert(det, target, live, e, c, leaf)
             surface = echo_rate(det, t, e.t0, e.n0)
             lit = wp.float64(0.0)
             if wp.static(retro):
                 lit = echo_rate(det, t, e.t1, e.n1)
+            green = wp.float64(0.0)
+            if wp.static(leaves):
+                green = leaf_sum(c, leaf, det.sigma_t, t, 1)
             v, state = _uniform64(state)
             if det.tdc_bin > wp.float64(0.0):
                 times[row, count] = (wp.floor(t / det.tdc_bin) + wp.float64(0.5)) * det.tdc_bin
             else:
                 times[row, count] = t
-            share = v * (surface + lit + det.noise_rate)
-            flag = wp.int8(0)
-            if share < surface:
-                flag = wp.int8(1)
-            elif share < surface + lit:
-                flag = wp.int8(2)
-            signal[row, count] = flag
+            signal[row, count] = _source(v, surface, lit, green, det.noise_rate)
             count += 1
             live = t + det.dead_time
         return count
@@ -219,7 +239,7 @@ def photon_events(det: PhotonDetector, seed: int, first_slot: wp.int64, n_signal
     i = wp.tid()
     state = wp.rand_init(seed, int((first_slot + wp.int64(i)) % wp.int64(2147483647)))
     counts[i] = wp.static(sampler(False))(det, state, echoes(det, n_signal[i], t0[i], wp.float64(0.0),
-                                                             wp.float64(0.0)), i, times, signal)
+                                                             wp.float64(0.0)), Canopy(), LeafRay(), i, times, signal)
 
 
 @wp.func
@@ -238,9 +258,10 @@ def retro_echo(position: wp.vec3d, photons: wp.float64, footprint: wp.float64, s
 
 
 @functools.cache
-def photon_slots_kernel(retro: bool, per_face: bool):
-    """The kernel turning a traced chunk's slots into detections, with or without retroreflectors, and with
-    the scene's per-triangle reflectance (``per_face``) or the run's one value."""
+def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
+    """The kernel turning a traced chunk's slots into detections, with or without retroreflectors, with
+    the scene's per-triangle reflectance (``per_face``) or the run's one value, and through the leaves of
+    ``canopy`` (``leaves``) or not."""
 
     @wp.kernel(module="unique")
     def photon_slots(det: PhotonDetector, reflectance: wp.float64, face_reflectance: wp.array(dtype=wp.float32),
@@ -250,6 +271,7 @@ def photon_slots_kernel(retro: bool, per_face: bool):
                      cos_incidence: wp.array(dtype=wp.float32), ccr_positions: wp.array(dtype=wp.vec3d),
                      ccr_photons: wp.float64, footprint: wp.float64, starts: wp.array(dtype=wp.vec3d),
                      directions: wp.array(dtype=wp.vec3d), delays: wp.array(dtype=wp.float32), drift: wp.float64,
+                     canopy: Canopy, leaf_reflectance: wp.float64,
                      times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8),
                      counts: wp.array(dtype=wp.int32)):
         """The detections of each slot of a traced chunk: its return (if any) through the lidar equation, with
@@ -257,8 +279,9 @@ def photon_slots_kernel(retro: bool, per_face: bool):
         or the run's ``reflectance`` (without; ``face_reflectance`` is then a placeholder), the
         retroreflector its footprint lights most (``ccr_positions``, with ``retro``: ``starts`` and
         ``directions`` the beams' true rays; its range read through the ranging chain's drift and the
-        beam's delay, as the surface's), background and dark counts over the whole gate. Keyed by (line
-        seed, pulse · beams + beam)."""
+        beam's delay, as the surface's), the leaves along the beam (``leaves``: ``starts``/``directions``
+        again; the surface's echo dimmed by what they let through), background and dark counts over the whole
+        gate. Keyed by (line seed, pulse · beams + beam)."""
         slot = wp.tid()
         p = slot // per_pulse
         beam = slot % per_pulse
@@ -281,7 +304,22 @@ def photon_slots_kernel(retro: bool, per_face: bool):
                 if n_c > n1:
                     n1 = n_c
                     t1 = t_c * (wp.float64(1.0) + drift) + wp.float64(2.0) * wp.float64(delays[beam]) / LIGHT_SPEED
-        counts[slot] = wp.static(sampler(retro))(det, state, echoes(det, n, echo, n1, t1), slot, times, signal)
+        leaf = LeafRay()
+        if wp.static(leaves):
+            if wp.length(directions[slot]) > wp.float64(0.5):  # the beam left the instrument
+                leaf.start = starts[slot]
+                leaf.direction = directions[slot]
+                leaf.t_end = wp.float64(0.5) * LIGHT_SPEED * det.gate_close
+                if status[slot] == STATUS_RETURN:
+                    leaf.t_end = wp.float64(ranges[slot])
+                leaf.scale = expected_signal(det, wp.float64(1.0), wp.float64(1.0), leaf_reflectance)
+                leaf.drift = drift
+                leaf.delay = wp.float64(2.0) * wp.float64(delays[beam]) / LIGHT_SPEED
+                leaf.present = canopy.present
+                n = n * transmission_to(canopy, leaf)
+                leaf.at_open = leaf_sum(canopy, leaf, det.sigma_t, det.gate_open, 0)
+        counts[slot] = wp.static(sampler(retro, leaves))(det, state, echoes(det, n, echo, n1, t1), canopy, leaf, slot,
+                                                         times, signal)
 
     return photon_slots
 

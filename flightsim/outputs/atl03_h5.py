@@ -10,7 +10,7 @@ gtN/heights/signal_conf_ph    int8     ATL03's confidence 0 noise, 1 buffer, 2 l
                                        background of the telemetry band (flightsim.scoring.signal_finder),
                                        not from the truth; one surface type
 gtN/heights/truth_kind        int8     the simulator's truth: 0 background or dark count, 1 the surface's
-                                       echo, 2 a corner cube's
+                                       echo, 2 a corner cube's, 3 leaves' (a canopy)
 gtN/heights/ph_id_pulse       int64    pulse index within its line
 gtN/heights/dist_ph_along     float64  horizontal distance from the line's first photon [m]
 gtN/geolocation/delta_time, reference_photon_lat, reference_photon_lon, reference_photon_h: per shot

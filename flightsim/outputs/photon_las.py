@@ -1,7 +1,8 @@
 """Photon events of a photon-counting run as LAS 1.4 tiles (``photons/``), in the CRS the user picks.
 
 Every detection is written, signal and noise alike: classification 1 (unclassified) for the pulse's
-photons (the surface's or a corner cube's echo) and 7 (low noise) for background and dark counts — the
+photons (the surface's or a corner cube's echo), 5 (high vegetation) for the leaves' of a canopy and 7 (low
+noise) for background and dark counts — the
 simulator's truth, as the discrete-return tiles take their classes from the scene; the ATL03-style
 confidence of a classifier is in atl03.h5. Each point is the photon on its believed beam at c·t/2 (the
 processing's geolocation, as photons.h5 and atl03.h5 have it).
@@ -37,7 +38,8 @@ from flightsim.platforms.orbit import local_to_geodetic
 from flightsim.scenes.scene import parse_crs
 
 C_HALF = 299_792_458.0 / 2.0  # [m/s]
-SIGNAL_CLASS, NOISE_CLASS = 1, 7  # ASPRS: unclassified, low noise
+SIGNAL_CLASS, NOISE_CLASS, LEAF_CLASS = 1, 7, 5  # ASPRS: unclassified, low noise, high vegetation
+LEAF_KIND = 3  # the photon kernel's truth flag of the leaves' photons (kernels/photon.py)
 FOLDER = "photons"
 
 
@@ -100,7 +102,8 @@ class PhotonLas:
             x=world[:, 0], y=world[:, 1], z=world[:, 2],
             gps_time=self.timing.pulse_times(chunk.start_time, chunk.pulse),
             point_source_id=np.full(len(chunk), chunk.line_id, dtype=np.uint16),
-            classification=np.where(chunk.signal, SIGNAL_CLASS, NOISE_CLASS).astype(np.uint8),
+            classification=np.select([chunk.kind == LEAF_KIND, chunk.signal], [LEAF_CLASS, SIGNAL_CLASS],
+                                     NOISE_CLASS).astype(np.uint8),
             scan_angle_deg=np.degrees(np.arctan2(d[:, 0], -d[:, 2])).astype(np.float32),
             intensity=np.zeros(len(chunk), dtype=np.uint16),
             beam_row=(chunk.pixel // self.n).astype(np.uint8), beam_col=(chunk.pixel % self.n).astype(np.uint8),

@@ -14,6 +14,7 @@ from flightsim.core.registry import register
 from flightsim.core.warp_runtime import to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, SLOTS_PER_CHUNK, Segment
 from flightsim.engine.readouts.points import PointBuffers, trace_points
+from flightsim.scenes.canopy import no_canopy
 from kernels import photon, trace
 
 
@@ -27,7 +28,7 @@ class PhotonChunk:
     pixel: np.ndarray  # (m,) int32 beam (pixel) index
     time_of_flight_s: np.ndarray  # (m,) float64 [s]
     signal: np.ndarray  # (m,) bool: the photon came from the pulse (truth), else background or dark count
-    kind: np.ndarray  # (m,) int8 truth: 0 background or dark count, 1 the surface's echo, 2 a retroreflector's
+    kind: np.ndarray  # (m,) int8 truth: 0 background or dark count, 1 the surface's echo, 2 a retroreflector's, 3 leaves'
     points: np.ndarray  # (m, 3) float64 local [m]: the photon placed on its believed beam at c·t/2
     directions: np.ndarray  # (m, 3) float32 local unit direction of the photon's believed beam
 
@@ -49,16 +50,16 @@ class DevicePhotons:
 
 class Retroreflectors:
     """The scene's corner-cube retroreflectors as the photon kernel reads them, and the chunk's true beam
-    rays they need (one-element placeholders when the scene has none)."""
+    rays they (or a canopy's leaves: ``rays``) need (one-element placeholders when neither needs them)."""
 
-    def __init__(self, scene, divergence_mrad: float, slots: int, device: str):
+    def __init__(self, scene, divergence_mrad: float, slots: int, device: str, rays: bool = False):
         """scene: the [scene] settings (ccrs, ccr_photons); divergence_mrad: the beams' full divergence [mrad]."""
         positions = np.asarray(scene.ccrs, dtype=np.float64).reshape(-1, 3)
         self.count = len(positions)
         self.positions = wp.array(positions, dtype=wp.vec3d, device=device)
         self.photons = scene.ccr_photons
         self.footprint = divergence_mrad * 0.5e-3  # the e⁻² half angle [rad]
-        size = slots if self.count else 1
+        size = slots if self.count or rays else 1
         self.starts, self.directions = (wp.empty(size, dtype=wp.vec3d, device=device) for _ in range(2))
 
 
@@ -119,21 +120,27 @@ class Photons:
         settings = tracer.instrument.detector.s
         self.events = PhotonBuffers(slots, settings.max_events, tracer.device)
         self.detector, self.reflectance = tracer.instrument.detector.struct(), settings.reflectance
-        self.retro = Retroreflectors(tracer.cfg.scene, tracer.instrument.emitter.divergence_mrad, slots, tracer.device)
+        self.retro = Retroreflectors(tracer.cfg.scene, tracer.instrument.emitter.divergence_mrad, slots, tracer.device,
+                                     rays=tracer.scene.canopy is not None)
         self.ranges_only = dataclasses.replace(tracer.features, exact=False, nominal=False, edges=False)
+        canopy = tracer.scene.canopy
+        self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
+        self.leaf_reflectance = 0.0 if canopy is None else canopy.leaf_reflectance
         return self.buffers.pulses
 
     def chunk(self, tracer, segments: list[Segment], n_slots: int, counts, consume) -> None:
         b, retro, d = self.buffers, self.retro, tracer.device
         trace_points(tracer, b, n_slots, self.ranges_only)  # ranges only: no georeferencing
-        if retro.count:
+        leaves = tracer.scene.canopy is not None
+        if retro.count or leaves:  # the beams' true rays
             wp.launch(trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose),
                       n_slots, inputs=[b.pulses, tracer.scan], outputs=[retro.starts, retro.directions], device=d)
         meshes = tracer.meshes
-        wp.launch(photon.photon_slots_kernel(retro.count > 0, meshes.per_face), n_slots,
+        wp.launch(photon.photon_slots_kernel(retro.count > 0, meshes.per_face, leaves), n_slots,
                   inputs=[self.detector, self.reflectance, meshes.reflectance, b.pulses, tracer.beams_per_pulse,
                           b.status, b.ranges, b.faces, b.cos_incidence, retro.positions, retro.photons, retro.footprint,
-                          retro.starts, retro.directions, tracer.scan.ranging.delays, tracer.scan.ranging.drift],
+                          retro.starts, retro.directions, tracer.scan.ranging.delays, tracer.scan.ranging.drift,
+                          self.leaves, self.leaf_reflectance],
                   outputs=[self.events.times, self.events.signal, self.events.counts], device=d)
         found = self.events.gather(n_slots, b.pulses, tracer.scan, tracer.instrument.kernel)
         counts.returns += found.count
