@@ -189,3 +189,21 @@ def test_a_cloud_scene_keeps_its_points_however_often_it_is_built(tmp_path, monk
     cfg = flightsim.load_config(overrides={"scene.name": str(DATA / "cloud_plot.laz")})
     first, second = (build_scene(cfg.scene, 0.0, use_cache=True) for _ in range(2))
     assert len(first.cloud) == len(second.cloud) == 13_475
+
+
+def test_a_cloud_scene_carries_the_leaf_area_its_first_returns_imply():
+    import flightsim
+    from flightsim.scenes.build import build_scene
+
+    cfg = flightsim.load_config(overrides={"scene.name": str(DATA / "cloud_plot.laz"), "scene.cloud_voxel_m": [4.0, 1.0]})
+    scene = build_scene(cfg.scene, 0.0)
+    canopy, cloud = scene.canopy, scene.cloud
+    assert np.array_equal(canopy.cell, [4.0, 4.0, 1.0]) and canopy.leaf_reflectance == cfg.scene.rho_canopy
+    # every vegetation point lies inside the grid, and the grid holds leaves only in columns with vegetation
+    vegetation = cloud.xyz[np.isin(cloud.classification, (3, 4, 5))]
+    index = np.floor((vegetation - canopy.lower) / canopy.cell).astype(int)
+    assert (index >= 0).all() and (index < np.array(canopy.lad.shape)).all()
+    leafy = canopy.lad.sum(axis=2) > 0
+    occupied = np.zeros(leafy.shape, bool)
+    occupied[index[:, 0], index[:, 1]] = True
+    assert leafy.any() and not (leafy & ~occupied).any()
