@@ -58,7 +58,7 @@ def markdown(merged: dict) -> str:
             lines += ["Sections measured at (commit, date): " + ", ".join(
                 f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
         lines += (_throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r)
-                  + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r))
+                  + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r) + _forest(r))
     return "\n".join(lines) + "\n"
 
 
@@ -125,6 +125,29 @@ def _waveform(r: dict) -> list[str]:
             "| footprint | shots | sub-rays | samples per waveform | wall [s] | sub-ray returns/s, end to end | "
             "accumulation | bare ray cast returns/s | ratio | convolution [ms] |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", *rows, ""]
+
+
+def _forest(r: dict) -> list[str]:
+    if "forest" not in r:
+        return []
+    c, v, a = r["forest"]["cloud"], r["forest"]["voxels"], r["forest"]["als"]
+    return ["", "### Forests", "",
+            "Targets (H100): ≥ 1e5 point-cloud waveforms/s from ≥ 1e7 points; ≥ 1e9 ray-voxel steps/s; discrete ALS "
+            "over a 1 km² voxel forest at ≥ 0.5 of the throughput over its bare ground.", "",
+            "| point-cloud waveforms (GEDI method) | points | footprints | device [s] | footprints/s | NumPy float64 "
+            "footprints/s | speed-up | least correlation with NumPy |", "| --- | --- | --- | --- | --- | --- | --- | --- |",
+            f"| {c['samples']} samples of 1 ns | {c['points']:,} | {c['footprints']:,} | {c['device_s']:.3f} | "
+            f"{_fmt(c['footprints_per_s'])} | {_fmt(c['numpy_footprints_per_s'])} | {_fmt(c['speedup'])} | "
+            f"{c['min_correlation']:.6f} |", "",
+            f"Device: end to end (the waveforms copied to the host), the cloud sorted once beforehand in "
+            f"{c['prepare_s']:.2f} s; NumPy: {c['numpy_footprints']} footprints, its KD-tree built in the call.", "",
+            f"Leaf voxel walk: {v['rays']:,} rays through a {'×'.join(map(str, v['grid']))} grid, {v['steps']:,} "
+            f"steps in {v['wall_s']:.4f} s: {_fmt(v['steps_per_s'])} steps/s.", "",
+            "| discrete ALS, points readout on the device | beams | returns | wall [s] | beams/s |",
+            "| --- | --- | --- | --- | --- |",
+            *[f"| {name} ({a['forest_size_m']:g} m square) | {x['beams']:,} | {x['returns']:,} | {x['wall_s']:.3f} | "
+              f"{_fmt(x['beams_per_s'])} |" for name, x in (("forest, LAI 3", a["forest"]), ("bare ground", a["bare"]))],
+            "", f"Forest ÷ bare ground: {a['ratio']:.2f}.", ""]
 
 
 def _stages(r: dict) -> list[str]:
