@@ -301,3 +301,12 @@ def walk_steps(c: Canopy, starts: wp.array(dtype=wp.vec3d), directions: wp.array
         w = walk_next(c, w)
     steps[i] = n
     depth[i] = total
+
+
+@wp.kernel
+def interactions(c: Canopy, starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp.vec3d),
+                 t_end: wp.float64, xi: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+    """Each ray's first interaction with the leaves between t = 0 and ``t_end`` for its uniform deviate ``xi``
+    (:data:`NO_INTERACTION` where it has none): a Monte Carlo of photons through the canopy."""
+    i = wp.tid()
+    out[i] = first_interaction(c, starts[i], directions[i], wp.float64(0.0), t_end, xi[i])
