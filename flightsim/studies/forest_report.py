@@ -23,6 +23,11 @@ import warp as wp
 
 from flightsim.core.atomic import write_atomic
 from flightsim.core.warp_runtime import resolve_device
+from flightsim.engine.config import set_value, validate
+from flightsim.engine.config_io import preset_config
+from flightsim.engine.readouts.points import Points
+from flightsim.engine.tracer import Tracer
+from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.scenes.canopy import VoxelCanopy
 from flightsim.scenes.leaf_angles import g_function
 from kernels import canopy as kc
@@ -104,19 +109,22 @@ def first_return_cover(device: str, seed: int = 0, voxel_m: float = 1.0) -> dict
     of those first returns' positions whose voxel column holds leaves), over beams landing inside the stand: a
     nadir-looking discrete profiler flown in 20 lines 10 m apart over the default procedural forest, its crowns in
     voxels of ``voxel_m``."""
-    import flightsim
     from flightsim.scenes.forest_scene import stand
     from flightsim.studies.forest_truth import canopy_cover
 
-    cfg = flightsim.load_config(overrides={
-        "scene.name": "forest", "scene.forest_voxel_m": voxel_m, "instrument.deflector": "fixed", "fan.array": 1,
-        "fixed.prf_hz": 2000.0, "flight.duration_s": 4.0, "flight.lines": 20, "flight.line_spacing_m": 10.0,
-        "run.seed": seed, "output.models": ["exact"], "run.device": device})
-    result = flightsim.simulate(cfg, with_truth=True)
-    trees, leaves = stand(cfg.scene, seed), result.scene.canopy
-    r = result.returns
-    first = r.return_number == 1
-    local = r.true_points[first] - result.scene.origin
+    cfg = preset_config("risley")
+    for key, value in {"scene.name": "forest", "scene.forest_voxel_m": voxel_m, "instrument.deflector": "fixed",
+                       "fan.array": 1, "fixed.prf_hz": 2000.0, "flight.duration_s": 4.0, "flight.lines": 20,
+                       "flight.line_spacing_m": 10.0, "run.seed": seed, "output.models": ["exact"],
+                       "run.device": device}.items():
+        set_value(cfg, key, value)
+    cfg = validate(cfg)
+    scene = build_scene(cfg)
+    chunks = []
+    Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=True).run(Points(), consume=chunks.append)
+    trees, leaves = stand(cfg.scene, seed), scene.canopy
+    first = np.concatenate([c.return_number for c in chunks]) == 1
+    local = np.concatenate([c.true_points for c in chunks])[first]
     inside = np.all(np.abs(local[:, :2]) < trees.size_m / 2.0, axis=1)
     crown = local[inside, 2] > 0.5  # above the flat ground: leaves or stems
     column = np.floor((local[inside, :2] - leaves.lower[:2]) / leaves.cell[:2]).astype(int)
