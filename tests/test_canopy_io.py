@@ -229,3 +229,14 @@ def test_scene_canopy_lays_the_grid_over_any_scene(tmp_path, capsys):
     assert build_scene(flightsim.load_config().scene, 50.0).canopy is None
     assert main(["config", "--set", "scene.canopy=leaves.png"]) == 2
     assert "scene.canopy" in capsys.readouterr().err
+
+
+def test_a_scene_that_brings_its_own_leaves_refuses_scene_canopy(tmp_path):
+    import flightsim
+    from flightsim.scenes.build import build_scene
+
+    write_canopy_npz(tmp_path / "c.npz", VoxelCanopy(_lad(), LOWER_WORLD - ORIGIN, CELL), CRS, ORIGIN)
+    cfg = flightsim.load_config(overrides={"scene.name": "forest", "scene.forest_size_m": 20.0,
+                                           "scene.canopy": str(tmp_path / "c.npz")})
+    with pytest.raises(InputError, match="scene.canopy.*forest scene: it brings its own leaves"):
+        build_scene(cfg.scene, 50.0)

@@ -31,5 +31,8 @@ def build_scene(scene, half_extent_m: float, seed: int = 0, use_cache: bool = Tr
 
         built = cached_scene(scene.name, scene.values(), lambda: part.build(half_extent_m, seed), grid_device=device)
     if scene.canopy:
+        if built.canopy is not None:
+            raise InputError("scene.canopy", scene.canopy, f"\"\" for the {scene_kind(scene.name)} scene: it brings "
+                             "its own leaves")
         built.canopy = read_canopy(scene.canopy, built.crs, built.origin)
     return built
