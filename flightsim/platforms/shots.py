@@ -9,7 +9,8 @@ own, ``line_id`` = i, firing one pulse at its time (``delta_time``, else ``fligh
 looking at nadir (body z down, heading north), so the beam axis meets that surface at the footprint centre.
 
 Each line is two samples at the same pose, the second one float64 step after the first: the line fires exactly
-one pulse for any pulse rate whose period exceeds that step (at GPS times up to 4e8 s, any rate up to 1e7 Hz).
+one pulse for any pulse rate whose period exceeds that step (at GPS times below 2²⁹ s ≈ 5.4e8 s, the default
+flight.start_gps_time of 4.5e8 s included, any rate up to 1e7 Hz).
 Every problem — a missing file or column, a value that is not a finite number, no row, more rows than line ids,
 a footprint with no scene beneath it — is an InputError naming ``flight.footprints`` and the row.
 """
