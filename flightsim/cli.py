@@ -270,10 +270,14 @@ def cmd_waveform(args: argparse.Namespace) -> int:
     settings = dict(_set_items(args))
     resolve_device(args.device)
     if args.patent:
+        if args.instrument != "change1" or args.footprints:
+            raise InputError("--patent", "with --instrument/--footprints", "the change1 altimeter over the patent's "
+                                                                         "own footprints (no --instrument, --footprints)")
         run_patent(Path(args.out), device=args.device, **settings)
         print((Path(args.out) / "REPORT.md").read_text())
         return 0
-    summary = run_one(args.scene, Path(args.out), args.device, args.config, args.overwrite, **settings)
+    summary = run_one(args.scene, Path(args.out), args.device, args.config, args.overwrite, args.instrument,
+                      args.footprints, **settings)
     if "empty" in summary:
         return _nothing_made(summary, args.out)
     print(f"{summary['waveforms']} waveforms ({summary['subray_returns']} sub-ray returns) in {summary['wall_s']:.2f} s; "
@@ -426,10 +430,14 @@ def _add_study_commands(sub) -> None:
 def _add_instrument_commands(sub) -> None:
     """waveform and calibrate (the altimeters' studies), and info."""
     waveform = sub.add_parser("waveform", help="full-waveform echoes of the large-footprint lunar altimeter "
-                                               "(the change1 preset)")
-    waveform.add_argument("--scene", default="flat", help="flat (default), slope, bump, or PATH.obj / PATH.ply")
+                                               "(the change1 preset) or of GEDI (--instrument gedi)")
+    waveform.add_argument("--scene", default="flat", help="flat (default), slope, bump, or PATH.obj / PATH.ply / "
+                                                          "PATH.las / PATH.laz")
+    waveform.add_argument("--instrument", default="change1", help="change1 (default) or gedi (writes l2a.h5 too)")
+    waveform.add_argument("--footprints", help="CSV of footprint centres (columns x, y in the scene's CRS, optional "
+                                               "delta_time): one nadir pulse at each (flight.platform = shots)")
     waveform.add_argument("--patent", action="store_true", help="the patent's Figs. 3-5 with REPORT.md")
-    waveform.add_argument("--config", help="run config TOML over the change1 preset")
+    waveform.add_argument("--config", help="run config TOML over the instrument's preset")
     waveform.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     waveform.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config field")
     waveform.add_argument("--overwrite", action="store_true", help="replace an existing output directory")

@@ -11,6 +11,12 @@ Eq. 1's backscatter f is ``waveform.reflectance`` on every face, unless the scen
 albedo ρ per triangle (``Scene.reflectance``, from a land-cover raster): then each sub-ray's f is ρ/π
 of the triangle it hits (a Lambertian surface's bidirectional reflectance), and ``waveform.reflectance``
 is not used.
+
+Over a point-cloud scene (``scene.name`` a .las/.laz) the detector's waveforms are, by default
+(``waveform.cloud_method = "gedi"``), the ALS points summed by the GEDI simulator's method through the same footprint
+(σ_f = r α / 2, :meth:`WaveformDetector.footprint_sigma_m`), pulse and receiver (readout ``cloud_waveforms``);
+``"rays"`` traces the sub-rays against the cloud's ground mesh (and ``scene.canopy``) as over any mesh.
+``waveform.l2a`` makes the run write the GEDI L2A metrics of its waveforms too (``l2a.h5``).
 """
 from __future__ import annotations
 
@@ -30,6 +36,8 @@ from kernels import waveform as kw
 H = 6.62607015e-34  # Planck constant [J s]
 C = 299_792_458.0  # [m/s]
 WAVEFORM_STREAM = 0x2F6A91  # seed key of the receiver noise
+CLOUD_METHODS = ("gedi", "rays")
+L2A_NOISE_SAMPLES = 64  # samples at each end of a waveform that L2A takes its noise from (l2a.noise_samples)
 
 
 @dataclasses.dataclass
@@ -63,11 +71,20 @@ class WaveformSettings(Settings):
     thermal_noise_w: float = setting(0.0, "receiver noise per sample, rms", "W", range=(0.0, 1.0e3))
     bits: int = setting(0, "digitiser resolution; 0 = no digitiser", "bits", range=(0, 16))
     full_scale_w: float = setting(0.0, "the digitiser's top code; needed with bits", "W", range=(0.0, 1.0e9))
+    l2a: bool = setting(False, "also write l2a.h5: the GEDI L2A metrics of every waveform (after the receiver), "
+                        "with the truth: the ground under the beam axis and the rh of the noise-free waveform")
+    cloud_method: str = setting("gedi", "over a point-cloud scene (.las/.laz): gedi sums the ALS points' pulses over "
+                                "the Gaussian footprint (the GEDI simulator's method); rays traces the sub-rays "
+                                "against the cloud's ground mesh and scene.canopy", choices=CLOUD_METHODS)
 
     def check(self, context) -> None:
         system(self)
         if self.bits and self.full_scale_w <= 0.0:
             raise InputError("waveform.full_scale_w", self.full_scale_w, f"a power > 0 W with waveform.bits = {self.bits}")
+        if self.l2a and self.samples <= 2 * L2A_NOISE_SAMPLES:
+            raise InputError("waveform.samples", self.samples,
+                             f"more than {2 * L2A_NOISE_SAMPLES} samples with waveform.l2a = true (L2A takes each "
+                             f"waveform's noise from {L2A_NOISE_SAMPLES} samples at each end)")
 
 
 def system(s: WaveformSettings, altitude_m: float = 1.0) -> model.WaveformSystem:
@@ -96,7 +113,7 @@ class WaveformDetector:
     """A full waveform per beam: ``[waveform]``."""
 
     settings = WaveformSettings
-    readouts = ("waveforms",)
+    readouts = ("waveforms", "cloud_waveforms")  # sub-rays traced; or, over a point cloud, its points summed
     output = None  # waveforms.h5 has no settings of its own
     scored = False
 
@@ -138,16 +155,35 @@ class WaveformDetector:
         sys = system(s)
         params = kw.WaveformParams()
         pi_f = 1.0 if per_face else np.pi * s.reflectance  # per face: π f = ρ, applied in the kernel
-        params.link = (pi_f * s.atmosphere_transmission ** 2 * s.aperture_m ** 2
-                       * s.transmitter_efficiency * s.receiver_efficiency / 4.0)
+        params.link = pi_f * self.link_m2()
         params.dt = s.sample_interval_s
         params.samples = s.samples
         params.sigma = model.pulse_sigma_s(sys)
         params.centre = 0.5 * s.pulse_fwhm_s
         params.peak_power = s.peak_power_w
-        params.leaf_link = leaf_reflectance * (s.atmosphere_transmission ** 2 * s.aperture_m ** 2
-                                               * s.transmitter_efficiency * s.receiver_efficiency / 4.0)
+        params.leaf_link = leaf_reflectance * self.link_m2()
         return params
+
+    def link_m2(self) -> float:
+        """T_A² D² η_t η_r / 4 [m²]: received / transmitted energy times r² of a Lambertian surface of albedo 1
+        facing the beam (eq. 1 with π f = 1, cos θ_i = 1)."""
+        s = self.s
+        return s.atmosphere_transmission ** 2 * s.aperture_m ** 2 * s.transmitter_efficiency * s.receiver_efficiency / 4.0
+
+    def pulse_energy_j(self) -> float:
+        """Energy of the transmitted pulse, √(2π) σ P_max [J]."""
+        return model.pulse_energy_j(system(self.s))
+
+    def pulse_sigma_s(self) -> float:
+        """σ of the pulse as read through the receiver [s]: the transmitted pulse's, widened in quadrature by a
+        Gaussian receiver response of FWHM ``waveform.receiver_fwhm_s``."""
+        return math.hypot(model.pulse_sigma_s(system(self.s)), self.s.receiver_fwhm_s / model.FWHM_PER_SIGMA)
+
+    def footprint_sigma_m(self, range_m: float) -> float:
+        """σ_f of the Gaussian footprint across the beam at ``range_m`` [m]: the profile exp(−2 tan²φ/α²) is
+        exp(−ρ²/2σ_f²) at ρ = r tan φ, so σ_f = r α / 2; the footprint's edge (tan φ = α, where the sub-rays stop)
+        is its 1/e² radius 2σ_f."""
+        return 0.5 * range_m * self.s.half_divergence_rad
 
     def pulse_taps(self, device: str) -> tuple[wp.array, int]:
         """(the pulse as read through the receiver at multiples of dt over ±PULSE_SIGMAS σ, the first tap's
@@ -157,7 +193,7 @@ class WaveformDetector:
         s = self.s
         sys = system(s)
         dt, sigma, centre = sys.sample_interval_s, model.pulse_sigma_s(sys), 0.5 * sys.pulse_fwhm_s
-        widened = math.hypot(sigma, s.receiver_fwhm_s / model.FWHM_PER_SIGMA)
+        widened = self.pulse_sigma_s()
         first = int(np.floor((centre - kw.PULSE_SIGMAS * widened) / dt))
         last = int(np.ceil((centre + kw.PULSE_SIGMAS * widened) / dt))
         t = np.arange(first, last + 1, dtype=np.float64) * dt

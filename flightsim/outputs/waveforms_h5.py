@@ -23,8 +23,15 @@ BEAMbbbb/truth/nadir_range_m    float64  the beam's central ray to the scene [m]
 BEAMbbbb/truth/mean_height_m    float64  footprint-weighted mean height (world H) [m]
 BEAMbbbb/truth/received_in_window  float64  share of the received energy inside the window
 
-Attributes: ``sample_interval_s``, ``config_toml``, ``crs_wkt``, ``flightsim``. Written under a temporary
-name and renamed when complete.
+Attributes: ``sample_interval_s``, ``config_toml``, ``crs_wkt``, ``flightsim``; each ``BEAMbbbb`` group's
+attributes are the beam's (``pulse_sigma_s``, ``footprint_sigma_m``, and where they apply ``rho_ground``,
+``rho_canopy``: :class:`WaveformWriter`). Written under a temporary name and renamed when complete.
+
+With an :class:`L2AProduct` the writer hands it every beam's waveforms as it writes them: their GEDI L2A metrics
+(:func:`flightsim.outputs.l2a.l2a_metrics`) go into ``l2a.h5`` beside (:func:`flightsim.outputs.l2a_h5.write_l2a`),
+with the truth: ``elev_ground``, the elevation where the beam's central ray meets the scene (truth/nadir_range_m
+along the beam), and ``rh``, :func:`flightsim.outputs.l2a.truth_rh` of the waveform before the receiver's noise and
+digitiser.
 
 Beside it, ``returns.las``: every Gaussian component of every waveform as a discrete return (LAS 1.4,
 PDRF 6, the scene's CRS), placed on its beam at the component's range c(t − τ/2)/2, at the shot's GPS time.
@@ -38,17 +45,64 @@ import pyproj
 
 from flightsim.instrument import waveform_model as model
 from flightsim.outputs.h5_product import H5Product
+from flightsim.outputs.l2a import L2ASettings, l2a_metrics, truth_rh
 
 MAX_COMPONENTS = 4
 
 
+class L2AProduct:
+    """GEDI L2A metrics of a run's waveforms, beam by beam as they come, into ``path`` (l2a.h5) at :meth:`close`.
+
+    ``dt_s``: sample interval [s]; ``pulse_sigma_s``: σ of the pulse in the waveforms [s]; ``footprint_sigma_m``: the
+    footprint's σ_f [m] (the sensitivity's ground width); ``beam_attrs``: each beam group's attributes
+    (:data:`flightsim.outputs.l2a_h5.BEAM_ATTRS`); ``attrs``: the file's.
+    """
+
+    def __init__(self, path: Path, dt_s: float, pulse_sigma_s: float, footprint_sigma_m: float, beam_attrs: dict,
+                 attrs: dict):
+        self.path, self.dt, self.pulse_sigma = path, dt_s, pulse_sigma_s
+        self.settings = L2ASettings(footprint_sigma_m=footprint_sigma_m)
+        self.beam_attrs, self.attrs = beam_attrs, attrs
+        self.beams: dict[int, list[dict]] = {}
+        self.truth: dict[int, list[dict]] = {}
+
+    def add(self, beam: int, columns: dict[str, np.ndarray], rx: np.ndarray, clean: np.ndarray,
+            ground: np.ndarray) -> None:
+        """One beam's shots: their waveforms ``rx`` after the receiver and ``clean`` before it (S, N) [W],
+        ``columns`` as waveforms.h5 has them, ``ground`` (S,) the true ground elevation [m]."""
+        geo = {f"{q}_{tag}": columns[f"geolocation/{name}_{tag}"] for tag in ("bin0", "lastbin")
+               for q, name in (("elevation", "z"), ("latitude", "latitude"), ("longitude", "longitude"))}
+        metrics = l2a_metrics(rx, self.dt, pulse_sigma_s=self.pulse_sigma, settings=self.settings, **geo)
+        metrics.update(shot_number=columns["shot_number"], delta_time=columns["delta_time"])
+        self.beams.setdefault(beam, []).append(metrics)
+        rh = truth_rh(np.asarray(clean, dtype=np.float64) * self.dt, geo["elevation_bin0"], geo["elevation_lastbin"],
+                      ground)
+        self.truth.setdefault(beam, []).append({"elev_ground": ground, "rh": rh})
+
+    def close(self) -> tuple[str, dict[str, int]]:
+        """Write l2a.h5; (its name, {"shots": shots, "quality_flag": shots flagged 1})."""
+        from flightsim.outputs.l2a_h5 import write_l2a
+
+        beams = {b: {**_joined(parts), **self.beam_attrs} for b, parts in self.beams.items()}
+        truth = {b: _joined(parts) for b, parts in self.truth.items()}
+        write_l2a(self.path, beams, truth, self.attrs)
+        flags = np.concatenate([b["quality_flag"] for b in beams.values()])
+        return self.path.name, {"shots": int(len(flags)), "quality_flag": int(np.count_nonzero(flags == 1))}
+
+
+def _joined(parts: list[dict]) -> dict[str, np.ndarray]:
+    return {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+
+
 class WaveformWriter:
-    """Appends WaveformChunks to ``directory/waveforms.h5``; ``close()`` renames it into place."""
+    """Appends WaveformChunks to ``directory/waveforms.h5``; ``close()`` renames it into place. ``beam_attrs`` are
+    written on every beam group; ``l2a`` (or None) gets every beam's waveforms too."""
 
     def __init__(self, directory: Path, cfg_text: str, system: model.WaveformSystem, prf_hz: float, scene,
-                 tx: tuple[np.ndarray, float]):
+                 tx: tuple[np.ndarray, float], beam_attrs: dict | None = None, l2a: L2AProduct | None = None):
         self.product = H5Product(directory / "waveforms.h5", config_toml=cfg_text, crs_wkt=scene.crs.to_wkt(),
                                  sample_interval_s=system.sample_interval_s)
+        self.beam_attrs, self.l2a = beam_attrs or {}, l2a
         self.system, self.prf_hz, self.scene = system, prf_hz, scene
         self.tx, self.tx_start = tx
         geodetic = scene.crs.geodetic_crs
@@ -61,8 +115,17 @@ class WaveformWriter:
     def __call__(self, chunk) -> None:
         for beam in np.unique(chunk.beam):
             rows = np.flatnonzero(chunk.beam == beam)
-            self._append(f"BEAM{int(beam):04d}", self._columns(chunk, rows), chunk.power_w[rows].ravel())
+            columns = self._columns(chunk, rows)
+            self._append(f"BEAM{int(beam):04d}", columns, chunk.power_w[rows].ravel())
             self.shots += len(rows)
+            if self.l2a is not None:
+                clean = chunk.power_w if chunk.clean_w is None else chunk.clean_w
+                self.l2a.add(int(beam), columns, chunk.power_w[rows], clean[rows], self._ground(chunk, rows, columns))
+
+    def _ground(self, chunk, rows: np.ndarray, columns: dict[str, np.ndarray]) -> np.ndarray:
+        """World elevation where each shot's central ray meets the scene (its nadir range along the beam) [m]."""
+        local = chunk.start[rows] + columns["truth/nadir_range_m"][:, None] * chunk.direction[rows]
+        return local[:, 2] + self.scene.origin[2]
 
     def _columns(self, chunk, rows: np.ndarray) -> dict[str, np.ndarray]:
         s, n = self.system, len(rows)
@@ -127,9 +190,11 @@ class WaveformWriter:
         columns["rx_sample_start_index"] = (rx_before + 1 + np.arange(n) * columns["rx_sample_count"][0]).astype(np.uint64)
         columns["tx_sample_start_index"] = (tx_before + 1 + np.arange(n) * len(self.tx)).astype(np.uint64)
         self.product.append(group, columns)
+        self.product.file[group].attrs.update(self.beam_attrs)
 
     def close(self) -> list[str]:
-        """Finish waveforms.h5 and write returns.las (when any waveform held a return); their names."""
+        """Finish waveforms.h5 and write returns.las (when any waveform held a return); their names. (l2a.h5 is
+        the caller's to close: :meth:`L2AProduct.close`.)"""
         from flightsim.outputs.grid_products import write_points_las
 
         names = [self.product.close()]

@@ -1,6 +1,9 @@
 """`flightsim waveform`: the large-footprint lunar altimeter's echo (seed:
 large-footprint-echo-waveform-patent.txt) over a flat footprint, a 0.20 slope, flat ground with a bump,
-or a mesh; with ``--patent`` the patent's Figs. 3–5 regenerated beside the float64 reference model.
+or a mesh; with ``--patent`` the patent's Figs. 3–5 regenerated beside the float64 reference model. With
+``--instrument gedi`` the GEDI preset instead (waveforms.h5 and l2a.h5), over the same scenes or a point cloud
+(.las/.laz); ``--footprints FILE.csv`` fires one nadir pulse at each footprint centre of the file (the ``shots``
+platform).
 """
 from __future__ import annotations
 
@@ -10,21 +13,28 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.core.atomic import save_figure, write_atomic
+from flightsim.core.errors import InputError
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.config_io import load_toml, preset_config
 from flightsim.instrument import waveform_model as model
 from flightsim.instrument.waveform_surfaces import BumpSurface, PlaneSurface
 
 SCENES = {"flat": ("plane", 0.0), "slope": ("plane", model.PATENT_SLOPE), "bump": ("bump", None)}
+INSTRUMENTS = ("change1", "gedi")  # the waveform presets
 COMMAND = "flightsim waveform --patent --device {device} --out results/waveform"
 
 
-def waveform_config(scene: str, device: str = "cpu", config: str | None = None, **settings) -> RunConfig:
-    """The ``change1`` preset (or ``config`` over it) over ``scene``: flat, slope, bump or a mesh path."""
-    cfg = load_toml(config, preset_config("change1")) if config else preset_config("change1")
+def waveform_config(scene: str, device: str = "cpu", config: str | None = None, instrument: str = "change1",
+                    footprints: str | None = None, **settings) -> RunConfig:
+    """The ``instrument`` preset (``change1`` or ``gedi``; or ``config`` over it) over ``scene``: flat, slope, bump,
+    a mesh or point-cloud path; with ``footprints`` (a CSV of footprint centres) flown by the shots platform."""
+    if instrument not in INSTRUMENTS:
+        raise InputError("--instrument", instrument, "one of " + ", ".join(INSTRUMENTS))
+    cfg = load_toml(config, preset_config(instrument)) if config else preset_config(instrument)
     name, slope = SCENES.get(scene, (scene, None))
     scene_settings = {"scene.name": name, **({"scene.slope": slope} if slope is not None else {})}
-    for key, value in {**scene_settings, "run.device": device, **settings}.items():
+    shots = {"flight.platform": "shots", "flight.footprints": footprints} if footprints else {}
+    for key, value in {**scene_settings, **shots, "run.device": device, **settings}.items():
         set_value(cfg, key, value)
     return validate(cfg)
 
@@ -166,8 +176,11 @@ Reading the numbers:
 """
 
 
-def run_one(scene: str, out: Path, device: str, config: str | None, overwrite: bool, **settings) -> dict:
-    """One simulation of the altimeter over ``scene`` into ``out`` (waveforms.h5, run.toml, summary.json)."""
+def run_one(scene: str, out: Path, device: str, config: str | None, overwrite: bool, instrument: str = "change1",
+            footprints: str | None = None, **settings) -> dict:
+    """One simulation of the ``instrument`` over ``scene`` (at ``footprints``, when given) into ``out``
+    (waveforms.h5, l2a.h5 with the gedi preset, run.toml, summary.json)."""
     from flightsim.engine.run import simulate_to_directory
 
-    return simulate_to_directory(waveform_config(scene, device, config, **settings), out, overwrite=overwrite)
+    cfg = waveform_config(scene, device, config, instrument, footprints, **settings)
+    return simulate_to_directory(cfg, out, overwrite=overwrite)

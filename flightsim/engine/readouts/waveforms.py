@@ -1,8 +1,11 @@
-"""The waveforms readout of the full-waveform detector: per beam, every sub-ray of its footprint traced and its echo
-summed into the beam's waveform on the device (kernels/waveform.py: pilot ray, deposit, convolution with the pulse,
-the receiver's noise and digitiser)."""
+"""The readouts of the full-waveform detector. ``waveforms``: per beam, every sub-ray of its footprint traced and its
+echo summed into the beam's waveform on the device (kernels/waveform.py: pilot ray, deposit, convolution with the
+pulse, the receiver's noise and digitiser). ``cloud_waveforms``: over a point-cloud scene, per beam the ALS points
+around its axis summed by the GEDI simulator's method (:mod:`flightsim.engine.cloud_waveforms`), in the same window
+and through the same receiver."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +18,7 @@ from kernels import trace
 from kernels import waveform as kw
 
 WAVEFORM_SAMPLES_PER_CHUNK = {"cpu": 1 << 22, "cuda": 1 << 28}  # waveform samples per launch
+C = 299_792_458.0  # [m/s]
 
 
 @dataclass
@@ -31,6 +35,7 @@ class WaveformChunk:
     received: np.ndarray  # (m, 4) float64 Σ power shares inside, outside the window; Σ w·z [m], Σ w of the hits (kernels.waveform)
     start: np.ndarray  # (m, 3) float64 local beam start [m]
     direction: np.ndarray  # (m, 3) float64 local unit beam direction
+    clean_w: np.ndarray | None = None  # (m, samples) float32 power before the receiver's noise and digitiser [W]
 
     def __len__(self) -> int:
         return len(self.pulse)
@@ -59,20 +64,56 @@ def mesh_refs(tracer) -> kw.MeshRefs:
 
 
 class _Buffers:
-    """Device arrays of one launch of waveforms."""
+    """Device arrays of one launch of waveforms (``traced``: with the sub-rays' impulse trains)."""
 
-    def __init__(self, tracer, params: kw.WaveformParams):
+    def __init__(self, tracer, params: kw.WaveformParams, traced: bool = True, keep_clean: bool = False):
         budget = max(1, WAVEFORM_SAMPLES_PER_CHUNK[tracer.device_kind] // params.samples)
         pulses = max(1, min(tracer.pulses_per_launch(), budget // tracer.beams_per_pulse))
         slots, d = pulses * tracer.beams_per_pulse, tracer.device
         self.pulses = tracer.pulse_table(pulses)
         self.starts, self.directions = (wp.empty(slots, dtype=wp.vec3d, device=d) for _ in range(2))
         self.window = wp.empty(slots, dtype=wp.float64, device=d)
-        self.impulses = wp.empty((slots, params.samples), dtype=wp.float64, device=d)
         self.power = wp.empty((slots, params.samples), dtype=wp.float32, device=d)
-        self.received = wp.empty((slots, 4), dtype=wp.float64, device=d)
-        self.span = wp.empty((slots, 2), dtype=wp.int32, device=d)
+        self.clean = wp.empty((slots, params.samples), dtype=wp.float32, device=d) if keep_clean else None
         self.keys = wp.empty(slots, dtype=wp.int64, device=d)
+        if traced:
+            self.impulses = wp.empty((slots, params.samples), dtype=wp.float64, device=d)
+            self.received = wp.empty((slots, 4), dtype=wp.float64, device=d)
+            self.span = wp.empty((slots, 2), dtype=wp.int32, device=d)
+
+
+def pilot_windows(tracer, b: _Buffers, refs: kw.MeshRefs, params: kw.WaveformParams, n: int) -> None:
+    """Each slot's beam (start, direction) and window start (−1 where its central ray misses the scene)."""
+    d = tracer.device
+    wp.launch(trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose), n,
+              inputs=[b.pulses, tracer.scan], outputs=[b.starts, b.directions], device=d)
+    wp.launch(kw.pilot, n, inputs=[refs, params, b.starts, b.directions], outputs=[b.window], device=d)
+
+
+def receive(tracer, receiver: kw.Receiver | None, params: kw.WaveformParams, b: _Buffers, n: int) -> None:
+    """The receiver's reading of the first ``n`` rows of ``b.power`` (kept first in ``b.clean`` when it is kept)."""
+    if receiver is None:
+        return
+    d = tracer.device
+    if b.clean is not None:
+        wp.copy(b.clean, b.power, count=n * params.samples)
+    wp.launch(kw.beam_keys, n, inputs=[b.pulses, tracer.beams_per_pulse], outputs=[b.keys], device=d)
+    wp.launch(kw.receive, (n, params.samples), inputs=[receiver, params.dt, params.samples, b.keys],
+              outputs=[b.power], device=d)
+
+
+def hand_over(tracer, segments: list[Segment], slot: np.ndarray, rows: dict[str, np.ndarray], counts,
+              consume) -> None:
+    """Each flight line's part of a chunk's waveforms to ``consume`` as a :class:`WaveformChunk`: the slots ``slot``
+    (ascending) that made one, ``rows`` their window starts, power, received, start, direction and (or None) clean
+    power."""
+    for trajectory, pulse, beam, lo, hi in tracer.by_line(segments, slot):
+        clean = rows["clean"]
+        part = WaveformChunk(trajectory.line_id, trajectory.start_time, pulse, beam, rows["window"][lo:hi],
+                             rows["power"][lo:hi], rows["received"][lo:hi], rows["start"][lo:hi],
+                             rows["direction"][lo:hi], None if clean is None else clean[lo:hi])
+        counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
+        consume(part)
 
 
 @register("readout", "waveforms")
@@ -81,12 +122,13 @@ class Waveforms:
     :class:`WaveformChunk` (beams whose central ray reached the scene), or with ``on_device`` each chunk's
     :class:`DeviceWaveforms`; ``RunCounts.returns`` counts the sub-rays cast by beams whose central ray reached
     the scene (on the device: every sub-ray launched), ``RunCounts.misses`` the beams whose central ray missed it
-    (on the host only)."""
+    (on the host only). ``keep_clean``: each WaveformChunk also holds the power before the receiver's noise and
+    digitiser (``clean_w``; None when the detector has no receiver chain, the power being clean)."""
 
     kind = "waveforms"
 
-    def __init__(self, on_device: bool = False):
-        self.on_device = on_device
+    def __init__(self, on_device: bool = False, keep_clean: bool = False):
+        self.on_device, self.keep_clean = on_device, keep_clean
 
     def begin(self, tracer) -> wp.array:
         det = tracer.instrument.detector
@@ -97,15 +139,13 @@ class Waveforms:
         self.canopy = canopy is not None
         self.taps, self.first_lag = det.pulse_taps(tracer.device)
         self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
-        self.buffers = _Buffers(tracer, self.params)
+        self.buffers = _Buffers(tracer, self.params, keep_clean=self.keep_clean and self.receiver is not None)
         self.misses = 0
         return self.buffers.pulses
 
     def chunk(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b, d, params = self.buffers, tracer.device, self.params
-        wp.launch(trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose), n,
-                  inputs=[b.pulses, tracer.scan], outputs=[b.starts, b.directions], device=d)
-        wp.launch(kw.pilot, n, inputs=[self.refs, params, b.starts, b.directions], outputs=[b.window], device=d)
+        pilot_windows(tracer, b, self.refs, params, n)
         b.impulses.zero_()
         b.received.zero_()
         wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[b.span], device=d)
@@ -116,10 +156,7 @@ class Waveforms:
                   outputs=[b.impulses, b.received, b.span], device=d)
         wp.launch(kw.convolve, (n, params.samples), inputs=[b.impulses, b.span, self.taps, self.first_lag],
                   outputs=[b.power], device=d)
-        if self.receiver is not None:
-            wp.launch(kw.beam_keys, n, inputs=[b.pulses, tracer.beams_per_pulse], outputs=[b.keys], device=d)
-            wp.launch(kw.receive, (n, params.samples), inputs=[self.receiver, params.dt, params.samples, b.keys],
-                      outputs=[b.power], device=d)
+        receive(tracer, self.receiver, params, b, n)
         self._hand_over(tracer, segments, n, counts, consume)
 
     def _hand_over(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
@@ -132,17 +169,136 @@ class Waveforms:
         slot = np.flatnonzero(found >= 0.0)
         counts.returns += len(slot) * len(self.subrays)
         self.misses += n - len(slot)
-        rows = {name: a.numpy()[slot] for name, a in (("power", b.power), ("received", b.received),
-                                                       ("start", b.starts), ("direction", b.directions))}
-        for trajectory, pulse, beam, lo, hi in tracer.by_line(segments, slot):
-            part = WaveformChunk(trajectory.line_id, trajectory.start_time, pulse, beam, found[slot[lo:hi]],
-                                 rows["power"][lo:hi], rows["received"][lo:hi], rows["start"][lo:hi],
-                                 rows["direction"][lo:hi])
-            counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
-            consume(part)
+        rows = {name: None if a is None else a.numpy()[slot]
+                for name, a in (("power", b.power), ("received", b.received), ("start", b.starts),
+                                ("direction", b.directions), ("clean", b.clean))}
+        hand_over(tracer, segments, slot, {**rows, "window": found[slot]}, counts, consume)
 
     def end(self, tracer, counts) -> wp.array:
         return wp.array([0, self.misses, 0], dtype=wp.int32, device=tracer.device)
+
+
+@register("readout", "cloud_waveforms")
+class CloudWaveforms:
+    """A full waveform per beam from the scene's point cloud (``Scene.cloud``) by the GEDI simulator's method.
+
+    Each beam's window is the ray-traced readout's (its central ray cast against the scene's mesh, the cloud's
+    ground: the window opens samples/2 samples before that ray's delay); its footprint is centred where that ray
+    meets the ground. :func:`~flightsim.engine.cloud_waveforms.cloud_waveforms` sums the points within the cut
+    around the axis, each a Gaussian pulse of the detector's σ (widened by the receiver's response) weighed by
+    its class's reflectance (``scene.rho_ground``, ``scene.rho_canopy``) and exp(−ρ²/2σ_f²), σ_f = r α / 2 at the
+    beam's range r; beams launch together in groups of one direction and footprint (see :func:`_groups`). The
+    normalised waveform w [1/m] (∫ w dr = 1) becomes received power as the lidar equation gives it for a
+    Lambertian surface facing the beam: P = E_t ρ̄ T_A² D² η_t η_r / (4 r²) · w · c/2, ρ̄ the footprint's
+    reflectance (the harmonic mean of the class reflectances weighed by their shares of the echo: the
+    Gaussian-weighted mean over the points). The receiver's noise and digitiser follow as in ``waveforms``.
+    Beams whose central ray misses the scene, or with no point within 3 σ_f of their axis, make no waveform
+    (``RunCounts.misses``); ``RunCounts.returns`` counts the waveforms made.
+    """
+
+    kind = "cloud_waveforms"
+
+    def __init__(self, keep_clean: bool = False):
+        self.keep_clean = keep_clean
+
+    def begin(self, tracer) -> wp.array:
+        from flightsim.engine.cloud_waveforms import prepare_cloud
+
+        det, scene = tracer.instrument.detector, tracer.cfg.scene
+        self.params = det.struct(tracer.meshes.per_face, 0.0)
+        self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
+        self.weights = (scene.rho_ground, scene.rho_canopy, scene.cloud_normalise)
+        cell = 0.5 * det.footprint_sigma_m(tracer.cfg.flight.altitude_m)
+        self.prepared = prepare_cloud(tracer.scene.cloud, *self.weights, device=tracer.device, cell_m=cell)
+        self.buffers = _Buffers(tracer, self.params, traced=False,
+                                keep_clean=self.keep_clean and self.receiver is not None)
+        self.misses = 0
+        return self.buffers.pulses
+
+    def chunk(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
+        b, params = self.buffers, self.params
+        pilot_windows(tracer, b, self.refs, params, n)
+        window = b.window.numpy()[:n]
+        slot = np.flatnonzero(window >= 0.0)
+        start, direction = b.starts.numpy()[slot], b.directions.numpy()[slot]
+        power = np.zeros((n, params.samples), dtype=np.float32)
+        power[slot], received = self._waveforms(tracer, window[slot], start, direction)
+        wp.copy(b.power, wp.array(power, dtype=wp.float32, device=tracer.device), count=power.size)
+        receive(tracer, self.receiver, params, b, n)
+        made = received[:, 3] > 0.0  # footprints holding points
+        kept = slot[made]
+        counts.returns += len(kept)
+        self.misses += n - len(kept)
+        rows = {"power": b.power.numpy()[kept], "received": received[made], "start": start[made],
+                "direction": direction[made], "window": window[kept],
+                "clean": None if b.clean is None else b.clean.numpy()[kept]}
+        hand_over(tracer, segments, kept, rows, counts, consume)
+
+    def _waveforms(self, tracer, t0: np.ndarray, start: np.ndarray, direction: np.ndarray):
+        """((m, samples) float32 received power [W], (m, 4) received columns as the deposit kernel's: share of the
+        echo inside the window, outside it, mean height [local m] × 1, 1; all 0 for a footprint without a point
+        within 3 σ_f) of the beams from ``start`` along ``direction`` whose windows start at ``t0`` [s]."""
+        from flightsim.engine.cloud_waveforms import cloud_waveforms
+
+        det, params = tracer.instrument.detector, self.params
+        power = np.zeros((len(t0), params.samples), dtype=np.float32)
+        received = np.zeros((len(t0), 4))
+        r = 0.5 * C * (t0 + 0.5 * params.samples * params.dt)  # each central ray's range to the ground [m]
+        first = 0.5 * C * (t0 - 0.5 * det.s.pulse_fwhm_s)  # range of sample 0 (waveforms.h5's geolocation) [m]
+        for rows, beam in _groups(det, start, direction, r):
+            d = beam.direction()
+            to_axis = (beam.centre_z_m - start[rows, 2]) / d[2]  # sensor to the axis point at centre_z [m]
+            centres = start[rows, :2] + to_axis[:, None] * d[None, :2]
+            w = cloud_waveforms(tracer.scene.cloud, centres, beam.centre_z_m, first[rows] - to_axis, params.dt,
+                                params.samples, beam, *self.weights, device=tracer.device, prepared=self.prepared)
+            heights = start[rows, 2, None] + (first[rows, None] + 0.5 * C * params.dt * np.arange(params.samples)) * d[2]
+            power[rows], received[rows] = _to_power(det, w, r[rows], heights, self.weights[:2], params.dt)
+        return power, received
+
+    def end(self, tracer, counts) -> wp.array:
+        return wp.array([0, self.misses, 0], dtype=wp.int32, device=tracer.device)
+
+
+DIRECTION_STEP = 1e-6  # beams whose directions differ by less than this share a launch (≤ 1e-4 m over 100 m) [rad]
+SIGMA_STEP = 1e-4  # ... and whose footprints' σ_f differ by less than this fraction
+
+
+def _groups(det, start: np.ndarray, direction: np.ndarray, r: np.ndarray):
+    """(rows, CloudBeam) of the beams that launch together: directions within DIRECTION_STEP, footprints σ_f = r α/2
+    within SIGMA_STEP of each other; each group's beam has their mean direction and σ_f, the detector's pulse
+    (widened by the receiver) and its axis points at the mean height where the central rays meet the ground."""
+    from flightsim.instrument.cloud_waveform_model import CloudBeam
+
+    sigma_f = det.footprint_sigma_m(r)
+    keys = np.column_stack([np.round(direction[:, :2] / DIRECTION_STEP), np.round(np.log(sigma_f) / SIGMA_STEP)])
+    _, group = np.unique(keys, axis=0, return_inverse=True)
+    group = group.ravel()
+    for g in range(int(group.max()) + 1 if len(group) else 0):
+        rows = np.flatnonzero(group == g)
+        d = direction[rows].mean(axis=0)
+        d /= np.linalg.norm(d)
+        yield rows, CloudBeam(footprint_sigma_m=float(sigma_f[rows].mean()), pulse_sigma_s=det.pulse_sigma_s(),
+                              zenith_deg=math.degrees(math.acos(min(1.0, -d[2]))),
+                              azimuth_deg=math.degrees(math.atan2(d[0], d[1])),
+                              centre_z_m=float(np.mean(start[rows, 2] + r[rows] * direction[rows, 2])))
+
+
+def _to_power(det, w: dict, r: np.ndarray, heights: np.ndarray, rho: tuple[float, float], dt: float):
+    """(received power [W] (k, samples) float32, received columns (k, 4)) of normalised cloud waveforms ``w``
+    (rx, ground, canopy [1/m]; outside) at ranges ``r`` [m], their samples at local ``heights`` [m]: P = E_t ρ̄
+    T_A² D² η_t η_r / (4 r²) · w · c/2 with ρ̄ = 1 / (s_g/ρ_g + s_c/ρ_c), s_g, s_c the ground's and the rest's
+    shares of the echo in the window (the Gaussian-weighted mean reflectance of the footprint's points)."""
+    rx = w["rx"].astype(np.float64)
+    e_g, e_c = w["ground"].sum(axis=1, dtype=np.float64), w["canopy"].sum(axis=1, dtype=np.float64)
+    total = e_g + e_c
+    made = (total > 0.0) & ~w["outside"]
+    safe = np.where(made, total, 1.0)
+    rho_mean = np.where(made, 1.0 / (e_g / safe / rho[0] + e_c / safe / rho[1]), 0.0)
+    scale = det.pulse_energy_j() * det.link_m2() * rho_mean / r ** 2 * 0.5 * C
+    inside = np.where(made, rx.sum(axis=1) * 0.5 * C * dt, 0.0)
+    mean_z = np.where(made, (rx * heights).sum(axis=1) / np.where(made, rx.sum(axis=1), 1.0), 0.0)
+    received = np.column_stack([inside, np.where(made, np.maximum(1.0 - inside, 0.0), 0.0), mean_z, made * 1.0])
+    return (rx * scale[:, None]).astype(np.float32), received
 
 
 def sample_subrays(tracer, max_rays: int) -> tuple[wp.array, wp.array]:
