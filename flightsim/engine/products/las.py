@@ -20,6 +20,7 @@ CHM_RASTER = "chm.tif"
 """Canopy height model of a LAS run over a scene with a canopy (cells of ``output.chm_m``; :func:`write_chm`)."""
 CHM_COLUMNS = ("x", "y", "z", "return_number", "classification")  # what the CHM reads of each tile
 
+
 @register("product", "points")
 class LasProduct:
     """Tiles per model (``<model>/<E>_<N>.las``), scores, COPC, the patch raster and the canopy height model."""
@@ -62,9 +63,9 @@ class LasProduct:
         copc = write_run_copc(self.directory, tiles) if self.cfg.output.copc else None
         patches = self.fits.write(self.directory / PATCH_RASTER, self.scene) if self.fits is not None else None
         models = self.tracer.models
-        model = self.cfg.output.models[0]
+        first = self.cfg.output.models[0]
         chm = self.scene.canopy is not None and self.cfg.output.chm_m > 0.0
-        chm = write_chm(self.directory, model, tiles[model], self.cfg.output.chm_m, self.scene.crs) if chm else None
+        chm = write_chm(self.directory, first, tiles[first], self.cfg.output.chm_m, self.scene.crs) if chm else None
         return {
             "points": {model: counts.returns for model in models},
             "tir_dropped": counts.tir_dropped,
