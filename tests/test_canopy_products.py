@@ -15,6 +15,7 @@ import pytest
 import flightsim
 from flightsim.api import Result
 from flightsim.core.errors import InputError
+from flightsim.engine.products.las import write_chm
 from flightsim.outputs.l2a_h5 import write_l2a
 from flightsim.scenes.forest_scene import stand
 from flightsim.scenes.forest_voxels import stand_voxels
@@ -189,13 +190,15 @@ def test_chm_of_a_discrete_run_over_a_forest(tmp_path):
     assert open_cells.sum() > 10 and np.abs(chm.values[open_cells]).max() < 0.5
 
 
-def test_chm_m_zero_writes_no_chm_and_bad_values_are_refused(tmp_path):
+def test_chm_m_zero_writes_no_chm_no_points_none_and_bad_values_are_refused(tmp_path):
     cfg = flightsim.load_config(overrides={"scene.name": "forest", "scene.forest_size_m": 60.0,
                                            "flight.duration_s": 0.2, "flight.altitude_m": 150.0,
                                            "output.models": ["exact"], "output.chm_m": 0})
     result = flightsim.simulate(cfg)
     assert result.stats["leaf_returns"] > 0 and "chm" not in result.stats
     assert not (result.directory / "chm.tif").exists() and result.chm is None
+    assert write_chm(tmp_path, "exact", {}, 1.0, None) == {"file": None, "reason": "no points", "model": "exact",
+                                                          "cell_m": 1.0, "points": 0}
     with pytest.raises(InputError, match="output.chm_m"):
         flightsim.load_config(overrides={"output.chm_m": -1.0})
 

@@ -98,8 +98,8 @@ def write_chm(directory: Path, model: str, tiles: dict[str, int], cell_m: float,
     """``directory/chm.tif``, the canopy height model (:func:`flightsim.outputs.chm.chm_from_points`: DTM from the
     ground points, class 2; DSM from the first returns) on cells of ``cell_m`` [m] of the finished ``tiles``
     ({name: points}) of ``model``, read back with laspy (only x, y, z, return number and class, chunk by chunk) and
-    written in ``crs``. Summary fields: ``file`` (None, with the ``reason``, where the points give no CHM: none of
-    class 2, or more cells than a CHM may hold), ``model``, ``cell_m``, ``points``."""
+    written in ``crs``. Summary fields: ``file`` (None, with the ``reason``, where the points give no CHM: none, none
+    of class 2, or more cells than a CHM may hold), ``model``, ``cell_m``, ``points``."""
     import laspy
 
     from flightsim.outputs.chm import chm_from_points, write_chm_tif
@@ -112,6 +112,8 @@ def write_chm(directory: Path, model: str, tiles: dict[str, int], cell_m: float,
                     parts[column].append(np.asarray(points[column]))
     x, y, z, returns, classes = (np.concatenate(parts[c]) if parts[c] else np.zeros(0) for c in CHM_COLUMNS)
     fields = {"model": model, "cell_m": cell_m, "points": len(x)}
+    if not len(x):
+        return {"file": None, "reason": "no points", **fields}
     try:  # none of class 2, or too many cells: no CHM, the run's other products stand
         grids, transform = chm_from_points(x, y, z, returns.astype(np.uint8), classes.astype(np.uint8), cell_m)
     except InputError as error:
