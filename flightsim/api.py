@@ -10,8 +10,9 @@
 A run always goes through the products the command line writes; without ``out`` they are written to a temporary
 directory that lives as long as the result, and read on first use: ``points`` (per georeferencing model, a
 ``laspy.LasData`` of every tile), ``waveforms`` and ``photons`` (``xarray.Dataset`` with GEDI L1B and ATL03 names,
-:mod:`flightsim.outputs.datasets`), ``stats`` (the summary) and, for discrete returns, ``returns`` (each return's
-float64 points, ids and range, and the true hits with ``with_truth``).
+:mod:`flightsim.outputs.datasets`), the canopy products ``atl08`` (land segments, ATL08 names), ``l2a`` (GEDI L2A
+names) and ``chm`` (``xarray.DataArray``), None where the run wrote none, ``stats`` (the summary) and, for discrete
+returns, ``returns`` (each return's float64 points, ids and range, and the true hits with ``with_truth``).
 """
 from __future__ import annotations
 
@@ -101,10 +102,7 @@ class Result:
     @functools.cached_property
     def waveforms(self):
         """xarray.Dataset of every waveform (dims shot × sample, GEDI L1B names), or None."""
-        from flightsim.outputs.datasets import waveform_dataset
-
-        path = self.directory / "waveforms.h5"
-        return waveform_dataset(path) if path.is_file() else None
+        return self._file("waveforms.h5", "waveform_dataset")
 
     @functools.cached_property
     def photons(self):
@@ -114,6 +112,31 @@ class Result:
         if not (self.directory / "photons.h5").is_file():
             return None
         return photon_dataset(self.directory)
+
+    @functools.cached_property
+    def atl08(self):
+        """xarray.Dataset of the land segments of every beam of ``atl08.h5`` (dim segment, coordinate ``beam``, ATL08
+        names, fill values as NaN), or None."""
+        return self._file("atl08.h5", "atl08_dataset")
+
+    @functools.cached_property
+    def l2a(self):
+        """xarray.Dataset of ``l2a.h5`` (dim shot, ``rh`` shot × percentile, GEDI L2A names), or None."""
+        return self._file("l2a.h5", "l2a_dataset")
+
+    @functools.cached_property
+    def chm(self):
+        """xarray.DataArray of ``chm.tif`` (canopy height [m], y × x cell centres in the scene CRS, attribute
+        ``crs``), or None."""
+        return self._file("chm.tif", "chm_array")
+
+    def _file(self, name: str, reader: str):
+        """The run's file ``name`` read by ``reader`` (a function of :mod:`flightsim.outputs.datasets`), or None
+        when the run wrote none."""
+        from flightsim.outputs import datasets
+
+        path = self.directory / name
+        return getattr(datasets, reader)(path) if path.is_file() else None
 
     def write(self, directory: str | Path, overwrite: bool = False) -> Path:
         """Copy the run's files into ``directory`` (what ``flightsim simulate --out`` writes); its path."""

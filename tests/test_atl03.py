@@ -18,7 +18,7 @@ def test_atl03_product_from_an_orbit_pass(tmp_path):
                        "photon.gate_m": [499850.0, 500150.0]}.items():
         set_value(cfg, key, value)
     summary = simulate_to_directory(validate(cfg), tmp_path / "a")
-    assert summary["files"] == ["photons.h5", "photons", "atl03.h5"]
+    assert summary["files"] == ["photons.h5", "photons", "atl03.h5", "atl08.h5"]
     with h5py.File(tmp_path / "a" / "atl03.h5") as f:
         h = {k: f[f"gt1/heights/{k}"][:] for k in ("delta_time", "lat_ph", "lon_ph", "h_ph", "signal_conf_ph",
                                                   "truth_kind", "ph_id_pulse", "dist_ph_along")}

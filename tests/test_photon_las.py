@@ -19,7 +19,7 @@ def test_photon_points_in_the_output_crs(tmp_path, crs):
         set_value(cfg, key, value)
     cfg = validate(cfg)
     summary = simulate_to_directory(cfg, tmp_path / "a")
-    assert summary["files"] == ["photons.h5", "photons", "atl03.h5"]
+    assert summary["files"] == ["photons.h5", "photons", "atl03.h5", "atl08.h5"]
     tiles = sorted((tmp_path / "a" / "photons").glob("*.las"))
     assert sum(summary["photon_tiles"].values()) == summary["photons"] and len(tiles) == len(summary["photon_tiles"])
     las = [laspy.read(t) for t in tiles]

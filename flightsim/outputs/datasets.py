@@ -1,6 +1,7 @@
 """A run's files as the in-memory objects users analyse: a georeferencing model's LAS tiles as one
-``laspy.LasData``, ``waveforms.h5`` as an ``xarray.Dataset`` (dims shot × sample, GEDI L1B names) and the photons as an
-``xarray.Dataset`` (dim photon, ATL03 names)."""
+``laspy.LasData``, ``waveforms.h5`` as an ``xarray.Dataset`` (dims shot × sample, GEDI L1B names), the photons as an
+``xarray.Dataset`` (dim photon, ATL03 names), ``atl08.h5``'s land segments (dim segment, ATL08 names), ``l2a.h5``
+(dim shot, GEDI L2A names) and ``chm.tif`` as an ``xarray.DataArray`` (y × x)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,6 +12,8 @@ import numpy as np
 import pyproj
 import xarray as xr
 
+from flightsim.outputs.chm import MAX_CELLS
+from flightsim.scenes.raster import read_raster
 from flightsim.scoring.signal_finder import SignalFinder
 
 GEOLOCATION = {"x_bin0": "x_bin0", "y_bin0": "y_bin0", "z_bin0": "elevation_bin0", "x_lastbin": "x_lastbin",
@@ -46,7 +49,7 @@ def waveform_dataset(path: Path) -> xr.Dataset:
     with h5py.File(path) as f:
         beams = sorted(name for name in f if name.startswith("BEAM"))
         parts = [_beam_dataset(f[name], int(name[4:])) for name in beams]
-        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        attrs = _attrs(f)
     if not parts:
         return xr.Dataset(attrs=attrs)
     return xr.concat(parts, dim="shot").assign_attrs(attrs)
@@ -105,3 +108,75 @@ def _from_photons(path: Path) -> xr.Dataset:
                        "signal_conf_ph": ("photon", conf), "dist_ph_along": ("photon", along),
                        "ph_id_pulse": ("photon", p["pulse"]), "truth_kind": ("photon", p["signal"].astype(np.int8)),
                        "beam": ("photon", p["pixel"]), "range_m": ("photon", p["range_m"])})
+
+
+def atl08_dataset(path: Path) -> xr.Dataset:
+    """The land segments of every ground track of ``atl08.h5`` (dim segment, tracks in name order, each in
+    along-track order): ATL08's names without their groups (``h_te_mean``, ``h_canopy``, ``n_ca_photons``, …,
+    :mod:`flightsim.outputs.atl08_h5`), their ``units``, and the coordinate ``beam`` (the track, "gt1", …). Heights
+    that hold ATL08's ``_FillValue`` (too few photons: no canopy over bare ground) are NaN, as xarray decodes
+    CF fill values; the file's attributes are the dataset's."""
+    parts = []
+    with h5py.File(path) as f:
+        for track in sorted(f):
+            columns = {}
+            f[f"{track}/land_segments"].visititems(lambda name, item: columns.update(
+                {name.split("/")[-1]: _decoded(item)} if isinstance(item, h5py.Dataset) else {}))
+            n = len(next(iter(columns.values()))[1]) if columns else 0
+            parts.append(xr.Dataset(columns, coords={"beam": ("segment", np.full(n, track))}))
+        attrs = _attrs(f)
+    return (xr.concat(parts, dim="segment") if parts else xr.Dataset()).assign_attrs(attrs)
+
+
+def _decoded(dataset) -> tuple:
+    """A 1-D dataset as an xarray variable on dim segment: its _FillValue as NaN, its units kept."""
+    values, fill = dataset[:], dataset.attrs.get("_FillValue")
+    if fill is not None:
+        values = np.where(values == fill, np.nan, values).astype(values.dtype)
+    return "segment", values, {"units": _text(dataset.attrs.get("units", ""))}
+
+
+def l2a_dataset(path: Path) -> xr.Dataset:
+    """Every shot of ``l2a.h5`` (dim shot, beams in number order): the GEDI L2A names of
+    :mod:`flightsim.outputs.l2a_h5` with their ``units`` and ``description``, ``rh`` as shot × percentile
+    (coordinate ``percentile`` 0 … 100 [%]), the simulator's truth as ``truth_elev_ground`` and ``truth_rh`` where
+    the file has it, each beam's attributes (``pulse_sigma_s``, …) as per-shot variables; -9999 (no signal) kept as
+    GEDI writes it; the file's attributes are the dataset's."""
+    with h5py.File(path) as f:
+        parts = [_l2a_beam(f[name]) for name in sorted(f) if name.startswith("BEAM")]
+        attrs = _attrs(f)
+    if not parts:
+        return xr.Dataset(attrs=attrs)
+    return xr.concat(parts, dim="shot").assign_coords(percentile=np.arange(101)).assign_attrs(attrs)
+
+
+def _l2a_beam(group) -> xr.Dataset:
+    def variable(dataset) -> tuple:
+        dims = ("shot", "percentile") if dataset.ndim == 2 else ("shot",)
+        return dims, dataset[:], {k: _text(dataset.attrs[k]) for k in ("units", "description") if k in dataset.attrs}
+
+    columns = {name: variable(item) for name, item in group.items() if isinstance(item, h5py.Dataset)}
+    if "truth" in group:
+        columns.update({f"truth_{name}": variable(item) for name, item in group["truth"].items()})
+    n = group["shot_number"].shape[0]
+    columns.update({name: ("shot", np.full(n, value)) for name, value in group.attrs.items()})
+    return xr.Dataset(columns)
+
+
+def chm_array(path: Path) -> xr.DataArray:
+    """``chm.tif`` as heights [m] (dims y × x, row 0 the northernmost), NaN where no data; coordinates ``x``, ``y``
+    the cell centres in the raster's CRS [m], attributes ``crs`` (its WKT), ``units`` and ``cell_m``."""
+    raster = read_raster(str(path), "chm", "a canopy height model GeoTIFF", MAX_CELLS)
+    t, (rows, cols) = raster.transform, raster.values.shape
+    heights = np.where(raster.valid, raster.values, np.nan)
+    return xr.DataArray(heights, dims=("y", "x"), name="chm",
+                        coords={"x": t.c + (np.arange(cols) + 0.5) * t.a, "y": t.f + (np.arange(rows) + 0.5) * t.e},
+                        attrs={"crs": raster.crs.to_wkt(), "units": "m", "cell_m": float(t.a)})
+
+
+def _attrs(f) -> dict:
+    return {k: _text(v) for k, v in f.attrs.items()}
+
+
+def _text(value):
+    return value.decode() if isinstance(value, bytes) else value

@@ -36,7 +36,8 @@ INT32_MAX = np.iinfo(np.int32).max
 
 @dataclass
 class LasOutputSettings(Settings):
-    """The discrete returns' LAS tiles: which georeferencing models, tile size and compression, extra fields."""
+    """The discrete returns' LAS tiles: which georeferencing models, tile size and compression, extra fields; the
+    canopy height model of a run over a canopy."""
 
     table = "output"
 
@@ -46,6 +47,8 @@ class LasOutputSettings(Settings):
     laz: bool = setting(False, "compress the tiles to LAZ")
     position_error: bool = setting(False, "add each point's true position error [m] as an extra field")
     copc: bool = setting(False, "also one COPC file per model, <model>.copc.laz, from its tiles")
+    chm_m: float = setting(1.0, "over a scene with a canopy, the cell of chm.tif, the canopy height model of the "
+                           "first model's points; 0 = none", "m", range=(0.0, 100.0))
 
     def check(self, context) -> None:
         models = tuple(self.models)

@@ -45,7 +45,8 @@ FOLDER = "photons"
 
 @dataclass
 class PhotonOutputSettings(Settings):
-    """The photon events' LAS tiles (photons.h5 and, from orbit, atl03.h5 have no settings)."""
+    """The photon events' LAS tiles and, from orbit, whether atl08.h5 is written (photons.h5 and atl03.h5 have no
+    settings)."""
 
     table = "output"
 
@@ -53,6 +54,8 @@ class PhotonOutputSettings(Settings):
                        "(from the Earth only)")
     tile_size_m: int = setting(500, "side of a LAS tile", "m", range=(1, 100000))
     laz: bool = setting(False, "compress the tiles to LAZ")
+    atl08: bool = setting(True, "from orbit, also atl08.h5: ATL08-like ground and canopy heights per 100 m segment "
+                          "from atl03.h5's photons")
 
     def check(self, context) -> None:
         if not self.crs:

@@ -1,5 +1,5 @@
 """The photon product of the photons readout: every detection into ``photons.h5``, LAS tiles in ``photons/`` (in
-``output.crs``) and, from orbit, the ATL03-style ``atl03.h5``."""
+``output.crs``) and, from orbit, the ATL03-style ``atl03.h5`` and (``output.atl08``) the ATL08-like ``atl08.h5``."""
 from __future__ import annotations
 
 import shutil
@@ -8,6 +8,10 @@ from pathlib import Path
 from flightsim.core.registry import register
 from flightsim.engine.readouts.photons import Photons
 from flightsim.outputs.photon_las import FOLDER
+
+ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
+ATL08_INPUTS = {"along_track_m": "dist_ph_along", "h_ph": "h_ph", "lat": "lat_ph", "lon": "lon_ph",
+                "signal_conf_ph": "signal_conf_ph", "delta_time": "delta_time"}  # atl08_segments' argument: atl03 name
 
 
 def reflectance_source(cfg, scene, value: float) -> float | str:
@@ -20,10 +24,10 @@ def reflectance_source(cfg, scene, value: float) -> float | str:
 
 @register("product", "photons")
 class PhotonProduct:
-    """photons.h5, the photon LAS tiles and, from orbit, atl03.h5."""
+    """photons.h5, the photon LAS tiles and, from orbit, atl03.h5 and atl08.h5."""
 
     kind = "photons"
-    files = ("photons.h5", FOLDER, "atl03.h5")
+    files = ("photons.h5", FOLDER, "atl03.h5", "atl08.h5")
     tracer_options: dict = {}
 
     def __init__(self, cfg, scene):
@@ -35,12 +39,14 @@ class PhotonProduct:
         from flightsim.outputs.photons_h5 import PhotonWriter
 
         cfg, scene, prf = self.cfg, self.scene, tracer.timing.prf_hz
+        self.directory, self.cfg_text = directory, cfg_text
         shutil.rmtree(directory / FOLDER, ignore_errors=True)  # tiles of a run being redone
         self.h5 = PhotonWriter(directory, cfg_text, prf, scene.origin, scene.crs.to_wkt())
         body = cfg.flight.body if cfg.flight.platform == "orbit" else None
         self.las = PhotonLas(directory, cfg.output, scene, tracer.timing, tracer.instrument.emitter.beam_columns, body,
                              cfg.flight.start_gps_time)
         self.writers = [self.h5, self.las] + ([Atl03Writer(directory, body, cfg_text, prf, scene)] if body else [])
+        self.atl08 = body is not None and cfg.output.atl08
 
     def readout(self) -> Photons:
         return Photons()
@@ -51,6 +57,8 @@ class PhotonProduct:
 
     def close(self, counts) -> dict:
         names = [writer.close() for writer in self.writers]
+        atl08 = atl08_from_atl03(self.directory, self.cfg_text) if self.atl08 else None
+        names += [atl08] if atl08 is not None else []
         return {"reflectance": reflectance_source(self.cfg, self.scene, self.cfg.photon.reflectance),
                 "photons": self.h5.count, "signal_photons": self.h5.signal, "photon_tiles": self.las.tiles,
                 "files": names}
@@ -61,3 +69,25 @@ class PhotonProduct:
     def abort(self) -> None:
         for writer in self.writers:
             writer.abort()
+
+
+def atl08_from_atl03(directory: Path, cfg_text: str) -> str | None:
+    """Write ``directory/atl08.h5`` from the finished ``atl03.h5`` beside it: each beam's photons read back (only
+    the columns ATL08 needs: along-track distance, height, latitude, longitude, signal confidence, time), classified
+    and cut into 100 m land segments (:func:`flightsim.outputs.atl08.atl08_segments`, default settings). Over bare
+    ground the segments have terrain heights and fill values for the canopy. Its name, or None when atl03.h5 holds
+    no photon."""
+    import h5py
+
+    from flightsim.outputs.atl08 import atl08_segments
+    from flightsim.outputs.atl08_h5 import write_atl08
+
+    beams = {}
+    with h5py.File(directory / "atl03.h5") as f:
+        for track in sorted(f):
+            heights = f[f"{track}/heights"]
+            beams[track] = atl08_segments(**{arg: heights[name][:] for arg, name in ATL08_INPUTS.items()},
+                                          segment_m=ATL08_SEGMENT_M)
+    if not beams:
+        return None
+    return write_atl08(directory / "atl08.h5", beams, {"config_toml": cfg_text}).name
