@@ -470,8 +470,8 @@ def _tolerance(device: str, case: str, product: str):
 
 def differences(pinned, got, tol=None, path: str = "") -> list[str]:
     """Where ``got`` differs from ``pinned`` (JSON values), as ``path: pinned -> got`` lines. What ``got`` adds (a
-    key, an attribute, a dataset; a file name in a ``_files`` list) is no difference: products may gain what new
-    features write, but every pinned value must stay."""
+    key, an attribute, a dataset; a name in a listing of names such as ``_files`` or a summary's ``files``) is no
+    difference: products may gain what new features write, but every pinned value must stay."""
     if isinstance(pinned, dict) and isinstance(got, dict):
         out = []
         for key in sorted(pinned, key=str):
@@ -481,8 +481,10 @@ def differences(pinned, got, tol=None, path: str = "") -> list[str]:
             else:
                 out += differences(pinned[key], got[key], tol, where)
         return out
-    if path.endswith("_files") and isinstance(pinned, list) and isinstance(got, list):
-        return [f"{path}: {name} pinned but not written" for name in pinned if name not in got]
+    if path == "_files":
+        return [f"{name}: pinned but not written" for name in pinned if name not in got]
+    if _names(pinned) and _names(got) and [name for name in got if name in pinned] == pinned:
+        return []  # a listing of names (files, models) that gained names
     if isinstance(pinned, list) and isinstance(got, list) and len(pinned) == len(got):
         return [d for i, (a, b) in enumerate(zip(pinned, got)) for d in differences(a, b, tol, f"{path}[{i}]")]
     if tol is not None and _number(pinned) and _number(got) and math.isclose(
@@ -491,6 +493,10 @@ def differences(pinned, got, tol=None, path: str = "") -> list[str]:
     if json.dumps(pinned, sort_keys=True) == json.dumps(got, sort_keys=True):  # NaN equals NaN here
         return []
     return [f"{path}: pinned {_short(pinned)} -> got {_short(got)}"]
+
+
+def _names(v) -> bool:
+    return isinstance(v, list) and all(isinstance(x, str) for x in v)
 
 
 def _number(v) -> bool:
@@ -509,8 +515,9 @@ def compare_case(case: str, pinned: dict, got: dict, device: str = "cpu") -> lis
         if product not in got:
             out.append(f"{case}: {product}: pinned but not written")
         elif product in pinned:  # a product the pins do not know is a new feature's
-            out += [f"{case}: {product}: {d}" for d in
-                    differences(pinned[product], got[product], _tolerance(device, case, product))]
+            out += [f"{case}: {product}: {d}" for d in differences(pinned[product], got[product],
+                                                                   _tolerance(device, case, product),
+                                                                   "_files" if product == "_files" else "")]
     return out
 
 
