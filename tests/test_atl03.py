@@ -51,6 +51,9 @@ def test_three_beams_across_track_give_three_ground_tracks(tmp_path):
     with h5py.File(tmp_path / "b" / "atl03.h5") as f:
         assert sorted(f) == ["gt1", "gt2", "gt3"]
         centre = [np.mean(f[f"gt{k}/geolocation/reference_photon_{c}"][:]) for k in (1, 2, 3) for c in ("lat", "lon")]
+        # each track's along-track distance from its own first photon: 0.005 s at ~7 km/s is ~35 m, not 3.3 km
+        along = [f[f"gt{k}/heights/dist_ph_along"][:] for k in (1, 2, 3)]
+    assert all(a.min() == 0.0 and a.max() < 60.0 for a in along)
     for a, b in ((0, 2), (2, 4)):
         _, _, distance = geod.inv(centre[a + 1], centre[a], centre[b + 1], centre[b])
         assert distance == pytest.approx(500e3 * np.tan(6.6e-3), rel=2e-3)  # 3.30 km on the ground

@@ -39,7 +39,7 @@ class Atl03Writer:
         """body: the body orbited (earth, moon)."""
         self.product = H5Product(directory / "atl03.h5", config_toml=cfg_text)
         self.body, self.prf_hz, self.scene = body, prf_hz, scene
-        self.first: dict[int, np.ndarray] = {}  # each line's first photon (local), for dist_ph_along
+        self.first: dict[tuple, np.ndarray] = {}  # each (line, beam)'s first photon (local), for dist_ph_along
         self.count = 0
 
     def __call__(self, chunk) -> None:
@@ -51,7 +51,7 @@ class Atl03Writer:
 
     def _heights(self, group: str, chunk, rows: np.ndarray) -> None:
         lat, lon, h = local_to_geodetic(self.body, self.scene, chunk.points[rows])
-        start = self.first.setdefault(chunk.line_id, chunk.points[rows[0]].copy())
+        start = self.first.setdefault((chunk.line_id, group), chunk.points[rows[0]].copy())
         along = np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1)
         self.product.append(f"{group}/heights", {
             "delta_time": chunk.start_time + chunk.pulse[rows] / self.prf_hz, "lat_ph": lat, "lon_ph": lon, "h_ph": h,
