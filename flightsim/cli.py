@@ -11,7 +11,7 @@ from pathlib import Path
 
 from flightsim.core.version import __version__
 from flightsim.engine.config import RunConfig, get_value, set_value, validate
-from flightsim.engine.config_io import load_toml, preset_config, to_toml
+from flightsim.engine.config_io import PRESETS, load_toml, preset_config, to_toml
 from flightsim.scoring import score
 from flightsim.core.errors import InputError
 
@@ -99,7 +99,8 @@ def build_grid(args: argparse.Namespace):
 
 
 def _add_config_flags(parser: argparse.ArgumentParser, flags=CONFIG_FLAGS) -> None:
-    parser.add_argument("--instrument", help="built-in instrument to start from: risley (default), change3, spad, change1 or atlas")
+    parser.add_argument("--instrument", help="built-in instrument to start from: " + ", ".join(PRESETS)
+                        + " (default risley)")
     parser.add_argument("--config", help="run config TOML over the instrument (a run.toml of an earlier run "
                                          "reproduces it)")
     for flag, dest, _key, help_text in flags:
@@ -303,6 +304,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_forest(args: argparse.Namespace) -> int:
+    if args.report:
+        from flightsim.studies.forest_report import run_forest_report
+
+        results = run_forest_report(Path(args.out), args.device)
+        print(f"forest report in {args.out}/REPORT.md ({results['wall_s']:.0f} s)")
+        return 0
     from flightsim.studies.forest_truth import run_forest
 
     summary = run_forest(Path(args.out), _set_items(args), seed=args.seed, chm_cell_m=args.chm_cell_m)
@@ -423,7 +430,10 @@ def _add_study_commands(sub) -> None:
                         help="a [scene] setting of the forest, e.g. --set scene.forest_lai=4 (repeatable)")
     forest.add_argument("--seed", type=int, help="random seed of the stand (default 0)")
     forest.add_argument("--chm-cell-m", type=float, default=1.0, help="cell of the canopy height model [m] (default 1)")
-    forest.add_argument("--out", required=True, help="directory for the four files")
+    forest.add_argument("--report", action="store_true", help="check the forests against closed forms, a float64 "
+                        "implementation and the stand's truth instead: REPORT.md, forest_report.json, a figure")
+    forest.add_argument("--device", default="cpu", help="with --report: cpu (default), cuda or cuda:N")
+    forest.add_argument("--out", required=True, help="directory for the four files (or the report)")
     forest.set_defaults(func=cmd_forest)
 
 
