@@ -112,7 +112,7 @@ def check_edges_kernel(instrument: Instrument):
 
 
 @functools.cache
-def reduce_kernel(f: Features, max_registers: int | None = None):
+def reduce_kernel(f: Features):
     """Statistics mode, step 2: per-plane float64 moments of the records of a chunk.
 
     Each thread takes a run of consecutive slots (consecutive beams of a pulse, then the next
@@ -123,7 +123,7 @@ def reduce_kernel(f: Features, max_registers: int | None = None):
     the host adds the replicas.
     """
 
-    @wp.kernel(module="unique", cuda_max_registers=max_registers)
+    @wp.kernel(module="unique")
     def reduce_records(
         # In:
         codes: wp.array(dtype=wp.int32),
