@@ -14,6 +14,7 @@ from flightsim.engine.config import RunConfig, get_value, set_value, validate
 from flightsim.engine.config_io import PRESETS, load_toml, preset_config, to_toml
 from flightsim.scoring import score
 from flightsim.core.errors import InputError
+from flightsim.core.timeline import mark
 
 EXIT_INVALID = 2
 
@@ -415,7 +416,7 @@ def _add_study_commands(sub) -> None:
     bench.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     bench.add_argument("--quick", action="store_true", help="small sizes (under a minute on a CPU)")
     bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto,galvo,"
-                       "spad,waveform,scale,reduce,survey")
+                       "spad,waveform,scale,reduce,survey,forest,startup")
     bench.add_argument("--out", required=True, help="directory for bench.json, bench.md, pareto.csv/png")
     bench.set_defaults(func=cmd_bench)
 
@@ -487,6 +488,7 @@ def _add_instrument_commands(sub) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
+    mark("cli")
     try:
         return args.func(args)
     except InputError as exc:

@@ -40,3 +40,19 @@ def test_run_profile_writes_json_and_markdown(tmp_path):
     saved = json.loads((tmp_path / "profile.json").read_text())
     assert [w["workload"] for w in saved["workloads"]] == ["waveform_slope"]
     assert "| waveform_slope |" in (tmp_path / "profile.md").read_text()
+
+
+def test_timeline_marks_each_event_once(tmp_path, monkeypatch):
+    from flightsim.core import timeline
+
+    path = tmp_path / "timeline.txt"
+    monkeypatch.setenv("FLIGHTSIM_TIMELINE", str(path))
+    monkeypatch.setattr(timeline, "_marked", set())
+    timeline.mark("first_ray")
+    timeline.mark("first_ray")
+    timeline.mark("cli")
+    events = [line.split()[0] for line in path.read_text().splitlines()]
+    assert events == ["first_ray", "cli"]
+    monkeypatch.delenv("FLIGHTSIM_TIMELINE")
+    timeline.mark("exit")  # without the variable nothing is written
+    assert len(path.read_text().splitlines()) == 2
