@@ -47,7 +47,7 @@ class RisleyNSettings(Settings):
     prf_hz: float = setting(5000.0, "pulse repetition frequency", "Hz", range=(0.0, 1.0e7), lo_open=True)
     rotation_hz: tuple = _per_prism((20.0, -20.0), "turns per second of each prism, negative the other way",
                                     "Hz", (-1000.0, 1000.0))
-    phase0_deg: tuple = _per_prism((90.0, 90.0), "prism angle at GPS time 0", "deg", (-360.0, 360.0))
+    phase0_deg: tuple = _per_prism((90.0,), "prism angle at GPS time 0", "deg", (-360.0, 360.0))
     apex_angle_deg: tuple = _per_prism((10.0,), "wedge apex angle α (0: a flat plate)", "deg", (0.0, 89.0))
     refractive_index: tuple = _per_prism((1.5066,), "refractive index of the glass (BK7 at 1064 nm)", "",
                                          (1.0, 4.0))

@@ -1,0 +1,235 @@
+"""The two- and three-prism Risley deflector (risley_n) on the device: rays against an independent float64 vector
+refraction (Snell's law in tangential form, the scan phase in exact rational arithmetic), the thin-prism closed forms
+of the Risley pair's patterns, the exact reduction to the single wedge, the sweep and simulate commands, bad input."""
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+import sys
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import warp as wp
+
+import flightsim
+from flightsim.core.errors import InputError
+from flightsim.engine.tracer import Tracer
+from flightsim.engine.world import build_scene, flight_trajectories
+from flightsim.instrument import risley_multi_model as model
+from kernels import trace
+from kernels.frames import ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_ROT
+
+FLOAT32_RAD = 5e-7  # the float32 production path: direction error bound [rad] (measured ~1e-8 on the CPU)
+FLOAT64_RAD = 1e-12  # the float64 device optics [rad]
+START_GPS = 450_000_000.123  # a line start whose rate × time is no whole number of turns
+
+
+def _config(device: str, **overrides):
+    base = {"instrument.deflector": "risley_n", "output.models": ["exact"], "scene.name": "plane",
+            "flight.platform": "hover", "flight.altitude_m": 100.0, "flight.start_gps_time": START_GPS,
+            "run.device": device}
+    return flightsim.load_config(overrides={**base, **overrides})
+
+
+# ---------------------------------------------------------------------------------------------
+# an independent float64 model: the geometry of kernels/wedges.py's docstring, written again
+
+
+def _snell(s: np.ndarray, n: np.ndarray, mu: float) -> np.ndarray:
+    """Refraction with the tangential component scaled by μ = n_in/n_out and the normal one restoring unit length
+    (n along propagation); NaN where it reflects totally."""
+    tangential = mu * (s - np.sum(s * n, axis=-1, keepdims=True) * n)
+    return tangential + np.sqrt(1.0 - np.sum(tangential * tangential, axis=-1, keepdims=True)) * n
+
+
+def _meet(point, direction, plane_point, normal):
+    """Where the ray point + t·direction meets the plane through plane_point of the given normal."""
+    t = np.sum((plane_point - point) * normal, axis=-1, keepdims=True) / np.sum(direction * normal, axis=-1,
+                                                                                   keepdims=True)
+    return point + t * direction
+
+
+def _reference(s1, phis, n_glass, apex, thickness, gaps):
+    """(exit directions, exit points [m]) of unit directions s1 (..., 3) at prism angles phis (..., prisms)."""
+    z = np.array([0.0, 0.0, 1.0])
+    point, s, front = np.zeros(3), s1, 0.0
+    for i, (n, a, d) in enumerate(zip(n_glass, apex, thickness)):
+        s = _snell(s, z, 1.0 / n)
+        normal = np.stack([math.sin(a) * np.cos(phis[..., i]), math.sin(a) * np.sin(phis[..., i]),
+                           np.full_like(phis[..., i], math.cos(a))], -1)
+        point = _meet(point, s, np.array([0.0, 0.0, front + d]), normal)
+        s = _snell(s, normal, n)
+        if i + 1 < len(n_glass):
+            front += d + gaps[i]
+            point = _meet(point, s, np.array([0.0, 0.0, front]), z)
+    return s, point
+
+
+def _prism_angles(cfg, t0: float, k: np.ndarray) -> np.ndarray:
+    """φ_i = φ0_i + 2π·frac(f_i·(t0 + k/PRF)), the products formed exactly: (pulses, prisms) [rad]."""
+    r = cfg.risley_n
+    out = np.empty((len(k), r.prisms))
+    for i, (f, phase0) in enumerate(zip(r.rotation_hz, r.phase0_deg)):
+        for j, kk in enumerate(k):
+            turns = Fraction(f) * (Fraction(t0) + Fraction(int(kk)) / Fraction(r.prf_hz))
+            out[j, i] = math.radians(phase0) + 2 * math.pi * float(turns - math.floor(turns))
+    return out
+
+
+def _stack_args(cfg):
+    r = cfg.risley_n
+    return (r.refractive_index, [math.radians(a) for a in r.apex_angle_deg], [d * 1e-3 for d in r.thickness_mm],
+            [g * 1e-3 for g in r.gap_mm])
+
+
+def _rays(cfg, pulses: int, precise: bool = True):
+    """(tracer, table columns, starts, directions) of the first ``pulses`` pulses, from the device's emit_rays."""
+    scene = build_scene(cfg)
+    tracer = Tracer(cfg, scene, flight_trajectories(cfg, scene))
+    table, n = tracer.first_chunk(pulses)
+    vec = wp.vec3d if precise else wp.vec3f
+    starts, directions = (wp.empty(n, dtype=vec, device=tracer.device) for _ in range(2))
+    wp.launch(trace.emit_rays_kernel(tracer.instrument.kernel, precise=precise), n, inputs=[table, tracer.scan],
+              outputs=[starts, directions], device=tracer.device)
+    beams = tracer.beams_per_pulse
+    shape = (n // beams, beams, 3)
+    return (tracer, table.numpy()[:, : n // beams], starts.numpy().astype(np.float64).reshape(shape),
+            directions.numpy().astype(np.float64).reshape(shape))
+
+
+STACKS = {
+    "two": {"risley_n.prisms": 2, "risley_n.rotation_hz": [37.5, -22.5], "risley_n.phase0_deg": [12.0, -40.0],
+            "risley_n.apex_angle_deg": [14.0, 9.0], "risley_n.refractive_index": [1.5066, 1.72],
+            "risley_n.thickness_mm": [8.0, 12.0], "risley_n.gap_mm": [4.0]},
+    "three": {"risley_n.prisms": 3, "risley_n.rotation_hz": [37.5, -22.5, 7.5],
+              "risley_n.phase0_deg": [12.0, -40.0, 100.0], "risley_n.apex_angle_deg": [8.0, 11.0, 6.0],
+              "risley_n.refractive_index": [1.5066, 1.45, 1.8], "risley_n.thickness_mm": [8.0, 12.0, 5.0],
+              "risley_n.gap_mm": [4.0, 6.0]},
+}
+FAN = {"fan.array": 3, "fan.spacing_mrad": 30.0, "risley_n.prf_hz": 433.0, "flight.duration_s": 0.3}
+
+
+@pytest.mark.parametrize("name", list(STACKS))
+def test_device_rays_match_float64_vector_refraction(device, name):
+    cfg = _config(device, **FAN, **STACKS[name])
+    tracer, t, starts, directions = _rays(cfg, 120)
+    phis = _prism_angles(cfg, tracer.trajectories[0].start_time, t[ROW_PULSE])
+    spread = np.ptp(np.mod(phis - phis[:, :1], 2 * np.pi), axis=0)
+    assert len(t[ROW_PULSE]) == 120 and (spread[1:] > 5.0).all()  # relative angles all round the turn
+    f_p = 7.5  # the scan phase turns at the rates' largest common divisor
+    psi = [2 * math.pi * float((x := Fraction(f_p) * (Fraction(START_GPS) + Fraction(int(k)) / Fraction(433)))
+                               - math.floor(x)) for k in t[ROW_PULSE]]
+    assert np.allclose(t[ROW_PHI], psi, rtol=0, atol=1e-9)
+    s3, exit_points = _reference(tracer.instrument.emitter.directions()[None], phis[:, None], *_stack_args(cfg))
+    rot, origin = t[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3), t[ROW_ORIGIN:ROW_ORIGIN + 3].T
+    assert np.abs(directions - np.einsum("pij,pbj->pbi", rot, s3)).max() < FLOAT64_RAD
+    assert np.abs(starts - origin[:, None] - np.einsum("pij,pbj->pbi", rot, exit_points)).max() < 1e-9
+    assert np.abs(np.linalg.norm(exit_points[..., :2], axis=-1)).max() > 1e-3  # the exit points walk off the axis
+
+
+@pytest.mark.parametrize("name", list(STACKS))
+def test_float32_production_path_points_along_the_float64_rays(device, name):
+    """The points kernel (float32 optics, the ray cast, the hit) against the reference ray: the true hit seen from
+    the reference exit point lies along the reference direction."""
+    cfg = _config(device, **FAN, **STACKS[name])
+    scene = build_scene(cfg)
+    tracer = Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=True)
+    table, n = tracer.first_chunk(120)
+    d = tracer.device
+    out = [wp.zeros(n, dtype=dtype, device=d) for dtype in (wp.int32, wp.float32, wp.int32, wp.float32, wp.float32,
+                                                             wp.float32, wp.vec3f, wp.vec3f, wp.vec3f)]
+    counters = wp.zeros(3, dtype=wp.int32, device=d)
+    wp.launch(trace.points_kernel(tracer.features, tracer.instrument.kernel), n, inputs=[table, tracer.scan],
+              outputs=out + [counters], device=d)
+    beams = tracer.beams_per_pulse
+    t = table.numpy()[:, : n // beams]
+    phis = _prism_angles(cfg, tracer.trajectories[0].start_time, t[ROW_PULSE])
+    s3, exit_points = _reference(tracer.instrument.emitter.directions()[None], phis[:, None], *_stack_args(cfg))
+    rot, origin = t[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3), t[ROW_ORIGIN:ROW_ORIGIN + 3].T
+    start = origin[:, None] + np.einsum("pij,pbj->pbi", rot, exit_points)
+    seen = out[6].numpy().astype(np.float64).reshape(-1, beams, 3) - start
+    seen /= np.linalg.norm(seen, axis=-1, keepdims=True)
+    assert (out[0].numpy() == trace.STATUS_RETURN).all()
+    error = np.linalg.norm(seen - np.einsum("pij,pbj->pbi", rot, s3), axis=-1)
+    assert error.max() < FLOAT32_RAD, error.max()
+
+
+def test_float64_model_module_matches_the_independent_reference():
+    rng = np.random.default_rng(3)
+    args = ([1.5066, 1.45, 1.8], [math.radians(a) for a in (8.0, 11.0, 6.0)], [8e-3, 12e-3, 5e-3], [4e-3, 6e-3])
+    s1 = rng.normal(size=(50, 3)) * [0.03, 0.03, 0.0] + [0, 0, 1]
+    s1 /= np.linalg.norm(s1, axis=-1, keepdims=True)
+    phis = rng.uniform(0, 2 * np.pi, size=(50, 3))
+    run = model.trace(model.Stack(*args), s1, phis)
+    s3, points = _reference(s1, phis, *args)
+    assert run.ok.all() and np.abs(run.directions - s3).max() < 1e-14 and np.abs(run.exit_points - points).max() < 1e-15
+
+
+# ---------------------------------------------------------------------------------------------
+# the Risley pair's patterns: two identical thin prisms against the first-order closed forms
+
+THIN = {"fan.array": 1, "risley_n.prf_hz": 3600.0, "flight.duration_s": 0.25, "risley_n.apex_angle_deg": [2.0],
+        "risley_n.refractive_index": [1.5066], "risley_n.thickness_mm": [5.0], "risley_n.gap_mm": [3.0]}
+DELTA = (1.5066 - 1.0) * math.radians(2.0)  # first-order deviation of each prism, δ = (n − 1)·α [rad]
+
+
+def _pattern(device, rates, phases, pulses):
+    """(kernel pointing, first-order pointing, float64 exact pointing) (pulses, 2): the exit direction's x, y in the
+    sensor frame [rad], the first order being −δ·Σ (cos φ_i, sin φ_i) (each thin prism turns the beam by δ towards
+    its thin edge, opposite the back face's tilt)."""
+    cfg = _config(device, **THIN, **{"risley_n.rotation_hz": rates, "risley_n.phase0_deg": phases})
+    tracer, t, _, directions = _rays(cfg, pulses, precise=False)
+    rot = t[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3)
+    kernel = np.einsum("pji,pj->pi", rot, directions[:, 0])[:, :2]
+    phis = _prism_angles(cfg, tracer.trajectories[0].start_time, t[ROW_PULSE])
+    first = -DELTA * np.stack([np.cos(phis).sum(-1), np.sin(phis).sum(-1)], -1)
+    exact, _ = _reference(np.array([0.0, 0.0, 1.0]), phis, *_stack_args(cfg))
+    return kernel, first, exact[:, :2], phis
+
+
+def _second_order(kernel, first, exact):
+    """The first-order model's error bounded by the float64 exact trace (it must be of order δ², far below 2δ);
+    the kernel must lie within it of the closed form."""
+    bound = np.linalg.norm(exact - first, axis=-1).max()
+    assert bound < 2.0 * DELTA ** 2 < 0.04 * DELTA
+    assert np.linalg.norm(kernel - first, axis=-1).max() <= bound + 1e-6
+    return bound + 1e-6
+
+
+def test_co_rotating_in_phase_draws_a_circle_of_twice_the_deviation(device):
+    kernel, first, exact, phis = _pattern(device, [20.0, 20.0], [30.0, 30.0], 180)
+    bound = _second_order(kernel, first, exact)
+    r = np.linalg.norm(kernel, axis=-1)
+    assert np.abs(r - 2 * DELTA).max() <= bound
+    azimuth = np.unwrap(np.arctan2(kernel[:, 1], kernel[:, 0]))  # turning with the prisms, π from their angle
+    assert np.abs(azimuth - np.unwrap(phis[:, 0]) - np.pi - 2 * np.pi * np.round(
+        (azimuth[0] - phis[0, 0] - np.pi) / (2 * np.pi))).max() < bound / DELTA
+
+
+def test_co_rotating_in_anti_phase_stays_on_the_axis(device):
+    kernel, first, exact, _ = _pattern(device, [20.0, 20.0], [30.0, 210.0], 180)
+    bound = _second_order(kernel, first, exact)
+    assert np.abs(first).max() < 1e-15 and np.linalg.norm(kernel, axis=-1).max() <= bound
+
+
+def test_counter_rotating_at_equal_speeds_scans_a_line_four_deviations_long(device):
+    kernel, first, exact, _ = _pattern(device, [20.0, -20.0], [90.0, 90.0], 180)
+    bound = _second_order(kernel, first, exact)
+    assert np.abs(kernel[:, 0]).max() <= bound  # the line lies along the sensor's y axis: (φ0_1 + φ0_2)/2 = 90°
+    assert np.ptp(kernel[:, 1]) == pytest.approx(4 * DELTA, abs=2 * bound + 1e-5)
+
+
+@pytest.mark.parametrize("rates, petals", [([20.0, -10.0], 3), ([30.0, 10.0], 2), ([25.0, -15.0], 8)])
+def test_speed_ratio_draws_a_rose_with_the_ratio_s_petals(device, rates, petals):
+    """r(t) = 2δ|cos((ω1 − ω2)t/2 + (φ0_1 − φ0_2)/2)|, closed after 1/f_p with |f1 − f2|/f_p petal tips."""
+    f_p = math.gcd(*(int(f) for f in rates))
+    period = int(3600 / f_p)
+    kernel, first, exact, phis = _pattern(device, rates, [0.0, 50.0], period)
+    bound = _second_order(kernel, first, exact)
+    r = np.linalg.norm(kernel, axis=-1)
+    closed = 2 * DELTA * np.abs(np.cos((phis[:, 0] - phis[:, 1]) / 2))
+    assert np.abs(r - closed).max() <= bound
+    tips = (r > np.roll(r, 1)) & (r >= np.roll(r, -1)) & (r > 1.5 * DELTA)
+    assert tips.sum() == petals == abs(rates[0] - rates[1]) / f_p
