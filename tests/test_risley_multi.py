@@ -4,6 +4,7 @@ of the Risley pair's patterns, the exact reduction to the single wedge, the swee
 from __future__ import annotations
 
 import csv
+import json
 import math
 import subprocess
 import sys
@@ -233,3 +234,111 @@ def test_speed_ratio_draws_a_rose_with_the_ratio_s_petals(device, rates, petals)
     assert np.abs(r - closed).max() <= bound
     tips = (r > np.roll(r, 1)) & (r >= np.roll(r, -1)) & (r > 1.5 * DELTA)
     assert tips.sum() == petals == abs(rates[0] - rates[1]) / f_p
+
+
+# ---------------------------------------------------------------------------------------------
+# exact reduction to the single wedge
+
+
+def test_a_flat_second_prism_leaves_the_single_wedge_s_rays_shifted_by_the_plate(device):
+    """Prism 2 with apex 0 is a plate: every ray of the single ``risley`` wedge (same pulses) keeps its direction and
+    moves along it across the gap, then sideways through the plate as Snell's law says."""
+    common = {"fan.array": 3, "fan.spacing_mrad": 30.0, "flight.duration_s": 0.3}
+    single = flightsim.load_config(overrides={
+        "output.models": ["exact"], "scene.name": "plane", "flight.platform": "hover", "flight.altitude_m": 100.0,
+        "flight.start_gps_time": START_GPS, "run.device": device, "risley.prf_hz": 433.0, "risley.rotation_hz": 20.0,
+        "risley.phase0_deg": 25.0, "risley.apex_angle_deg": 12.0, "risley.refractive_index": 1.5066,
+        "risley.thickness_mm": 10.0, **common})
+    double = _config(device, **common, **{
+        "risley_n.prf_hz": 433.0, "risley_n.rotation_hz": [20.0, -60.0], "risley_n.phase0_deg": [25.0, 70.0],
+        "risley_n.apex_angle_deg": [12.0, 0.0], "risley_n.refractive_index": [1.5066, 1.72],
+        "risley_n.thickness_mm": [10.0, 7.0], "risley_n.gap_mm": [3.0]})
+    _, t1, starts1, dirs1 = _rays(single, 80)
+    _, t2, starts2, dirs2 = _rays(double, 80)
+    assert np.array_equal(t1[:ROW_PHI], t2[:ROW_PHI]) and np.ptp(t1[ROW_PHI]) > 5.0  # the same poses
+    assert np.abs(dirs2 - dirs1).max() < 1e-14
+    rot, origin = t1[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3), t1[ROW_ORIGIN:ROW_ORIGIN + 3].T
+    exit1 = np.einsum("pji,pbj->pbi", rot, starts1 - origin[:, None])
+    s3 = np.einsum("pji,pbj->pbi", rot, dirs1)
+    z = np.array([0.0, 0.0, 1.0])
+    front = _meet(exit1, s3, np.array([0.0, 0.0, 13e-3]), z)
+    inside = _snell(s3, z, 1.0 / 1.72)
+    back = _meet(front, inside, np.array([0.0, 0.0, 20e-3]), z)
+    exit2 = np.einsum("pji,pbj->pbi", rot, starts2 - origin[:, None])
+    assert np.abs(exit2 - back).max() < 1e-12
+    shift = np.linalg.norm(np.cross(back - exit1, s3), axis=-1)  # the plate's sideways shift of the ray
+    assert shift.max() > 1e-4
+
+
+# ---------------------------------------------------------------------------------------------
+# the commands
+
+
+def _cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "flightsim", *args], capture_output=True, text=True, timeout=600,
+                          cwd=cwd)
+
+
+def test_sweep_over_the_calibration_field_scores_the_prism_pair(tmp_path):
+    run = _cli("sweep", "--set", "instrument.deflector=risley_n", "--set", "risley_n.rotation_hz=20,-13",
+               "--altitudes", "500", "--duration", "0.4", "--out", str(tmp_path))
+    assert run.returncode == 0, run.stderr
+    with open(tmp_path / "sweep.csv", newline="") as fh:
+        rows = {r["model"]: r for r in csv.DictReader(fh)}
+    assert set(rows) == {"exact", "nominal"}
+    for row in rows.values():
+        assert int(row["points"]) > 1000 and math.isfinite(float(row["rms_m"]))
+    assert float(rows["exact"]["rms_m"]) < 1e-3 < float(rows["nominal"]["rms_m"])  # the fan's distortion
+    base = json.loads((tmp_path / "sweep.json").read_text())["base"]
+    assert base["instrument"]["deflector"] == "risley_n" and base["risley_n"]["rotation_hz"] == [20.0, -13.0]
+
+
+def test_simulate_with_three_prisms_writes_las(tmp_path):
+    import laspy
+
+    run = _cli("simulate", "--set", "instrument.deflector=risley_n", "--set", "risley_n.prisms=3",
+               "--set", "risley_n.rotation_hz=20,-20,7.5", "--duration", "0.3", "--out", str(tmp_path))
+    assert run.returncode == 0, run.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    for name in ("exact", "nominal"):
+        tiles = sorted((tmp_path / name).glob("*.las"))
+        assert tiles and sum(laspy.read(p).header.point_count for p in tiles) == summary["points"][name] > 0
+    assert "rotation_hz = [20.0, -20.0, 7.5]" in (tmp_path / "run.toml").read_text()
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input
+
+
+BAD = [
+    ({"risley_n.prisms": 1}, "risley_n.prisms"),
+    ({"risley_n.prisms": 4}, "risley_n.prisms"),
+    ({"risley_n.prisms": 3}, "risley_n.rotation_hz"),  # two rates for three prisms
+    ({"risley_n.gap_mm": [5.0, 5.0]}, "risley_n.gap_mm"),  # two gaps for one pair
+    ({"risley_n.rotation_hz": [0.0, 0.0]}, "risley_n.rotation_hz"),  # nothing turns
+    ({"risley_n.rotation_hz": [20.0, 6.666666667]}, "risley_n.rotation_hz"),  # no common period within MAX_TURNS
+    ({"risley_n.rotation_hz": [999.999, 0.001]}, "risley_n.rotation_hz"),  # 999999 turns per pattern
+    ({"risley_n.apex_angle_deg": [45.0]}, "risley_n.apex_angle_deg"),  # beyond the critical angle, 41.6°
+    ({"risley_n.apex_angle_deg": [30.0]}, "risley_n.apex_angle_deg"),  # each passes alone, together they reflect
+    ({"risley_n.refractive_index": [5.0]}, "risley_n.refractive_index"),
+    ({"risley_n.thickness_mm": [0.0]}, "risley_n.thickness_mm"),
+    ({"risley_n.prisms": 3, "risley_n.rotation_hz": [20.0, -20.0, 5.0], "risley_n.apex_angle_deg": [20.0],
+      "risley_n.gap_mm": [0.0]}, "risley_n.gap_mm"),  # the second back face reaches past the third front face
+    ({"risley_n.believed_refractive_index": [0.5]}, "risley_n.believed_refractive_index"),
+    ({"risley_n.believed_apex_angle_deg": [60.0]}, "risley_n.believed_apex_angle_deg"),
+    ({"risley_n.believed_gap_mm": [1.0, 1.0]}, "risley_n.believed_gap_mm"),
+    ({"run.optics": "lut"}, "run.optics"),
+]
+
+
+@pytest.mark.parametrize("overrides, field", BAD, ids=[f"{f}-{i}" for i, (_, f) in enumerate(BAD)])
+def test_bad_input_is_refused_naming_the_field(overrides, field):
+    with pytest.raises(InputError, match=f"invalid {field} ="):
+        flightsim.load_config(overrides={"instrument.deflector": "risley_n", **overrides})
+
+
+def test_bad_input_exits_2_with_one_line(tmp_path):
+    run = _cli("simulate", "--set", "instrument.deflector=risley_n", "--set", "risley_n.rotation_hz=0",
+               "--out", str(tmp_path / "run"))
+    assert run.returncode == 2 and run.stderr.count("\n") == 1 and "risley_n.rotation_hz" in run.stderr
+    assert not (tmp_path / "run").exists() or not any((tmp_path / "run").iterdir())
