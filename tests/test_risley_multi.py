@@ -157,6 +157,40 @@ def test_float32_production_path_points_along_the_float64_rays(device, name):
     assert error.max() < FLOAT32_RAD, error.max()
 
 
+def test_exact_model_georeferences_with_the_believed_prisms(device):
+    """Truth with encoder zero errors, the processing believing other apexes, indices, thicknesses and gap: the true
+    hit lies on the true ray, the exact model's point on the believed ray at the observed range."""
+    errors = {"risley_n.encoder_arcsec": [0.0, 3600.0], "risley_n.believed_apex_angle_deg": [14.2, 8.9],
+              "risley_n.believed_refractive_index": [1.51, 0.0], "risley_n.believed_thickness_mm": [8.5, 0.0],
+              "risley_n.believed_gap_mm": [4.5]}
+    cfg = _config(device, **FAN, **STACKS["two"], **errors)
+    scene = build_scene(cfg)
+    tracer = Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=True)
+    assert not tracer.features.believed_is_truth
+    table, n = tracer.first_chunk(60)
+    d, beams = tracer.device, tracer.beams_per_pulse
+    out = [wp.zeros(n, dtype=dtype, device=d) for dtype in (wp.int32, wp.float32, wp.int32, wp.float32, wp.float32,
+                                                             wp.float32, wp.vec3f, wp.vec3f, wp.vec3f)]
+    wp.launch(trace.points_kernel(tracer.features, tracer.instrument.kernel), n, inputs=[table, tracer.scan],
+              outputs=out + [wp.zeros(3, dtype=wp.int32, device=d)], device=d)
+    t = table.numpy()[:, : n // beams]
+    rot, origin = t[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3), t[ROW_ORIGIN:ROW_ORIGIN + 3].T
+    phis = _prism_angles(cfg, tracer.trajectories[0].start_time, t[ROW_PULSE])
+    s1 = tracer.instrument.emitter.directions()[None]
+    true_s3, true_exit = _reference(s1, phis[:, None] + np.radians([0.0, 1.0]), *_stack_args(cfg))
+    r = cfg.risley_n
+    believed = (r.believed_refractive_index, np.radians(r.believed_apex_angle_deg),
+                np.array(r.believed_thickness_mm) * 1e-3, np.array(r.believed_gap_mm) * 1e-3)
+    assert believed[0][1] == 1.72 and believed[2][1] == 12e-3  # 0 = the true value
+    b_s3, b_exit = _reference(s1, phis[:, None], *believed)
+    local = lambda v: np.einsum("pij,pbj->pbi", rot, v)  # noqa: E731
+    ranges = out[1].numpy().astype(np.float64).reshape(-1, beams, 1)
+    hits, exact = (a.numpy().astype(np.float64).reshape(-1, beams, 3) for a in (out[6], out[7]))
+    assert np.abs(hits - (origin[:, None] + local(true_exit + ranges * true_s3))).max() < 1e-4
+    placed = origin[:, None] + local(b_exit + ranges * b_s3)
+    assert np.abs(exact - placed).max() < 1e-4 and np.abs(exact - hits).max() > 0.1
+
+
 def test_float64_model_module_matches_the_independent_reference():
     rng = np.random.default_rng(3)
     args = ([1.5066, 1.45, 1.8], [math.radians(a) for a in (8.0, 11.0, 6.0)], [8e-3, 12e-3, 5e-3], [4e-3, 6e-3])
