@@ -191,6 +191,27 @@ def test_exact_model_georeferences_with_the_believed_prisms(device):
     assert np.abs(exact - placed).max() < 1e-4 and np.abs(exact - hits).max() > 0.1
 
 
+def _azimuths(device, apex, noise_arcsec):
+    """Azimuth of the on-axis beam leaving the prisms [rad] over 2000 pulses: behind a plate (apex 0) a single wedge
+    turns it to exactly its angle + 180°, so the difference between a noisy and a quiet run is that prism's noise."""
+    cfg = _config(device, **{"fan.array": 1, "risley_n.prf_hz": 5000.0, "flight.duration_s": 0.5,
+                             "risley_n.rotation_hz": [20.0, -13.0], "risley_n.apex_angle_deg": apex,
+                             "risley_n.encoder_noise_arcsec": noise_arcsec, "run.seed": 11})
+    _, t, _, directions = _rays(cfg, 2000)
+    local = np.einsum("pji,pj->pi", t[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3), directions[:, 0])
+    return np.arctan2(local[:, 1], local[:, 0])
+
+
+def test_encoder_noise_turns_each_prism_with_its_sigma_independently(device):
+    sigma = 3600.0 * math.pi / (180.0 * 3600.0)  # 3600 arcsec [rad]
+    noise = []
+    for apex in ([10.0, 0.0], [0.0, 10.0]):
+        diff = np.angle(np.exp(1j * (_azimuths(device, apex, 3600.0) - _azimuths(device, apex, 0.0))))
+        assert abs(diff.mean()) < 4 * sigma / math.sqrt(len(diff)) and diff.std() == pytest.approx(sigma, rel=0.05)
+        noise.append(diff)
+    assert abs(np.corrcoef(noise[0], noise[1])[0, 1]) < 0.1  # the two prisms draw their own noise
+
+
 def test_float64_model_module_matches_the_independent_reference():
     rng = np.random.default_rng(3)
     args = ([1.5066, 1.45, 1.8], [math.radians(a) for a in (8.0, 11.0, 6.0)], [8e-3, 12e-3, 5e-3], [4e-3, 6e-3])
