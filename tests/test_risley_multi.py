@@ -130,30 +130,33 @@ def test_device_rays_match_float64_vector_refraction(device, name):
     assert np.abs(np.linalg.norm(exit_points[..., :2], axis=-1)).max() > 1e-3  # the exit points walk off the axis
 
 
+def _simulated(cfg):
+    """A run of ``cfg`` through the engine (float32 optics, ray cast, readout), every return kept with its true hit:
+    (returns, local frame of each return: (origin [m], R_local←sensor), prism angles of each return, emitter beams)."""
+    result = flightsim.simulate(cfg, with_truth=True)
+    returns, scene = result.returns, result.scene
+    assert result.stats["tir_dropped"] == result.stats["misses"] == 0 and len(returns.pulse) > 500
+    tracer = Tracer(cfg, scene, flight_trajectories(cfg, scene))
+    line = tracer.trajectories[0]
+    poses = tracer.poses64(line.line_id, 0, int(returns.pulse.max()) + 1).numpy()[returns.pulse]
+    origin = np.asarray(poses["origin"], dtype=np.float64)
+    rot = np.asarray(poses["rot"], dtype=np.float64).reshape(-1, 3, 3)
+    phis = _prism_angles(cfg, line.start_time, returns.pulse)
+    local = (scene.world_to_local(returns.true_points),
+             {m: scene.world_to_local(p) for m, p in returns.points.items()})
+    return returns, local, origin, rot, phis, tracer.instrument.emitter.directions()[returns.beam]
+
+
 @pytest.mark.parametrize("name", list(STACKS))
 def test_float32_production_path_points_along_the_float64_rays(device, name):
-    """The points kernel (float32 optics, the ray cast, the hit) against the reference ray: the true hit seen from
-    the reference exit point lies along the reference direction."""
+    """A run (float32 optics, the ray cast, the hit) against the reference ray: each true hit seen from the
+    reference exit point lies along the reference direction."""
     cfg = _config(device, **FAN, **STACKS[name])
-    scene = build_scene(cfg)
-    tracer = Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=True)
-    table, n = tracer.first_chunk(120)
-    d = tracer.device
-    out = [wp.zeros(n, dtype=dtype, device=d) for dtype in (wp.int32, wp.float32, wp.int32, wp.float32, wp.float32,
-                                                             wp.float32, wp.vec3f, wp.vec3f, wp.vec3f)]
-    counters = wp.zeros(3, dtype=wp.int32, device=d)
-    wp.launch(trace.points_kernel(tracer.features, tracer.instrument.kernel), n, inputs=[table, tracer.scan],
-              outputs=out + [counters], device=d)
-    beams = tracer.beams_per_pulse
-    t = table.numpy()[:, : n // beams]
-    phis = _prism_angles(cfg, tracer.trajectories[0].start_time, t[ROW_PULSE])
-    s3, exit_points = _reference(tracer.instrument.emitter.directions()[None], phis[:, None], *_stack_args(cfg))
-    rot, origin = t[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3), t[ROW_ORIGIN:ROW_ORIGIN + 3].T
-    start = origin[:, None] + np.einsum("pij,pbj->pbi", rot, exit_points)
-    seen = out[6].numpy().astype(np.float64).reshape(-1, beams, 3) - start
+    _, (hits, _), origin, rot, phis, s1 = _simulated(cfg)
+    s3, exit_points = _reference(s1, phis, *_stack_args(cfg))
+    seen = hits - origin - np.einsum("pij,pj->pi", rot, exit_points)
     seen /= np.linalg.norm(seen, axis=-1, keepdims=True)
-    assert (out[0].numpy() == trace.STATUS_RETURN).all()
-    error = np.linalg.norm(seen - np.einsum("pij,pbj->pbi", rot, s3), axis=-1)
+    error = np.linalg.norm(seen - np.einsum("pij,pj->pi", rot, s3), axis=-1)
     assert error.max() < FLOAT32_RAD, error.max()
 
 
@@ -164,31 +167,17 @@ def test_exact_model_georeferences_with_the_believed_prisms(device):
               "risley_n.believed_refractive_index": [1.51, 0.0], "risley_n.believed_thickness_mm": [8.5, 0.0],
               "risley_n.believed_gap_mm": [4.5]}
     cfg = _config(device, **FAN, **STACKS["two"], **errors)
-    scene = build_scene(cfg)
-    tracer = Tracer(cfg, scene, flight_trajectories(cfg, scene), with_truth=True)
-    assert not tracer.features.believed_is_truth
-    table, n = tracer.first_chunk(60)
-    d, beams = tracer.device, tracer.beams_per_pulse
-    out = [wp.zeros(n, dtype=dtype, device=d) for dtype in (wp.int32, wp.float32, wp.int32, wp.float32, wp.float32,
-                                                             wp.float32, wp.vec3f, wp.vec3f, wp.vec3f)]
-    wp.launch(trace.points_kernel(tracer.features, tracer.instrument.kernel), n, inputs=[table, tracer.scan],
-              outputs=out + [wp.zeros(3, dtype=wp.int32, device=d)], device=d)
-    t = table.numpy()[:, : n // beams]
-    rot, origin = t[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3), t[ROW_ORIGIN:ROW_ORIGIN + 3].T
-    phis = _prism_angles(cfg, tracer.trajectories[0].start_time, t[ROW_PULSE])
-    s1 = tracer.instrument.emitter.directions()[None]
-    true_s3, true_exit = _reference(s1, phis[:, None] + np.radians([0.0, 1.0]), *_stack_args(cfg))
+    returns, (hits, points), origin, rot, phis, s1 = _simulated(cfg)
+    true_s3, true_exit = _reference(s1, phis + np.radians([0.0, 1.0]), *_stack_args(cfg))
     r = cfg.risley_n
     believed = (r.believed_refractive_index, np.radians(r.believed_apex_angle_deg),
                 np.array(r.believed_thickness_mm) * 1e-3, np.array(r.believed_gap_mm) * 1e-3)
     assert believed[0][1] == 1.72 and believed[2][1] == 12e-3  # 0 = the true value
-    b_s3, b_exit = _reference(s1, phis[:, None], *believed)
-    local = lambda v: np.einsum("pij,pbj->pbi", rot, v)  # noqa: E731
-    ranges = out[1].numpy().astype(np.float64).reshape(-1, beams, 1)
-    hits, exact = (a.numpy().astype(np.float64).reshape(-1, beams, 3) for a in (out[6], out[7]))
-    assert np.abs(hits - (origin[:, None] + local(true_exit + ranges * true_s3))).max() < 1e-4
-    placed = origin[:, None] + local(b_exit + ranges * b_s3)
-    assert np.abs(exact - placed).max() < 1e-4 and np.abs(exact - hits).max() > 0.1
+    b_s3, b_exit = _reference(s1, phis, *believed)
+    ranges = returns.range_m.astype(np.float64)[:, None]
+    assert np.abs(hits - origin - np.einsum("pij,pj->pi", rot, true_exit + ranges * true_s3)).max() < 1e-4
+    placed = origin + np.einsum("pij,pj->pi", rot, b_exit + ranges * b_s3)
+    assert np.abs(points["exact"] - placed).max() < 1e-4 and np.abs(points["exact"] - hits).max() > 0.1
 
 
 def _azimuths(device, apex, noise_arcsec):
