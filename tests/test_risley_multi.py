@@ -132,7 +132,8 @@ def test_device_rays_match_float64_vector_refraction(device, name):
 
 def _simulated(cfg):
     """A run of ``cfg`` through the engine (float32 optics, ray cast, readout), every return kept with its true hit:
-    (returns, local frame of each return: (origin [m], R_local←sensor), prism angles of each return, emitter beams)."""
+    (returns, (true hits, {model: points}) local [m], sensor origin [m] and R_local←sensor of each return, prism
+    angles of each return, emitter beams)."""
     result = flightsim.simulate(cfg, with_truth=True)
     returns, scene = result.returns, result.scene
     assert result.stats["tir_dropped"] == result.stats["misses"] == 0 and len(returns.pulse) > 500
@@ -221,9 +222,9 @@ DELTA = (1.5066 - 1.0) * math.radians(2.0)  # first-order deviation of each pris
 
 
 def _pattern(device, rates, phases, pulses):
-    """(kernel pointing, first-order pointing, float64 exact pointing) (pulses, 2): the exit direction's x, y in the
-    sensor frame [rad], the first order being −δ·Σ (cos φ_i, sin φ_i) (each thin prism turns the beam by δ towards
-    its thin edge, opposite the back face's tilt)."""
+    """(kernel pointing, first-order pointing, float64 exact pointing, prism angles): the exit direction's x, y in
+    the sensor frame [rad], the first order being −δ·Σ (cos φ_i, sin φ_i) (each thin prism turns the beam by δ
+    towards its thin edge, opposite the back face's tilt)."""
     cfg = _config(device, **THIN, **{"risley_n.rotation_hz": rates, "risley_n.phase0_deg": phases})
     tracer, t, _, directions = _rays(cfg, pulses, precise=False)
     rot = t[ROW_ROT:ROW_ROT + 9].T.reshape(-1, 3, 3)

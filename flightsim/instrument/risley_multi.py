@@ -75,8 +75,9 @@ class RisleyNSettings(Settings):
             return values * count
         if len(values) != count:
             what = "neighbouring pair" if count == self.prisms - 1 else "prism"
-            raise InputError(f"risley_n.{name}", ",".join(f"{v:g}" for v in values),
-                             f"1 value (for every {what}) or {count} values (one per {what})")
+            allowed = (f"1 value (for every {what}) or {count} values (one per {what})" if count > 1
+                       else "1 value (one pair)")
+            raise InputError(f"risley_n.{name}", ",".join(f"{v:g}" for v in values), allowed)
         return values
 
     def believed(self, name: str) -> tuple[float, ...]:
@@ -96,11 +97,11 @@ class RisleyNSettings(Settings):
             if d <= 0.0:
                 raise InputError("risley_n.thickness_mm", ",".join(map(str, self.thickness_mm)),
                                  "thicknesses each in (0, 1000] mm")
-        for name in BELIEVED:
-            values = self.believed(name)
-            if name == "believed_refractive_index" and min(values) <= 1.0:
-                raise InputError("risley_n.believed_refractive_index", ",".join(map(str, getattr(self, name))),
-                                 "0 (the true index) or numbers in (1, 4]")
+        for name in BELIEVED:  # each list of 0, 1 or one value per prism (pair)
+            self.believed(name)
+        if min(self.believed("believed_refractive_index")) <= 1.0:
+            raise InputError("risley_n.believed_refractive_index", ",".join(map(str, self.believed_refractive_index)),
+                             "0 (the true index) or numbers in (1, 4]")
         for believed in (False, True):
             _check_stack(self, believed)
 

@@ -112,7 +112,8 @@ def relative_angle_grid(prisms: int, samples: int) -> np.ndarray:
 
 
 def first_order_pointing(phis: np.ndarray, deviations) -> np.ndarray:
-    """Thin-prism pointing (..., 2): the (x, y) direction cosines −Σ δ_i (cos φ_i, sin φ_i) [rad], δ_i = (n_i − 1)·α_i.
+    """Thin-prism pointing (..., 2): the (x, y) direction cosines −Σ δ_i (cos φ_i, sin φ_i) [rad],
+    δ_i = (n_i − 1)·α_i.
 
     Each thin prism turns the beam by δ_i towards its thin edge, which lies opposite its back-face normal's tilt.
     """
