@@ -387,3 +387,15 @@ def test_bad_input_exits_2_with_one_line(tmp_path):
                "--out", str(tmp_path / "run"))
     assert run.returncode == 2 and run.stderr.count("\n") == 1 and "risley_n.rotation_hz" in run.stderr
     assert not (tmp_path / "run").exists() or not any((tmp_path / "run").iterdir())
+
+
+def test_the_patterns_figure_regenerates(tmp_path):
+    from flightsim.studies.risley_patterns import PATTERNS, SAMPLES, pattern_figure
+
+    png, table = pattern_figure(tmp_path)
+    assert png.stat().st_size > 10_000
+    with open(table, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(PATTERNS) * (SAMPLES + 1)
+    line = np.array([[float(r["x_exact_rad"]), float(r["y_exact_rad"])] for r in rows if r["panel"] == "1"])
+    assert np.abs(line[:, 0]).max() < 0.01 * np.abs(line[:, 1]).max()  # the counter-rotating pair's line
