@@ -154,7 +154,7 @@ def _startup(r: dict) -> list[str]:
     if not r.get("startup"):
         return []
     rows = r["startup"]
-    return ["", "### Start-up", "", f"`flightsim {rows[0]['command']}`, timed from before the process starts "
+    return ["", "### Start-up", "", f"`{rows[0]['command']}`, timed from before the process starts "
             "(cold: an empty Warp kernel cache; warm: the cache the cold run left). Targets: first result <= 3 s "
             "cold, <= 1 s warm.", "",
             "| kernel cache | command line parsed [s] | first trace launch [s] | first LAS tile [s] | exit [s] | "
