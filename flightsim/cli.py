@@ -238,7 +238,7 @@ def cmd_budget(args: argparse.Namespace) -> int:
     from flightsim.studies.budget_report import run_budget, run_risley_budget
 
     resolve_device(args.device)
-    from flightsim.studies.budgets import INSTRUMENTS, run_instrument
+    from flightsim.studies.budget_catalog import INSTRUMENTS, run_instrument
 
     if args.draws is not None and not 2 <= args.draws <= 10_000_000:
         raise InputError("--draws", args.draws, "an integer in [2, 10000000]")

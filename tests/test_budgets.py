@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from flightsim.studies import budget_photons as bp
-from flightsim.studies.budgets import instrument_budget, sigma_interval, statistics
+from flightsim.studies.budget_catalog import instrument_budget
+from flightsim.studies.budgets import sigma_interval, statistics
 
 C = 299_792_458.0
 

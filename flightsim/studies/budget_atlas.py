@@ -121,14 +121,12 @@ def _pointing_first_order(sim: Simulated) -> tuple[float, float]:
 
 def _background_first_order(cfg: RunConfig, sim: Simulated) -> tuple[float, float]:
     """Mixture of the signal (at zero height error: no other source on) and false photons uniform over ±W: per shot
-    N_b = rate · (2W/|g·d|) · 2/c in the window, N_s = 1 − e^{−n} signal detections (every photo-electron of a
-    narrow echo lands at once: one detection); f = N_b/(N_b + N_s), mean 0, σ² = f·W²/3."""
+    N_b = rate · (2W/|g·d|) · 2/c in the window, N_s = n signal detections (no dead time: every photo-electron counts); f = N_b/(N_b + N_s), mean 0, σ² = f·W²/3."""
     n = float(np.mean(bp.expected_signal(cfg, sim)[sim.geometry["kind"] == 1])) if np.any(sim.geometry["kind"] == 1) \
         else _nadir_signal(cfg)
     gd = abs(float(np.array([0.0, 0.0, -1.0]) @ bp.gradient(SLOPE)))
     background = NOISE_HZ * (2.0 * WINDOW_M / gd) * 2.0 / bp.C
-    signal = 1.0 - math.exp(-n)
-    f = background / (background + signal)
+    f = background / (background + n)
     return 0.0, WINDOW_M * math.sqrt(f / 3.0)
 
 
@@ -159,7 +157,10 @@ NOTES = """## Reading
 - Pointing knowledge: a 3″ error on roll and pitch puts the photon ≈ 2·√2·3.6 m off its true beam at 500 km; over the
   0.1 slope that is a systematic height error of r·δφ·tan(slope) in the slope's direction (here ≈ 0.7 m from the
   pitch, which moves the beam along the slope), the patent's reason to calibrate the pointing with corner cubes.
-- Background: at 1 MHz a ±3 m window holds ~0.04 false photons per shot beside ~1 signal detection, and each false
+- The device traces in float32: at 500 km a range is rounded to 1/32 m, so the pointing row (a systematic shift,
+  the same for every shot) agrees with first order to that rounding (−718.75 mm = −23/32 m), not better.
+- Background: the σ interval assumes normal errors; the mixture's heavy tails (a few per cent of photons spread
+  over ±3 m) make the true uncertainty of its σ several times wider. At 1 MHz a ±3 m window holds ~0.04 false photons per shot beside ~1 signal detection, and each false
   one is uniform over the window (σ = W/√3 = 1.7 m), so even a few per cent of them dominate the σ of the window's
   photons; a narrower window or a signal-finding step (ATL03's) removes most.
 - The first-photon bias: with the 3.2 ns dead time longer than the echo and ~3 signal photo-electrons per shot, the

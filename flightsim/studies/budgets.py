@@ -11,7 +11,8 @@ photon, with the geometry the first-order model needs) and the float64 first-ord
 Every source is reported as (mean, σ, RMS = √(mean² + σ²)) of the error [m]. A source's *contribution* to the
 total is its RMS (role ``noise``: a random error, or a systematic one at its 1σ value) or its |mean| alone (role
 ``bias``: a bias of an echo whose spread other sources already carry, e.g. pile-up); sources of role ``product``
-act on a derived product (e.g. gridded points) and stay out of the total. The total is the root-sum-square of the
+act on a derived product (e.g. gridded points) and ``alternative`` ones are another value of a source above (e.g.
+a steeper slope): both stay out of the total and of the all-sources run. The total is the root-sum-square of the
 contributions (independent sources), against the RMS of the run with every source on at once.
 """
 from __future__ import annotations
@@ -30,7 +31,8 @@ from flightsim.core.atomic import write_atomic
 from flightsim.core.errors import InputError
 
 CONFIDENCE = 0.99  # of the intervals the report and the tests use
-ROLES = ("noise", "bias", "product")
+SIGMA_FLOOR_M = 1.0e-9  # first-order σ below this: a systematic source, no σ ratio
+ROLES = ("noise", "bias", "product", "alternative")
 
 
 @dataclass(frozen=True)
@@ -105,7 +107,7 @@ def statistics(errors: np.ndarray, independent: int | None = None) -> dict:
 
 def contribution(role: str, mean: float, sigma: float) -> float:
     """A source's share of the total [m]: its RMS (noise), its |mean| (bias) or nothing (product)."""
-    return {"noise": math.hypot(mean, sigma), "bias": abs(mean), "product": 0.0}[role]
+    return {"noise": math.hypot(mean, sigma), "bias": abs(mean)}.get(role, 0.0)
 
 
 def source_names(budget: InstrumentBudget, sources: str | None) -> tuple[str, ...]:
@@ -126,7 +128,7 @@ def run_source(budget: InstrumentBudget, source: Source, device: str, shots: int
     model_mean, model_sigma = budget.first_order(source.name, sim)
     mc = statistics(sim.errors, sim.geometry.get("independent"))
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = mc["sigma_m"] / model_sigma if model_sigma > 0 else math.nan
+        ratio = mc["sigma_m"] / model_sigma if model_sigma > SIGMA_FLOOR_M else math.nan
     return {"source": asdict(source), "monte_carlo": mc, "wall_s": round(sim.wall_s, 3),
             "first_order": {"mean_m": model_mean, "sigma_m": model_sigma, "rms_m": math.hypot(model_mean, model_sigma)},
             "sigma_ratio": ratio,
@@ -142,7 +144,7 @@ def run_budget(budget: InstrumentBudget, device: str = "cpu", shots: int | None 
     shots = shots or budget.default_shots
     started = time.perf_counter()
     rows = [run_source(budget, s, device, shots, seed) for s in budget.sources if s.name in names]
-    together = [s.name for s in budget.sources if s.name in names and s.role != "product"]
+    together = [s.name for s in budget.sources if s.name in names and s.role in ("noise", "bias")]
     everything = statistics(budget.simulate(tuple(together), device, shots, seed).errors)
     rss = {k: math.sqrt(sum(r["contribution_m"][k] ** 2 for r in rows)) for k in ("monte_carlo", "first_order")}
     return {"instrument": budget.name, "device": device, "host": platform.node(), "shots": shots, "seed": seed,
@@ -202,7 +204,7 @@ in float64 (NumPy), all in mm. Intervals at {100 * n['confidence']:.0f} %: the m
 
 ## Total
 
-Contribution of each source (role noise: RMS = √(mean² + σ²); bias: |mean|; product: not in the total) [mm]:
+Contribution of each source (role noise: RMS = √(mean² + σ²); bias: |mean|; product, alternative: not in the total) [mm]:
 
 | source | Monte Carlo | first order |
 | --- | --- | --- |
@@ -216,34 +218,3 @@ All sources on at once ({', '.join(a['names'])}), one run of {e['n']:,} samples:
 {budget.notes(n)}
 """
 
-
-INSTRUMENTS = ("spad", "change1", "atlas")  # the budgets of this framework (change3 and risley have their own report)
-
-
-def instrument_budget(name: str) -> InstrumentBudget:
-    """The budget of instrument ``name`` (one of INSTRUMENTS)."""
-    if name == "spad":
-        from flightsim.studies.budget_spad import BUDGET
-    elif name == "change1":
-        from flightsim.studies.budget_change1 import BUDGET
-    elif name == "atlas":
-        from flightsim.studies.budget_atlas import BUDGET
-    else:
-        raise InputError("--instrument", name, "change3, risley, " + ", ".join(INSTRUMENTS))
-    return BUDGET
-
-
-def budget_command(name: str, out: Path, device: str, shots: int | None, sources: str | None) -> str:
-    """The command line that regenerates a budget."""
-    extra = (f" --draws {shots}" if shots else "") + (f" --sources {sources}" if sources else "")
-    return f"flightsim budget --instrument {name} --device {device}{extra} --out {out}"
-
-
-def run_instrument(name: str, out: Path, device: str = "cpu", shots: int | None = None, seed: int = 0,
-                   sources: str | None = None) -> dict:
-    """Compute instrument ``name``'s budget and write it under ``out`` (budget.json, REPORT.md)."""
-    budget = instrument_budget(name)
-    source_names(budget, sources)  # checked before anything runs
-    numbers = run_budget(budget, device, shots, seed, sources)
-    write_budget(budget, out, numbers, budget_command(name, out, device, shots, sources))
-    return numbers
