@@ -1,6 +1,6 @@
 """Per-photon ranging budget of the ATLAS-style spaceborne single-photon altimeter (seed:
-corner-cube-single-photon-calibration-patent.txt; the ``atlas`` preset's single strong beam, set here explicitly so
-that the budget does not follow changes of the preset's beam layout).
+corner-cube-single-photon-calibration-patent.txt; the ``atlas`` preset's single strong beam, every setting given here
+(BEAM) on the default config, so that the budget does not follow changes of the preset's beam layout).
 
 The instrument hovers 500 km over the plane z = −s·y (s = SLOPE) and fires ``shots`` nadir pulses; the quantity is
 the height above the true plane of every photon inside the signal window (±WINDOW_M of the true surface height):
@@ -20,7 +20,6 @@ from scipy.spatial.transform import Rotation
 
 from flightsim.core.constants import ARCSEC
 from flightsim.engine.config import RunConfig
-from flightsim.engine.config_io import preset_config
 from flightsim.studies import budget_photons as bp
 from flightsim.studies.budgets import Simulated, Source
 
@@ -28,8 +27,9 @@ ALTITUDE_M = 500_000.0  # the patent's ≈ 500 km
 SLOPE = 0.1  # rise/run of the plane (5.7°)
 WINDOW_M = 3.0  # half height of the signal window around the true surface [m]
 POINTING_ARCSEC = 3.0  # assumed: pointing knowledge per axis (ATLAS's 6.5 m geolocation requirement at 496 km ≈ 2.7″)
-BEAM = {  # the atlas preset's strong beam, explicitly (presets/atlas.toml as of this budget)
-    "fan.array": 1, "fan.divergence_mrad": 0.024, "photon.wavelength_nm": 532.0, "photon.pulse_energy_j": 1.2e-4,
+BEAM = {  # the atlas preset's single strong beam (presets/atlas.toml as of this budget), every value explicit
+    "instrument.emitter": "fan", "instrument.deflector": "fixed", "instrument.detector": "photon",
+    "instrument.max_range_m": 600_000.0, "fan.array": 1, "fan.divergence_mrad": 0.024, "photon.wavelength_nm": 532.0, "photon.pulse_energy_j": 1.2e-4,
     "photon.aperture_m": 0.8, "photon.optics_transmission": 0.5, "photon.pde": 0.15, "photon.reflectance": 0.2,
     "photon.max_events": 16, "photon.gate_m": [ALTITUDE_M - 1000.0, ALTITUDE_M + 1000.0]}
 PULSE_FWHM_S, JITTER_S, NOISE_HZ, DEAD_TIME_S = 1.5e-9, 1.0e-10, 1.0e6, 3.2e-9
@@ -61,7 +61,7 @@ class AtlasBudget:
     default_shots: int = 4000
 
     def config(self, names: tuple[str, ...], device: str, shots: int, seed: int) -> RunConfig:
-        base = preset_config("atlas")
+        base = RunConfig()  # not the preset: its beam layout may change; BEAM holds the single beam's values
         on = set(names)
         prf = 10_000.0
         pointing = [POINTING_ARCSEC, POINTING_ARCSEC, 0.0] if "pointing" in on else [0.0, 0.0, 0.0]
@@ -157,12 +157,18 @@ NOTES = """## Reading
 - Pointing knowledge: a 3″ error on roll and pitch puts the photon ≈ 2·√2·3.6 m off its true beam at 500 km; over the
   0.1 slope that is a systematic height error of r·δφ·tan(slope) in the slope's direction (here ≈ 0.7 m from the
   pitch, which moves the beam along the slope), the patent's reason to calibrate the pointing with corner cubes.
-- The device traces in float32: at 500 km a range is rounded to 1/32 m, so the pointing row (a systematic shift,
-  the same for every shot) agrees with first order to that rounding (−718.75 mm = −23/32 m), not better.
+- The device traces in float32: at 500 km a range is a multiple of 1/32 m. The pointing row is a systematic shift,
+  the same for every shot: the true range 500,000.7273 m rounds to 500,000.71875 m, and the first-order −727.33 mm
+  with that rounding gives −718.750 mm, the simulator's value to the µm. Ranging at 500 km needs float64 ranges
+  where a centimetre matters.
 - Background: the σ interval assumes normal errors; the mixture's heavy tails (a few per cent of photons spread
   over ±3 m) make the true uncertainty of its σ several times wider. At 1 MHz a ±3 m window holds ~0.04 false photons per shot beside ~1 signal detection, and each false
   one is uniform over the window (σ = W/√3 = 1.7 m), so even a few per cent of them dominate the σ of the window's
   photons; a narrower window or a signal-finding step (ATL03's) removes most.
+- The sources interact: alone, the background meets ~3 signal photo-electrons per shot (no dead time); with every
+  source on, the dead time keeps one signal detection per shot, the false photons' share f grows from ~1.3 % to
+  ~4 % and the window's σ with it (the all-sources σ exceeds the sources' root-sum-square of σ's); the total's
+  agreement is carried by the pointing bias, which dominates.
 - The first-photon bias: with the 3.2 ns dead time longer than the echo and ~3 signal photo-electrons per shot, the
   first one comes early and the surface reads high (ATLAS's first-photon bias, corrected in ATL03). The first-order
   model in n overstates it, as expected.

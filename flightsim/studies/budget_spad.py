@@ -43,8 +43,9 @@ SOURCES = (
            "true one saturates (≈ σ_t √(2 ln n)): it overstates the bias once n ≳ 0.5"),
     Source("gridding", GRID_CELLS, "cells", "the photons (pulse, jitter and TDC on) gridded into one point per angle "
            "cell by the device's photon grid (fullest height-bin pair, windowed mean): the point's height error "
-           "against σ_photon/√N", role="product", breaks="the windowed mean clips the echo's tails at ±(3σ + τ), so "
-           "the points spread less than σ/√N"),
+           "against σ_photon/√N", role="product", breaks="the window sits on the fullest pair of height bins, itself "
+           "noisy, and cuts the echo's tails at ±(3σ + τ): the points' σ can differ from σ/√N by a few per cent "
+           "either way"),
 )
 
 
@@ -193,8 +194,8 @@ NOTES = """## Reading
   the frame, its σ the spread of that bias over the field.
 - Pile-up: at ~1 expected photo-electron per shot (the preset's link at 100 m) the first-photon bias is early, so
   the photons read high; the first-order model (linear in n) overstates it, as expected (see the sources' notes).
-- Gridding averages: each point's σ is about σ_photon/√N; the window clips the tails so the points spread a little
-  less. The paper scores points this way (3σ of the point-to-surface distance).
+- Gridding averages: each point's σ is about σ_photon/√N (the window's placement and clipping move it by a few per
+  cent). The paper scores points this way (3σ of the point-to-surface distance).
 """
 
 BUDGET = SpadBudget()

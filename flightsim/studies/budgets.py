@@ -73,6 +73,37 @@ class InstrumentBudget(Protocol):
     def notes(self, numbers: dict) -> str: ...
 
 
+def sigma_relative_error(n: int) -> float:
+    """Expected relative error of a normal sample's σ from ``n`` values, 1/√(2(n − 1))."""
+    return 1.0 / math.sqrt(2.0 * (n - 1))
+
+
+class SlotMoments:
+    """Per-slot float64 sums of a deviation vector and its square over Monte Carlo draws, on the device (the
+    deviations readout adds to them); :meth:`moments` turns them into each slot's mean and sample σ."""
+
+    def __init__(self, slots: int, device):
+        import warp as wp
+
+        self.sums, self.squares = (wp.zeros(slots, dtype=wp.vec3d, device=device) for _ in range(2))
+        self.hits = wp.zeros(slots, dtype=wp.int32, device=device)
+
+    def readout(self):
+        """A deviations readout that adds one draw to these sums."""
+        from flightsim.engine.readouts.deviations import Deviations
+
+        return Deviations(self.sums, self.squares, self.hits)
+
+    def moments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(mean (slots, 3), sample σ (slots, 3), draws that returned (slots,) float64) per slot; NaN where fewer
+        than two draws returned."""
+        n = self.hits.numpy().astype(np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = self.sums.numpy() / n[:, None]
+            var = (self.squares.numpy() - n[:, None] * mean ** 2) / (n[:, None] - 1.0)
+        return mean, np.sqrt(np.maximum(var, 0.0)), n
+
+
 def sigma_interval(sigma: float, n: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
     """Two-sided ``confidence`` interval of a normal population's σ from a sample σ of ``n`` values (χ² with n − 1
     degrees of freedom)."""
@@ -190,7 +221,7 @@ def report(budget: InstrumentBudget, n: dict, command: str) -> str:
     return f"""# {budget.title}: error budget
 
 Regenerate: `{command}` (device `{n['device']}`, {n['shots']:,} shots per run, seed {n['seed']}, {n['wall_s']:.0f} s).
-Seed: `../../shared/seeds/{budget.seed}`. Quantity: {n['quantity']}
+Seed: `../shared/seeds/{budget.seed}`. Quantity: {n['quantity']}
 
 Each source alone, simulated through the simulator (Monte Carlo on `{n['device']}`) and propagated to first order
 in float64 (NumPy), all in mm. Intervals at {100 * n['confidence']:.0f} %: the mean ± its half width, the σ's from
