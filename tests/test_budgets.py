@@ -116,3 +116,30 @@ def test_bad_input_is_one_line_exit_2(tmp_path, argv, word):
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and word in r.stderr
     assert not out.exists()
+
+
+def test_cli_writes_budget_json_and_report(tmp_path):
+    """A two-source spad budget through the CLI: budget.json holds the rows, the all-sources run and their
+    root-sum-square (recomputed here from the rows' means and σ's); REPORT.md names the command."""
+    import json
+
+    out = tmp_path / "spad"
+    r = subprocess.run([sys.executable, "-m", "flightsim", "budget", "--instrument", "spad", "--sources",
+                        "jitter,fsm_zero", "--draws", "2", "--out", str(out)], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    n = json.loads((out / "budget.json").read_text())
+    assert [row["source"]["name"] for row in n["sources"]] == ["jitter", "fsm_zero"]
+    rss = math.sqrt(sum(row["monte_carlo"]["mean_m"] ** 2 + row["monte_carlo"]["sigma_m"] ** 2 for row in n["sources"]))
+    assert n["all_sources"]["rss_of_sources_m"]["monte_carlo"] == pytest.approx(rss, rel=1e-12)
+    assert n["all_sources"]["names"] == ["jitter", "fsm_zero"]
+    assert "flightsim budget --instrument spad --device cpu --draws 2 --sources jitter,fsm_zero" in \
+        (out / "REPORT.md").read_text()
+
+
+def test_api_refuses_an_unknown_instrument(tmp_path):
+    from flightsim import api
+    from flightsim.core.errors import InputError
+
+    with pytest.raises(InputError):
+        api.budget(tmp_path / "x", instrument="nope")

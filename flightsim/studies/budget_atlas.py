@@ -154,17 +154,18 @@ def _first_photon_first_order(cfg: RunConfig, sim: Simulated) -> tuple[float, fl
 NOTES = """## Reading
 
 - The pulse dominates a single photon's error: ATLAS's 1.5 ns pulse alone is (c/2)·0.64 ns ≈ 9.5 cm of range.
-- Pointing knowledge: a 3″ error on roll and pitch puts the photon ≈ 2·√2·3.6 m off its true beam at 500 km; over the
-  0.1 slope that is a systematic height error of r·δφ·tan(slope) in the slope's direction (here ≈ 0.7 m from the
-  pitch, which moves the beam along the slope), the patent's reason to calibrate the pointing with corner cubes.
+- Pointing knowledge: a 3″ error on roll and pitch puts the photon r·δφ = 7.3 m off its true beam per axis at
+  500 km (10.3 m in all); over the 0.1 slope the along-slope one is a systematic height error r·δφ·tan(slope) =
+  0.73 m, the patent's reason to calibrate the pointing with corner cubes.
 - The device traces in float32: at 500 km a range is a multiple of 1/32 m. The pointing row is a systematic shift,
   the same for every shot: the true range 500,000.7273 m rounds to 500,000.71875 m, and the first-order −727.33 mm
   with that rounding gives −718.750 mm, the simulator's value to the µm. Ranging at 500 km needs float64 ranges
   where a centimetre matters.
 - Background: the σ interval assumes normal errors; the mixture's heavy tails (a few per cent of photons spread
-  over ±3 m) make the true uncertainty of its σ several times wider. At 1 MHz a ±3 m window holds ~0.04 false photons per shot beside ~1 signal detection, and each false
-  one is uniform over the window (σ = W/√3 = 1.7 m), so even a few per cent of them dominate the σ of the window's
-  photons; a narrower window or a signal-finding step (ATL03's) removes most.
+  over ±3 m) make the true uncertainty of its σ several times wider. At 1 MHz a ±3 m window holds ~0.04 false
+  photons per shot beside ~3 signal photo-electrons (alone: no dead time), and each false one is uniform over the
+  window (σ = W/√3 = 1.7 m), so even a few per cent of them dominate the σ of the window's photons; a narrower
+  window or a signal-finding step (ATL03's) removes most.
 - The sources interact: alone, the background meets ~3 signal photo-electrons per shot (no dead time); with every
   source on, the dead time keeps one signal detection per shot, the false photons' share f grows from ~1.3 % to
   ~4 % and the window's σ with it (the all-sources σ exceeds the sources' root-sum-square of σ's); the total's

@@ -189,6 +189,9 @@ NOTES = """## Reading
 
 - The preset's echo dominates: the 1 ns pulse (assumed) spreads each photon by (c/2)·σ_p ≈ 6.4 cm along the beam;
   jitter and TDC follow. The slope makes the height error of a range error g·d ≈ −1.0 along these near-nadir beams.
+- The TDC row has no random draw: its errors are the frame's true ranges read at their bins' centres, so its sample
+  is the geometry's range fractions inside the 250 ps bins, not independent uniform ones; τ/√12 holds to ~1–2 %
+  and the χ² interval (which assumes independent errors) is no test here.
 - The FSM terms are small at these values: a 5″ tilt noise moves the beam by about 2 × 24 µrad, 5 mm at 100 m,
   and the plane's 0.2 slope turns that into ~1 mm of height. The zero error is systematic: its mean is the bias of
   the frame, its σ the spread of that bias over the field.
