@@ -421,7 +421,7 @@ def _add_study_commands(sub) -> None:
     budget.add_argument("--sources", help="spad, change1, atlas: a comma-separated subset of the error sources")
     budget.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     budget.add_argument("--draws", type=int, help="Monte Carlo draws (change3, risley: default 200) or shots per "
-                        "source (spad 64, change1 100, atlas 4000)")
+                        "source (spad 256, change1 100, atlas 20000)")
     budget.add_argument("--columns", type=int, help="pulses per strip (default: the instrument's 256)")
     budget.add_argument("--seed", type=int, default=0, help="random seed of the draws (default 0)")
     budget.add_argument("--out", required=True, help="directory for REPORT.md, budget.json, deviation_maps.png")

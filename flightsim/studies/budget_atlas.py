@@ -58,7 +58,7 @@ class AtlasBudget:
     quantity: str = "height above the true plane z = −0.1·y of every photon within ±3 m of it, 500 km below"
     seed: str = "corner-cube-single-photon-calibration-patent.txt"
     sources: tuple = SOURCES
-    default_shots: int = 4000
+    default_shots: int = 20000
 
     def config(self, names: tuple[str, ...], device: str, shots: int, seed: int) -> RunConfig:
         base = RunConfig()  # not the preset: its beam layout may change; BEAM holds the single beam's values

@@ -58,7 +58,7 @@ class SpadBudget:
     quantity: str = "height of each signal photon above the true plane z = −0.2·y, 100 m below (gridding: of each point)"
     seed: str = "spad-fsm-small-body-lidar-paper.txt"
     sources: tuple = SOURCES
-    default_shots: int = 64
+    default_shots: int = 256
 
     def config(self, names: tuple[str, ...], device: str, shots: int, seed: int) -> RunConfig:
         """The preset over the plane with ``names`` on and everything else off."""
