@@ -11,6 +11,7 @@
                                 default where that differs, unit, allowed values and meaning
   ``preset-toml NAME``          the preset file of instrument NAME, with its comments
   ``parts``                     every registered part kind, by role, with its settings
+  ``part-settings KIND``        the settings of instrument part KIND (its table), with their defaults
   ``section TABLE``             the settings of a fixed table (instrument, scene, flight, scoring, run) that
                                 every kind shares
   ``kinds ROLE``                the kinds of a role (scene, platform, output) that add settings to a section
@@ -244,6 +245,13 @@ def engine_parts() -> list[str]:
     return out
 
 
+def part_settings(kind: str) -> str:
+    part = registry.instrument_part(kind)
+    if part is None:
+        raise PluginError(f"flightsim docs: no instrument part {kind!r}")
+    return settings_table(part.settings)
+
+
 def section_table(table: str) -> str:
     if table not in SECTION_SETTINGS:
         raise PluginError(f"flightsim docs: no section {table!r} (one of {', '.join(SECTION_SETTINGS)})")
@@ -277,7 +285,7 @@ def expand(kind: str, arg: str | None, page_dir: str) -> str:
     makers = {"presets": lambda: presets_table(page_dir), "parts": parts_page,
               "instrument-parts": lambda: instrument_parts(arg), "instrument-settings": lambda: instrument_settings(arg),
               "preset-toml": lambda: preset_toml(arg), "section": lambda: section_table(arg),
-              "kinds": lambda: kinds_table(arg)}
+              "kinds": lambda: kinds_table(arg), "part-settings": lambda: part_settings(arg)}
     if kind not in makers:
         raise PluginError(f"flightsim docs: unknown marker {kind!r} (one of {', '.join(makers)})")
     return makers[kind]()

@@ -14,6 +14,7 @@ from flightsim.engine.config import RunConfig, get_value, set_value, validate
 from flightsim.engine.config_io import PRESETS, load_toml, preset_config, to_toml
 from flightsim.scoring import score
 from flightsim.core.errors import InputError
+from flightsim.core.timeline import mark
 
 EXIT_INVALID = 2
 
@@ -233,6 +234,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_profile(args: argparse.Namespace) -> int:
+    from flightsim.studies.profile import WORKLOADS, run_profile
+
+    names = tuple(args.workloads.split(",")) if args.workloads else WORKLOADS
+    if set(names) - set(WORKLOADS):
+        raise InputError("--workloads", args.workloads, "a comma-separated subset of " + ",".join(WORKLOADS))
+    run_profile(args.device, args.quick, Path(args.out), names)
+    print((Path(args.out) / "profile.md").read_text())
+    return 0
+
+
 def cmd_budget(args: argparse.Namespace) -> int:
     from flightsim.core.warp_runtime import resolve_device
     from flightsim.studies.budget_report import run_budget, run_risley_budget
@@ -411,9 +423,17 @@ def _add_study_commands(sub) -> None:
     bench.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     bench.add_argument("--quick", action="store_true", help="small sizes (under a minute on a CPU)")
     bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto,galvo,"
-                       "spad,waveform,scale,reduce,survey")
+                       "spad,waveform,scale,reduce,survey,forest,startup")
     bench.add_argument("--out", required=True, help="directory for bench.json, bench.md, pareto.csv/png")
     bench.set_defaults(func=cmd_bench)
+
+    profile = sub.add_parser("profile", help="where each workload's device time goes: per kernel GPU time, "
+                                             "registers, occupancy, idle time")
+    profile.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    profile.add_argument("--quick", action="store_true", help="small sizes")
+    profile.add_argument("--workloads", help="comma-separated subset (default: all)")
+    profile.add_argument("--out", required=True, help="directory for profile.json and profile.md")
+    profile.set_defaults(func=cmd_profile)
 
     budget = sub.add_parser("budget", help="full-link error budget of an instrument: change3 (the galvo imager, "
                                            "seed paper §2-§3) or risley (the airborne DOE-array instrument)")
@@ -477,6 +497,7 @@ def _add_instrument_commands(sub) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
+    mark("cli")
     try:
         return args.func(args)
     except InputError as exc:

@@ -20,7 +20,7 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.errors import InputError
-from flightsim.core.warp_runtime import resolve_device
+from flightsim.core.warp_runtime import copy_into, resolve_device
 from flightsim.instrument.cloud_waveform_model import C, COVER_SIGMAS, CloudBeam, check_request, point_weights
 from flightsim.scenes.pointcloud import PointCloud
 from kernels.cloud_waveform import PULSE_SIGMAS, CloudBeamParams, CloudGrid, cloud_waveform_kernel
@@ -152,8 +152,8 @@ def _launch(kernel, prepared: DeviceCloud, params, pulse_d, centres, origin_bin,
                             wp.array(origin_bin.astype(np.float32), dtype=wp.float32, device=device)],
                     outputs=[arrays["rx"], arrays["ground"], arrays["canopy"], near_d])
     for name, array in arrays.items():
-        out[name][part] = array.numpy()
-    near[part] = near_d.numpy()
+        copy_into(out[name][part], array)
+    copy_into(near[part], near_d)
 
 
 def _refuse_outside(index: int, centres: np.ndarray, origin: np.ndarray, beam: CloudBeam) -> None:

@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from flightsim.core import registry
 from flightsim.core.errors import InputError
+from flightsim.core.timeline import mark
 from flightsim.core.warp_runtime import resolve_device
 from flightsim.engine.chunks import SLOTS_PER_CHUNK, Segment, line_table, pack, segment_tables
 from flightsim.engine.coverage import pulse_windows
@@ -230,6 +231,7 @@ class Tracer:
         for segments in self._chunks(pulses, counts, progress, share):
             n_slots = sum(s.count for s in segments) * self.beams_per_pulse
             readout.chunk(self, segments, n_slots, counts, consume)
+            mark("first_ray")  # the first chunk's kernels compiled (or loaded) and launched
         tir, misses = (int(v) for v in readout.end(self, counts).numpy()[:2])
         counts.beams_fired = counts.pulses * self.beams_per_pulse
         counts.tir_dropped, counts.misses = tir, misses

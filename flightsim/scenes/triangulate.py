@@ -103,8 +103,9 @@ def _clip_ears(points: np.ndarray, polygon: list[int]) -> list[tuple[int, int, i
     triangles = []
     while len(polygon) > 3:
         best, best_quality = -1, -1.0
+        ring = points[polygon]
         for i in range(len(polygon)):
-            quality = _ear_quality(points, polygon, i)
+            quality = _ear_quality(ring, i)
             if quality > best_quality:
                 best, best_quality = i, quality
         if best < 0:
@@ -116,20 +117,19 @@ def _clip_ears(points: np.ndarray, polygon: list[int]) -> list[tuple[int, int, i
     return triangles
 
 
-def _ear_quality(points: np.ndarray, polygon: list[int], i: int) -> float:
-    """Smallest angle [rad] of the ear at polygon vertex i, or −1 if it is not an ear."""
-    n = len(polygon)
-    ia, ib, ic = polygon[i - 1], polygon[i], polygon[(i + 1) % n]
-    a, b, c = points[ia], points[ib], points[ic]
+def _ear_quality(ring: np.ndarray, i: int) -> float:
+    """Smallest angle [rad] of the ear at vertex i of the polygon ``ring`` (n, 2), or −1 if it is not an ear:
+    convex there, and no other vertex (one at a corner's position aside) in the closed triangle."""
+    a, b, c = ring[i - 1], ring[i], ring[(i + 1) % len(ring)]
     if _cross(b - a, c - b) <= 0.0:
         return -1.0
-    corners = (a, b, c)
-    for k in polygon:
-        x = points[k]
-        if any(np.array_equal(x, y) for y in corners):
-            continue
-        if _cross(b - a, x - a) >= 0.0 and _cross(c - b, x - b) >= 0.0 and _cross(a - c, x - c) >= 0.0:
-            return -1.0
+    at_corner = (ring == a).all(axis=1) | (ring == b).all(axis=1) | (ring == c).all(axis=1)
+    inside = ~at_corner
+    for p, q in ((a, b), (b, c), (c, a)):
+        edge = q - p
+        inside &= edge[0] * (ring[:, 1] - p[1]) - edge[1] * (ring[:, 0] - p[0]) >= 0.0
+    if inside.any():
+        return -1.0
     return min(_angle(a, b, c), _angle(b, c, a), _angle(c, a, b))
 
 

@@ -16,10 +16,11 @@ from flightsim.studies.bench_common import git_commit, gpu_name, sizes
 from flightsim.studies.bench_forest import forest
 from flightsim.studies.bench_runs import galvo, spad_frame, stages, study, throughput, waveform_altimeter
 from flightsim.studies.bench_savings import pareto, skipping
+from flightsim.studies.bench_startup import startup
 from flightsim.studies.bench_scale import las_output, reduce_knobs, scale, survey_area
 
 SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform", "scale",
-            "reduce", "survey", "forest")
+            "reduce", "survey", "forest", "startup")
 
 
 def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
@@ -34,7 +35,7 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
     runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
                "pareto": pareto, "galvo": galvo, "spad": spad_frame,
                "waveform": waveform_altimeter, "scale": scale, "reduce": reduce_knobs, "survey": survey_area,
-               "forest": forest}
+               "forest": forest, "startup": startup}
     for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)

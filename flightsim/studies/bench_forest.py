@@ -89,7 +89,7 @@ def als_ratio(device: str, beams: float, size_m: float) -> dict:
     voxel forest of ``size_m`` square (1 km: 1 km²) and over its bare ground (the same flight, leaf area 0)."""
     records = {"forest_size_m": size_m}
     for name, lai in (("forest", 3.0), ("bare", 0.0)):
-        tracer = _forest_tracer(device, lai, beams, size_m)
+        tracer = forest_tracer(device, lai, beams, size_m)
         tracer.run(Points(on_device=True), consume=lambda returns: None)  # compile and warm up
         wp.synchronize_device(tracer.device)
         counts = tracer.run(Points(on_device=True), consume=lambda returns: None)
@@ -99,7 +99,7 @@ def als_ratio(device: str, beams: float, size_m: float) -> dict:
     return records
 
 
-def _forest_tracer(device: str, lai: float, beams: float, size_m: float) -> Tracer:
+def forest_tracer(device: str, lai: float, beams: float, size_m: float) -> Tracer:
     """The default airborne instrument at 500 m over a procedural forest of ``size_m`` square and leaf area index
     ``lai`` (0: bare ground, no canopy), lines flown back and forth over it for about ``beams`` beams."""
     cfg = RunConfig()

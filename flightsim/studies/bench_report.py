@@ -58,7 +58,7 @@ def markdown(merged: dict) -> str:
             lines += ["Sections measured at (commit, date): " + ", ".join(
                 f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
         lines += (_throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r)
-                  + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r) + _forest(r))
+                  + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r) + _forest(r) + _startup(r))
     return "\n".join(lines) + "\n"
 
 
@@ -148,6 +148,19 @@ def _forest(r: dict) -> list[str]:
             *[f"| {name} ({a['forest_size_m']:g} m square) | {x['beams']:,} | {x['returns']:,} | {x['wall_s']:.3f} | "
               f"{_fmt(x['beams_per_s'])} |" for name, x in (("forest, LAI 3", a["forest"]), ("bare ground", a["bare"]))],
             "", f"Forest ÷ bare ground: {a['ratio']:.2f}.", ""]
+
+
+def _startup(r: dict) -> list[str]:
+    if not r.get("startup"):
+        return []
+    rows = r["startup"]
+    return ["", "### Start-up", "", f"`flightsim {rows[0]['command']}`, timed from before the process starts "
+            "(cold: an empty Warp kernel cache; warm: the cache the cold run left). Targets: first result <= 3 s "
+            "cold, <= 1 s warm.", "",
+            "| kernel cache | command line parsed [s] | first trace launch [s] | first LAS tile [s] | exit [s] | "
+            "modules compiled |", "| --- | --- | --- | --- | --- | --- |",
+            *[f"| {x['cache']} | {x['cli_s']:.2f} | {x['first_ray_s']:.2f} | {_fmt(x['first_file_s'])} | "
+              f"{x['exit_s']:.2f} | {x['modules_compiled']} |" for x in rows], ""]
 
 
 def _stages(r: dict) -> list[str]:

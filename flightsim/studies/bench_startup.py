@@ -1,0 +1,47 @@
+"""`flightsim bench` section startup: seconds from launching `flightsim simulate` (the default scene and
+instrument, 1 s of flight) to its command line parsed, to the first trace launch and to the first LAS tile on
+disk, with an empty Warp kernel cache (cold: every module compiled) and again with the cache it left (warm)."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from flightsim.core.warp_runtime import resolve_device
+from flightsim.studies.bench_common import Sizes
+
+
+def startup(device: str, s: Sizes) -> list[dict]:
+    """One record per cache state (cold, then warm) in a fresh kernel cache and scene cache."""
+    with tempfile.TemporaryDirectory() as tmp:
+        return [_launch(resolve_device(device), Path(tmp), state) for state in ("cold", "warm")]
+
+
+def _launch(device: str, tmp: Path, state: str) -> dict:
+    out, timeline = tmp / f"run-{state}", tmp / f"timeline-{state}.txt"
+    kernels = tmp / "kernels"
+    env = dict(os.environ, WARP_CACHE_PATH=str(kernels), FLIGHTSIM_CACHE=str(tmp / "scenes"),
+               FLIGHTSIM_TIMELINE=str(timeline))
+    command = [sys.executable, "-m", "flightsim", "simulate", "--device", device, "--duration", "1",
+               "--out", str(out)]
+    modules_before = _modules(kernels)
+    started = time.time()
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    ended = time.time()
+    if done.returncode != 0:
+        raise RuntimeError(f"start-up run failed: {' '.join(command)}\n{done.stderr[-4000:]}")
+    events = dict(line.split() for line in timeline.read_text().splitlines())
+    tiles = list(out.rglob("*.las"))
+    return {"cache": state, "device": device, "command": "flightsim " + " ".join(command[3:-1]),
+            "cli_s": float(events["cli"]) - started, "first_ray_s": float(events["first_ray"]) - started,
+            "first_file_s": min(t.stat().st_mtime for t in tiles) - started if tiles else None,
+            "exit_s": ended - started,
+            "modules_compiled": _modules(kernels) - modules_before}
+
+
+def _modules(cache: Path) -> int:
+    """Compiled modules in a Warp kernel cache (one ``wp_*`` folder each, under Warp's version)."""
+    return sum(1 for _ in cache.glob("*/wp_*")) if cache.exists() else 0

@@ -1,0 +1,58 @@
+"""`flightsim profile`: the records it writes and the observations it draws from them."""
+import json
+
+from flightsim.studies.profile import profile_workload, run_profile
+from flightsim.studies.profile_report import observations
+
+
+def _record(kernels, wall=1.0, idle=0.0):
+    return {"workload": "w", "profiled_wall_s": wall, "idle_s": idle, "kernels": kernels}
+
+
+def test_observations_name_the_dominant_kernel_idle_time_low_occupancy_and_spills():
+    kernels = {"trace": {"gpu_s": 0.6, "occupancy": 0.25, "registers": 128, "local_bytes": 64},
+               "tiny": {"gpu_s": 0.01, "occupancy": 0.1, "local_bytes": 8}}
+    notes = observations(_record(kernels, idle=0.3))
+    assert notes[0] == "`trace` takes 60% of the wall time"
+    assert "the GPU idles 30% of the wall time (host work, launch gaps, syncs)" in notes
+    assert "`trace` (60%) runs at 25% theoretical occupancy (128 registers/thread)" in notes
+    assert "`trace` spills 64 bytes/thread to local memory" in notes
+    assert not any("tiny" in note for note in notes)  # under 5 % of the wall: not worth a line
+
+
+def test_observations_stay_quiet_on_a_busy_well_occupied_kernel():
+    notes = observations(_record({"k": {"gpu_s": 0.9, "occupancy": 1.0, "local_bytes": 0}}, idle=0.05))
+    assert notes == ["`k` takes 90% of the wall time"]
+
+
+def test_profile_counts_the_beams_the_flight_fires(tmp_path):
+    record = profile_workload("risley3", "cpu", quick=True)
+    # the quick risley3 workload asks for 2e6 beams: round(2e6 / (5 kHz × 9 beams × 10 s)) = 4 lines of 10 s,
+    # 1.8e6 beams, give or take a pulse at each line's ends
+    assert record["unit"] == "beams" and abs(record["units"] - 4 * 10.0 * 5000 * 9) <= 4 * 2 * 9
+    assert record["units"] % 9 == 0
+    assert abs(record["rate"] * record["wall_s"] - record["units"]) < 1e-6 * record["units"]
+    assert record["bare_rays_per_s"] > 0 and record["ratio_to_bare"] == record["rate"] / record["bare_rays_per_s"]
+
+
+def test_run_profile_writes_json_and_markdown(tmp_path):
+    run_profile("cpu", True, tmp_path, ("waveform_slope",))
+    saved = json.loads((tmp_path / "profile.json").read_text())
+    assert [w["workload"] for w in saved["workloads"]] == ["waveform_slope"]
+    assert "| waveform_slope |" in (tmp_path / "profile.md").read_text()
+
+
+def test_timeline_marks_each_event_once(tmp_path, monkeypatch):
+    from flightsim.core import timeline
+
+    path = tmp_path / "timeline.txt"
+    monkeypatch.setenv("FLIGHTSIM_TIMELINE", str(path))
+    monkeypatch.setattr(timeline, "_marked", set())
+    timeline.mark("first_ray")
+    timeline.mark("first_ray")
+    timeline.mark("cli")
+    events = [line.split()[0] for line in path.read_text().splitlines()]
+    assert events == ["first_ray", "cli"]
+    monkeypatch.delenv("FLIGHTSIM_TIMELINE")
+    timeline.mark("exit")  # without the variable nothing is written
+    assert len(path.read_text().splitlines()) == 2
