@@ -247,26 +247,10 @@ def cmd_profile(args: argparse.Namespace) -> int:
 
 def cmd_budget(args: argparse.Namespace) -> int:
     from flightsim.core.warp_runtime import resolve_device
-    from flightsim.studies.budget_report import run_budget, run_risley_budget
+    from flightsim.studies.budget_catalog import run_any
 
     resolve_device(args.device)
-    from flightsim.studies.budget_catalog import INSTRUMENTS, run_instrument
-
-    if args.draws is not None and not 2 <= args.draws <= 10_000_000:
-        raise InputError("--draws", args.draws, "an integer in [2, 10000000]")
-    if args.columns is not None and not 2 <= args.columns <= 65536:
-        raise InputError("--columns", args.columns, "an integer in [2, 65536]")
-    if args.sources is not None and args.instrument not in INSTRUMENTS:
-        raise InputError("--sources", args.sources, "only with --instrument " + ", ".join(INSTRUMENTS))
-    draws = 200 if args.draws is None else args.draws
-    if args.instrument == "risley":
-        run_risley_budget(Path(args.out), device=args.device, draws=draws, seed=args.seed)
-    elif args.instrument == "change3":
-        run_budget(Path(args.out), device=args.device, draws=draws, columns=args.columns, seed=args.seed)
-    elif args.instrument in INSTRUMENTS:
-        run_instrument(args.instrument, Path(args.out), args.device, args.draws, args.seed, args.sources)
-    else:
-        raise InputError("--instrument", args.instrument, "change3, risley, " + ", ".join(INSTRUMENTS))
+    run_any(args.instrument, Path(args.out), args.device, args.draws, args.columns, args.seed, args.sources)
     print((Path(args.out) / "REPORT.md").read_text())
     return 0
 
