@@ -211,8 +211,17 @@ def sweep(base: RunConfig, axes: Mapping[str, list], out: str | Path, overwrite:
     return run_sweep(grid, Path(out), overwrite=overwrite)
 
 
-def budget(out: str | Path, device: str = "cpu", draws: int = 200, columns: int | None = None) -> dict:
-    """The Chang'e-3 imager's full-link error budget (``flightsim budget``); returns its numbers."""
+def budget(out: str | Path, device: str = "cpu", draws: int = 200, columns: int | None = None,
+           instrument: str = "change3") -> dict:
+    """An instrument's error budget (``flightsim budget``): the Chang'e-3 imager's full-link budget (default), or
+    with ``instrument`` spad, change1 or atlas (``draws``: shots per source) the shared framework's; returns its
+    numbers."""
+    from flightsim.core.errors import InputError
+    from flightsim.studies.budget_catalog import INSTRUMENTS, run_instrument
     from flightsim.studies.budget_report import run_budget
 
+    if instrument in INSTRUMENTS:
+        return run_instrument(instrument, Path(out), device=device, shots=draws)
+    if instrument != "change3":
+        raise InputError("instrument", instrument, "change3, " + ", ".join(INSTRUMENTS))
     return run_budget(Path(out), device=device, draws=draws, columns=columns)

@@ -247,19 +247,10 @@ def cmd_profile(args: argparse.Namespace) -> int:
 
 def cmd_budget(args: argparse.Namespace) -> int:
     from flightsim.core.warp_runtime import resolve_device
-    from flightsim.studies.budget_report import run_budget, run_risley_budget
+    from flightsim.studies.budget_catalog import run_any
 
     resolve_device(args.device)
-    if not 2 <= args.draws <= 10_000_000:
-        raise InputError("--draws", args.draws, "an integer in [2, 10000000]")
-    if args.columns is not None and not 2 <= args.columns <= 65536:
-        raise InputError("--columns", args.columns, "an integer in [2, 65536]")
-    if args.instrument == "risley":
-        run_risley_budget(Path(args.out), device=args.device, draws=args.draws, seed=args.seed)
-    elif args.instrument == "change3":
-        run_budget(Path(args.out), device=args.device, draws=args.draws, columns=args.columns, seed=args.seed)
-    else:
-        raise InputError("--instrument", args.instrument, "change3 or risley")
+    run_any(args.instrument, Path(args.out), args.device, args.draws, args.columns, args.seed, args.sources)
     print((Path(args.out) / "REPORT.md").read_text())
     return 0
 
@@ -430,9 +421,11 @@ def _add_study_commands(sub) -> None:
 
     budget = sub.add_parser("budget", help="full-link error budget of an instrument: change3 (the galvo imager, "
                                            "seed paper §2-§3) or risley (the airborne DOE-array instrument)")
-    budget.add_argument("--instrument", default="change3", help="change3 (default) or risley")
+    budget.add_argument("--instrument", default="change3", help="change3 (default), risley, spad, change1 or atlas")
+    budget.add_argument("--sources", help="spad, change1, atlas: a comma-separated subset of the error sources")
     budget.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
-    budget.add_argument("--draws", type=int, default=200, help="Monte Carlo draws (default 200)")
+    budget.add_argument("--draws", type=int, help="Monte Carlo draws (change3, risley: default 200) or shots per "
+                        "source (spad 256, change1 100, atlas 20000)")
     budget.add_argument("--columns", type=int, help="pulses per strip (default: the instrument's 256)")
     budget.add_argument("--seed", type=int, default=0, help="random seed of the draws (default 0)")
     budget.add_argument("--out", required=True, help="directory for REPORT.md, budget.json, deviation_maps.png")

@@ -23,11 +23,11 @@ from flightsim.core.constants import ARCSEC
 from flightsim.engine.config import RunConfig, copy_config, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.engine.instrument import Instrument
-from flightsim.engine.readouts.deviations import Deviations
 from flightsim.engine.readouts.points import Points
 from flightsim.instrument import galvo_model
 from flightsim.instrument.galvo import ANGLE_ERRORS
 from flightsim.instrument.ranging import RangingErrors, RangingSettings
+from flightsim.studies.budgets import SlotMoments
 
 ANGLE_SOURCES = {"B1": "b1_arcsec", "B2": "b2_arcsec", "B3": "b3_arcsec", "C1": "c1_arcsec"}
 PAPER_ALLOWED_ARCSEC = {"B1": 42.9, "B2": 42.9, "B3": 42.9, "C1": 94.5}  # seed paper §3.3
@@ -204,9 +204,7 @@ def monte_carlo(frame: Frame, draws: int, allowed_arcsec: dict[str, float] | Non
                                                                   "jitter_s", "rise_time_s", "cfd_fraction", "snr")})
     sim = frame.simulator(base)
     d = sim.device
-    slots = frame.pulses * frame.beams
-    sums, squares = (wp.zeros(slots, dtype=wp.vec3d, device=d) for _ in range(2))
-    hits = wp.zeros(slots, dtype=wp.int32, device=d)
+    slots = SlotMoments(frame.pulses * frame.beams, d)
     rng = np.random.default_rng(seed)
     delay_sigma = base.ranging.channel_delay_m
     deflector = sim.instrument.deflector
@@ -219,16 +217,12 @@ def monte_carlo(frame: Frame, draws: int, allowed_arcsec: dict[str, float] | Non
             believed=False)
         sim.scan.ranging.delays.assign(rng.normal(0.0, delay_sigma, frame.beams).astype(np.float32))
         sim.lines.seed.assign(np.array([(seed * 1_000_003 + i + 1) % (1 << 31)], dtype=np.int32))
-        sim.run(Deviations(sums, squares, hits))
+        sim.run(slots.readout())
     wp.synchronize_device(d)
     wall = time.perf_counter() - started
-    n = hits.numpy().astype(np.float64)
-    s1, s2 = sums.numpy(), squares.numpy()
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = s1 / n[:, None]
-        var = (s2 - n[:, None] * mean ** 2) / (n[:, None] - 1.0)
+    mean, std, n = slots.moments()
     rot = frame.sensor_rotation(sim)
     if not np.allclose(np.abs(rot), np.round(np.abs(rot)), atol=1e-12):
         raise ValueError("the budget frame's sensor axes must be the local axes up to sign")
     perm = np.abs(rot)  # local axis of each sensor axis
-    return MonteCarlo(draws, mean @ rot, np.sqrt(np.maximum(var, 0.0)) @ perm, n.astype(np.int64), wall, drawn_values)
+    return MonteCarlo(draws, mean @ rot, std @ perm, n.astype(np.int64), wall, drawn_values)

@@ -17,6 +17,7 @@ from flightsim.instrument import galvo_model
 from flightsim.instrument.ranging import RangingErrors
 from flightsim.studies.budget import (ANGLE_SOURCES, AXES, PAPER_ALLOWED_ARCSEC, PAPER_TABLE1_CM, Frame, deterministic,
                                       draw_sigmas, frame_config, monte_carlo)
+from flightsim.studies.budgets import sigma_relative_error
 
 ANGLE_NAMES = tuple(ANGLE_SOURCES)
 PAPER_IMPLIED_FIELD_DEG = 34.0  # horizontal beam field that reproduces the paper's Y, Z columns of B2, B3 [deg]
@@ -80,7 +81,7 @@ def _numbers(frame, det, mc, analytic, allowed, ranging_cfg, device, det_s) -> d
                         "std_over_analytic_median": [float(np.nanmedian(ratio[:, k])) for k in range(3)],
                         "std_over_analytic_p05": [float(np.nanpercentile(ratio[:, k], 5)) for k in range(3)],
                         "std_over_analytic_p95": [float(np.nanpercentile(ratio[:, k], 95)) for k in range(3)],
-                        "expected_relative_error": 1.0 / math.sqrt(2.0 * (mc.draws - 1)),
+                        "expected_relative_error": sigma_relative_error(mc.draws),
                         "drawn_sigma_arcsec": dict(zip(ANGLE_NAMES, np.std(mc.drawn, axis=0, ddof=1).round(2).tolist())),
                         "drawn_b1_b2_correlation": round(float(np.corrcoef(mc.drawn[:, 0], mc.drawn[:, 1])[0, 1]), 3),
                         "max_std_cm": [float(np.nanmax(mc.std[ok][:, k]) * 100) for k in range(3)],

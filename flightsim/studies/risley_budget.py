@@ -18,15 +18,14 @@ the range noise.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from flightsim.engine.config import RunConfig, copy_config, validate
-from flightsim.engine.readouts.deviations import Deviations
 from flightsim.studies.budget import AXES, MonteCarlo, Frame, table
+from flightsim.studies.budgets import SlotMoments, sigma_relative_error
 
 ENU = ("E", "N", "U")
 
@@ -118,22 +117,17 @@ def monte_carlo(frame: Frame, draws: int, seed: int = 0) -> MonteCarlo:
     systematic = {name: s.sigma for name, s in SOURCES.items() if s.systematic}
     sim = frame.simulator(with_sources(frame.cfg, noise | systematic))  # compiles every error path
     d = sim.device
-    slots = frame.pulses * frame.beams
-    sums, squares = (wp.zeros(slots, dtype=wp.vec3d, device=d) for _ in range(2))
-    hits = wp.zeros(slots, dtype=wp.int32, device=d)
+    slots = SlotMoments(frame.pulses * frame.beams, d)
     started = time.perf_counter()
     for i in range(draws):
         drawn = {name: float(rng.normal(0.0, sigma)) for name, sigma in systematic.items()}
         sim.set_errors(with_sources(frame.cfg, noise | drawn))
         sim.lines.seed.assign(np.array([(seed * 1_000_003 + i + 1) % (1 << 31)], dtype=np.int32))
-        sim.run(Deviations(sums, squares, hits))
+        sim.run(slots.readout())
     wp.synchronize_device(d)
     wall = time.perf_counter() - started
-    n = hits.numpy().astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = sums.numpy() / n[:, None]
-        var = (squares.numpy() - n[:, None] * mean ** 2) / (n[:, None] - 1.0)
-    return MonteCarlo(draws, mean, np.sqrt(np.maximum(var, 0.0)), n.astype(np.int64), wall)
+    mean, std, n = slots.moments()
+    return MonteCarlo(draws, mean, std, n.astype(np.int64), wall)
 
 
 def horizontal(deviation: np.ndarray) -> np.ndarray:
@@ -167,7 +161,7 @@ def budget_numbers(frame: Frame, det: dict, mc: MonteCarlo, device: str) -> dict
                         "std_over_linearised_median": [float(np.median(ratio[:, k])) for k in range(3)],
                         "std_over_linearised_p05": [float(np.percentile(ratio[:, k], 5)) for k in range(3)],
                         "std_over_linearised_p95": [float(np.percentile(ratio[:, k], 95)) for k in range(3)],
-                        "expected_relative_error": 1.0 / math.sqrt(2.0 * (mc.draws - 1)),
+                        "expected_relative_error": sigma_relative_error(mc.draws),
                         "rms_cm": [float(100 * np.sqrt(np.mean(mc.std[ok][:, k] ** 2))) for k in range(3)],
                         "linearised_rms_cm": [float(100 * np.sqrt(np.mean(analytic[ok][:, k] ** 2)))
                                               for k in range(3)],
