@@ -240,20 +240,73 @@ def deposit_kernel(per_face: bool, canopy: bool = False):
     return deposit
 
 
+CONVOLVE_OUTPUTS = 8  # consecutive samples per convolve thread (one impulse load per tap feeds all of them)
+
+
+@wp.func
+def _impulse(impulses: wp.array2d(dtype=wp.float64), slot: int, j: int, lo: int, hi: int):
+    """impulses[slot, j] within the touched span [lo, hi], else 0 (the rest of the row is 0)."""
+    value = wp.float64(0.0)
+    if j >= lo and j <= hi:
+        value = impulses[slot, j]
+    return value
+
+
 @wp.kernel
 def convolve(impulses: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.int32), taps: wp.array(dtype=wp.float64),
              first_lag: int, out: wp.array2d(dtype=wp.float32)):
     """out[slot, i] = Σ_j impulses[slot, j] · P((i − j)·dt): the received power [W] (taps: P at lags
-    first_lag, first_lag + 1, … samples); only the impulses within ``span[slot]`` are visited."""
-    slot, i = wp.tid()
+    first_lag, first_lag + 1, … samples); only the impulses within ``span[slot]`` are visited.
+
+    Each thread makes CONVOLVE_OUTPUTS consecutive samples i0 … i0 + 7 from a window of eight impulses held
+    in registers and slid by one per tap (r_j = impulse i0 + j − first_lag − k): one load and one tap per
+    eight products. Each sample adds the same products in the same order (taps ascending) as a sample on
+    its own would; the products outside its own tap range are exact zeros."""
+    slot, block = wp.tid()
+    i0 = block * CONVOLVE_OUTPUTS
     lo = span[slot, 0]
     hi = span[slot, 1]
-    k0 = wp.max(0, i - first_lag - hi)
-    k1 = wp.min(taps.shape[0] - 1, i - first_lag - lo)
-    total = wp.float64(0.0)
+    k0 = wp.max(0, i0 - first_lag - hi)
+    k1 = wp.min(taps.shape[0] - 1, i0 + CONVOLVE_OUTPUTS - 1 - first_lag - lo)
+    base = i0 - first_lag - k0
+    r0, r1, r2, r3 = (_impulse(impulses, slot, base, lo, hi), _impulse(impulses, slot, base + 1, lo, hi),
+                      _impulse(impulses, slot, base + 2, lo, hi), _impulse(impulses, slot, base + 3, lo, hi))
+    r4, r5, r6, r7 = (_impulse(impulses, slot, base + 4, lo, hi), _impulse(impulses, slot, base + 5, lo, hi),
+                      _impulse(impulses, slot, base + 6, lo, hi), _impulse(impulses, slot, base + 7, lo, hi))
+    t0, t1, t2, t3 = wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0)
+    t4, t5, t6, t7 = wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0)
     for k in range(k0, k1 + 1):
-        total += impulses[slot, i - first_lag - k] * taps[k]
-    out[slot, i] = wp.float32(total)
+        c = taps[k]
+        t0 += r0 * c
+        t1 += r1 * c
+        t2 += r2 * c
+        t3 += r3 * c
+        t4 += r4 * c
+        t5 += r5 * c
+        t6 += r6 * c
+        t7 += r7 * c
+        r7 = r6
+        r6 = r5
+        r5 = r4
+        r4 = r3
+        r3 = r2
+        r2 = r1
+        r1 = r0
+        r0 = _impulse(impulses, slot, base - (k - k0) - 1, lo, hi)
+    _put(out, slot, i0, t0)
+    _put(out, slot, i0 + 1, t1)
+    _put(out, slot, i0 + 2, t2)
+    _put(out, slot, i0 + 3, t3)
+    _put(out, slot, i0 + 4, t4)
+    _put(out, slot, i0 + 5, t5)
+    _put(out, slot, i0 + 6, t6)
+    _put(out, slot, i0 + 7, t7)
+
+
+@wp.func
+def _put(out: wp.array2d(dtype=wp.float32), slot: int, i: int, value: wp.float64):
+    if i < out.shape[1]:
+        out[slot, i] = wp.float32(value)
 
 
 @wp.kernel
