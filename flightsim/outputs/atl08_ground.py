@@ -1,0 +1,153 @@
+"""The ground surface of the ATL08-like classifier (:mod:`flightsim.outputs.atl08`, step 2), from the signal photons
+alone: the lowest dense surface, found so that a dense canopy over dim ground is not taken for the ground.
+
+After the ATL08 ATBD (Neuenschwander & Pitts, §4.9–4.13: the ground is the lowest surface of the signal photons,
+found iteratively in along-track windows, smoothed, then refined within a buffer), with the rejection of raised
+windows done by the 1-D progressive morphological filter of Zhang et al. (2003, IEEE TGRS 41:872):
+
+1. **Window floors**: the signal photons in along-track windows of ``window_m``; in each, the lowest cluster: the
+   lowest photon that has ``cluster_photons`` − 1 others within ``cluster_m`` + ``ground_slope`` × ``window_m``
+   above it (the band holds ground sloping at ``ground_slope`` across the window); the window's floor is the
+   median of those ``cluster_photons`` lowest heights. A lone photon below the ground (background that passed the
+   signal finder) is no cluster; a window without any cluster has no floor. Where no window has one, every window's
+   lowest signal photon is its floor.
+2. **Raised windows rejected** (progressive morphological filter): the floors (missing ones interpolated) are
+   opened (grey opening: a running minimum then a running maximum) over w = 3, 5, 9, 17, … windows while
+   (w − 1) × ``window_m`` ≤ ``max_object_m``. Each opening cuts what is narrower than w; a window whose floor
+   drops by more than dh = ``object_height_m`` + ``ground_slope`` × (w − w_prev) × ``window_m`` / 2 (capped at
+   ``max_object_height_m``) in one step is an object: the floor of a window whose ground photons were too few, so
+   that its lowest cluster lay in the canopy. Ground sloping at ``ground_slope`` or less is not cut (an opening
+   leaves a slope as it is; it lowers a ridge by at most the slope term). The floor jumps up at a canopy window
+   and is left untouched where the ground is lowest: the ground is the lowest dense surface.
+3. **Surface**: the floors of the windows that are neither empty nor objects, linear in between (and held flat
+   beyond the end ones), median filtered over ``smooth_windows``; then ``refinements`` passes each re-estimate
+   every window as the median of the signal photons within ±``search_m``/2ʲ of the surface (j = 0, 1, …; heights
+   relative to the surface, so a slope does not widen the band) and smooth again. The surface is linear between
+   window centres.
+
+Nothing here uses a photon's truth: only its along-track position, height and signal classification.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import median_filter
+
+
+def ground_surface(x: np.ndarray, h: np.ndarray, s) -> tuple[np.ndarray, np.ndarray]:
+    """Window centres [m along track] and the ground surface there [m] of the signal photons ``x``, ``h`` (m,
+    non-empty); ``s`` the :class:`flightsim.outputs.atl08.ATL08Settings`."""
+    x0 = x.min()
+    window = np.floor((x - x0) / s.window_m).astype(np.int64)
+    count = int(window.max()) + 1
+    centres = x0 + (np.arange(count) + 0.5) * s.window_m
+    floors, ground = _floors(window, h, count, s, s.cluster_m + s.ground_slope * s.window_m)
+    for _ in range(2):  # the trend of every floor, then of the ground floors alone
+        trend = trend_of(floors, ground, s)
+        residual, valid = _floors(window, h - np.interp(x, centres, trend), count, s, s.cluster_m)
+        ground = valid & ~raised(centres, residual, valid, s.relief_slope, s.object_height_m)
+        floors = trend + residual
+    surface = _smoothed(trend, residual, ground, s.smooth_windows)
+    for j in range(s.refinements):
+        rel = h - np.interp(x, centres, surface)
+        near = np.abs(rel) <= s.search_m / 2.0 ** j
+        offset, found = group_percentile(window[near], rel[near], 50.0, count)
+        if found.any():
+            surface = _smoothed(surface, offset, found, s.smooth_windows)
+    return centres, surface
+
+
+def _floors(window: np.ndarray, h: np.ndarray, count: int, s, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`window_floors` with cluster_photons; where no window has a cluster, each window's lowest photon."""
+    floors, valid = window_floors(window, h, count, s.cluster_photons, band)
+    return (floors, valid) if valid.any() else _lowest(window, h, count)
+
+
+def trend_of(floors: np.ndarray, valid: np.ndarray, s) -> np.ndarray:
+    """Per window: the least-squares line through the valid floors within ±trend_m/2 along track, at the window
+    (one-sided near the ends: a slope goes on); the mean where too few, interpolated where none."""
+    count = len(floors)
+    half = max(int(round(s.trend_m / s.window_m / 2.0)), 1)
+    i = np.arange(count, dtype=np.float64)
+    lo, hi = np.maximum(np.arange(count) - half, 0), np.minimum(np.arange(count) + half + 1, count)
+    w, f = valid.astype(np.float64), np.where(valid, floors, 0.0)
+
+    def spans(v):
+        total = np.concatenate([[0.0], np.cumsum(v)])
+        return total[hi] - total[lo]
+
+    s0, s1, s2, t0, t1 = (spans(v) for v in (w, w * i, w * i * i, w * f, w * i * f))
+    su, suu, tu = s1 - i * s0, s2 - 2.0 * i * s1 + i * i * s0, t1 - i * t0  # about the window itself
+    det = s0 * suu - su * su
+    line = (s0 >= 3) & (det > 1e-9 * np.maximum(s0 * suu, 1.0))
+    value = np.where(line, (suu * t0 - su * tu) / np.where(line, det, 1.0), t0 / np.maximum(s0, 1.0))
+    return _filled(value, s0 > 0)
+
+
+def window_floors(window: np.ndarray, h: np.ndarray, count: int, k: int, band: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Per window 0 … count-1: the median height of its lowest cluster (the lowest photon with k − 1 others within
+    ``band`` [m] above it, and those k photons) and whether it has one."""
+    floors, valid = np.zeros(count), np.zeros(count, dtype=bool)
+    if len(h) < k:
+        return floors, valid
+    order = np.lexsort((h, window))
+    hs, ws = h[order], window[order]
+    start = np.arange(len(hs) - k + 1)
+    seeds = start[(ws[start + k - 1] == ws[start]) & (hs[start + k - 1] - hs[start] <= band)]
+    first_windows, first = np.unique(ws[seeds], return_index=True)  # seeds ascend: the lowest seed of each window
+    lowest = seeds[first]
+    floors[first_windows] = np.median(hs[lowest[:, None] + np.arange(k)[None, :]], axis=1)
+    valid[first_windows] = True
+    return floors, valid
+
+
+def raised(centres: np.ndarray, floors: np.ndarray, valid: np.ndarray, slope: float, rise: float) -> np.ndarray:
+    """Which valid windows (``centres`` ascending [m]) have a floor more than ``rise`` [m] above the lowest surface
+    of slope ``slope`` that the valid floors allow there: min over j of floor_j + slope·|centre_i − centre_j|."""
+    big = np.finfo(np.float64).max / 4.0
+    f = np.where(valid, floors, big)
+    from_left = np.minimum.accumulate(f - slope * centres) + slope * centres
+    from_right = np.minimum.accumulate((f + slope * centres)[::-1])[::-1] - slope * centres
+    return valid & (floors - np.minimum(from_left, from_right) > rise)
+
+
+def _lowest(window: np.ndarray, h: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each window's lowest height, and whether it has any."""
+    low = np.full(count, np.inf)
+    np.minimum.at(low, window, h)
+    valid = np.isfinite(low)
+    return np.where(valid, low, 0.0), valid
+
+
+def _filled(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The values with the invalid ones interpolated linearly from the valid (held flat beyond the ends)."""
+    index = np.arange(len(values))
+    return np.interp(index, index[valid], values[valid])
+
+
+def _smoothed(base: np.ndarray, offset: np.ndarray, valid: np.ndarray, size: int) -> np.ndarray:
+    """Per window base + offset where valid; between valid windows linear, beyond the end ones the base plus the end
+    one's offset (a slope goes on); median filtered over ``size`` windows."""
+    index = np.flatnonzero(valid)
+    surface = np.interp(np.arange(len(base)), index, (base + offset)[index])
+    surface[:index[0]] = base[:index[0]] + offset[index[0]]
+    surface[index[-1] + 1:] = base[index[-1] + 1:] + offset[index[-1]]
+    return median_filter(surface, size=size, mode="nearest")
+
+
+def group_percentile(group, values, q: float, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The q-th percentile (linear, as numpy's default) of the values of each group 0 … count-1, and whether the
+    group has any (0 where not)."""
+    order = np.lexsort((values, group))
+    v = values[order]
+    size = np.bincount(group, minlength=count)
+    valid = size > 0
+    start = np.cumsum(size) - size
+    position = start + (q / 100.0) * np.maximum(size - 1, 0)
+    lo = np.minimum(np.floor(position).astype(np.int64), max(len(v) - 1, 0))
+    hi = np.minimum(lo + 1, start + size - 1)
+    frac = position - np.floor(position)
+    if not len(v):
+        return np.zeros(count), valid
+    result = (1.0 - frac) * v[lo] + frac * v[np.maximum(hi, 0)]
+    return np.where(valid, result, 0.0), valid
