@@ -44,6 +44,7 @@ def ground_surface(x: np.ndarray, h: np.ndarray, s) -> tuple[np.ndarray, np.ndar
     for _ in range(2):  # the trend of every floor, then of the ground floors alone
         trend = trend_of(floors, ground, s)
         residual, valid = _floors(window, h - np.interp(x, centres, trend), count, s, s.cluster_m)
+        valid &= supported(centres, residual, valid, s)
         ground = valid & ~raised(centres, residual, valid, s.relief_slope, s.object_height_m)
         floors = trend + residual
     surface = _smoothed(trend, residual, ground, s.smooth_windows)
@@ -99,6 +100,19 @@ def window_floors(window: np.ndarray, h: np.ndarray, count: int, k: int, band: f
     floors[first_windows] = np.median(hs[lowest[:, None] + np.arange(k)[None, :]], axis=1)
     valid[first_windows] = True
     return floors, valid
+
+
+def supported(centres: np.ndarray, floors: np.ndarray, valid: np.ndarray, s) -> np.ndarray:
+    """Which valid windows have another valid floor within ±trend_m/2 along track that lies within object_height_m
+    + relief_slope × their distance of theirs: a floor of its own (background below the ground) is not a surface."""
+    half = max(int(round(s.trend_m / s.window_m / 2.0)), 1)
+    found = np.zeros(len(floors), dtype=bool)
+    for shift in range(1, min(half, len(floors) - 1) + 1):
+        near = valid[shift:] & valid[:-shift] & (np.abs(floors[shift:] - floors[:-shift])
+                                                  <= s.object_height_m + s.relief_slope * shift * s.window_m)
+        found[shift:] |= near
+        found[:-shift] |= near
+    return valid & found
 
 
 def raised(centres: np.ndarray, floors: np.ndarray, valid: np.ndarray, slope: float, rise: float) -> np.ndarray:
