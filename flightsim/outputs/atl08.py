@@ -14,12 +14,20 @@ Vegetation Along-Track Products (ATL08)", Release 002 and later), §4 "Algorithm
    canopy's top, where half the ellipse is empty, still stands out of a daytime background; the price is
    that a canopy gap shorter than about 50 m along track passes for canopy. Signal photons are the dense
    ones and those of ATL03 ``signal_conf_ph`` ≥ ``min_signal_conf`` (ATL03's confidence misses much of a
-   canopy, which is spread over its height); the rest are noise (0).
-2. **Coarse ground surface** (ATBD §4.10 "finding the initial ground estimate", iterative filtering then
-   smoothing): in along-track windows of ``window_m`` the ``ground_percentile`` of the signal heights, a
-   median filter over ``smooth_windows`` windows (empty windows interpolated), then ``refinements`` passes
-   each re-estimating every window as the median of the signal photons within ±``search_m``/2ʲ of the
-   current surface (j = 0, 1, …) and smoothing again. The surface is linear between window centres.
+   canopy, which is spread over its height); the rest are noise (0). The filter runs twice: on the heights, then on
+   the heights above the trend of a first ground surface (step 2) of the photons it found (the ATBD de-trends the
+   photons too): on sloping ground an ellipse level with the horizon holds only a short stretch of the ground
+   (20 m of a 15 % slope), too few photons of a dim ground to stand out.
+2. **Ground surface** (ATBD §4.9–4.12: the ground is the lowest dense surface of the signal photons, found in
+   along-track windows, filtered, smoothed and refined; :mod:`flightsim.outputs.atl08_ground` says how): in each
+   window of ``window_m`` the lowest cluster of ``cluster_photons`` signal photons within ``cluster_m`` (heights
+   above a least-squares trend over ``trend_m``, so a slope does not spread the cluster); a floor with no other
+   floor near it is background below the ground; a floor more than ``object_height_m`` above the envelope of
+   slope ``relief_slope`` the other floors allow is a canopy window whose few ground photons made no cluster;
+   the surface is linear between the remaining floors, median filtered over ``smooth_windows``, then ``refinements``
+   passes re-estimate each window as the median of the photons within ±``search_m``/2ʲ of it. Under a closed
+   canopy over dim ground the lowest photons of many windows are leaves; taking a low percentile of each window
+   (as this classifier did before) put the ground there, metres up in the canopy.
 3. **Ground** (ATBD §4.13 "refine ground estimates"): photons within ±buffer of the surface, the buffer
    ``ground_sigmas`` × the robust σ of the signal photons just below it (1.4826 × the median of |h − surface|
    over those within ``search_m`` below: a half-normal's median is 0.6745 σ; canopy lies only above the
@@ -37,7 +45,10 @@ Vegetation Along-Track Products (ATL08)", Release 002 and later), §4 "Algorithm
    and top-of-canopy photons; counts of each class; ``latitude``, ``longitude``, ``delta_time`` interpolated
    along track at the segment's middle. ``segment_id_beg``/``_end`` are the first and last ATL03 20 m segment
    (id ⌊along/20 m⌋ + 1) the segment spans. Terrain (canopy) values need ``min_ground_photons``
-   (``min_canopy_photons``) photons, else they hold :data:`FILL` (ATL08's fill value).
+   (``min_canopy_photons``) photons, else they hold :data:`FILL` (ATL08's fill value); terrain values also need
+   more ground photons than the background (step 1's, over the ground band's height and the segment) puts in the
+   band but with the chance ``dragann_p``: a segment without ground photons, its ground surface interpolated from
+   the segments around it, reports no terrain height (its canopy height, above that surface, it does).
 
 Per photon: ``classed_pc_flag`` (ATL08: 0 noise, 1 ground, 2 canopy, 3 top of canopy), ``ph_h`` (height above
 the surface [m], FILL when no surface), ``ph_segment_id`` (its ATL03 20 m segment), ``d_flag`` (1: dense, step 1).

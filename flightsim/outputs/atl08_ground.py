@@ -1,29 +1,32 @@
 """The ground surface of the ATL08-like classifier (:mod:`flightsim.outputs.atl08`, step 2), from the signal photons
-alone: the lowest dense surface, found so that a dense canopy over dim ground is not taken for the ground.
+alone: the lowest dense surface, found so that a closed canopy over dim ground is not taken for the ground.
 
 After the ATL08 ATBD (Neuenschwander & Pitts, §4.9–4.13: the ground is the lowest surface of the signal photons,
-found iteratively in along-track windows, smoothed, then refined within a buffer), with the rejection of raised
-windows done by the 1-D progressive morphological filter of Zhang et al. (2003, IEEE TGRS 41:872):
+found in along-track windows, filtered of what stands above it, smoothed, then refined within a buffer):
 
-1. **Window floors**: the signal photons in along-track windows of ``window_m``; in each, the lowest cluster: the
-   lowest photon that has ``cluster_photons`` − 1 others within ``cluster_m`` + ``ground_slope`` × ``window_m``
-   above it (the band holds ground sloping at ``ground_slope`` across the window); the window's floor is the
-   median of those ``cluster_photons`` lowest heights. A lone photon below the ground (background that passed the
-   signal finder) is no cluster; a window without any cluster has no floor. Where no window has one, every window's
-   lowest signal photon is its floor.
-2. **Raised windows rejected** (progressive morphological filter): the floors (missing ones interpolated) are
-   opened (grey opening: a running minimum then a running maximum) over w = 3, 5, 9, 17, … windows while
-   (w − 1) × ``window_m`` ≤ ``max_object_m``. Each opening cuts what is narrower than w; a window whose floor
-   drops by more than dh = ``object_height_m`` + ``ground_slope`` × (w − w_prev) × ``window_m`` / 2 (capped at
-   ``max_object_height_m``) in one step is an object: the floor of a window whose ground photons were too few, so
-   that its lowest cluster lay in the canopy. Ground sloping at ``ground_slope`` or less is not cut (an opening
-   leaves a slope as it is; it lowers a ridge by at most the slope term). The floor jumps up at a canopy window
-   and is left untouched where the ground is lowest: the ground is the lowest dense surface.
-3. **Surface**: the floors of the windows that are neither empty nor objects, linear in between (and held flat
-   beyond the end ones), median filtered over ``smooth_windows``; then ``refinements`` passes each re-estimate
-   every window as the median of the signal photons within ±``search_m``/2ʲ of the surface (j = 0, 1, …; heights
-   relative to the surface, so a slope does not widen the band) and smooth again. The surface is linear between
-   window centres.
+1. **Floors**: the signal photons in along-track windows of ``window_m``; in each, the lowest cluster: the lowest
+   photon with ``cluster_photons`` − 1 others within ``cluster_m`` above it; the window's floor is the median of
+   those ``cluster_photons`` heights. A lone photon below the ground (background the signal finder let through)
+   is no cluster; a window without a cluster has no floor (where no window has one, each window's lowest photon).
+2. **Trend**: per window the least-squares line through the floors within ±``trend_m``/2 along track, taken at
+   the window (one-sided at the ends of the line, so a slope goes on). Steps 1 and 3 are done twice: first with
+   the floors of the heights themselves (their band widened by ``ground_slope`` × ``window_m``, a slope's rise
+   across a window) and the trend of all of them, then with the floors of the heights above that trend and the
+   trend of the floors step 3 kept: the canopy no longer lifts it.
+3. **Rejected floors**, in the heights above the trend: a floor with no other floor within ±``trend_m``/2 along
+   track that lies within ``object_height_m`` + ``relief_slope`` × their distance of it is no surface (a cluster
+   of background far below the ground would otherwise pull the ground down to it); a floor more than
+   ``object_height_m`` above the lowest surface of slope ``relief_slope`` that the other floors allow,
+   min over j of (floor_j + ``relief_slope`` × |distance|), is raised: a window whose ground photons were too
+   few for a cluster, so that its lowest cluster lay in the canopy. The ground is the lowest dense surface:
+   a canopy window stands above the ground windows beside it, a ground window does not stand above anything.
+   A canopy window further than (its floor's height above the ground − ``object_height_m``) / ``relief_slope``
+   (80 m for leaves from 5 m up) from every window with a ground cluster cannot be told from a rise of the
+   ground, and stays.
+4. **Surface**: the kept floors, linear in between (beyond the end ones the trend, through the end one), median
+   filtered over ``smooth_windows``; then ``refinements`` passes each re-estimate every window as the median of
+   the signal photons within ±``search_m``/2ʲ of the surface (j = 0, 1, …; in heights above the surface, so a
+   slope does not widen the band) and smooth again. The surface is linear between window centres.
 
 Nothing here uses a photon's truth: only its along-track position, height and signal classification.
 """
@@ -43,9 +46,10 @@ def ground_surface(x: np.ndarray, h: np.ndarray, s) -> tuple[np.ndarray, np.ndar
     floors, ground = _floors(window, h, count, s, s.cluster_m + s.ground_slope * s.window_m)
     for _ in range(2):  # the trend of every floor, then of the ground floors alone
         trend = trend_of(floors, ground, s)
-        residual, valid = _floors(window, h - np.interp(x, centres, trend), count, s, s.cluster_m)
-        valid &= supported(centres, residual, valid, s)
+        residual, found = _floors(window, h - np.interp(x, centres, trend), count, s, s.cluster_m)
+        valid = supported(centres, residual, found, s)
         ground = valid & ~raised(centres, residual, valid, s.relief_slope, s.object_height_m)
+        ground = ground if ground.any() else found  # too few windows to judge
         floors = trend + residual
     surface = _smoothed(trend, residual, ground, s.smooth_windows)
     for j in range(s.refinements):
