@@ -206,17 +206,23 @@ def _expected(x, h, s: ATL08Settings) -> np.ndarray:
     return lam[window]
 
 
+def _limit(lam: np.ndarray, s: ATL08Settings) -> np.ndarray:
+    """The counts a Poisson background of mean ``lam`` exceeds with the chance dragann_p (one per distinct mean)."""
+    means, index = np.unique(lam, return_inverse=True)
+    return poisson.isf(s.dragann_p, means)[index.reshape(-1)]
+
+
 def _dense(x, h, conf, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray]:
     """Which photons the density filter finds dense (step 1: in heights above the trend of a first ground surface
     of the photons dense in their heights, or of ATL03 confidence), and each one's background count there."""
     lam = _expected(x, h, s)
-    first = (_neighbours(x, h, s) > poisson.isf(s.dragann_p, lam)) | (conf >= s.min_signal_conf)
+    first = (_neighbours(x, h, s) > _limit(lam, s)) | (conf >= s.min_signal_conf)
     if not first.any():
         return first, lam
     centres, surface = ground_surface(x[first], h[first], s)
     above = h - np.interp(x, centres, trend_of(surface, np.ones(len(surface), dtype=bool), s))
     lam = _expected(x, above, s)
-    return _neighbours(x, above, s) > poisson.isf(s.dragann_p, lam), lam
+    return _neighbours(x, above, s) > _limit(lam, s), lam
 
 
 def _neighbours(x, h, s: ATL08Settings) -> np.ndarray:
@@ -265,7 +271,7 @@ def _classify(x, h, signal, lam, s: ATL08Settings) -> tuple[np.ndarray, np.ndarr
     cls[signal & (np.abs(rel) <= buffer)] = GROUND
     above = rel > buffer
     cls[signal & above & (rel <= s.max_canopy_m)] = CANOPY
-    sparse = _neighbours(x[above], rel[above], s) <= poisson.isf(s.dragann_p, lam[above])  # above the ground only
+    sparse = _neighbours(x[above], rel[above], s) <= _limit(lam[above], s)  # above the ground only
     cls[np.flatnonzero(above)[sparse & (cls[above] == CANOPY)]] = NOISE
     _mark_top_of_canopy(x, rel, cls, s)
     return cls, rel, lam * 2.0 * buffer / (math.pi * s.dragann_along_m * s.dragann_height_m)
