@@ -338,7 +338,8 @@ def _atl08_lines(a: dict) -> list[str]:
             "crown top near a footprint's edge gets little of the Gaussian footprint's energy, while the truth takes "
             "the highest crown top within 6 m of each footprint centre. (Before the ground finder looked for the "
             "lowest dense surface, it took a low percentile of each 10 m window: under this closed stand with its "
-            "dim ground that put the ground 0.4–10.8 m up in the canopy of the pass's six segments, and h_canopy was 7.46 m low, RMSE 8.38 m.)",
+            "dim ground that put the ground 0.4–10.8 m up in the canopy of the pass's six segments, and h_canopy "
+            "was 7.46 m low, RMSE 8.38 m.)",
             ""]
 
 
