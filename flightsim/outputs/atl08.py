@@ -14,12 +14,20 @@ Vegetation Along-Track Products (ATL08)", Release 002 and later), §4 "Algorithm
    canopy's top, where half the ellipse is empty, still stands out of a daytime background; the price is
    that a canopy gap shorter than about 50 m along track passes for canopy. Signal photons are the dense
    ones and those of ATL03 ``signal_conf_ph`` ≥ ``min_signal_conf`` (ATL03's confidence misses much of a
-   canopy, which is spread over its height); the rest are noise (0).
-2. **Coarse ground surface** (ATBD §4.10 "finding the initial ground estimate", iterative filtering then
-   smoothing): in along-track windows of ``window_m`` the ``ground_percentile`` of the signal heights, a
-   median filter over ``smooth_windows`` windows (empty windows interpolated), then ``refinements`` passes
-   each re-estimating every window as the median of the signal photons within ±``search_m``/2ʲ of the
-   current surface (j = 0, 1, …) and smoothing again. The surface is linear between window centres.
+   canopy, which is spread over its height); the rest are noise (0). The filter runs twice: on the heights, then on
+   the heights above the trend of a first ground surface (step 2) of the photons it found (the ATBD de-trends the
+   photons too): on sloping ground an ellipse level with the horizon holds only a short stretch of the ground
+   (20 m of a 15 % slope), too few photons of a dim ground to stand out.
+2. **Ground surface** (ATBD §4.9–4.12: the ground is the lowest dense surface of the signal photons, found in
+   along-track windows, filtered, smoothed and refined; :mod:`flightsim.outputs.atl08_ground` says how): in each
+   window of ``window_m`` the lowest cluster of ``cluster_photons`` signal photons within ``cluster_m`` (heights
+   above a least-squares trend over ``trend_m``, so a slope does not spread the cluster); a floor with no other
+   floor near it is background below the ground; a floor more than ``object_height_m`` above the envelope of
+   slope ``relief_slope`` the other floors allow is a canopy window whose few ground photons made no cluster;
+   the surface is linear between the remaining floors, median filtered over ``smooth_windows``, then ``refinements``
+   passes re-estimate each window as the median of the photons within ±``search_m``/2ʲ of it. Under a closed
+   canopy over dim ground the lowest photons of many windows are leaves; taking a low percentile of each window
+   (as this classifier did before) put the ground there, metres up in the canopy.
 3. **Ground** (ATBD §4.13 "refine ground estimates"): photons within ±buffer of the surface, the buffer
    ``ground_sigmas`` × the robust σ of the signal photons just below it (1.4826 × the median of |h − surface|
    over those within ``search_m`` below: a half-normal's median is 0.6745 σ; canopy lies only above the
@@ -37,7 +45,10 @@ Vegetation Along-Track Products (ATL08)", Release 002 and later), §4 "Algorithm
    and top-of-canopy photons; counts of each class; ``latitude``, ``longitude``, ``delta_time`` interpolated
    along track at the segment's middle. ``segment_id_beg``/``_end`` are the first and last ATL03 20 m segment
    (id ⌊along/20 m⌋ + 1) the segment spans. Terrain (canopy) values need ``min_ground_photons``
-   (``min_canopy_photons``) photons, else they hold :data:`FILL` (ATL08's fill value).
+   (``min_canopy_photons``) photons, else they hold :data:`FILL` (ATL08's fill value); terrain values also need
+   more ground photons than the background (step 1's, over the ground band's height and the segment) puts in the
+   band but with the chance ``dragann_p``: a segment without ground photons, its ground surface interpolated from
+   the segments around it, reports no terrain height (its canopy height, above that surface, it does).
 
 Per photon: ``classed_pc_flag`` (ATL08: 0 noise, 1 ground, 2 canopy, 3 top of canopy), ``ph_h`` (height above
 the surface [m], FILL when no surface), ``ph_segment_id`` (its ATL03 20 m segment), ``d_flag`` (1: dense, step 1).
@@ -49,12 +60,12 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.ndimage import median_filter
 from scipy.spatial import cKDTree
 from scipy.stats import poisson
 
 from flightsim.core.errors import InputError
 from flightsim.core.settings import Settings, check_settings, setting
+from flightsim.outputs.atl08_ground import ground_surface, group_percentile, trend_of
 
 NOISE, GROUND, CANOPY, TOP_OF_CANOPY = 0, 1, 2, 3
 FILL = float(np.finfo(np.float32).max)  # ATL08's _FillValue of its float32 heights
@@ -81,8 +92,18 @@ class ATL08Settings(Settings):
     dragann_p: float = setting(1e-3, "density filter: chance that background alone is called dense",
                                range=(0.0, 1.0), lo_open=True)
     window_m: float = setting(10.0, "along-track window of the ground surface", "m", range=(0.0, 1e4), lo_open=True)
-    ground_percentile: float = setting(10.0, "first ground estimate: this percentile of a window's signal heights",
-                                       "%", range=(0.0, 100.0))
+    cluster_photons: int = setting(3, "ground: photons of a window's lowest cluster", range=(1, 1000))
+    cluster_m: float = setting(1.0, "ground: height band of a window's lowest cluster (plus the slope's rise)", "m",
+                               range=(0.0, 100.0), lo_open=True)
+    ground_slope: float = setting(0.2, "ground: steepest slope along track the surface follows untouched",
+                                  range=(0.0, 10.0))
+    trend_m: float = setting(200.0, "ground: along-track span of the trend the floors are taken relative to", "m",
+                             range=(0.0, 1e5), lo_open=True)
+    trend_percentile: float = setting(25.0, "ground: the trend is this percentile of the floors over trend_m", "%",
+                                      range=(0.0, 100.0))
+    relief_slope: float = setting(0.05, "ground: steepest slope of the ground relative to the trend", range=(0.0, 10.0))
+    object_height_m: float = setting(1.0, "ground: a floor this much above the relief_slope envelope is canopy", "m",
+                                     range=(0.0, 100.0))
     refinements: int = setting(3, "passes re-estimating the surface from the photons near it", range=(0, 20))
     search_m: float = setting(3.0, "half height of the first refinement's band (halved each pass)", "m",
                               range=(0.0, 1e3), lo_open=True)
@@ -127,14 +148,13 @@ def atl08_segments(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time, se
     check_settings("atl08", s)
     x, h, la, lo, conf, t = _photons(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time)
     seg_m = _positive("segment_m", segment_m)
-    limits = _limits(x, h, s)
-    dense = _neighbours(x, h, s) > limits
+    dense, lam = _dense(x, h, conf, s)
     signal = dense | (conf >= s.min_signal_conf)
-    cls, ph_h = _classify(x, h, signal, limits, s)
+    cls, ph_h, band = _classify(x, h, signal, lam, s)
     photons = {"classed_pc_flag": cls, "classed_pc_indx": np.arange(1, len(x) + 1, dtype=np.int32), "ph_h": ph_h,
                "ph_segment_id": (np.floor(x / ATL03_SEGMENT_M) + 1).astype(np.int32),
                "d_flag": dense.astype(np.int8), "delta_time": t}
-    return {"land_segments": _segments(x, h, la, lo, t, cls, ph_h, seg_m, s), "signal_photons": photons}
+    return {"land_segments": _segments(x, h, la, lo, t, cls, ph_h, band, seg_m, s), "signal_photons": photons}
 
 
 # --- input -----------------------------------------------------------------------------------------
@@ -176,14 +196,33 @@ def _photons(along, h, lat, lon, conf, t) -> tuple[np.ndarray, ...]:
 # --- classification --------------------------------------------------------------------------------
 
 
-def _limits(x, h, s: ATL08Settings) -> np.ndarray:
-    """Per photon: the count of other photons in its ellipse that the background alone exceeds with a chance
-    of dragann_p (Poisson, the background of its along-track window)."""
+def _expected(x, h, s: ATL08Settings) -> np.ndarray:
+    """Per photon: the mean count of background photons in its ellipse (the background of its along-track
+    window)."""
     if not len(x):
         return np.zeros(0)
     _, window = np.unique(np.floor(x / s.dragann_window_m), return_inverse=True)  # windows holding photons
     lam = _background(window, x, h, s) * math.pi * s.dragann_along_m * s.dragann_height_m
-    return poisson.isf(s.dragann_p, lam)[window]
+    return lam[window]
+
+
+def _limit(lam: np.ndarray, s: ATL08Settings) -> np.ndarray:
+    """The counts a Poisson background of mean ``lam`` exceeds with the chance dragann_p (one per distinct mean)."""
+    means, index = np.unique(lam, return_inverse=True)
+    return poisson.isf(s.dragann_p, means)[index.reshape(-1)]
+
+
+def _dense(x, h, conf, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray]:
+    """Which photons the density filter finds dense (step 1: in heights above the trend of a first ground surface
+    of the photons dense in their heights, or of ATL03 confidence), and each one's background count there."""
+    lam = _expected(x, h, s)
+    first = (_neighbours(x, h, s) > _limit(lam, s)) | (conf >= s.min_signal_conf)
+    if not first.any():
+        return first, lam
+    centres, surface = ground_surface(x[first], h[first], s)
+    above = h - np.interp(x, centres, trend_of(surface, np.ones(len(surface), dtype=bool), s))
+    lam = _expected(x, above, s)
+    return _neighbours(x, above, s) > _limit(lam, s), lam
 
 
 def _neighbours(x, h, s: ATL08Settings) -> np.ndarray:
@@ -219,44 +258,23 @@ def _extremes(group, values, count: int) -> tuple[np.ndarray, np.ndarray]:
     return low, high
 
 
-def _classify(x, h, signal, limits, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray]:
-    """classed_pc_flag (int8) and height above the ground surface (FILL where no signal photon exists);
-    ``limits``: each photon's count limit of the density filter."""
+def _classify(x, h, signal, lam, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """classed_pc_flag (int8), height above the ground surface (FILL where no signal photon exists) and the
+    background photons per metre along track in the ground band around each photon; ``lam``: each photon's mean
+    background count in the density filter's ellipse."""
     cls = np.zeros(len(x), dtype=np.int8)
     if not signal.any():
-        return cls, np.full(len(x), FILL)
-    centres, surface = _ground_surface(x[signal], h[signal], s)
+        return cls, np.full(len(x), FILL), np.zeros(len(x))
+    centres, surface = ground_surface(x[signal], h[signal], s)
     rel = h - np.interp(x, centres, surface)
     buffer = _ground_buffer(rel[signal], s)
     cls[signal & (np.abs(rel) <= buffer)] = GROUND
     above = rel > buffer
     cls[signal & above & (rel <= s.max_canopy_m)] = CANOPY
-    sparse = _neighbours(x[above], rel[above], s) <= limits[above]  # among the photons above the ground only
+    sparse = _neighbours(x[above], rel[above], s) <= _limit(lam[above], s)  # above the ground only
     cls[np.flatnonzero(above)[sparse & (cls[above] == CANOPY)]] = NOISE
     _mark_top_of_canopy(x, rel, cls, s)
-    return cls, rel
-
-
-def _ground_surface(x, h, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray]:
-    """Window centres and the smoothed ground surface there [m] (step 2 of the module docstring)."""
-    x0 = x.min()
-    window = np.floor((x - x0) / s.window_m).astype(np.int64)
-    count = int(window.max()) + 1
-    centres = x0 + (np.arange(count) + 0.5) * s.window_m
-    surface = _smoothed(*_group_percentile(window, h, s.ground_percentile, count), s.smooth_windows)
-    for j in range(s.refinements):
-        near = np.abs(h - np.interp(x, centres, surface)) <= s.search_m / 2.0 ** j
-        values, valid = _group_percentile(window[near], h[near], 50.0, count)
-        if valid.any():
-            surface = _smoothed(values, valid, s.smooth_windows)
-    return centres, surface
-
-
-def _smoothed(values: np.ndarray, valid: np.ndarray, size: int) -> np.ndarray:
-    """Per-window values with the empty windows interpolated from their neighbours, median filtered."""
-    index = np.arange(len(values))
-    filled = np.interp(index, index[valid], values[valid])
-    return median_filter(filled, size=size, mode="nearest")
+    return cls, rel, lam * 2.0 * buffer / (math.pi * s.dragann_along_m * s.dragann_height_m)
 
 
 def _ground_buffer(rel: np.ndarray, s: ATL08Settings) -> float:
@@ -273,15 +291,17 @@ def _mark_top_of_canopy(x, rel, cls, s: ATL08Settings) -> None:
         return
     window = np.floor(x[canopy] / s.toc_window_m).astype(np.int64)
     first = window.min()
-    level, _ = _group_percentile(window - first, rel[canopy], s.toc_percentile, int(window.max() - first) + 1)
+    level, _ = group_percentile(window - first, rel[canopy], s.toc_percentile, int(window.max() - first) + 1)
     cls[canopy[rel[canopy] >= level[window - first]]] = TOP_OF_CANOPY
 
 
 # --- segments --------------------------------------------------------------------------------------
 
 
-def _segments(x, h, lat, lon, t, cls, rel, seg_m: float, s: ATL08Settings) -> dict[str, np.ndarray]:
-    """The SEGMENT_COLUMNS of the segments holding a classified photon."""
+def _segments(x, h, lat, lon, t, cls, rel, band, seg_m: float, s: ATL08Settings) -> dict[str, np.ndarray]:
+    """The SEGMENT_COLUMNS of the segments holding a classified photon; ``band``: per photon, the background photons
+    per metre along track in the ground band (terrain needs more ground photons than that puts in a segment but
+    with the chance dragann_p)."""
     segment = np.floor(x / seg_m).astype(np.int64)
     ids = np.unique(segment[cls > NOISE])
     if not len(ids):
@@ -301,34 +321,17 @@ def _segments(x, h, lat, lon, t, cls, rel, seg_m: float, s: ATL08Settings) -> di
     out["n_te_photons"] = np.bincount(group[ground], minlength=m).astype(np.int32)
     out["n_ca_photons"] = np.bincount(group[member & (cls == CANOPY)], minlength=m).astype(np.int32)
     out["n_toc_photons"] = np.bincount(group[member & (cls == TOP_OF_CANOPY)], minlength=m).astype(np.int32)
-    enough_te = out["n_te_photons"] >= s.min_ground_photons
+    noise = np.bincount(group[member], weights=band[member], minlength=m) / np.maximum(out["n_seg_ph"], 1) * seg_m
+    enough_te = (out["n_te_photons"] >= s.min_ground_photons) & (out["n_te_photons"] > poisson.isf(s.dragann_p, noise))
     enough_ca = out["n_ca_photons"] + out["n_toc_photons"] >= s.min_canopy_photons
     mean, _ = _group_moments(group[ground], h[ground], m)
     out["h_te_mean"] = np.where(enough_te, mean, FILL)
-    out["h_te_median"] = np.where(enough_te, _group_percentile(group[ground], h[ground], 50.0, m)[0], FILL)
+    out["h_te_median"] = np.where(enough_te, group_percentile(group[ground], h[ground], 50.0, m)[0], FILL)
     mean, std = _group_moments(group[canopy], rel[canopy], m)
-    out["h_canopy"] = np.where(enough_ca, _group_percentile(group[canopy], rel[canopy], 98.0, m)[0], FILL)
+    out["h_canopy"] = np.where(enough_ca, group_percentile(group[canopy], rel[canopy], 98.0, m)[0], FILL)
     out["h_mean_canopy"] = np.where(enough_ca, mean, FILL)
     out["canopy_openness"] = np.where(enough_ca, std, FILL)
     return out
-
-
-def _group_percentile(group, values, q: float, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """The q-th percentile (linear, as numpy's default) of the values of each group 0 … count-1, and whether the
-    group has any (0 where not)."""
-    order = np.lexsort((values, group))
-    v = values[order]
-    size = np.bincount(group, minlength=count)
-    valid = size > 0
-    start = np.cumsum(size) - size
-    position = start + (q / 100.0) * np.maximum(size - 1, 0)
-    lo = np.minimum(np.floor(position).astype(np.int64), max(len(v) - 1, 0))
-    hi = np.minimum(lo + 1, start + size - 1)
-    frac = position - np.floor(position)
-    if not len(v):
-        return np.zeros(count), valid
-    result = (1.0 - frac) * v[lo] + frac * v[np.maximum(hi, 0)]
-    return np.where(valid, result, 0.0), valid
 
 
 def _group_moments(group, values, count: int) -> tuple[np.ndarray, np.ndarray]:
