@@ -99,8 +99,6 @@ class ATL08Settings(Settings):
                                   range=(0.0, 10.0))
     trend_m: float = setting(200.0, "ground: along-track span of the trend the floors are taken relative to", "m",
                              range=(0.0, 1e5), lo_open=True)
-    trend_percentile: float = setting(25.0, "ground: the trend is this percentile of the floors over trend_m", "%",
-                                      range=(0.0, 100.0))
     relief_slope: float = setting(0.05, "ground: steepest slope of the ground relative to the trend", range=(0.0, 10.0))
     object_height_m: float = setting(1.0, "ground: a floor this much above the relief_slope envelope is canopy", "m",
                                      range=(0.0, 100.0))
