@@ -261,13 +261,16 @@ def convolve(impulses: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.i
     Each thread makes CONVOLVE_OUTPUTS consecutive samples i0 … i0 + 7 from a window of eight impulses held
     in registers and slid by one per tap (r_j = impulse i0 + j − first_lag − k): one load and one tap per
     eight products. Each sample adds the same products in the same order (taps ascending) as a sample on
-    its own would; the products outside its own tap range are exact zeros."""
+    its own would; the products outside its own tap range are exact zeros. ``out`` must be zeroed: a thread
+    with no impulse within reach writes nothing."""
     slot, block = wp.tid()
     i0 = block * CONVOLVE_OUTPUTS
     lo = span[slot, 0]
     hi = span[slot, 1]
     k0 = wp.max(0, i0 - first_lag - hi)
     k1 = wp.min(taps.shape[0] - 1, i0 + CONVOLVE_OUTPUTS - 1 - first_lag - lo)
+    if k1 < k0:
+        return  # no impulse within reach: the samples stay 0 (``out`` is zeroed beforehand)
     base = i0 - first_lag - k0
     r0, r1, r2, r3 = (_impulse(impulses, slot, base, lo, hi), _impulse(impulses, slot, base + 1, lo, hi),
                       _impulse(impulses, slot, base + 2, lo, hi), _impulse(impulses, slot, base + 3, lo, hi))

@@ -154,6 +154,7 @@ class Waveforms:
                   inputs=[self.refs, params, self.leaves, b.starts, b.directions, b.window, self.subrays.offsets,
                           self.subrays.weights, kw.SUBRAYS_PER_THREAD],
                   outputs=[b.impulses, b.received, b.span], device=d)
+        b.power[:n].zero_()
         wp.launch(kw.convolve, (n, -(-params.samples // kw.CONVOLVE_OUTPUTS)), inputs=[b.impulses, b.span, self.taps, self.first_lag],
                   outputs=[b.power], device=d)
         receive(tracer, self.receiver, params, b, n)
