@@ -24,6 +24,8 @@ from kernels import emitters
 
 GROUND_TRACKS = ("gt1l", "gt1r", "gt2l", "gt2r", "gt3l", "gt3r")
 MAX_SPACING_MRAD = 100.0
+# overrides of the atlas preset that fly the one nadir strong beam it flew before its six (ground track "gt1")
+SINGLE_BEAM = {"instrument.emitter": "fan", "fan.array": 1, "fan.divergence_mrad": 0.024}
 
 
 @dataclass
