@@ -85,3 +85,24 @@ def test_the_beam_table_on_the_device_is_the_hosts(device):
     expected = np.column_stack([np.zeros(6), np.sin(theta), np.cos(theta)])
     np.testing.assert_array_equal(out.numpy(), e.directions())
     np.testing.assert_allclose(out.numpy(), expected, rtol=0, atol=1e-15)
+
+
+def test_the_weak_beams_echo_a_quarter_of_the_strong_ones_on_every_device(tmp_path, device):
+    """Each beam's expected signal scaled by its share of the pulse energy in the photon kernel: without dead time
+    the surface photons of a pair's strong and weak beams are Poisson with means in the ratio 4 (within 4σ)."""
+    import h5py
+
+    from flightsim.engine.run import simulate_to_directory
+
+    cfg = preset_config("atlas")
+    for key, value in {"flight.duration_s": 0.01, "photon.reflectance": 0.9, "photon.dead_time_s": 0.0,
+                       "photon.max_events": 128, "photon.gate_m": [499850.0, 500150.0], "run.device": device}.items():
+        set_value(cfg, key, value)
+    simulate_to_directory(validate(cfg), tmp_path / "run")
+    with h5py.File(tmp_path / "run" / "photons.h5") as f:
+        pixel, signal = f["photons/pixel"][:], f["photons/signal"][:]
+    for strong_beam in (0, 2, 4):
+        strong = int(((pixel == strong_beam) & (signal == 1)).sum())
+        weak = int(((pixel == strong_beam + 1) & (signal == 1)).sum())
+        ratio = strong / weak
+        assert abs(ratio - 4.0) < 4.0 * ratio * math.sqrt(1.0 / strong + 1.0 / weak), (strong_beam, strong, weak)
