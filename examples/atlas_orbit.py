@@ -1,5 +1,5 @@
-"""An ATLAS-like photon-counting altimeter in a 500 km orbit over a plane: a 0.05 s pass (500 shots); the photons,
-and the mean height of those the signal finder marks as ground (signal_conf_ph == 4, in ATL03 names)."""
+"""An ATLAS-like photon-counting altimeter in a 500 km orbit over a plane: a 0.05 s pass (500 shots of six beams);
+the photons, and the mean height of those the signal finder marks as ground (signal_conf_ph == 4, in ATL03 names)."""
 import argparse
 
 import flightsim

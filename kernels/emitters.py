@@ -35,5 +35,19 @@ def channel_direction(b: int, channels: Channels):
     return wp.vec3d(wp.float64(0.0), wp.sin(theta), wp.cos(theta))
 
 
+@wp.struct
+class BeamTable:
+    """Beams given by their unit directions, tabulated on the host (e.g. ATLAS's three beam pairs)."""
+
+    directions: wp.array(dtype=wp.vec3d)  # unit direction of each beam [emitter frame, +z the axis]
+
+
+@wp.func
+def table_direction(b: int, table: BeamTable):
+    """Beam b: its tabulated unit direction, float64."""
+    return table.directions[b]
+
+
 FAN = Emitter("fan", BeamArray, fan_direction)
 CHANNELS = Emitter("channels", Channels, channel_direction)
+TABLE = Emitter("table", BeamTable, table_direction)

@@ -265,7 +265,7 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
 
     @wp.kernel(module="unique")
     def photon_slots(det: PhotonDetector, reflectance: wp.float64, face_reflectance: wp.array(dtype=wp.float32),
-                     pulses: wp.array2d(dtype=wp.float64), per_pulse: int,
+                     pulses: wp.array2d(dtype=wp.float64), per_pulse: int, energy: wp.array(dtype=wp.float64),
                      status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),
                      faces: wp.array(dtype=wp.int32),
                      cos_incidence: wp.array(dtype=wp.float32), ccr_positions: wp.array(dtype=wp.vec3d),
@@ -281,18 +281,20 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
         ``directions`` the beams' true rays; its range read through the ranging chain's drift and the
         beam's delay, as the surface's), the leaves along the beam (``leaves``: ``starts``/``directions``
         again; the surface's echo dimmed by what they let through), background and dark counts over the whole
-        gate. Keyed by (line seed, pulse · beams + beam)."""
+        gate. Every echo scales with the beam's share ``energy[beam]`` of the detector's pulse energy (1 but
+        for the weak beams of ATLAS's pairs). Keyed by (line seed, pulse · beams + beam)."""
         slot = wp.tid()
         p = slot // per_pulse
         beam = slot % per_pulse
         n = wp.float64(0.0)
         echo = det.gate_open
+        scale = energy[beam]
         if status[slot] == STATUS_RETURN:
             r = wp.float64(ranges[slot])
             rho = reflectance
             if wp.static(per_face):
                 rho = wp.float64(face_reflectance[faces[slot]])
-            n = expected_signal(det, r, wp.float64(cos_incidence[slot]), rho)
+            n = scale * expected_signal(det, r, wp.float64(cos_incidence[slot]), rho)
             echo = wp.float64(2.0) * r / LIGHT_SPEED
         key = (wp.int64(pulses[ROW_PULSE, p]) * wp.int64(per_pulse) + wp.int64(beam)) % wp.int64(2147483647)
         state = wp.rand_init(int(pulses[ROW_SEED, p]) ^ PHOTON_STREAM, int(key))
@@ -300,7 +302,7 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
         t1 = wp.float64(0.0)
         if wp.static(retro):
             for c in range(ccr_positions.shape[0]):  # the retroreflector lit most by the beam's footprint
-                n_c, t_c = retro_echo(ccr_positions[c], ccr_photons, footprint, starts[slot], directions[slot])
+                n_c, t_c = retro_echo(ccr_positions[c], scale * ccr_photons, footprint, starts[slot], directions[slot])
                 if n_c > n1:
                     n1 = n_c
                     t1 = t_c * (wp.float64(1.0) + drift) + wp.float64(2.0) * wp.float64(delays[beam]) / LIGHT_SPEED
@@ -312,7 +314,7 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
                 leaf.t_end = wp.float64(0.5) * LIGHT_SPEED * det.gate_close
                 if status[slot] == STATUS_RETURN:
                     leaf.t_end = wp.float64(ranges[slot])
-                leaf.scale = expected_signal(det, wp.float64(1.0), wp.float64(1.0), leaf_reflectance)
+                leaf.scale = scale * expected_signal(det, wp.float64(1.0), wp.float64(1.0), leaf_reflectance)
                 leaf.drift = drift
                 leaf.delay = wp.float64(2.0) * wp.float64(delays[beam]) / LIGHT_SPEED
                 leaf.present = canopy.present

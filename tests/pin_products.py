@@ -259,12 +259,16 @@ def _jsonable(value):
     """A numpy / bytes value as plain JSON (exact: floats round-trip through repr)."""
     import numpy as np
 
+    import h5py
+
+    if isinstance(value, h5py.Reference):  # a dimension scale's DIMENSION_LIST / REFERENCE_LIST (atl03.h5)
+        return "<HDF5 object reference>"
     if isinstance(value, bytes):
         return value.decode("utf-8", "backslashreplace")
     if isinstance(value, np.ndarray):
-        return [_jsonable(v) for v in value.tolist()] if value.dtype.kind in "OSU" else value.tolist()
+        return [_jsonable(v) for v in value.tolist()] if value.dtype.kind in "OSUV" else value.tolist()
     if isinstance(value, np.generic):
-        return value.item()
+        return _jsonable(value.item()) if isinstance(value, np.void) else value.item()
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
     return value

@@ -10,33 +10,41 @@ import pytest
 from flightsim.engine.config import set_value, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.engine.run import simulate_to_directory
+from flightsim.instrument.pairs import SINGLE_BEAM
 
 
 def test_atl03_product_from_an_orbit_pass(tmp_path):
+    """The single nadir strong beam (ground track gt1)."""
     cfg = preset_config("atlas")
-    for key, value in {"flight.duration_s": 0.02, "scene.ccrs": [[0.0, 0.0, 1.5]], "scene.ccr_photons": 5.0,
+    for key, value in {**SINGLE_BEAM, "flight.duration_s": 0.02, "scene.ccrs": [[0.0, 0.0, 1.5]], "scene.ccr_photons": 5.0,
                        "photon.gate_m": [499850.0, 500150.0]}.items():
         set_value(cfg, key, value)
     summary = simulate_to_directory(validate(cfg), tmp_path / "a")
     assert summary["files"] == ["photons.h5", "photons", "atl03.h5", "atl08.h5"]
     with h5py.File(tmp_path / "a" / "atl03.h5") as f:
-        h = {k: f[f"gt1/heights/{k}"][:] for k in ("delta_time", "lat_ph", "lon_ph", "h_ph", "signal_conf_ph",
-                                                  "truth_kind", "ph_id_pulse", "dist_ph_along")}
-        geo = {k: f[f"gt1/geolocation/{k}"][:] for k in ("delta_time", "reference_photon_lat",
-                                                       "reference_photon_lon", "reference_photon_h")}
+        h = {k: f[f"gt1/heights/{k}"][:] for k in ("delta_time", "lat_ph", "lon_ph", "h_ph", "truth_kind",
+                                                  "ph_id_pulse", "dist_ph_along")}
+        h["signal_conf_ph"] = f["gt1/heights/signal_conf_ph"][:]
+        geo = {k: f[f"gt1/footprint/{k}"][:] for k in ("delta_time", "lat", "lon", "h")}
+        epoch = float(f["ancillary_data/atlas_sdp_gps_epoch"][0])
     assert len(h["h_ph"]) == summary["photons"]
+    assert h["signal_conf_ph"].shape == (len(h["h_ph"]), 5)  # ATL03's five surface types, one surface here
+    assert (h["signal_conf_ph"] == h["signal_conf_ph"][:, :1]).all()
     assert set(np.unique(h["signal_conf_ph"])) <= {0, 1, 2, 3, 4}  # from the signal finder, not the truth
-    assert (h["signal_conf_ph"][h["truth_kind"] == 1] >= 2).mean() > 0.9
+    assert (h["signal_conf_ph"][h["truth_kind"] == 1, 0] >= 2).mean() > 0.9
     ground = h["h_ph"][h["truth_kind"] == 1]
     assert abs(np.median(ground) - cfg.scene.origin[2]) < 0.15  # the plane at the origin's height (+ pile-up)
     assert abs(np.median(h["h_ph"][h["truth_kind"] == 2]) - ground.mean() - 1.5) < 0.15  # the CCR 1.5 m up
     # the pass is above the scene origin at mid-run: that shot's footprint centre is the origin
     lon0, lat0 = pyproj.Transformer.from_crs(cfg.scene.crs, "EPSG:4326", always_xy=True).transform(
         *cfg.scene.origin[:2])
-    mid = np.argmin(np.abs(geo["delta_time"] - (cfg.flight.start_gps_time + 0.01)))
-    assert geo["reference_photon_lat"][mid] == pytest.approx(lat0, abs=1e-6)
-    assert geo["reference_photon_lon"][mid] == pytest.approx(lon0, abs=1e-6)
-    assert geo["reference_photon_h"][mid] == pytest.approx(cfg.scene.origin[2], abs=0.01)
+    # delta_time: GPS seconds since the SDP epoch 2018-01-01 (1198800018 s); start_gps_time is GPS − 1e9
+    assert epoch == 1198800018.0
+    mid = np.argmin(np.abs(geo["delta_time"] + epoch - (1e9 + cfg.flight.start_gps_time + 0.01)))
+    assert geo["delta_time"][mid] + epoch - 1e9 - cfg.flight.start_gps_time == pytest.approx(0.01, abs=1e-6)
+    assert geo["lat"][mid] == pytest.approx(lat0, abs=1e-6)
+    assert geo["lon"][mid] == pytest.approx(lon0, abs=1e-6)
+    assert geo["h"][mid] == pytest.approx(cfg.scene.origin[2], abs=0.01)
     assert (np.diff(geo["delta_time"]) > 0).all()
 
 
@@ -49,10 +57,10 @@ def test_three_beams_across_track_give_three_ground_tracks(tmp_path):
     simulate_to_directory(validate(cfg), tmp_path / "b")
     geod = pyproj.Geod(ellps="WGS84")
     with h5py.File(tmp_path / "b" / "atl03.h5") as f:
-        assert sorted(f) == ["gt1", "gt2", "gt3"]
-        centre = [np.mean(f[f"gt{k}/geolocation/reference_photon_{c}"][:]) for k in (1, 2, 3) for c in ("lat", "lon")]
+        assert sorted(n for n in f if n.startswith("gt")) == ["gt1", "gt2", "gt3"]
+        centre = [np.mean(f[f"gt{k}/footprint/{c}"][:]) for k in (1, 2, 3) for c in ("lat", "lon")]
         # each track's along-track distance from its own first photon: 0.005 s at ~7 km/s is ~35 m, not 3.3 km
-        along = [f[f"gt{k}/heights/dist_ph_along"][:] for k in (1, 2, 3)]
+        along = [f[f"gt{k}/heights/x_atc"][:] for k in (1, 2, 3)]
     assert all(a.min() == 0.0 and a.max() < 60.0 for a in along)
     for a, b in ((0, 2), (2, 4)):
         _, _, distance = geod.inv(centre[a + 1], centre[a], centre[b + 1], centre[b])

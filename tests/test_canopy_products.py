@@ -16,6 +16,7 @@ import flightsim
 from flightsim.api import Result
 from flightsim.core.errors import InputError
 from flightsim.engine.products.las import write_chm
+from flightsim.instrument.pairs import SINGLE_BEAM
 from flightsim.outputs.l2a_h5 import write_l2a
 from flightsim.scenes.forest_scene import stand
 from flightsim.scenes.forest_voxels import stand_voxels
@@ -71,12 +72,12 @@ def test_atl08_of_an_orbit_pass_over_a_forest_measures_the_canopy(tmp_path):
     stand's voxels agreed with h_canopy to ±1 m). Bound: −3.0 m ≤ h_canopy − truth ≤ +0.5 m (+0.5: the ranging
     noise, σ 0.22 m); the ground under the stand within 0.5 m."""
     cfg = flightsim.load_config(instrument="atlas", overrides={
-        "scene.name": "forest", "scene.forest_size_m": 190.0, "scene.forest_height_sd_m": 2.0,
+        **SINGLE_BEAM, "scene.name": "forest", "scene.forest_size_m": 190.0, "scene.forest_height_sd_m": 2.0,
         "photon.reflectance": 0.5, "flight.duration_s": 0.0565, "photon.gate_m": [499900.0, 500100.0]})
     result = flightsim.simulate(cfg)
     assert "atl08.h5" in result.stats["files"]
     with h5py.File(result.directory / "atl03.h5") as f:
-        geo = {k: f[f"gt1/geolocation/reference_photon_{k}"][:] for k in ("lat", "lon", "h")}
+        geo = {k: f[f"gt1/footprint/{k}"][:] for k in ("lat", "lon", "h")}
     east, north = _local_en(cfg, geo["lat"], geo["lon"], geo["h"])
     along = np.hypot(east - east[0], north - north[0])  # the first photon is over the first footprint (nadir)
     trees = stand(cfg.scene, cfg.run.seed)
@@ -111,7 +112,7 @@ def test_atl08_over_bare_ground_has_terrain_and_fill_values_and_can_be_turned_of
     """The atlas pass over its plane (at the scene origin's height): terrain heights within 0.15 m (the dead
     time's pile-up biases ATL03's ground photons upwards by a few cm) and no canopy: fill values, NaN in the
     API. With ``output.atl08 = false`` no atl08.h5."""
-    overrides = {"flight.duration_s": 0.03, "photon.gate_m": [499900.0, 500100.0]}
+    overrides = {**SINGLE_BEAM, "flight.duration_s": 0.03, "photon.gate_m": [499900.0, 500100.0]}
     result = flightsim.simulate(flightsim.load_config(instrument="atlas", overrides=overrides))
     ds = result.atl08
     assert result.stats["files"] == ["photons.h5", "photons", "atl03.h5", "atl08.h5"]

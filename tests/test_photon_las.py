@@ -10,12 +10,14 @@ import pytest
 from flightsim.engine.config import set_value, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.engine.run import simulate_to_directory
+from flightsim.instrument.pairs import SINGLE_BEAM
 
 
 @pytest.mark.parametrize("crs", ["", "EPSG:32647"])
 def test_photon_points_in_the_output_crs(tmp_path, crs):
     cfg = preset_config("atlas")
-    for key, value in {"flight.duration_s": 0.02, "photon.gate_m": [499850.0, 500150.0], "output.crs": crs}.items():
+    for key, value in {**SINGLE_BEAM, "flight.duration_s": 0.02, "photon.gate_m": [499850.0, 500150.0],
+                       "output.crs": crs}.items():
         set_value(cfg, key, value)
     cfg = validate(cfg)
     summary = simulate_to_directory(cfg, tmp_path / "a")

@@ -8,18 +8,19 @@ import numpy as np
 from flightsim.engine.config import set_value, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.engine.run import simulate_to_directory
+from flightsim.instrument.pairs import SINGLE_BEAM
 from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder
 
 
 def _pass(tmp_path, **settings) -> tuple[np.ndarray, np.ndarray]:
     """(signal_conf_ph, truth_kind) of a 0.1 s atlas pass (1000 shots) in a 300 m telemetry band."""
     cfg = preset_config("atlas")
-    for key, value in {"flight.duration_s": 0.1, "photon.max_events": 64, "photon.gate_m": [499850.0, 500150.0],
+    for key, value in {**SINGLE_BEAM, "flight.duration_s": 0.1, "photon.max_events": 64, "photon.gate_m": [499850.0, 500150.0],
                        **settings}.items():
         set_value(cfg, key, value)
     simulate_to_directory(validate(cfg), tmp_path / "p")
     with h5py.File(tmp_path / "p" / "atl03.h5") as f:
-        return f["gt1/heights/signal_conf_ph"][:], f["gt1/heights/truth_kind"][:]
+        return f["gt1/heights/signal_conf_ph"][:, 0], f["gt1/heights/truth_kind"][:]
 
 
 def test_confidence_against_the_truth_of_a_pass_with_a_known_background(tmp_path):

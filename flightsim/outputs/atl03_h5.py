@@ -1,93 +1,228 @@
-"""Photon events as an ATL03-style HDF5 product (h5py), for photon-counting runs: per beam a group
-``gtN`` (N = beam + 1) the way ICESat-2's ATL03 lays out its ground tracks. ``atl03.h5``:
+"""Photon events as an ATL03 granule (h5py), for photon-counting runs from orbit: per beam a ground-track group laid
+out as ICESat-2's ATL03 (Neumann et al., ATL03 ATBD and data dictionary), named ``gt1l`` … ``gt3r`` for ATLAS's
+beam pairs (the ``pairs`` emitter) and ``gtN`` (N = beam + 1) for any other emitter. ``atl03.h5``:
 
-gtN/heights/delta_time        float64  adjusted standard GPS time of the photon's shot [s]
-gtN/heights/lat_ph, lon_ph    float64  geodetic latitude, longitude of the photon [deg]
-gtN/heights/h_ph              float64  its height [m]: above the WGS84 ellipsoid (or the Moon's sphere) for
-                                       the orbit platform, else the scene's height
-gtN/heights/signal_conf_ph    int8     ATL03's confidence 0 noise, 1 buffer, 2 low, 3 medium, 4 high, from
-                                       the photons' height histograms in 20 m along-track segments against the
-                                       background of the telemetry band (flightsim.scoring.signal_finder),
-                                       not from the truth; one surface type
-gtN/heights/truth_kind        int8     the simulator's truth: 0 background or dark count, 1 the surface's
-                                       echo, 2 a corner cube's, 3 leaves' (a canopy)
-gtN/heights/ph_id_pulse       int64    pulse index within its line
-gtN/heights/dist_ph_along     float64  horizontal distance from the line's first photon [m]
-gtN/geolocation/delta_time, reference_photon_lat, reference_photon_lon, reference_photon_h: per shot
-                                       that has photons, the beam's footprint centre (its believed axis
-                                       where it meets the scene's ground height)
+gtx/heights/delta_time        float64  time of the photon's shot since the ATLAS SDP epoch 2018-01-01T00:00:00Z [s]
+                                       (GPS seconds − ancillary_data/atlas_sdp_gps_epoch), a dimension scale
+gtx/heights/lat_ph, lon_ph    float64  geodetic latitude, longitude of the photon [deg]
+gtx/heights/h_ph              float64  its height [m] above the WGS84 ellipsoid (or the Moon's sphere)
+gtx/heights/signal_conf_ph    int8     (n, 5) ATL03's confidence per surface type (land, ocean, sea ice, land ice,
+                                       inland water): −2 TEP, −1 not considered, 0 noise, 1 buffer, 2 low,
+                                       3 medium, 4 high. The signal finder's (flightsim.scoring.signal_finder, from the
+                                       photons' height histograms in 20 m segments, not from the truth) in every
+                                       column: the simulated scene has one surface, classified once
+gtx/heights/dist_ph_along     float64  along-track distance of the photon's shot from its 20 m segment's start [m]
+gtx/heights/x_atc             float64  flightsim: horizontal distance from the line's first photon [m] (what the
+                                       signal finder and atl08.h5 bin along track)
+gtx/heights/truth_kind        int8     flightsim's truth: 0 background or dark count, 1 the surface's echo, 2 a corner
+                                       cube's, 3 leaves' (a canopy)
+gtx/heights/ph_id_pulse       int64    pulse index within its line
+gtx/geolocation/...           per 20 m along-track segment (ATL03's geolocation segments): segment_id (1-based,
+                                       counted from the pass's first footprint, not from the equator crossing),
+                                       segment_ph_cnt, ph_index_beg (1-based row of its first photon; 0 when empty),
+                                       reference_photon_index (1-based within the segment: the photon whose shot is
+                                       nearest the segment's centre; 0 when empty), reference_photon_lat/lon and
+                                       delta_time (that photon's), segment_length (20 m), segment_dist_x (the
+                                       segment's start along track [m])
+gtx/bckgrd_atlas/bckgrd_rate  float32  per 50 shots (ATL03's 200 Hz): photons the signal finder calls noise per second
+                                       of range gate [Hz] (dead time not undone); ``delta_time`` its first shot's
+gtx/geophys_corr/...          per segment: delta_time and the geophysical corrections, 0 (the simulated world has no
+                                       tides, atmosphere or geoid)
+gtx/footprint/delta_time, lat, lon, h: flightsim: per shot that has photons, the beam's footprint centre (its
+                                       believed axis where it meets the scene's ground height)
 
-Attributes: ``config_toml``, ``flightsim``. Geolocation is the processing's (the believed instrument), as
-the product's is. Written under a temporary name and renamed when complete; signal_conf_ph is computed
-at close, reading each beam's heights back block by block (memory bounded by the block, not the run).
+The granule-level groups (orbit_info, ancillary_data, METADATA, atlas_impulse_response, the root attributes):
+:mod:`flightsim.outputs.atl03_granule`. Geolocation is the processing's (the believed instrument), as the product's
+is. Written under a temporary name and renamed when complete; signal_conf_ph is computed at close, reading each
+beam's heights back block by block (memory bounded by the block, not the run), the segment and background tables
+from per-photon indices kept in memory (4 bytes a photon).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from flightsim.outputs.atl03_granule import Granule, adjusted_to_delta_time, write_granule
 from flightsim.outputs.h5_product import H5Product
 from flightsim.platforms.orbit import local_to_geodetic
 from flightsim.scoring.signal_finder import SignalFinder
+
+SEGMENT_M = 20.0  # ATL03's geolocation segment along track [m]
+FRAME_SHOTS = 50  # ATL03's background rate: every 50 shots (200 Hz at 10 kHz)
+SURFACE_TYPES = 5  # land, ocean, sea ice, land ice, inland water
+LIGHT_SPEED = 299_792_458.0  # [m/s]
+
+
+@dataclass
+class _Track:
+    """One ground track's running state: each line's first photon and first footprint, its first segment and frame
+    numbers, and per photon its segment and background frame (int32, in memory)."""
+
+    first_photon: dict = field(default_factory=dict)
+    first_footprint: dict = field(default_factory=dict)
+    segment_base: dict = field(default_factory=dict)
+    frame_base: dict = field(default_factory=dict)
+    next_segment: int = 1
+    next_frame: int = 0
+    segments: list = field(default_factory=list)
+    frames: list = field(default_factory=list)
+    frame_time: dict = field(default_factory=dict)  # frame -> delta_time of its first shot
+    frame_shots: dict = field(default_factory=dict)  # frame -> shots that detected a photon
+    reference: dict = field(default_factory=dict)  # segment -> (|dist − centre|, row, lat, lon, delta_time)
+    rows: int = 0
 
 
 class Atl03Writer:
     """Appends PhotonChunks to ``directory/atl03.h5``; ``close()`` renames it into place."""
 
-    def __init__(self, directory: Path, body: str, cfg_text: str, prf_hz: float, scene):
-        """body: the body orbited (earth, moon)."""
+    def __init__(self, directory: Path, body: str, cfg_text: str, prf_hz: float, scene, granule: Granule | None = None):
+        """body: the body orbited (earth, moon); granule: the run's beams and instrument for the metadata."""
         self.product = H5Product(directory / "atl03.h5", config_toml=cfg_text)
         self.body, self.prf_hz, self.scene = body, prf_hz, scene
-        self.first: dict[tuple, np.ndarray] = {}  # each (line, beam)'s first photon (local), for dist_ph_along
+        self.granule = granule or Granule()
+        self.tracks: dict[str, _Track] = {}
         self.count = 0
 
     def __call__(self, chunk) -> None:
         for beam in np.unique(chunk.pixel):
             rows = np.flatnonzero(chunk.pixel == beam)
-            self._heights(f"gt{int(beam) + 1}", chunk, rows)
-            self._geolocation(f"gt{int(beam) + 1}", chunk, rows)
+            name = self.granule.track_name(int(beam))
+            track = self.tracks.setdefault(name, _Track())
+            along = self._footprint(name, track, chunk, rows)
+            self._heights(name, track, chunk, rows, along)
         self.count += len(chunk)
 
-    def _heights(self, group: str, chunk, rows: np.ndarray) -> None:
-        lat, lon, h = local_to_geodetic(self.body, self.scene, chunk.points[rows])
-        start = self.first.setdefault((chunk.line_id, group), chunk.points[rows[0]].copy())
-        along = np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1)
-        self.product.append(f"{group}/heights", {
-            "delta_time": chunk.start_time + chunk.pulse[rows] / self.prf_hz, "lat_ph": lat, "lon_ph": lon, "h_ph": h,
-            "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows],
-            "dist_ph_along": along})
-
-    def _geolocation(self, group: str, chunk, rows: np.ndarray) -> None:
-        pulses, first = np.unique(chunk.pulse[rows], return_index=True)
+    def _footprint(self, group: str, track: _Track, chunk, rows: np.ndarray) -> np.ndarray:
+        """Write the footprint centres of the chunk's shots of this beam; return each photon's shot's distance along
+        track from the line's first footprint [m]."""
+        pulses, first, inverse = np.unique(chunk.pulse[rows], return_index=True, return_inverse=True)
         i = rows[first]
         d = chunk.directions[i].astype(np.float64)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        start = chunk.points[i] - (chunk.time_of_flight_s[i] * 149896229.0)[:, None] * d  # the beam's exit point
-        t = (self.scene.ground_z - start[:, 2]) / d[:, 2]
-        lat, lon, h = local_to_geodetic(self.body, self.scene, start + t[:, None] * d)
-        self.product.append(f"{group}/geolocation", {
-            "delta_time": chunk.start_time + pulses / self.prf_hz, "reference_photon_lat": lat,
-            "reference_photon_lon": lon, "reference_photon_h": h})
+        start = chunk.points[i] - (chunk.time_of_flight_s[i] * (LIGHT_SPEED / 2.0))[:, None] * d  # the exit point
+        centre = start + ((self.scene.ground_z - start[:, 2]) / d[:, 2])[:, None] * d
+        lat, lon, h = local_to_geodetic(self.body, self.scene, centre)
+        self.product.append(f"{group}/footprint", {
+            "delta_time": adjusted_to_delta_time(chunk.start_time + pulses / self.prf_hz), "lat": lat, "lon": lon,
+            "h": h})
+        origin = track.first_footprint.setdefault(chunk.line_id, centre[0].copy())
+        return np.linalg.norm(centre[:, :2] - origin[:2], axis=1)[inverse]
+
+    def _heights(self, group: str, track: _Track, chunk, rows: np.ndarray, along: np.ndarray) -> None:
+        line = chunk.line_id
+        lat, lon, h = local_to_geodetic(self.body, self.scene, chunk.points[rows])
+        start = track.first_photon.setdefault(line, chunk.points[rows[0]].copy())
+        base = track.segment_base.setdefault(line, track.next_segment)
+        local = np.floor(along / SEGMENT_M).astype(np.int64)
+        segment = base + local
+        track.next_segment = max(track.next_segment, int(segment.max()) + 1)
+        frame = track.frame_base.setdefault(line, track.next_frame) + chunk.pulse[rows] // FRAME_SHOTS
+        track.next_frame = max(track.next_frame, int(frame.max()) + 1)
+        t = adjusted_to_delta_time(chunk.start_time + chunk.pulse[rows] / self.prf_hz)
+        _count_frames(track, frame, chunk.pulse[rows], chunk.start_time, self.prf_hz)
+        dist = along - local * SEGMENT_M
+        _keep_reference(track, segment, np.abs(dist - SEGMENT_M / 2.0), track.rows, lat, lon, t)
+        track.segments.append(segment.astype(np.int32))
+        track.frames.append(frame.astype(np.int32))
+        track.rows += len(rows)
+        self.product.append(f"{group}/heights", {
+            "delta_time": t, "lat_ph": lat, "lon_ph": lon, "h_ph": h, "dist_ph_along": dist,
+            "x_atc": np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1),
+            "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows]})
 
     def close(self) -> str:
-        for group in self.product.file:
-            self._confidence(self.product.file[f"{group}/heights"])
+        f = self.product.file
+        for name, track in self.tracks.items():
+            conf = self._confidence(f[f"{name}/heights"])
+            _segments(f.require_group(f"{name}/geolocation"), track)
+            _zero_corrections(f.require_group(f"{name}/geophys_corr"), f[f"{name}/geolocation/delta_time"][:])
+            _background(f.require_group(f"{name}/bckgrd_atlas"), track, conf, self.granule.gate_s)
+        write_granule(f, self.granule, sorted(self.tracks))
         return self.product.close()
 
     @staticmethod
-    def _confidence(heights) -> None:
-        """signal_conf_ph of one beam's heights group, by the signal finder over its photons."""
+    def _confidence(heights) -> np.ndarray:
+        """signal_conf_ph of one beam's heights group, by the signal finder over its photons (every surface type's
+        column the same); returns the first column."""
         n = heights["h_ph"].shape[0]
-        conf = heights.create_dataset("signal_conf_ph", shape=(n,), dtype=np.int8, chunks=True)
+        conf = heights.create_dataset("signal_conf_ph", shape=(n, SURFACE_TYPES), dtype=np.int8,
+                                      chunks=(min(max(n, 1), 1 << 16), SURFACE_TYPES))
+        first = np.zeros(n, dtype=np.int8)
 
         def read(lo: int, hi: int) -> tuple:
-            return heights["dist_ph_along"][lo:hi], heights["h_ph"][lo:hi], heights["ph_id_pulse"][lo:hi]
+            return heights["x_atc"][lo:hi], heights["h_ph"][lo:hi], heights["ph_id_pulse"][lo:hi]
 
         def write(lo: int, values: np.ndarray) -> None:
-            conf[lo:lo + len(values)] = values
+            conf[lo:lo + len(values)] = np.repeat(values[:, None], SURFACE_TYPES, axis=1)
+            first[lo:lo + len(values)] = values
 
         SignalFinder().classify_stream(n, read, write)
+        return first
 
     def abort(self) -> None:
         self.product.abort()
+
+
+def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> None:
+    """Each background frame's first shot time and its shots that detected a photon (a shot's photons are all in one
+    chunk)."""
+    shots, first = np.unique(pulse, return_index=True)
+    for f, n in zip(*np.unique(frame[first], return_counts=True)):
+        track.frame_shots[int(f)] = track.frame_shots.get(int(f), 0) + int(n)
+        if int(f) not in track.frame_time:
+            p = int(pulse[frame == f][0]) // FRAME_SHOTS * FRAME_SHOTS
+            track.frame_time[int(f)] = float(adjusted_to_delta_time(start_time + p / prf_hz))
+
+
+def _keep_reference(track: _Track, segment: np.ndarray, offset: np.ndarray, row0: int, lat, lon, t) -> None:
+    """Keep, for each segment of these photons, the photon whose shot is nearest the segment's centre (the first such
+    photon over every chunk so far)."""
+    order = np.lexsort((offset, segment))
+    seg = segment[order]
+    firsts = order[np.r_[True, seg[1:] != seg[:-1]]]
+    for i in firsts:
+        key, best = int(segment[i]), track.reference.get(int(segment[i]))
+        if best is None or offset[i] < best[0]:
+            track.reference[key] = (float(offset[i]), row0 + int(i), float(lat[i]), float(lon[i]), float(t[i]))
+
+
+def _segments(g, track: _Track) -> None:
+    """ATL03's geolocation segments of one track: every 20 m segment from its first to its last, empty ones too."""
+    segment = np.concatenate(track.segments) if track.segments else np.zeros(0, np.int32)
+    ids = np.arange(int(segment.min()), int(segment.max()) + 1) if len(segment) else np.zeros(0, np.int64)
+    count = np.bincount(segment - (ids[0] if len(ids) else 0), minlength=len(ids)).astype(np.int32)
+    begin = np.where(count > 0, np.concatenate([[0], np.cumsum(count)[:-1]]) + 1, 0).astype(np.int64)
+    ref = [track.reference.get(int(s)) for s in ids]
+    have = np.array([r is not None for r in ref], dtype=bool)
+    pick = lambda k: np.array([r[k] if r is not None else np.nan for r in ref], dtype=np.float64)  # noqa: E731
+    index = np.where(have, pick(1) - (begin - 1) + 1, 0).astype(np.int32)
+    t = pick(4)
+    if have.any() and not have.all():  # empty segments: the time interpolated between their neighbours
+        t[~have] = np.interp(ids[~have], ids[have], t[have])
+    bases = np.sort(np.array(list(track.segment_base.values()), dtype=np.int64))
+    starts = bases[np.searchsorted(bases, ids, "right") - 1] if len(ids) else ids  # each line's first segment
+    columns = {"delta_time": t, "segment_id": ids.astype(np.int32), "segment_ph_cnt": count, "ph_index_beg": begin,
+               "reference_photon_index": index, "reference_photon_lat": pick(2), "reference_photon_lon": pick(3),
+               "segment_length": np.full(len(ids), SEGMENT_M), "segment_dist_x": (ids - starts) * SEGMENT_M}
+    for name, values in columns.items():
+        g.create_dataset(name, data=values)
+
+
+def _zero_corrections(g, delta_time: np.ndarray) -> None:
+    """geophys_corr per segment: its time and ATL03's corrections, none of which the simulated world has (0 m)."""
+    g.create_dataset("delta_time", data=delta_time)
+    for name in ("dac", "tide_earth", "tide_load", "tide_ocean", "tide_pole", "tide_equilibrium", "geoid"):
+        g.create_dataset(name, data=np.zeros(len(delta_time), dtype=np.float32))
+
+
+def _background(g, track: _Track, conf: np.ndarray, gate_s: float) -> None:
+    """bckgrd_atlas: per 50-shot frame, the photons the signal finder calls noise per second of gate [Hz], over the
+    frame's shots that detected anything."""
+    frame = np.concatenate(track.frames) if track.frames else np.zeros(0, np.int32)
+    ids = np.array(sorted(track.frame_time), dtype=np.int64)
+    noise = np.bincount(np.searchsorted(ids, frame[conf == 0]), minlength=len(ids))
+    shots = np.array([track.frame_shots[int(k)] for k in ids], dtype=np.float64)
+    g.create_dataset("delta_time", data=np.array([track.frame_time[int(k)] for k in ids], dtype=np.float64))
+    g.create_dataset("bckgrd_rate", data=(noise / np.maximum(shots, 1) / gate_s).astype(np.float32))

@@ -74,9 +74,11 @@ def _beam_dataset(group, beam: int) -> xr.Dataset:
 
 def photon_dataset(directory: Path) -> xr.Dataset:
     """Every photon of a photon run (dim photon): from orbit ``atl03.h5``'s heights of all beams (``h_ph``,
-    ``lat_ph``, ``lon_ph``, ``delta_time``, ``signal_conf_ph``, ``dist_ph_along``, ``ph_id_pulse``, ``truth_kind``,
-    ``beam``); otherwise the same names from ``photons.h5`` (heights as the scene CRS's, latitude and longitude in
-    its geodetic CRS, the signal confidence by the same ATL03-style signal finder over each line)."""
+    ``lat_ph``, ``lon_ph``, ``delta_time`` (ATL03's: since the SDP epoch), ``signal_conf_ph`` (its first surface
+    type's column, land), ``dist_ph_along`` (from the photon's 20 m segment's start), ``x_atc``, ``ph_id_pulse``,
+    ``truth_kind``, ``beam``); otherwise the same names from ``photons.h5`` (heights as the scene CRS's, latitude and
+    longitude in its geodetic CRS, the signal confidence by the same ATL03-style signal finder over each line,
+    ``dist_ph_along`` and ``x_atc`` both the distance from the line's first photon)."""
     atl03 = directory / "atl03.h5"
     return _from_atl03(atl03) if atl03.is_file() else _from_photons(directory / "photons.h5")
 
@@ -84,9 +86,9 @@ def photon_dataset(directory: Path) -> xr.Dataset:
 def _from_atl03(path: Path) -> xr.Dataset:
     parts = []
     with h5py.File(path) as f:
-        for name in sorted(f):
+        for name in sorted(n for n in f if n.startswith("gt") and "heights" in f[n]):
             heights = f[f"{name}/heights"]
-            columns = {k: ("photon", heights[k][:]) for k in heights}
+            columns = {k: ("photon", heights[k][:] if heights[k].ndim == 1 else heights[k][:, 0]) for k in heights}
             columns["beam"] = ("photon", np.full(heights["h_ph"].shape[0], name))
             parts.append(xr.Dataset(columns))
     return xr.concat(parts, dim="photon") if parts else xr.Dataset()
@@ -105,7 +107,7 @@ def _from_photons(path: Path) -> xr.Dataset:
         conf[rows] = SignalFinder().classify(along[rows], p["z"][rows], p["pulse"][rows])
     return xr.Dataset({"h_ph": ("photon", p["z"]), "lat_ph": ("photon", np.asarray(lat)),
                        "lon_ph": ("photon", np.asarray(lon)), "delta_time": ("photon", p["delta_time"]),
-                       "signal_conf_ph": ("photon", conf), "dist_ph_along": ("photon", along),
+                       "signal_conf_ph": ("photon", conf), "dist_ph_along": ("photon", along), "x_atc": ("photon", along),
                        "ph_id_pulse": ("photon", p["pulse"]), "truth_kind": ("photon", p["signal"].astype(np.int8)),
                        "beam": ("photon", p["pixel"]), "range_m": ("photon", p["range_m"])})
 

@@ -28,6 +28,7 @@ from flightsim.engine.config_io import preset_config
 from flightsim.engine.readouts.points import Points
 from flightsim.engine.tracer import Tracer
 from flightsim.engine.world import build_scene, flight_trajectories
+from flightsim.instrument.pairs import SINGLE_BEAM
 from flightsim.scenes.canopy import VoxelCanopy
 from flightsim.scenes.leaf_angles import g_function
 from kernels import canopy as kc
@@ -202,7 +203,8 @@ def atl08_over_forest(device: str, directory: Path, seed: int = 0) -> dict:
     from flightsim.scenes.forest_scene import stand
     from flightsim.studies.forest_truth import canopy_height_model
 
-    cfg = _forest_config("atlas", {"scene.forest_size_m": 600.0, "flight.duration_s": 0.08, "run.seed": seed,
+    cfg = _forest_config("atlas", {**SINGLE_BEAM, "scene.forest_size_m": 600.0, "flight.duration_s": 0.08,
+                                   "run.seed": seed,
                                    "photon.gate_m": [499900.0, 500100.0], "run.device": device})
     simulate_to_directory(cfg, directory / "atlas", overwrite=True)
     with h5py.File(directory / "atlas" / "atl08.h5") as f:
@@ -210,8 +212,8 @@ def atl08_over_forest(device: str, directory: Path, seed: int = 0) -> dict:
         lat, lon, h_canopy = seg["latitude"][:], seg["longitude"][:], seg["canopy/h_canopy"][:]
         h_te, first = seg["terrain/h_te_mean"][:].astype(np.float64), seg["segment_id_beg"][:]
     with h5py.File(directory / "atlas" / "atl03.h5") as f:
-        shot_lat = f["gt1/geolocation/reference_photon_lat"][:]
-        shot_lon = f["gt1/geolocation/reference_photon_lon"][:]
+        shot_lat = f["gt1/footprint/lat"][:]
+        shot_lon = f["gt1/footprint/lon"][:]
     crs = pyproj.CRS.from_user_input(cfg.scene.crs)
     to_local = pyproj.Transformer.from_crs(crs.geodetic_crs, crs, always_xy=True)
     origin = np.asarray(cfg.scene.origin)

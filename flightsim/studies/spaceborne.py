@@ -20,6 +20,7 @@ from flightsim.calibration.geolocation import Bias, Track, footprint_offset, the
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.core.errors import InputError
+from flightsim.instrument.pairs import SINGLE_BEAM
 
 GROUND_SPEED_MPS = 7000.0  # ICESat-2-like
 CCR_PHOTONS = math.exp(2.0)  # photo-electrons a CCR returns at a footprint's centre (e²: 1 at its e⁻² edge)
@@ -44,13 +45,13 @@ class CalibrationPass:
 
 
 def pass_config(truth: Bias, field: CcrField, shots: int, device: str = "cpu", seed: int = 0,
-                background_hz: float = 1.0e6, platform: str = "lines") -> RunConfig:
+                background_hz: float = 1.0e6, platform: str = "lines", six: bool = False) -> RunConfig:
     """The atlas preset over flat ground with CCRs in the scene: flown as a straight level line north at
     the orbit's ground speed (``lines``) or on its orbit, the pass above the scene origin at mid-run
-    (``orbit``)."""
+    (``orbit``); its six beams (``six``) or the one nadir strong beam (SINGLE_BEAM)."""
     cfg = preset_config("atlas")
     h = cfg.flight.altitude_m
-    settings = {"flight.duration_s": (shots - 0.5) / cfg.fixed.prf_hz,
+    settings = {**({} if six else SINGLE_BEAM), "flight.duration_s": (shots - 0.5) / cfg.fixed.prf_hz,
                 "scene.ccrs": [list(p) for p in field.positions_m], "scene.ccr_photons": CCR_PHOTONS,
                 "instrument.errors": ["ranging", "pose"],
                 "pose.boresight_arcsec": [-truth.across_arcsec, truth.along_arcsec, 0.0],
@@ -67,37 +68,113 @@ def pass_config(truth: Bias, field: CcrField, shots: int, device: str = "cpu", s
 
 def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", seed: int = 0,
                   background_hz: float = 1.0e6, platform: str = "lines") -> CalibrationPass:
-    """Fly the pass over a field designed for ``min_triggered`` CCRs (design_field) and calibrate it. On
-    the ``orbit`` platform the calibration takes each shot's believed laser position and body axes from
-    the simulator (the pass curves and its nadir turns by ~0.5 mrad over 3.5 km); the field is laid out
-    along the straight line through the pass's first and last nadir points."""
-    from flightsim.engine.readouts.photons import Photons
+    """Fly the one nadir strong beam (the atlas preset's SINGLE_BEAM) over a field designed for ``min_triggered``
+    CCRs (design_field) and calibrate it. On the ``orbit`` platform the calibration takes each shot's believed laser
+    position and body axes from the simulator (the pass curves and its nadir turns by ~0.5 mrad over 3.5 km); the
+    field is laid out along the straight line through the pass's first and last nadir points."""
     from flightsim.engine.tracer import Tracer
     from flightsim.engine.world import build_scene, flight_trajectories
 
-    base = preset_config("atlas")
-    h = base.flight.altitude_m
-    radius = theoretical_radius(h, base.fan.divergence_mrad * 1e-3)
-    design = design_field(radius, 2.0, h, min_triggered=min_triggered)
-    span = LEAD_M * 2 + float(np.ptp(design.along_m))
-    shots = int(span / (GROUND_SPEED_MPS / base.fixed.prf_hz))
+    radius, design, shots = _design(min_triggered)
     # the track from a config without CCRs (the flight does not depend on them)
     probe = pass_config(truth, CcrField(np.zeros((1, 3)), np.zeros(1)), shots, device, seed, background_hz, platform)
     scene = build_scene(probe)
     track = _track(Tracer(probe, scene, flight_trajectories(probe, scene)), shots, platform)
-    field = CcrField.from_track_frame(track, LEAD_M + design.along_m, design.across_m,
-                                      np.resize([1.0, 1.5, 2.0], design.n_ccr))
+    field = _field(track, design)
     cfg = pass_config(truth, field, shots, device, seed, background_hz, platform)
+    shot, range_m, kind, _ = _photons(cfg, scene)
+    return _calibrate(truth, track, field, shot, range_m, kind, radius, cfg, 1.0)
+
+
+def simulate_beams(truth: Bias, min_triggered: int = 16, device: str = "cpu", seed: int = 0,
+                   background_hz: float = 1.0e6, platform: str = "lines") -> dict:
+    """The atlas preset's six beams over six CCR fields, one designed as simulate_pass's under each beam's ground
+    track, flown once; each beam calibrated from its own photons (the weak beams' CCR echoes are the strong
+    ones' ÷ pairs.energy_ratio, as their ground echoes). Every beam's track takes each shot's believed laser
+    position and its axes turned to the beam's nominal direction. {ground track: CalibrationPass, or the
+    InputError of a beam whose calibration found too little}."""
+    from flightsim.engine.tracer import Tracer
+    from flightsim.engine.world import build_scene, flight_trajectories
+
+    radius, design, shots = _design(min_triggered)
+    probe = pass_config(truth, CcrField(np.zeros((1, 3)), np.zeros(1)), shots, device, seed, background_hz, platform,
+                        six=True)
+    scene = build_scene(probe)
+    sim = Tracer(probe, scene, flight_trajectories(probe, scene))
+    emitter = sim.instrument.emitter
+    tracks = _beam_tracks(sim, shots, emitter.angles_mrad * 1e-3)
+    fields = [_field(t, design) for t in tracks]
+    every = CcrField(np.concatenate([f.positions_m for f in fields]), np.concatenate([f.heights_m for f in fields]))
+    cfg = pass_config(truth, every, shots, device, seed, background_hz, platform, six=True)
+    shot, range_m, kind, pixel = _photons(cfg, scene)
+    out = {}
+    for b, name in enumerate(emitter.beam_names):
+        mine = pixel == b
+        try:
+            out[name] = _calibrate(truth, tracks[b], fields[b], shot[mine], range_m[mine], kind[mine], radius, cfg,
+                                   float(emitter.energy_scale()[b]))
+        except InputError as exc:  # the calibration found too little to work with
+            out[name] = exc
+    return out
+
+
+def _design(min_triggered: int):
+    """(theoretical footprint radius [m], the CCR field's design, shots over it) of the atlas preset."""
+    base = preset_config("atlas")
+    h = base.flight.altitude_m
+    radius = theoretical_radius(h, base.pairs.divergence_mrad * 1e-3)
+    design = design_field(radius, 2.0, h, min_triggered=min_triggered)
+    span = LEAD_M * 2 + float(np.ptp(design.along_m))
+    return radius, design, int(span / (GROUND_SPEED_MPS / base.fixed.prf_hz))
+
+
+def _field(track: Track, design) -> CcrField:
+    return CcrField.from_track_frame(track, LEAD_M + design.along_m, design.across_m,
+                                     np.resize([1.0, 1.5, 2.0], design.n_ccr))
+
+
+def _photons(cfg, scene) -> tuple:
+    """(shot, measured range [m], truth kind, beam) of every photon of the pass."""
+    from flightsim.engine.readouts.photons import Photons
+    from flightsim.engine.tracer import Tracer
+    from flightsim.engine.world import flight_trajectories
+
     chunks = []
     Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Photons(), chunks.append)
-    shot = np.concatenate([c.pulse for c in chunks])
-    range_m = np.concatenate([c.time_of_flight_s for c in chunks]) * (299_792_458.0 / 2.0)
-    kind = np.concatenate([c.kind for c in chunks])
+    return (np.concatenate([c.pulse for c in chunks]),
+            np.concatenate([c.time_of_flight_s for c in chunks]) * (299_792_458.0 / 2.0),
+            np.concatenate([c.kind for c in chunks]), np.concatenate([c.pixel for c in chunks]))
+
+
+def _calibrate(truth: Bias, track: Track, field: CcrField, shot, range_m, kind, radius: float, cfg,
+               energy: float) -> CalibrationPass:
+    """Both calibrations and the pile-up-corrected ranging bias of one beam's photons (``energy``: the beam's share
+    of the strong beam's pulse energy, scaling its CCR return)."""
     patent = calibrate_patent(track, shot, range_m, field, footprint_radius_m=radius)
     lsq = calibrate_least_squares(track, shot, range_m, field, patent.identification, footprint_radius_m=radius,
                                   start=patent.coarse.solution.bias)
-    pile_up = pile_up_corrected_range_bias(track, shot, range_m, field, patent.identification, lsq.bias, radius, cfg)
+    pile_up = pile_up_corrected_range_bias(track, shot, range_m, field, patent.identification, lsq.bias, radius, cfg,
+                                           energy)
     return CalibrationPass(truth, track, field, shot, range_m, kind, patent, lsq, pile_up)
+
+
+def _beam_tracks(sim, shots: int, angles_rad) -> list[Track]:
+    """Each beam's calibration track: every shot's believed laser position, and its body axes turned about the
+    along-track axis to the beam's across-track angle θ (body +z to (0, sin θ, cos θ)); the along/across frame the
+    beam's field is laid out in is the straight line through its first and last footprints on z = 0."""
+    poses = sim.poses64(sim.trajectories[0].line_id, 0, shots).numpy()
+    origin, rot = np.asarray(poses["origin"], dtype=np.float64), np.asarray(poses["rot"], dtype=np.float64)
+    h, rate = float(sim.cfg.flight.altitude_m), sim.cfg.fixed.prf_hz
+    tracks = []
+    for theta in angles_rad:
+        c, s = math.cos(theta), math.sin(theta)
+        axes = rot @ np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
+        foot = origin - (origin[:, 2] / axes[:, 2, 2])[:, None] * axes[:, :, 2]
+        step = (foot[-1, :2] - foot[0, :2]) / (shots - 1)
+        tracks.append(Track(altitude_m=h, ground_speed_mps=float(np.hypot(*step)) * rate, rate_hz=rate,
+                            azimuth_deg=float(np.degrees(np.arctan2(step[0], step[1]))),
+                            origin_m=(float(foot[0, 0]), float(foot[0, 1])), shot_positions=origin, shot_axes=axes))
+    return tracks
 
 
 def _track(sim, shots: int, platform: str) -> Track:
@@ -118,12 +195,13 @@ def _track(sim, shots: int, platform: str) -> Track:
 
 
 def pile_up_corrected_range_bias(track: Track, shot, range_m, field: CcrField, identification, pointing: Bias,
-                                 radius_m: float, cfg: RunConfig) -> tuple[float, float]:
+                                 radius_m: float, cfg: RunConfig, energy: float = 1.0) -> tuple[float, float]:
     """(ranging bias [m], its σ) from the CCR photons with each one's first-photon pile-up taken out.
 
     A detector whose dead time outlasts the echo keeps a shot's first CCR photo-electron, which comes
     early by first_photon_bias_s(n, σ_t) for n expected photo-electrons (flightsim.instrument.photon):
-    n = N0 exp(−2r²/R²) with N0 the CCR's return from the link budget (scene.ccr_photons), R the beam's
+    n = N0 exp(−2r²/R²) with N0 the CCR's return from the link budget (scene.ccr_photons, times the beam's
+    share ``energy`` of the strong beam's pulse energy), R the beam's
     theoretical footprint radius and r the CCR's offset from the footprint centre under the calibrated
     pointing; σ_t the echo's spread. (The least-squares count fit cannot give N0: with the dead time a
     shot holds at most one CCR photon, so its Poisson counts saturate.) The bias is then the mean of
@@ -136,14 +214,13 @@ def pile_up_corrected_range_bias(track: Track, shot, range_m, field: CcrField, i
         shots = np.asarray(shot)[t.photons]
         ccr = np.broadcast_to(field.positions_m[t.ccr], (len(shots), 3))
         geometric = np.linalg.norm(ccr - track.position(shots), axis=1)
-        n = cfg.scene.ccr_photons * np.exp(-2.0 * footprint_offset(track, shots, ccr, pointing) ** 2 / radius_m ** 2)
+        n = energy * cfg.scene.ccr_photons * np.exp(-2.0 * footprint_offset(track, shots, ccr, pointing) ** 2 / radius_m ** 2)
         early = np.array([first_photon_bias_s(float(k), spread) for k in n]) * (299_792_458.0 / 2.0)
         residuals.append(np.asarray(range_m)[t.photons] - early - geometric)
     r = np.concatenate(residuals)
     return float(r.mean()), float(r.std(ddof=1) / math.sqrt(r.size))
 
 
-COMMAND = "flightsim calibrate --out results/spaceborne"
 SEEDS = (0, 1, 2)
 TRIGGERED = (4, 8, 16)  # design_field's guaranteed triggered CCRs
 BACKGROUNDS_HZ = (1.0e6, 5.0e6, 2.0e7)
@@ -151,28 +228,32 @@ SETTINGS = [(t, b, "lines") for t in TRIGGERED for b in BACKGROUNDS_HZ] + [(16, 
 
 
 def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25)) -> dict:
-    """The pass at the defaults (figures) and the sweep over field size, background and seeds into
-    ``out``: calibration.json, REPORT.md, pass.png, radius.png."""
+    """The six-beam pass at the defaults (figures: its central strong beam gt2l) and the sweep over field size,
+    background and seeds into ``out``, every beam calibrated: calibration.json, REPORT.md, pass.png, radius.png."""
     import json
     from pathlib import Path
 
     from flightsim.calibration.geolocation import ground_shift_m
     from flightsim.core.atomic import write_atomic
+    from flightsim.instrument.pairs import is_strong
+    from flightsim.studies.spaceborne_report import report
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    sc_orient = preset_config("atlas").pairs.sc_orient
     rows = []
     for triggered, background, platform in SETTINGS:
         for seed in SEEDS:
-            try:
-                p = simulate_pass(truth, triggered, device, seed, background, platform)
-            except InputError as exc:  # the calibration found too little to work with: recorded, not fatal
-                rows.append({"min_triggered": triggered, "background_hz": background, "platform": platform,
-                             "seed": seed, "failed": str(exc)})
-                continue
-            rows.append({**_row(p, triggered, background, seed), "platform": platform})
-            if (triggered, background, seed, platform) == (16, 1.0e6, 0, "lines"):
-                _figures(p, out)
+            beams = simulate_beams(truth, triggered, device, seed, background, platform)
+            for beam, p in beams.items():
+                about = {"min_triggered": triggered, "background_hz": background, "platform": platform, "seed": seed,
+                         "beam": beam, "strong": is_strong(beam, sc_orient)}
+                if isinstance(p, InputError):  # recorded, not fatal
+                    rows.append({**about, "failed": str(p)})
+                    continue
+                rows.append({**_row(p, triggered, background, seed), **about})
+                if (triggered, background, seed, platform, beam) == (16, 1.0e6, 0, "lines", "gt2l"):
+                    _figures(p, out)
     numbers = {"device": device, "truth": [truth.along_arcsec, truth.across_arcsec, truth.range_m],
                "one_arcsec_at_500km_m": ground_shift_m(500e3, 1.0), "passes": rows}
     write_atomic(out / "calibration.json", json.dumps(numbers, indent=2) + "\n")
@@ -224,64 +305,3 @@ def _figures(p: CalibrationPass, out) -> None:
     fig.tight_layout()
     save_figure(fig, out / "radius.png", dpi=120)
     plt.close(fig)
-
-
-def report(n: dict) -> str:
-    def rms(key, rows, k):
-        return float(np.sqrt(np.mean([r[key][k] ** 2 for r in rows])))
-
-    lines = []
-    for triggered, background, platform in SETTINGS:
-        every = [r for r in n["passes"] if (r["min_triggered"], r["background_hz"], r["platform"])
-                 == (triggered, background, platform)]
-        rows = [r for r in every if "failed" not in r]
-        if not rows:
-            lines.append(f"| {platform} | {triggered} | – | {background / 1e6:g} | calibration failed in all "
-                         f"{len(every)} passes | | | | | |")
-            continue
-        failed = f" ({len(every) - len(rows)} of {len(every)} failed)" if len(rows) < len(every) else ""
-        rng = float(np.sqrt(np.mean([r["range_error_m"] ** 2 for r in rows])))
-        raw = float(np.mean([r["range_error_uncorrected_m"] for r in rows]))
-        lines.append(f"| {platform} | {triggered} | {rows[0]['ccrs']} | {background / 1e6:g} | "
-                     f"{np.mean([r['tracks'] for r in rows]):.1f}{failed} | "
-                     f"{rms('patent_error_arcsec', rows, 0):.3f} / {rms('patent_error_arcsec', rows, 1):.3f} | "
-                     f"{rms('lsq_error_arcsec', rows, 0):.3f} / {rms('lsq_error_arcsec', rows, 1):.3f} | "
-                     f"{np.mean([r['lsq_sigma_arcsec'][0] for r in rows]):.3f} | {100 * rng:.2f} | "
-                     f"{100 * raw:+.2f} |")
-    t = n["truth"]
-    return f"""# Corner-cube calibration of a spaceborne single-photon altimeter
-
-Regenerate: `{COMMAND}` (device `{n['device']}`; each pass a few seconds on the CPU).
-Seed: `../shared/seeds/corner-cube-single-photon-calibration-patent.txt`. Instrument: the `atlas` preset
-(one ICESat-2-style strong beam, 10 kHz, 12 m footprint, 500 km), flown as the calibration model's
-straight level track at 7 km/s over flat ground holding a field of corner cubes (`design_field`: CCRs
-1–2 m high on a diagonal, spaced so that at least the stated number are triggered wherever the track
-falls within 3σ of a 2″ a-priori pointing). Injected on the truth: pointing {t[0]:+g}″ along track,
-{t[1]:+g}″ across track, ranging {100 * t[2]:+g} cm; the calibration sees only photon times and the
-nominal instrument. Three seeds per setting. The last row flies the same field from the `orbit` platform: a
-circular 500 km pass defined in GCRS and turned into ITRS by astropy at the run's GPS time, whose nadir turns
-by ~0.5 mrad over the 3.5 km of track; the calibration then takes each shot's believed laser position and
-axes from the simulator (eq. (1)'s X_gnss and its ICRF→ITRF and body→ICRF rotations, per shot).
-
-1″ of pointing at 500 km moves the ground point by H·tan(1″) = {n['one_arcsec_at_500km_m']:.4f} m (the patent's
-"about 2.5 m"; the orbit platform's test measures it through the simulator).
-
-| pass | CCRs triggered (design) | CCRs | background [MHz] | tracks found | patent RMS error along / across [″] | least squares RMS error along / across [″] | least squares σ [″] | ranging RMS error [cm] | ranging, no pile-up correction [cm] |
-| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |
-{chr(10).join(lines)}
-
-Reading the numbers:
-- Both estimators recover a few arcseconds of pointing to a fraction of an arcsecond; the least-squares
-  estimator (every searched shot's CCR photon count, Poisson in the footprint's Gaussian) is the steadier
-  of the two as the background grows, the patent's chord-and-tangent geometry needs the larger fields.
-- **Ranging**: with a detector dead time (3.2 ns) longer than the echo, only the first CCR photo-electron
-  of a shot counts and it comes early — the CCRs return several photo-electrons at the footprint centre, so
-  the plain mean of measured − geometric range reads the bias several cm short (last column). Taking
-  each photon's first-photon pile-up out (its expected count from the CCR link budget and its offset from
-  the calibrated footprint centre) recovers the ranging bias (ranging column). The patent does not treat
-  this; a real CCR calibration must.
-- A pass "fails" when step 1 finds no CCR track to start from (recorded in calibration.json with the
-  reason): small fields under a strong background.
-- Figures: `pass.png` (the photons of the default pass, truth colours: the CCR tracks stand 1–2 m over
-  the ground), `radius.png` (step 5: the azimuth of the fitted centre line against the radius tried).
-"""

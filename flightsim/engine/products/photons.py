@@ -10,7 +10,7 @@ from flightsim.engine.readouts.photons import Photons
 from flightsim.outputs.photon_las import FOLDER
 
 ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
-ATL08_INPUTS = {"along_track_m": "dist_ph_along", "h_ph": "h_ph", "lat": "lat_ph", "lon": "lon_ph",
+ATL08_INPUTS = {"along_track_m": "x_atc", "h_ph": "h_ph", "lat": "lat_ph", "lon": "lon_ph",
                 "signal_conf_ph": "signal_conf_ph", "delta_time": "delta_time"}  # atl08_segments' argument: atl03 name
 
 
@@ -45,7 +45,8 @@ class PhotonProduct:
         body = cfg.flight.body if cfg.flight.platform == "orbit" else None
         self.las = PhotonLas(directory, cfg.output, scene, tracer.timing, tracer.instrument.emitter.beam_columns, body,
                              cfg.flight.start_gps_time)
-        self.writers = [self.h5, self.las] + ([Atl03Writer(directory, body, cfg_text, prf, scene)] if body else [])
+        self.writers = [self.h5, self.las] + ([Atl03Writer(directory, body, cfg_text, prf, scene,
+                                                           atl03_granule(cfg, tracer.instrument.emitter))] if body else [])
         self.atl08 = body is not None and cfg.output.atl08
 
     def readout(self) -> Photons:
@@ -71,9 +72,29 @@ class PhotonProduct:
             writer.abort()
 
 
+def atl03_granule(cfg, emitter):
+    """The run's beams and instrument as atl03.h5's granule metadata needs them (flightsim.outputs.atl03_granule)."""
+    from flightsim.instrument.photon import first_photon_bias_s, sigma_t
+    from flightsim.outputs.atl03_granule import Granule
+
+    p = cfg.photon
+    spread = sigma_t(p)
+    strength = (0.1, 0.2, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)  # expected photo-electrons of an echo
+    return Granule(beam_names=getattr(emitter, "beam_names", None), sc_orient=getattr(emitter, "sc_orient", 0),
+                   gate_s=2.0 * (p.gate_m[1] - p.gate_m[0]) / 299_792_458.0, sigma_t_s=spread,
+                   dead_time_s=p.dead_time_s, fpb_strength=strength,
+                   fpb_bias_s=tuple(first_photon_bias_s(n, spread) for n in strength))
+
+
+def ground_tracks(f) -> list[str]:
+    """The ground-track groups of an open atl03.h5 (gt1l … gt3r, or gt1, gt2, …), in name order."""
+    return sorted(name for name in f if name.startswith("gt") and "heights" in f[name])
+
+
 def atl08_from_atl03(directory: Path, cfg_text: str) -> str | None:
     """Write ``directory/atl08.h5`` from the finished ``atl03.h5`` beside it: each beam's photons read back (only
-    the columns ATL08 needs: along-track distance, height, latitude, longitude, signal confidence, time), classified
+    the columns ATL08 needs: along-track distance ``x_atc``, height, latitude, longitude, the land column of the
+    signal confidence, time), classified
     and cut into 100 m land segments (:func:`flightsim.outputs.atl08.atl08_segments`, default settings). Over bare
     ground the segments have terrain heights and fill values for the canopy. Its name, or None when atl03.h5 holds
     no photon."""
@@ -84,10 +105,12 @@ def atl08_from_atl03(directory: Path, cfg_text: str) -> str | None:
 
     beams = {}
     with h5py.File(directory / "atl03.h5") as f:
-        for track in sorted(f):
+        for track in ground_tracks(f):
             heights = f[f"{track}/heights"]
-            beams[track] = atl08_segments(**{arg: heights[name][:] for arg, name in ATL08_INPUTS.items()},
-                                          segment_m=ATL08_SEGMENT_M)
+            columns = {arg: heights[name][:] for arg, name in ATL08_INPUTS.items()}
+            if columns["signal_conf_ph"].ndim == 2:  # ATL03's (n, 5): ATL08 reads the land surface type's column
+                columns["signal_conf_ph"] = columns["signal_conf_ph"][:, 0]
+            beams[track] = atl08_segments(**columns, segment_m=ATL08_SEGMENT_M)
     if not beams:
         return None
     return write_atl08(directory / "atl08.h5", beams, {"config_toml": cfg_text}).name

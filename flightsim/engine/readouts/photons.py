@@ -126,6 +126,7 @@ class Photons:
         canopy = tracer.scene.canopy
         self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
         self.leaf_reflectance = 0.0 if canopy is None else canopy.leaf_reflectance
+        self.energy = wp.array(beam_energy(tracer.instrument.emitter), dtype=wp.float64, device=tracer.device)
         return self.buffers.pulses
 
     def chunk(self, tracer, segments: list[Segment], n_slots: int, counts, consume) -> None:
@@ -138,7 +139,7 @@ class Photons:
         meshes = tracer.meshes
         wp.launch(photon.photon_slots_kernel(retro.count > 0, meshes.per_face, leaves), n_slots,
                   inputs=[self.detector, self.reflectance, meshes.reflectance, b.pulses, tracer.beams_per_pulse,
-                          b.status, b.ranges, b.faces, b.cos_incidence, retro.positions, retro.photons, retro.footprint,
+                          self.energy, b.status, b.ranges, b.faces, b.cos_incidence, retro.positions, retro.photons, retro.footprint,
                           retro.starts, retro.directions, tracer.scan.ranging.delays, tracer.scan.ranging.drift,
                           self.leaves, self.leaf_reflectance],
                   outputs=[self.events.times, self.events.signal, self.events.counts], device=d)
@@ -153,6 +154,13 @@ class Photons:
 
     def end(self, tracer, counts) -> wp.array:
         return self.buffers.counters
+
+
+def beam_energy(emitter) -> np.ndarray:
+    """Each beam's pulse energy over ``photon.pulse_energy_j``: the emitter's ``energy_scale()`` (ATLAS's pairs:
+    1 strong, 1/ratio weak), else 1 for every beam."""
+    scale = getattr(emitter, "energy_scale", None)
+    return np.ones(emitter.beams_per_pulse) if scale is None else np.asarray(scale(), dtype=np.float64)
 
 
 def _host_photons(tracer, segments: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
