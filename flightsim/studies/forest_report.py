@@ -247,7 +247,7 @@ def _photon_truth(path: Path, starts: np.ndarray) -> list[tuple[float, float]]:
 
     with h5py.File(path) as f:
         g = f["gt1/heights"]
-        along, h, kind = g["dist_ph_along"][:], g["h_ph"][:].astype(np.float64), g["truth_kind"][:]
+        along, h, kind = g["x_atc"][:], g["h_ph"][:].astype(np.float64), g["truth_kind"][:]
     out = []
     for start in starts:
         inside = (along >= start) & (along < start + 100.0)
