@@ -240,7 +240,7 @@ def cmd_profile(args: argparse.Namespace) -> int:
     names = tuple(args.workloads.split(",")) if args.workloads else WORKLOADS
     if set(names) - set(WORKLOADS):
         raise InputError("--workloads", args.workloads, "a comma-separated subset of " + ",".join(WORKLOADS))
-    run_profile(args.device, args.quick, Path(args.out), names)
+    run_profile(args.device, args.quick, Path(args.out), names, ncu=args.ncu)
     print((Path(args.out) / "profile.md").read_text())
     return 0
 
@@ -416,6 +416,7 @@ def _add_study_commands(sub) -> None:
     profile.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     profile.add_argument("--quick", action="store_true", help="small sizes")
     profile.add_argument("--workloads", help="comma-separated subset (default: all)")
+    profile.add_argument("--ncu", action="store_true", help="also Nsight Compute's counters (ncu on the PATH)")
     profile.add_argument("--out", required=True, help="directory for profile.json and profile.md")
     profile.set_defaults(func=cmd_profile)
 

@@ -56,3 +56,25 @@ def test_timeline_marks_each_event_once(tmp_path, monkeypatch):
     monkeypatch.delenv("FLIGHTSIM_TIMELINE")
     timeline.mark("exit")  # without the variable nothing is written
     assert len(path.read_text().splitlines()) == 2
+
+
+NCU_CSV = '''==PROF== Connected to process 1234
+"ID","Process ID","Process Name","Host Name","Kernel Name","Context","Stream","Block Size","Grid Size","Device","CC","dram__bytes.sum","gpu__time_duration.sum","sm__warps_active.avg.pct_of_peak_sustained_active","smsp__thread_inst_executed_per_inst_executed.ratio"
+"","","","","","","","","","","","byte","nsecond","%",""
+"0","1234","python3","host","records_kernel__locals__trace_records_1a2b3c4_cuda_kernel_forward","1","7","(256, 1, 1)","(100, 1, 1)","0","9.0","2,000,000","1,000","40.0","30.0"
+"1","1234","python3","host","records_kernel__locals__trace_records_1a2b3c4_cuda_kernel_forward","1","7","(256, 1, 1)","(100, 1, 1)","0","9.0","4,000,000","1,000","50.0","28.0"
+"2","1234","python3","host","pulse_poses_9f8e7d6_cuda_kernel_forward","1","7","(256, 1, 1)","(4, 1, 1)","0","9.0","1000","500","20.0","32.0"
+'''
+
+
+def test_ncu_csv_is_averaged_per_kernel_under_our_names():
+    from flightsim.studies.profile_ncu import parse
+
+    kernels = parse(NCU_CSV)
+    assert set(kernels) == {"trace_records", "pulse_poses"}
+    trace = kernels["trace_records"]
+    assert trace["launches"] == 2
+    assert trace["achieved_occupancy_pct"] == 45.0 and trace["threads_per_warp_instruction"] == 29.0
+    assert trace["dram_gb_per_s"] == 3000.0  # 3e6 bytes in 1 µs on average: 3 TB/s
+    assert trace["dram_pct_of_peak"] is None  # not in this CSV
+    assert kernels["pulse_poses"]["dram_gb_per_s"] == 2.0  # 1000 bytes in 500 ns

@@ -174,8 +174,10 @@ def profile_workload(name: str, device: str, quick: bool) -> dict:
             "other_activity_s": other, "idle_s": max(0.0, profiled_wall - busy)}
 
 
-def run_profile(device: str, quick: bool, out: Path, workloads=WORKLOADS) -> dict:
-    """Profile ``workloads`` and write DIR/profile.json and DIR/profile.md."""
+def run_profile(device: str, quick: bool, out: Path, workloads=WORKLOADS, ncu: bool = False) -> dict:
+    """Profile ``workloads`` and write DIR/profile.json and DIR/profile.md; with ``ncu`` (CUDA, Nsight Compute on
+    the machine) each workload's kernels are also measured by Nsight Compute (:mod:`profile_ncu`)."""
+    from flightsim.studies import profile_ncu
     from flightsim.studies.profile_report import write_markdown
 
     dev = resolve_device(device)
@@ -183,7 +185,10 @@ def run_profile(device: str, quick: bool, out: Path, workloads=WORKLOADS) -> dic
               "date": time.strftime("%Y-%m-%d"), "workloads": []}
     out.mkdir(parents=True, exist_ok=True)
     for name in workloads:  # written after each workload, so an interrupted profile keeps what it measured
-        result["workloads"].append(profile_workload(name, device, quick))
+        record = profile_workload(name, device, quick)
+        if ncu and dev != "cpu" and profile_ncu.available():
+            record["ncu"] = profile_ncu.workload_counters(name, dev)
+        result["workloads"].append(record)
         (out / "profile.json").write_text(json.dumps(result, indent=1))
         (out / "profile.md").write_text(write_markdown(result))
     return result

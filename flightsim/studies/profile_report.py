@@ -35,7 +35,31 @@ def _kernel_table(r: dict) -> list[str]:
                      f"{_fmt(k.get('occupancy'), 2)} |")
     copies = ", ".join(f"{kind} {1e3 * s:.2f} ms" for kind, s in r["other_activity_s"].items()) or "none"
     return lines + ["", f"Other GPU activity: {copies}; no GPU activity for {1e3 * r['idle_s']:.1f} ms "
-                        f"({r['idle_s'] / r['profiled_wall_s']:.0%} of the wall).", ""]
+                        f"({r['idle_s'] / r['profiled_wall_s']:.0%} of the wall).", "", *_ncu_table(r)]
+
+
+def _ncu_table(r: dict) -> list[str]:
+    counters = r.get("ncu")
+    if not counters:
+        return []
+    if "error" in counters:
+        return [f"Nsight Compute: {counters['error']}", ""]
+    lines = ["Nsight Compute (the workload at its quick size; means over the profiled launches):", "",
+             "| kernel | launches | achieved occupancy | DRAM [% of peak] | DRAM [GB/s] | SM [% of peak] | "
+             "spill traffic [MB] | atomics + reductions | threads per warp instruction |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for name, k in counters["kernels"].items():
+        spill = sum(k.get(key) or 0.0 for key in ("local_load_bytes", "local_store_bytes")) / 1e6
+        atomics = sum(k.get(key) or 0.0 for key in ("atomic_requests", "reduction_requests"))
+        lines.append(f"| {name} | {k['launches']} | {_pct(k.get('achieved_occupancy_pct'))} | "
+                     f"{_pct(k.get('dram_pct_of_peak'))} | {_fmt(k.get('dram_gb_per_s'))} | "
+                     f"{_pct(k.get('sm_pct_of_peak'))} | {spill:.3g} | {atomics:.3g} | "
+                     f"{_fmt(k.get('threads_per_warp_instruction'))} |")
+    return lines + [""]
+
+
+def _pct(value) -> str:
+    return "–" if value is None else f"{value:.0f} %"
 
 
 def observations(r: dict) -> list[str]:
@@ -63,9 +87,10 @@ def write_markdown(result: dict) -> str:
     records = result["workloads"]
     lines = [f"# Where the time goes ({result['gpu_name'] or result['device']}, {result['git_commit']}, "
              f"{result['date']})", "",
-             f"`flightsim profile --device {result['device'].split(':')[0]}{' --quick' if result['quick'] else ''} "
-             "--out results` (Warp's CUDA activity timing and the CUDA driver's function attributes; "
-             "occupancy is the theoretical occupancy at Warp's block size).", "", "## Summary", "",
+             f"`flightsim profile --device {result['device'].split(':')[0]}{' --quick' if result['quick'] else ''}"
+             f"{' --ncu' if any('ncu' in r for r in records) else ''} --out results` (Warp's CUDA activity timing and "
+             "the CUDA driver's function attributes; occupancy is the theoretical occupancy at Warp's block size; "
+             "with --ncu, Nsight Compute's counters).", "", "## Summary", "",
              *_summary(records), "", "## Observations", ""]
     for r in records:
         notes = observations(r)

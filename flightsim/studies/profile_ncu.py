@@ -1,0 +1,79 @@
+"""Nsight Compute's view of a workload's kernels, where ``ncu`` is on the machine: achieved occupancy, DRAM and SM
+throughput, register spill traffic, atomics and branch divergence, per kernel, averaged over its profiled launches.
+
+The workload runs at its ``--quick`` size in a child ``flightsim profile`` under ``ncu`` (every profiled launch is
+replayed once per metric group, so the child is slow, and its own wall times mean nothing; only the counters are
+kept).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import shutil
+import subprocess
+import sys
+import tempfile
+
+from flightsim.studies.bench_common import kernel_name
+
+METRICS = {  # our name: Nsight Compute metric
+    "achieved_occupancy_pct": "sm__warps_active.avg.pct_of_peak_sustained_active",
+    "dram_pct_of_peak": "dram__throughput.avg.pct_of_peak_sustained_elapsed",
+    "sm_pct_of_peak": "sm__throughput.avg.pct_of_peak_sustained_elapsed",
+    "dram_bytes": "dram__bytes.sum",
+    "duration_ns": "gpu__time_duration.sum",
+    "local_load_bytes": "l1tex__t_bytes_pipe_lsu_mem_local_op_ld.sum",
+    "local_store_bytes": "l1tex__t_bytes_pipe_lsu_mem_local_op_st.sum",
+    "atomic_requests": "l1tex__t_requests_pipe_lsu_mem_global_op_atom.sum",
+    "reduction_requests": "l1tex__t_requests_pipe_lsu_mem_global_op_red.sum",
+    "threads_per_warp_instruction": "smsp__thread_inst_executed_per_inst_executed.ratio",
+}
+LAUNCHES = 60  # launches profiled per workload (the first ones: compile and warm-up runs included)
+
+
+def available() -> bool:
+    return shutil.which("ncu") is not None
+
+
+def parse(text: str) -> dict[str, dict]:
+    """Per kernel (our short name): launches profiled and the mean of each metric over them, from ``ncu --csv
+    --page raw`` output (a header row, a units row, then one row per launch)."""
+    lines = [line for line in text.splitlines() if line.startswith('"')]
+    rows = list(csv.DictReader(io.StringIO("\n".join(lines))))
+    by_kernel: dict[str, list[dict]] = {}
+    for row in rows:
+        if not row.get("ID", "").strip().isdigit():
+            continue  # the units row
+        raw = row["Kernel Name"].split("(")[0].removesuffix("_cuda_kernel_forward")
+        by_kernel.setdefault(kernel_name(raw), []).append(row)
+    out = {}
+    for name, launches in by_kernel.items():
+        record = {"launches": len(launches)}
+        for ours, metric in METRICS.items():
+            values = [_number(r.get(metric, "")) for r in launches]
+            values = [v for v in values if v is not None]
+            record[ours] = sum(values) / len(values) if values else None
+        if record["dram_bytes"] is not None and record["duration_ns"]:
+            record["dram_gb_per_s"] = record["dram_bytes"] / record["duration_ns"]
+        out[name] = record
+    return out
+
+
+def _number(text: str) -> float | None:
+    try:
+        return float(text.replace(",", ""))
+    except ValueError:
+        return None
+
+
+def workload_counters(workload: str, device: str) -> dict:
+    """{"kernels": parse(...)} for ``workload`` at its quick size under ncu, or {"error": what went wrong}."""
+    with tempfile.TemporaryDirectory() as tmp:
+        command = ["ncu", "--csv", "--page", "raw", "--launch-count", str(LAUNCHES), "--metrics",
+                   ",".join(METRICS.values()), sys.executable, "-m", "flightsim", "profile", "--device", device,
+                   "--quick", "--workloads", workload, "--out", tmp]
+        done = subprocess.run(command, capture_output=True, text=True)
+    kernels = parse(done.stdout)
+    if not kernels:
+        return {"error": (done.stderr or done.stdout)[-600:].strip() or f"ncu exit {done.returncode}"}
+    return {"kernels": kernels}
