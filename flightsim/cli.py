@@ -417,7 +417,7 @@ def _add_study_commands(sub) -> None:
     profile.add_argument("--quick", action="store_true", help="small sizes")
     profile.add_argument("--workloads", help="comma-separated subset (default: all)")
     profile.add_argument("--ncu", action="store_true", help="also Nsight Compute's counters (ncu on the PATH)")
-    profile.add_argument("--out", required=True, help="directory for profile.json and profile.md")
+    profile.add_argument("--out", required=True, help="directory for profile.json and profile.md (records of other workloads there are kept)")
     profile.set_defaults(func=cmd_profile)
 
     budget = sub.add_parser("budget", help="full-link error budget of an instrument: change3 (the galvo imager, "

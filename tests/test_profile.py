@@ -78,3 +78,10 @@ def test_ncu_csv_is_averaged_per_kernel_under_our_names():
     assert trace["dram_gb_per_s"] == 3000.0  # 3e6 bytes in 1 µs on average: 3 TB/s
     assert trace["dram_pct_of_peak"] is None  # not in this CSV
     assert kernels["pulse_poses"]["dram_gb_per_s"] == 2.0  # 1000 bytes in 500 ns
+
+
+def test_a_second_profile_keeps_the_other_workloads_records(tmp_path):
+    run_profile("cpu", True, tmp_path, ("waveform_slope",))
+    run_profile("cpu", True, tmp_path, ("risley3",))
+    saved = json.loads((tmp_path / "profile.json").read_text())
+    assert [w["workload"] for w in saved["workloads"]] == ["risley3", "waveform_slope"]  # in WORKLOADS order

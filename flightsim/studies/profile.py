@@ -182,13 +182,24 @@ def run_profile(device: str, quick: bool, out: Path, workloads=WORKLOADS, ncu: b
 
     dev = resolve_device(device)
     result = {"device": dev, "gpu_name": gpu_name(dev), "git_commit": git_commit(), "quick": quick,
-              "date": time.strftime("%Y-%m-%d"), "workloads": []}
+              "date": time.strftime("%Y-%m-%d"), "workloads": _kept(out / "profile.json", dev, quick, workloads)}
     out.mkdir(parents=True, exist_ok=True)
     for name in workloads:  # written after each workload, so an interrupted profile keeps what it measured
         record = profile_workload(name, device, quick)
         if ncu and dev != "cpu" and profile_ncu.available():
-            record["ncu"] = profile_ncu.workload_counters(name, dev)
-        result["workloads"].append(record)
+            top = list(record["kernels"])[:profile_ncu.TOP_KERNELS]
+            record["ncu"] = profile_ncu.workload_counters(name, dev, top) if top else {}
+        result["workloads"] = sorted(result["workloads"] + [record], key=lambda r: WORKLOADS.index(r["workload"]))
         (out / "profile.json").write_text(json.dumps(result, indent=1))
         (out / "profile.md").write_text(write_markdown(result))
     return result
+
+
+def _kept(path: Path, device: str, quick: bool, redone) -> list[dict]:
+    """The records of an earlier profile in ``path`` on the same device and sizes, but those of ``redone``."""
+    if not path.exists():
+        return []
+    earlier = json.loads(path.read_text())
+    if earlier.get("device") != device or earlier.get("quick") != quick:
+        return []
+    return [r for r in earlier["workloads"] if r["workload"] not in redone]

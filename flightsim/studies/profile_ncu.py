@@ -28,7 +28,8 @@ METRICS = {  # our name: Nsight Compute metric
     "reduction_requests": "l1tex__t_requests_pipe_lsu_mem_global_op_red.sum",
     "threads_per_warp_instruction": "smsp__thread_inst_executed_per_inst_executed.ratio",
 }
-LAUNCHES = 60  # launches profiled per workload (the first ones: compile and warm-up runs included)
+LAUNCHES = 40  # launches profiled per workload, of the kernels asked for (warm-up runs included)
+TOP_KERNELS = 6  # the kernels of a workload profiled: those that took the most GPU time
 
 
 def available() -> bool:
@@ -66,10 +67,12 @@ def _number(text: str) -> float | None:
         return None
 
 
-def workload_counters(workload: str, device: str) -> dict:
-    """{"kernels": parse(...)} for ``workload`` at its quick size under ncu, or {"error": what went wrong}."""
+def workload_counters(workload: str, device: str, kernels: list[str]) -> dict:
+    """{"kernels": parse(...)} of ``kernels`` (our short names) for ``workload`` at its quick size under ncu, or
+    {"error": what went wrong}."""
     with tempfile.TemporaryDirectory() as tmp:
-        command = ["ncu", "--csv", "--page", "raw", "--launch-count", str(LAUNCHES), "--metrics",
+        command = ["ncu", "--csv", "--page", "raw", "--kernel-name", "regex:" + "|".join(kernels),
+                   "--launch-count", str(LAUNCHES), "--metrics",
                    ",".join(METRICS.values()), sys.executable, "-m", "flightsim", "profile", "--device", device,
                    "--quick", "--workloads", workload, "--out", tmp]
         done = subprocess.run(command, capture_output=True, text=True)
