@@ -188,7 +188,7 @@ def run_profile(device: str, quick: bool, out: Path, workloads=WORKLOADS, ncu: b
         record = profile_workload(name, device, quick)
         if ncu and dev != "cpu" and profile_ncu.available():
             top = list(record["kernels"])[:profile_ncu.TOP_KERNELS]
-            record["ncu"] = profile_ncu.workload_counters(name, dev, top) if top else {}
+            record["ncu"] = profile_ncu.workload_counters(name, dev, top, quick) if top else {}
         result["workloads"] = sorted(result["workloads"] + [record], key=lambda r: WORKLOADS.index(r["workload"]))
         (out / "profile.json").write_text(json.dumps(result, indent=1))
         (out / "profile.md").write_text(write_markdown(result))

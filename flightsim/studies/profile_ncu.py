@@ -1,9 +1,9 @@
 """Nsight Compute's view of a workload's kernels, where ``ncu`` is on the machine: achieved occupancy, DRAM and SM
 throughput, register spill traffic, atomics and branch divergence, per kernel, averaged over its profiled launches.
 
-The workload runs at its ``--quick`` size in a child ``flightsim profile`` under ``ncu`` (every profiled launch is
-replayed once per metric group, so the child is slow, and its own wall times mean nothing; only the counters are
-kept).
+The workload runs at the parent's size in a child ``flightsim profile`` under ``ncu``, which profiles the first
+LAUNCHES launches of the workload's busiest kernels (every profiled launch is replayed once per metric group, so the
+child is slow, and its own wall times mean nothing; only the counters are kept).
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ METRICS = {  # our name: Nsight Compute metric
     "reduction_requests": "l1tex__t_requests_pipe_lsu_mem_global_op_red.sum",
     "threads_per_warp_instruction": "smsp__thread_inst_executed_per_inst_executed.ratio",
 }
-LAUNCHES = 40  # launches profiled per workload, of the kernels asked for (warm-up runs included)
+LAUNCHES = 12  # launches profiled per workload, of the kernels asked for (the warm-up run's, as large)
 TOP_KERNELS = 6  # the kernels of a workload profiled: those that took the most GPU time
 
 
@@ -67,14 +67,14 @@ def _number(text: str) -> float | None:
         return None
 
 
-def workload_counters(workload: str, device: str, kernels: list[str]) -> dict:
-    """{"kernels": parse(...)} of ``kernels`` (our short names) for ``workload`` at its quick size under ncu, or
-    {"error": what went wrong}."""
+def workload_counters(workload: str, device: str, kernels: list[str], quick: bool) -> dict:
+    """{"kernels": parse(...)} of ``kernels`` (our short names) for ``workload`` (at its ``quick`` size or not)
+    under ncu, or {"error": what went wrong}."""
     with tempfile.TemporaryDirectory() as tmp:
         command = ["ncu", "--csv", "--page", "raw", "--kernel-name", "regex:" + "|".join(kernels),
                    "--launch-count", str(LAUNCHES), "--metrics",
                    ",".join(METRICS.values()), sys.executable, "-m", "flightsim", "profile", "--device", device,
-                   "--quick", "--workloads", workload, "--out", tmp]
+                   *(["--quick"] if quick else []), "--workloads", workload, "--out", tmp]
         done = subprocess.run(command, capture_output=True, text=True)
     kernels = parse(done.stdout)
     if not kernels:

@@ -44,7 +44,7 @@ def _ncu_table(r: dict) -> list[str]:
         return []
     if "error" in counters:
         return [f"Nsight Compute: {counters['error']}", ""]
-    lines = ["Nsight Compute (the workload at its quick size; means over the profiled launches):", "",
+    lines = ["Nsight Compute (the workload at the same size, its first launches of these kernels; means over them):", "",
              "| kernel | launches | achieved occupancy | DRAM [% of peak] | DRAM [GB/s] | SM [% of peak] | "
              "spill traffic [MB] | atomics + reductions | threads per warp instruction |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
