@@ -31,9 +31,9 @@ class Reference:
         self.ground_z, self.rng = scene.ground_z, rng
         self.transform = self.chain(st.MARKER_BASELINE_M)
 
-    def chain(self, baseline_m: float):
+    def chain(self, baseline_m: float, rng: np.random.Generator | None = None):
         origin, rot = self.lidar_pose
-        return st.registration(self.scan, origin, rot, self.controls, self.ground_z, self.rng, baseline_m)
+        return st.registration(self.scan, origin, rot, self.controls, self.ground_z, rng or self.rng, baseline_m)
 
     def compare(self, points: np.ndarray, transform=None, reference=None, tree=None) -> dict:
         """C2C and plane statistics of ``points`` against the reference moved by ``transform`` (R, t): the points
@@ -77,7 +77,8 @@ def sensitivity(points: np.ndarray, ref: Reference) -> list[dict]:
     """3σ and RMSE (C2C and plane) of one frame over the marker baselines and the TLS spacings, with the
     closed-form registration error at the sandbox's centre for each baseline."""
     rows = []
-    transforms = {b: ref.chain(b) for b in st.MARKER_BASELINES}  # one draw per baseline, for every spacing
+    rng = np.random.default_rng([SEED, 100])  # one draw per baseline, for every spacing
+    transforms = {b: ref.chain(b, rng) for b in st.MARKER_BASELINES}
     for m in st.SPACINGS:
         reference = ref.scan.points if m == 1 else st.decimated(ref.scan, m)
         tree = ref.tree if m == 1 else cKDTree(reference)
@@ -93,43 +94,69 @@ def sensitivity(points: np.ndarray, ref: Reference) -> list[dict]:
     return rows
 
 
-def run_tls(out: Path, device: str = "cpu", pulses: int | None = None, levels: int = st.POWER_LEVELS) -> dict:
-    """The whole experiment into ``out``/tls (tls.json, REPORT.md)."""
+def mode_a_series(device: str, pulses: int | None, levels: int, figure: Path) -> dict:
+    """The MODE-A power series at 100 m against one TLS setup (its own registration draw), the sensitivity
+    table on its middle level, and the figure of its TLS cloud."""
     from flightsim.engine.world import build_scene
-    from flightsim.studies.spad import MODE_B_STEPS, PAPER as SPAD_PAPER, frame_config
+    from flightsim.studies.spad import PAPER as SPAD_PAPER, frame_config
+    from flightsim.studies.spad_tls_report import write_figure
 
-    out = Path(out) / "tls"
-    out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(SEED)
     base = frame_config(100.0, "A", device, pulses)
     scene = build_scene(base)
-    mode_a, sens, refs = [], [], {}
+    rows, sens, ref = [], [], None
     for i, (photons, energy) in enumerate(st.power_energies(base, levels)):
         cfg = frame_config(100.0, "A", device, pulses, energy)
         points, lidar, wall, per_shot = lidar_frame(cfg, scene, SPAD_PAPER["mode_a"]["grid"])
-        if "A" not in refs:
-            refs["A"] = Reference(100.0, device, scene, lidar, rng)
-        mode_a.append(score_frame(f"MODE-A power {i + 1}", points, refs["A"], scene, device,
-                                  {"photons_per_shot_set": photons, "signal_per_shot": per_shot, "wall_s": wall}))
+        ref = ref or Reference(100.0, device, scene, lidar, np.random.default_rng([SEED, 0]))
+        rows.append(score_frame(f"MODE-A power {i + 1}", points, ref, scene, device,
+                                {"photons_per_shot_set": photons, "signal_per_shot": per_shot, "wall_s": wall}))
         if i == levels // 2:
-            sens = sensitivity(points, refs["A"])
-        print(f"{mode_a[-1]['label']}: {json.dumps(mode_a[-1]['tls']['plane'])}", flush=True)
-    mode_b = []
-    for d in SPAD_PAPER["mode_b"]["distances_m"]:
-        cfg = frame_config(d, "B", device, pulses)
-        points, lidar, wall, per_shot = lidar_frame(cfg, scene, 32 * MODE_B_STEPS)
-        ref = Reference(d, device, scene, lidar, rng)
-        mode_b.append(score_frame(f"MODE-B {d:g} m", points, ref, scene, device,
-                                  {"distance_m": d, "signal_per_shot": per_shot, "wall_s": wall,
-                                   "tls_points": len(ref.scan.points), "tls_scan_s": ref.scan_s}))
-        print(f"{mode_b[-1]['label']}: {json.dumps(mode_b[-1]['tls']['plane'])}", flush=True)
-    a = refs["A"]
-    numbers = {"device": device, "pulses_per_frame": pulses or SPAD_PAPER["mode_a"]["pulses"], "paper": st.PAPER,
-               "tls_mode_a": {"points": len(a.scan.points), "scan_s": a.scan_s}, "mode_a": mode_a,
-               "mode_b": mode_b, "sensitivity": sens, "summary": summary(mode_a, mode_b)}
-    from flightsim.studies.spad_tls_report import report, write_figure
+            sens = sensitivity(points, ref)
+        print(f"{rows[-1]['label']}: {json.dumps(rows[-1]['tls']['plane'])}", flush=True)
+    write_figure(figure, ref.scan)
+    return {"tls_mode_a": {"points": len(ref.scan.points), "scan_s": ref.scan_s}, "mode_a": rows, "sensitivity": sens}
 
-    write_figure(out / "vz2000_sandbox.png", a.scan)
+
+def mode_b_series(device: str, pulses: int | None) -> dict:
+    """The six MODE-B distances, each against its own TLS setup and registration draw."""
+    from flightsim.engine.world import build_scene
+    from flightsim.studies.spad import MODE_B_STEPS, PAPER as SPAD_PAPER, frame_config
+
+    rows, scene = [], None
+    for i, d in enumerate(SPAD_PAPER["mode_b"]["distances_m"]):
+        cfg = frame_config(d, "B", device, pulses)
+        scene = scene or build_scene(cfg)
+        points, lidar, wall, per_shot = lidar_frame(cfg, scene, 32 * MODE_B_STEPS)
+        ref = Reference(d, device, scene, lidar, np.random.default_rng([SEED, 1 + i]))
+        rows.append(score_frame(f"MODE-B {d:g} m", points, ref, scene, device,
+                                {"distance_m": d, "signal_per_shot": per_shot, "wall_s": wall,
+                                 "tls_points": len(ref.scan.points), "tls_scan_s": ref.scan_s}))
+        print(f"{rows[-1]['label']}: {json.dumps(rows[-1]['tls']['plane'])}", flush=True)
+    return {"mode_b": rows}
+
+
+def run_tls(out: Path, device: str = "cpu", pulses: int | None = None, levels: int = st.POWER_LEVELS) -> dict:
+    """The whole experiment into ``out``/tls (tls.json, REPORT.md, vz2000_sandbox.png). On the CPU the MODE-A
+    and MODE-B series run in two processes (each case draws its own registration noise, so the numbers do not
+    depend on the order)."""
+    from flightsim.studies.spad import PAPER as SPAD_PAPER
+    from flightsim.studies.spad_tls_report import report
+
+    out = Path(out) / "tls"
+    out.mkdir(parents=True, exist_ok=True)
+    figure = out / "vz2000_sandbox.png"
+    if device == "cpu":
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+            a = pool.submit(mode_a_series, device, pulses, levels, figure)
+            b = pool.submit(mode_b_series, device, pulses)
+            parts = {**a.result(), **b.result()}
+    else:
+        parts = {**mode_a_series(device, pulses, levels, figure), **mode_b_series(device, pulses)}
+    numbers = {"device": device, "pulses_per_frame": pulses or SPAD_PAPER["mode_a"]["pulses"], "paper": st.PAPER,
+               **parts, "summary": summary(parts["mode_a"], parts["mode_b"])}
     write_atomic(out / "tls.json", json.dumps(numbers, indent=2) + "\n")
     write_atomic(out / "REPORT.md", report(numbers))
     return numbers
