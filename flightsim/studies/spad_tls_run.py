@@ -15,6 +15,7 @@ from flightsim.core.atomic import write_atomic
 from flightsim.studies import cloud_compare as cc
 from flightsim.studies import spad_tls as st
 
+CPU_SHARES = 3  # processes the MODE-A series is split over on the CPU (MODE-B runs in one more)
 SEED = 2028  # the registration noise (total station, TLS targets): one draw per test case
 
 
@@ -94,9 +95,10 @@ def sensitivity(points: np.ndarray, ref: Reference) -> list[dict]:
     return rows
 
 
-def mode_a_series(device: str, pulses: int | None, levels: int, figure: Path) -> dict:
-    """The MODE-A power series at 100 m against one TLS setup (its own registration draw), the sensitivity
-    table on its middle level, and the figure of its TLS cloud."""
+def mode_a_series(device: str, pulses: int | None, levels: int, figure: Path, share: tuple[int, int] = (0, 1)) -> dict:
+    """The MODE-A power series at 100 m against one TLS setup (its own registration draw: the same in every
+    share), the sensitivity table on its middle level, and the figure of its TLS cloud; with ``share`` = (k, n)
+    only the levels k, k + n, … (the first share writes the figure)."""
     from flightsim.engine.world import build_scene
     from flightsim.studies.spad import PAPER as SPAD_PAPER, frame_config
     from flightsim.studies.spad_tls_report import write_figure
@@ -104,17 +106,28 @@ def mode_a_series(device: str, pulses: int | None, levels: int, figure: Path) ->
     base = frame_config(100.0, "A", device, pulses)
     scene = build_scene(base)
     rows, sens, ref = [], [], None
-    for i, (photons, energy) in enumerate(st.power_energies(base, levels)):
+    for i, (photons, energy) in list(enumerate(st.power_energies(base, levels)))[share[0]::share[1]]:
         cfg = frame_config(100.0, "A", device, pulses, energy)
         points, lidar, wall, per_shot = lidar_frame(cfg, scene, SPAD_PAPER["mode_a"]["grid"])
         ref = ref or Reference(100.0, device, scene, lidar, np.random.default_rng([SEED, 0]))
         rows.append(score_frame(f"MODE-A power {i + 1}", points, ref, scene, device,
-                                {"photons_per_shot_set": photons, "signal_per_shot": per_shot, "wall_s": wall}))
+                                {"level": i, "photons_per_shot_set": photons, "signal_per_shot": per_shot,
+                                 "wall_s": wall}))
         if i == levels // 2:
             sens = sensitivity(points, ref)
         print(f"{rows[-1]['label']}: {json.dumps(rows[-1]['tls']['plane'])}", flush=True)
-    write_figure(figure, ref.scan)
+    if share[0] == 0:
+        write_figure(figure, ref.scan)
     return {"tls_mode_a": {"points": len(ref.scan.points), "scan_s": ref.scan_s}, "mode_a": rows, "sensitivity": sens}
+
+
+def _merge(parts: list[dict]) -> dict:
+    """One result of the MODE-A shares and the MODE-B series."""
+    a = [p for p in parts if "mode_a" in p]
+    return {"tls_mode_a": a[0]["tls_mode_a"], "mode_a": sorted((r for p in a for r in p["mode_a"]),
+                                                              key=lambda r: r["level"]),
+            "sensitivity": next((p["sensitivity"] for p in a if p["sensitivity"]), []),
+            "mode_b": next(p["mode_b"] for p in parts if "mode_b" in p)}
 
 
 def mode_b_series(device: str, pulses: int | None) -> dict:
@@ -137,8 +150,8 @@ def mode_b_series(device: str, pulses: int | None) -> dict:
 
 def run_tls(out: Path, device: str = "cpu", pulses: int | None = None, levels: int = st.POWER_LEVELS) -> dict:
     """The whole experiment into ``out``/tls (tls.json, REPORT.md, vz2000_sandbox.png). On the CPU the MODE-A
-    and MODE-B series run in two processes (each case draws its own registration noise, so the numbers do not
-    depend on the order)."""
+    and MODE-B series run in separate processes (each case draws its own registration noise, so the numbers do not
+    depend on the order); MODE-A is shared over CPU_SHARES processes."""
     from flightsim.studies.spad import PAPER as SPAD_PAPER
     from flightsim.studies.spad_tls_report import report
 
@@ -149,12 +162,12 @@ def run_tls(out: Path, device: str = "cpu", pulses: int | None = None, levels: i
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
-            a = pool.submit(mode_a_series, device, pulses, levels, figure)
-            b = pool.submit(mode_b_series, device, pulses)
-            parts = {**a.result(), **b.result()}
+        with ProcessPoolExecutor(1 + CPU_SHARES, mp_context=multiprocessing.get_context("spawn")) as pool:
+            jobs = [pool.submit(mode_a_series, device, pulses, levels, figure, (k, CPU_SHARES))
+                    for k in range(CPU_SHARES)] + [pool.submit(mode_b_series, device, pulses)]
+            parts = _merge([j.result() for j in jobs])
     else:
-        parts = {**mode_a_series(device, pulses, levels, figure), **mode_b_series(device, pulses)}
+        parts = _merge([mode_a_series(device, pulses, levels, figure), mode_b_series(device, pulses)])
     numbers = {"device": device, "pulses_per_frame": pulses or SPAD_PAPER["mode_a"]["pulses"], "paper": st.PAPER,
                **parts, "summary": summary(parts["mode_a"], parts["mode_b"])}
     write_atomic(out / "tls.json", json.dumps(numbers, indent=2) + "\n")
