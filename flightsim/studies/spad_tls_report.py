@@ -124,6 +124,30 @@ def _baseline_needed(n: dict) -> str:
     return f"{min(ok):g} m" if ok else f"more than {max(st.MARKER_BASELINES):g} m"
 
 
+def _added(total: float, base: float) -> float:
+    """The part of a 3σ beyond ``base``, in quadrature [cm] (0 when there is none)."""
+    return math.sqrt(max(total ** 2 - base ** 2, 0.0))
+
+
+def _implied(n: dict) -> str:
+    """The registration term the paper's numbers leave beside our perfect-registration 3σ, and the marker baseline
+    whose term (sensitivity table, 5 mm spacing) comes closest to it."""
+    s, p = n["summary"], st.PAPER
+    need_b = _added(p["mode_b_three_sigma_cm"], s["mode_b_tls_perfect_plane_three_sigma_cm"])
+    need_a = _added(p["mode_a_three_sigma_cm"], s["mode_a_tls_perfect_plane_three_sigma_cm"])
+    rows = [r for r in n["sensitivity"] if r["spacing_mm"] == 1e3 * st.TLS_SPACING_M]
+    perfect = next((r["plane"]["three_sigma_cm"] for r in rows if not r["marker_baseline_m"]), math.nan)
+    terms = {r["marker_baseline_m"]: _added(r["plane"]["three_sigma_cm"], perfect) for r in rows if r["marker_baseline_m"]}
+    table = ", ".join(f"{b:g} m → {t:.2f} cm" for b, t in terms.items())
+    best = min(terms, key=lambda b: abs(terms[b] - need_b)) if terms else math.nan
+    return (f"Beside our perfect-registration 3σ, the paper's MODE-B mean leaves {need_b:.2f} cm (in quadrature) "
+            f"for the registration and the TLS; its MODE-A mean leaves {need_a:.2f} cm"
+            f"{' (ours is already above it: the photon noise of the assumed echo)' if need_a == 0.0 else ''}. "
+            f"The registration term of the sensitivity table (MODE-A frame, plane) per marker baseline is {table}: "
+            f"a term of the MODE-B size takes a baseline near {best:g} m with our total station, or, equivalently, a "
+            f"registration error at the sandbox of the size its \"expected\" column gives there.")
+
+
 def _findings(n: dict) -> str:
     """What the numbers say, beside the paper's."""
     s, p = n["summary"], st.PAPER
@@ -147,9 +171,10 @@ def _findings(n: dict) -> str:
   (`../REPORT.md`: a single photon's σ of 6.6 cm from the assumed 1 ns pulse; the paper's number needs ≈ 4.8 cm).
 - **MODE-B** (mean of the six distances): closest is {METRICS[best_b]}, {value_b:.2f} cm,
   {within(value_b, p['mode_b_three_sigma_cm'])} 10 % of the paper's {p['mode_b_three_sigma_cm']:.2f} cm. Our MODE-B cells
-  average so many photons that their own noise is ~1 cm (perfect registration); a registration error of the
-  size the chosen chain gives at 34–83 m moves it to the paper's level, and it varies from case to case as
-  one draw of the total-station noise per setup (Table 3's spread, 2.58–3.92 cm, is of that kind).
+  average so many photons that their own noise is {s['mode_b_tls_perfect_plane_three_sigma_cm']:.2f} cm (plane, perfect
+  registration); with the chosen chain, {s['mode_b_tls_plane_three_sigma_cm']:.2f} cm, one draw of the total-station
+  noise per setup, so it scatters from case to case as Table 3 does (2.58–3.92 cm).
+- **Which unknown would have to take which value.** {_implied(n)}
 - **C2C or plane?** C2C adds the TLS spacing (5 mm → 2 cm rows of the sensitivity table) and is unsigned; the
   plane distance is not. The paper's RMSE/σ of 1.54 is between a zero-mean error (1.0) and an unsigned
   one (≈ 1.66 or more); our RMSE carries the pile-up bias (`../REPORT.md`), so the ratio alone cannot tell.
