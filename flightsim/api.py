@@ -48,7 +48,8 @@ def load_config(source: str | Path | Mapping | RunConfig | None = None, *, instr
 
     source: a TOML path, a dict of tables ({"flight": {"altitude_m": 700}}), a RunConfig, or None;
     it is laid over the built-in ``instrument`` (a preset: "risley", the default, "change3", "spad", "change1",
-    "atlas", "gedi"); then each ``overrides`` item {"table.setting": value} is set. Raises InputError naming a bad field.
+    "atlas", "gedi", "vz2000"); then each ``overrides`` item {"table.setting": value} is set. Raises InputError
+    naming a bad field.
     """
     base = preset_config(instrument or "risley")
     if isinstance(source, RunConfig):

@@ -262,6 +262,12 @@ def cmd_spad(args: argparse.Namespace) -> int:
     resolve_device(args.device)
     if args.pulses is not None and not 100 <= args.pulses <= 43000:
         raise InputError("--pulses", args.pulses, "an integer in [100, 43000]")
+    if args.reference == "tls":
+        from flightsim.studies.spad_tls_run import run_tls
+
+        run_tls(Path(args.out), device=args.device, pulses=args.pulses)
+        print((Path(args.out) / "tls" / "REPORT.md").read_text())
+        return 0
     run_spad(Path(args.out), device=args.device, pulses=args.pulses)
     print((Path(args.out) / "REPORT.md").read_text())
     return 0
@@ -435,6 +441,9 @@ def _add_study_commands(sub) -> None:
     spad = sub.add_parser("spad", help="the small-body SPAD lidar's experiments: MODE-A, MODE-B, laser power")
     spad.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     spad.add_argument("--pulses", type=int, help="pulses per frame (default: the paper's 43,000; fewer for a quick run)")
+    spad.add_argument("--reference", choices=("mesh", "tls"), default="mesh",
+                      help="mesh (default): score against the true surface; tls: against a simulated VZ-2000 scan "
+                           "registered by total station, as the paper did (writes OUT/tls/)")
     spad.add_argument("--out", required=True, help="directory for REPORT.md and spad.json")
     spad.set_defaults(func=cmd_spad)
 

@@ -26,6 +26,7 @@ TABLES = {
     "change1": {"instrument", "fan", "fixed", "waveform", "scene", "flight", "run"},
     "atlas": {"instrument", "pairs", "fixed", "photon", "scene", "flight", "output", "run"},
     "gedi": {"instrument", "fan", "fixed", "waveform", "scene", "flight", "run"},
+    "vz2000": {"instrument", "fan", "panoramic", "discrete", "ranging", "scene", "flight", "output", "scoring", "run"},
 }
 
 
@@ -94,7 +95,7 @@ def test_setting_of_another_kind_exits_2_naming_the_kind_in_use(tmp_path, capsys
 
 
 @pytest.mark.parametrize("setting, named, allowed", [
-    ("instrument.deflector=palmer", "instrument.deflector", "one of fixed, fsm, galvo, risley"),
+    ("instrument.deflector=palmer", "instrument.deflector", "one of fixed, fsm, galvo, panoramic, risley"),
     ("instrument.errors=wind", "instrument.errors", "pose, ranging"),
     ("risley.colour=red", "risley.colour", "a setting of [risley] (prf_hz"),
     ("sensor.array=4", "sensor.array", "fan.array (this setting moved)"),

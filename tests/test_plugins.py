@@ -242,7 +242,7 @@ def test_flightsim_config_prints_the_plug_in_s_table_documented(installed_palmer
     assert "a finite number in (0, 30] deg" in table  # the tilt's range
     # the plug-in is one of the deflectors the config offers
     done = _flightsim(["config", "--set", "instrument.deflector=nope"], installed_palmer)
-    assert done.returncode == 2 and "fixed, fsm, galvo, palmer, risley" in done.stderr
+    assert done.returncode == 2 and "fixed, fsm, galvo, palmer, panoramic, risley" in done.stderr
 
 
 def _refused(env: dict, tmp_path: Path) -> str:

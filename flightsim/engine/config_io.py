@@ -18,7 +18,7 @@ from flightsim.engine import legacy
 from flightsim.engine.config import RunConfig, copy_config, set_value
 
 PRESET_DIR = Path(__file__).resolve().parent.parent / "instrument" / "presets"
-PRESETS = ("risley", "change3", "spad", "change1", "atlas", "gedi")
+PRESETS = ("risley", "change3", "spad", "change1", "atlas", "gedi", "vz2000")
 SELECTORS = {"scene": ("name",), "flight": ("platform",)}  # applied before the other settings of their table
 
 

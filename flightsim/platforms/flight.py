@@ -24,7 +24,7 @@ class FlightSettings(Settings):
 
     platform: str = setting("lines", "what flies the instrument: lines (flight lines or a trajectory file), hover "
                             "(a lander or tripod over the scene centre), orbit (a spacecraft), shots (a pulse over "
-                            "each footprint centre of a file)",
+                            "each footprint centre of a file), tripod (a terrestrial scanner's scan position)",
                             choices=lambda: tuple(sorted(registry.kinds("platform"))))
     altitude_m: float = setting(500.0, "height above the ground (the hover's at its start, the orbit's over the "
                                 "scene origin)", "m", range=(0.0, 1.0e6), lo_open=True)

@@ -271,7 +271,8 @@ Seed: `../shared/seeds/spad-fsm-small-body-lidar-paper.txt`. Instrument: the `sp
 lists every value the paper does not give and why). Points: photons gridded over the field, per cell
 the fullest pair of height bins (at least 5 photons, 5σ above the cell's background), then the mean of the
 photons around it; accuracy as the paper measures it: three standard deviations of the signed
-point-to-surface distance against the sandbox mesh.
+point-to-surface distance against the sandbox mesh. Against a simulated RIEGL VZ-2000 reference registered by
+total station, as the paper scored them: `tls/REPORT.md` (`flightsim spad --reference tls`).
 
 | frame | grid | cells filled / on the scene | photons | signal photons per shot | 3σ [cm] | bias [cm] | pile-up bias [cm] | simulation [s] |
 | --- | --- | --- | --- | --- | --- | --- | --- | --- |
