@@ -1,0 +1,153 @@
+"""`flightsim selfcal`: Risley self-calibration over the calibration field for a grid of arrays and altitudes —
+plane-fit RMS before and after, the recovered parameters with their 1-σ, the correlation matrix — into
+DIR/selfcal.json, DIR/REPORT.md and DIR/selfcal_rms.png.
+
+Per configuration (:mod:`flightsim.studies.selfcal_flight`): fly the nominal-model flight with the injected errors,
+corrupt 10 % of the roof planes, segment the nominal points blindly and calibrate (round 1); re-georeference every
+point with the estimate, segment those points blindly again (the two lines' views of a roof now agree, so they fall
+in one segment) and calibrate again from the round-1 estimate (round 2).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flightsim.core.atomic import save_figure, write_atomic
+from flightsim.core.errors import InputError
+from flightsim.studies import selfcal as sc
+from flightsim.studies import selfcal_flight as sf
+
+FULL_GRID = {"arrays": (3, 8), "altitudes_m": (500.0, 1000.0, 2000.0, 5000.0)}
+QUICK_GRID = {"arrays": (3,), "altitudes_m": (1000.0,)}
+ROUNDS = 2
+MAX_SEGMENTED_POINTS = 400_000  # points given to the blind finder, a seeded choice of whole pulses beyond this
+OUTLIER_WEIGHT = 0.5  # a segment whose median IRLS weight is below this counts as rejected by the robust loss
+
+
+def run_configuration(altitude_m: float, array: int, device: str = "cpu", injected=sf.Injected()) -> dict:
+    """Self-calibrate one configuration; return its row of selfcal.json."""
+    started = time.perf_counter()
+    cfg = sf.flight_config(altitude_m, array, device, injected)
+    truth, believed = sf.parameters(cfg)
+    flight = sf.fly(cfg)
+    outliers = sf.inject_outliers(flight)
+    inside = _decimated(flight, sf.crop(flight))
+    everything = sf.observations(flight, inside)
+    x, xyz, rounds, first = believed, flight.nominal[inside], [], None
+    for _ in range(ROUNDS):
+        index, segment, _ = sf.segment_blindly(flight, inside, xyz)
+        obs = sf.observations(flight, index, segment)
+        first = first or (index, segment)
+        cal = sc.calibrate(sf.solver_subset(obs), x, device=device)
+        rounds.append({"segments": int(segment.max() + 1), "points": cal.points, "evaluations": cal.evaluations})
+        x, xyz = cal.x, sc.georeference(everything, cal.x, device)
+    cal.x0 = believed  # the combinations are reported from the believed values
+    bad = np.isin(flight.scene.plane_id[flight.face[index]], outliers)
+    return {"altitude_m": altitude_m, "array": array, "truth": truth.tolist(), "believed": believed.tolist(),
+            "estimate": cal.x.tolist(), "sigma": cal.sigma.tolist(), "correlation": cal.correlation.tolist(),
+            "combinations": _combinations(cal, truth, believed), "sigma0_m": cal.sigma0_m,
+            "rms_m": _rms(flight, obs, index, segment, bad, cal, truth, believed, first, device),
+            "outliers": _outlier_counts(obs, cal, bad, outliers), "rounds": rounds,
+            "returns": len(flight.range_m), "wall_s": time.perf_counter() - started}
+
+
+def _decimated(flight: sf.Flight, inside: np.ndarray, seed: int = 0) -> np.ndarray:
+    """``inside``, or the returns of a seeded choice of its pulses holding at most MAX_SEGMENTED_POINTS."""
+    if len(inside) <= MAX_SEGMENTED_POINTS:
+        return inside
+    keep = np.random.default_rng(seed).random(len(flight.phi)) < MAX_SEGMENTED_POINTS / len(inside)
+    return inside[keep[flight.pulse[inside]]]
+
+
+def _combinations(cal: sc.Calibration, truth: np.ndarray, believed: np.ndarray) -> dict:
+    injected = {"cone_half_angle": (sc.cone_angle(truth) - sc.cone_angle(believed)) / sc.ARCSEC,
+                "encoder_plus_yaw": (truth[2] + truth[5]) / sc.ARCSEC}
+    return {k: {"injected": injected[k], "recovered": v, "sigma": s} for k, (v, s) in sc.combinations(cal).items()}
+
+
+def _rms(flight, obs, index, segment, bad, cal, truth, believed, first, device) -> dict:
+    """Pooled plane-fit RMS [m] over the final blind segments without injected outlier points (and with them),
+    per model; and the nominal cloud's RMS over its own (round-1) segments."""
+    clean = np.bincount(segment, bad, segment.max() + 1) == 0
+    clouds = {"nominal_believed": flight.nominal[index], "exact_believed": sc.georeference(obs, believed, device),
+              "exact_selfcal": sc.georeference(obs, cal.x, device), "exact_true": sc.georeference(obs, truth, device)}
+    out = {name: sc.pooled_rms(p, segment, clean) for name, p in clouds.items()}
+    out.update({f"{name}_all": sc.pooled_rms(p, segment) for name, p in clouds.items()})
+    i0, s0 = first
+    out["nominal_believed_own_segments"] = sc.pooled_rms(flight.nominal[i0], s0)
+    return out
+
+
+def _outlier_counts(obs, cal, bad, outliers) -> dict:
+    """Injected outlier planes, final segments holding their points, and segments the robust loss rejected."""
+    sub = sf.solver_subset(obs)
+    r = sc.plane_residuals(sc.georeference(sub, cal.x), sub.segment)
+    w = 1.0 / np.sqrt(1.0 + (r / cal.f_scale_m) ** 2)
+    median_w = np.array([np.median(w[sub.segment == s]) for s in range(sub.segment.max() + 1)])
+    return {"injected_planes": len(outliers), "segments_with_outlier_points": int(np.unique(obs.segment[bad]).size),
+            "segments": int(obs.segment.max() + 1), "rejected_segments": int(np.sum(median_w < OUTLIER_WEIGHT))}
+
+
+def run_selfcal(out: Path, device: str = "cpu", quick: bool = False, grid: dict | None = None) -> dict:
+    """Run the grid into ``out``: selfcal.json, REPORT.md and the figure."""
+    grid = grid or (QUICK_GRID if quick else FULL_GRID)
+    if not grid["arrays"] or not grid["altitudes_m"]:
+        raise InputError("selfcal.grid", grid, "at least one array and one altitude")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    rows = [run_configuration(h, n, device) for n in grid["arrays"] for h in grid["altitudes_m"]]
+    command = f"flightsim selfcal --out {out} --device {device}" + (" --quick" if quick else "")
+    results = {"command": command, "device": device, "parameters": list(sc.PARAMETERS),
+               "units": ["", "rad", "rad", "rad", "rad", "rad"], "injected": sf.Injected().__dict__,
+               "rows": rows, "wall_s": time.perf_counter() - started}
+    write_atomic(out / "selfcal.json", json.dumps(results, indent=1, default=_plain))
+    figure = _figure(rows, out)
+    from flightsim.studies.selfcal_text import report
+
+    write_atomic(out / "REPORT.md", report(results, figure))
+    return results
+
+
+def _plain(value):
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    if isinstance(value, tuple):
+        return list(value)
+    raise TypeError(type(value))
+
+
+def _figure(rows: list[dict], out: Path) -> str | None:
+    """RMS against altitude before and after, one panel per array."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    arrays = sorted({r["array"] for r in rows})
+    fig, axes = plt.subplots(1, len(arrays), figsize=(5 * len(arrays), 4), squeeze=False)
+    for ax, n in zip(axes[0], arrays):
+        mine = sorted((r for r in rows if r["array"] == n), key=lambda r: r["altitude_m"])
+        h = [r["altitude_m"] / 1000 for r in mine]
+        for key, label, style in (("nominal_believed", "before: nominal, believed", "o-"),
+                                  ("exact_believed", "exact, believed", "s--"),
+                                  ("exact_selfcal", "after: exact, self-calibrated", "^-"),
+                                  ("exact_true", "exact, true parameters", "k:")):
+            ax.plot(h, [r["rms_m"][key] * 100 for r in mine], style, label=label)
+        ax.set_xlabel("altitude [km]")
+        ax.set_ylabel("plane-fit RMS [cm]")
+        ax.set_title(f"{n}×{n} array")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, out / "selfcal_rms.png", dpi=110)
+    plt.close(fig)
+    return "selfcal_rms.png"
+
+
+def finite(value: float) -> bool:
+    return value is not None and math.isfinite(value)
