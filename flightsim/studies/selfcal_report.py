@@ -92,15 +92,21 @@ def _outlier_counts(obs, cal, bad, outliers) -> dict:
             "segments": int(obs.segment.max() + 1), "rejected_segments": int(np.sum(median_w < OUTLIER_WEIGHT))}
 
 
-def run_selfcal(out: Path, device: str = "cpu", quick: bool = False, grid: dict | None = None) -> dict:
-    """Run the grid into ``out``: selfcal.json, REPORT.md and the figure."""
+def run_selfcal(out: Path, device: str = "cpu", quick: bool = False, grid: dict | None = None,
+                progress=None) -> dict:
+    """Run the grid into ``out``: selfcal.json, REPORT.md and the figure; ``progress(row)`` after each one."""
     grid = grid or (QUICK_GRID if quick else FULL_GRID)
     if not grid["arrays"] or not grid["altitudes_m"]:
         raise InputError("selfcal.grid", grid, "at least one array and one altitude")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    rows = [run_configuration(h, n, device) for n in grid["arrays"] for h in grid["altitudes_m"]]
+    rows = []
+    for n in grid["arrays"]:
+        for h in grid["altitudes_m"]:
+            rows.append(run_configuration(h, n, device))
+            if progress:
+                progress(rows[-1])
     command = f"flightsim selfcal --out {out} --device {device}" + (" --quick" if quick else "")
     results = {"command": command, "device": device, "parameters": list(sc.PARAMETERS),
                "units": ["", "rad", "rad", "rad", "rad", "rad"], "injected": sf.Injected().__dict__,
