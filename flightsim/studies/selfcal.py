@@ -84,7 +84,7 @@ class Observations:
 
     def subset(self, keep: np.ndarray) -> "Observations":
         """The observations of the points ``keep`` (bool mask or indices), segments renumbered 0 … S' − 1."""
-        used, segment = np.unique(self.segment[keep], return_inverse=True)
+        segment = np.unique(self.segment[keep], return_inverse=True)[1]
         return Observations(self.origin, self.rot, self.phi, self.pulse[keep], self.beam[keep], self.range_m[keep],
                             segment.astype(np.int64), self.array, self.spacing_rad, self.thickness_m)
 

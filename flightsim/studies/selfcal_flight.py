@@ -2,10 +2,11 @@
 and boresight errors injected through the error-model settings, the returns of 10 % of the roof planes turned into
 outliers, and the raw observables of the points the blind plane finder segments.
 
-Geometry: one line over the field's centre; the conical scan's front edge sweeps the house block while the aircraft
-is h·tanθ before it and its back edge h·tanθ after it, so only the pulses of those two sweeps are traced (two
-pulse windows), and only the points over the block (its bounding box plus a margin) are segmented, as a user crops a
-calibration field.
+Geometry: two lines with reciprocal headings, ``LINE_SPACING_M`` apart, the field's centre between them (a roll error
+is a rigid rotation of one straight line's cloud, so a single line cannot see it); the conical scan's front edge
+sweeps the house block while the aircraft is h·tanθ before it and its back edge h·tanθ after it, so only the pulses
+of those sweeps are traced (pulse windows), and only the points over the block (its bounding box plus a margin) are
+segmented, as a user crops a calibration field.
 
 Outliers: before anything else sees them, the ranges of the returns from a seeded 10 % of the roof planes hit are
 changed along their rays: half of them by a vegetation-like roughness (Gaussian, ``ROUGH_SIGMA_M``), half by a
@@ -69,7 +70,7 @@ def parameters(cfg: RunConfig) -> tuple[np.ndarray, np.ndarray]:
 
 def flight_config(altitude_m: float, array: int, device: str = "cpu", injected: Injected = Injected(),
                   seed: int = 0) -> RunConfig:
-    """A one-line flight over the calibration field long enough for both sweeps of the block, errors injected."""
+    """Two lines over the calibration field, long enough for both sweeps of the block, errors injected."""
     from flightsim.scenes.calibration import calibration_min_half_extent
 
     cfg = RunConfig()

@@ -10,7 +10,6 @@ in one segment) and calibrate again from the round-1 estimate (round 2).
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
@@ -154,6 +153,3 @@ def _figure(rows: list[dict], out: Path) -> str | None:
     plt.close(fig)
     return "selfcal_rms.png"
 
-
-def finite(value: float) -> bool:
-    return value is not None and math.isfinite(value)
