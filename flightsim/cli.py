@@ -225,7 +225,7 @@ def cmd_selfcal(args: argparse.Namespace) -> int:
 
     resolve_device(args.device)
     results = run_selfcal(Path(args.out), device=args.device, quick=args.quick, progress=lambda r: print(
-        f"{r['array']}×{r['array']} at {r['altitude_m'] / 1000:g} km: RMS {r['rms_m']['nominal_believed']:.4f} → "
+        f"{r['array']}×{r['array']} at {r['altitude_m'] / 1000:g} km from the {r['start']} values: RMS {r['rms_m']['nominal_believed']:.4f} → "
         f"{r['rms_m']['exact_selfcal']:.4f} m ({r['wall_s']:.0f} s)", file=sys.stderr))
     print(f"self-calibration report in {args.out}/REPORT.md ({results['wall_s']:.0f} s)")
     return 0

@@ -22,13 +22,16 @@ from flightsim.studies import selfcal_flight as sf
 
 FULL_GRID = {"arrays": (3, 8), "altitudes_m": (500.0, 1000.0, 2000.0, 5000.0)}
 QUICK_GRID = {"arrays": (3,), "altitudes_m": (1000.0,)}
-ROUNDS = 2
+MAX_ROUNDS = 5  # segment-and-calibrate rounds at most
+SETTLED_ARCSEC = 0.5  # converged: no observable combination moved more than this in the last round [arcsec]
 MAX_SEGMENTED_POINTS = 400_000  # points given to the blind finder, a seeded choice of whole pulses beyond this
 OUTLIER_WEIGHT = 0.5  # a segment whose median IRLS weight is below this counts as rejected by the robust loss
 
 
-def run_configuration(altitude_m: float, array: int, device: str = "cpu", injected=sf.Injected()) -> dict:
-    """Self-calibrate one configuration; return its row of selfcal.json."""
+def run_configuration(altitude_m: float, array: int, device: str = "cpu", ladder: np.ndarray | None = None,
+                      injected=sf.Injected()) -> list[dict]:
+    """Self-calibrate one configuration from the believed values, and also from ``ladder`` (the estimate of a lower
+    flight) when given; return its rows of selfcal.json (one per start)."""
     started = time.perf_counter()
     cfg = sf.flight_config(altitude_m, array, device, injected)
     truth, believed = sf.parameters(cfg)
@@ -36,22 +39,51 @@ def run_configuration(altitude_m: float, array: int, device: str = "cpu", inject
     outliers = sf.inject_outliers(flight)
     inside = _decimated(flight, sf.crop(flight))
     everything = sf.observations(flight, inside)
-    x, xyz, rounds, first = believed, flight.nominal[inside], [], None
-    for _ in range(ROUNDS):
-        index, segment, _ = sf.segment_blindly(flight, inside, xyz)
+    nominal_segments = sf.segment_blindly(flight, inside, flight.nominal[inside])[:2]
+    flown = time.perf_counter() - started
+    rows = []
+    for start, x0 in (("believed", believed), ("ladder", ladder)):
+        if x0 is None:
+            continue
+        began = time.perf_counter()
+        cal, obs, rounds, converged = _rounds(flight, inside, everything, x0, nominal_segments if start == "believed"
+                                              else None, device)
+        cal.x0 = believed  # the combinations are reported from the believed values
+        rows.append(_row(flight, cfg, obs, cal, rounds, converged, start, outliers, nominal_segments, device)
+                    | {"wall_s": time.perf_counter() - began + flown})
+    return rows
+
+
+def _rounds(flight, inside, everything, x, segments, device):
+    """Segment blindly and calibrate until the observable combinations settle (or MAX_ROUNDS); ``segments``: the
+    first round's (index, ids), else segmented from the points of ``x``."""
+    rounds, previous = [], None
+    for _ in range(MAX_ROUNDS):
+        if segments is None:
+            segments = sf.segment_blindly(flight, inside, sc.georeference(everything, x, device))[:2]
+        index, segment = segments
         obs = sf.observations(flight, index, segment)
-        first = first or (index, segment)
         cal = sc.calibrate(sf.solver_subset(obs), x, device=device)
+        now = np.array([sc.cone_angle(cal.x), cal.x[2] + cal.x[5], cal.x[3], cal.x[4]]) / sc.ARCSEC
         rounds.append({"segments": int(segment.max() + 1), "points": cal.points, "evaluations": cal.evaluations})
-        x, xyz = cal.x, sc.georeference(everything, cal.x, device)
-    cal.x0 = believed  # the combinations are reported from the believed values
+        settled = previous is not None and np.abs(now - previous).max() < SETTLED_ARCSEC
+        x, previous, segments = cal.x, now, None
+        if settled:
+            break
+    obs.index = index
+    return cal, obs, rounds, bool(settled)
+
+
+def _row(flight, cfg, obs, cal, rounds, converged, start, outliers, nominal_segments, device) -> dict:
+    truth, believed = sf.parameters(cfg)
+    index, segment = obs.index, obs.segment
     bad = np.isin(flight.scene.plane_id[flight.face[index]], outliers)
-    return {"altitude_m": altitude_m, "array": array, "truth": truth.tolist(), "believed": believed.tolist(),
-            "estimate": cal.x.tolist(), "sigma": cal.sigma.tolist(), "correlation": cal.correlation.tolist(),
+    return {"altitude_m": cfg.flight.altitude_m, "array": cfg.fan.array, "start": start, "converged": converged,
+            "truth": truth.tolist(), "believed": believed.tolist(), "estimate": cal.x.tolist(),
+            "sigma": cal.sigma.tolist(), "correlation": cal.correlation.tolist(),
             "combinations": _combinations(cal, truth, believed), "sigma0_m": cal.sigma0_m,
-            "rms_m": _rms(flight, obs, index, segment, bad, cal, truth, believed, first, device),
-            "outliers": _outlier_counts(obs, cal, bad, outliers), "rounds": rounds,
-            "returns": len(flight.range_m), "wall_s": time.perf_counter() - started}
+            "rms_m": _rms(flight, obs, index, segment, bad, cal, truth, believed, nominal_segments, device),
+            "outliers": _outlier_counts(obs, cal, bad, outliers), "rounds": rounds, "returns": len(flight.range_m)}
 
 
 def _decimated(flight: sf.Flight, inside: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -102,10 +134,14 @@ def run_selfcal(out: Path, device: str = "cpu", quick: bool = False, grid: dict 
     started = time.perf_counter()
     rows = []
     for n in grid["arrays"]:
-        for h in grid["altitudes_m"]:
-            rows.append(run_configuration(h, n, device))
-            if progress:
-                progress(rows[-1])
+        ladder = None
+        for h in sorted(grid["altitudes_m"]):
+            made = run_configuration(h, n, device, ladder)
+            settled = [r for r in made if r["converged"]]
+            ladder = np.array(settled[-1]["estimate"]) if settled else ladder
+            rows += made
+            for row in made if progress else ():
+                progress(row)
     command = f"flightsim selfcal --out {out} --device {device}" + (" --quick" if quick else "")
     results = {"command": command, "device": device, "parameters": list(sc.PARAMETERS),
                "units": ["", "rad", "rad", "rad", "rad", "rad"], "injected": sf.Injected().__dict__,
@@ -136,13 +172,18 @@ def _figure(rows: list[dict], out: Path) -> str | None:
     arrays = sorted({r["array"] for r in rows})
     fig, axes = plt.subplots(1, len(arrays), figsize=(5 * len(arrays), 4), squeeze=False)
     for ax, n in zip(axes[0], arrays):
-        mine = sorted((r for r in rows if r["array"] == n), key=lambda r: r["altitude_m"])
+        mine = sorted((r for r in rows if r["array"] == n and r["start"] == "believed"), key=lambda r: r["altitude_m"])
+        ladder = sorted((r for r in rows if r["array"] == n and r["start"] == "ladder"), key=lambda r: r["altitude_m"])
         h = [r["altitude_m"] / 1000 for r in mine]
         for key, label, style in (("nominal_believed", "before: nominal, believed", "o-"),
                                   ("exact_believed", "exact, believed", "s--"),
-                                  ("exact_selfcal", "after: exact, self-calibrated", "^-"),
+                                  ("exact_selfcal", "after: from the believed values", "^-"),
                                   ("exact_true", "exact, true parameters", "k:")):
             ax.plot(h, [r["rms_m"][key] * 100 for r in mine], style, label=label)
+        if ladder:
+            ax.plot([r["altitude_m"] / 1000 for r in ladder], [r["rms_m"]["exact_selfcal"] * 100 for r in ladder],
+                    "v-", label="after: from the lower flight's estimate")
+        ax.set_yscale("log")
         ax.set_xlabel("altitude [km]")
         ax.set_ylabel("plane-fit RMS [cm]")
         ax.set_title(f"{n}×{n} array")

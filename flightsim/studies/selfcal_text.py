@@ -20,12 +20,13 @@ def _delta(k: int, x: float) -> str:
 
 
 def _rms_table(rows: list[dict]) -> list[str]:
-    lines = ["| array | altitude | segments (outlier) | rejected | before: nominal, believed | exact, believed | "
-             "after: exact, self-cal | exact, true | nominal on its own segments |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| array | altitude | start | rounds (converged) | segments (outlier) | rejected | before: nominal, "
+             "believed | exact, believed | after: exact, self-cal | exact, true | nominal on its own segments |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         m, o = r["rms_m"], r["outliers"]
-        lines.append(f"| {r['array']}×{r['array']} | {r['altitude_m'] / 1000:g} km | {o['segments']} "
+        lines.append(f"| {r['array']}×{r['array']} | {r['altitude_m'] / 1000:g} km | {r['start']} | "
+                     f"{len(r['rounds'])} ({'yes' if r['converged'] else '**no**'}) | {o['segments']} "
                      f"({o['segments_with_outlier_points']}) | {o['rejected_segments']} | "
                      f"{m['nominal_believed'] * 100:.2f} cm | {m['exact_believed'] * 100:.2f} cm | "
                      f"**{m['exact_selfcal'] * 100:.2f} cm** | {m['exact_true'] * 100:.2f} cm | "
@@ -35,7 +36,8 @@ def _rms_table(rows: list[dict]) -> list[str]:
 
 def _parameter_table(r: dict) -> list[str]:
     truth, believed, est, sig = (np.array(r[k]) for k in ("truth", "believed", "estimate", "sigma"))
-    lines = [f"#### {r['array']}×{r['array']} at {r['altitude_m'] / 1000:g} km",
+    lines = [f"#### {r['array']}×{r['array']} at {r['altitude_m'] / 1000:g} km, from the {r['start']} values"
+             f"{'' if r['converged'] else ' (not converged)'}",
              "", "| parameter | injected (true) | believed (start) | recovered | recovered − true | 1-σ | "
                  "(rec − true)/σ |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for k, name in enumerate(NAMES):
@@ -52,7 +54,7 @@ def _parameter_table(r: dict) -> list[str]:
 
 def _correlation(r: dict) -> list[str]:
     c = np.array(r["correlation"])
-    lines = [f"Correlation matrix ({r['array']}×{r['array']}, {r['altitude_m'] / 1000:g} km):", "",
+    lines = [f"Correlation matrix ({r['array']}×{r['array']}, {r['altitude_m'] / 1000:g} km, {r['start']} start):", "",
              "| | " + " | ".join(SHORT) + " |", "|---" * (len(SHORT) + 1) + "|"]
     lines += [f"| {SHORT[i]} | " + " | ".join(f"{v:+.3f}" for v in c[i]) + " |" for i in range(len(SHORT))]
     return lines + [""]
@@ -108,7 +110,8 @@ def report(results: dict, figure: str | None) -> str:
     for r in rows:
         lines += _parameter_table(r)
     lines += ["## Correlations and what is observable", ""]
-    lines += _correlation(rows[0]) + (_correlation(rows[-1]) if len(rows) > 1 else [])
+    settled = [r for r in rows if r["converged"]] or rows
+    lines += _correlation(settled[0]) + (_correlation(settled[-1]) if len(settled) > 1 else [])
     lines += _findings(rows)
     return "\n".join(lines) + "\n"
 
@@ -120,6 +123,7 @@ def _span(rows: list[dict], f) -> str:
 
 def _findings(rows: list[dict]) -> list[str]:
     """What the correlation matrices and σ say, with their ranges over the grid."""
+    rows = [r for r in rows if r["converged"]] or rows
     corr = lambda i, j: (lambda r: r["correlation"][i][j])  # noqa: E731
     sig = lambda k, scale: (lambda r: r["sigma"][k] * scale)  # noqa: E731
     return [
