@@ -167,3 +167,19 @@ def test_engine_observables_reproduce_the_true_hits():
     obs = sf.observations(flight, index)
     assert np.abs(sc.georeference(obs, truth) - flight.true_points[index]).max() < 2e-3  # float32 points and ranges
     assert np.abs(sc.georeference(obs, believed) - flight.true_points[index]).max() > 0.1
+
+
+def test_cli_needs_an_output_directory(capsys):
+    from flightsim.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["selfcal", "--device", "cpu"])
+    assert exc.value.code == 2
+    assert "--out" in capsys.readouterr().err
+
+
+def test_empty_grid_is_one_line_error(tmp_path):
+    from flightsim.studies.selfcal_report import run_selfcal
+
+    with pytest.raises(InputError, match="selfcal.grid"):
+        run_selfcal(tmp_path, grid={"arrays": (), "altitudes_m": (1000.0,)})
