@@ -159,7 +159,8 @@ def _copied(c, shift: int) -> dict:
 
 
 def inject_outliers(flight: Flight, fraction: float = OUTLIER_FRACTION, seed: int = 0) -> np.ndarray:
-    """Corrupt the ranges of a seeded ``fraction`` of the roof planes hit (in place); return their plane ids.
+    """Corrupt the ranges of a seeded ``fraction`` of the roof planes hit (in place), and move the flight's nominal
+    points along their rays by the same amounts; return the planes' ids.
 
     Even draws get the roughness, odd ones the dome (on the true hits' horizontal distance from the plane's centroid).
     """
@@ -168,15 +169,18 @@ def inject_outliers(flight: Flight, fraction: float = OUTLIER_FRACTION, seed: in
     roofs = np.unique(plane[scene.classification[flight.face] == CLASS_BUILDING])
     roofs = np.array([p for p in roofs if scene.planes[p].kind == "roof"], dtype=np.int64)
     rng = np.random.default_rng(seed)
-    chosen = rng.choice(roofs, size=max(1, math.ceil(fraction * len(roofs))), replace=False) if len(roofs) else []
+    chosen = rng.choice(roofs, size=math.ceil(fraction * len(roofs)), replace=False) if len(roofs) else []
     for k, p in enumerate(chosen):
         on = np.flatnonzero(plane == p)
         if k % 2 == 0:
-            flight.range_m[on] += rng.normal(0.0, ROUGH_SIGMA_M, len(on))
+            change = rng.normal(0.0, ROUGH_SIGMA_M, len(on))
         else:
             xy = flight.true_points[on, :2]
             d = np.hypot(*(xy - xy.mean(axis=0)).T)
-            flight.range_m[on] -= DOME_HEIGHT_M * np.clip(1.0 - (d / max(d.max(), 1e-9)) ** 2, 0.0, 1.0)
+            change = -DOME_HEIGHT_M * np.clip(1.0 - (d / max(d.max(), 1e-9)) ** 2, 0.0, 1.0)
+        flight.range_m[on] += change
+        ray = flight.nominal[on] - flight.origin[flight.pulse[on]]  # the nominal ray, to 1e-5 of the change
+        flight.nominal[on] += change[:, None] * ray / np.linalg.norm(ray, axis=1, keepdims=True)
     return np.asarray(chosen, dtype=np.int64)
 
 

@@ -22,39 +22,59 @@ from flightsim.studies import selfcal_flight as sf
 
 FULL_GRID = {"arrays": (3, 8), "altitudes_m": (500.0, 1000.0, 2000.0, 5000.0)}
 QUICK_GRID = {"arrays": (3,), "altitudes_m": (1000.0,)}
+CONTROL = (3, 2000.0)  # the configuration also run with a plain loss and without outliers
 MAX_ROUNDS = 5  # segment-and-calibrate rounds at most
 SETTLED_ARCSEC = 0.5  # converged: no observable combination moved more than this in the last round [arcsec]
 MAX_SEGMENTED_POINTS = 400_000  # points given to the blind finder, a seeded choice of whole pulses beyond this
+RECOVERED_FACTOR = 1.5  # truth check: exact-true RMS on the final segments within this factor of the estimate's
 OUTLIER_WEIGHT = 0.5  # a segment whose median IRLS weight is below this counts as rejected by the robust loss
 
 
 def run_configuration(altitude_m: float, array: int, device: str = "cpu", ladder: np.ndarray | None = None,
-                      injected=sf.Injected()) -> list[dict]:
+                      injected=sf.Injected(), control: bool = False) -> list[dict]:
     """Self-calibrate one configuration from the believed values, and also from ``ladder`` (the estimate of a lower
-    flight) when given; return its rows of selfcal.json (one per start)."""
+    flight) when given; return its rows of selfcal.json (one per start). ``control`` adds two rows from the believed
+    values: with a plain (linear) loss, and on the same flight without the outlier planes."""
     started = time.perf_counter()
     cfg = sf.flight_config(altitude_m, array, device, injected)
     truth, believed = sf.parameters(cfg)
     flight = sf.fly(cfg)
+    clean = (flight.range_m.copy(), flight.nominal.copy())
     outliers = sf.inject_outliers(flight)
     inside = _decimated(flight, sf.crop(flight))
     everything = sf.observations(flight, inside)
     nominal_segments = sf.segment_blindly(flight, inside, flight.nominal[inside])[:2]
     flown = time.perf_counter() - started
     rows = []
-    for start, x0 in (("believed", believed), ("ladder", ladder)):
+    starts = [("believed", believed, "soft_l1"), ("ladder", ladder, "soft_l1")]
+    for start, x0, loss in starts + ([("control: linear loss", believed, "linear")] if control else []):
         if x0 is None:
             continue
         began = time.perf_counter()
-        cal, obs, rounds, converged = _rounds(flight, inside, everything, x0, nominal_segments if start == "believed"
-                                              else None, device)
+        cal, obs, rounds, converged = _rounds(flight, inside, everything, x0, nominal_segments if start != "ladder"
+                                              else None, device, loss)
         cal.x0 = believed  # the combinations are reported from the believed values
-        rows.append(_row(flight, cfg, obs, cal, rounds, converged, start, outliers, nominal_segments, device)
-                    | {"wall_s": time.perf_counter() - began + flown})
+        row = _row(flight, cfg, obs, cal, rounds, converged, start, outliers, nominal_segments, device)
+        rows.append(row | {"recovered": recovered(row), "wall_s": time.perf_counter() - began + flown})
+    if control:
+        flight.range_m, flight.nominal = clean
+        rows += run_clean(flight, cfg, inside, believed, device)
     return rows
 
 
-def _rounds(flight, inside, everything, x, segments, device):
+def run_clean(flight, cfg, inside, believed, device) -> list[dict]:
+    """The control row on the flight without outlier planes."""
+    began = time.perf_counter()
+    everything = sf.observations(flight, inside)
+    segments = sf.segment_blindly(flight, inside, flight.nominal[inside])[:2]
+    cal, obs, rounds, converged = _rounds(flight, inside, everything, believed, segments, device)
+    cal.x0 = believed
+    row = _row(flight, cfg, obs, cal, rounds, converged, "control: no outliers", np.zeros(0, np.int64), segments,
+               device)
+    return [row | {"recovered": recovered(row), "wall_s": time.perf_counter() - began}]
+
+
+def _rounds(flight, inside, everything, x, segments, device, loss="soft_l1"):
     """Segment blindly and calibrate until the observable combinations settle (or MAX_ROUNDS); ``segments``: the
     first round's (index, ids), else segmented from the points of ``x``."""
     rounds, previous = [], None
@@ -63,7 +83,7 @@ def _rounds(flight, inside, everything, x, segments, device):
             segments = sf.segment_blindly(flight, inside, sc.georeference(everything, x, device))[:2]
         index, segment = segments
         obs = sf.observations(flight, index, segment)
-        cal = sc.calibrate(sf.solver_subset(obs), x, device=device)
+        cal = sc.calibrate(sf.solver_subset(obs), x, loss=loss, device=device)
         now = np.array([sc.cone_angle(cal.x), cal.x[2] + cal.x[5], cal.x[3], cal.x[4]]) / sc.ARCSEC
         rounds.append({"segments": int(segment.max() + 1), "points": cal.points, "evaluations": cal.evaluations})
         settled = previous is not None and np.abs(now - previous).max() < SETTLED_ARCSEC
@@ -84,6 +104,14 @@ def _row(flight, cfg, obs, cal, rounds, converged, start, outliers, nominal_segm
             "combinations": _combinations(cal, truth, believed), "sigma0_m": cal.sigma0_m,
             "rms_m": _rms(flight, obs, index, segment, bad, cal, truth, believed, nominal_segments, device),
             "outliers": _outlier_counts(obs, cal, bad, outliers), "rounds": rounds, "returns": len(flight.range_m)}
+
+
+def recovered(row: dict) -> bool:
+    """The truth check of a row (scoring only, never seen by the estimator): converged, and the exact model with the
+    true parameters fits the final segments about as well as the estimate (else the segments and the estimate are
+    a self-consistent false minimum)."""
+    m = row["rms_m"]
+    return row["converged"] and m["exact_true"] <= RECOVERED_FACTOR * m["exact_selfcal"]
 
 
 def _decimated(flight: sf.Flight, inside: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -136,8 +164,8 @@ def run_selfcal(out: Path, device: str = "cpu", quick: bool = False, grid: dict 
     for n in grid["arrays"]:
         ladder = None
         for h in sorted(grid["altitudes_m"]):
-            made = run_configuration(h, n, device, ladder)
-            settled = [r for r in made if r["converged"]]
+            made = run_configuration(h, n, device, ladder, control=(n, h) == CONTROL)
+            settled = [r for r in made if r["converged"] and r["start"] in ("believed", "ladder")]  # blind: the truth check is not used
             ladder = np.array(settled[-1]["estimate"]) if settled else ladder
             rows += made
             for row in made if progress else ():
@@ -178,11 +206,18 @@ def _figure(rows: list[dict], out: Path) -> str | None:
         for key, label, style in (("nominal_believed", "before: nominal, believed", "o-"),
                                   ("exact_believed", "exact, believed", "s--"),
                                   ("exact_selfcal", "after: from the believed values", "^-"),
-                                  ("exact_true", "exact, true parameters", "k:")):
+                                  ("exact_true", "exact, true parameters (same segments)", "k:")):
             ax.plot(h, [r["rms_m"][key] * 100 for r in mine], style, label=label)
         if ladder:
-            ax.plot([r["altitude_m"] / 1000 for r in ladder], [r["rms_m"]["exact_selfcal"] * 100 for r in ladder],
-                    "v-", label="after: from the lower flight's estimate")
+            hl = [r["altitude_m"] / 1000 for r in ladder]
+            ax.plot(hl, [r["rms_m"]["exact_selfcal"] * 100 for r in ladder], "v-", color="C3",
+                    label="after: from the lower flight's estimate")
+            ax.plot(hl, [r["rms_m"]["exact_true"] * 100 for r in ladder], ":", color="C3",
+                    label="exact, true parameters (ladder's segments)")
+        for r in mine:
+            if not r["recovered"]:
+                ax.annotate("false minimum", (r["altitude_m"] / 1000, r["rms_m"]["exact_selfcal"] * 100),
+                            textcoords="offset points", xytext=(-60, 8), fontsize=8, color="C2")
         ax.set_yscale("log")
         ax.set_xlabel("altitude [km]")
         ax.set_ylabel("plane-fit RMS [cm]")
