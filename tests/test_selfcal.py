@@ -183,3 +183,9 @@ def test_empty_grid_is_one_line_error(tmp_path):
 
     with pytest.raises(InputError, match="selfcal.grid"):
         run_selfcal(tmp_path, grid={"arrays": (), "altitudes_m": (1000.0,)})
+
+
+def test_georeference_agrees_across_devices(device):
+    obs, true_points = synthetic(pulses=400)
+    assert np.abs(sc.georeference(obs, TRUTH, device) - true_points).max() < 1e-6
+    assert np.abs(sc.georeference(obs, BELIEVED, device) - sc.georeference(obs, BELIEVED, "cpu")).max() < 1e-9
