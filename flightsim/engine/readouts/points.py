@@ -97,13 +97,14 @@ class PointBuffers:
         return np.diff(to_host(before)).tolist()
 
     def gather(self, src: wp.array, n_slots: int, n_returns: int) -> np.ndarray:
-        """Compact ``src`` on the device and copy only the returns to the host."""
+        """Compact ``src`` on the device and copy only the returns to the host (an array of the caller's own)."""
         dst = self.compacted.get(id(src))
         if dst is None:
             dst = self.compacted[id(src)] = wp.empty(src.shape[0], dtype=src.dtype, device=self.device)
         wp.launch(compaction.compact_slots, n_slots, inputs=[self.flags[:n_slots], self.offsets[:n_slots],
                                                              src[:n_slots]], outputs=[dst], device=self.device)
-        return dst[:n_returns].numpy()
+        host = dst[:n_returns].numpy()  # on the CPU a view of ``dst``, which the next chunk overwrites: copied
+        return host.copy() if dst.device.is_cpu else host
 
 
 def trace_points(tracer, buffers: PointBuffers, n_slots: int, features: trace.Features | None = None) -> None:
