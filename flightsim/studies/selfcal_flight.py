@@ -142,7 +142,7 @@ def fly(cfg: RunConfig) -> Flight:
         sim = Tracer(cfg, scene, [trajectory], with_truth=True, meshes=meshes,
                      pulse_limits={trajectory.line_id: (k0, k1)})
         chunks, offset = [], sum(len(p["phi"]) for p in poses)
-        sim.run(Points(), lambda c: chunks.append(_copied(c, offset - k0)))  # the chunk's arrays are reused buffers
+        sim.run(Points(), lambda c: chunks.append(_columns(c, offset - k0)))
         pose = sim.poses64(trajectory.line_id, k0, k1 - k0).numpy()
         poses.append({"origin": pose["origin"], "rot": pose["rot"].reshape(-1, 3, 3), "phi": pose["phi"]})
         parts += chunks
@@ -152,9 +152,9 @@ def fly(cfg: RunConfig) -> Flight:
                   phi=np.concatenate([p["phi"] for p in poses]).astype(np.float64), **cat)
 
 
-def _copied(c, shift: int) -> dict:
-    """A host chunk's arrays, copied (its views alias the readout's buffers), pulses shifted to the pose rows."""
-    return dict(pulse=c.pulse + shift, beam=c.beam.copy(), range_m=c.range_m.astype(np.float64), face=c.face.copy(),
+def _columns(c, shift: int) -> dict:
+    """A host chunk's columns the self-calibration uses (float64), pulses shifted to the pose rows."""
+    return dict(pulse=c.pulse + shift, beam=c.beam, range_m=c.range_m.astype(np.float64), face=c.face,
                 nominal=c.points["nominal"].astype(np.float64), true_points=c.true_points.astype(np.float64))
 
 
