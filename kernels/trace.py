@@ -255,8 +255,6 @@ def slot_function(f: Features, instrument: Instrument):
         Returns its :class:`SlotTrace`; points in the local frame [m].
         """
         zero = wp.vec3f(0.0, 0.0, 0.0)
-        origin = vec(get3(pulses, ROW_ORIGIN, p))
-        rot = mat(get33(pulses, ROW_ROT, p))
         if wp.static(f.optics == "lut"):
             s3, exit_point, ok = _lut_lookup(scan.lut_directions, scan.lut_exits, beam,
                                              wp.float32(pulses[ROW_PHI, p]))
@@ -264,11 +262,11 @@ def slot_function(f: Features, instrument: Instrument):
             s3, exit_point, ok = deflector.finish(vec(scan.beam_truth[beam]), pulses, row_truth, p, scan.truth)
         if not ok:
             return _no_return(STATUS_TIR, zero)
-        true_origin = origin
-        true_rot = rot
+        true_origin = vec(get3(pulses, ROW_ORIGIN, p))
+        true_rot = mat(get33(pulses, ROW_ROT, p))
         if wp.static(f.pose):  # the pulse's true pose, drawn once per pulse by pulse_optics
-            true_origin = origin + vec(get3(pulses, row_pose, p))
-            true_rot = rot * mat(get33(pulses, row_pose + 3, p))
+            true_origin = true_origin + vec(get3(pulses, row_pose, p))
+            true_rot = true_rot * mat(get33(pulses, row_pose + 3, p))
         start = true_origin + true_rot * exit_point
         direction = true_rot * s3
         hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
@@ -298,7 +296,10 @@ def slot_function(f: Features, instrument: Instrument):
                 u1 = wp.randf(state)
                 u2 = wp.randf(state)
                 r = r + real(g.drift) * t + real(g.delays[beam]) + real(g.tdc_bin * (u1 - u2))
-        # georeference the observation (scan state, beam, r) with the deflector the processing believes in
+        # georeference the observation (scan state, beam, r) with the deflector the processing believes in; the
+        # believed pose is read again here rather than held in registers across the ray cast
+        origin = vec(get3(pulses, ROW_ORIGIN, p))
+        rot = mat(get33(pulses, ROW_ROT, p))
         p_exact = vec()
         p_nominal = vec()
         d_exact = vec()
