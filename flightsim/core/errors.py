@@ -4,6 +4,8 @@ The command line turns an :class:`InputError` into one line on stderr and exit s
 """
 from __future__ import annotations
 
+import math
+
 from trajectories.errors import TrajectoryError
 
 
@@ -19,3 +21,14 @@ class InputError(TrajectoryError):
         allowed: what would have been accepted, e.g. ``"a finite number in (0, 50000] m"``.
     """
 
+
+def positive(name: str, value, unit: str = "") -> float:
+    """``value`` as a float, else an :class:`InputError` naming ``name``: it must be finite and > 0 [``unit``]."""
+    allowed = "a finite number > 0" + (f" [{unit}]" if unit else "")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(name, value, allowed) from None
+    if not (math.isfinite(number) and number > 0.0):
+        raise InputError(name, value, allowed)
+    return number

@@ -63,7 +63,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import poisson
 
-from flightsim.core.errors import InputError
+from flightsim.core.errors import InputError, positive
 from flightsim.core.settings import Settings, check_settings, setting
 from flightsim.outputs.atl08_ground import ground_surface, group_percentile, trend_of
 
@@ -145,7 +145,7 @@ def atl08_segments(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time, se
     s = settings if settings is not None else ATL08Settings()
     check_settings("atl08", s)
     x, h, la, lo, conf, t = _photons(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time)
-    seg_m = _positive("segment_m", segment_m)
+    seg_m = positive("segment_m", segment_m, "m")
     dense, lam = _dense(x, h, conf, s)
     signal = dense | (conf >= s.min_signal_conf)
     cls, ph_h, band = _classify(x, h, signal, lam, s)
@@ -156,16 +156,6 @@ def atl08_segments(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time, se
 
 
 # --- input -----------------------------------------------------------------------------------------
-
-
-def _positive(name: str, value) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise InputError(name, value, "a finite number > 0 [m]") from None
-    if not (math.isfinite(number) and number > 0.0):
-        raise InputError(name, value, "a finite number > 0 [m]")
-    return number
 
 
 def _photons(along, h, lat, lon, conf, t) -> tuple[np.ndarray, ...]:

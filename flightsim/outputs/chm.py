@@ -16,7 +16,6 @@ when complete (:func:`flightsim.outputs.grid_products.write_geotiff`).
 """
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +26,7 @@ from affine import Affine
 from scipy.interpolate import griddata
 from scipy.spatial import QhullError
 
-from flightsim.core.errors import InputError
+from flightsim.core.errors import InputError, positive
 from flightsim.outputs.grid_products import write_geotiff
 
 GROUND_CLASS = 2
@@ -58,7 +57,7 @@ def chm_from_points(x, y, z, return_number, classification, cell_m: float, bound
         dsm_returns: "first" (highest first return) or "all" (highest point).
     """
     xyz, ret, cls = _points(x, y, z, return_number, classification)
-    cell = _positive("cell_m", cell_m)
+    cell = positive("cell_m", cell_m, "m")
     if dsm_returns not in DSM_RETURNS:
         raise InputError("dsm_returns", dsm_returns, f"one of {DSM_RETURNS}")
     west, north, cols, rows = _grid(xyz, cell, bounds)
@@ -111,16 +110,6 @@ def _points(x, y, z, return_number, classification) -> tuple[np.ndarray, np.ndar
             raise InputError(name, f"shape {column.shape}, dtype {column.dtype}", f"({n},) integers in [{lo}, {hi}]")
         out.append(column.astype(np.int64))
     return np.column_stack(columns), out[0], out[1]
-
-
-def _positive(name: str, value) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise InputError(name, value, "a finite number > 0 [m]") from None
-    if not (math.isfinite(number) and number > 0.0):
-        raise InputError(name, value, "a finite number > 0 [m]")
-    return number
 
 
 def _grid(xyz: np.ndarray, cell: float, bounds) -> tuple[float, float, int, int]:

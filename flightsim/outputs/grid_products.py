@@ -27,7 +27,7 @@ from rasterio.transform import from_origin
 
 from flightsim.core.version import __version__
 from flightsim.core.atomic import replaced_atomically
-from flightsim.core.errors import InputError
+from flightsim.core.errors import InputError, positive
 from flightsim.outputs.las_format import _quantized_mm, _tile_header_template, _validated_crs, gps_week_date, wkt1
 
 if TYPE_CHECKING:
@@ -120,7 +120,7 @@ def height_raster(points_world: np.ndarray, cell_m: float) -> tuple[np.ndarray, 
         cell_m: cell side [m], > 0.
     """
     xyz = _finite_points(points_world, "points_world")
-    cell_m = _positive("cell_m", cell_m)
+    cell_m = positive("cell_m", cell_m, "m")
     i = np.floor(xyz[:, 0] / cell_m).astype(np.int64)
     j = np.floor(xyz[:, 1] / cell_m).astype(np.int64)
     columns, rows = int(i.max() - i.min()) + 1, int(j.max() - j.min()) + 1
@@ -159,7 +159,7 @@ def write_geotiff(
     if np.isinf(band).any():
         raise InputError("heights", "an infinite value", "finite float32 heights [m] or NaN")
     west, north = _finite_pair("origin_xy", origin_xy)
-    cell_m = _positive("cell_m", cell_m)
+    cell_m = positive("cell_m", cell_m, "m")
     crs = _validated_crs(crs)
     if not np.isfinite(nodata) or np.any(band == np.float32(nodata)):
         raise InputError("nodata", nodata, "a finite value that no height equals")
@@ -252,17 +252,6 @@ def _uint16_column(name: str, values, m: int) -> np.ndarray:
     if column.min() < 0 or column.max() > np.iinfo(np.uint16).max:
         raise InputError(name, f"range [{column.min()}, {column.max()}]", "integers in [0, 65535]")
     return column.astype(np.uint16)
-
-
-def _positive(name: str, value) -> float:
-    """``value`` as a finite float > 0."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise InputError(name, value, "a finite number > 0 [m]") from None
-    if not (np.isfinite(number) and number > 0.0):
-        raise InputError(name, value, "a finite number > 0 [m]")
-    return number
 
 
 def _finite_pair(name: str, value) -> tuple[float, float]:

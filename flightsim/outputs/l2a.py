@@ -55,7 +55,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.optimize import least_squares
 from scipy.special import ndtri
 
-from flightsim.core.errors import InputError
+from flightsim.core.errors import InputError, positive
 from flightsim.core.settings import Settings, check_settings, setting
 
 C = 299_792_458.0  # speed of light [m/s]
@@ -160,10 +160,10 @@ def truth_rh(profile, elevation_bin0, elevation_lastbin, ground_elevation) -> np
         raise InputError("profile", f"minimum {p.min():g}", "energies >= 0")
     geo = _geometry(len(p), elevation_bin0=elevation_bin0, elevation_lastbin=elevation_lastbin,
                     ground_elevation=ground_elevation)
-    positive = p > 0.0
-    found = positive.any(axis=1)
-    start = np.argmax(positive, axis=1).astype(np.float64)
-    end = (p.shape[1] - 1 - np.argmax(positive[:, ::-1], axis=1)).astype(np.float64)
+    lit = p > 0.0
+    found = lit.any(axis=1)
+    start = np.argmax(lit, axis=1).astype(np.float64)
+    end = (p.shape[1] - 1 - np.argmax(lit[:, ::-1], axis=1)).astype(np.float64)
     return _rh(p, _elevations(geo, p.shape[1]), start, end, geo["ground_elevation"], found)
 
 
@@ -181,16 +181,6 @@ def _waveforms(values, name: str) -> np.ndarray:
     if not np.isfinite(w).all():
         raise InputError(name, f"{np.count_nonzero(~np.isfinite(w))} non-finite samples", "finite samples")
     return w
-
-
-def _positive(name: str, value) -> float:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise InputError(name, value, "a finite number > 0") from None
-    if not (math.isfinite(number) and number > 0.0):
-        raise InputError(name, value, "a finite number > 0")
-    return number
 
 
 def _column(name: str, value, n: int) -> np.ndarray:
@@ -219,8 +209,8 @@ def _geometry(n: int, **columns) -> dict[str, np.ndarray]:
 def _prepare(rx, dt_s, pulse_sigma_s, noise, s: L2ASettings) -> tuple[_Shots, float]:
     """The waveforms minus their noise mean, the noise σ and the smoothed waveforms; the sample interval."""
     w = _waveforms(rx, "rx")
-    dt = _positive("dt_s", dt_s)
-    pulse = _positive("pulse_sigma_s", pulse_sigma_s) / dt
+    dt = positive("dt_s", dt_s)
+    pulse = positive("pulse_sigma_s", pulse_sigma_s) / dt
     n = len(w)
     if noise is None:
         k = s.noise_samples
