@@ -208,3 +208,28 @@ def test_bad_photon_input_exits_2_naming_the_field(tmp_path, args, field):
     assert run.returncode == 2, run.stderr
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and field in lines[0], run.stderr
+
+
+def test_photon_chunks_kept_by_the_consumer_are_its_own():
+    """A consumer may keep every chunk's photons: ten chunks of 20 pulses must hand over what one chunk of the whole
+    run does (the detections are keyed by seed, line, pulse and beam, so chunking never changes them)."""
+    import flightsim
+    from flightsim.engine.readouts.photons import Photons
+    from flightsim.engine.tracer import Tracer
+    from flightsim.engine.world import build_scene, flight_trajectories
+
+    runs = []
+    for chunk_pulses in (20, 0):
+        cfg = flightsim.load_config(instrument="atlas", overrides={"flight.duration_s": 0.02,
+                                                                   "run.chunk_pulses": chunk_pulses})
+        scene = build_scene(cfg)
+        parts = []
+        Tracer(cfg, scene, flight_trajectories(cfg, scene)).run(Photons(), parts.append)
+        pulse, beam, tof = (np.concatenate([getattr(p, k) for p in parts]) for k in ("pulse", "pixel",
+                                                                                      "time_of_flight_s"))
+        order = np.lexsort((tof, beam, pulse))
+        runs.append((len(parts), pulse[order], beam[order], tof[order]))
+    (chunks, *many), (_, *one) = runs
+    assert chunks >= 10 and len(one[0]) > 1000
+    for a, b in zip(many, one):
+        assert np.array_equal(a, b)

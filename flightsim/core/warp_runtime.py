@@ -59,6 +59,13 @@ def resolve_device(name: str) -> str:
 _PINNED: dict[tuple[str, type], wp.array] = {}
 
 
+def host_array(a: wp.array) -> np.ndarray:
+    """``a`` on the host as an array of the caller's own: ``wp.array.numpy`` copies a CUDA array, but on the CPU
+    it is a view of the device memory, which a reused buffer's next use overwrites; copied there."""
+    host = a.numpy()
+    return host.copy() if a.device.is_cpu else host
+
+
 def to_host(a: wp.array) -> np.ndarray:
     """A host copy of a (small) device array, through a page-locked buffer kept per device and type
     (``wp.array.numpy`` of a CUDA array page-locks a fresh buffer each time, ~1 ms per call)."""

@@ -11,7 +11,7 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.registry import register
-from flightsim.core.warp_runtime import to_host
+from flightsim.core.warp_runtime import host_array, to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, SLOTS_PER_CHUNK, Segment
 from flightsim.engine.readouts.points import PointBuffers, trace_points
 from flightsim.scenes.canopy import no_canopy
@@ -164,10 +164,11 @@ def beam_energy(emitter) -> np.ndarray:
 
 
 def _host_photons(tracer, segments: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
-    """Bring a chunk's detections (ordered by slot) to the host, split by flight line."""
+    """Bring a chunk's detections (ordered by slot) to the host, split by flight line (arrays of the caller's own:
+    a consumer may keep them while later chunks reuse the device buffers)."""
     slot = found.slot.numpy().astype(np.int64)
-    tof, kind = found.time_of_flight_s.numpy(), found.signal.numpy()
-    points, directions = found.points.numpy(), found.directions.numpy()
+    tof, kind = host_array(found.time_of_flight_s), host_array(found.signal)
+    points, directions = host_array(found.points), host_array(found.directions)
     return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], kind[a:b] > 0, kind[a:b],
                         points[a:b], directions[a:b])
             for trajectory, pulse, beam, a, b in tracer.by_line(segments, slot)]

@@ -11,7 +11,7 @@ import warp as wp
 
 from flightsim.core.constants import MODELS
 from flightsim.core.registry import register
-from flightsim.core.warp_runtime import to_host
+from flightsim.core.warp_runtime import host_array, to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, Segment
 from kernels import canopy_returns, compaction, trace
 
@@ -103,8 +103,7 @@ class PointBuffers:
             dst = self.compacted[id(src)] = wp.empty(src.shape[0], dtype=src.dtype, device=self.device)
         wp.launch(compaction.compact_slots, n_slots, inputs=[self.flags[:n_slots], self.offsets[:n_slots],
                                                              src[:n_slots]], outputs=[dst], device=self.device)
-        host = dst[:n_returns].numpy()  # on the CPU a view of ``dst``, which the next chunk overwrites: copied
-        return host.copy() if dst.device.is_cpu else host
+        return host_array(dst[:n_returns])
 
 
 def trace_points(tracer, buffers: PointBuffers, n_slots: int, features: trace.Features | None = None) -> None:
