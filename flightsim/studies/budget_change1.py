@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +23,7 @@ import numpy as np
 from flightsim.engine.config import RunConfig
 from flightsim.engine.config_io import preset_config
 from flightsim.studies import budget_photons as bp
-from flightsim.studies.budgets import Simulated, Source
+from flightsim.studies.budgets import Simulated, Source, fly
 
 SLOPE = 0.005  # rise/run where the first order holds: s·σ_f ≪ (c/2)·σ_p
 PATENT_SLOPE = 0.20  # the patent's Fig. 4
@@ -119,16 +118,9 @@ def _rough_grid(workdir: Path, slope: float) -> Path:
 def _shots(cfg: RunConfig, names) -> Simulated:
     """Every shot's half-power range error [m] (the waveform readout, through the simulator)."""
     from flightsim.engine.readouts.waveforms import Waveforms
-    from flightsim.engine.tracer import Tracer
-    from flightsim.engine.world import build_scene, flight_trajectories
     from flightsim.instrument import waveform_model as model
 
-    scene = build_scene(cfg)
-    sim = Tracer(cfg, scene, flight_trajectories(cfg, scene))
-    chunks = []
-    started = time.perf_counter()
-    sim.run(Waveforms(), chunks.append)
-    wall = time.perf_counter() - started
+    scene, _, chunks, wall = fly(cfg, Waveforms())
     dt, errors = cfg.waveform.sample_interval_s, []
     for w in chunks:
         times = dt * np.arange(w.power_w.shape[1])

@@ -10,12 +10,11 @@ r·(d_b − d_t) at range r (e changes by r·g·(d_b − d_t)).
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
 from flightsim.engine.config import RunConfig, set_value, validate
-from flightsim.studies.budgets import Simulated
+from flightsim.studies.budgets import Simulated, fly
 
 C = 299_792_458.0  # [m/s]
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -38,15 +37,8 @@ def simulate_photons(cfg: RunConfig, signal_only: bool = True) -> Simulated:
     photon's height error [m] (``signal_only``; else every photon's), with its geometry: ``directions`` (n, 3)
     believed beam [local], ``range_m`` c·t/2, ``pulse``, ``pixel``, ``kind`` and the tracer ``sim``."""
     from flightsim.engine.readouts.photons import Photons
-    from flightsim.engine.tracer import Tracer
-    from flightsim.engine.world import build_scene, flight_trajectories
 
-    scene = build_scene(cfg)
-    sim = Tracer(cfg, scene, flight_trajectories(cfg, scene))
-    chunks = []
-    started = time.perf_counter()
-    sim.run(Photons(), chunks.append)
-    wall = time.perf_counter() - started
+    _, sim, chunks, wall = fly(cfg, Photons())
     cat = {name: (np.concatenate([getattr(c, name) for c in chunks]) if chunks else np.empty(0))
            for name in ("pulse", "pixel", "time_of_flight_s", "kind", "points", "directions")}
     keep = cat["kind"] == 1 if signal_only else np.ones(len(cat["kind"]), dtype=bool)

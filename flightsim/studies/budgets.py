@@ -153,6 +153,19 @@ def source_names(budget: InstrumentBudget, sources: str | None) -> tuple[str, ..
     return names
 
 
+def fly(cfg, readout) -> tuple[object, object, list, float]:
+    """(scene, tracer, every host chunk ``readout`` handed over, wall [s] of the run) of one flight of ``cfg``."""
+    from flightsim.engine.tracer import Tracer
+    from flightsim.engine.world import build_scene, flight_trajectories
+
+    scene = build_scene(cfg)
+    sim = Tracer(cfg, scene, flight_trajectories(cfg, scene))
+    chunks = []
+    started = time.perf_counter()
+    sim.run(readout, chunks.append)
+    return scene, sim, chunks, time.perf_counter() - started
+
+
 def run_source(budget: InstrumentBudget, source: Source, device: str, shots: int, seed: int) -> dict:
     """One source alone: simulated on ``device`` and propagated to first order; the row of budget.json."""
     sim = budget.simulate((source.name,), device, shots, seed)
