@@ -56,6 +56,16 @@ def resolve_device(name: str) -> str:
 
 
 
+def compile_ahead(device: str, kernels) -> None:
+    """Compile (or load from Warp's kernel cache) the modules of ``kernels`` on ``device`` at once, one thread per
+    module up to the machine's cores, before their first launch would compile them one at a time. Modules
+    already loaded are skipped; Warp compiles a module's code generation under its own lock and the
+    compilers (NVRTC, clang) in parallel."""
+    modules = list({id(k.module): k.module for k in kernels}.values())
+    if modules:
+        wp.force_load(device=device, modules=modules, max_workers=min(len(modules), os.cpu_count() or 1))
+
+
 _PINNED: dict[tuple[str, type], wp.array] = {}
 
 

@@ -113,7 +113,9 @@ def execute(cfg: RunConfig, directory: Path, overwrite: bool = False,
     consume = product if tap is None else (lambda item: (tap(tracer, item), product(item)))
     marks.append(time.perf_counter())
     try:
-        counts = tracer.run(product.readout(), consume, progress)
+        readout = product.readout()
+        tracer.compile_ahead(readout, product)
+        counts = tracer.run(readout, consume, progress)
         marks.append(time.perf_counter())
         fields = product.close(counts)
     except BaseException:

@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from flightsim.core import registry
 from flightsim.core.errors import InputError
 from flightsim.core.timeline import mark
-from flightsim.core.warp_runtime import resolve_device
+from flightsim.core.warp_runtime import compile_ahead, resolve_device
 from flightsim.engine.chunks import SLOTS_PER_CHUNK, Segment, line_table, pack, segment_tables
 from flightsim.engine.coverage import pulse_windows
 from flightsim.engine.instrument import Instrument
@@ -65,6 +65,9 @@ class Readout(Protocol):
 
     def end(self, tracer: "Tracer", counts: RunCounts) -> wp.array:
         """Finish the run's device work; return the counters [TIR, misses, ...] of its beams."""
+
+    def kernels_needed(self, tracer: "Tracer") -> list:
+        """The kernels its chunks and end launch on ``tracer`` (compiled together before the first chunk)."""
 
 
 class Tracer:
@@ -225,6 +228,7 @@ class Tracer:
         ``share`` = (k, n) runs only every n-th chunk from the k-th, so n processes can split a run.
         """
         self._check_readout(readout)
+        self.compile_ahead(readout)
         started = time.perf_counter()
         counts = RunCounts()
         pulses = readout.begin(self)
@@ -239,6 +243,14 @@ class Tracer:
         if hasattr(readout, "finish"):
             readout.finish(counts)
         return counts
+
+    def compile_ahead(self, *parts) -> None:
+        """Compile the modules of the tracer's chunk kernels and of every part's ``kernels_needed`` (a readout, a
+        product's consumers) in parallel, before the first chunk would compile them one by one."""
+        kernels = [frames.pulse_poses, trace.pulse_optics_kernel(self.instrument.kernel, self.features.pose)]
+        for part in parts:
+            kernels += part.kernels_needed(self) if hasattr(part, "kernels_needed") else []
+        compile_ahead(self.device, kernels)
 
     def _check_readout(self, readout: Readout) -> None:
         detector = self.instrument.detector

@@ -42,6 +42,9 @@ class _DeviceMoments:
         self.reduce = statistics.reduce_kernel(simulator.features)
         self.codes: wp.array | None = None
 
+    def kernels_needed(self, simulator) -> list:
+        return [self.reduce, statistics.plane_codes]  # the codes' kernels share the statistics module
+
     def codes_for(self, n_slots: int) -> wp.array:
         """The device array of at least ``n_slots`` codes to fill for :meth:`add`."""
         if self.codes is None or self.codes.shape[0] < n_slots:
@@ -86,6 +89,9 @@ class PlaneStatistics:
                                                 self.edge_buffer_m], outputs=[self.sums.codes_for(n)],
                   device=self.sums.device)
         self.sums.add(returns)
+
+    def kernels_needed(self, simulator) -> list:
+        return self.sums.kernels_needed(simulator)
 
     def rms_m(self) -> dict[str, float | None]:
         """Pooled plane-fit RMS of each model over all planes [m]."""
@@ -167,6 +173,9 @@ class PatchStatistics:
                           wp.vec2d(*g.low), g.patch_m, g.nx, g.ny],
                   outputs=[self.sums.codes_for(n)], device=self.sums.device)
         self.sums.add(returns)
+
+    def kernels_needed(self, simulator) -> list:
+        return self.sums.kernels_needed(simulator)
 
     def rms_grids(self) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Each model's (ny, nx) patch RMS [m] (NaN where fewer than :data:`MIN_PATCH_POINTS` returns) and

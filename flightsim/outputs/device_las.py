@@ -121,6 +121,9 @@ class DeviceLasOutput:
             tiles = self._pack(returns, model)
             self._jobs[model].put(tiles)
 
+    def kernels_needed(self, simulator) -> list:
+        return [self.kernel, kl.tile_extent]  # the packing kernel; the tiles' kernels (one module)
+
     def close(self) -> dict[str, dict[str, int]]:
         """Finish every tile (atomic renames), the models' writers at once; return {model: {tile: points}}."""
         self._stop()

@@ -51,6 +51,9 @@ class LasProduct:
     def readout(self) -> Points:
         return Points(on_device=True)
 
+    def kernels_needed(self, tracer) -> list:
+        return [k for consumer in self.consumers for k in consumer.kernels_needed(tracer)]
+
     def __call__(self, returns) -> None:
         for consumer in self.consumers:
             consumer(returns)

@@ -6,7 +6,7 @@ import warp as wp
 
 from flightsim.core.registry import register
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK
-from flightsim.engine.readouts.points import PointBuffers, trace_points
+from flightsim.engine.readouts.points import PointBuffers, points_kernel, trace_points
 from kernels.budget import accumulate_deviations
 
 
@@ -35,6 +35,9 @@ class Deviations:
         base = counts.pulses * tracer.beams_per_pulse  # the chunk's first run slot (counts.pulses: chunks before)
         wp.launch(accumulate_deviations, n_slots, inputs=[b.status, b.model_points["exact"], b.true_points, base],
                   outputs=self.outputs, device=tracer.device)
+
+    def kernels_needed(self, tracer) -> list:
+        return [points_kernel(tracer, tracer.features, 1), accumulate_deviations]
 
     def end(self, tracer, counts) -> wp.array:
         return self.buffers.counters

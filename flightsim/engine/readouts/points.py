@@ -109,16 +109,22 @@ class PointBuffers:
 def trace_points(tracer, buffers: PointBuffers, n_slots: int, features: trace.Features | None = None) -> None:
     """Launch the points kernel (``features``, default the tracer's) over a traced chunk's slots; over a canopy
     the canopy kernel, one thread per beam."""
-    f = features or tracer.features
+    kernel = points_kernel(tracer, features or tracer.features, buffers.per_beam)
     if buffers.per_beam > 1:
         leaves = tracer.kept("canopy_returns", lambda: CanopyReturns(tracer, buffers))
-        kernel = canopy_returns.canopy_points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
         wp.launch(kernel, n_slots // buffers.per_beam, inputs=[buffers.pulses, tracer.scan, *leaves.inputs()],
                   outputs=buffers.slot_outputs(), device=tracer.device)
         return
-    kernel = trace.points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
     wp.launch(kernel, n_slots, inputs=[buffers.pulses, tracer.scan], outputs=buffers.slot_outputs(),
               device=tracer.device)
+
+
+def points_kernel(tracer, f: trace.Features, per_beam: int):
+    """The points kernel of ``f`` on the tracer's instrument: over a canopy (``per_beam`` > 1 slots per beam) the
+    canopy kernel."""
+    if per_beam > 1:
+        return canopy_returns.canopy_points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
+    return trace.points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
 
 
 class CanopyReturns:
@@ -172,6 +178,9 @@ class Points:
             return
         for part in host_returns(tracer, returns):
             consume(part)
+
+    def kernels_needed(self, tracer) -> list:
+        return [points_kernel(tracer, tracer.features, tracer.returns_per_beam), compaction.flag_returns]
 
     def end(self, tracer, counts) -> wp.array:
         if self.buffers.per_beam > 1:

@@ -55,11 +55,12 @@ class Statistics:
         self.spt = (self.slots_per_thread or tracer.cfg.run.slots_per_thread
                     or SLOTS_PER_THREAD[tracer.device_kind])
         self.sums = self.buffers.zeroed_sums()
-        self.kernels = (statistics.records_kernel(tracer.features, tracer.instrument.kernel,
-                                                  max_registers=tracer.max_registers),
-                        statistics.check_edges_kernel(tracer.instrument.kernel),
-                        statistics.reduce_kernel(tracer.features))
+        self.kernels = self.kernels_needed(tracer)
         return self.buffers.pulses
+
+    def kernels_needed(self, tracer) -> list:
+        return [statistics.records_kernel(tracer.features, tracer.instrument.kernel, max_registers=tracer.max_registers),
+                statistics.check_edges_kernel(tracer.instrument.kernel), statistics.reduce_kernel(tracer.features)]
 
     def chunk(self, tracer, segments, n_slots: int, counts, consume) -> None:
         b, d, spt = self.buffers, tracer.device, self.spt

@@ -82,11 +82,15 @@ class _Buffers:
             self.span = wp.empty((slots, 2), dtype=wp.int32, device=d)
 
 
+def pilot_kernels(tracer) -> list:
+    """The kernels of :func:`pilot_windows` and :func:`receive` (the beams' rays; the waveform module)."""
+    return [trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose), kw.pilot]
+
+
 def pilot_windows(tracer, b: _Buffers, refs: kw.MeshRefs, params: kw.WaveformParams, n: int) -> None:
     """Each slot's beam (start, direction) and window start (−1 where its central ray misses the scene)."""
     d = tracer.device
-    wp.launch(trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose), n,
-              inputs=[b.pulses, tracer.scan], outputs=[b.starts, b.directions], device=d)
+    wp.launch(pilot_kernels(tracer)[0], n, inputs=[b.pulses, tracer.scan], outputs=[b.starts, b.directions], device=d)
     wp.launch(kw.pilot, n, inputs=[refs, params, b.starts, b.directions], outputs=[b.window], device=d)
 
 
@@ -159,6 +163,9 @@ class Waveforms:
                   outputs=[b.power], device=d)
         receive(tracer, self.receiver, params, b, n)
         self._hand_over(tracer, segments, n, counts, consume)
+
+    def kernels_needed(self, tracer) -> list:
+        return [*pilot_kernels(tracer), kw.deposit_kernel(tracer.meshes.per_face, tracer.scene.canopy is not None)]
 
     def _hand_over(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b = self.buffers
@@ -234,6 +241,9 @@ class CloudWaveforms:
                 "direction": direction[made], "window": window[kept],
                 "clean": None if b.clean is None else b.clean.numpy()[kept]}
         hand_over(tracer, segments, kept, rows, counts, consume)
+
+    def kernels_needed(self, tracer) -> list:
+        return pilot_kernels(tracer)
 
     def _waveforms(self, tracer, t0: np.ndarray, start: np.ndarray, direction: np.ndarray):
         """((m, samples) float32 received power [W], (m, 4) received columns as the deposit kernel's: share of the
