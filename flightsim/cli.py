@@ -147,6 +147,24 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_compile(args: argparse.Namespace) -> int:
+    """Compile every kernel the runs would launch into Warp's kernel cache, so that their first start is warm."""
+    names = PRESETS if args.all else [args.instrument or "risley"]
+    configs = []
+    for name in names:
+        args.instrument = name
+        configs.append(build_config(args))
+    from flightsim.engine.run import compile_kernels
+
+    started = time.perf_counter()
+    modules = compile_kernels(configs)
+    import warp as wp
+
+    print(f"{modules} kernel modules of {', '.join(names)} ready in {time.perf_counter() - started:.1f} s "
+          f"(Warp's kernel cache: {wp.config.kernel_cache_dir})")
+    return 0
+
+
 def _cluster(args: argparse.Namespace, tasks: int):
     """The Dask client of --workers / --scheduler / --gpus (None: run serially), for ``tasks`` tasks."""
     from flightsim.engine.distributed import open_client
@@ -288,6 +306,12 @@ def _add_run_commands(sub) -> None:
     sim.add_argument("--out", required=True, help="output directory")
     sim.add_argument("--overwrite", action="store_true", help="replace the run in a non-empty --out")
     sim.set_defaults(func=cmd_simulate)
+
+    comp = sub.add_parser("compile", help="compile the kernels a simulate of the same flags would launch (or of "
+                                          "every built-in instrument: --all) into Warp's kernel cache, ahead of the run")
+    _add_config_flags(comp)
+    comp.add_argument("--all", action="store_true", help="every built-in instrument with its own scene")
+    comp.set_defaults(func=cmd_compile)
 
     sweep = sub.add_parser("sweep", help="plane-fit RMS over a grid of configurations (no LAS written)")
     _add_config_flags(sweep, SWEEP_FLAGS)

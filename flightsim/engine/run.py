@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -94,22 +95,9 @@ def execute(cfg: RunConfig, directory: Path, overwrite: bool = False,
     """:func:`simulate_to_directory`, giving the run's counts and tracer too. ``tap(tracer, item)`` also sees every
     chunk the readout hands the product; ``with_truth`` keeps the true hits (the Python API keeps the returns)."""
     marks = [time.perf_counter()]
-    scene = build_scene(cfg)
-    product = product_class(cfg)(cfg, scene)
-    marks.append(time.perf_counter())
-    trajectories = flight_trajectories(cfg, scene)
-    marks.append(time.perf_counter())
-    # Warp is loaded only for input that passed the checks above, so that bad input fails fast
-    from flightsim.core.warp_runtime import resolve_device
-    from flightsim.engine.tracer import Tracer
-
-    resolve_device(cfg.run.device)  # every input is checked before the output directory is touched
     cfg_text = to_toml(cfg)
-    prepare_output(directory, cfg_text, overwrite)
-    write_atomic(directory / "run.toml", cfg_text)
-    options = {**product.tracer_options, **({"with_truth": True} if with_truth else {})}
-    tracer = Tracer(cfg, scene, trajectories, **options)
-    product.open(tracer, directory, cfg_text)
+    tracer, product = open_run(cfg, directory, marks, lambda: prepare_output(directory, cfg_text, overwrite),
+                               with_truth)
     consume = product if tap is None else (lambda item: (tap(tracer, item), product(item)))
     marks.append(time.perf_counter())
     try:
@@ -131,6 +119,50 @@ def execute(cfg: RunConfig, directory: Path, overwrite: bool = False,
         summary["empty"] = empty_reason(tracer, counts)
     write_atomic(directory / "summary.json", json.dumps(summary, indent=2) + "\n")
     return Run(summary, counts, tracer)
+
+
+def open_run(cfg: RunConfig, directory: Path, marks: list[float], claim: Callable[[], None],
+             with_truth: bool = False):
+    """(tracer, product) of a run of ``cfg``: the scene built, the flight planned (``marks`` gets the time after
+    each), every input checked, then ``claim()`` (which makes ``directory`` ready) and the product opened in
+    ``directory`` with run.toml written."""
+    scene = build_scene(cfg)
+    product = product_class(cfg)(cfg, scene)
+    marks.append(time.perf_counter())
+    trajectories = flight_trajectories(cfg, scene)
+    marks.append(time.perf_counter())
+    # Warp is loaded only for input that passed the checks above, so that bad input fails fast
+    from flightsim.core.warp_runtime import resolve_device
+    from flightsim.engine.tracer import Tracer
+
+    resolve_device(cfg.run.device)  # every input is checked before the output directory is touched
+    cfg_text = to_toml(cfg)
+    claim()
+    write_atomic(directory / "run.toml", cfg_text)
+    options = {**product.tracer_options, **({"with_truth": True} if with_truth else {})}
+    tracer = Tracer(cfg, scene, trajectories, **options)
+    product.open(tracer, directory, cfg_text)
+    return tracer, product
+
+
+def compile_kernels(configs: list[RunConfig]) -> int:
+    """Compile into Warp's kernel cache every kernel that runs of ``configs`` launch, all at once and without
+    flying them (scenes built, flights planned, products opened in a scratch directory); returns the modules."""
+    with tempfile.TemporaryDirectory() as tmp:
+        places = [Path(tmp) / str(k) for k in range(len(configs))]
+        opened = [open_run(cfg, place, [], place.mkdir) for cfg, place in zip(configs, places)]
+        try:
+            wanted = {}
+            for tracer, product in opened:
+                wanted.setdefault(tracer.device, []).extend(tracer.kernels_needed(product.readout(), product))
+            from flightsim.core.warp_runtime import compile_ahead
+
+            for device, kernels in wanted.items():
+                compile_ahead(device, kernels)
+        finally:
+            for _tracer, product in opened:
+                product.abort()
+    return sum(len({id(k.module) for k in kernels}) for kernels in wanted.values())
 
 
 def summary_head(cfg: RunConfig, tracer, counts) -> dict:

@@ -245,12 +245,16 @@ class Tracer:
         return counts
 
     def compile_ahead(self, *parts) -> None:
-        """Compile the modules of the tracer's chunk kernels and of every part's ``kernels_needed`` (a readout, a
-        product's consumers) in parallel, before the first chunk would compile them one by one."""
+        """Compile the modules of :meth:`kernels_needed` in parallel, before the first chunk would compile them
+        one by one."""
+        compile_ahead(self.device, self.kernels_needed(*parts))
+
+    def kernels_needed(self, *parts) -> list:
+        """The tracer's chunk kernels and every part's ``kernels_needed`` (a readout, a product's consumers)."""
         kernels = [frames.pulse_poses, trace.pulse_optics_kernel(self.instrument.kernel, self.features.pose)]
         for part in parts:
             kernels += part.kernels_needed(self) if hasattr(part, "kernels_needed") else []
-        compile_ahead(self.device, kernels)
+        return kernels
 
     def _check_readout(self, readout: Readout) -> None:
         detector = self.instrument.detector

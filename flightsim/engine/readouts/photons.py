@@ -13,7 +13,7 @@ import warp as wp
 from flightsim.core.registry import register
 from flightsim.core.warp_runtime import host_array, to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, SLOTS_PER_CHUNK, Segment
-from flightsim.engine.readouts.points import PointBuffers, trace_points
+from flightsim.engine.readouts.points import PointBuffers, points_kernel, trace_points
 from flightsim.scenes.canopy import no_canopy
 from kernels import photon, trace
 
@@ -151,6 +151,14 @@ class Photons:
         for part in _host_photons(tracer, segments, found):
             counts.per_line[part.line_id] = counts.per_line.get(part.line_id, 0) + len(part)
             consume(part)
+
+    def kernels_needed(self, tracer) -> list:
+        retro, leaves = len(tracer.cfg.scene.ccrs) > 0, tracer.scene.canopy is not None
+        rays = [trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose)]
+        ranges_only = dataclasses.replace(tracer.features, exact=False, nominal=False, edges=False)
+        return [points_kernel(tracer, ranges_only, 1), photon.photon_slots_kernel(retro, tracer.meshes.per_face, leaves),
+                photon.gather_events, trace.photon_points_kernel(tracer.instrument.kernel),
+                *(rays if retro or leaves else [])]
 
     def end(self, tracer, counts) -> wp.array:
         return self.buffers.counters
