@@ -1,6 +1,7 @@
 """`flightsim bench` section startup: seconds from launching `flightsim simulate` (the default scene and
 instrument, 1 s of flight) to its command line parsed, to the first trace launch and to the first LAS tile on
-disk, with an empty Warp kernel cache (cold: every module compiled) and again with the cache it left (warm)."""
+disk, with an empty Warp kernel cache (cold: every module compiled), again with the cache it left (warm), and
+after `flightsim compile` filled an empty cache ahead of the run; and what `flightsim compile --all` takes."""
 from __future__ import annotations
 
 import os
@@ -15,13 +16,33 @@ from flightsim.studies.bench_common import Sizes
 
 
 def startup(device: str, s: Sizes) -> list[dict]:
-    """One record per cache state (cold, then warm) in a fresh kernel cache and scene cache."""
-    with tempfile.TemporaryDirectory() as tmp:
-        return [_launch(resolve_device(device), Path(tmp), state) for state in ("cold", "warm")]
+    """One record per cache state: cold (an empty Warp kernel cache), warm (the cache the cold run left), and
+    after `flightsim compile` of the same flags (``compile_s``) in another empty cache; the last record times
+    `flightsim compile --all` (every built-in instrument) in an empty cache."""
+    device = resolve_device(device)
+    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as ahead:
+        records = [_launch(device, Path(tmp), state) for state in ("cold", "warm")]
+        compiled = _compile(device, Path(ahead), [])
+        records.append({**_launch(device, Path(ahead), "compiled ahead"), "compile_s": compiled})
+    with tempfile.TemporaryDirectory() as every:
+        records.append({"cache": "compile --all", "device": device, "compile_s": _compile(device, Path(every),
+                                                                                        ["--all"])})
+    return records
+
+
+def _compile(device: str, tmp: Path, flags: list[str]) -> float:
+    """Seconds `flightsim compile` takes in the kernel cache under ``tmp``."""
+    env = dict(os.environ, WARP_CACHE_PATH=str(tmp / "kernels"), FLIGHTSIM_CACHE=str(tmp / "scenes"))
+    command = [sys.executable, "-m", "flightsim", "compile", "--device", device, *flags]
+    started = time.time()
+    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"compile failed: {' '.join(command)}\n{done.stderr[-4000:]}")
+    return time.time() - started
 
 
 def _launch(device: str, tmp: Path, state: str) -> dict:
-    out, timeline = tmp / f"run-{state}", tmp / f"timeline-{state}.txt"
+    out, timeline = tmp / f"run-{state.replace(' ', '-')}", tmp / f"timeline-{state.replace(' ', '-')}.txt"
     kernels = tmp / "kernels"
     env = dict(os.environ, WARP_CACHE_PATH=str(kernels), FLIGHTSIM_CACHE=str(tmp / "scenes"),
                FLIGHTSIM_TIMELINE=str(timeline))
