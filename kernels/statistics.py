@@ -38,7 +38,7 @@ def records_kernel(f: Features, instrument: Instrument, max_registers: int | Non
     state small. A return the edge grid cannot place clear of the plane boundaries is written as
     CODE_NEAR − plane and listed, with its true point, for :data:`check_edges` to settle (a short
     dense list, so the boundary queries do not hold up whole warps of returns that need none); the
-    per-plane sums are left to :func:`reduce_kernel`.
+    per-plane sums are left to :func:`reduce_records`.
     """
     trace_slot = slot_function(f, instrument)
     Scan = scan_struct(instrument)
@@ -111,83 +111,70 @@ def check_edges_kernel(instrument: Instrument):
     return check_edges
 
 
-@functools.cache
-def reduce_kernel(f: Features):
-    """Statistics mode, step 2: per-plane float64 moments of the records of a chunk.
+@wp.kernel
+def reduce_records(
+    # In:
+    codes: wp.array(dtype=wp.int32),
+    points: wp.array(dtype=wp.vec3f),  # one model's points [m, local]
+    model: wp.int32,  # its index in the sums (exact 0, nominal 1)
+    count_codes: wp.int32,  # 1: also count the TIR, missed and edge-excluded slots (once per chunk)
+    n_slots: wp.int32,
+    slots_per_thread: wp.int32,
+    references: wp.array(dtype=wp.vec3d),  # reference point of each plane [m, local]
+    # Out: per replica, per model, per plane
+    counts: wp.array3d(dtype=wp.int64),
+    first: wp.array3d(dtype=wp.vec3d),  # Σ (p − ref)
+    second: wp.array3d(dtype=vec6d),  # Σ upper triangle of (p − ref)(p − ref)ᵀ
+    counters: wp.array(dtype=wp.int32),  # [TIR, misses, edge-excluded]
+):
+    """Statistics mode, step 2: per-plane float64 moments of one model's records of a chunk (a launch per
+    model, so that a thread holds one model's running sums: half the registers of both at once).
 
-    Each thread takes a run of consecutive slots (consecutive beams of a pulse, then the next
-    pulse: the order in which the beams' footprints lie closest) and keeps running sums while the
-    plane stays the same, adding them to the global sums (atomics) only when the plane changes.
-    Neighbouring threads mostly hold the same plane too, so thread t adds to replica t mod R of the
-    sums (R = the sums' first dimension), spreading the atomics on a busy plane over R addresses;
-    the host adds the replicas.
+    Each thread takes a run of consecutive slots (consecutive beams of a pulse, then the next pulse: the
+    order in which the beams' footprints lie closest) and keeps running sums while the plane stays the same,
+    adding them to the global sums (atomics) only when the plane changes. Neighbouring threads mostly hold
+    the same plane too, so thread t adds to replica t mod R of the sums (R = the sums' first dimension),
+    spreading the atomics on a busy plane over R addresses; the host adds the replicas.
     """
-
-    @wp.kernel(module="unique")
-    def reduce_records(
-        # In:
-        codes: wp.array(dtype=wp.int32),
-        exact_points: wp.array(dtype=wp.vec3f),
-        nominal_points: wp.array(dtype=wp.vec3f),
-        n_slots: wp.int32,
-        slots_per_thread: wp.int32,
-        references: wp.array(dtype=wp.vec3d),  # reference point of each plane [m, local]
-        # Out: per replica, per model (exact [0], nominal [1]), per plane
-        counts: wp.array3d(dtype=wp.int64),
-        first: wp.array3d(dtype=wp.vec3d),  # Σ (p − ref)
-        second: wp.array3d(dtype=vec6d),  # Σ upper triangle of (p − ref)(p − ref)ᵀ
-        counters: wp.array(dtype=wp.int32),  # [TIR, misses, edge-excluded]
-    ):
-        begin = wp.tid() * slots_per_thread
-        end = wp.min(begin + slots_per_thread, n_slots)
-        replica = wp.tid() % counts.shape[0]
-        plane = int(-1)
-        n = wp.int64(0)
-        s_exact = wp.vec3d()
-        s_nominal = wp.vec3d()
-        ss_exact = vec6d()
-        ss_nominal = vec6d()
-        tir = int(0)
-        miss = int(0)
-        excluded = int(0)
-        for slot in range(begin, end):
-            code = codes[slot]
-            if code == CODE_TIR:
-                tir += 1
-            elif code == CODE_MISS:
-                miss += 1
-            elif code == CODE_EDGE:
-                excluded += 1
-            else:
-                if code != plane:
-                    if plane >= 0:
-                        _flush(counts, first, second, replica, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
-                    plane = code
-                    n = wp.int64(0)
-                    s_exact = wp.vec3d()
-                    s_nominal = wp.vec3d()
-                    ss_exact = vec6d()
-                    ss_nominal = vec6d()
-                n += wp.int64(1)
-                ref = references[plane]
-                if wp.static(f.exact):
-                    d = wp.vec3d(exact_points[slot]) - ref
-                    s_exact += d
-                    ss_exact += _outer6(d)
-                if wp.static(f.nominal):
-                    d = wp.vec3d(nominal_points[slot]) - ref
-                    s_nominal += d
-                    ss_nominal += _outer6(d)
-        if plane >= 0:
-            _flush(counts, first, second, replica, plane, n, s_exact, ss_exact, s_nominal, ss_nominal)
+    begin = wp.tid() * slots_per_thread
+    end = wp.min(begin + slots_per_thread, n_slots)
+    replica = wp.tid() % counts.shape[0]
+    plane = int(-1)
+    n = wp.int64(0)
+    s = wp.vec3d()
+    ss = vec6d()
+    tir = int(0)
+    miss = int(0)
+    excluded = int(0)
+    for slot in range(begin, end):
+        code = codes[slot]
+        if code == CODE_TIR:
+            tir += 1
+        elif code == CODE_MISS:
+            miss += 1
+        elif code == CODE_EDGE:
+            excluded += 1
+        else:
+            if code != plane:
+                if plane >= 0:
+                    _flush(counts, first, second, replica, model, plane, n, s, ss)
+                plane = code
+                n = wp.int64(0)
+                s = wp.vec3d()
+                ss = vec6d()
+            n += wp.int64(1)
+            d = wp.vec3d(points[slot]) - references[plane]
+            s += d
+            ss += _outer6(d)
+    if plane >= 0:
+        _flush(counts, first, second, replica, model, plane, n, s, ss)
+    if count_codes != 0:
         if tir > 0:
             wp.atomic_add(counters, COUNT_TIR, tir)
         if miss > 0:
             wp.atomic_add(counters, COUNT_MISS, miss)
         if excluded > 0:
             wp.atomic_add(counters, COUNT_EDGE, excluded)
-
-    return reduce_records
 
 
 @wp.func
@@ -208,7 +195,7 @@ def plane_codes(
     edge_distance: wp.array(dtype=wp.float32),
     face_plane: wp.array(dtype=wp.int32),
     edge_buffer: wp.float32,  # > 0: returns nearer a plane boundary than this are left out [m]
-    codes: wp.array(dtype=wp.int32),  # out: the plane of a return, else a CODE_* (reduce_kernel's input)
+    codes: wp.array(dtype=wp.int32),  # out: the plane of a return, else a CODE_* (reduce_records' input)
 ):
     """Points mode: the statistics reduction's code of each slot the points kernel traced."""
     slot = wp.tid()
@@ -248,25 +235,21 @@ def _flush(
     first: wp.array3d(dtype=wp.vec3d),
     second: wp.array3d(dtype=vec6d),
     replica: int,
+    model: int,
     plane: int,
     n: wp.int64,
-    s_exact: wp.vec3d,
-    ss_exact: vec6d,
-    s_nominal: wp.vec3d,
-    ss_nominal: vec6d,
+    s: wp.vec3d,
+    ss: vec6d,
 ):
-    """Add one thread's running sums for ``plane`` to a replica of the global per-plane sums."""
-    wp.atomic_add(counts, replica, 0, plane, n)
-    wp.atomic_add(counts, replica, 1, plane, n)
-    wp.atomic_add(first, replica, 0, plane, s_exact)
-    wp.atomic_add(first, replica, 1, plane, s_nominal)
-    wp.atomic_add(second, replica, 0, plane, ss_exact)
-    wp.atomic_add(second, replica, 1, plane, ss_nominal)
+    """Add one thread's running sums of a model for ``plane`` to a replica of the global per-plane sums."""
+    wp.atomic_add(counts, replica, model, plane, n)
+    wp.atomic_add(first, replica, model, plane, s)
+    wp.atomic_add(second, replica, model, plane, ss)
 
 
 @wp.kernel
 def add_replicas(
-    counts: wp.array3d(dtype=wp.int64),  # per replica, model, group (reduce_kernel's sums)
+    counts: wp.array3d(dtype=wp.int64),  # per replica, model, group (reduce_records' sums)
     first: wp.array3d(dtype=wp.vec3d),
     second: wp.array3d(dtype=vec6d),
     # Out: per model, group

@@ -13,7 +13,7 @@ from flightsim.core.atomic import replaced_atomically
 from flightsim.core.constants import MODELS
 from flightsim.core.errors import InputError
 from flightsim.scoring.planes import PlaneMoments, pooled_rms
-from flightsim.scoring.reduction import SLOTS_PER_THREAD, replica_totals, symmetric
+from flightsim.scoring.reduction import SLOTS_PER_THREAD, reduce_models, replica_totals, symmetric
 from kernels import statistics
 
 
@@ -27,7 +27,7 @@ MIN_PATCH_POINTS = 10
 
 class _DeviceMoments:
     """Per-group float64 moments of each model's points on the device (the statistics-mode reduction,
-    :func:`kernels.statistics.reduce_kernel`), fed one chunk of codes at a time: the group of each slot."""
+    :func:`kernels.statistics.reduce_records`), fed one chunk of codes at a time: the group of each slot."""
 
     def __init__(self, simulator, references: np.ndarray):
         """references: (G, 3) float64 reference point of each group [m, local]."""
@@ -39,11 +39,10 @@ class _DeviceMoments:
         shape = (simulator.sum_replicas(len(references)), 2, len(references))
         self.sums = [wp.zeros(shape, dtype=wp.int64, device=d), wp.zeros(shape, dtype=wp.vec3d, device=d),
                      wp.zeros(shape, dtype=statistics.vec6d, device=d), wp.zeros(3, dtype=wp.int32, device=d)]
-        self.reduce = statistics.reduce_kernel(simulator.features)
         self.codes: wp.array | None = None
 
     def kernels_needed(self, simulator) -> list:
-        return [self.reduce, statistics.plane_codes]  # the codes' kernels share the statistics module
+        return [statistics.reduce_records]  # the codes' kernels share its module
 
     def codes_for(self, n_slots: int) -> wp.array:
         """The device array of at least ``n_slots`` codes to fill for :meth:`add`."""
@@ -54,9 +53,8 @@ class _DeviceMoments:
     def add(self, returns) -> None:
         """Reduce the chunk's points by the codes just written into :meth:`codes_for`'s array."""
         b, n, spt = returns.buffers, returns.n_slots, self.slots_per_thread
-        wp.launch(self.reduce, (n + spt - 1) // spt, inputs=[self.codes, b.model_points["exact"],
-                                                            b.model_points["nominal"], n, spt, self.references],
-                  outputs=self.sums, device=self.device)
+        reduce_models(self.codes, [b.model_points[m] for m in MODELS], self.models, n, spt, self.references,
+                      self.sums, self.device)
 
     def moments(self) -> dict[str, PlaneMoments]:
         """Each model's moments, the replicas added (one device → host copy)."""

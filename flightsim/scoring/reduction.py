@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from flightsim.core.constants import MODELS
 from kernels import statistics
 
 SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # consecutive slots per reducing thread
@@ -19,6 +20,18 @@ def sum_replicas(device_kind: str, groups: int, asked: int = 0) -> int:
         return 1
     per_copy = 2 * groups * (8 + 24 + 48)
     return max(1, min(asked or SUM_REPLICAS, SUM_REPLICA_BYTES // per_copy))
+
+
+def reduce_models(codes: wp.array, points: list[wp.array], models, n_slots: int, slots_per_thread: int,
+                  references: wp.array, sums: list[wp.array], device: str) -> None:
+    """Add a chunk's records to the per-group ``sums`` [counts, Σd, Σddᵀ, counters]: one launch of
+    :func:`kernels.statistics.reduce_records` per model in ``models`` (``points`` indexed as MODELS: exact,
+    nominal), the first also counting the TIR, missed and edge-excluded slots."""
+    present = [k for k, model in enumerate(MODELS) if model in models]
+    for k in present:
+        wp.launch(statistics.reduce_records, (n_slots + slots_per_thread - 1) // slots_per_thread,
+                  inputs=[codes, points[k], k, int(k == present[0]), n_slots, slots_per_thread, references],
+                  outputs=sums, device=device)
 
 
 def replica_totals(sums: list[wp.array]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

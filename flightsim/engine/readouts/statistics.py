@@ -11,7 +11,7 @@ import warp as wp
 from flightsim.core.constants import MODELS
 from flightsim.core.registry import register
 from flightsim.scoring.planes import PlaneMoments
-from flightsim.scoring.reduction import SLOTS_PER_THREAD, replica_totals, symmetric
+from flightsim.scoring.reduction import SLOTS_PER_THREAD, reduce_models, replica_totals, symmetric
 from kernels import statistics
 
 
@@ -60,19 +60,18 @@ class Statistics:
 
     def kernels_needed(self, tracer) -> list:
         return [statistics.records_kernel(tracer.features, tracer.instrument.kernel, max_registers=tracer.max_registers),
-                statistics.check_edges_kernel(tracer.instrument.kernel), statistics.reduce_kernel(tracer.features)]
+                statistics.check_edges_kernel(tracer.instrument.kernel), statistics.reduce_records]
 
     def chunk(self, tracer, segments, n_slots: int, counts, consume) -> None:
         b, d, spt = self.buffers, tracer.device, self.spt
-        trace_records, check_edges, reduce_records = self.kernels
+        trace_records, check_edges, _ = self.kernels
         wp.launch(trace_records, n_slots, inputs=[b.pulses, tracer.scan, b.face_plane],
                   outputs=[*b.records, *b.near], device=d)
         if tracer.features.edges:
             wp.launch(check_edges, n_slots, inputs=[tracer.scan, tracer.edge_buffer_m, *b.near],
                       outputs=[b.records[0]], device=d)
             b.near[0].zero_()
-        wp.launch(reduce_records, (n_slots + spt - 1) // spt,
-                  inputs=[*b.records, n_slots, spt, b.references], outputs=self.sums, device=d)
+        reduce_models(b.records[0], b.records[1:], tracer.models, n_slots, spt, b.references, self.sums, d)
 
     def end(self, tracer, counts) -> wp.array:
         count, first, second = replica_totals(self.sums[:3])
