@@ -108,11 +108,15 @@ class PointBuffers:
 
 def trace_points(tracer, buffers: PointBuffers, n_slots: int, features: trace.Features | None = None) -> None:
     """Launch the points kernel (``features``, default the tracer's) over a traced chunk's slots; over a canopy
-    the canopy kernel, one thread per beam."""
-    kernel = points_kernel(tracer, features or tracer.features, buffers.per_beam)
+    the canopy kernels, one thread per beam: the beams' surface traces, then the leaf walks and the slots."""
+    f = features or tracer.features
+    kernel = points_kernel(tracer, f, buffers.per_beam)
     if buffers.per_beam > 1:
         leaves = tracer.kept("canopy_returns", lambda: CanopyReturns(tracer, buffers))
-        wp.launch(kernel, n_slots // buffers.per_beam, inputs=[buffers.pulses, tracer.scan, *leaves.inputs()],
+        beams, scan = n_slots // buffers.per_beam, tracer.scan
+        wp.launch(canopy_trace_kernel(tracer, f), beams, inputs=[buffers.pulses, scan], outputs=[leaves.traces],
+                  device=tracer.device)
+        wp.launch(kernel, beams, inputs=[buffers.pulses, scan, leaves.traces, *leaves.inputs()],
                   outputs=buffers.slot_outputs(), device=tracer.device)
         return
     wp.launch(kernel, n_slots, inputs=[buffers.pulses, tracer.scan], outputs=buffers.slot_outputs(),
@@ -127,9 +131,14 @@ def points_kernel(tracer, f: trace.Features, per_beam: int):
     return trace.points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
 
 
+def canopy_trace_kernel(tracer, f: trace.Features):
+    """The canopy kernels' first stage (each beam's surface trace) of ``f`` on the tracer's instrument."""
+    return canopy_returns.canopy_trace_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
+
+
 class CanopyReturns:
-    """The canopy kernel's inputs besides the scan: the canopy on the device, the detector's trigger, the surface's
-    albedo per triangle (or none) and a scratch row of leaf echoes per slot."""
+    """The canopy kernels' inputs besides the scan: the canopy on the device, the detector's trigger, the surface's
+    albedo per triangle (or none), a scratch row of leaf echoes per slot and one surface trace per beam."""
 
     def __init__(self, tracer, buffers: PointBuffers):
         s, scene = tracer.cfg.discrete, tracer.scene
@@ -142,6 +151,7 @@ class CanopyReturns:
         self.reflectance = (tracer.meshes.reflectance if tracer.meshes.per_face
                             else wp.zeros(0, dtype=wp.float32, device=tracer.device))
         self.echoes = wp.empty(buffers.status.shape[0], dtype=canopy_returns.Echo, device=tracer.device)
+        self.traces = wp.empty(buffers.status.shape[0] // buffers.per_beam, dtype=trace.SlotTrace, device=tracer.device)
 
     def inputs(self) -> list:
         return [self.canopy, self.det, self.reflectance, self.echoes]
@@ -180,7 +190,8 @@ class Points:
             consume(part)
 
     def kernels_needed(self, tracer) -> list:
-        return [points_kernel(tracer, tracer.features, tracer.returns_per_beam), compaction.flag_returns]
+        canopy = [canopy_trace_kernel(tracer, tracer.features)] if tracer.returns_per_beam > 1 else []
+        return [points_kernel(tracer, tracer.features, tracer.returns_per_beam), *canopy, compaction.flag_returns]
 
     def end(self, tracer, counts) -> wp.array:
         if self.buffers.per_beam > 1:
