@@ -144,6 +144,25 @@ def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec
     return wp.min(count, det.max_returns), transmission, armed
 
 
+SMEM_SPILLING = True  # the walk kernel's register spills go to shared memory first (False: all to local memory)
+BLOCK_THREADS = 256  # threads per block of Warp's launches (wp.launch's default block_dim)
+SM_REGISTERS = 65536  # 32-bit registers per multiprocessor (every CUDA architecture since Kepler)
+
+
+def walk_register_options(max_registers: int | None) -> dict:
+    """Kernel options capping the walk kernel's registers at ``max_registers`` (None: the compiler's choice). With
+    :data:`SMEM_SPILLING`, the cap is given as launch bounds (blocks of :data:`BLOCK_THREADS` threads, enough of them
+    per multiprocessor that no thread has more than ``max_registers``: 64 for caps 64 to 85, 80 for 86 to 127, 128
+    for 128 to 255) so that the CUDA compiler (13.0 and later) may spill to shared memory, which the walk kernel
+    does not use otherwise."""
+    if max_registers is None:
+        return {}
+    if not SMEM_SPILLING:
+        return {"cuda_max_registers": max_registers}
+    blocks = min(8, -(-SM_REGISTERS // (BLOCK_THREADS * max_registers)))
+    return {"launch_bounds": (BLOCK_THREADS, blocks), "enable_cuda_smem_spilling": True}
+
+
 @functools.cache
 def canopy_trace_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
     """The first stage of the points kernel of a scene with a canopy: one thread per beam, its surface trace
@@ -171,7 +190,7 @@ def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int
     reads the rest of the trace only after the walk, so none of it is held in registers across the walk."""
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
+    @wp.kernel(module="unique", enable_backward=False, **walk_register_options(max_registers))
     def trace_canopy_points(
         pulses: wp.array2d(dtype=wp.float64),
         scan: Scan,

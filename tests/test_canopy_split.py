@@ -88,9 +88,12 @@ def test_returns_per_line_summed_on_the_device_are_the_host_returns(device, tmp_
     assert silent.per_line == by_line and (silent.leaf_returns, silent.dark) == (counts.leaf_returns, counts.dark)
 
 
-def test_the_register_cap_reaches_both_canopy_kernels(tmp_path):
-    tracer = _tracer("cpu", _layer(tmp_path, 0.25), **{"run.max_registers": 72})
-    kernels = Points().kernels_needed(tracer)
-    canopy = [k for k in kernels if k.key.split("_locals__")[-1].startswith("trace_canopy")]
-    assert sorted(k.key.split("_locals__")[-1] for k in canopy) == ["trace_canopy_beams", "trace_canopy_points"]
-    assert all(k.options.get("cuda_max_registers") == 72 for k in canopy)
+@pytest.mark.parametrize("cap, blocks", [(64, 4), (72, 4), (100, 3), (128, 2), (255, 2)])  # 64, 64, 85, 128, 128 a thread
+def test_the_register_cap_reaches_both_canopy_kernels(tmp_path, cap, blocks):
+    """The trace kernel gets the cap as it is; the walk kernel as launch bounds: blocks of 256 threads, as many per
+    multiprocessor (65536 registers) as keep each thread at or under the cap, with spilling to shared memory."""
+    tracer = _tracer("cpu", _layer(tmp_path, 0.25), **{"run.max_registers": cap})
+    kernels = {k.key.split("_locals__")[-1]: k for k in Points().kernels_needed(tracer)}
+    trace, walk = kernels["trace_canopy_beams"], kernels["trace_canopy_points"]
+    assert trace.options.get("cuda_max_registers") == cap
+    assert walk.options.get("launch_bounds") == (256, blocks) and walk.options.get("enable_cuda_smem_spilling")
