@@ -139,7 +139,8 @@ def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec
                     gathered = wp.float64(0.0)
                     armed = s + x + det.min_separation
                     s = s + x
-        transmission *= wp.exp(-kappa * (w.t_out - w.t_in))
+        if kappa != wp.float64(0.0):  # an empty voxel leaves it as it is (exp(0) = 1): no exp
+            transmission *= wp.exp(-kappa * (w.t_out - w.t_in))
         w = walk_next(c, w)
     return wp.min(count, det.max_returns), transmission, armed
 
