@@ -28,7 +28,7 @@ import warp as wp
 from kernels.canopy import Canopy, g_of, walk_begin, walk_next
 from kernels.parts import Instrument
 from kernels.trace import (COUNT_MISS, COUNT_TIR, STATUS_LEAF, STATUS_MISS, STATUS_RETURN, STATUS_TIR, Features,
-                           scan_struct, signed_off_nadir, slot_function)
+                           SlotTrace, scan_struct, signed_off_nadir, slot_function)
 from kernels.edges import boundary_distance, near_boundary
 from kernels.frames import ROW_RIGHT, get3
 
@@ -139,21 +139,63 @@ def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec
                     gathered = wp.float64(0.0)
                     armed = s + x + det.min_separation
                     s = s + x
-        transmission *= wp.exp(-kappa * (w.t_out - w.t_in))
+        if kappa != wp.float64(0.0):  # an empty voxel leaves it as it is (exp(0) = 1): no exp
+            transmission *= wp.exp(-kappa * (w.t_out - w.t_in))
         w = walk_next(c, w)
     return wp.min(count, det.max_returns), transmission, armed
 
 
+SMEM_SPILLING = True  # the walk kernel's register spills go to shared memory first (False: all to local memory)
+BLOCK_THREADS = 256  # threads per block of Warp's launches (wp.launch's default block_dim)
+SM_REGISTERS = 65536  # 32-bit registers per multiprocessor (every CUDA architecture since Kepler)
+
+
+def walk_register_options(max_registers: int | None) -> dict:
+    """Kernel options capping the walk kernel's registers at ``max_registers`` (None: the compiler's choice). With
+    :data:`SMEM_SPILLING`, the cap is given as launch bounds (blocks of :data:`BLOCK_THREADS` threads, enough of them
+    per multiprocessor that no thread has more than ``max_registers``: 64 for caps 64 to 85, 80 for 86 to 127, 128
+    for 128 to 255) so that the CUDA compiler (13.0 and later) may spill to shared memory, which the walk kernel
+    does not use otherwise."""
+    if max_registers is None:
+        return {}
+    if not SMEM_SPILLING:
+        return {"cuda_max_registers": max_registers}
+    blocks = min(8, -(-SM_REGISTERS // (BLOCK_THREADS * max_registers)))
+    return {"launch_bounds": (BLOCK_THREADS, blocks), "enable_cuda_smem_spilling": True}
+
+
 @functools.cache
-def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
-    """The points kernel of a scene with a canopy: one thread per beam, ``max_returns`` slots per beam."""
+def canopy_trace_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
+    """The first stage of the points kernel of a scene with a canopy: one thread per beam, its surface trace
+    (:class:`kernels.trace.SlotTrace`) into a per-beam scratch row that :func:`canopy_points_kernel` reads."""
     trace_slot = slot_function(f, instrument)
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", cuda_max_registers=max_registers)
+    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
+    def trace_canopy_beams(
+        pulses: wp.array2d(dtype=wp.float64),  # In: the chunk's pulse table
+        scan: Scan,
+        traces: wp.array(dtype=SlotTrace),  # Out: per beam, its surface trace [m, local]
+    ):
+        beam_slot = wp.tid()
+        per_pulse = scan.per_pulse
+        traces[beam_slot] = trace_slot(pulses, beam_slot // per_pulse, beam_slot % per_pulse, scan)
+
+    return trace_canopy_beams
+
+
+@functools.cache
+def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
+    """The second stage of the points kernel of a scene with a canopy: one thread per beam, ``max_returns`` slots
+    per beam. It walks the leaves from what the walk needs of the beam's trace (:func:`canopy_trace_kernel`) and
+    reads the rest of the trace only after the walk, so none of it is held in registers across the walk."""
+    Scan = scan_struct(instrument)
+
+    @wp.kernel(module="unique", enable_backward=False, **walk_register_options(max_registers))
     def trace_canopy_points(
         pulses: wp.array2d(dtype=wp.float64),
         scan: Scan,
+        traces: wp.array(dtype=SlotTrace),  # per beam, its surface trace (trace_canopy_beams)
         canopy: Canopy,
         det: EchoDetection,
         face_reflectance: wp.array(dtype=wp.float32),  # the surface's albedo per triangle (empty: none)
@@ -172,25 +214,24 @@ def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int
         counters: wp.array(dtype=wp.int32),  # [TIR, misses, dark beams, beams with returns, leaf returns]
     ):
         beam_slot = wp.tid()
-        per_pulse = scan.per_pulse
-        pulse = beam_slot // per_pulse
         k_max = det.max_returns
         base = beam_slot * k_max
         for k in range(k_max):
             status[base + k] = STATUS_MISS
-        s = trace_slot(pulses, pulse, beam_slot % per_pulse, scan)
-        if s.status == STATUS_TIR:
+        traced = traces[beam_slot].status
+        if traced == STATUS_TIR:
             status[base] = STATUS_TIR
             wp.atomic_add(counters, COUNT_TIR, 1)
             return
-        if s.status == STATUS_MISS:
+        if traced == STATUS_MISS:
             wp.atomic_add(counters, COUNT_MISS, 1)
             return
+        direction = wp.vec3d(traces[beam_slot].direction)
+        hit = wp.vec3d(traces[beam_slot].p_true)
+        depth = wp.min(box_depth(canopy, hit, -direction), wp.float64(traces[beam_slot].r))
+        n, transmission, armed = leaf_returns(canopy, det, hit - depth * direction, direction, depth, echoes, base)
+        s = traces[beam_slot]  # the rest of the trace, read after the walk
         direction = wp.vec3d(s.direction)
-        hit = wp.vec3d(s.p_true)
-        depth = wp.min(box_depth(canopy, hit, -direction), wp.float64(s.r))
-        top = hit - depth * direction
-        n, transmission, armed = leaf_returns(canopy, det, top, direction, depth, echoes, base)
         rho = det.reflectance
         if face_reflectance.shape[0] > 0:
             rho = wp.float64(face_reflectance[s.face])
@@ -206,7 +247,7 @@ def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int
         wp.atomic_add(counters, COUNT_RETURNED, 1)
         if n > 0:
             wp.atomic_add(counters, COUNT_LEAF, n)
-        angle = signed_off_nadir(s.direction, wp.vec3f(get3(pulses, ROW_RIGHT, pulse)))
+        angle = signed_off_nadir(s.direction, wp.vec3f(get3(pulses, ROW_RIGHT, beam_slot // scan.per_pulse)))
         surface_edge = scan.edge_cap
         if wp.static(f.edges):
             if near_boundary(scan.edge_grid, s.p_true):

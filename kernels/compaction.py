@@ -36,13 +36,27 @@ def slot_indices(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int
         dst[offsets[i]] = i
 
 
-@wp.kernel
-def returns_before(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), n_slots: int,
-                   bounds: wp.array(dtype=wp.int32)):
-    """bounds[i] ← the number of returns among the slots before slot bounds[i] (0 ≤ bounds[i] ≤ n_slots)."""
-    i = wp.tid()
-    b = bounds[i]
+@wp.func
+def _returns_before(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), n_slots: int, b: int) -> int:
+    """The number of returns among the slots before slot ``b`` (0 ≤ b ≤ n_slots)."""
     if b == n_slots:
-        bounds[i] = offsets[n_slots - 1] + flags[n_slots - 1]
-    else:
-        bounds[i] = offsets[b]
+        return offsets[n_slots - 1] + flags[n_slots - 1]
+    return offsets[b]
+
+
+@wp.kernel
+def count_returns(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), n_slots: int,
+                  total: wp.array(dtype=wp.int32)):
+    """total[0] ← the number of returns among the chunk's ``n_slots`` slots (one thread)."""
+    total[0] = _returns_before(flags, offsets, n_slots, n_slots)
+
+
+@wp.kernel
+def add_segment_returns(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), n_slots: int,
+                        segments: wp.array(dtype=wp.int32), n_segments: int, per_line: wp.array(dtype=wp.int64)):
+    """per_line[line] += the returns of each segment of the chunk (one thread per segment). ``segments`` holds the
+    segments' slot bounds (n_segments + 1 of them, the last n_slots), then each segment's line."""
+    i = wp.tid()
+    n = (_returns_before(flags, offsets, n_slots, segments[i + 1]) -
+         _returns_before(flags, offsets, n_slots, segments[i]))
+    wp.atomic_add(per_line, segments[n_segments + 1 + i], wp.int64(n))

@@ -24,8 +24,8 @@ def _layer(tmp_path, lad: float, leaf_angles: str = "spherical", rho_leaf: float
     return str(write_canopy_npz(tmp_path / "layer.npz", canopy, "EPSG:32648", ORIGIN))
 
 
-def _run(tmp_path, lad: float, pitch_deg: float = 0.0, **discrete):
-    overrides = {"instrument.deflector": "fixed", "fan.array": 1, "flight.platform": "hover",
+def _run(tmp_path, lad: float, pitch_deg: float = 0.0, device: str = "cpu", **discrete):
+    overrides = {"run.device": device, "instrument.deflector": "fixed", "fan.array": 1, "flight.platform": "hover",
                  "flight.altitude_m": 100.0, "flight.duration_s": 0.3, "fixed.prf_hz": 10.0,
                  "flight.pitch_deg": pitch_deg, "output.models": ["exact"], "scene.name": "plane",
                  "scene.canopy": _layer(tmp_path, lad), **{f"discrete.{k}": v for k, v in discrete.items()}}
@@ -52,8 +52,8 @@ def _expected(lad: float, cos_theta: float, thr: float, sep: float, rho_leaf: fl
 
 
 @pytest.mark.parametrize("lad, pitch", [(0.25, 0.0), (0.25, 20.0), (0.6, 0.0)])
-def test_returns_lie_where_the_trigger_puts_them(tmp_path, lad, pitch):
-    result = _run(tmp_path, lad, pitch)
+def test_returns_lie_where_the_trigger_puts_them(tmp_path, lad, pitch, device):
+    result = _run(tmp_path, lad, pitch, device)
     d = flightsim.load_config().discrete
     cos_t = math.cos(math.radians(pitch))
     depths, ground = _expected(lad, cos_t, d.threshold, d.min_separation_m, 0.4, d.reflectance, d.max_returns)

@@ -4,6 +4,7 @@ the device; only the returns cross to the host (or nothing, for consumers on the
 sums)."""
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,12 +43,17 @@ class ReturnChunk:
 class DeviceReturns:
     """The returns of one chunk of pulses left on the device: the points kernel's per-slot outputs in ``buffers``
     (``buffers.pulses`` is the chunk's pulse table) and ``buffers.index[:count]``, the slot of each return in slot
-    order. Valid until the consumer returns."""
+    order. Valid until the consumer returns. ``count`` is read from the device when first asked for (a consumer that
+    never asks costs the chunk no wait for the device)."""
 
     segments: list[Segment]  # the chunk's pieces of flight lines, in pulse order
     n_slots: int  # slots traced (pulses × beams per pulse)
-    count: int  # returns
     buffers: "PointBuffers"
+
+    @functools.cached_property
+    def count(self) -> int:
+        """The chunk's returns."""
+        return int(to_host(self.buffers.total)[0])
 
 
 class PointBuffers:
@@ -71,6 +77,9 @@ class PointBuffers:
         self.flags = wp.empty(slots, dtype=wp.int32, device=device)
         self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
         self.index = wp.empty(slots, dtype=wp.int32, device=device)
+        self.total = wp.zeros(1, dtype=wp.int32, device=device)  # the returns of the chunk last compacted
+        self.line_returns = wp.zeros(len(tracer.trajectories), dtype=wp.int64, device=device)  # per line of the run
+        self.segments = wp.empty(64, dtype=wp.int32, device=device)  # a chunk's segment bounds and lines
         self.compacted: dict[int, wp.array] = {}
 
     def slot_outputs(self) -> list[wp.array]:
@@ -79,22 +88,25 @@ class PointBuffers:
         return [self.status, self.ranges, self.faces, self.scan_angles, self.cos_incidence, self.edge_distance,
                 self.true_points, self.model_points["exact"], self.model_points["nominal"], *returns, self.counters]
 
-    def compact_index(self, n_slots: int) -> int:
-        """Flag and prefix-sum the returning slots; fill ``index``; return the number of returns."""
+    def compact_index(self, n_slots: int) -> None:
+        """Flag and prefix-sum the returning slots; fill ``index`` and ``total`` (on the device: no wait)."""
         flags, offsets = self.flags[:n_slots], self.offsets[:n_slots]
         wp.launch(compaction.flag_returns, n_slots, inputs=[self.status[:n_slots]], outputs=[flags], device=self.device)
         wp.utils.array_scan(flags, offsets, inclusive=False)
-        last = np.concatenate([flags[n_slots - 1:n_slots].numpy(), offsets[n_slots - 1:n_slots].numpy()])
         wp.launch(compaction.slot_indices, n_slots, inputs=[flags, offsets], outputs=[self.index], device=self.device)
-        return int(last.sum())
-
-    def returns_per_segment(self, segments: list[Segment], beams_per_pulse: int) -> list[int]:
-        """Returns of each segment of the chunk last compacted (from the prefix sums, a few ints back)."""
-        bounds = np.cumsum([0] + [s.count for s in segments]) * beams_per_pulse * self.per_beam
-        before = wp.array(bounds.astype(np.int32), dtype=wp.int32, device=self.device)
-        wp.launch(compaction.returns_before, len(bounds), inputs=[self.flags, self.offsets, int(bounds[-1]), before],
+        wp.launch(compaction.count_returns, 1, inputs=[flags, offsets, n_slots], outputs=[self.total],
                   device=self.device)
-        return np.diff(to_host(before)).tolist()
+
+    def add_line_returns(self, segments: list[Segment], beams_per_pulse: int) -> None:
+        """Add the returns of each segment of the chunk last compacted to ``line_returns`` (on the device: no wait;
+        the segments' slot bounds and lines go up in one small copy)."""
+        bounds = np.cumsum([0] + [s.count for s in segments]) * beams_per_pulse * self.per_beam
+        table = np.concatenate([bounds, [s.line for s in segments]]).astype(np.int32)
+        if len(table) > len(self.segments):
+            self.segments = wp.empty(2 * len(table), dtype=wp.int32, device=self.device)
+        self.segments[:len(table)].assign(table)
+        wp.launch(compaction.add_segment_returns, len(segments), inputs=[self.flags, self.offsets, int(bounds[-1]),
+                  self.segments, len(segments)], outputs=[self.line_returns], device=self.device)
 
     def gather(self, src: wp.array, n_slots: int, n_returns: int) -> np.ndarray:
         """Compact ``src`` on the device and copy only the returns to the host (an array of the caller's own)."""
@@ -108,11 +120,15 @@ class PointBuffers:
 
 def trace_points(tracer, buffers: PointBuffers, n_slots: int, features: trace.Features | None = None) -> None:
     """Launch the points kernel (``features``, default the tracer's) over a traced chunk's slots; over a canopy
-    the canopy kernel, one thread per beam."""
-    kernel = points_kernel(tracer, features or tracer.features, buffers.per_beam)
+    the canopy kernels, one thread per beam: the beams' surface traces, then the leaf walks and the slots."""
+    f = features or tracer.features
+    kernel = points_kernel(tracer, f, buffers.per_beam)
     if buffers.per_beam > 1:
         leaves = tracer.kept("canopy_returns", lambda: CanopyReturns(tracer, buffers))
-        wp.launch(kernel, n_slots // buffers.per_beam, inputs=[buffers.pulses, tracer.scan, *leaves.inputs()],
+        beams, scan = n_slots // buffers.per_beam, tracer.scan
+        wp.launch(canopy_trace_kernel(tracer, f), beams, inputs=[buffers.pulses, scan], outputs=[leaves.traces],
+                  device=tracer.device)
+        wp.launch(kernel, beams, inputs=[buffers.pulses, scan, leaves.traces, *leaves.inputs()],
                   outputs=buffers.slot_outputs(), device=tracer.device)
         return
     wp.launch(kernel, n_slots, inputs=[buffers.pulses, tracer.scan], outputs=buffers.slot_outputs(),
@@ -127,9 +143,14 @@ def points_kernel(tracer, f: trace.Features, per_beam: int):
     return trace.points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
 
 
+def canopy_trace_kernel(tracer, f: trace.Features):
+    """The canopy kernels' first stage (each beam's surface trace) of ``f`` on the tracer's instrument."""
+    return canopy_returns.canopy_trace_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
+
+
 class CanopyReturns:
-    """The canopy kernel's inputs besides the scan: the canopy on the device, the detector's trigger, the surface's
-    albedo per triangle (or none) and a scratch row of leaf echoes per slot."""
+    """The canopy kernels' inputs besides the scan: the canopy on the device, the detector's trigger, the surface's
+    albedo per triangle (or none), a scratch row of leaf echoes per slot and one surface trace per beam."""
 
     def __init__(self, tracer, buffers: PointBuffers):
         s, scene = tracer.cfg.discrete, tracer.scene
@@ -142,6 +163,7 @@ class CanopyReturns:
         self.reflectance = (tracer.meshes.reflectance if tracer.meshes.per_face
                             else wp.zeros(0, dtype=wp.float32, device=tracer.device))
         self.echoes = wp.empty(buffers.status.shape[0], dtype=canopy_returns.Echo, device=tracer.device)
+        self.traces = wp.empty(buffers.status.shape[0] // buffers.per_beam, dtype=trace.SlotTrace, device=tracer.device)
 
     def inputs(self) -> list:
         return [self.canopy, self.det, self.reflectance, self.echoes]
@@ -151,7 +173,8 @@ class CanopyReturns:
 class Points:
     """One return per beam. ``consume`` gets each flight line's part of each chunk as a host :class:`ReturnChunk`,
     or with ``on_device`` each chunk's :class:`DeviceReturns`; ``RunCounts.returns`` counts the returns and
-    ``per_line`` them by line (on the device)."""
+    ``per_line`` them by line (summed on the device, read once in ``end``: a chunk whose consumer stays on the device
+    never waits for it)."""
 
     kind = "points"
 
@@ -162,17 +185,18 @@ class Points:
         per_beam = tracer.returns_per_beam
         pulses = max(1, tracer.pulses_per_launch(POINT_SLOTS_PER_CHUNK) // per_beam)
         self.buffers = PointBuffers(tracer, pulses, per_beam)
+        self.lines: dict[int, None] = {}  # indices of the lines the chunks held, in order
         return self.buffers.pulses
 
     def chunk(self, tracer, segments: list[Segment], n_slots: int, counts, consume) -> None:
         buffers = self.buffers
         n_slots *= buffers.per_beam  # the tracer counts beams
         trace_points(tracer, buffers, n_slots)
-        returns = DeviceReturns(segments, n_slots, buffers.compact_index(n_slots), buffers)
-        for segment, n in zip(segments, buffers.returns_per_segment(segments, tracer.beams_per_pulse)):
-            line_id = tracer.trajectories[segment.line].line_id
-            counts.per_line[line_id] = counts.per_line.get(line_id, 0) + n
-            counts.returns += n
+        buffers.compact_index(n_slots)
+        buffers.add_line_returns(segments, tracer.beams_per_pulse)
+        for segment in segments:  # the lines in the order they come (their counts are added in end)
+            self.lines.setdefault(segment.line, None)
+        returns = DeviceReturns(segments, n_slots, buffers)
         if self.on_device:
             consume(returns)
             return
@@ -180,11 +204,17 @@ class Points:
             consume(part)
 
     def kernels_needed(self, tracer) -> list:
-        return [points_kernel(tracer, tracer.features, tracer.returns_per_beam), compaction.flag_returns]
+        canopy = [canopy_trace_kernel(tracer, tracer.features)] if tracer.returns_per_beam > 1 else []
+        return [points_kernel(tracer, tracer.features, tracer.returns_per_beam), *canopy, compaction.flag_returns]
 
     def end(self, tracer, counts) -> wp.array:
+        per_line = to_host(self.buffers.line_returns)
+        for line in self.lines:
+            line_id, n = tracer.trajectories[line].line_id, int(per_line[line])
+            counts.per_line[line_id] = counts.per_line.get(line_id, 0) + n
+            counts.returns += n
         if self.buffers.per_beam > 1:
-            c = self.buffers.counters.numpy()
+            c = to_host(self.buffers.counters)
             counts.dark, counts.beams_returned = int(c[canopy_returns.COUNT_DARK]), int(c[canopy_returns.COUNT_RETURNED])
             counts.leaf_returns = int(c[canopy_returns.COUNT_LEAF])
         return self.buffers.counters
