@@ -90,7 +90,7 @@ def cloud_waveform_kernel(bins: int):
     """The waveform kernel for a shared histogram of ``bins`` bins per component (launch tiled, one block per
     footprint)."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def cloud_waveforms(
         # In:
         g: CloudGrid,

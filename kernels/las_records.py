@@ -124,7 +124,7 @@ def pack_kernel(position_error: bool, edge_distance: bool, multi_return: bool = 
     number and number of returns from ``returns`` (``multi_return``) or 1 of 1."""
     words = BASE_WORDS + int(position_error) + int(edge_distance)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def pack_records(
         index: wp.array(dtype=wp.int32),  # slot of each return
         order: wp.array(dtype=wp.int32),  # return index of each sorted record

@@ -109,7 +109,7 @@ def exit_fan_kernel(dtype: type):
     """
     vec3 = wp.types.vector(3, dtype)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def exit_fan(
         # In:
         phis: wp.array(dtype=dtype),  # prism angles [rad]

@@ -263,7 +263,7 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
     the scene's per-triangle reflectance (``per_face``) or the run's one value, and through the leaves of
     ``canopy`` (``leaves``) or not."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def photon_slots(det: PhotonDetector, reflectance: wp.float64, face_reflectance: wp.array(dtype=wp.float32),
                      pulses: wp.array2d(dtype=wp.float64), per_pulse: int, energy: wp.array(dtype=wp.float64),
                      status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),

@@ -43,7 +43,7 @@ def records_kernel(f: Features, instrument: Instrument, max_registers: int | Non
     trace_slot = slot_function(f, instrument)
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", cuda_max_registers=max_registers)
+    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
     def trace_records(
         # In:
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
@@ -88,7 +88,7 @@ def check_edges_kernel(instrument: Instrument):
     """The kernel settling near-boundary records (:func:`_check_edges`) for one instrument's scan struct."""
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def check_edges(
         scan: Scan,
         edge_buffer: wp.float32,  # returns closer than this to a plane boundary do not count [m]

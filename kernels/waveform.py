@@ -166,7 +166,7 @@ def deposit_kernel(per_face: bool, canopy: bool = False):
     ``m.reflectance``) or the run's one link; through the leaves of ``leaves`` (``canopy``: :func:`leaf_echo`, the
     surface's echo dimmed by the transmission left) or not (compiled out)."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def deposit(m: MeshRefs, p: WaveformParams, leaves: Canopy, starts: wp.array(dtype=wp.vec3d),
                 directions: wp.array(dtype=wp.vec3d), window_start: wp.array(dtype=wp.float64),
                 offsets: wp.array(dtype=wp.vec2d), weights: wp.array(dtype=wp.float64), per_thread: int,

@@ -144,3 +144,26 @@ def test_the_check_sees_an_upward_import_and_a_circle():
     finally:
         GRAPH.clear()
         GRAPH.update(saved)
+
+
+def _kernels_with_backward(sources: dict[str, str]) -> list[str]:
+    """Kernel decorators of ``sources`` that would compile a backward (adjoint) kernel: a module of its own
+    (``module="unique"``) does not inherit its file's ``enable_backward`` False, so it must say so."""
+    found = []
+    for name, text in sources.items():
+        for node in ast.walk(ast.parse(text)):
+            for deco in getattr(node, "decorator_list", []):
+                if isinstance(deco, ast.Call) and ast.unparse(deco.func) == "wp.kernel":
+                    options = {k.arg: ast.unparse(k.value) for k in deco.keywords}
+                    if options.get("module") == "'unique'" and options.get("enable_backward") != "False":
+                        found.append(f"{name}:{node.name}")
+    return found
+
+
+def test_no_kernel_compiles_a_backward_pass():
+    """Nothing differentiates through the simulator: every kernel compiles its forward pass only (a backward
+    pass more than doubled the points kernel's compile time)."""
+    sources = {name: path.read_text() for name, path in MODULES.items() if name.startswith("kernels")}
+    assert _kernels_with_backward(sources) == []
+    made_up = 'import warp as wp\n@wp.kernel(module="unique")\ndef k():\n    pass\n'
+    assert _kernels_with_backward({"made_up": made_up}) == ["made_up:k"]
