@@ -64,12 +64,15 @@ def grid_points(xyz, cells, bin_m: float, min_count: int, window_m: float, devic
 
 
 class PhotonFrame:
-    """A frame's photon positions and beam angle cells, gathered on the device chunk by chunk
-    (``add`` takes a :class:`~flightsim.engine.readouts.photons.DevicePhotons`), then gridded into points with ``grid``; ``reset`` starts
-    the next frame in the same device and host memory.
+    """A frame's photon positions and beam angle cells, gathered on the device chunk by chunk, then gridded into
+    points with ``grid``; ``reset`` starts the next frame in the same device and host memory.
 
-    The points of ``grid`` are views of the frame's page-locked host buffers (the copy from the device
-    runs at full bus speed and touches no fresh pages): they hold until the frame's next ``grid``.
+    Filled either by the photons readout itself (``Photons(frame=...)``: its kernel writes every chunk's photons
+    here, the frame's count kept on the device, :meth:`device_arrays`; then :meth:`settle` once the run is
+    done, which reads the count and tells whether the arrays held them all) or by ``add`` (a consumer of
+    :class:`~flightsim.engine.readouts.photons.DevicePhotons`). The points of ``grid`` are views of the frame's
+    page-locked host buffers (the copy from the device runs at full bus speed and touches no fresh pages): they
+    hold until the frame's next ``grid``.
     """
 
     def __init__(self, half_field_rad: float, cells: int, device: str, capacity: int = 1 << 20):
@@ -77,13 +80,30 @@ class PhotonFrame:
         self.xyz = wp.empty(capacity, dtype=wp.vec3d, device=device)
         self.cell = wp.empty(capacity, dtype=wp.vec2i, device=device)
         self._signal = wp.zeros(1024, dtype=wp.int64, device=device)
+        self._total = wp.zeros(1, dtype=wp.int32, device=device)  # photons added, on the device
         self._host: dict[str, wp.array] = {}
         self.count = 0
 
     def reset(self) -> None:
         """Forget the photons added (keep the memory)."""
         self.count = 0
+        self._total.zero_()
         self._signal.zero_()
+
+    def device_arrays(self) -> tuple[wp.array, wp.array, wp.array, wp.array]:
+        """(positions, angle cells, count [1], 1024 signal counters) for a kernel appending photons at ``count[0]``
+        (writes past the arrays' length dropped, still counted)."""
+        return self.xyz, self.cell, self._total, self._signal
+
+    def settle(self) -> bool:
+        """Read the count of the photons appended on the device; False when they overflowed the arrays (then
+        grown to hold them: reset and fill the frame again), True when the frame holds them all."""
+        self.count = int(to_host(self._total)[0])
+        if self.count <= len(self.xyz):
+            return True
+        self.xyz = wp.empty(self.count, dtype=wp.vec3d, device=self.device)
+        self.cell = wp.empty(self.count, dtype=wp.vec2i, device=self.device)
+        return False
 
     def add(self, photons) -> None:
         """Append a chunk's photons (device arrays ``points``, ``directions``, ``signal``; ``count`` rows)."""
@@ -95,6 +115,7 @@ class PhotonFrame:
                   inputs=[photons.points, photons.directions, photons.signal, self.half_field, self.cells, self.count],
                   outputs=[self.xyz, self.cell, self._signal], device=self.device)
         self.count += n
+        self._total.fill_(self.count)
 
     @property
     def signal_photons(self) -> int:

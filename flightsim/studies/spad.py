@@ -148,8 +148,11 @@ def simulate_frame(sim, frame) -> tuple:
 
     cfg = sim.cfg
     started = time.perf_counter()
-    frame.reset()
-    counts = sim.run(Photons(on_device=True), frame.add)
+    while True:  # once more only where the frame's arrays were too small for its photons (then grown)
+        frame.reset()
+        counts = sim.run(Photons(frame=frame))
+        if frame.settle():
+            break
     p = cfg.photon
     sigma_m = math.hypot(p.pulse_fwhm_s / 2.3548, p.jitter_s) * 1.5e8
     result = frame.grid(bin_m=max(2.0 * sigma_m, p.tdc_bin_s * 1.5e8), min_count=MIN_PHOTONS,
