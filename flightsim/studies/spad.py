@@ -153,12 +153,18 @@ def simulate_frame(sim, frame) -> tuple:
         counts = sim.run(Photons(frame=frame))
         if frame.settle():
             break
-    p = cfg.photon
-    sigma_m = math.hypot(p.pulse_fwhm_s / 2.3548, p.jitter_s) * 1.5e8
-    result = frame.grid(bin_m=max(2.0 * sigma_m, p.tdc_bin_s * 1.5e8), min_count=MIN_PHOTONS,
-                        window_m=3.0 * sigma_m + p.tdc_bin_s * 1.5e8)
+    bin_m, window_m = grid_bins(cfg)
+    result = frame.grid(bin_m=bin_m, min_count=MIN_PHOTONS, window_m=window_m)
     wall = time.perf_counter() - started
     return counts, FramePoints(result.points, result.cell, result.photons, frame.signal_photons), wall
+
+
+def grid_bins(cfg: RunConfig) -> tuple[float, float]:
+    """(height bin, averaging window) [m] of the gridding: two and three σ of one photon's range (its TDC bin at
+    least, and added to the window)."""
+    p = cfg.photon
+    sigma_m = math.hypot(p.pulse_fwhm_s / 2.3548, p.jitter_s) * 1.5e8
+    return max(2.0 * sigma_m, p.tdc_bin_s * 1.5e8), 3.0 * sigma_m + p.tdc_bin_s * 1.5e8
 
 
 def pile_up_cm(signal_per_shot: float, cfg: RunConfig) -> float:
