@@ -82,6 +82,7 @@ class PhotonFrame:
         self._signal = wp.zeros(1024, dtype=wp.int64, device=device)
         self._total = wp.zeros(1, dtype=wp.int32, device=device)  # photons added, on the device
         self._host: dict[str, wp.array] = {}
+        self._scratch: dict[str, wp.array] = {}  # the gridding's device arrays, kept frame after frame
         self.count = 0
 
     def reset(self) -> None:
@@ -123,7 +124,7 @@ class PhotonFrame:
         return int(to_host(self._signal).sum())
 
     def grid(self, bin_m: float, min_count: int, window_m: float) -> GridPoints:
-        return _grid(self.xyz, self.cell, self.count, bin_m, min_count, window_m, self._host)
+        return _grid(self.xyz, self.cell, self.count, bin_m, min_count, window_m, self._host, self._scratch)
 
     def _reserve(self, n: int) -> None:
         if n <= len(self.xyz):
@@ -135,12 +136,25 @@ class PhotonFrame:
             setattr(self, name, grown)
 
 
-def _extent(xyz: wp.array, cell: wp.array, n: int) -> tuple[float, float, int, int] | None:
+def _take(scratch: dict[str, wp.array] | None, name: str, n: int, dtype, device) -> wp.array:
+    """``n`` (≥ 1) elements of device memory for ``name``: the first of ``scratch[name]`` (grown when too small),
+    so the next gridding reuses them rather than allocating afresh (a pool that gives memory back to the driver
+    at each synchronisation makes each fresh gigabyte costly); a new array where ``scratch`` is None."""
+    if scratch is None:
+        return wp.empty(n, dtype=dtype, device=device)
+    kept = scratch.get(name)
+    if kept is None or len(kept) < n:
+        kept = scratch[name] = wp.empty(max(n, 3 * len(kept) // 2 if kept is not None else n), dtype=dtype,
+                                        device=device)
+    return kept[:n]
+
+
+def _extent(xyz: wp.array, cell: wp.array, n: int, scratch=None) -> tuple[float, float, int, int] | None:
     """(lowest, highest height [m], columns, rows) of the valid photons; None when there are none."""
     threads = min(n, REDUCE_THREADS)
     device = xyz.device
-    zmin, zmax = wp.empty(threads, dtype=wp.float64, device=device), wp.empty(threads, dtype=wp.float64, device=device)
-    top = wp.empty(threads, dtype=wp.vec2i, device=device)
+    zmin, zmax = (_take(scratch, name, threads, wp.float64, device) for name in ("zmin", "zmax"))
+    top = _take(scratch, "top", threads, wp.vec2i, device)
     wp.launch(k.extent, threads, inputs=[xyz, cell, n, threads], outputs=[zmin, zmax, top], device=device)
     lo, hi, top = to_host(zmin).min(), to_host(zmax).max(), to_host(top).max(axis=0)
     if not np.isfinite(lo):
@@ -149,25 +163,29 @@ def _extent(xyz: wp.array, cell: wp.array, n: int) -> tuple[float, float, int, i
 
 
 def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, window_m: float,
-          host: dict[str, wp.array] | None = None) -> GridPoints:
+          host: dict[str, wp.array] | None = None, scratch: dict[str, wp.array] | None = None) -> GridPoints:
     """The points of the first ``n`` photons (device arrays), gridded on their device; copied into the
-    page-locked ``host`` buffers when given (kept there for the next call), else into new arrays."""
-    extent = _extent(xyz, cell, n) if n else None
+    page-locked ``host`` buffers when given (kept there for the next call), else into new arrays; the device
+    arrays of the gridding taken from ``scratch`` when given (:func:`_take`).
+
+    Launches: extent, keys, the radix sort, run heads, a scan, run starts, best pairs, accept, 2 × window sums
+    (and a recentring), 2 × (flags, scan), compaction; host syncs: the extent (3 × 64k partials), the run count,
+    the last key, the occupied and the point counts, the points' copy."""
+    extent = _extent(xyz, cell, n, scratch) if n else None
     if extent is None:
         return _empty()
     lo, hi, columns, rows = extent
     stride = int(np.floor((hi - lo) / bin_m)) + 2
-    runs, keys, starts = _sorted_runs(xyz, cell, n, lo, bin_m, stride, columns, rows)
+    runs, keys, starts = _sorted_runs(xyz, cell, n, lo, bin_m, stride, columns, rows, scratch)
     device, n_cells = xyz.device, columns * rows
-    best = wp.zeros(n_cells, dtype=wp.int64, device=device)
-    totals = wp.zeros(n_cells, dtype=wp.int32, device=device)
+    best, totals = _take(scratch, "best", n_cells, wp.int64, device), _take(scratch, "totals", n_cells, wp.int32, device)
+    best.zero_()
+    totals.zero_()
     wp.launch(k.best_pairs, runs, inputs=[keys, starts, runs, stride], outputs=[best, totals], device=device)
-    centre = wp.empty(n_cells, dtype=wp.float64, device=device)
-    peak = wp.empty(n_cells, dtype=wp.int32, device=device)
+    centre, peak = _take(scratch, "centre", n_cells, wp.float64, device), _take(scratch, "peak", n_cells, wp.int32, device)
     wp.launch(k.accept_cells, n_cells, inputs=[best, totals, stride, lo, bin_m, int(min_count)],
               outputs=[centre, peak], device=device)
-    count = wp.empty(n_cells, dtype=wp.int32, device=device)
-    sums = wp.empty(n_cells, dtype=wp.vec3d, device=device)
+    count, sums = _take(scratch, "count", n_cells, wp.int32, device), _take(scratch, "sums", n_cells, wp.vec3d, device)
     for step in range(2):
         if step:
             wp.launch(k.recentre, n_cells, inputs=[count, sums], outputs=[centre], device=device)
@@ -175,25 +193,23 @@ def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, w
         sums.zero_()
         wp.launch(k.window_sums, n, inputs=[xyz, cell, columns, centre, float(window_m)], outputs=[count, sums],
                   device=device)
-    return _compacted(centre, count, sums, peak, totals, columns, host)
+    return _compacted(centre, count, sums, peak, totals, columns, host, scratch)
 
 
 def _sorted_runs(xyz: wp.array, cell: wp.array, n: int, lo: float, bin_m: float, stride: int, columns: int,
-                 rows: int):
+                 rows: int, scratch=None):
     """(number of runs, sorted keys, run starts) of the photons' (cell, height bin) keys; the runs of the
     valid photons only (the invalid key sorts last and its run is dropped)."""
     device = xyz.device
     invalid = columns * rows * stride
-    keys = wp.empty(2 * n, dtype=wp.int64, device=device)
-    order = wp.empty(2 * n, dtype=wp.int32, device=device)
+    keys, order = _take(scratch, "keys", 2 * n, wp.int64, device), _take(scratch, "order", 2 * n, wp.int32, device)
     wp.launch(k.bin_keys, n, inputs=[xyz, cell, lo, float(bin_m), stride, columns, invalid],
               outputs=[keys, order], device=device)
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=invalid.bit_length())
-    heads = wp.empty(n, dtype=wp.int32, device=device)
-    run = wp.empty(n, dtype=wp.int32, device=device)
+    heads, run = _take(scratch, "heads", n, wp.int32, device), _take(scratch, "run", n, wp.int32, device)
     wp.launch(k.run_heads, n, inputs=[keys], outputs=[heads], device=device)
     runs = _scanned_total(heads, run)
-    starts = wp.empty(runs + 1, dtype=wp.int32, device=device)
+    starts = _take(scratch, "starts", runs + 1, wp.int32, device)
     wp.launch(k.run_starts, n, inputs=[heads, run], outputs=[starts], device=device)
     starts[runs:].fill_(n)
     if int(to_host(keys[n - 1:n])[0]) == invalid:
@@ -202,18 +218,17 @@ def _sorted_runs(xyz: wp.array, cell: wp.array, n: int, lo: float, bin_m: float,
 
 
 def _compacted(centre: wp.array, count: wp.array, sums: wp.array, peak: wp.array, totals: wp.array,
-               columns: int, host: dict[str, wp.array] | None) -> GridPoints:
+               columns: int, host: dict[str, wp.array] | None, scratch=None) -> GridPoints:
     """The accepted cells' points, brought to the host."""
     device, n_cells = centre.device, len(centre)
-    flags = wp.empty(n_cells, dtype=wp.int32, device=device)
-    offsets = wp.empty(n_cells, dtype=wp.int32, device=device)
+    flags, offsets = _take(scratch, "flags", n_cells, wp.int32, device), _take(scratch, "offsets", n_cells, wp.int32, device)
     wp.launch(k.occupied, n_cells, inputs=[totals], outputs=[flags], device=device)
     cells = _scanned_total(flags, offsets)
     wp.launch(k.point_flags, n_cells, inputs=[centre, count], outputs=[flags], device=device)
     m = _scanned_total(flags, offsets)
     if m == 0:
         return _empty(cells)
-    out = {name: wp.empty(m, dtype=dtype, device=device) for name, dtype in OUTPUTS.items()}
+    out = {name: _take(scratch, "out_" + name, m, dtype, device) for name, dtype in OUTPUTS.items()}
     wp.launch(k.compact_points, n_cells, inputs=[flags, offsets, columns, count, sums, peak],
               outputs=list(out.values()), device=device)
     if host is None:
