@@ -208,11 +208,13 @@ def _sorted_runs(xyz: wp.array, cell: wp.array, n: int, lo: float, bin_m: float,
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=invalid.bit_length())
     heads, run = _take(scratch, "heads", n, wp.int32, device), _take(scratch, "run", n, wp.int32, device)
     wp.launch(k.run_heads, n, inputs=[keys], outputs=[heads], device=device)
-    runs = _scanned_total(heads, run)
+    wp.utils.array_scan(heads, run, inclusive=False)
+    last_run, last_head, last_key = _last_values(run, heads, keys[:n])  # one sync
+    runs = last_run + last_head
     starts = _take(scratch, "starts", runs + 1, wp.int32, device)
     wp.launch(k.run_starts, n, inputs=[heads, run], outputs=[starts], device=device)
     starts[runs:].fill_(n)
-    if int(to_host(keys[n - 1:n])[0]) == invalid:
+    if last_key == invalid:
         runs -= 1  # the invalid photons' run: its start becomes the end of the valid runs
     return runs, keys, starts
 
@@ -221,11 +223,14 @@ def _compacted(centre: wp.array, count: wp.array, sums: wp.array, peak: wp.array
                columns: int, host: dict[str, wp.array] | None, scratch=None) -> GridPoints:
     """The accepted cells' points, brought to the host."""
     device, n_cells = centre.device, len(centre)
-    flags, offsets = _take(scratch, "flags", n_cells, wp.int32, device), _take(scratch, "offsets", n_cells, wp.int32, device)
-    wp.launch(k.occupied, n_cells, inputs=[totals], outputs=[flags], device=device)
-    cells = _scanned_total(flags, offsets)
+    flags, offsets, held, held_offsets = (_take(scratch, name, n_cells, wp.int32, device)
+                                          for name in ("flags", "offsets", "held", "held_offsets"))
+    wp.launch(k.occupied, n_cells, inputs=[totals], outputs=[held], device=device)
+    wp.utils.array_scan(held, held_offsets, inclusive=False)
     wp.launch(k.point_flags, n_cells, inputs=[centre, count], outputs=[flags], device=device)
-    m = _scanned_total(flags, offsets)
+    wp.utils.array_scan(flags, offsets, inclusive=False)
+    last = _last_values(held_offsets, held, offsets, flags)  # one sync
+    cells, m = last[0] + last[1], last[2] + last[3]
     if m == 0:
         return _empty(cells)
     out = {name: _take(scratch, "out_" + name, m, dtype, device) for name, dtype in OUTPUTS.items()}
@@ -252,8 +257,17 @@ def _to_host(a: wp.array, host: dict[str, wp.array], name: str) -> np.ndarray:
     return host[name].numpy()[:len(a)]
 
 
-def _scanned_total(flags: wp.array, offsets: wp.array) -> int:
-    """Exclusive scan of ``flags`` into ``offsets``; returns the total."""
-    wp.utils.array_scan(flags, offsets, inclusive=False)
-    n = len(flags)
-    return int(to_host(offsets[n - 1:n])[0] + to_host(flags[n - 1:n])[0])
+_LAST: dict[tuple[str, type], wp.array] = {}  # page-locked landing places of _last_values, per device and type
+
+
+def _last_values(*arrays: wp.array) -> list[int]:
+    """The last element of each (integer) device array, copied to the host together: one sync for all."""
+    landed = []
+    for i, a in enumerate(arrays):
+        key = (str(a.device), a.dtype)
+        if key not in _LAST:
+            _LAST[key] = wp.empty(8, dtype=a.dtype, device="cpu", pinned=a.device.is_cuda)
+        wp.copy(_LAST[key], a, dest_offset=i, src_offset=len(a) - 1, count=1)
+        landed.append((key, i))
+    wp.synchronize_device(arrays[0].device)
+    return [int(_LAST[key].numpy()[i]) for key, i in landed]
