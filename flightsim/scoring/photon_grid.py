@@ -23,6 +23,7 @@ from flightsim.core.warp_runtime import to_host
 from kernels import photon_grid as k
 
 REDUCE_THREADS = 1 << 16  # threads of the extent reduction (each strides over the photons)
+MERGE_THREADS = 256  # threads merging their partials on the device (the host reads these few)
 
 
 @dataclass
@@ -156,7 +157,12 @@ def _extent(xyz: wp.array, cell: wp.array, n: int, scratch=None) -> tuple[float,
     zmin, zmax = (_take(scratch, name, threads, wp.float64, device) for name in ("zmin", "zmax"))
     top = _take(scratch, "top", threads, wp.vec2i, device)
     wp.launch(k.extent, threads, inputs=[xyz, cell, n, threads], outputs=[zmin, zmax, top], device=device)
-    lo, hi, top = to_host(zmin).min(), to_host(zmax).max(), to_host(top).max(axis=0)
+    merged = min(threads, MERGE_THREADS)
+    low, high = (_take(scratch, name, merged, wp.float64, device) for name in ("low", "high"))
+    corner = _take(scratch, "corner", merged, wp.vec2i, device)
+    wp.launch(k.merge_extent, merged, inputs=[zmin, zmax, top, threads, merged], outputs=[low, high, corner],
+              device=device)
+    lo, hi, top = to_host(low).min(), to_host(high).max(), to_host(corner).max(axis=0)
     if not np.isfinite(lo):
         return None
     return float(lo), float(hi), int(top[0]) + 1, int(top[1]) + 1
