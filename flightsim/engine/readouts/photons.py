@@ -66,8 +66,9 @@ class Retroreflectors:
 
 
 class PhotonBuffers:
-    """Device arrays of the photons readout: each slot's detections, and the flat compacted events (sized for
-    FLAT_EVENTS_PER_SLOT detections per slot at first, grown when a chunk holds more)."""
+    """Device arrays of the photons readout: each slot's detections, and the flat compacted events (allocated at
+    the first ``gather``, sized for FLAT_EVENTS_PER_SLOT detections per slot at first, grown when a chunk holds
+    more; a readout writing into a frame never needs them)."""
 
     FLAT = {"slot": wp.int32, "tof": wp.float64, "flag": wp.int8, "points": wp.vec3d, "directions": wp.vec3f}
     FLAT_EVENTS_PER_SLOT = 2
@@ -79,13 +80,13 @@ class PhotonBuffers:
         self.counts = wp.empty(slots, dtype=wp.int32, device=device)
         self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
         self.capacity = 0
-        self._reserve(slots * min(max_events, self.FLAT_EVENTS_PER_SLOT))
+        self.first = slots * min(max_events, self.FLAT_EVENTS_PER_SLOT)
 
     def _reserve(self, n: int) -> None:
         """Flat arrays for at least ``n`` detections (their contents are not kept)."""
-        if n <= self.capacity:
+        if self.capacity and n <= self.capacity:
             return
-        self.capacity = max(n, self.capacity + self.capacity // 2)
+        self.capacity = max(n, self.first, self.capacity + self.capacity // 2)
         for name, dtype in self.FLAT.items():
             setattr(self, name, wp.empty(self.capacity, dtype=dtype, device=self.device))
 
