@@ -14,6 +14,7 @@ from flightsim.engine.readouts.photons import Photons
 from flightsim.scoring.photon_grid import PhotonFrame
 from flightsim.studies.spad import HALF_FIELD_DEG, frame_config, frame_simulator, simulate_frame
 from flightsim.studies.spad_traffic import frame_traffic, key_bits
+from test_photon_grid import _reference_grid  # the gridding rule cell by cell in plain Python
 
 GRID = 160
 
@@ -90,7 +91,53 @@ def test_simulate_frame_grows_a_small_frame_and_grids_the_same_points(device):
     big, small = _frame(sim), _frame(sim, capacity=10)
     a, b = simulate_frame(sim, big), simulate_frame(sim, small)
     assert a[0].returns == b[0].returns and len(a[1].points) > 0
-    assert np.array_equal(a[1].points, b[1].points) and np.array_equal(a[1].photons, b[1].photons)
+    assert np.array_equal(a[1].photons, b[1].photons) and np.array_equal(a[1].cell, b[1].cell)
+    if device == "cpu":
+        assert np.array_equal(a[1].points, b[1].points)
+    else:  # a GPU's atomic sums add in any order
+        np.testing.assert_allclose(a[1].points, b[1].points, rtol=0.0, atol=1e-9)
+
+
+def _photons(n: int, seed: int):
+    """(positions, cells) of n photons over 12 × 12 cells: a sloped surface, background, a few invalid."""
+    rng = np.random.default_rng(seed)
+    cells = rng.integers(0, 12, (n, 2))
+    cells[rng.random(n) < 0.02] = -1
+    z = np.where(rng.random(n) < 0.6, 0.3 * cells[:, 0] + rng.normal(0, 0.04, n), rng.uniform(-20, 20, n))
+    xyz = np.column_stack([cells[:, 0] + rng.random(n), cells[:, 1] + rng.random(n), z])
+    xyz[rng.random(n) < 0.01, 2] = np.nan
+    return xyz, cells
+
+
+class _Chunk:
+    """Photons as the frame's ``add`` takes them, their directions chosen to fall in the given angle cells."""
+
+    def __init__(self, xyz, cells, device):
+        half = math.radians(HALF_FIELD_DEG)
+        angle = (cells + 0.5) / 12 * 2 * half - half
+        d = np.column_stack([np.tan(angle[:, 0]), np.tan(angle[:, 1]), -np.ones(len(cells))])
+        d[cells[:, 0] < 0] = (1.0, 0.0, 0.0)  # outside the field
+        self.count = len(xyz)
+        self.points = wp.array(xyz, dtype=wp.vec3d, device=device)
+        self.directions = wp.array(d.astype(np.float32), dtype=wp.vec3f, device=device)
+        self.signal = wp.zeros(len(xyz), dtype=wp.int8, device=device)
+
+
+def test_a_frame_grids_frame_after_frame_in_its_kept_memory_as_the_cell_by_cell_rule(device):
+    frame = PhotonFrame(math.radians(HALF_FIELD_DEG), 12, device, capacity=64)
+    for n, seed in ((9000, 3), (2500, 4), (6000, 5)):  # larger, smaller, between: the kept arrays are reused
+        xyz, cells = _photons(n, seed)
+        frame.reset()
+        frame.add(_Chunk(xyz[: n // 2], cells[: n // 2], device))
+        frame.add(_Chunk(xyz[n // 2:], cells[n // 2:], device))
+        got = frame.grid(bin_m=0.1, min_count=4, window_m=0.12)
+        assert frame.count == n and np.array_equal(frame.cell.numpy()[:n], cells)
+        expected, occupied = _reference_grid(xyz, cells, 0.1, 4, 0.12)
+        assert got.cells == occupied and len(got.points) == len(expected) > 50
+        for point, cell, photons, peak in zip(got.points, got.cell, got.photons, got.peak):
+            mean, count, window = expected[tuple(cell)]
+            assert (photons, peak) == (count, window)
+            assert point == pytest.approx(mean, abs=1e-9)
 
 
 def test_traffic_adds_the_stages_bytes():
