@@ -147,16 +147,16 @@ def sampler(retro: bool, leaves: bool = False):
             value += leaf_sum(c, leaf, det.sigma_t, t, 0) - leaf.at_open
         return value
 
-
     @wp.func
-    def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes, c: Canopy, leaf: LeafRay):
+    def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, at_lo: wp.float64, e: Echoes):
         """Λ⁻¹(target) for Λ's dominant part (the surface echo's): the noise line where the target lies before
-        or after the echo (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to its centre."""
+        or after the echo (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to its centre
+        (``at_lo`` = Λ(lo), computed once by the caller)."""
         reach = wp.float64(ECHO_SIGMAS) * det.sigma_t
         start = wp.max(lo, e.t0 - reach)
-        before = integrated_intensity(det, lo, e, c, leaf) + det.noise_rate * (start - lo)
+        before = at_lo + det.noise_rate * (start - lo)
         if target <= before or e.n0 <= wp.float64(0.0):
-            return lo + (target - integrated_intensity(det, lo, e, c, leaf)) / det.noise_rate
+            return lo + (target - at_lo) / det.noise_rate
         after = det.noise_rate * (e.t0 + reach - det.gate_open) + e.n0 * (wp.float64(1.0) - ECHO_CDF_LOW - e.cdf0)
         if target >= after:
             return e.t0 + reach + (target - after) / det.noise_rate
@@ -164,12 +164,12 @@ def sampler(retro: bool, leaves: bool = False):
         p = wp.min(wp.max(p, wp.float64(1.0e-15)), wp.float64(1.0 - 1.0e-15))
         return e.t0 + det.sigma_t * wp.float64(1.4142135623730951) * wp.erfinv(wp.float64(2.0) * p - wp.float64(1.0))
 
-
     @wp.func
-    def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, e: Echoes, c: Canopy, leaf: LeafRay):
-        """The time of flight t ≥ lo at which Λ(t) = target ≤ Λ(gate close) (safeguarded Newton)."""
+    def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, at_lo: wp.float64, e: Echoes, c: Canopy,
+                leaf: LeafRay):
+        """The time of flight t ≥ lo at which Λ(t) = target ≤ Λ(gate close), ``at_lo`` = Λ(lo) (safeguarded Newton)."""
         hi = det.gate_close
-        t = _first_guess(det, target, lo, e, c, leaf)
+        t = _first_guess(det, target, lo, at_lo, e)
         if not (t > lo and t < hi):
             t = lo
         for _ in range(INVERSION_STEPS):
@@ -206,10 +206,11 @@ def sampler(retro: bool, leaves: bool = False):
         count = int(0)
         while count < det.max_events and live < det.gate_close:
             u, state = _uniform64(state)
-            target = integrated_intensity(det, live, e, c, leaf) - wp.log(u)
+            at_live = integrated_intensity(det, live, e, c, leaf)  # once per detection, not three times
+            target = at_live - wp.log(u)
             if target >= total:
                 break
-            t = _invert(det, target, live, e, c, leaf)
+            t = _invert(det, target, live, at_live, e, c, leaf)
             surface = echo_rate(det, t, e.t0, e.n0)
             lit = wp.float64(0.0)
             if wp.static(retro):

@@ -77,6 +77,27 @@ def extent(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), n: int
 
 
 @wp.kernel
+def merge_extent(zmin: wp.array(dtype=wp.float64), zmax: wp.array(dtype=wp.float64), top: wp.array(dtype=wp.vec2i),
+                 n: int, threads: int, out_min: wp.array(dtype=wp.float64), out_max: wp.array(dtype=wp.float64),
+                 out_top: wp.array(dtype=wp.vec2i)):
+    """Per thread (grid-stride over ``n`` partials of :func:`extent`): their lowest and highest height [m] and
+    highest column and row, so the host reads a few partials rather than every thread's."""
+    t = wp.tid()
+    lo = wp.float64(wp.inf)
+    hi = wp.float64(-wp.inf)
+    c = wp.vec2i(-1, -1)
+    i = t
+    while i < n:
+        lo = wp.min(lo, zmin[i])
+        hi = wp.max(hi, zmax[i])
+        c = wp.max(c, top[i])
+        i += threads
+    out_min[t] = lo
+    out_max[t] = hi
+    out_top[t] = c
+
+
+@wp.kernel
 def bin_keys(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), lo: wp.float64, bin_m: wp.float64,
              stride: wp.int64, columns: wp.int64, invalid: wp.int64,
              keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32)):

@@ -23,6 +23,7 @@ from flightsim.core.warp_runtime import to_host
 from kernels import photon_grid as k
 
 REDUCE_THREADS = 1 << 16  # threads of the extent reduction (each strides over the photons)
+MERGE_THREADS = 256  # threads merging their partials on the device (the host reads these few)
 
 
 @dataclass
@@ -64,12 +65,15 @@ def grid_points(xyz, cells, bin_m: float, min_count: int, window_m: float, devic
 
 
 class PhotonFrame:
-    """A frame's photon positions and beam angle cells, gathered on the device chunk by chunk
-    (``add`` takes a :class:`~flightsim.engine.readouts.photons.DevicePhotons`), then gridded into points with ``grid``; ``reset`` starts
-    the next frame in the same device and host memory.
+    """A frame's photon positions and beam angle cells, gathered on the device chunk by chunk, then gridded into
+    points with ``grid``; ``reset`` starts the next frame in the same device and host memory.
 
-    The points of ``grid`` are views of the frame's page-locked host buffers (the copy from the device
-    runs at full bus speed and touches no fresh pages): they hold until the frame's next ``grid``.
+    Filled either by the photons readout itself (``Photons(frame=...)``: its kernel writes every chunk's photons
+    here, the frame's count kept on the device, :meth:`device_arrays`; then :meth:`settle` once the run is
+    done, which reads the count and tells whether the arrays held them all) or by ``add`` (a consumer of
+    :class:`~flightsim.engine.readouts.photons.DevicePhotons`). The points of ``grid`` are views of the frame's
+    page-locked host buffers (the copy from the device runs at full bus speed and touches no fresh pages): they
+    hold until the frame's next ``grid``.
     """
 
     def __init__(self, half_field_rad: float, cells: int, device: str, capacity: int = 1 << 20):
@@ -77,13 +81,31 @@ class PhotonFrame:
         self.xyz = wp.empty(capacity, dtype=wp.vec3d, device=device)
         self.cell = wp.empty(capacity, dtype=wp.vec2i, device=device)
         self._signal = wp.zeros(1024, dtype=wp.int64, device=device)
+        self._total = wp.zeros(1, dtype=wp.int32, device=device)  # photons added, on the device
         self._host: dict[str, wp.array] = {}
+        self._scratch: dict[str, wp.array] = {}  # the gridding's device arrays, kept frame after frame
         self.count = 0
 
     def reset(self) -> None:
         """Forget the photons added (keep the memory)."""
         self.count = 0
+        self._total.zero_()
         self._signal.zero_()
+
+    def device_arrays(self) -> tuple[wp.array, wp.array, wp.array, wp.array]:
+        """(positions, angle cells, count [1], 1024 signal counters) for a kernel appending photons at ``count[0]``
+        (writes past the arrays' length dropped, still counted)."""
+        return self.xyz, self.cell, self._total, self._signal
+
+    def settle(self) -> bool:
+        """Read the count of the photons appended on the device; False when they overflowed the arrays (then
+        grown to hold them: reset and fill the frame again), True when the frame holds them all."""
+        self.count = int(to_host(self._total)[0])
+        if self.count <= len(self.xyz):
+            return True
+        self.xyz = wp.empty(self.count, dtype=wp.vec3d, device=self.device)
+        self.cell = wp.empty(self.count, dtype=wp.vec2i, device=self.device)
+        return False
 
     def add(self, photons) -> None:
         """Append a chunk's photons (device arrays ``points``, ``directions``, ``signal``; ``count`` rows)."""
@@ -95,6 +117,7 @@ class PhotonFrame:
                   inputs=[photons.points, photons.directions, photons.signal, self.half_field, self.cells, self.count],
                   outputs=[self.xyz, self.cell, self._signal], device=self.device)
         self.count += n
+        self._total.fill_(self.count)
 
     @property
     def signal_photons(self) -> int:
@@ -102,7 +125,7 @@ class PhotonFrame:
         return int(to_host(self._signal).sum())
 
     def grid(self, bin_m: float, min_count: int, window_m: float) -> GridPoints:
-        return _grid(self.xyz, self.cell, self.count, bin_m, min_count, window_m, self._host)
+        return _grid(self.xyz, self.cell, self.count, bin_m, min_count, window_m, self._host, self._scratch)
 
     def _reserve(self, n: int) -> None:
         if n <= len(self.xyz):
@@ -114,39 +137,61 @@ class PhotonFrame:
             setattr(self, name, grown)
 
 
-def _extent(xyz: wp.array, cell: wp.array, n: int) -> tuple[float, float, int, int] | None:
+def _take(scratch: dict[str, wp.array] | None, name: str, n: int, dtype, device) -> wp.array:
+    """``n`` (≥ 1) elements of device memory for ``name``: the first of ``scratch[name]`` (grown when too small),
+    so the next gridding reuses them rather than allocating afresh (a pool that gives memory back to the driver
+    at each synchronisation makes each fresh gigabyte costly); a new array where ``scratch`` is None."""
+    if scratch is None:
+        return wp.empty(n, dtype=dtype, device=device)
+    kept = scratch.get(name)
+    if kept is None or len(kept) < n:
+        kept = scratch[name] = wp.empty(max(n, 3 * len(kept) // 2 if kept is not None else n), dtype=dtype,
+                                        device=device)
+    return kept[:n]
+
+
+def _extent(xyz: wp.array, cell: wp.array, n: int, scratch=None) -> tuple[float, float, int, int] | None:
     """(lowest, highest height [m], columns, rows) of the valid photons; None when there are none."""
     threads = min(n, REDUCE_THREADS)
     device = xyz.device
-    zmin, zmax = wp.empty(threads, dtype=wp.float64, device=device), wp.empty(threads, dtype=wp.float64, device=device)
-    top = wp.empty(threads, dtype=wp.vec2i, device=device)
+    zmin, zmax = (_take(scratch, name, threads, wp.float64, device) for name in ("zmin", "zmax"))
+    top = _take(scratch, "top", threads, wp.vec2i, device)
     wp.launch(k.extent, threads, inputs=[xyz, cell, n, threads], outputs=[zmin, zmax, top], device=device)
-    lo, hi, top = to_host(zmin).min(), to_host(zmax).max(), to_host(top).max(axis=0)
+    merged = min(threads, MERGE_THREADS)
+    low, high = (_take(scratch, name, merged, wp.float64, device) for name in ("low", "high"))
+    corner = _take(scratch, "corner", merged, wp.vec2i, device)
+    wp.launch(k.merge_extent, merged, inputs=[zmin, zmax, top, threads, merged], outputs=[low, high, corner],
+              device=device)
+    lo, hi, top = to_host(low).min(), to_host(high).max(), to_host(corner).max(axis=0)
     if not np.isfinite(lo):
         return None
     return float(lo), float(hi), int(top[0]) + 1, int(top[1]) + 1
 
 
 def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, window_m: float,
-          host: dict[str, wp.array] | None = None) -> GridPoints:
+          host: dict[str, wp.array] | None = None, scratch: dict[str, wp.array] | None = None) -> GridPoints:
     """The points of the first ``n`` photons (device arrays), gridded on their device; copied into the
-    page-locked ``host`` buffers when given (kept there for the next call), else into new arrays."""
-    extent = _extent(xyz, cell, n) if n else None
+    page-locked ``host`` buffers when given (kept there for the next call), else into new arrays; the device
+    arrays of the gridding taken from ``scratch`` when given (:func:`_take`).
+
+    Launches: extent, keys, the radix sort, run heads, a scan, run starts, best pairs, accept, 2 × window sums
+    (and a recentring), 2 × (flags, scan), compaction; host syncs: the extent (3 × 64k partials), the run count,
+    the last key, the occupied and the point counts, the points' copy."""
+    extent = _extent(xyz, cell, n, scratch) if n else None
     if extent is None:
         return _empty()
     lo, hi, columns, rows = extent
     stride = int(np.floor((hi - lo) / bin_m)) + 2
-    runs, keys, starts = _sorted_runs(xyz, cell, n, lo, bin_m, stride, columns, rows)
+    runs, keys, starts = _sorted_runs(xyz, cell, n, lo, bin_m, stride, columns, rows, scratch)
     device, n_cells = xyz.device, columns * rows
-    best = wp.zeros(n_cells, dtype=wp.int64, device=device)
-    totals = wp.zeros(n_cells, dtype=wp.int32, device=device)
+    best, totals = _take(scratch, "best", n_cells, wp.int64, device), _take(scratch, "totals", n_cells, wp.int32, device)
+    best.zero_()
+    totals.zero_()
     wp.launch(k.best_pairs, runs, inputs=[keys, starts, runs, stride], outputs=[best, totals], device=device)
-    centre = wp.empty(n_cells, dtype=wp.float64, device=device)
-    peak = wp.empty(n_cells, dtype=wp.int32, device=device)
+    centre, peak = _take(scratch, "centre", n_cells, wp.float64, device), _take(scratch, "peak", n_cells, wp.int32, device)
     wp.launch(k.accept_cells, n_cells, inputs=[best, totals, stride, lo, bin_m, int(min_count)],
               outputs=[centre, peak], device=device)
-    count = wp.empty(n_cells, dtype=wp.int32, device=device)
-    sums = wp.empty(n_cells, dtype=wp.vec3d, device=device)
+    count, sums = _take(scratch, "count", n_cells, wp.int32, device), _take(scratch, "sums", n_cells, wp.vec3d, device)
     for step in range(2):
         if step:
             wp.launch(k.recentre, n_cells, inputs=[count, sums], outputs=[centre], device=device)
@@ -154,45 +199,47 @@ def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, w
         sums.zero_()
         wp.launch(k.window_sums, n, inputs=[xyz, cell, columns, centre, float(window_m)], outputs=[count, sums],
                   device=device)
-    return _compacted(centre, count, sums, peak, totals, columns, host)
+    return _compacted(centre, count, sums, peak, totals, columns, host, scratch)
 
 
 def _sorted_runs(xyz: wp.array, cell: wp.array, n: int, lo: float, bin_m: float, stride: int, columns: int,
-                 rows: int):
+                 rows: int, scratch=None):
     """(number of runs, sorted keys, run starts) of the photons' (cell, height bin) keys; the runs of the
     valid photons only (the invalid key sorts last and its run is dropped)."""
     device = xyz.device
     invalid = columns * rows * stride
-    keys = wp.empty(2 * n, dtype=wp.int64, device=device)
-    order = wp.empty(2 * n, dtype=wp.int32, device=device)
+    keys, order = _take(scratch, "keys", 2 * n, wp.int64, device), _take(scratch, "order", 2 * n, wp.int32, device)
     wp.launch(k.bin_keys, n, inputs=[xyz, cell, lo, float(bin_m), stride, columns, invalid],
               outputs=[keys, order], device=device)
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=invalid.bit_length())
-    heads = wp.empty(n, dtype=wp.int32, device=device)
-    run = wp.empty(n, dtype=wp.int32, device=device)
+    heads, run = _take(scratch, "heads", n, wp.int32, device), _take(scratch, "run", n, wp.int32, device)
     wp.launch(k.run_heads, n, inputs=[keys], outputs=[heads], device=device)
-    runs = _scanned_total(heads, run)
-    starts = wp.empty(runs + 1, dtype=wp.int32, device=device)
+    wp.utils.array_scan(heads, run, inclusive=False)
+    last_run, last_head, last_key = _last_values(run, heads, keys[:n])  # one sync
+    runs = last_run + last_head
+    starts = _take(scratch, "starts", runs + 1, wp.int32, device)
     wp.launch(k.run_starts, n, inputs=[heads, run], outputs=[starts], device=device)
     starts[runs:].fill_(n)
-    if int(to_host(keys[n - 1:n])[0]) == invalid:
+    if last_key == invalid:
         runs -= 1  # the invalid photons' run: its start becomes the end of the valid runs
     return runs, keys, starts
 
 
 def _compacted(centre: wp.array, count: wp.array, sums: wp.array, peak: wp.array, totals: wp.array,
-               columns: int, host: dict[str, wp.array] | None) -> GridPoints:
+               columns: int, host: dict[str, wp.array] | None, scratch=None) -> GridPoints:
     """The accepted cells' points, brought to the host."""
     device, n_cells = centre.device, len(centre)
-    flags = wp.empty(n_cells, dtype=wp.int32, device=device)
-    offsets = wp.empty(n_cells, dtype=wp.int32, device=device)
-    wp.launch(k.occupied, n_cells, inputs=[totals], outputs=[flags], device=device)
-    cells = _scanned_total(flags, offsets)
+    flags, offsets, held, held_offsets = (_take(scratch, name, n_cells, wp.int32, device)
+                                          for name in ("flags", "offsets", "held", "held_offsets"))
+    wp.launch(k.occupied, n_cells, inputs=[totals], outputs=[held], device=device)
+    wp.utils.array_scan(held, held_offsets, inclusive=False)
     wp.launch(k.point_flags, n_cells, inputs=[centre, count], outputs=[flags], device=device)
-    m = _scanned_total(flags, offsets)
+    wp.utils.array_scan(flags, offsets, inclusive=False)
+    last = _last_values(held_offsets, held, offsets, flags)  # one sync
+    cells, m = last[0] + last[1], last[2] + last[3]
     if m == 0:
         return _empty(cells)
-    out = {name: wp.empty(m, dtype=dtype, device=device) for name, dtype in OUTPUTS.items()}
+    out = {name: _take(scratch, "out_" + name, m, dtype, device) for name, dtype in OUTPUTS.items()}
     wp.launch(k.compact_points, n_cells, inputs=[flags, offsets, columns, count, sums, peak],
               outputs=list(out.values()), device=device)
     if host is None:
@@ -216,8 +263,17 @@ def _to_host(a: wp.array, host: dict[str, wp.array], name: str) -> np.ndarray:
     return host[name].numpy()[:len(a)]
 
 
-def _scanned_total(flags: wp.array, offsets: wp.array) -> int:
-    """Exclusive scan of ``flags`` into ``offsets``; returns the total."""
-    wp.utils.array_scan(flags, offsets, inclusive=False)
-    n = len(flags)
-    return int(to_host(offsets[n - 1:n])[0] + to_host(flags[n - 1:n])[0])
+_LAST: dict[tuple[str, type], wp.array] = {}  # page-locked landing places of _last_values, per device and type
+
+
+def _last_values(*arrays: wp.array) -> list[int]:
+    """The last element of each (integer) device array, copied to the host together: one sync for all."""
+    landed = []
+    for i, a in enumerate(arrays):
+        key = (str(a.device), a.dtype)
+        if key not in _LAST:
+            _LAST[key] = wp.empty(8, dtype=a.dtype, device="cpu", pinned=a.device.is_cuda)
+        wp.copy(_LAST[key], a, dest_offset=i, src_offset=len(a) - 1, count=1)
+        landed.append((key, i))
+    wp.synchronize_device(arrays[0].device)
+    return [int(_LAST[key].numpy()[i]) for key, i in landed]

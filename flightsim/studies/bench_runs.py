@@ -74,7 +74,8 @@ def spad_frame(device: str, s: Sizes) -> dict:
     against the instrument's own 0.86 s and the bare ray cast of the same beams. Best of three after a
     run that compiles, in the same device and page-locked host memory (as frame after frame of a mission). On the CPU a slice of the frame (1/100, --quick 1/1000), its time scaled to the
     whole frame."""
-    from flightsim.studies.spad import PAPER, frame_config, frame_simulator, photon_frame, simulate_frame
+    from flightsim.studies.spad import PAPER, frame_config, frame_simulator, grid_bins, photon_frame, simulate_frame
+    from flightsim.studies.spad_traffic import key_bits, traffic_record
 
     frame_pulses = PAPER["mode_a"]["pulses"]
     pulses = frame_pulses if resolve_device(device) != "cpu" else frame_pulses // (1000 if s.quick else 100)
@@ -83,7 +84,7 @@ def spad_frame(device: str, s: Sizes) -> dict:
     simulate_frame(sim, frame)
     runs = [simulate_frame(sim, frame) for _ in range(3)]
     counts, points, wall = min(runs, key=lambda r: r[2])
-    photons_only = min(sim.run(Photons(on_device=True), lambda found: None).wall_s for _ in range(2))
+    photons_only = min(_into_frame(sim, frame) for _ in range(2))
     sample = min(counts.beams_fired, 1 << 24)
     repeats = max(1, round(counts.beams_fired / sample))
     bare_wall, _ = bare_raycast(sim, sample, repeats)
@@ -93,7 +94,16 @@ def spad_frame(device: str, s: Sizes) -> dict:
             "photons": counts.returns, "points": len(points.points), "wall_s": wall,
             "trace_and_photons_s": photons_only, "frame_wall_s": frame_wall,
             "instrument_frame_s": PAPER["mode_a"]["frame_s"], "faster_than_instrument": PAPER["mode_a"]["frame_s"] / frame_wall,
-            "beams_per_s": beams_per_s, "raycast_rays_per_s": bare_per_s, "ratio": beams_per_s / bare_per_s}
+            "beams_per_s": beams_per_s, "raycast_rays_per_s": bare_per_s, "ratio": beams_per_s / bare_per_s,
+            "traffic": traffic_record(counts.beams_fired, counts.returns, frame.cells ** 2,
+                                      key_bits(frame.cells ** 2, sim.cfg.photon.gate_m[1] - sim.cfg.photon.gate_m[0],
+                                               grid_bins(sim.cfg)[0]), wall, device)}
+
+
+def _into_frame(sim, frame) -> float:
+    """Wall [s] of a frame's trace and photons into ``frame``, not gridded."""
+    frame.reset()
+    return sim.run(Photons(frame=frame)).wall_s
 
 
 def waveform_altimeter(device: str, s: Sizes) -> list[dict]:

@@ -15,7 +15,9 @@ from flightsim.core.warp_runtime import host_array, to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, SLOTS_PER_CHUNK, Segment
 from flightsim.engine.readouts.points import PointBuffers, points_kernel, trace_points
 from flightsim.scenes.canopy import no_canopy
-from kernels import photon, trace
+from kernels import photon, photon_frame, trace
+
+FRAME_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 26}  # into a frame: a whole SPAD frame (44M beams) one chunk
 
 
 @dataclass
@@ -64,8 +66,9 @@ class Retroreflectors:
 
 
 class PhotonBuffers:
-    """Device arrays of the photons readout: each slot's detections, and the flat compacted events (sized for
-    FLAT_EVENTS_PER_SLOT detections per slot at first, grown when a chunk holds more)."""
+    """Device arrays of the photons readout: each slot's detections, and the flat compacted events (allocated at
+    the first ``gather``, sized for FLAT_EVENTS_PER_SLOT detections per slot at first, grown when a chunk holds
+    more; a readout writing into a frame never needs them)."""
 
     FLAT = {"slot": wp.int32, "tof": wp.float64, "flag": wp.int8, "points": wp.vec3d, "directions": wp.vec3f}
     FLAT_EVENTS_PER_SLOT = 2
@@ -77,13 +80,13 @@ class PhotonBuffers:
         self.counts = wp.empty(slots, dtype=wp.int32, device=device)
         self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
         self.capacity = 0
-        self._reserve(slots * min(max_events, self.FLAT_EVENTS_PER_SLOT))
+        self.first = slots * min(max_events, self.FLAT_EVENTS_PER_SLOT)
 
     def _reserve(self, n: int) -> None:
         """Flat arrays for at least ``n`` detections (their contents are not kept)."""
-        if n <= self.capacity:
+        if self.capacity and n <= self.capacity:
             return
-        self.capacity = max(n, self.capacity + self.capacity // 2)
+        self.capacity = max(n, self.first, self.capacity + self.capacity // 2)
         for name, dtype in self.FLAT.items():
             setattr(self, name, wp.empty(self.capacity, dtype=dtype, device=self.device))
 
@@ -101,32 +104,54 @@ class PhotonBuffers:
                   outputs=[self.points, self.directions], device=self.device)
         return DevicePhotons(n, self.slot[:n], self.tof[:n], self.flag[:n], self.points[:n], self.directions[:n])
 
+    def into_frame(self, frame, n_slots: int, pulses: wp.array, scan, instrument, found: wp.array) -> None:
+        """Place every slot's detections into ``frame`` after its photons so far, and add their count to the
+        frame's and to ``found[0]``, all on the device (no host sync)."""
+        counts, offsets = self.counts[:n_slots], self.offsets[:n_slots]
+        wp.utils.array_scan(counts, offsets, inclusive=False)
+        xyz, cell, total, signal_count = frame.device_arrays()
+        wp.launch(photon_frame.frame_photons_kernel(instrument), n_slots,
+                  inputs=[pulses, scan, counts, offsets, self.times, self.signal, total, len(xyz), frame.half_field,
+                          frame.cells], outputs=[xyz, cell, signal_count], device=self.device)
+        wp.launch(photon_frame.advance_total, 1, inputs=[counts, offsets, n_slots - 1], outputs=[total, found],
+                  device=self.device)
+
 
 @register("readout", "photons")
 class Photons:
     """The detections of every SPAD pixel. ``consume`` gets each flight line's part of each chunk as a host
-    :class:`PhotonChunk`, or with ``on_device`` each chunk's :class:`DevicePhotons`; ``RunCounts.returns`` counts
-    the photons."""
+    :class:`PhotonChunk`, or with ``on_device`` each chunk's :class:`DevicePhotons`; with ``frame`` (a
+    :class:`~flightsim.scoring.photon_grid.PhotonFrame`) every chunk's detections go straight into the frame
+    (placed and given their angle cells in one kernel, no count brought to the host between chunks; ``consume``
+    is not called). ``RunCounts.returns`` counts the photons.
+
+    Per chunk of n slots (CUDA; the frame path): the points kernel (ranges only), the photon kernel (n threads),
+    a scan of the slot counts, the frame kernel (n threads) and a one-thread count: 5 launches, no host sync;
+    the run's one sync is its end (the counters and the photon count, 16 bytes). Memory per slot: the points
+    kernel writes ~72 bytes, the photon kernel reads ~20 and writes 9 per detection (8 stop registers), the frame
+    kernel reads 8 + 9 per detection and writes 32 per detection."""
 
     kind = "photons"
 
-    def __init__(self, on_device: bool = False):
-        self.on_device = on_device
+    def __init__(self, on_device: bool = False, frame=None):
+        self.on_device, self.frame = on_device or frame is not None, frame
 
     def begin(self, tracer) -> wp.array:
-        budget = SLOTS_PER_CHUNK if self.on_device else POINT_SLOTS_PER_CHUNK  # on the host, photons fill memory
-        self.buffers = PointBuffers(tracer, tracer.pulses_per_launch(budget))
-        slots = len(self.buffers.status)
+        budget = POINT_SLOTS_PER_CHUNK  # on the host, photons fill memory
+        if self.frame is not None:
+            budget = FRAME_SLOTS_PER_CHUNK
+        elif self.on_device:
+            budget = SLOTS_PER_CHUNK
+        pulses = tracer.pulses_per_launch(budget)
+        self.buffers, self.events, self.retro, self.leaves, self.energy, self.found = tracer.kept(
+            f"photons:{pulses}", lambda: _buffers(tracer, pulses))  # allocated once per tracer: frame after frame
         settings = tracer.instrument.detector.s
-        self.events = PhotonBuffers(slots, settings.max_events, tracer.device)
         self.detector, self.reflectance = tracer.instrument.detector.struct(), settings.reflectance
-        self.retro = Retroreflectors(tracer.cfg.scene, tracer.instrument.emitter.divergence_mrad, slots, tracer.device,
-                                     rays=tracer.scene.canopy is not None)
         self.ranges_only = dataclasses.replace(tracer.features, exact=False, nominal=False, edges=False)
         canopy = tracer.scene.canopy
-        self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
         self.leaf_reflectance = 0.0 if canopy is None else canopy.leaf_reflectance
-        self.energy = wp.array(beam_energy(tracer.instrument.emitter), dtype=wp.float64, device=tracer.device)
+        self.found.zero_()
+        self.buffers.counters.zero_()
         return self.buffers.pulses
 
     def chunk(self, tracer, segments: list[Segment], n_slots: int, counts, consume) -> None:
@@ -143,6 +168,9 @@ class Photons:
                           retro.starts, retro.directions, tracer.scan.ranging.delays, tracer.scan.ranging.drift,
                           self.leaves, self.leaf_reflectance],
                   outputs=[self.events.times, self.events.signal, self.events.counts], device=d)
+        if self.frame is not None:
+            self.events.into_frame(self.frame, n_slots, b.pulses, tracer.scan, tracer.instrument.kernel, self.found)
+            return
         found = self.events.gather(n_slots, b.pulses, tracer.scan, tracer.instrument.kernel)
         counts.returns += found.count
         if self.on_device:
@@ -156,12 +184,31 @@ class Photons:
         retro, leaves = len(tracer.cfg.scene.ccrs) > 0, tracer.scene.canopy is not None
         rays = [trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose)]
         ranges_only = dataclasses.replace(tracer.features, exact=False, nominal=False, edges=False)
+        frame = [photon_frame.frame_photons_kernel(tracer.instrument.kernel), photon_frame.advance_total]
         return [points_kernel(tracer, ranges_only, 1), photon.photon_slots_kernel(retro, tracer.meshes.per_face, leaves),
                 photon.gather_events, trace.photon_points_kernel(tracer.instrument.kernel),
-                *(rays if retro or leaves else [])]
+                *(rays if retro or leaves else []), *(frame if self.frame is not None else [])]
 
     def end(self, tracer, counts) -> wp.array:
-        return self.buffers.counters
+        if self.frame is None:
+            return self.buffers.counters
+        counters = to_host(self.buffers.counters)  # the run's one sync
+        counts.returns += int(to_host(self.found)[0])
+        return wp.array(counters, dtype=wp.int32, device="cpu")  # read by the tracer without another device copy
+
+
+def _buffers(tracer, pulses: int) -> tuple:
+    """The photons readout's device memory for chunks of ``pulses`` pulses: (point buffers, photon buffers,
+    retroreflectors, leaves, beam energies, the run's photon count)."""
+    buffers = PointBuffers(tracer, pulses)
+    slots, d = len(buffers.status), tracer.device
+    events = PhotonBuffers(slots, tracer.instrument.detector.s.max_events, d)
+    retro = Retroreflectors(tracer.cfg.scene, tracer.instrument.emitter.divergence_mrad, slots, d,
+                            rays=tracer.scene.canopy is not None)
+    canopy = tracer.scene.canopy
+    leaves = no_canopy(d) if canopy is None else canopy.to_device(d)
+    energy = wp.array(beam_energy(tracer.instrument.emitter), dtype=wp.float64, device=d)
+    return buffers, events, retro, leaves, energy, wp.zeros(1, dtype=wp.int32, device=d)
 
 
 def beam_energy(emitter) -> np.ndarray:
