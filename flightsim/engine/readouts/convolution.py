@@ -1,0 +1,61 @@
+"""The waveform readout's convolution of each beam's impulse train with the pulse (``waveform.convolution``):
+``direct`` sums the taps per output (kernels/waveform.py ``convolve``), ``fft`` runs overlap-save over float64 tile
+FFTs (kernels/waveform_fft.py). Both write float32 power [W] into zeroed rows, only within each row's reach (the
+outputs within the taps of its touched span), so the samples beyond stay exactly 0."""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from kernels import waveform as kw
+from kernels import waveform_fft as kf
+
+
+def fft_size(taps: int, least: int = kf.FFT_SIZE) -> int:
+    """N: the smallest power of two ≥ ``least`` that exceeds the taps (each FFT then makes N − taps + 1 outputs)."""
+    n = 1
+    while n < max(least, taps + 1):
+        n *= 2
+    return n
+
+
+def pulse_spectrum(taps: np.ndarray, n: int) -> np.ndarray:
+    """(1, n, 2) float64: the FFT of the taps zero-padded to n, divided by n (the inverse tile FFT is unscaled)
+    as (real, imaginary)."""
+    h = np.fft.fft(np.asarray(taps, dtype=np.float64), n) / n
+    return np.stack([h.real, h.imag], axis=-1)[None]
+
+
+class PulseConvolution:
+    """One run's convolution with the pulse taps (float64 on ``device``, first lag ``first_lag`` samples):
+    ``method`` ``direct`` or ``fft``; for fft, FFT size at least ``fft_least`` (a power of two) launched with
+    ``block_dim`` threads per tile."""
+
+    def __init__(self, method: str, taps: wp.array, first_lag: int, device: str, fft_least: int = kf.FFT_SIZE,
+                 block_dim: int = kf.FFT_BLOCK_DIM):
+        self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
+        if method == "fft":
+            self.n, self.block_dim = fft_size(len(taps), fft_least), block_dim
+            self.block = self.n - len(taps) + 1  # L: outputs per FFT
+            spectrum = pulse_spectrum(taps.numpy(), self.n)
+            self.overlap = kf.Overlap()
+            self.overlap.spectrum = wp.array(spectrum, dtype=wp.vec2d, device=device)
+            self.overlap.taps, self.overlap.first_lag = len(taps), first_lag
+
+    def kernel(self):
+        """The kernel :meth:`launch` runs."""
+        return kf.convolve_fft_kernel(self.n, self.block_dim) if self.method == "fft" else kw.convolve
+
+    def launch(self, impulses: wp.array, span: wp.array, out: wp.array, n: int) -> None:
+        """Rows 0 … n − 1 of ``out`` (zeroed here first) = rows of ``impulses`` (touched within ``span``)
+        convolved with the pulse [W]."""
+        samples = impulses.shape[1]
+        out[:n].zero_()
+        if self.method == "direct":
+            wp.launch(kw.convolve, (n, -(-samples // kw.CONVOLVE_OUTPUTS)),
+                      inputs=[impulses, span, self.taps, self.first_lag], outputs=[out], device=self.device)
+            return
+        self.overlap.impulses, self.overlap.span = impulses, span
+        pairs = -(-(-(-samples // self.block)) // 2)  # two blocks of L outputs per FFT, over the whole row at most
+        wp.launch_tiled(self.kernel(), dim=(n, pairs), inputs=[self.overlap, self.block], outputs=[out],
+                        block_dim=self.block_dim, device=self.device)
