@@ -121,10 +121,10 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
         z = wp.tile_map(_filtered, z, lanes, o)
         wp.tile_ifft(z)
         first = origin - wrapped
-        re = wp.tile_map(_real_power, z, lanes, first, reach_hi)
-        im = wp.tile_map(_imag_power, z, lanes, first + block, reach_hi)
         index = wp.tile_map(_store_index, wp.tile_arange(n, dtype=int), wrapped)
-        wp.tile_store_indexed(out, index, re, offset=(slot, origin), axis=1)
-        wp.tile_store_indexed(out, index, im, offset=(slot, origin + block), axis=1)
+        power = wp.tile_map(_real_power, z, lanes, first, reach_hi)
+        wp.tile_store_indexed(out, index, power, offset=(slot, origin), axis=1)
+        power = wp.tile_map(_imag_power, z, lanes, first + block, reach_hi)
+        wp.tile_store_indexed(out, index, power, offset=(slot, origin + block), axis=1)
 
     return convolve_fft
