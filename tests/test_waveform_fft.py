@@ -53,7 +53,8 @@ def _reference(row: np.ndarray, taps: np.ndarray, first_lag: int) -> np.ndarray:
 
 def _convolve(method: str, impulses: np.ndarray, span: np.ndarray, taps: np.ndarray, first_lag: int,
               device: str, **fft) -> np.ndarray:
-    pulse = PulseConvolution(method, wp.array(taps, dtype=wp.float64, device=device), first_lag, device, **fft)
+    pulse = PulseConvolution(method, wp.array(taps, dtype=wp.float64, device=device), first_lag, impulses.shape[1],
+                             device, **fft)
     out = wp.empty(impulses.shape, dtype=wp.float32, device=device)
     out.fill_(7.0)  # launch zeroes its rows first
     pulse.launch(wp.array(impulses, dtype=wp.float64, device=device), wp.array(span, dtype=wp.int32, device=device),
@@ -106,9 +107,11 @@ def test_a_single_impulse_gives_the_sampled_pulse(device):
 
 
 def test_fft_sizes():
-    """N is the smallest power of two ≥ the least asked for that exceeds the taps."""
-    assert fft_size(4757) == 8192 and fft_size(100) == 8192 and fft_size(8192) == 16384
-    assert fft_size(100, least=256) == 256 and fft_size(300, least=256) == 512
+    """N is the smallest power of two that exceeds the taps and reaches the least asked for, or the row plus the
+    taps − 1 if shorter (change1: 4759 taps, 32768 samples; gedi: ~100 taps, 1000 samples)."""
+    assert fft_size(4759, 32768) == 8192 and fft_size(100, 32768) == 8192 and fft_size(8192, 32768) == 16384
+    assert fft_size(103, 1000) == 2048 and fft_size(100, 32768, least=256) == 256 and fft_size(300, 9000, 256) == 512
+    assert fft_size(10, 20) == 32
 
 
 def test_a_small_fft_many_blocks_and_rows(device):
@@ -126,6 +129,28 @@ def test_a_small_fft_many_blocks_and_rows(device):
         ref = _reference(rows[r], taps, first_lag)
         assert np.abs(out[r] - ref).max() <= 1.5 * FLOAT32_HALF_ULP * max(ref.max(), 1e-300)
         assert np.all(out[r][ref == 0.0] == 0.0)
+
+
+@pytest.mark.parametrize("scene, settings", [("slope", {}), ("bump", {"waveform.sample_interval_s": 5e-11,
+                                                                       "waveform.samples": 2048})])
+def test_the_readout_runs_the_convolution_of_the_setting(device, scene, settings):
+    """A whole run with waveform.convolution = fft gives the direct run's waveforms to the float32 rounding, exactly 0
+    where they are beyond the reach (the second case: 951 taps, FFT size 4096 covering a row at once; inside the
+    reach, where the pulse's tails fall below ~1e-16 of the peak, the FFT's rounding may leave 0 for a tiny sum)."""
+    power = {}
+    for method in ("direct", "fft"):
+        cfg = waveform_config(scene, device, **settings, **{"waveform.convolution": method})
+        mesh, parts = build_scene(cfg), []
+        Tracer(cfg, mesh, flight_trajectories(cfg, mesh)).run(Waveforms(), parts.append)
+        power[method] = np.concatenate([part.power_w for part in parts]).astype(np.float64)
+    direct, fft = power["direct"], power["fft"]
+    assert direct.shape == fft.shape and direct.max() > 0.0
+    for d, f in zip(direct, fft):  # beyond the direct sums' first and last non-zero sample both are exactly 0
+        touched = np.flatnonzero(d)
+        outside = np.ones(len(d), dtype=bool)
+        outside[touched.min():touched.max() + 1] = False
+        assert np.all(f[outside] == 0.0) and np.all(f[d > 1e-12 * d.max()] > 0.0)
+    assert np.abs(fft - direct).max() <= 2.0 * FLOAT32_HALF_ULP * direct.max()
 
 
 def test_bad_convolution_is_one_line_input_error(tmp_path):

@@ -93,12 +93,13 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, int]], repeats: int)
     records, direct = [], None
     for method, n, block_dim in [("direct", None, None), *(("fft", n, b) for n, b in ffts)]:
         fft = {"fft_least": n, "block_dim": block_dim} if method == "fft" else {}
-        pulse = PulseConvolution(method, chunk["taps"], chunk["first_lag"], device, **fft)
+        pulse = PulseConvolution(method, chunk["taps"], chunk["first_lag"], impulses.shape[1], device, **fft)
         wall = seconds_per_launch(lambda: pulse.launch(impulses, span, out, impulses.shape[0]), device, repeats)
         power = out.numpy().copy()
         direct = power if direct is None else direct
-        record = {"scene": chunk["scene"], "shots": chunk["shots"], "method": method, "fft_size": getattr(pulse, "n", None),
-                  "block_dim": block_dim, "seconds": wall, "accumulation_s": chunk["accumulation_s"],
+        record = {"scene": chunk["scene"], "shots": chunk["shots"], "method": method,
+                  "fft_size": getattr(pulse, "n", None), "block_dim": getattr(pulse, "block_dim", None),
+                  "seconds": wall, "accumulation_s": chunk["accumulation_s"],
                   "max_difference_from_direct_of_peak": float(np.abs(power - direct).max() / max(direct.max(), 1e-300))}
         records.append({**record, **errors(power, host["impulses"], host["span"], chunk["taps"].numpy(),
                                            chunk["first_lag"])})

@@ -11,10 +11,11 @@ from kernels import waveform as kw
 from kernels import waveform_fft as kf
 
 
-def fft_size(taps: int, least: int = kf.FFT_SIZE) -> int:
-    """N: the smallest power of two ≥ ``least`` that exceeds the taps (each FFT then makes N − taps + 1 outputs)."""
+def fft_size(taps: int, samples: int, least: int = kf.FFT_SIZE) -> int:
+    """N: the smallest power of two that exceeds the taps and reaches ``least``, or the samples plus the taps − 1
+    (one FFT then makes a whole row's outputs) if fewer; each FFT makes N − taps + 1 outputs."""
     n = 1
-    while n < max(least, taps + 1):
+    while n < max(min(least, samples + taps - 1), taps + 1):
         n *= 2
     return n
 
@@ -27,15 +28,16 @@ def pulse_spectrum(taps: np.ndarray, n: int) -> np.ndarray:
 
 
 class PulseConvolution:
-    """One run's convolution with the pulse taps (float64 on ``device``, first lag ``first_lag`` samples):
-    ``method`` ``direct`` or ``fft``; for fft, FFT size at least ``fft_least`` (a power of two) launched with
-    ``block_dim`` threads per tile."""
+    """One run's convolution of rows of ``samples`` samples with the pulse taps (float64 on ``device``, first lag
+    ``first_lag`` samples): ``method`` ``direct`` or ``fft``; for fft, the FFT size :func:`fft_size` of
+    ``fft_least`` (a power of two), launched with ``block_dim`` threads per tile (at most N/2)."""
 
-    def __init__(self, method: str, taps: wp.array, first_lag: int, device: str, fft_least: int = kf.FFT_SIZE,
-                 block_dim: int = kf.FFT_BLOCK_DIM):
+    def __init__(self, method: str, taps: wp.array, first_lag: int, samples: int, device: str,
+                 fft_least: int = kf.FFT_SIZE, block_dim: int = kf.FFT_BLOCK_DIM):
         self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
         if method == "fft":
-            self.n, self.block_dim = fft_size(len(taps), fft_least), block_dim
+            self.n = fft_size(len(taps), samples, fft_least)
+            self.block_dim = min(block_dim, self.n // 2)
             self.block = self.n - len(taps) + 1  # L: outputs per FFT
             spectrum = pulse_spectrum(taps.numpy(), self.n)
             self.overlap = kf.Overlap()

@@ -144,7 +144,8 @@ class Waveforms:
         self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
         self.canopy = canopy is not None
         taps, first_lag = det.pulse_taps(tracer.device)
-        self.convolution = PulseConvolution(det.s.convolution, taps, first_lag, tracer.device, **self.fft)
+        self.convolution = PulseConvolution(det.s.convolution, taps, first_lag, det.s.samples, tracer.device,
+                                            **self.fft)
         self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
         self.buffers = _Buffers(tracer, self.params, keep_clean=self.keep_clean and self.receiver is not None)
         self.misses = 0
@@ -167,7 +168,8 @@ class Waveforms:
 
     def kernels_needed(self, tracer) -> list:
         det = tracer.instrument.detector
-        convolution = PulseConvolution(det.s.convolution, *det.pulse_taps(tracer.device), tracer.device, **self.fft)
+        convolution = PulseConvolution(det.s.convolution, *det.pulse_taps(tracer.device), det.s.samples,
+                                       tracer.device, **self.fft)
         return [*pilot_kernels(tracer), kw.deposit_kernel(tracer.meshes.per_face, tracer.scene.canopy is not None),
                 convolution.kernel()]
 
