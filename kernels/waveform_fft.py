@@ -22,6 +22,7 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 FFT_SIZE = 8192  # N: samples per FFT (a power of two greater than the pulse's taps)
+DIRECT_BELOW = 256  # rows whose touched span is narrower [samples] are summed directly (fewer products than an FFT)
 FFT_BLOCK_DIM = 256  # threads per tile on a GPU (cuFFTDx: at most N/2); a CPU tile runs on one
 OUTSIDE = -(1 << 30)  # a store index that lands outside every row: nothing written
 
@@ -128,3 +129,21 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
         wp.tile_store_indexed(out, index, power, offset=(slot, origin + block), axis=1)
 
     return convolve_fft
+
+
+@wp.kernel
+def split_spans(span: wp.array2d(dtype=wp.int32), direct_below: int, direct: wp.array2d(dtype=wp.int32),
+                fft: wp.array2d(dtype=wp.int32)):
+    """Each row's touched span to ``direct`` if narrower than ``direct_below`` samples, else to ``fft``; the other
+    gets an empty span (2³⁰, −1), which both convolution kernels skip.
+
+    # In: span (slots, 2) lowest and highest sample touched, direct_below [samples]
+    # Out: direct, fft (slots, 2)"""
+    slot = wp.tid()
+    lo = span[slot, 0]
+    hi = span[slot, 1]
+    narrow = hi - lo + 1 < direct_below
+    direct[slot, 0] = wp.where(narrow, lo, 1 << 30)
+    direct[slot, 1] = wp.where(narrow, hi, -1)
+    fft[slot, 0] = wp.where(narrow, 1 << 30, lo)
+    fft[slot, 1] = wp.where(narrow, -1, hi)

@@ -67,8 +67,8 @@ def test_fft_and_direct_against_the_float64_convolution(device, scene):
     impulses, span, taps, first_lag = _chunk(scene, device)
     assert len(taps) > 3000 and impulses.shape[1] == 32768 and np.all(span[:, 0] <= span[:, 1])
     errors = {}
-    for method in ("direct", "fft"):
-        out = _convolve(method, impulses, span, taps, first_lag, device)
+    for method in ("direct", "fft"):  # every row by FFTs (direct_below=0), however narrow its span
+        out = _convolve(method, impulses, span, taps, first_lag, device, **({"direct_below": 0} if method == "fft" else {}))
         worst = 0.0
         for row, got, (lo, hi) in zip(impulses, out, span):
             ref = _reference(row, taps, first_lag)
@@ -101,7 +101,8 @@ def test_a_single_impulse_gives_the_sampled_pulse(device):
         expected = np.where(lags, peak * np.exp(-0.5 * ((k * dt - 0.5 * fwhm) / sigma) ** 2), 0.0)
         assert lags.sum() == len(taps) or j0 > samples - len(taps) or j0 < len(taps)
         for method in ("direct", "fft"):
-            got = _convolve(method, row, span, taps, first_lag, device)[0]
+            got = _convolve(method, row, span, taps, first_lag, device,
+                            **({"direct_below": 0} if method == "fft" else {}))[0]
             assert np.all(got[~lags] == 0.0), (method, j0)
             assert np.abs(got - expected).max() <= 1.5 * FLOAT32_HALF_ULP * peak, (method, j0)
 
@@ -124,11 +125,15 @@ def test_a_small_fft_many_blocks_and_rows(device):
     for r in range(3):
         lo, hi = span[r]
         rows[r, lo:hi + 1] = rng.random(hi - lo + 1)
-    out = _convolve("fft", rows, span, taps, first_lag, device, fft_least=1024, block_dim=64)
+    out = _convolve("fft", rows, span, taps, first_lag, device, fft_least=1024, block_dim=64, direct_below=0)
     for r in range(4):
         ref = _reference(rows[r], taps, first_lag)
         assert np.abs(out[r] - ref).max() <= 1.5 * FLOAT32_HALF_ULP * max(ref.max(), 1e-300)
         assert np.all(out[r][ref == 0.0] == 0.0)
+    # rows narrower than direct_below are the direct sums bit for bit, the others the FFTs'
+    mixed = _convolve("fft", rows, span, taps, first_lag, device, fft_least=1024, block_dim=64, direct_below=200)
+    direct = _convolve("direct", rows, span, taps, first_lag, device)
+    assert np.array_equal(mixed[1:], direct[1:]) and np.array_equal(mixed[0], out[0])
 
 
 @pytest.mark.parametrize("scene, settings", [("slope", {}), ("bump", {"waveform.sample_interval_s": 5e-11,
@@ -171,4 +176,4 @@ def test_the_convolve_kernel_of_the_setting_is_compiled_ahead():
     mesh = build_scene(cfg)
     tracer = Tracer(cfg, mesh, flight_trajectories(cfg, mesh))
     names = [k.key for k in Waveforms().kernels_needed(tracer)]
-    assert any("convolve_fft" in name for name in names) and kw.convolve.key not in names
+    assert any("convolve_fft" in name for name in names) and "split_spans" in names and kw.convolve.key in names

@@ -5,7 +5,7 @@ against the float64 NumPy convolution of the same trains (max |out − ref| over
 the samples it wrote beyond the taps' reach of the touched span (must be 0), and, on CUDA, the GPU time of the
 accumulation it follows (emit_rays, pilot and deposit of the same run).
 
-    python3 -m flightsim.studies.bench_convolution --device cuda [--shots 500] [--fft 8192:256,8192:512] [--out DIR]
+    python3 -m flightsim.studies.bench_convolution --device cuda [--shots 500] [--fft 8192:256,8192:512:0] [--out DIR]
 
 prints a Markdown table; with --out also writes DIR/convolution.json and DIR/convolution.md.
 """
@@ -84,21 +84,22 @@ def errors(out: np.ndarray, impulses: np.ndarray, span: np.ndarray, taps: np.nda
             "written_beyond_reach": int(np.count_nonzero(out[~reach]))}
 
 
-def compare(chunk: dict, device: str, ffts: list[tuple[int, int]], repeats: int) -> list[dict]:
-    """One record per path (direct, then each (N, block_dim) of ``ffts``): time per chunk, error, beside the
-    direct path's output (max difference over the peak)."""
+def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int) -> list[dict]:
+    """One record per path (direct, then each (N, block_dim[, direct_below]) of ``ffts``): time per chunk, error,
+    beside the direct path's output (max difference over the peak)."""
     impulses, span = chunk["impulses"], chunk["span"]
     host = {"impulses": impulses.numpy(), "span": span.numpy()}
     out = wp.empty(impulses.shape, dtype=wp.float32, device=device)
     records, direct = [], None
-    for method, n, block_dim in [("direct", None, None), *(("fft", n, b) for n, b in ffts)]:
-        fft = {"fft_least": n, "block_dim": block_dim} if method == "fft" else {}
+    for method, *fft_args in [("direct",), *(("fft", *f) for f in ffts)]:
+        fft = dict(zip(("fft_least", "block_dim", "direct_below"), fft_args))
         pulse = PulseConvolution(method, chunk["taps"], chunk["first_lag"], impulses.shape[1], device, **fft)
         wall = seconds_per_launch(lambda: pulse.launch(impulses, span, out, impulses.shape[0]), device, repeats)
         power = out.numpy().copy()
         direct = power if direct is None else direct
         record = {"scene": chunk["scene"], "shots": chunk["shots"], "method": method,
                   "fft_size": getattr(pulse, "n", None), "block_dim": getattr(pulse, "block_dim", None),
+                  "direct_below": pulse.direct_below if method == "fft" else None,
                   "seconds": wall, "accumulation_s": chunk["accumulation_s"],
                   "max_difference_from_direct_of_peak": float(np.abs(power - direct).max() / max(direct.max(), 1e-300))}
         records.append({**record, **errors(power, host["impulses"], host["span"], chunk["taps"].numpy(),
@@ -107,12 +108,12 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, int]], repeats: int)
 
 
 def table(records: list[dict]) -> str:
-    lines = ["| scene | shots | path | N | block_dim | time per chunk [ms] | accumulation [ms] | max error / peak "
-             "(float64 ref.) | vs direct / peak | written beyond reach |", "|---" * 10 + "|"]
+    lines = ["| scene | shots | path | N | block_dim | direct below [samples] | time per chunk [ms] | accumulation [ms] "
+             "| max error / peak (float64 ref.) | vs direct / peak | written beyond reach |", "|---" * 11 + "|"]
     for r in records:
         acc = "–" if r["accumulation_s"] is None else f"{r['accumulation_s'] * 1e3:.3f}"
         lines.append(f"| {r['scene']} | {r['shots']} | {r['method']} | {r['fft_size'] or '–'} | {r['block_dim'] or '–'} "
-                     f"| {r['seconds'] * 1e3:.3f} | {acc} | {r['max_error_of_peak']:.2e} "
+                     f"| {'–' if r['direct_below'] is None else r['direct_below']} | {r['seconds'] * 1e3:.3f} | {acc} | {r['max_error_of_peak']:.2e} "
                      f"| {r['max_difference_from_direct_of_peak']:.2e} | {r['written_beyond_reach']} |")
     return "\n".join(lines)
 
@@ -122,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--shots", type=int, default=None, help="shots per scene (500 on CUDA, 4 on the CPU)")
     parser.add_argument("--fft", default=f"{kf.FFT_SIZE}:{kf.FFT_BLOCK_DIM}",
-                        help="comma-separated N:block_dim of the FFT path (N a power of two)")
+                        help="comma-separated N:block_dim[:direct_below] of the FFT path (N a power of two; rows whose "
+                        f"span is narrower than direct_below samples summed directly, default {kf.DIRECT_BELOW})")
     parser.add_argument("--scenes", default="slope,flat")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--out", default=None, help="folder for convolution.json and convolution.md")

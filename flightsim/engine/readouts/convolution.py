@@ -29,12 +29,15 @@ def pulse_spectrum(taps: np.ndarray, n: int) -> np.ndarray:
 
 class PulseConvolution:
     """One run's convolution of rows of ``samples`` samples with the pulse taps (float64 on ``device``, first lag
-    ``first_lag`` samples): ``method`` ``direct`` or ``fft``; for fft, the FFT size :func:`fft_size` of
-    ``fft_least`` (a power of two), launched with ``block_dim`` threads per tile (at most N/2)."""
+    ``first_lag`` samples): ``method`` ``direct`` or ``fft``. With fft, the rows whose touched span is narrower
+    than ``direct_below`` samples are still summed directly (bit for bit as with direct: a flat footprint's few
+    samples need fewer products than an FFT), the others by FFTs of size :func:`fft_size` of ``fft_least`` (a power
+    of two) launched with ``block_dim`` threads per tile (at most N/2)."""
 
     def __init__(self, method: str, taps: wp.array, first_lag: int, samples: int, device: str,
-                 fft_least: int = kf.FFT_SIZE, block_dim: int = kf.FFT_BLOCK_DIM):
+                 fft_least: int = kf.FFT_SIZE, block_dim: int = kf.FFT_BLOCK_DIM, direct_below: int = kf.DIRECT_BELOW):
         self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
+        self.direct_below, self.spans = direct_below, None
         if method == "fft":
             self.n = fft_size(len(taps), samples, fft_least)
             self.block_dim = min(block_dim, self.n // 2)
@@ -44,20 +47,27 @@ class PulseConvolution:
             self.overlap.spectrum = wp.array(spectrum, dtype=wp.vec2d, device=device)
             self.overlap.taps, self.overlap.first_lag = len(taps), first_lag
 
-    def kernel(self):
-        """The kernel :meth:`launch` runs."""
-        return kf.convolve_fft_kernel(self.n, self.block_dim) if self.method == "fft" else kw.convolve
+    def kernels(self) -> list:
+        """The kernels :meth:`launch` runs."""
+        if self.method == "direct":
+            return [kw.convolve]
+        return [kw.convolve, kf.split_spans, kf.convolve_fft_kernel(self.n, self.block_dim)]
 
     def launch(self, impulses: wp.array, span: wp.array, out: wp.array, n: int) -> None:
         """Rows 0 … n − 1 of ``out`` (zeroed here first) = rows of ``impulses`` (touched within ``span``)
         convolved with the pulse [W]."""
-        samples = impulses.shape[1]
+        samples, d = impulses.shape[1], self.device
         out[:n].zero_()
+        if self.method == "fft":
+            if self.spans is None or self.spans[0].shape[0] < n:
+                self.spans = tuple(wp.empty((span.shape[0], 2), dtype=wp.int32, device=d) for _ in range(2))
+            wp.launch(kf.split_spans, n, inputs=[span, self.direct_below], outputs=list(self.spans), device=d)
+            span, self.overlap.span = self.spans
+        wp.launch(kw.convolve, (n, -(-samples // kw.CONVOLVE_OUTPUTS)),
+                  inputs=[impulses, span, self.taps, self.first_lag], outputs=[out], device=d)
         if self.method == "direct":
-            wp.launch(kw.convolve, (n, -(-samples // kw.CONVOLVE_OUTPUTS)),
-                      inputs=[impulses, span, self.taps, self.first_lag], outputs=[out], device=self.device)
             return
-        self.overlap.impulses, self.overlap.span = impulses, span
+        self.overlap.impulses = impulses
         pairs = -(-(-(-samples // self.block)) // 2)  # two blocks of L outputs per FFT, over the whole row at most
-        wp.launch_tiled(self.kernel(), dim=(n, pairs), inputs=[self.overlap, self.block], outputs=[out],
+        wp.launch_tiled(self.kernels()[-1], dim=(n, pairs), inputs=[self.overlap, self.block], outputs=[out],
                         block_dim=self.block_dim, device=self.device)

@@ -134,7 +134,7 @@ class Waveforms:
 
     def __init__(self, on_device: bool = False, keep_clean: bool = False, **fft):
         self.on_device, self.keep_clean = on_device, keep_clean
-        self.fft = fft  # with waveform.convolution = "fft": fft_least (FFT size), block_dim (PulseConvolution)
+        self.fft = fft  # with waveform.convolution = "fft": fft_least, block_dim, direct_below (PulseConvolution)
 
     def begin(self, tracer) -> wp.array:
         det = tracer.instrument.detector
@@ -171,7 +171,7 @@ class Waveforms:
         convolution = PulseConvolution(det.s.convolution, *det.pulse_taps(tracer.device), det.s.samples,
                                        tracer.device, **self.fft)
         return [*pilot_kernels(tracer), kw.deposit_kernel(tracer.meshes.per_face, tracer.scene.canopy is not None),
-                convolution.kernel()]
+                *convolution.kernels()]
 
     def _hand_over(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b = self.buffers
