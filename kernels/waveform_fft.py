@@ -99,12 +99,15 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
     n/2). Launch with ``wp.launch_tiled`` over (slots, pairs of blocks) with the same block_dim."""
 
     @wp.kernel(enable_backward=False, module="unique", module_options={"block_dim": block_dim})
-    def convolve_fft(o: Overlap, block: int, out: wp.array2d(dtype=wp.float32)):
+    def convolve_fft(
+        # In:
+        o: Overlap,  # the impulse trains, their spans, the pulse's spectrum
+        block: int,  # L = n − taps + 1: outputs per block
+        # Out:
+        out: wp.array2d(dtype=wp.float32),  # (slots, samples) power [W], zeroed beforehand: only the reach is written
+    ):
         """out[slot, i] = Σ_j impulses[slot, j] · taps[i − j − first_lag] [W] for the outputs of blocks 2·pair
-        and 2·pair + 1 of ``block`` (L) outputs each, counted from the start of the slot's reach.
-
-        # In: o (impulse trains, spans, the pulse's spectrum), block = n − taps + 1
-        # Out: out (zeroed beforehand; only the reach is written)"""
+        and 2·pair + 1 of L outputs each, counted from the start of the slot's reach."""
         slot, pair = wp.tid()
         samples = o.impulses.shape[1]
         lo = o.span[slot, 0]
@@ -132,13 +135,16 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
 
 
 @wp.kernel
-def split_spans(span: wp.array2d(dtype=wp.int32), direct_below: int, direct: wp.array2d(dtype=wp.int32),
-                fft: wp.array2d(dtype=wp.int32)):
+def split_spans(
+    # In:
+    span: wp.array2d(dtype=wp.int32),  # (slots, 2) lowest and highest sample touched
+    direct_below: int,  # [samples]
+    # Out:
+    direct: wp.array2d(dtype=wp.int32),  # (slots, 2) the spans the direct sums make
+    fft: wp.array2d(dtype=wp.int32),  # (slots, 2) the spans the FFTs make
+):
     """Each row's touched span to ``direct`` if narrower than ``direct_below`` samples, else to ``fft``; the other
-    gets an empty span (2³⁰, −1), which both convolution kernels skip.
-
-    # In: span (slots, 2) lowest and highest sample touched, direct_below [samples]
-    # Out: direct, fft (slots, 2)"""
+    gets an empty span (2³⁰, −1), which both convolution kernels skip."""
     slot = wp.tid()
     lo = span[slot, 0]
     hi = span[slot, 1]

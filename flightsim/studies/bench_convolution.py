@@ -108,18 +108,21 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
 
 
 def table(records: list[dict]) -> str:
+    """The records as a Markdown table."""
     lines = ["| scene | shots | path | N | block_dim | direct below [samples] | time per chunk [ms] | accumulation [ms] "
              "| max error / peak (float64 ref.) | vs direct / peak | written beyond reach |", "|---" * 11 + "|"]
+    dash = lambda value: "–" if value is None else value  # noqa: E731
     for r in records:
         acc = "–" if r["accumulation_s"] is None else f"{r['accumulation_s'] * 1e3:.3f}"
-        lines.append(f"| {r['scene']} | {r['shots']} | {r['method']} | {r['fft_size'] or '–'} | {r['block_dim'] or '–'} "
-                     f"| {'–' if r['direct_below'] is None else r['direct_below']} | {r['seconds'] * 1e3:.3f} | {acc} | {r['max_error_of_peak']:.2e} "
+        lines.append(f"| {r['scene']} | {r['shots']} | {r['method']} | {dash(r['fft_size'])} | {dash(r['block_dim'])} "
+                     f"| {dash(r['direct_below'])} | {r['seconds'] * 1e3:.3f} | {acc} | {r['max_error_of_peak']:.2e} "
                      f"| {r['max_difference_from_direct_of_peak']:.2e} | {r['written_beyond_reach']} |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python3 -m flightsim.studies.bench_convolution", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python3 -m flightsim.studies.bench_convolution",
+                                     description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--shots", type=int, default=None, help="shots per scene (500 on CUDA, 4 on the CPU)")
     parser.add_argument("--fft", default=f"{kf.FFT_SIZE}:{kf.FFT_BLOCK_DIM}",
