@@ -3,7 +3,7 @@
 impulse trains of the change1 preset (shots at 1 kHz) on the device, each beside the error of its float32 waveforms
 against the float64 NumPy convolution of the same trains (max |out − ref| over a row's peak, over the first rows),
 the samples it wrote beyond the taps' reach of the touched span (must be 0), and, on CUDA, the GPU time of the
-accumulation it follows (emit_rays, pilot and deposit of the same run).
+accumulation it follows (emit_rays, pilot and deposit of the same run; in the JSON also the direct convolution of that run).
 
     python3 -m flightsim.studies.bench_convolution --device cuda [--shots 500] [--fft 8192:256,8192:512:0] [--out DIR]
 
@@ -100,7 +100,7 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
         record = {"scene": chunk["scene"], "shots": chunk["shots"], "method": method,
                   "fft_size": getattr(pulse, "n", None), "block_dim": getattr(pulse, "block_dim", None),
                   "direct_below": pulse.direct_below if method == "fft" else None,
-                  "seconds": wall, "accumulation_s": chunk["accumulation_s"],
+                  "seconds": wall, "accumulation_s": chunk["accumulation_s"], "direct_in_run_s": chunk["direct_in_run_s"],
                   "max_difference_from_direct_of_peak": float(np.abs(power - direct).max() / max(direct.max(), 1e-300))}
         records.append({**record, **errors(power, host["impulses"], host["span"], chunk["taps"].numpy(),
                                            chunk["first_lag"])})
