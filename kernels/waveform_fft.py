@@ -93,12 +93,16 @@ def _store_index(m: int, wrapped: int) -> int:
 
 
 @functools.cache
-def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
+def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM, mathdx: bool = True):
     """The overlap-save kernel of FFT size ``n`` (a power of two) for tiles of ``block_dim`` threads (its module's
-    block_dim, so that compiling it ahead compiles what runs; on a GPU cuFFTDx bounds the sizes and block_dim ≤
-    n/2). Launch with ``wp.launch_tiled`` over (slots, pairs of blocks) with the same block_dim."""
+    block_dim, so that compiling it ahead compiles what runs). On a GPU the FFTs are cuFFTDx's (``mathdx``; it
+    bounds the sizes, block_dim ≤ n/2, and its shared memory adds to the kernel's two n-int index tiles), else
+    Warp's own cooperative radix-2 FFT (n divisible by block_dim). Launch with ``wp.launch_tiled`` over (slots,
+    pairs of blocks) with the same block_dim."""
 
-    @wp.kernel(enable_backward=False, module="unique", module_options={"block_dim": block_dim})
+    options = {"block_dim": block_dim, "enable_mathdx_fft": mathdx}
+
+    @wp.kernel(enable_backward=False, module="unique", module_options=options)
     def convolve_fft(
         # In:
         o: Overlap,  # the impulse trains, their spans, the pulse's spectrum

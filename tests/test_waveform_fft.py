@@ -115,9 +115,10 @@ def test_fft_sizes():
     assert fft_size(10, 20) == 32
 
 
-def test_a_small_fft_many_blocks_and_rows(device):
+@pytest.mark.parametrize("mathdx", [True, False])
+def test_a_small_fft_many_blocks_and_rows(device, mathdx):
     """Random impulse trains over several rows, FFT size 1024 (many blocks per row, blocks cut by both ends of the
-    row, a row with nothing touched) against the float64 convolution."""
+    row, a row with nothing touched) against the float64 convolution; on a GPU by cuFFTDx and by Warp's own FFT."""
     rng = np.random.default_rng(7)
     samples, taps_n, first_lag = 6000, 401, -150
     taps = np.exp(-0.5 * ((np.arange(taps_n) - 200) / 30.0) ** 2)
@@ -125,13 +126,14 @@ def test_a_small_fft_many_blocks_and_rows(device):
     for r in range(3):
         lo, hi = span[r]
         rows[r, lo:hi + 1] = rng.random(hi - lo + 1)
-    out = _convolve("fft", rows, span, taps, first_lag, device, fft_least=1024, block_dim=64, direct_below=0)
+    fft = {"fft_least": 1024, "block_dim": 64, "mathdx": mathdx}
+    out = _convolve("fft", rows, span, taps, first_lag, device, direct_below=0, **fft)
     for r in range(4):
         ref = _reference(rows[r], taps, first_lag)
         assert np.abs(out[r] - ref).max() <= 1.5 * FLOAT32_HALF_ULP * max(ref.max(), 1e-300)
         assert np.all(out[r][ref == 0.0] == 0.0)
     # rows narrower than direct_below are the direct sums bit for bit, the others the FFTs'
-    mixed = _convolve("fft", rows, span, taps, first_lag, device, fft_least=1024, block_dim=64, direct_below=200)
+    mixed = _convolve("fft", rows, span, taps, first_lag, device, direct_below=200, **fft)
     direct = _convolve("direct", rows, span, taps, first_lag, device)
     assert np.array_equal(mixed[1:], direct[1:]) and np.array_equal(mixed[0], out[0])
 
