@@ -12,8 +12,9 @@ part, the second's as the imaginary part: the inverse transform of H·(A + iB) i
 One tile of the launch (slot, pair) makes blocks 2·pair and 2·pair + 1 of its slot's reach; a tile beyond the
 reach returns at once. The outputs are float32 [W] rounded from the float64 sums, clamped at 0 (the exact sums of
 non-negative impulses and taps are ≥ 0, so the clamp only removes the FFT's rounding, ~1e−16 of the block's
-largest value); outputs outside the reach are not written (``out`` must be zeroed), so they stay exactly 0 as the
-direct sum leaves them; inside the reach past its end (the last block's tail) 0 is written.
+largest value). Outputs before the reach are never written and those after it only with 0 (the tail of the
+reach's last pair of blocks), so with ``out`` zeroed beforehand every sample beyond the reach stays exactly 0, as the
+direct sums leave it (they too write 0 to a few samples past the reach).
 """
 import functools
 
