@@ -46,6 +46,7 @@ CASES = {
     "points to LAS": ["--instrument", "risley", "--duration", "0.2"],
     "galvo points to LAS": ["--instrument", "change3", "--duration", "0.05"],
     "waveforms": ["--instrument", "change1", "--duration", "0.5"],
+    "waveforms, FFT convolution": ["--instrument", "change1", "--duration", "0.5", "--set", "waveform.convolution=fft"],
     "photons, SPAD": ["--instrument", "spad", "--duration", "0.002"],
     "photons, ATLAS six beams": ["--instrument", "atlas", "--duration", "0.002"],
     "waveforms, GEDI": ["--instrument", "gedi", "--duration", "0.01"],

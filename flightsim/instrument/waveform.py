@@ -37,6 +37,7 @@ H = 6.62607015e-34  # Planck constant [J s]
 C = 299_792_458.0  # [m/s]
 WAVEFORM_STREAM = 0x2F6A91  # seed key of the receiver noise
 CLOUD_METHODS = ("gedi", "rays")
+CONVOLUTIONS = ("direct", "fft")  # the pulse convolution: kernels/waveform.py convolve; kernels/waveform_fft.py
 L2A_NOISE_SAMPLES = 64  # samples at each end of a waveform that L2A takes its noise from (l2a.noise_samples)
 
 
@@ -76,6 +77,9 @@ class WaveformSettings(Settings):
     cloud_method: str = setting("gedi", "over a point-cloud scene (.las/.laz): gedi sums the ALS points' pulses over "
                                 "the Gaussian footprint (the GEDI simulator's method); rays traces the sub-rays "
                                 "against the cloud's ground mesh and scene.canopy", choices=CLOUD_METHODS)
+    convolution: str = setting("direct", "the echo's convolution with the pulse on the device: direct sums, or fft "
+                               "(overlap-save over float64 tile FFTs; the same float32 waveforms to ~1e-7 of the peak)",
+                               choices=CONVOLUTIONS)
 
     def check(self, context) -> None:
         system(self)

@@ -13,6 +13,7 @@ import warp as wp
 
 from flightsim.core.registry import register
 from flightsim.engine.chunks import Segment
+from flightsim.engine.readouts.convolution import PulseConvolution
 from flightsim.scenes.canopy import no_canopy
 from kernels import trace
 from kernels import waveform as kw
@@ -131,8 +132,9 @@ class Waveforms:
 
     kind = "waveforms"
 
-    def __init__(self, on_device: bool = False, keep_clean: bool = False):
+    def __init__(self, on_device: bool = False, keep_clean: bool = False, **fft):
         self.on_device, self.keep_clean = on_device, keep_clean
+        self.fft = fft  # with waveform.convolution = "fft": fft_least, block_dim, direct_below (PulseConvolution)
 
     def begin(self, tracer) -> wp.array:
         det = tracer.instrument.detector
@@ -141,7 +143,9 @@ class Waveforms:
         self.subrays = det.subrays(tracer.device)
         self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
         self.canopy = canopy is not None
-        self.taps, self.first_lag = det.pulse_taps(tracer.device)
+        taps, first_lag = det.pulse_taps(tracer.device)
+        self.convolution = PulseConvolution(det.s.convolution, taps, first_lag, det.s.samples, tracer.device,
+                                            **self.fft)
         self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
         self.buffers = _Buffers(tracer, self.params, keep_clean=self.keep_clean and self.receiver is not None)
         self.misses = 0
@@ -158,14 +162,16 @@ class Waveforms:
                   inputs=[self.refs, params, self.leaves, b.starts, b.directions, b.window, self.subrays.offsets,
                           self.subrays.weights, kw.SUBRAYS_PER_THREAD],
                   outputs=[b.impulses, b.received, b.span], device=d)
-        b.power[:n].zero_()
-        wp.launch(kw.convolve, (n, -(-params.samples // kw.CONVOLVE_OUTPUTS)), inputs=[b.impulses, b.span, self.taps, self.first_lag],
-                  outputs=[b.power], device=d)
+        self.convolution.launch(b.impulses, b.span, b.power, n)
         receive(tracer, self.receiver, params, b, n)
         self._hand_over(tracer, segments, n, counts, consume)
 
     def kernels_needed(self, tracer) -> list:
-        return [*pilot_kernels(tracer), kw.deposit_kernel(tracer.meshes.per_face, tracer.scene.canopy is not None)]
+        det = tracer.instrument.detector
+        convolution = PulseConvolution(det.s.convolution, *det.pulse_taps(tracer.device), det.s.samples,
+                                       tracer.device, **self.fft)
+        return [*pilot_kernels(tracer), kw.deposit_kernel(tracer.meshes.per_face, tracer.scene.canopy is not None),
+                *convolution.kernels()]
 
     def _hand_over(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b = self.buffers

@@ -1,0 +1,75 @@
+"""The waveform readout's convolution of each beam's impulse train with the pulse (``waveform.convolution``):
+``direct`` sums the taps per output (kernels/waveform.py ``convolve``), ``fft`` runs overlap-save over float64 tile
+FFTs (kernels/waveform_fft.py). Both write float32 power [W] into zeroed rows, only within each row's reach (the
+outputs within the taps of its touched span), so the samples beyond stay exactly 0."""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from kernels import waveform as kw
+from kernels import waveform_fft as kf
+
+
+def fft_size(taps: int, samples: int, least: int = kf.FFT_SIZE) -> int:
+    """N: the smallest power of two that exceeds the taps and reaches ``least``, or the samples plus the taps − 1
+    (one FFT then makes a whole row's outputs) if fewer; each FFT makes N − taps + 1 outputs."""
+    n = 1
+    while n < max(min(least, samples + taps - 1), taps + 1):
+        n *= 2
+    return n
+
+
+def pulse_spectrum(taps: np.ndarray, n: int) -> np.ndarray:
+    """(1, n, 2) float64: the FFT of the taps zero-padded to n, divided by n (the inverse tile FFT is unscaled)
+    as (real, imaginary)."""
+    h = np.fft.fft(np.asarray(taps, dtype=np.float64), n) / n
+    return np.stack([h.real, h.imag], axis=-1)[None]
+
+
+class PulseConvolution:
+    """One run's convolution of rows of ``samples`` samples with the pulse taps (float64 on ``device``, first lag
+    ``first_lag`` samples): ``method`` ``direct`` or ``fft``. With fft, the rows whose touched span is narrower
+    than ``direct_below`` samples are still summed directly (bit for bit as with direct: a flat footprint's few
+    samples need fewer products than an FFT), the others by FFTs of size :func:`fft_size` of ``fft_least`` (a power
+    of two) launched with ``block_dim`` threads per tile (at most N/2), on a GPU by cuFFTDx (``mathdx``) or Warp's
+    own tile FFT."""
+
+    def __init__(self, method: str, taps: wp.array, first_lag: int, samples: int, device: str,
+                 fft_least: int = kf.FFT_SIZE, block_dim: int = kf.FFT_BLOCK_DIM, direct_below: int = kf.DIRECT_BELOW,
+                 mathdx: bool = True):
+        self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
+        self.direct_below, self.mathdx, self.spans = direct_below, bool(mathdx), None
+        if method == "fft":
+            self.n = fft_size(len(taps), samples, fft_least)
+            self.block_dim = min(block_dim, self.n // 2)
+            self.block = self.n - len(taps) + 1  # L: outputs per FFT
+            spectrum = pulse_spectrum(taps.numpy(), self.n)
+            self.overlap = kf.Overlap()
+            self.overlap.spectrum = wp.array(spectrum, dtype=wp.vec2d, device=device)
+            self.overlap.taps, self.overlap.first_lag = len(taps), first_lag
+
+    def kernels(self) -> list:
+        """The kernels :meth:`launch` runs."""
+        if self.method == "direct":
+            return [kw.convolve]
+        return [kw.convolve, kf.split_spans, kf.convolve_fft_kernel(self.n, self.block_dim, self.mathdx)]
+
+    def launch(self, impulses: wp.array, span: wp.array, out: wp.array, n: int) -> None:
+        """Rows 0 … n − 1 of ``out`` (zeroed here first) = rows of ``impulses`` (touched within ``span``)
+        convolved with the pulse [W]."""
+        samples, d = impulses.shape[1], self.device
+        out[:n].zero_()
+        if self.method == "fft":
+            if self.spans is None or self.spans[0].shape[0] < n:
+                self.spans = tuple(wp.empty((span.shape[0], 2), dtype=wp.int32, device=d) for _ in range(2))
+            wp.launch(kf.split_spans, n, inputs=[span, self.direct_below], outputs=list(self.spans), device=d)
+            span, self.overlap.span = self.spans
+        wp.launch(kw.convolve, (n, -(-samples // kw.CONVOLVE_OUTPUTS)),
+                  inputs=[impulses, span, self.taps, self.first_lag], outputs=[out], device=d)
+        if self.method == "direct":
+            return
+        self.overlap.impulses = impulses
+        pairs = -(-(-(-samples // self.block)) // 2)  # two blocks of L outputs per FFT, over the whole row at most
+        wp.launch_tiled(self.kernels()[-1], dim=(n, pairs), inputs=[self.overlap, self.block], outputs=[out],
+                        block_dim=self.block_dim, device=self.device)
