@@ -37,6 +37,7 @@ H = 6.62607015e-34  # Planck constant [J s]
 C = 299_792_458.0  # [m/s]
 WAVEFORM_STREAM = 0x2F6A91  # seed key of the receiver noise
 CLOUD_METHODS = ("gedi", "rays")
+PROCESSINGS = ("host", "device")  # where waveforms.h5's measures and Gaussian decomposition are computed
 L2A_NOISE_SAMPLES = 64  # samples at each end of a waveform that L2A takes its noise from (l2a.noise_samples)
 
 
@@ -76,6 +77,9 @@ class WaveformSettings(Settings):
     cloud_method: str = setting("gedi", "over a point-cloud scene (.las/.laz): gedi sums the ALS points' pulses over "
                                 "the Gaussian footprint (the GEDI simulator's method); rays traces the sub-rays "
                                 "against the cloud's ground mesh and scene.canopy", choices=CLOUD_METHODS)
+    processing: str = setting("host", "where waveforms.h5's ranging (measures, Gaussian decomposition) is computed: "
+                              "host (NumPy/SciPy, one waveform at a time) or device (batched kernels on the run's "
+                              "device; docs/waveform-processing.md)", choices=PROCESSINGS)
 
     def check(self, context) -> None:
         system(self)
