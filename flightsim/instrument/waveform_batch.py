@@ -38,7 +38,8 @@ class Batch:
     """Measures and components of W waveforms: ``measures`` name → (W,) [s]; ``time_s``, ``amplitude_w``,
     ``sigma_s`` (W, K) the components in time order (NaN-padded; K ≥ the most any waveform has); ``count`` (W,);
     ``ssr`` (W,) the device fit's sum of squared residuals in units of the maximum² (NaN where the host fitted);
-    ``status`` (W,) kernels.waveform_measures STATUS_*; ``steps`` (W,) Levenberg–Marquardt steps."""
+    ``status`` (W,) kernels.waveform_measures STATUS_*; ``steps`` (W,) Levenberg–Marquardt steps; ``peaks``
+    (W, MAX_PEAKS) the samples of the first MAX_PEAKS peaks found, −1-padded."""
 
     measures: dict[str, np.ndarray]
     time_s: np.ndarray
@@ -48,6 +49,7 @@ class Batch:
     ssr: np.ndarray
     status: np.ndarray
     steps: np.ndarray
+    peaks: np.ndarray
 
     def ranges_m(self, system: model.WaveformSystem) -> dict[str, np.ndarray]:
         """Half-power, centroid and peak ranges [m] as :func:`~flightsim.instrument.waveform_model.measure` reads them."""
@@ -144,5 +146,6 @@ def _host_fallback(system, t0_s, echo_w, raw, min_prominence) -> Batch:
         comp[:, w, :len(parts)] = np.array([(g.time_s, g.amplitude_w, g.sigma_s) for g in parts]).T
         count[w] = len(parts)
     measures = {name: raw["out"][:, i] for i, name in enumerate(MEASURES)}
-    return Batch(measures, comp[0], comp[1], comp[2], count,
-                 np.where(fitted, raw["ssr"], np.nan), raw["status"][:, 0], raw["status"][:, 1])
+    peaks = np.where(np.arange(MAX_PEAKS)[None, :] < raw["count"][:, None], raw["peaks"], -1)
+    return Batch(measures, comp[0], comp[1], comp[2], count, np.where(fitted, raw["ssr"], np.nan),
+                 raw["status"][:, 0], raw["status"][:, 1], peaks)
