@@ -151,7 +151,7 @@ def fit_gaussians(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     echo      (N, W) received power [W]; t0 (W,) time of sample 0 [s]; dt: sample interval [s]
     step      (W,) t_1 − t_0 of each waveform [s]: s ≥ step/σ; sigma: σ of the pulse [s]
     maximum   (6, W) echo_measures' output (row 5: each waveform's maximum, the unit of a)
-    count     (W,) peaks per waveform (none or more than MAX_PEAKS: not fitted)
+    count     (W,) peaks per waveform (none, more than MAX_PEAKS, or a start outside the bounds: not fitted)
     # In/Out:
     params    (3·MAX_PEAKS, W) (a, μ, s) per Gaussian: a in units of the maximum, μ and s in σ from t0
     # Out:
@@ -160,7 +160,11 @@ def fit_gaussians(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     """
     w = wp.tid()
     k = count[w]
-    if k == 0 or k > MAX_PEAKS:
+    outside = int(0)  # a start amplitude below 0 (a peak on a negative sample): curve_fit refuses it, so does this
+    for q in range(wp.min(k, MAX_PEAKS)):
+        if params[3 * q, w] < wp.float64(0.0):
+            outside = 1
+    if k == 0 or k > MAX_PEAKS or outside != 0:
         status[0, w] = STATUS_SKIPPED
         status[1, w] = 0
         return

@@ -25,7 +25,7 @@ UNDERFLOW = wp.constant(wp.float64(750.0))  # exp(−h) of h above this is 0 in 
 
 STATUS_CONVERGED = wp.constant(0)  # no step lowers the SSR any more, or the last lowered it by < GAIN_TOLERANCE
 STATUS_ITERATIONS = wp.constant(1)  # MAX_ITERATIONS steps taken
-STATUS_SKIPPED = wp.constant(-1)  # no peak, or more than MAX_PEAKS: not fitted
+STATUS_SKIPPED = wp.constant(-1)  # no peak, more than MAX_PEAKS, or a start amplitude < 0: not fitted
 
 
 @wp.func

@@ -14,8 +14,9 @@ The steps are the host functions', in the same float64 operations where the orde
 - The centroid's and RMS width's sums are compensated (Neumaier) where NumPy's are pairwise: they agree to a few
   units in the last place.
 
-A waveform with more than MAX_PEAKS peaks (or none) is not fitted on the device: its components are the host's
-(``decompose``), so the result is the host's there too (an error for a waveform without a peak, as on the host).
+A waveform with more than MAX_PEAKS peaks, or none, or a peak on a negative sample (a start amplitude outside the
+bound a ≥ 0, which curve_fit refuses) is not fitted on the device: its components are the host's (``decompose``), so
+the result is the host's there too (a ValueError for the last two, as on the host).
 """
 from __future__ import annotations
 
@@ -127,8 +128,8 @@ def _joined(parts: list[dict]) -> dict[str, np.ndarray]:
 
 
 def _host_fallback(system, t0_s, echo_w, raw, min_prominence) -> Batch:
-    """The Batch of the kernels' outputs, components sorted by time; rows the device did not fit (no peak, or more
-    than MAX_PEAKS) decomposed by the host instead."""
+    """The Batch of the kernels' outputs, components sorted by time; rows the device did not fit (the module's
+    docstring) decomposed by the host instead."""
     sigma, n = model.pulse_sigma_s(system), len(t0_s)
     a, mu, s = (raw["params"][:, i::3] for i in range(3))
     fitted = raw["status"][:, 0] != km.STATUS_SKIPPED
