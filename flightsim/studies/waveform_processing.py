@@ -174,10 +174,12 @@ def table(device: str, quick: bool = False) -> str:
     return "\n".join(rows)
 
 
-def timing(device: str, waveforms: int = 2000, samples: int = 1000, repeats: int = 3) -> dict:
-    """Waveforms per second of the host path (measure + decompose, one at a time) and of the device path
-    (:func:`process`, end to end from host arrays to host arrays) on the same synthetic chunk (GEDI's σ and Δt)."""
-    system = model.WaveformSystem(pulse_fwhm_s=1.5e-8, sample_interval_s=1e-9)
+def timing(device: str, waveforms: int = 2000, samples: int = 1000, system: model.WaveformSystem | None = None,
+           host_waveforms: int = 100, repeats: int = 3) -> dict:
+    """Waveforms per second of the host path (measure + decompose, one at a time, over the first ``host_waveforms``)
+    and of the device path (:func:`process`, end to end from host arrays to host arrays, best of ``repeats``) on the
+    same synthetic chunk (by default GEDI's σ and Δt)."""
+    system = system or model.WaveformSystem(pulse_fwhm_s=1.5e-8, sample_interval_s=1e-9)
     _, _, t0, echo = synthetic("timing", system, waveforms, samples, 3)
     process(system, t0[:8], echo[:8], device)  # compile, warm up
     device_s = []
@@ -185,15 +187,27 @@ def timing(device: str, waveforms: int = 2000, samples: int = 1000, repeats: int
         started = time.perf_counter()
         process(system, t0, echo, device)
         device_s.append(time.perf_counter() - started)
-    few = min(waveforms, 200)
+    few = min(waveforms, host_waveforms)
     times = t0[:few, None] + system.sample_interval_s * np.arange(samples)[None, :]
     started = time.perf_counter()
     for w in range(few):
         model.measure(system, times[w], echo[w])
         model.decompose(system, times[w], echo[w])
     host_s = (time.perf_counter() - started) / few
-    return {"device": device, "waveforms": waveforms, "samples": samples, "device_s": min(device_s),
-            "device_waveforms_per_s": waveforms / min(device_s), "host_waveforms_per_s": 1.0 / host_s}
+    return {"case": f"σ {model.pulse_sigma_s(system) * 1e9:.2f} ns, Δt {system.sample_interval_s * 1e9:g} ns",
+            "device": device, "waveforms": waveforms, "samples": samples, "device_s": min(device_s),
+            "device_waveforms_per_s": waveforms / min(device_s), "host_waveforms_per_s": 1.0 / host_s,
+            "speedup": host_s * waveforms / min(device_s)}
+
+
+def ranging_bench(device: str, s) -> list[dict]:
+    """`flightsim bench` section ranging: waveforms/s of waveforms.h5's ranging, host vs device, on GEDI-like
+    waveforms (1000 samples of 1 ns, σ 6.4 ns) and change1-like ones (32,768 samples of 0.01 ns, σ 3.0 ns)."""
+    cuda = not str(device).startswith("cpu")
+    gedi = 20000 if cuda else (100 if s.quick else 400)
+    change1 = 1000 if cuda else (4 if s.quick else 16)
+    return [timing(device, gedi, 1000, host_waveforms=50 if s.quick else 100),
+            timing(device, change1, 32768, model.WaveformSystem(), host_waveforms=4 if s.quick else 8)]
 
 
 def main() -> None:
@@ -202,11 +216,13 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--time", action="store_true", help="waveforms/s of the host and device paths")
     parser.add_argument("--waveforms", type=int, default=2000)
+    parser.add_argument("--samples", type=int, default=1000, help="with --time: 1000 (GEDI's σ and Δt) or more")
     args = parser.parse_args()
     from flightsim.core.warp_runtime import init_warp
 
     init_warp()
-    print(timing(args.device, args.waveforms) if args.time else table(args.device, args.quick))
+    system = model.WaveformSystem() if args.samples > 4096 else None  # change1's σ and Δt for long waveforms
+    print(timing(args.device, args.waveforms, args.samples, system) if args.time else table(args.device, args.quick))
 
 
 if __name__ == "__main__":
