@@ -67,7 +67,12 @@ def smooth_echoes(echo: wp.array2d(dtype=wp.float64), group: wp.array(dtype=wp.i
     acc = echo[i, w] * taps[g, 0]
     for m in range(r):
         k = r - m
-        acc += (echo[_reflect(i - k, n), w] + echo[_reflect(i + k, n), w]) * taps[g, k]
+        below = i - k
+        above = i + k
+        if below < 0 or above >= n:  # the integer modulo only near the ends
+            below = _reflect(below, n)
+            above = _reflect(above, n)
+        acc += (echo[below, w] + echo[above, w]) * taps[g, k]
     smooth[i, w] = acc
 
 
@@ -233,8 +238,10 @@ def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype
     w = wp.tid()
     n = smooth.shape[0]
     top = smooth[0, w]
+    bottom = top
     for j in range(1, n):
         top = wp.max(top, smooth[j, w])
+        bottom = wp.min(bottom, smooth[j, w])
     floor = min_prominence * top
     scale = maximum[5, w]
     kept = int(0)
@@ -244,7 +251,11 @@ def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype
             ahead = _plateau_end(smooth, w, i)
             if smooth[ahead, w] < smooth[i, w]:
                 peak = (i + ahead - 1) // 2
-                prominence, left, right = _prominence(smooth, w, peak)
+                prominence = smooth[peak, w] - bottom  # a bound: a maximum below it cannot stand out enough
+                left = peak
+                right = peak
+                if prominence >= floor:
+                    prominence, left, right = _prominence(smooth, w, peak)
                 if prominence >= floor:
                     if kept < MAX_PEAKS:
                         width_s = _width(smooth, w, peak, prominence, left, right) * step[w] / FWHM_PER_SIGMA
