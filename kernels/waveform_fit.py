@@ -150,7 +150,7 @@ def fit_gaussians(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     # In:
     echo      (N, W) received power [W]; t0 (W,) time of sample 0 [s]; dt: sample interval [s]
     step      (W,) t_1 − t_0 of each waveform [s]: s ≥ step/σ; sigma: σ of the pulse [s]
-    maximum   (6, W) echo_measures' output (row 5: each waveform's maximum, the unit of a)
+    maximum   (7, W) echo_measures' output (row 5: each waveform's maximum, the unit of a)
     count     (W,) peaks per waveform (none, more than MAX_PEAKS, or a start outside the bounds: not fitted)
     # In/Out:
     params    (3·MAX_PEAKS, W) (a, μ, s) per Gaussian: a in units of the maximum, μ and s in σ from t0

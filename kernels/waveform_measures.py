@@ -106,7 +106,8 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     echo  (N, W) received power [W]
     t0    (W,) time of each waveform's sample 0 [s]; dt: sample interval [s] (sample j at t0 + dt·j)
     # Out:
-    out   (6, W) half-power time [s], centroid time [s], peak time [s], FWHM [s], RMS width [s], maximum [W]
+    out   (7, W) half-power time [s], centroid time [s], peak time [s], FWHM [s], RMS width [s], maximum [W], and
+          1 where the echo starts or ends above half its maximum (the host's measures then index out of the window)
     """
     w = wp.tid()
     n = echo.shape[0]
@@ -136,6 +137,11 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     for j in range(n):
         d = _time(start, dt, j) - centroid
         spread = _add(spread, d * d * echo[j, w])
+    edge = int(0)
+    if first == 0 or last == n - 1:  # the echo starts or ends above half its maximum: the host's crossing reads
+        edge = 1  # index −1 (the last sample) or n (IndexError); left to the host, the crossings read inside here
+        first = 1
+        last = n - 2
     half = _crossing(echo, w, start, dt, first - 1, level)
     j = wp.clamp(arg, 1, n - 2)
     y0 = echo[j - 1, w]
@@ -148,6 +154,7 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     out[3, w] = _crossing(echo, w, start, dt, last, level) - half
     out[4, w] = wp.sqrt((spread[0] + spread[1]) / total)
     out[5, w] = top
+    out[6, w] = wp.float64(edge)
 
 
 @wp.func
@@ -229,7 +236,7 @@ def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype
     t0              (W,) time of sample 0 [s]; dt: sample interval [s]
     step            (W,) t_1 − t_0 of each waveform as the host forms it [s]
     sigma           σ of the pulse [s]; min_prominence: share of the smoothed maximum a peak must stand out by
-    maximum         (6, W) echo_measures' output (row 5: each waveform's maximum [W])
+    maximum         (7, W) echo_measures' output (row 5: each waveform's maximum [W])
     # Out:
     count           (W,) peaks kept (may exceed MAX_PEAKS: only the first MAX_PEAKS are stored)
     peaks           (MAX_PEAKS, W) their samples, in time order

@@ -60,7 +60,7 @@ def test_peaks_are_find_peaks_with_plateaus_and_widths_are_peak_widths(device):
     x, sigma, dt = _plateaus(40, 500, 5), 2.0, 0.5
     n_wave = len(x)
     t0, steps = np.zeros(n_wave), np.full(n_wave, dt)
-    maximum = np.zeros((6, n_wave))
+    maximum = np.zeros((7, n_wave))
     maximum[5] = x.max(axis=1)
     count = wp.zeros(n_wave, dtype=wp.int32, device=device)
     peaks = wp.zeros((MAX_PEAKS, n_wave), dtype=wp.int32, device=device)
@@ -201,3 +201,17 @@ def test_a_peak_on_a_negative_sample_fails_as_on_the_host(device):
         model.decompose(GEDI, times, echo)
     with pytest.raises(ValueError, match="bounds"):
         process(GEDI, times[:1], echo[None, :], device)
+
+
+def test_an_echo_above_half_its_maximum_at_an_end_is_measured_as_on_the_host(device):
+    times = 1.3e-3 + 1e-9 * np.arange(1000)
+    i = np.arange(1000)
+    starts_high = np.exp(-0.5 * ((i - 5) / 20.0) ** 2) + 0.5 * np.exp(-0.5 * ((i - 600) / 8.0) ** 2)
+    b = process(GEDI, times[:1], starts_high[None, :], device)
+    host = model.measure(GEDI, times, starts_high)  # its first crossing interpolates from the last sample (index −1)
+    for name in ("half_power_s", "centroid_s", "peak_s", "fwhm_s"):
+        assert abs(b.measures[name][0] - getattr(host, name)) <= TIME_ULPS * np.spacing(times[-1]), name
+    with pytest.raises(IndexError):
+        model.measure(GEDI, times, starts_high[::-1].copy())
+    with pytest.raises(IndexError):
+        process(GEDI, times[:1], starts_high[None, ::-1].copy(), device)

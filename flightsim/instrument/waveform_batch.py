@@ -16,7 +16,8 @@ The steps are the host functions', in the same float64 operations where the orde
 
 A waveform with more than MAX_PEAKS peaks, or none, or a peak on a negative sample (a start amplitude outside the
 bound a ≥ 0, which curve_fit refuses) is not fitted on the device: its components are the host's (``decompose``), so
-the result is the host's there too (a ValueError for the last two, as on the host).
+the result is the host's there too (a ValueError for the last two, as on the host). So are the measures of an echo
+that starts or ends above half its maximum (where the host's indexing leaves the window).
 """
 from __future__ import annotations
 
@@ -103,7 +104,7 @@ def _launch(system, t0_s, echo_w, device, min_prominence) -> dict[str, np.ndarra
     smooth = wp.empty((n, n_wave), dtype=wp.float64, device=device)
     wp.launch(km.smooth_echoes, dim=(n, n_wave), inputs=[echo, arr(group, wp.int32), arr(radius, wp.int32),
                                                         arr(taps)], outputs=[smooth], device=device)
-    out = wp.empty((6, n_wave), dtype=wp.float64, device=device)
+    out = wp.empty((7, n_wave), dtype=wp.float64, device=device)
     wp.launch(km.echo_measures, dim=n_wave, inputs=[echo, t0, wp.float64(dt)], outputs=[out], device=device)
     p = 3 * MAX_PEAKS
     count = wp.zeros(n_wave, dtype=wp.int32, device=device)
@@ -147,7 +148,11 @@ def _host_fallback(system, t0_s, echo_w, raw, min_prominence) -> Batch:
         parts = model.decompose(system, t0_s[w] + offsets, echo_w[w].astype(np.float64), min_prominence)
         comp[:, w, :len(parts)] = np.array([(g.time_s, g.amplitude_w, g.sigma_s) for g in parts]).T
         count[w] = len(parts)
-    measures = {name: raw["out"][:, i] for i, name in enumerate(MEASURES)}
+    measures = {name: raw["out"][:, i].copy() for i, name in enumerate(MEASURES)}
+    for w in np.flatnonzero(raw["out"][:, 6] != 0.0):  # an echo above half its maximum at an end: the host's
+        m = model.measure(system, t0_s[w] + offsets, echo_w[w].astype(np.float64))  # measures (IndexError, there)
+        for name in MEASURES:
+            measures[name][w] = getattr(m, name)
     peaks = np.where(np.arange(MAX_PEAKS)[None, :] < raw["count"][:, None], raw["peaks"], -1)
     return Batch(measures, comp[0], comp[1], comp[2], count, np.where(fitted, raw["ssr"], np.nan),
                  raw["status"][:, 0], raw["status"][:, 1], peaks)
