@@ -5,8 +5,8 @@ echo over its maximum) and bounds (a ≥ 0, 0 ≤ μ ≤ x_last, Δt/σ ≤ s �
 Levenberg–Marquardt with Marquardt's scaling (JᵀJ + λ·diag JᵀJ) δ = −Jᵀr, projected on the bounds: a parameter at a
 bound whose gradient points out of the box is held (its row and column left out of the step), and each step is
 clipped into the box. A step is taken only when it lowers the sum of squared residuals (SSR); otherwise λ grows ×10.
-The fit ends when no λ up to 10^(LAMBDA_TRIES − 3) lowers the SSR, or a step lowers it by less than GAIN_TOLERANCE of
-it (float64 rounding), or after MAX_ITERATIONS steps.
+The fit ends when LAMBDA_TRIES successive ×10 increases of λ find no lower SSR, or a step lowers it by less than
+GAIN_TOLERANCE of it (float64 rounding), or after MAX_ITERATIONS steps.
 
 Scratch arrays, parameter first and waveform last: ``jac`` (3·MAX_PEAKS, W), ``normal`` and ``chol``
 (3·MAX_PEAKS, 3·MAX_PEAKS, W), ``grad``, ``trial``, ``delta`` (3·MAX_PEAKS, W), ``free`` (3·MAX_PEAKS, W).
