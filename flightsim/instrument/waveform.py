@@ -38,6 +38,7 @@ C = 299_792_458.0  # [m/s]
 WAVEFORM_STREAM = 0x2F6A91  # seed key of the receiver noise
 CLOUD_METHODS = ("gedi", "rays")
 CONVOLUTIONS = ("direct", "fft")  # the pulse convolution: kernels/waveform.py convolve; kernels/waveform_fft.py
+PROCESSINGS = ("host", "device")  # where waveforms.h5's measures and Gaussian decomposition are computed
 L2A_NOISE_SAMPLES = 64  # samples at each end of a waveform that L2A takes its noise from (l2a.noise_samples)
 
 
@@ -80,6 +81,9 @@ class WaveformSettings(Settings):
     convolution: str = setting("direct", "the echo's convolution with the pulse on the device: direct sums, or fft "
                                "(overlap-save over float64 tile FFTs; the same float32 waveforms to ~1e-7 of the peak)",
                                choices=CONVOLUTIONS)
+    processing: str = setting("host", "where waveforms.h5's ranging (measures, Gaussian decomposition) is computed: "
+                              "host (NumPy/SciPy, one waveform at a time) or device (batched kernels on the run's "
+                              "device; docs/waveform-processing.md)", choices=PROCESSINGS)
 
     def check(self, context) -> None:
         system(self)

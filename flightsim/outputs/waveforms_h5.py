@@ -99,10 +99,12 @@ class WaveformWriter:
     written on every beam group; ``l2a`` (or None) gets every beam's waveforms too."""
 
     def __init__(self, directory: Path, cfg_text: str, system: model.WaveformSystem, prf_hz: float, scene,
-                 tx: tuple[np.ndarray, float], beam_attrs: dict | None = None, l2a: L2AProduct | None = None):
+                 tx: tuple[np.ndarray, float], beam_attrs: dict | None = None, l2a: L2AProduct | None = None,
+                 device: str | None = None):
         self.product = H5Product(directory / "waveforms.h5", config_toml=cfg_text, crs_wkt=scene.crs.to_wkt(),
                                  sample_interval_s=system.sample_interval_s)
         self.beam_attrs, self.l2a = beam_attrs or {}, l2a
+        self.device = device  # where the ranging is computed (waveform.processing = "device"); None: the host
         self.system, self.prf_hz, self.scene = system, prf_hz, scene
         self.tx, self.tx_start = tx
         geodetic = scene.crs.geodetic_crs
@@ -131,13 +133,7 @@ class WaveformWriter:
         s, n = self.system, len(rows)
         samples = chunk.power_w.shape[1]
         t0 = chunk.window_start_s[rows]
-        times = t0[:, None] + s.sample_interval_s * np.arange(samples)[None, :]
-        measures = [model.measure(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
-        parts = [model.decompose(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
-        comp = np.full((n, 3, MAX_COMPONENTS), np.nan)
-        for i, gs in enumerate(parts):
-            for j, g in enumerate(gs[:MAX_COMPONENTS]):
-                comp[i, :, j] = (0.5 * model.C * (g.time_s - 0.5 * s.pulse_fwhm_s), g.amplitude_w, g.sigma_s)
+        ranging, comp = (self._ranging_host if self.device is None else self._ranging_device)(chunk, rows, t0)
         self._keep_returns(chunk, rows, comp[:, 0])
         received = chunk.received[rows]
         columns = {
@@ -146,12 +142,7 @@ class WaveformWriter:
             "delta_time": chunk.start_time + chunk.pulse[rows] / self.prf_hz,
             "rx_window_start_s": t0, "rx_sample_count": np.full(n, samples, np.uint32),
             "tx_window_start_s": np.full(n, self.tx_start), "tx_sample_count": np.full(n, len(self.tx), np.uint32),
-            "ranging/range_halfpower_m": [m.half_power_range_m for m in measures],
-            "ranging/range_centroid_m": [m.centroid_range_m for m in measures],
-            "ranging/range_peak_m": [m.peak_range_m for m in measures],
-            "ranging/fwhm_s": [m.fwhm_s for m in measures], "ranging/rms_width_s": [m.rms_width_s for m in measures],
-            "ranging/n_components": np.array([len(p) for p in parts], np.int32),
-            "ranging/component_range_m": comp[:, 0], "ranging/component_amplitude_w": comp[:, 1],
+            **ranging, "ranging/component_range_m": comp[:, 0], "ranging/component_amplitude_w": comp[:, 1],
             "ranging/component_sigma_s": comp[:, 2],
             "truth/nadir_range_m": 0.5 * model.C * t0 + 0.5 * samples * s.sample_interval_s * 0.5 * model.C,
             "truth/mean_height_m": received[:, 2] / np.where(received[:, 3] > 0, received[:, 3], np.nan)
@@ -160,6 +151,40 @@ class WaveformWriter:
         }
         columns.update(self._geolocation(chunk, rows, t0, samples))
         return {name: np.asarray(v) for name, v in columns.items()}
+
+    def _ranging_host(self, chunk, rows: np.ndarray, t0: np.ndarray) -> tuple[dict, np.ndarray]:
+        """The ranging/ measures of each shot and its components (n, 3, MAX_COMPONENTS: range [m], amplitude [W],
+        σ [s], NaN-padded) by the float64 reference model, one waveform at a time."""
+        s = self.system
+        times = t0[:, None] + s.sample_interval_s * np.arange(chunk.power_w.shape[1])[None, :]
+        measures = [model.measure(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
+        parts = [model.decompose(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
+        comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
+        for i, gs in enumerate(parts):
+            for j, g in enumerate(gs[:MAX_COMPONENTS]):
+                comp[i, :, j] = (0.5 * model.C * (g.time_s - 0.5 * s.pulse_fwhm_s), g.amplitude_w, g.sigma_s)
+        return {"ranging/range_halfpower_m": [m.half_power_range_m for m in measures],
+                "ranging/range_centroid_m": [m.centroid_range_m for m in measures],
+                "ranging/range_peak_m": [m.peak_range_m for m in measures],
+                "ranging/fwhm_s": [m.fwhm_s for m in measures], "ranging/rms_width_s": [m.rms_width_s for m in measures],
+                "ranging/n_components": np.array([len(p) for p in parts], np.int32)}, comp
+
+    def _ranging_device(self, chunk, rows: np.ndarray, t0: np.ndarray) -> tuple[dict, np.ndarray]:
+        """:meth:`_ranging_host`'s columns computed for all the rows at once on ``self.device``
+        (:func:`flightsim.instrument.waveform_batch.process`)."""
+        from flightsim.instrument.waveform_batch import process
+
+        s = self.system
+        b = process(s, t0, chunk.power_w[rows], self.device)
+        ranges = b.ranges_m(s)
+        k = min(MAX_COMPONENTS, b.time_s.shape[1])
+        comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
+        comp[:, 0, :k] = 0.5 * model.C * (b.time_s[:, :k] - 0.5 * s.pulse_fwhm_s)
+        comp[:, 1, :k], comp[:, 2, :k] = b.amplitude_w[:, :k], b.sigma_s[:, :k]
+        return {"ranging/range_halfpower_m": ranges["half_power_range_m"],
+                "ranging/range_centroid_m": ranges["centroid_range_m"], "ranging/range_peak_m": ranges["peak_range_m"],
+                "ranging/fwhm_s": b.measures["fwhm_s"], "ranging/rms_width_s": b.measures["rms_width_s"],
+                "ranging/n_components": b.count.astype(np.int32)}, comp
 
     def _keep_returns(self, chunk, rows: np.ndarray, ranges: np.ndarray) -> None:
         """Each component (range [m] per row and column, NaN-padded) as a world point with its shot's time."""

@@ -18,9 +18,10 @@ from flightsim.studies.bench_runs import galvo, spad_frame, stages, study, throu
 from flightsim.studies.bench_savings import pareto, skipping
 from flightsim.studies.bench_startup import startup
 from flightsim.studies.bench_scale import las_output, reduce_knobs, scale, survey_area
+from flightsim.studies.waveform_processing import ranging_bench
 
 SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform", "scale",
-            "reduce", "survey", "forest", "startup")
+            "reduce", "survey", "forest", "startup", "ranging")
 
 
 def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
@@ -35,7 +36,7 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
     runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
                "pareto": pareto, "galvo": galvo, "spad": spad_frame,
                "waveform": waveform_altimeter, "scale": scale, "reduce": reduce_knobs, "survey": survey_area,
-               "forest": forest, "startup": startup}
+               "forest": forest, "startup": startup, "ranging": ranging_bench}
     for name in sections:  # written after each section, so an interrupted bench keeps what it measured
         started = time.perf_counter()
         results[name] = runners[name](device, s)

@@ -58,7 +58,8 @@ def markdown(merged: dict) -> str:
             lines += ["Sections measured at (commit, date): " + ", ".join(
                 f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
         lines += (_throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r)
-                  + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r) + _forest(r) + _startup(r))
+                  + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r) + _forest(r) + _startup(r)
+                  + _ranging(r))
     return "\n".join(lines) + "\n"
 
 
@@ -137,6 +138,19 @@ def _waveform(r: dict) -> list[str]:
             "| footprint | shots | sub-rays | samples per waveform | wall [s] | sub-ray returns/s, end to end | "
             "accumulation | bare ray cast returns/s | ratio | convolution [ms] |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", *rows, ""]
+
+
+def _ranging(r: dict) -> list[str]:
+    if not r.get("ranging"):
+        return []
+    rows = [f"| {w['case']} | {w['samples']:,} | {w['waveforms']:,} | {w['device_s']:.3f} | "
+            f"{_fmt(w['device_waveforms_per_s'])} | {_fmt(w['host_waveforms_per_s'])} | {w['speedup']:.0f} |"
+            for w in r["ranging"]]
+    return ["", "### Waveform ranging (waveforms.h5: measures and Gaussian decomposition, waveform.processing)", "",
+            "Synthetic sums of 1-4 Gaussians with noise; device: flightsim.instrument.waveform_batch.process end to "
+            "end (host arrays in and out); host: waveform_model.measure + decompose, one waveform at a time.", "",
+            "| waveforms | samples | count | device [s] | device waveforms/s | host waveforms/s | speed-up |",
+            "| --- | --- | --- | --- | --- | --- | --- |", *rows, ""]
 
 
 def _forest(r: dict) -> list[str]:

@@ -43,7 +43,8 @@ class WaveformProduct:
         l2a = L2AProduct(directory / "l2a.h5", dt, det.pulse_sigma_s(), attrs["footprint_sigma_m"], attrs,
                          {"config_toml": cfg_text, "crs_wkt": self.scene.crs.to_wkt()}) if self.cfg.waveform.l2a else None
         self.writer = WaveformWriter(directory, cfg_text, system(self.cfg.waveform), tracer.timing.prf_hz,
-                                     self.scene, (taps.numpy(), first_lag * dt), attrs, l2a)
+                                     self.scene, (taps.numpy(), first_lag * dt), attrs, l2a,
+                                     tracer.device if self.cfg.waveform.processing == "device" else None)
 
     def beam_attrs(self, det) -> dict[str, float]:
         """Each beam group's attributes: ``pulse_sigma_s``, σ of the pulse as the waveforms hold it (widened by the

@@ -1,0 +1,158 @@
+"""Echo measures and Gaussian decomposition of a chunk of waveforms on the device: the batched form of
+:func:`flightsim.instrument.waveform_model.measure` and :func:`~flightsim.instrument.waveform_model.decompose`
+(kernels/waveform_measures.py, kernels/waveform_fit.py), for the writer's ``waveform.processing = "device"``.
+
+The steps are the host functions', in the same float64 operations where the order is theirs to copy:
+- the smoothing is scipy.ndimage.gaussian_filter1d's (σ/Δt samples, truncate 4, ``reflect``): its taps are formed
+  here by scipy's own formula, per distinct Δt = t_1 − t_0 of the chunk, and added in its C loop's order;
+- the peaks are scipy.signal.find_peaks' (local maxima, plateaus to their midpoint) with prominence ≥ 5 % of the
+  smoothed maximum, their widths peak_widths' at rel_height 0.5, and the start parameters and bounds decompose's;
+- the fit is a bounded Levenberg–Marquardt (kernels/waveform_fit.py) where decompose calls curve_fit (scipy's
+  trust-region-reflective): both minimise the same sum of squares from the same start within the same bounds.
+  The device's ends at float64 rounding, scipy's at a 1e-8 relative change of the cost, so their parameters differ
+  by what that gap allows (docs/waveform-processing.md).
+- The centroid's and RMS width's sums are compensated (Neumaier) where NumPy's are pairwise: they agree to a few
+  units in the last place.
+
+A waveform with more than MAX_PEAKS peaks, or none, or a peak on a negative sample (a start amplitude outside the
+bound a ≥ 0, which curve_fit refuses) is not fitted on the device: its components are the host's (``decompose``), so
+the result is the host's there too (a ValueError for the last two, as on the host). So are the measures of an echo
+that starts or ends above half its maximum (where the host's indexing leaves the window).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from flightsim.instrument import waveform_model as model
+from kernels import waveform_fit as kf
+from kernels import waveform_measures as km
+
+MAX_PEAKS = int(km.MAX_PEAKS)
+BATCH_SAMPLES = {"cpu": 1 << 24, "cuda": 1 << 26}  # samples per launch (W·N): the float64 echo and its smoothing
+# take 8 bytes each (128 MiB each on the CPU, 512 MiB on a GPU: 2048 change1 waveforms, 67,108 GEDI ones)
+MEASURES = ("half_power_s", "centroid_s", "peak_s", "fwhm_s", "rms_width_s")
+
+
+@dataclass(frozen=True)
+class Batch:
+    """Measures and components of W waveforms: ``measures`` name → (W,) [s]; ``time_s``, ``amplitude_w``,
+    ``sigma_s`` (W, K) the components in time order (NaN-padded; K ≥ the most any waveform has); ``count`` (W,);
+    ``ssr`` (W,) the device fit's sum of squared residuals in units of the maximum² (NaN where the host fitted);
+    ``status`` (W,) kernels.waveform_measures STATUS_*; ``steps`` (W,) Levenberg–Marquardt steps; ``peaks``
+    (W, MAX_PEAKS) the samples of the first MAX_PEAKS peaks found, −1-padded."""
+
+    measures: dict[str, np.ndarray]
+    time_s: np.ndarray
+    amplitude_w: np.ndarray
+    sigma_s: np.ndarray
+    count: np.ndarray
+    ssr: np.ndarray
+    status: np.ndarray
+    steps: np.ndarray
+    peaks: np.ndarray
+
+    def ranges_m(self, system: model.WaveformSystem) -> dict[str, np.ndarray]:
+        """Half-power, centroid and peak ranges [m] as :func:`~flightsim.instrument.waveform_model.measure` reads them."""
+        m, centre = self.measures, 0.5 * system.pulse_fwhm_s
+        return {"half_power_range_m": 0.5 * model.C * m["half_power_s"],
+                "centroid_range_m": 0.5 * model.C * (m["centroid_s"] - centre),
+                "peak_range_m": 0.5 * model.C * (m["peak_s"] - centre)}
+
+
+def smoothing_taps(sigma_s: float, steps: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(group of each waveform, radius of each group [samples], one-sided taps (G, R + 1)) of
+    gaussian_filter1d(·, σ/Δt) for each waveform's Δt, by scipy's formula (``_gaussian_kernel1d``, truncate 4)."""
+    unique, group = np.unique(steps, return_inverse=True)
+    radii, rows = [], []
+    for step in unique:
+        sd = float(sigma_s / step)
+        radius = int(4.0 * sd + 0.5)
+        x = np.arange(-radius, radius + 1)
+        phi = np.exp(-0.5 / (sd * sd) * x ** 2)
+        radii.append(radius)
+        rows.append((phi / phi.sum())[radius:])
+    taps = np.zeros((len(rows), max(radii) + 1))
+    for g, row in enumerate(rows):
+        taps[g, :len(row)] = row
+    return group.astype(np.int32), np.array(radii, np.int32), taps
+
+
+def process(system: model.WaveformSystem, t0_s: np.ndarray, echo_w: np.ndarray, device: str,
+            min_prominence: float = 0.05) -> Batch:
+    """Measures and Gaussian components of the waveforms ``echo_w`` (W, N) [W], row w's sample j at
+    t0_s[w] + Δt·j [s] (Δt = ``system.sample_interval_s``), computed on ``device``; in launches of at most
+    BATCH_SAMPLES samples."""
+    echo_w = np.asarray(echo_w)
+    t0_s = np.asarray(t0_s, dtype=np.float64)
+    per = max(1, BATCH_SAMPLES["cpu" if str(device).startswith("cpu") else "cuda"] // max(echo_w.shape[1], 1))
+    parts = [_launch(system, t0_s[lo:lo + per], echo_w[lo:lo + per], device, min_prominence)
+             for lo in range(0, len(echo_w), per)]
+    return _host_fallback(system, t0_s, echo_w, _joined(parts), min_prominence)
+
+
+def _launch(system, t0_s, echo_w, device, min_prominence) -> dict[str, np.ndarray]:
+    """One launch of each kernel over W waveforms: their raw outputs on the host."""
+    dt, sigma = system.sample_interval_s, model.pulse_sigma_s(system)
+    n_wave, n = echo_w.shape
+    steps = (t0_s + dt) - t0_s  # t_1 − t_0 as the host forms the time base
+    group, radius, taps = smoothing_taps(sigma, steps)
+    arr = lambda a, dtype=wp.float64: wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)  # noqa: E731
+    echo, t0, step = arr(echo_w.astype(np.float64).T), arr(t0_s), arr(steps)
+    smooth = wp.empty((n, n_wave), dtype=wp.float64, device=device)
+    wp.launch(km.smooth_echoes, dim=(n, n_wave), inputs=[echo, arr(group, wp.int32), arr(radius, wp.int32),
+                                                        arr(taps)], outputs=[smooth], device=device)
+    out = wp.empty((7, n_wave), dtype=wp.float64, device=device)
+    wp.launch(km.echo_measures, dim=n_wave, inputs=[echo, t0, wp.float64(dt)], outputs=[out], device=device)
+    p = 3 * MAX_PEAKS
+    count = wp.zeros(n_wave, dtype=wp.int32, device=device)
+    peaks = wp.zeros((MAX_PEAKS, n_wave), dtype=wp.int32, device=device)
+    params = wp.zeros((p, n_wave), dtype=wp.float64, device=device)
+    wp.launch(km.find_echo_peaks, dim=n_wave, inputs=[echo, smooth, t0, wp.float64(dt), step, wp.float64(sigma),
+                                                      wp.float64(min_prominence), out],
+              outputs=[count, peaks, params], device=device)
+    del smooth
+    scratch = [wp.zeros(shape, dtype=wp.float64, device=device)
+               for shape in ((p, n_wave), (p, n_wave), (p, p, n_wave), (p, p, n_wave), (p, n_wave), (p, n_wave))]
+    free = wp.zeros((p, n_wave), dtype=wp.int32, device=device)
+    ssr = wp.zeros(n_wave, dtype=wp.float64, device=device)
+    status = wp.zeros((2, n_wave), dtype=wp.int32, device=device)
+    wp.launch(kf.fit_gaussians, dim=n_wave, inputs=[echo, t0, wp.float64(dt), step, wp.float64(sigma), out, count,
+                                                    params, *scratch, free], outputs=[ssr, status], device=device)
+    return {"out": out.numpy().T, "count": count.numpy(), "peaks": peaks.numpy().T, "params": params.numpy().T,
+            "ssr": ssr.numpy(), "status": status.numpy().T, "t0": t0_s}
+
+
+def _joined(parts: list[dict]) -> dict[str, np.ndarray]:
+    return {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+
+
+def _host_fallback(system, t0_s, echo_w, raw, min_prominence) -> Batch:
+    """The Batch of the kernels' outputs, components sorted by time; rows the device did not fit (the module's
+    docstring) decomposed by the host instead."""
+    sigma, n = model.pulse_sigma_s(system), len(t0_s)
+    a, mu, s = (raw["params"][:, i::3] for i in range(3))
+    fitted = raw["status"][:, 0] != km.STATUS_SKIPPED
+    width = max(MAX_PEAKS, int(raw["count"].max(initial=0)))
+    comp = np.full((3, n, width), np.nan)
+    used = fitted[:, None] & (np.arange(MAX_PEAKS)[None, :] < raw["count"][:, None])
+    time_s = t0_s[:, None] + mu * sigma
+    order = np.argsort(np.where(used, time_s, np.inf), axis=1, kind="stable")  # sorted(), as decompose
+    parts = np.stack([time_s, a * raw["out"][:, 5:6], s * sigma])
+    comp[:, :, :MAX_PEAKS] = np.where(used, np.take_along_axis(parts, order[None], axis=2), np.nan)
+    offsets = system.sample_interval_s * np.arange(echo_w.shape[1])  # the writer's time base, row by row
+    count = raw["count"].astype(np.int64)
+    for w in np.flatnonzero(~fitted):
+        parts = model.decompose(system, t0_s[w] + offsets, echo_w[w].astype(np.float64), min_prominence)
+        comp[:, w, :len(parts)] = np.array([(g.time_s, g.amplitude_w, g.sigma_s) for g in parts]).T
+        count[w] = len(parts)
+    measures = {name: raw["out"][:, i].copy() for i, name in enumerate(MEASURES)}
+    for w in np.flatnonzero(raw["out"][:, 6] != 0.0):  # an echo above half its maximum at an end: the host's
+        m = model.measure(system, t0_s[w] + offsets, echo_w[w].astype(np.float64))  # measures (IndexError, there)
+        for name in MEASURES:
+            measures[name][w] = getattr(m, name)
+    peaks = np.where(np.arange(MAX_PEAKS)[None, :] < raw["count"][:, None], raw["peaks"], -1)
+    return Batch(measures, comp[0], comp[1], comp[2], count, np.where(fitted, raw["ssr"], np.nan),
+                 raw["status"][:, 0], raw["status"][:, 1], peaks)

@@ -1,0 +1,217 @@
+"""Waveform ranging on the device (kernels/waveform_measures.py, waveform_fit.py; flightsim/instrument/waveform_batch.py)
+against SciPy and the host's float64 reference (waveform_model.measure, decompose): the smoothing against
+scipy.ndimage.gaussian_filter1d, the peaks against scipy.signal.find_peaks and peak_widths, the measures and the
+fitted Gaussians against the host's over simulated runs (change1: flat, slope, bump; GEDI: plane, point-cloud forest)
+and synthetic sums of Gaussians with noise, and waveforms.h5 written with waveform.processing = "device" against
+"host"."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+import warp as wp
+from scipy.ndimage import gaussian_filter1d
+from scipy.signal import find_peaks, peak_widths
+
+from flightsim.cli import main
+from flightsim.instrument import waveform_model as model
+from flightsim.instrument.waveform_batch import MAX_PEAKS, process, smoothing_taps
+from flightsim.studies import waveform_processing as study
+from kernels import waveform_measures as km
+
+TIME_ULPS = 8  # measures' times [s]: within 8 units in the last place of the echo's time (operation order, FMA)
+RMS_REL = 1e-13  # the RMS width: relative (its sums are compensated on the device, pairwise in NumPy)
+GEDI = model.WaveformSystem(pulse_fwhm_s=1.5e-8, sample_interval_s=1e-9)
+
+
+def _columns(a: np.ndarray, device: str) -> wp.array:
+    return wp.array(np.ascontiguousarray(np.asarray(a, dtype=np.float64).T), dtype=wp.float64, device=device)
+
+
+@pytest.mark.parametrize("samples, sd", [(300, 2.3), (300, 6.37), (2000, 29.7), (12, 5.0)])
+def test_smoothing_is_gaussian_filter1d(device, samples, sd):
+    rng = np.random.default_rng(samples)
+    echo = rng.random((5, samples)) * np.exp(-0.5 * ((np.arange(samples) - samples / 2) / (samples / 8)) ** 2)
+    steps = np.array([1.0, 1.0, 1.0 + 2e-16, 1.0, 1.0 + 2e-16])  # two Δt: two kernels, as t_1 − t_0 may round
+    group, radius, taps = smoothing_taps(sd, steps)
+    out = wp.empty((samples, 5), dtype=wp.float64, device=device)
+    wp.launch(km.smooth_echoes, dim=(samples, 5), inputs=[_columns(echo, device), wp.array(group, device=device),
+                                                          wp.array(radius, device=device), wp.array(taps, device=device)],
+              outputs=[out], device=device)
+    got = out.numpy().T
+    want = np.array([gaussian_filter1d(echo[w], sd / steps[w]) for w in range(5)])
+    if device == "cpu":  # the C loop's order of additions: the same float64 values
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-16 * want.max())
+
+
+def _plateaus(waveforms: int, samples: int, seed: int) -> np.ndarray:
+    """Smooth-ish lines quantised to 1/40 of their maximum: flat-topped peaks (plateaus) of 1 to many samples."""
+    rng = np.random.default_rng(seed)
+    i = np.arange(samples)
+    line = np.zeros((waveforms, samples))
+    for w in range(waveforms):
+        for _ in range(rng.integers(1, 7)):
+            line[w] += rng.uniform(0.05, 1.0) * np.exp(-0.5 * ((i - rng.uniform(0, samples)) / rng.uniform(3, 40)) ** 2)
+    return np.round(line / line.max(axis=1, keepdims=True) * 40.0) / 40.0
+
+
+def test_peaks_are_find_peaks_with_plateaus_and_widths_are_peak_widths(device):
+    x, sigma, dt = _plateaus(40, 500, 5), 2.0, 0.5
+    n_wave = len(x)
+    t0, steps = np.zeros(n_wave), np.full(n_wave, dt)
+    maximum = np.zeros((7, n_wave))
+    maximum[5] = x.max(axis=1)
+    count = wp.zeros(n_wave, dtype=wp.int32, device=device)
+    peaks = wp.zeros((MAX_PEAKS, n_wave), dtype=wp.int32, device=device)
+    params = wp.zeros((3 * MAX_PEAKS, n_wave), dtype=wp.float64, device=device)
+    smooth = _columns(x, device)
+    wp.launch(km.find_echo_peaks, dim=n_wave, inputs=[smooth, smooth, wp.array(t0, dtype=wp.float64, device=device),
+                                                      wp.float64(dt), wp.array(steps, dtype=wp.float64, device=device),
+                                                      wp.float64(sigma), wp.float64(0.05),
+                                                      wp.array(maximum, dtype=wp.float64, device=device)],
+              outputs=[count, peaks, params], device=device)
+    count, peaks, params = count.numpy(), peaks.numpy().T, params.numpy().T
+    plateaus = 0
+    for w in range(n_wave):
+        want, _ = find_peaks(x[w], prominence=0.05 * x[w].max())
+        plateaus += int(np.sum(x[w][want] == x[w][want + 1]))
+        assert count[w] == len(want)
+        k = min(len(want), MAX_PEAKS)
+        np.testing.assert_array_equal(peaks[w, :k], want[:k])
+        width = peak_widths(x[w], want[:k], rel_height=0.5)[0] * dt / model.FWHM_PER_SIGMA
+        s0 = np.maximum(np.sqrt(np.maximum(width * width - sigma * sigma, 0.0)), 0.5 * sigma) / sigma
+        np.testing.assert_allclose(params[w, 2:3 * k:3], s0, rtol=1e-14)
+        np.testing.assert_array_equal(params[w, 0:3 * k:3], x[w][want[:k]] / x[w].max())
+        np.testing.assert_allclose(params[w, 1:3 * k:3], want[:k] * dt / sigma, rtol=1e-15)
+    assert plateaus > 0  # the lines do hold flat-topped peaks
+
+
+def _assert_equivalent(c: dict) -> None:
+    """The module docstring's tolerances over one set's comparison (flightsim.studies.waveform_processing.compare)."""
+    for name in ("half_power_s", "centroid_s", "peak_s", "fwhm_s"):
+        assert c[f"{name}_ulps"] <= TIME_ULPS, (name, c)
+    assert c["rms_width_s_rel"] <= RMS_REL, c
+    assert c["peaks_differ"] == 0, c
+    assert c["ssr_ratio_max"] <= 1.0 + study.SSR_SLACK, c
+    assert c["q_over_gap_max"] <= 1.0, c
+    assert c["host_fitted"] == 0, c
+
+
+@pytest.mark.parametrize("system, waveforms, samples, seed", [(GEDI, 60, 1000, 11),
+                                                              (model.WaveformSystem(sample_interval_s=5e-11), 6, 4096, 12)])
+def test_synthetic_sums_of_gaussians_match_scipy(device, system, waveforms, samples, seed):
+    _, _, t0, echo = study.synthetic("s", system, waveforms, samples, seed)
+    c = study.compare(system, t0, echo, device)
+    _assert_equivalent(c)
+    assert c["components"] > waveforms  # several Gaussians per waveform on average
+
+
+@pytest.mark.parametrize("scene", ["flat", "slope", "bump"])
+def test_change1_waveforms_match_scipy(device, scene):
+    _, system, t0, echo = study.simulated(scene, device, "change1", scene, **{"fixed.prf_hz": 20.0,
+                                                                              "flight.duration_s": 0.1})
+    _assert_equivalent(study.compare(system, t0, echo, device))
+
+
+def test_gedi_plane_and_forest_waveforms_match_scipy(device):
+    for name, system, t0, echo in (study.simulated("plane", device, "gedi", "flat", **{"flight.duration_s": 0.03}),
+                                   study.simulated("forest", device, "gedi", str(study.CLOUD),
+                                                   study.FOREST_CENTRES[:4])):
+        c = study.compare(system, t0, echo, device)
+        _assert_equivalent(c)
+    assert c["components"] > c["waveforms"]  # the forest's canopy and ground
+
+
+def test_more_peaks_than_the_device_fits_are_decomposed_by_the_host(device):
+    sigma = model.pulse_sigma_s(GEDI)
+    times = 1.3e-3 + 1e-9 * np.arange(1200)
+    centres = times[0] + np.linspace(100, 1100, MAX_PEAKS + 2) * 1e-9
+    echo = np.sum(np.exp(-0.5 * ((times[None, :] - centres[:, None]) / sigma) ** 2), axis=0)
+    b = process(GEDI, times[:1], echo[None, :], device)
+    host = model.decompose(GEDI, times, echo)
+    assert b.status[0] == km.STATUS_SKIPPED and b.count[0] == MAX_PEAKS + 2 == len(host)
+    np.testing.assert_array_equal(b.time_s[0], [g.time_s for g in host])
+    np.testing.assert_array_equal(b.amplitude_w[0], [g.amplitude_w for g in host])
+
+
+CASES = {"gedi plane": (["simulate", "--instrument", "gedi", "--set", "flight.duration_s=0.03"], GEDI),
+         "change1 slope": (["waveform", "--scene", "slope", "--set", "fixed.prf_hz=20", "--set", "flight.duration_s=0.2"],
+                           model.WaveformSystem())}
+
+
+def _run(tmp_path, name: str, args: list[str], device: str, *extra: str):
+    out = tmp_path / name
+    assert main([*args, "--device", device, *extra, "--out", str(out)]) == 0
+    return h5py.File(out / "waveforms.h5")
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_waveforms_h5_with_device_processing_is_the_hosts(tmp_path, device, case):
+    args, system = CASES[case]
+    host = _run(tmp_path, "host", args, device)
+    dev = _run(tmp_path, "device", args, device, "--set", "waveform.processing=device")
+    names = []
+    host.visit(lambda n: names.append(n) if isinstance(host[n], h5py.Dataset) else None)
+    assert names and sorted(names) == sorted(n for n in names if n in dev)
+    ranging = {"ranging/" + n for n in ("range_halfpower_m", "range_centroid_m", "range_peak_m", "fwhm_s",
+                                        "rms_width_s", "component_range_m", "component_amplitude_w",
+                                        "component_sigma_s")}
+    for n in names:
+        if n.split("/", 1)[1] not in ranging:
+            np.testing.assert_array_equal(host[n][()], dev[n][()], err_msg=n)
+    g, d = host["BEAM0000"], dev["BEAM0000"]
+    for n in ("range_halfpower_m", "range_centroid_m", "range_peak_m"):  # c·t/2 of times within TIME_ULPS
+        ulp = np.spacing(np.abs(g[f"ranging/{n}"][()]))
+        assert np.all(np.abs(g[f"ranging/{n}"][()] - d[f"ranging/{n}"][()]) <= 2 * TIME_ULPS * ulp), n
+    np.testing.assert_allclose(d["ranging/fwhm_s"][()], g["ranging/fwhm_s"][()], rtol=1e-9)
+    np.testing.assert_allclose(d["ranging/rms_width_s"][()], g["ranging/rms_width_s"][()], rtol=RMS_REL)
+    _assert_components(system, g, d)
+
+
+def _assert_components(system, g, d) -> None:
+    """The file's components against each other by the fit's own measure (study.agreement), shot by shot."""
+    n = int(g["rx_sample_count"][0])
+    rx, t0 = g["rxwaveform"][()].reshape(-1, n).astype(np.float64), g["rx_window_start_s"][()]
+    centre = 0.5 * system.pulse_fwhm_s
+    for w in range(len(t0)):
+        k = int(g["ranging/n_components"][w])
+        parts = [np.column_stack([f["ranging/component_range_m"][w, :k] * 2.0 / model.C + centre,
+                                  f["ranging/component_amplitude_w"][w, :k], f["ranging/component_sigma_s"][w, :k]])
+                 for f in (g, d)]
+        times = t0[w] + system.sample_interval_s * np.arange(n)
+        ratio, q, _ = study.agreement(system, times, rx[w], *parts)
+        assert ratio <= 1.0 + study.SSR_SLACK and q <= 1.0, (w, ratio, q)
+
+
+def test_bad_processing_exits_2_naming_the_field(tmp_path, capsys):
+    assert main(["simulate", "--instrument", "gedi", "--set", "waveform.processing=gpu", "--out",
+                 str(tmp_path / "bad")]) == 2
+    line = capsys.readouterr().err.strip().splitlines()
+    assert len(line) == 1 and "waveform.processing" in line[0] and "host, device" in line[0], line
+    assert not (tmp_path / "bad").exists()
+
+
+def test_a_peak_on_a_negative_sample_fails_as_on_the_host(device):
+    times = 1.3e-3 + 1e-9 * np.arange(1000)
+    i = np.arange(1000)
+    echo = np.exp(-0.5 * ((i - 300) / 6.37) ** 2) + 0.2 * np.exp(-0.5 * ((i - 700) / 40.0) ** 2)
+    echo[699:702] += [0.125, -0.25, 0.125]  # the smoothed peak stays at 700, now a negative sample: a start below 0
+    with pytest.raises(ValueError, match="bounds"):
+        model.decompose(GEDI, times, echo)
+    with pytest.raises(ValueError, match="bounds"):
+        process(GEDI, times[:1], echo[None, :], device)
+
+
+def test_an_echo_above_half_its_maximum_at_an_end_is_measured_as_on_the_host(device):
+    times = 1.3e-3 + 1e-9 * np.arange(1000)
+    i = np.arange(1000)
+    starts_high = np.exp(-0.5 * ((i - 5) / 20.0) ** 2) + 0.5 * np.exp(-0.5 * ((i - 600) / 8.0) ** 2)
+    b = process(GEDI, times[:1], starts_high[None, :], device)
+    host = model.measure(GEDI, times, starts_high)  # its first crossing interpolates from the last sample (index −1)
+    for name in ("half_power_s", "centroid_s", "peak_s", "fwhm_s"):
+        assert abs(b.measures[name][0] - getattr(host, name)) <= TIME_ULPS * np.spacing(times[-1]), name
+    with pytest.raises(IndexError):
+        model.measure(GEDI, times, starts_high[::-1].copy())
+    with pytest.raises(IndexError):
+        process(GEDI, times[:1], starts_high[None, ::-1].copy(), device)
