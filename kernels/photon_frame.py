@@ -31,7 +31,7 @@ def frame_photons_kernel(instrument: Instrument):
     Scan = scan_struct(instrument)
     row_believed = pulse_rows(instrument).believed
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def frame_photons(
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,
