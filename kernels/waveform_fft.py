@@ -94,14 +94,15 @@ def _store_index(m: int, wrapped: int) -> int:
 
 
 @functools.cache
-def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM, mathdx: bool = True):
+def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
     """The overlap-save kernel of FFT size ``n`` (a power of two) for tiles of ``block_dim`` threads (its module's
-    block_dim, so that compiling it ahead compiles what runs). On a GPU the FFTs are cuFFTDx's (``mathdx``; it
-    bounds the sizes, block_dim ≤ n/2, and its shared memory adds to the kernel's two n-int index tiles), else
-    Warp's own cooperative radix-2 FFT (n divisible by block_dim). Launch with ``wp.launch_tiled`` over (slots,
-    pairs of blocks) with the same block_dim."""
+    block_dim, so that compiling it ahead compiles what runs; n divisible by block_dim). The FFTs are Warp's own
+    cooperative radix-2 FFT on every device: cuFFTDx (Warp's default on a GPU) failed to build the float64
+    8192-point FFT for an H100 with Warp 1.19 (LTO error), and at 512 or 1024 threads per tile the kernel asks for
+    more registers than a block has. Launch with ``wp.launch_tiled`` over (slots, pairs of blocks) with the same
+    block_dim."""
 
-    options = {"block_dim": block_dim, "enable_mathdx_fft": mathdx}
+    options = {"block_dim": block_dim, "enable_mathdx_fft": False}
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options)
     def convolve_fft(

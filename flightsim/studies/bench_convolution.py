@@ -92,7 +92,7 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
     out = wp.empty(impulses.shape, dtype=wp.float32, device=device)
     records, direct = [], None
     for method, *fft_args in [("direct",), *(("fft", *f) for f in ffts)]:
-        fft = dict(zip(("fft_least", "block_dim", "direct_below", "mathdx"), fft_args))
+        fft = dict(zip(("fft_least", "block_dim", "direct_below"), fft_args))
         pulse = PulseConvolution(method, chunk["taps"], chunk["first_lag"], impulses.shape[1], device, **fft)
         wall = seconds_per_launch(lambda: pulse.launch(impulses, span, out, impulses.shape[0]), device, repeats)
         power = out.numpy().copy()
@@ -100,7 +100,6 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
         record = {"scene": chunk["scene"], "shots": chunk["shots"], "method": method,
                   "fft_size": getattr(pulse, "n", None), "block_dim": getattr(pulse, "block_dim", None),
                   "direct_below": pulse.direct_below if method == "fft" else None,
-                  "mathdx": pulse.mathdx if method == "fft" else None,
                   "seconds": wall, "accumulation_s": chunk["accumulation_s"], "direct_in_run_s": chunk["direct_in_run_s"],
                   "max_difference_from_direct_of_peak": float(np.abs(power - direct).max() / max(direct.max(), 1e-300))}
         records.append({**record, **errors(power, host["impulses"], host["span"], chunk["taps"].numpy(),
@@ -110,14 +109,14 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
 
 def table(records: list[dict]) -> str:
     """The records as a Markdown table."""
-    lines = ["| scene | shots | path | N | block_dim | direct below [samples] | cuFFTDx | time per chunk [ms] "
+    lines = ["| scene | shots | path | N | block_dim | direct below [samples] | time per chunk [ms] "
              "| accumulation [ms] | max error / peak (float64 ref.) | vs direct / peak | written beyond reach |",
-             "|---" * 12 + "|"]
+             "|---" * 11 + "|"]
     dash = lambda value: "–" if value is None else value  # noqa: E731
     for r in records:
         acc = "–" if r["accumulation_s"] is None else f"{r['accumulation_s'] * 1e3:.3f}"
         lines.append(f"| {r['scene']} | {r['shots']} | {r['method']} | {dash(r['fft_size'])} | {dash(r['block_dim'])} "
-                     f"| {dash(r['direct_below'])} | {dash(r['mathdx'])} | {r['seconds'] * 1e3:.3f} | {acc} | {r['max_error_of_peak']:.2e} "
+                     f"| {dash(r['direct_below'])} | {r['seconds'] * 1e3:.3f} | {acc} | {r['max_error_of_peak']:.2e} "
                      f"| {r['max_difference_from_direct_of_peak']:.2e} | {r['written_beyond_reach']} |")
     return "\n".join(lines)
 
@@ -128,9 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--shots", type=int, default=None, help="shots per scene (500 on CUDA, 4 on the CPU)")
     parser.add_argument("--fft", default=f"{kf.FFT_SIZE}:{kf.FFT_BLOCK_DIM}",
-                        help="comma-separated N:block_dim[:direct_below[:mathdx]] of the FFT path (N a power of two; "
+                        help="comma-separated N:block_dim[:direct_below] of the FFT path (N a power of two; "
                         f"rows whose span is narrower than direct_below samples summed directly, default "
-                        f"{kf.DIRECT_BELOW}; mathdx 0: Warp's own tile FFT instead of cuFFTDx on a GPU)")
+                        f"{kf.DIRECT_BELOW})")
     parser.add_argument("--scenes", default="slope,flat")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--out", default=None, help="folder for convolution.json and convolution.md")

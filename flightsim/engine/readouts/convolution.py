@@ -32,14 +32,12 @@ class PulseConvolution:
     ``first_lag`` samples): ``method`` ``direct`` or ``fft``. With fft, the rows whose touched span is narrower
     than ``direct_below`` samples are still summed directly (bit for bit as with direct: a flat footprint's few
     samples need fewer products than an FFT), the others by FFTs of size :func:`fft_size` of ``fft_least`` (a power
-    of two) launched with ``block_dim`` threads per tile (at most N/2), on a GPU by cuFFTDx (``mathdx``) or Warp's
-    own tile FFT."""
+    of two) launched with ``block_dim`` threads per tile (at most N/2)."""
 
     def __init__(self, method: str, taps: wp.array, first_lag: int, samples: int, device: str,
-                 fft_least: int = kf.FFT_SIZE, block_dim: int = kf.FFT_BLOCK_DIM, direct_below: int = kf.DIRECT_BELOW,
-                 mathdx: bool = True):
+                 fft_least: int = kf.FFT_SIZE, block_dim: int = kf.FFT_BLOCK_DIM, direct_below: int = kf.DIRECT_BELOW):
         self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
-        self.direct_below, self.mathdx, self.spans = direct_below, bool(mathdx), None
+        self.direct_below, self.spans = direct_below, None
         if method == "fft":
             self.n = fft_size(len(taps), samples, fft_least)
             self.block_dim = min(block_dim, self.n // 2)
@@ -53,7 +51,7 @@ class PulseConvolution:
         """The kernels :meth:`launch` runs."""
         if self.method == "direct":
             return [kw.convolve]
-        return [kw.convolve, kf.split_spans, kf.convolve_fft_kernel(self.n, self.block_dim, self.mathdx)]
+        return [kw.convolve, kf.split_spans, kf.convolve_fft_kernel(self.n, self.block_dim)]
 
     def launch(self, impulses: wp.array, span: wp.array, out: wp.array, n: int) -> None:
         """Rows 0 … n − 1 of ``out`` (zeroed here first) = rows of ``impulses`` (touched within ``span``)
