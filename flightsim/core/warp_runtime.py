@@ -61,7 +61,9 @@ def compile_ahead(device: str, kernels) -> None:
     module up to the machine's cores, before their first launch would compile them one at a time. Modules
     already loaded are skipped; Warp compiles a module's code generation under its own lock and the
     compilers (NVRTC, clang) in parallel."""
-    modules = list({id(k.module): k.module for k in kernels}.values())
+    context = wp.get_device(device).context
+    modules = [m for m in {id(k.module): k.module for k in kernels}.values()
+               if not any(ctx == context for ctx, _ in m.execs)]  # a loaded module costs nothing more
     if modules:
         wp.force_load(device=device, modules=modules, max_workers=min(len(modules), os.cpu_count() or 1))
 
