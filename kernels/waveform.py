@@ -161,12 +161,13 @@ def leaf_echo(c: Canopy, p: WaveformParams, start: wp.vec3d, direction: wp.vec3d
 
 
 @functools.cache
-def deposit_kernel(per_face: bool, canopy: bool = False):
+def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | None = None):
     """The deposit kernel, with each sub-ray's link times the albedo of the triangle it hits (``per_face``:
     ``m.reflectance``) or the run's one link; through the leaves of ``leaves`` (``canopy``: :func:`leaf_echo`, the
-    surface's echo dimmed by the transmission left) or not (compiled out)."""
+    surface's echo dimmed by the transmission left) or not (compiled out); ``max_registers`` caps its registers per
+    thread on a GPU (None: the compiler's choice)."""
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
     def deposit(m: MeshRefs, p: WaveformParams, leaves: Canopy, starts: wp.array(dtype=wp.vec3d),
                 directions: wp.array(dtype=wp.vec3d), window_start: wp.array(dtype=wp.float64),
                 offsets: wp.array(dtype=wp.vec2d), weights: wp.array(dtype=wp.float64), per_thread: int,
