@@ -160,12 +160,16 @@ def leaf_echo(c: Canopy, p: WaveformParams, start: wp.vec3d, direction: wp.vec3d
     return transmission, inside, outside, first, last
 
 
+DEPOSIT_MAX_REGISTERS = 128  # on a GPU: two 256-thread blocks per SM; 137 uncapped (one block), measured fastest of
+# 64/96/128/uncapped on an H100 (results/profile-experiments.md, section 13)
+
+
 @functools.cache
-def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | None = None):
+def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | None = DEPOSIT_MAX_REGISTERS):
     """The deposit kernel, with each sub-ray's link times the albedo of the triangle it hits (``per_face``:
     ``m.reflectance``) or the run's one link; through the leaves of ``leaves`` (``canopy``: :func:`leaf_echo`, the
     surface's echo dimmed by the transmission left) or not (compiled out); ``max_registers`` caps its registers per
-    thread on a GPU (None: the compiler's choice)."""
+    thread on a GPU (None: the compiler's choice; the cap changes no result, only spills and occupancy)."""
 
     @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
     def deposit(m: MeshRefs, p: WaveformParams, leaves: Canopy, starts: wp.array(dtype=wp.vec3d),
