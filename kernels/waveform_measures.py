@@ -158,33 +158,31 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
 
 
 @wp.func
-def _prominence(x: wp.array2d(dtype=wp.float64), w: int, peak: int):
-    """scipy's peak_prominences over the whole line: (prominence, left base, right base)."""
+def _base(x: wp.array2d(dtype=wp.float64), w: int, peak: int, step: int):
+    """Walking from ``peak`` by ``step`` (−1 or +1) until a higher sample or the line's end: (the lowest sample
+    met, its index; the first one where several are lowest), scipy's base on that side."""
     n = x.shape[0]
     top = x[peak, w]
-    left = peak
-    left_min = top
+    lowest = top
+    base = peak
     i = peak
-    while i >= 0:
+    while i >= 0 and i <= n - 1:
         v = x[i, w]
         if v > top:
             break
-        if v < left_min:
-            left_min = v
-            left = i
-        i = i - 1
-    right = peak
-    right_min = top
-    i = peak
-    while i <= n - 1:
-        v = x[i, w]
-        if v > top:
-            break
-        if v < right_min:
-            right_min = v
-            right = i
-        i = i + 1
-    return top - wp.max(left_min, right_min), left, right
+        if v < lowest:
+            lowest = v
+            base = i
+        i = i + step
+    return lowest, base
+
+
+@wp.func
+def _prominence(x: wp.array2d(dtype=wp.float64), w: int, peak: int):
+    """scipy's peak_prominences over the whole line: (prominence, left base, right base)."""
+    left_min, left = _base(x, w, peak, -1)
+    right_min, right = _base(x, w, peak, 1)
+    return x[peak, w] - wp.max(left_min, right_min), left, right
 
 
 @wp.func
