@@ -147,7 +147,7 @@ class Photons:
             f"photons:{pulses}", lambda: _buffers(tracer, pulses))  # allocated once per tracer: frame after frame
         settings = tracer.instrument.detector.s
         self.detector, self.reflectance = tracer.instrument.detector.struct(), settings.reflectance
-        self.ranges_only = dataclasses.replace(tracer.features, exact=False, nominal=False, edges=False)
+        self.ranges_only = _ranges_only(tracer)
         canopy = tracer.scene.canopy
         self.leaf_reflectance = 0.0 if canopy is None else canopy.leaf_reflectance
         self.found.zero_()
@@ -159,8 +159,8 @@ class Photons:
         trace_points(tracer, b, n_slots, self.ranges_only)  # ranges only: no georeferencing
         leaves = tracer.scene.canopy is not None
         if retro.count or leaves:  # the beams' true rays
-            wp.launch(trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose),
-                      n_slots, inputs=[b.pulses, tracer.scan], outputs=[retro.starts, retro.directions], device=d)
+            wp.launch(_rays_kernel(tracer), n_slots, inputs=[b.pulses, tracer.scan],
+                      outputs=[retro.starts, retro.directions], device=d)
         meshes = tracer.meshes
         wp.launch(photon.photon_slots_kernel(retro.count > 0, meshes.per_face, leaves), n_slots,
                   inputs=[self.detector, self.reflectance, meshes.reflectance, b.pulses, tracer.beams_per_pulse,
@@ -182,12 +182,11 @@ class Photons:
 
     def kernels_needed(self, tracer) -> list:
         retro, leaves = len(tracer.cfg.scene.ccrs) > 0, tracer.scene.canopy is not None
-        rays = [trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose)]
-        ranges_only = dataclasses.replace(tracer.features, exact=False, nominal=False, edges=False)
         frame = [photon_frame.frame_photons_kernel(tracer.instrument.kernel), photon_frame.advance_total]
-        return [points_kernel(tracer, ranges_only, 1), photon.photon_slots_kernel(retro, tracer.meshes.per_face, leaves),
-                photon.gather_events, trace.photon_points_kernel(tracer.instrument.kernel),
-                *(rays if retro or leaves else []), *(frame if self.frame is not None else [])]
+        return [points_kernel(tracer, _ranges_only(tracer), 1),
+                photon.photon_slots_kernel(retro, tracer.meshes.per_face, leaves), photon.gather_events,
+                trace.photon_points_kernel(tracer.instrument.kernel), *([_rays_kernel(tracer)] if retro or leaves else []),
+                *(frame if self.frame is not None else [])]
 
     def end(self, tracer, counts) -> wp.array:
         if self.frame is None:
@@ -209,6 +208,16 @@ def _buffers(tracer, pulses: int) -> tuple:
     leaves = no_canopy(d) if canopy is None else canopy.to_device(d)
     energy = wp.array(beam_energy(tracer.instrument.emitter), dtype=wp.float64, device=d)
     return buffers, events, retro, leaves, energy, wp.zeros(1, dtype=wp.int32, device=d)
+
+
+def _ranges_only(tracer) -> trace.Features:
+    """The tracer's features without georeferencing: the photon readout's points kernel makes ranges only."""
+    return dataclasses.replace(tracer.features, exact=False, nominal=False, edges=False)
+
+
+def _rays_kernel(tracer):
+    """The kernel of the beams' true float64 rays (for the retroreflectors' footprints and the leaves)."""
+    return trace.emit_rays_kernel(tracer.instrument.kernel, precise=True, pose=tracer.features.pose)
 
 
 def beam_energy(emitter) -> np.ndarray:
