@@ -18,6 +18,7 @@ from copcjs import read_with_copcjs
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_format import gps_week_date
 from flightsim.outputs.las_points import PointBatch, read_points
+from flightsim.outputs import las_tiles
 from flightsim.outputs.las_tiles import TileWriter
 
 UTM48N = pyproj.CRS.from_epsg(32648)
@@ -404,6 +405,28 @@ def test_points_stream_to_disk_before_close(tmp_path):
     assert part.stat().st_size >= n * 48 // 2  # record length 48 B; some may sit in the io buffer
     writer.close()
 
+
+@pytest.mark.skipif(not las_tiles.FADVISE, reason="no posix_fadvise on this system")
+def test_each_write_is_handed_to_the_disk_write_back(tmp_path, monkeypatch):
+    """Every LAS write asks the kernel to start writing exactly the bytes it added (one range after another,
+    from the end of the header to the end of the points, a reopened tile's from its old end), so a run's
+    output reaches the disk while it traces; the tile keeps every point."""
+    asked: list[tuple[int, int, int]] = []
+    monkeypatch.setattr(las_tiles.os, "posix_fadvise", lambda fd, offset, length, advice:
+                        asked.append((offset, length, advice)))
+    writer = TileWriter(tmp_path, UTM48N, creation_date=CREATED, max_open_tiles=1)
+    for k, n in enumerate((1000, 2500, 700)):  # the third batch goes to a second tile, evicting the first
+        writer.write(make_batch(np.full(n, 409100.0 + 600.0 * (k == 2)), np.full(n, 3392100.0), seed=k))
+    writer.write(make_batch(np.full(300, 409100.0), np.full(300, 3392100.0), seed=3))  # the first, reopened
+    writer.close()
+    first = laspy.read(tmp_path / "409000_3392000.las")
+    start, record = first.header.offset_to_point_data, first.header.point_format.size
+    assert [a[2] for a in asked] == [las_tiles.os.POSIX_FADV_DONTNEED] * 4
+    first_ranges = [asked[0][:2], asked[1][:2], asked[3][:2]]
+    assert first_ranges == [(start, 1000 * record), (start + 1000 * record, 2500 * record),
+                            (start + 3500 * record, 300 * record)]
+    assert asked[2][1] == 700 * record
+    assert len(first.points) == 3800
 
 def test_bounded_open_tiles_give_the_same_bytes(tmp_path):
     batch = random_batch(4000, seed=3)

@@ -102,7 +102,7 @@ class DeviceLasOutput:
         self.tables = _tables(output.tile_size_m, simulator, scene, plane_ids)
         self._none = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._device_arrays: dict[str, wp.array] = {}
-        self._free = {m: queue.Queue() for m in self.models}
+        self._free = {m: queue.LifoQueue() for m in self.models}  # a released buffer is reused before a new one
         for m in self.models:
             for _ in range(BUFFERS_PER_MODEL):
                 self._free[m].put(None)  # allocated on first use, sized to the chunk
@@ -193,7 +193,9 @@ class DeviceLasOutput:
     def _host_buffer(self, model: str, n: int) -> wp.array:
         """A free host buffer of at least ``n`` records (waits for a writer to release one). Asked for the
         chunk's slot count, not its return count, so that each buffer is allocated and page-locked (slow) once
-        per run, not again whenever a chunk holds more returns than any before."""
+        per run, not again whenever a chunk holds more returns than any before; and a buffer a writer has released
+        is taken before a new one is made (last in, first out), so that a run whose writers keep up page-locks one
+        buffer per model, not ``BUFFERS_PER_MODEL``."""
         buffer = self._free[model].get()
         self._raise_writer_error()
         if buffer is None or buffer.shape[0] < n:

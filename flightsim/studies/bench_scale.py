@@ -218,7 +218,7 @@ def _las_run_into(sim: Tracer, cfg: RunConfig, directory: Path):
     from flightsim.outputs.device_las import DeviceLasOutput
 
     started = time.perf_counter()
-    las = DeviceLasOutput(directory, cfg, sim, edge_distance=False)
+    las = DeviceLasOutput(directory, cfg.output, sim, False, cfg.flight.start_gps_time)
     counts = sim.run(Points(on_device=True), las)
     tiles = las.close()
     wall = time.perf_counter() - started
