@@ -66,6 +66,25 @@ def test_device_records_are_the_host_writers_bytes(device, tmp_path, settings):
     assert dev == host
 
 
+def test_records_handed_over_in_slabs_that_cut_tiles_are_the_host_writers_bytes(device, tmp_path, monkeypatch):
+    """Slabs of 37 records (most tiles of a chunk split between slabs, a slab holding the ends of some and the
+    starts of others; two slabs a model, so the copies wait for the writers): the same bytes."""
+    from flightsim.outputs import device_las
+
+    words = device_las.kl.pack_kernel(True, True, False).words  # records with position_error and edge_distance
+    monkeypatch.setattr(device_las, "SLAB_BYTES", 37 * 4 * words)
+    monkeypatch.setattr(device_las, "SLABS_PER_MODEL", 2)
+    handed: list[tuple[int, int]] = []
+    real = device_las._write_slab
+    monkeypatch.setattr(device_las, "_write_slab", lambda w, slab: handed.append((slab.first, slab.count)) or
+                        real(w, slab))
+    device_tiles, host_tiles = _both_writers(_config(device), tmp_path)
+    assert device_tiles == host_tiles
+    assert _digests(tmp_path / "dev") == _digests(tmp_path / "host")
+    assert max(count for _, count in handed) == 37 and len(handed) > 100
+    assert any(first > 0 for first, _ in handed)
+
+
 def test_device_plane_moments_equal_numpys(device):
     cfg = _config(device, **{"output.position_error": False})
     scene = build_scene(cfg)

@@ -2,10 +2,12 @@
 
 For each chunk the points kernel leaves on the device (:class:`~flightsim.engine.readouts.points.DeviceReturns`),
 every georeferencing model's returns are packed into finished LAS records already grouped by tile
-(:mod:`kernels.las_records`), copied once into a page-locked host buffer, and handed to that model's
-writer thread, which appends each tile's records to its file (:meth:`TileWriter.write_records`) while
-the device traces the next chunk. Host memory is bounded by ``BUFFERS_PER_MODEL`` chunk buffers per
-model; the bytes are those the host writer makes from the same returns.
+(:mod:`kernels.las_records`) and copied, a slab at a time, into a small ring of page-locked host slabs, each handed
+to that model's writer thread, which appends the slab's part of each tile to its file
+(:meth:`TileWriter.write_records`) while the next slab is copied and the device traces the next chunk. Host memory
+is bounded by ``SLABS_PER_MODEL`` slabs of ``SLAB_BYTES`` per model, whatever the chunk size (page-locking memory
+costs about 0.5 s per GB, so a run page-locks little); the bytes are those the host writer makes from the same
+returns.
 """
 from __future__ import annotations
 
@@ -30,7 +32,8 @@ from flightsim.scenes.canopy import LEAF_CLASSES
 from flightsim.scenes.scene import Scene
 from kernels import las_records as kl
 
-BUFFERS_PER_MODEL = 3  # host record buffers per model: one being filled, up to two queued or being written
+SLAB_BYTES = 32 << 20  # one page-locked host slab of records
+SLABS_PER_MODEL = 4  # slabs per model: one being filled, the others queued or being written
 INT32_MAX = np.iinfo(np.int32).max
 
 
@@ -69,14 +72,23 @@ def tile_writers(directory: Path, output, scene: Scene, start_gps_time: float,
 
 
 @dataclass
-class _Tiles:
-    """A packed chunk of one model on the host: records grouped by tile and each tile's extent."""
+class _Groups:
+    """A packed chunk of one model: its records' tile groups (record order) and each group's extent."""
 
-    records: wp.array  # (capacity, words) uint32, host (page-locked on a GPU machine)
     keys: list[tuple[int, int]]  # tile indices of each group
     starts: np.ndarray  # first record of each group
     counts: np.ndarray  # records of each group
     bounds: np.ndarray  # (groups, 6): least X, Y, Z and greatest X, Y, Z stored [mm]
+
+
+@dataclass
+class _Slab:
+    """Records first ≤ k < first + count of a packed chunk, in a host slab, and the chunk's groups."""
+
+    records: wp.array  # (capacity, words) uint32, host (page-locked on a GPU machine)
+    first: int
+    count: int
+    groups: _Groups
 
 
 @register("output", "las")
@@ -102,11 +114,11 @@ class DeviceLasOutput:
         self.tables = _tables(output.tile_size_m, simulator, scene, plane_ids)
         self._none = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._device_arrays: dict[str, wp.array] = {}
-        self._free = {m: queue.LifoQueue() for m in self.models}  # a released buffer is reused before a new one
+        self._free = {m: queue.LifoQueue() for m in self.models}  # a released slab is reused before a new one
         for m in self.models:
-            for _ in range(BUFFERS_PER_MODEL):
-                self._free[m].put(None)  # allocated on first use, sized to the chunk
-        self._jobs = {m: queue.Queue(maxsize=BUFFERS_PER_MODEL) for m in self.models}
+            for _ in range(SLABS_PER_MODEL):
+                self._free[m].put(None)  # made on first use
+        self._jobs = {m: queue.Queue(maxsize=SLABS_PER_MODEL) for m in self.models}
         self._errors: list[BaseException] = []
         self._threads = {m: threading.Thread(target=self._write_loop, args=(m,), daemon=True) for m in self.models}
         for thread in self._threads.values():
@@ -118,8 +130,8 @@ class DeviceLasOutput:
             return
         self._set_segments(returns.segments)
         for model in self.models:
-            tiles = self._pack(returns, model)
-            self._jobs[model].put(tiles)
+            records, groups = self._pack(returns, model)
+            self._hand_over(model, records, returns.count, groups)
 
     def kernels_needed(self, simulator) -> list:
         return [self.kernel, kl.tile_extent]  # the packing kernel; the tiles' kernels (one module)
@@ -140,8 +152,8 @@ class DeviceLasOutput:
 
     # ------------------------------------------------------------------------------------------
 
-    def _pack(self, returns, model: str) -> _Tiles:
-        """Pack one model's records on the device, grouped by tile, and copy them to a host buffer."""
+    def _pack(self, returns, model: str) -> tuple[wp.array, _Groups]:
+        """Pack one model's records on the device, grouped by tile: (the device records, their groups)."""
         b, n, d = returns.buffers, returns.count, self.device
         index, points = b.index, b.model_points[model]
         extent = self._array("extent", 4, wp.int32)
@@ -169,39 +181,43 @@ class DeviceLasOutput:
                                           b.faces, b.scan_angles, b.cos_incidence, b.edge_distance, b.true_points,
                                           points, self._none if b.returns is None else b.returns, self.tables],
                   outputs=[records, bounds], device=d)
-        host = self._host_buffer(model, b.index.shape[0])
-        wp.copy(host, records, count=n * self.kernel.words)
-        key = to_host(tile_keys[:groups])  # waits for the copy above too (same stream)
+        key = to_host(tile_keys[:groups])
         table = np.concatenate([to_host(starts[:groups]), to_host(lengths[:groups])])
-        return _Tiles(host, [(ix0 + int(k) // rows, iy0 + int(k) % rows) for k in key], table[:groups],
-                      table[groups:], to_host(bounds.flatten()[:groups * 6]).reshape(groups, 6))
+        return records, _Groups([(ix0 + int(k) // rows, iy0 + int(k) % rows) for k in key], table[:groups],
+                                table[groups:], to_host(bounds.flatten()[:groups * 6]).reshape(groups, 6))
+
+    def _hand_over(self, model: str, records: wp.array, n: int, groups: _Groups) -> None:
+        """Copy ``n`` packed device records to host slabs, one slab at a time, each queued for the model's writer
+        as soon as it has arrived (the next copy waits only for a free slab)."""
+        words = self.kernel.words
+        per_slab = max(1, SLAB_BYTES // (4 * words))
+        for first in range(0, n, per_slab):
+            count = min(per_slab, n - first)
+            slab = self._slab(model, per_slab)
+            wp.copy(slab, records, src_offset=first * words, count=count * words)
+            wp.synchronize_device(self.device)  # the slab holds its records before a writer reads it
+            self._jobs[model].put(_Slab(slab, first, count, groups))
 
     def _write_loop(self, model: str) -> None:
-        """Writer thread of one model: append each queued chunk's tiles to their files."""
+        """Writer thread of one model: append each queued slab's part of every tile to its file."""
         writer, jobs = self.writers[model], self._jobs[model]
-        while (tiles := jobs.get()) is not None:
+        while (slab := jobs.get()) is not None:
             try:
                 if not self._errors:
-                    words = tiles.records.numpy()
-                    for key, start, count, bound in zip(tiles.keys, tiles.starts, tiles.counts, tiles.bounds):
-                        writer.write_records(key, words[start:start + count], bound[:3], bound[3:])
+                    _write_slab(writer, slab)
             except BaseException as exc:  # handed to the simulating thread
                 self._errors.append(exc)
             finally:
-                self._free[model].put(tiles.records)
+                self._free[model].put(slab.records)
 
-    def _host_buffer(self, model: str, n: int) -> wp.array:
-        """A free host buffer of at least ``n`` records (waits for a writer to release one). Asked for the
-        chunk's slot count, not its return count, so that each buffer is allocated and page-locked (slow) once
-        per run, not again whenever a chunk holds more returns than any before; and a buffer a writer has released
-        is taken before a new one is made (last in, first out), so that a run whose writers keep up page-locks one
-        buffer per model, not ``BUFFERS_PER_MODEL``."""
-        buffer = self._free[model].get()
+    def _slab(self, model: str, records: int) -> wp.array:
+        """A free host slab of ``records`` records (waits for a writer to release one); made (page-locked on a GPU
+        machine) only while fewer than ``SLABS_PER_MODEL`` exist and none is free."""
+        slab = self._free[model].get()
         self._raise_writer_error()
-        if buffer is None or buffer.shape[0] < n:
-            pinned = self.device != "cpu"
-            buffer = wp.empty((n, self.kernel.words), dtype=wp.uint32, device="cpu", pinned=pinned)
-        return buffer
+        if slab is None:
+            slab = wp.empty((records, self.kernel.words), dtype=wp.uint32, device="cpu", pinned=self.device != "cpu")
+        return slab
 
     def _array(self, name: str, shape, dtype) -> wp.array:
         """A device scratch array kept between chunks, grown when a chunk needs more."""
@@ -228,6 +244,21 @@ class DeviceLasOutput:
             if thread.is_alive():
                 self._jobs[model].put(None)
                 thread.join()
+
+
+def _write_slab(writer: TileWriter, slab: _Slab) -> None:
+    """Append the records of ``slab`` to their tiles: each group's part that lies in the slab (a group split between
+    slabs is written in order, its extent given with each part: the header's bounds are the same)."""
+    g = slab.groups
+    words = slab.records.numpy()
+    end = slab.first + slab.count
+    ends = g.starts + g.counts
+    for k in range(int(np.searchsorted(ends, slab.first, side="right")), len(g.keys)):
+        start = int(g.starts[k])
+        if start >= end:
+            break
+        a, b = max(start, slab.first), min(int(ends[k]), end)
+        writer.write_records(g.keys[k], words[a - slab.first:b - slab.first], g.bounds[k, :3], g.bounds[k, 3:])
 
 
 def _tables(tile_size_m: int, simulator, scene: Scene, plane_ids: np.ndarray | None) -> kl.RecordTables:

@@ -21,6 +21,7 @@ from flightsim.engine.readouts.points import Points
 from flightsim.engine.readouts.statistics import run_statistics
 from flightsim.engine.tracer import Tracer
 from flightsim.engine.world import build_scene, flight_trajectories
+from flightsim.outputs.las_tiles import FADVISE
 from flightsim.studies.bench_common import (DISK_PROBE_BYTES, REDUCE_KNOBS, REDUCE_TRIANGLES, SCALE_TRIANGLES,
                                             SURVEY_CELL_M, SURVEY_KM, bare_raycast, kernel_times, simulator, Sizes,
                                             timed_statistics, workload)
@@ -118,19 +119,22 @@ def _reduce_row(case: str, cfg: RunConfig, device: str) -> dict:
 
 
 def disk_write_rate(path: Path, size: int, block: int = 16 << 20) -> float:
-    """Sequential write rate of the disk holding ``path`` [bytes/s]: ``size`` bytes in ``block`` writes,
-    fsync'ed, as the tile writers write."""
+    """Sequential write rate of the disk holding ``path`` [bytes/s]: ``size`` bytes in ``block`` writes, each handed
+    to the disk's write-back as it is written and the whole fsync'ed, as the tile writers write (a probe that left
+    the write-back to its fsync would add the time to fill the page cache to the disk's and understate it)."""
     data = os.urandom(block)
+    blocks = max(1, size // block)
     started = time.perf_counter()
     with open(path, "wb") as fh:
-        for _ in range(max(1, size // block)):
+        for k in range(blocks):
             fh.write(data)
-        fh.flush()
+            fh.flush()
+            if FADVISE:
+                os.posix_fadvise(fh.fileno(), k * block, block, os.POSIX_FADV_DONTNEED)
         os.fsync(fh.fileno())
     wall = time.perf_counter() - started
-    written = max(1, size // block) * block
     path.unlink()
-    return written / wall
+    return blocks * block / wall
 
 
 def _terrain_file(triangles: int, size_m: float, folder: Path) -> Path:
