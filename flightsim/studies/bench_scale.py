@@ -197,7 +197,9 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
     las_cfg = _scale_workload(device, s.scale_las_returns)
     las_sim = Tracer(las_cfg, scene, trajectories[:las_cfg.flight.lines], meshes=meshes)
     _las_run_into(las_sim, las_cfg, tmp / "warm-up")  # compiles the points path's kernels
+    shutil.rmtree(tmp / "warm-up")
     las_wall, las_counts, written = _las_run_into(las_sim, las_cfg, tmp / "las")
+    shutil.rmtree(tmp / "las")
     points = las_counts.returns * len(las_sim.models)
     shutil.rmtree(dem.parent)
     return {"triangles": len(scene.triangles), **cold,
@@ -219,8 +221,7 @@ def _scale_workload(device: str, returns: float, **settings) -> RunConfig:
 
 
 def _las_run_into(sim: Tracer, cfg: RunConfig, directory: Path):
-    """(wall [s] until every tile is closed, counts, bytes written) of a LAS-mode run into ``directory``,
-    which is removed afterwards."""
+    """(wall [s] until every tile is closed, counts, bytes written) of a LAS-mode run into ``directory``."""
     from flightsim.outputs.device_las import DeviceLasOutput
 
     started = time.perf_counter()
@@ -229,7 +230,6 @@ def _las_run_into(sim: Tracer, cfg: RunConfig, directory: Path):
     tiles = las.close()
     wall = time.perf_counter() - started
     written = sum((directory / model / name).stat().st_size for model, names in tiles.items() for name in names)
-    shutil.rmtree(directory)
     return wall, counts, written
 
 
