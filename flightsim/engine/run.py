@@ -6,6 +6,7 @@ import json
 import shutil
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -17,7 +18,7 @@ from flightsim.core.version import __version__
 from flightsim.engine.config import RunConfig
 from flightsim.engine.config_io import to_toml
 from flightsim.engine.products import catalog as _products  # noqa: F401  (registers the built-in products)
-from flightsim.engine.world import build_scene, flight_trajectories
+from flightsim.engine.world import build_scene, flight_trajectories, planning_kernels
 
 STAGES = ("scene", "plan", "setup", "trace", "finish")
 """Where a run's time goes (summary.json ``stages_s`` [s]): reading the scene, planning the flight (height grid,
@@ -123,26 +124,45 @@ def execute(cfg: RunConfig, directory: Path, overwrite: bool = False,
 
 def open_run(cfg: RunConfig, directory: Path, marks: list[float], claim: Callable[[], None],
              with_truth: bool = False):
-    """(tracer, product) of a run of ``cfg``: the scene built, the flight planned (``marks`` gets the time after
-    each), every input checked, then ``claim()`` (which makes ``directory`` ready) and the product opened in
-    ``directory`` with run.toml written."""
-    scene = build_scene(cfg)
+    """(tracer, product) of a run of ``cfg``: the scene built, the set-up kernels compiled (:func:`compile_setup`),
+    the flight planned (``marks`` gets the time after each), every input checked, then ``claim()`` (which makes
+    ``directory`` ready) and the product opened in ``directory`` with run.toml written."""
+    from flightsim.engine.tracer import Tracer
+
+    scene = build_scene(cfg)  # Warp is loaded only for a scene that passed its checks
+    compile_setup(cfg, scene)
     product = product_class(cfg)(cfg, scene)
     marks.append(time.perf_counter())
     trajectories = flight_trajectories(cfg, scene)
     marks.append(time.perf_counter())
-    # Warp is loaded only for input that passed the checks above, so that bad input fails fast
-    from flightsim.core.warp_runtime import resolve_device
-    from flightsim.engine.tracer import Tracer
-
-    resolve_device(cfg.run.device)  # every input is checked before the output directory is touched
-    cfg_text = to_toml(cfg)
+    cfg_text = to_toml(cfg)  # every input is checked before the output directory is touched
     claim()
     write_atomic(directory / "run.toml", cfg_text)
     options = {**product.tracer_options, **({"with_truth": True} if with_truth else {})}
     tracer = Tracer(cfg, scene, trajectories, **options)
     product.open(tracer, directory, cfg_text)
     return tracer, product
+
+
+def compile_setup(cfg: RunConfig, scene) -> None:
+    """Compile the kernels a run of ``cfg`` over ``scene`` launches while it is set up (its deflector's, its flight
+    planning's, its tracer's and its product's ``setup_kernels``) at once: each device's in one parallel batch, the
+    devices side by side, before the set-up would compile them one after another (a Risley run on a GPU compiles
+    the exit fan on the CPU while its set-up kernels compile for the GPU)."""
+    from flightsim.core.warp_runtime import compile_ahead, resolve_device
+    from flightsim.engine.instrument import Instrument
+    from flightsim.engine.tracer import Tracer
+
+    run_device = resolve_device(cfg.run.device)
+    instrument = Instrument(cfg)
+    pairs = [*getattr(instrument.deflector, "setup_kernels", list)(), *planning_kernels(cfg, scene),
+             *Tracer.setup_kernels(instrument), *getattr(product_class(cfg), "setup_kernels", lambda _: [])(cfg)]
+    wanted: dict[str, list] = {}
+    for kernel, device in pairs:
+        wanted.setdefault(run_device if device is None else resolve_device(device), []).append(kernel)
+    with ThreadPoolExecutor(max(1, len(wanted))) as pool:
+        for batch in [pool.submit(compile_ahead, device, kernels) for device, kernels in wanted.items()]:
+            batch.result()
 
 
 def compile_kernels(configs: list[RunConfig]) -> int:

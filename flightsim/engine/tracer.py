@@ -27,7 +27,7 @@ from flightsim.engine.instrument import Instrument
 from flightsim.engine.meshes import SceneMeshes
 from flightsim.scenes.scene import Scene
 from flightsim.scoring.reduction import sum_replicas
-from kernels import frames, trace
+from kernels import frames, mesh_hits, trace
 from trajectories import Trajectory
 
 MAX_REGISTERS = {"cpu": None, "cuda": 64}  # registers per thread of the trace kernels (None: the compiler's choice)
@@ -243,6 +243,12 @@ class Tracer:
         if hasattr(readout, "finish"):
             readout.finish(counts)
         return counts
+
+    @staticmethod
+    def setup_kernels(instrument: Instrument) -> list:
+        """The kernels a tracer of ``instrument`` launches while it is made (the scene's padded boxes, the per-beam
+        tables), for :func:`flightsim.engine.run.compile_setup`: (kernel, None = the run's device) pairs."""
+        return [(mesh_hits.corner_extent, None), (trace.beam_table_kernel(instrument.kernel), None)]
 
     def compile_ahead(self, *parts) -> None:
         """Compile the modules of :meth:`kernels_needed` in parallel, before the first chunk would compile them

@@ -45,6 +45,16 @@ def build_scene(cfg, half_extent_m: float | None = None) -> Scene:
     return build_scene_of(cfg.scene, half, cfg.run.seed, cfg.run.scene_cache, cfg.run.device)
 
 
+def planning_kernels(cfg, scene: Scene) -> list:
+    """The kernels :func:`flight_trajectories` launches over ``scene`` (its height grid, unless built or read from
+    the scene cache already), for :func:`flightsim.engine.run.compile_setup`: (kernel, None = the run's device)."""
+    if getattr(platform(cfg), "rotating", False) or scene.height_grid_built:
+        return []
+    from kernels import height_grid
+
+    return [(height_grid.triangle_boxes, None)]
+
+
 def flight_trajectories(cfg, scene: Scene) -> list[Trajectory]:
     """The trajectories the platform flies over ``scene``, each checked clear of the terrain."""
     flying = platform(cfg)

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
 from flightsim.core.errors import InputError
 from flightsim.core.registry import register
@@ -14,7 +15,10 @@ from flightsim.core.settings import Settings, setting
 from flightsim.core.constants import ARCSEC
 from flightsim.instrument import risley_model
 from kernels import wedge
+from kernels.optics import exit_fan_kernel
 from trajectories import PulseTiming
+
+FAN_DEVICE = "cpu"  # where the exit fan is traced (one float64 reference for every run device)
 
 
 @dataclass
@@ -122,7 +126,13 @@ class RisleyDeflector:
     def _fan(self, phi: np.ndarray) -> risley_model.ExitFan:
         s = self.s
         return risley_model.trace_fan(phi, self.emitter.n, self.emitter.spacing_rad, s.refractive_index,
-                                      math.radians(s.apex_angle_deg), s.thickness_mm * 1e-3, precision="float64")
+                                      math.radians(s.apex_angle_deg), s.thickness_mm * 1e-3, precision="float64",
+                                      device=FAN_DEVICE)
+
+    def setup_kernels(self) -> list:
+        """(kernel, device) of what the deflector launches while a run is set up: the float64 exit fan of its reach,
+        distortion and exit table (:meth:`_fan`)."""
+        return [(exit_fan_kernel(wp.float64), FAN_DEVICE)]
 
     def reach_deg(self) -> float:
         """A bound on any beam's angle from the sensor axis, to first order [deg]."""

@@ -234,6 +234,11 @@ class Scene:
             self._height_grid = HeightGrid.build(self.vertices, self.triangles)
         return self._height_grid
 
+    @property
+    def height_grid_built(self) -> bool:
+        """Whether :attr:`height_grid` is built (or adopted from the scene cache) already."""
+        return self._height_grid is not None
+
     def build_height_grid(self, device: str) -> HeightGrid:
         """:attr:`height_grid`, built on the Warp ``device`` ("cpu", "cuda", "cuda:N") if not built yet."""
         if self._height_grid is None:

@@ -28,6 +28,16 @@ class LasProduct:
     kind = "points"
     files = (*MODELS, *(f"{m}.copc.laz" for m in MODELS), PATCH_RASTER, CHM_RASTER)
 
+    @staticmethod
+    def setup_kernels(cfg) -> list:
+        """The kernels the tracer launches for this product while it is made: the plane boundaries' grid of an edge
+        buffer (automatic or set), for :func:`flightsim.engine.run.compile_setup`."""
+        if cfg.scoring.edge_buffer_m == 0.0:
+            return []
+        from kernels import edges
+
+        return [(edges.mark_near_cells, None)]
+
     def __init__(self, cfg, scene):
         self.cfg, self.scene = cfg, scene
         self.buffer = edge_buffer_m(cfg)
