@@ -182,8 +182,9 @@ def _startup(r: dict) -> list[str]:
     runs = [x for x in r["startup"] if "cli_s" in x]
     every = [x for x in r["startup"] if "cli_s" not in x]
     return ["", "### Start-up", "", f"`{runs[0]['command']}`, timed from before the process starts "
-            "(cold: an empty Warp kernel cache, the run compiling its modules in parallel before its first chunk; "
-            "warm: the cache the cold run left; compiled ahead: `flightsim compile` of the same flags first, in an "
+            "(cold: an empty Warp kernel cache, the run compiling its set-up's modules in one parallel batch and "
+            "its chunks' in another before its first chunk; warm: the cache the cold run left; compiled ahead: "
+            "`flightsim compile` of the same flags first, in an "
             "empty cache). Targets: first result <= 3 s cold, <= 1 s warm.", "",
             "| kernel cache | command line parsed [s] | first trace launch [s] | first LAS tile [s] | exit [s] | "
             "modules compiled | flightsim compile [s] |", "| --- | --- | --- | --- | --- | --- | --- |",
