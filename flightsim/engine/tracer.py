@@ -304,10 +304,7 @@ class Tracer:
         plans = [self.windows(t) for t in self.trajectories]
         pieces = [(line, k0, k1) for line, windows in enumerate(plans) for k0, k1 in windows]
         mine = pack(pieces, pulses.shape[1])[share[0]::share[1]]
-        if share[0] == 0:
-            counts.pulses_culled = sum(self._limited_count(t) - sum(k1 - k0 for k0, k1 in w)
-                                       for t, w in zip(self.trajectories, plans))
-        total = sum(s.count for chunk in mine for s in chunk)
+        total = sum(s.count for chunk in mine for s in chunk) if progress else 0
         optics = trace.pulse_optics_kernel(self.instrument.kernel, self.features.pose)
         for chunk, table in zip(mine, segment_tables(mine, self.device)):
             n_pulses = sum(s.count for s in chunk)
@@ -318,6 +315,9 @@ class Tracer:
             counts.pulses += n_pulses
             if progress:
                 progress(counts.pulses, total)
+        if share[0] == 0:  # counted once the device has every chunk queued (a many-line run's host work)
+            counts.pulses_culled = sum(self._limited_count(t) - sum(k1 - k0 for k0, k1 in w)
+                                       for t, w in zip(self.trajectories, plans))
 
     @functools.cached_property
     def lines(self) -> frames.Lines:
