@@ -2,9 +2,9 @@
 
 For each chunk the points kernel leaves on the device (:class:`~flightsim.engine.readouts.points.DeviceReturns`),
 every georeferencing model's returns are packed into finished LAS records already grouped by tile
-(:mod:`kernels.las_records`) and copied, a slab of each model at a time, into a small ring of page-locked host slabs
-per model, each handed to that model's writer thread, which appends the slab's part of each tile to its file
-(:meth:`TileWriter.write_records`) while the next slabs are copied and the device traces the next chunk. Host memory
+(:mod:`kernels.las_records`) and copied, a slab at a time, into a small ring of page-locked host slabs, each handed
+to that model's writer thread, which appends the slab's part of each tile to its file
+(:meth:`TileWriter.write_records`) while the next slab is copied and the device traces the next chunk. Host memory
 is bounded by ``SLABS_PER_MODEL`` slabs of ``SLAB_BYTES`` per model, whatever the chunk size (page-locking memory
 costs about 0.5 s per GB, so a run page-locks little); the bytes are those the host writer makes from the same
 returns.
@@ -129,7 +129,9 @@ class DeviceLasOutput:
         if returns.count == 0:
             return
         self._set_segments(returns.segments)
-        self._hand_over({model: self._pack(returns, model) for model in self.models}, returns.count)
+        for model in self.models:
+            records, groups = self._pack(returns, model)
+            self._hand_over(model, records, returns.count, groups)
 
     def kernels_needed(self, simulator) -> list:
         return [self.kernel, kl.tile_extent]  # the packing kernel; the tiles' kernels (one module)
@@ -174,7 +176,7 @@ class DeviceLasOutput:
         wp.utils.array_scan(lengths[:groups], starts[:groups], inclusive=False)
         bounds = self._array("bounds", (n, 6), wp.int32)
         wp.launch(kl.reset_bounds, (groups, 6), outputs=[bounds], device=d)
-        records = self._array(f"records-{model}", (n, self.kernel.words), wp.uint32)
+        records = self._array("records", (n, self.kernel.words), wp.uint32)
         wp.launch(self.kernel, n, inputs=[index, order, starts, tile_keys, groups, ix0, iy0, rows, b.pulses, b.ranges,
                                           b.faces, b.scan_angles, b.cos_incidence, b.edge_distance, b.true_points,
                                           points, self._none if b.returns is None else b.returns, self.tables],
@@ -184,20 +186,17 @@ class DeviceLasOutput:
         return records, _Groups([(ix0 + int(k) // rows, iy0 + int(k) % rows) for k in key], table[:groups],
                                 table[groups:], to_host(bounds.flatten()[:groups * 6]).reshape(groups, 6))
 
-    def _hand_over(self, packed: dict[str, tuple[wp.array, _Groups]], n: int) -> None:
-        """Copy the ``n`` packed device records of each model to host slabs, a slab of every model at a time, each
-        queued for its model's writer as soon as it has arrived (the models' writers work side by side; the next
-        copies wait only for free slabs)."""
+    def _hand_over(self, model: str, records: wp.array, n: int, groups: _Groups) -> None:
+        """Copy ``n`` packed device records to host slabs, one slab at a time, each queued for the model's writer
+        as soon as it has arrived (the next copy waits only for a free slab)."""
         words = self.kernel.words
         per_slab = max(1, SLAB_BYTES // (4 * words))
         for first in range(0, n, per_slab):
             count = min(per_slab, n - first)
-            slabs = {model: self._slab(model, per_slab) for model in packed}
-            for model, (records, _) in packed.items():
-                wp.copy(slabs[model], records, src_offset=first * words, count=count * words)
-            wp.synchronize_device(self.device)  # the slabs hold their records before a writer reads them
-            for model, (_, groups) in packed.items():
-                self._jobs[model].put(_Slab(slabs[model], first, count, groups))
+            slab = self._slab(model, per_slab)
+            wp.copy(slab, records, src_offset=first * words, count=count * words)
+            wp.synchronize_device(self.device)  # the slab holds its records before a writer reads it
+            self._jobs[model].put(_Slab(slab, first, count, groups))
 
     def _write_loop(self, model: str) -> None:
         """Writer thread of one model: append each queued slab's part of every tile to its file."""
