@@ -1,0 +1,29 @@
+"""The BLAS kernels the suite runs with: the product pins hold only for the kernels they were made with."""
+import ctypes
+import glob
+import os
+import platform
+
+import numpy as np
+import pytest
+
+
+def _openblas_core() -> str | None:
+    """The core type NumPy's OpenBLAS runs its kernels for, or None where NumPy uses another BLAS."""
+    libs = glob.glob(os.path.join(os.path.dirname(np.__file__), os.pardir, "numpy.libs", "libscipy_openblas*.so"))
+    for path in libs:
+        lib = ctypes.CDLL(path)
+        for name in ("scipy_openblas_get_corename64_", "scipy_openblas_get_corename"):
+            if hasattr(lib, name):
+                getter = getattr(lib, name)
+                getter.restype = ctypes.c_char_p
+                return getter().decode()
+    return None
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="OpenBLAS's Haswell kernels are x86-64's")
+def test_openblas_runs_the_kernels_the_pins_were_made_with():
+    core = _openblas_core()
+    if core is None:
+        pytest.skip("NumPy is not linked against its own OpenBLAS here")
+    assert core.lower() == os.environ["OPENBLAS_CORETYPE"].lower() == "haswell"
