@@ -3,7 +3,7 @@ import warp as wp
 
 from kernels.trace import STATUS_RETURN
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.kernel

@@ -34,7 +34,7 @@ depth 0, no voxel, no interaction.
 """
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 PARALLEL = wp.constant(wp.float64(1.0e-290))
 """|direction component| below which a ray is taken as parallel to that axis."""

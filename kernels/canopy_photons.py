@@ -18,7 +18,7 @@ import warp as wp
 
 from kernels.canopy import Canopy, g_of, walk_begin, walk_next
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 LIGHT_SPEED = wp.constant(wp.float64(299792458.0))  # [m/s]
 SQRT1_2 = wp.constant(wp.float64(0.7071067811865476))

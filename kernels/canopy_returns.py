@@ -32,7 +32,7 @@ from kernels.trace import (COUNT_MISS, COUNT_TIR, STATUS_LEAF, STATUS_MISS, STAT
 from kernels.edges import boundary_distance, near_boundary
 from kernels.frames import ROW_RIGHT, get3
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 COUNT_DARK = 2  # counters: beams that hit the surface but whose every echo stayed below the threshold
 COUNT_RETURNED = 3  # beams with at least one return
@@ -171,7 +171,7 @@ def canopy_trace_kernel(f: Features, instrument: Instrument, max_registers: int 
     trace_slot = slot_function(f, instrument)
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
+    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
     def trace_canopy_beams(
         pulses: wp.array2d(dtype=wp.float64),  # In: the chunk's pulse table
         scan: Scan,
@@ -191,7 +191,7 @@ def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int
     reads the rest of the trace only after the walk, so none of it is held in registers across the walk."""
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", enable_backward=False, **walk_register_options(max_registers))
+    @wp.kernel(module="unique", enable_backward=False, **walk_register_options(max_registers), grid_stride=False)
     def trace_canopy_points(
         pulses: wp.array2d(dtype=wp.float64),
         scan: Scan,

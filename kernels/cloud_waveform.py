@@ -20,7 +20,7 @@ import functools
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 PULSE_SIGMAS = 5.0  # the pulse's half length [σ_r]: beyond it 5.7e-7 of its energy
 
@@ -90,7 +90,7 @@ def cloud_waveform_kernel(bins: int):
     """The waveform kernel for a shared histogram of ``bins`` bins per component (launch tiled, one block per
     footprint)."""
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def cloud_waveforms(
         # In:
         g: CloudGrid,

@@ -1,7 +1,7 @@
 """Signed distance from points to a scene mesh (scoring of point clouds against the truth)."""
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.kernel

@@ -4,7 +4,7 @@ import warp as wp
 from kernels.optics import doe_direction
 from kernels.parts import Emitter
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.struct

@@ -5,7 +5,7 @@ import warp as wp
 from kernels.frames import ROW_PULSE, ROW_SEED
 from kernels.parts import standard_normal64
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.struct

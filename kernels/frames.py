@@ -9,7 +9,7 @@ from typing import Any
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 TWO_PI = wp.constant(wp.float64(6.283185307179586))
 

@@ -24,7 +24,7 @@ import warp as wp
 from kernels.frames import ROW_PULSE, ROW_SEED, put3
 from kernels.parts import Deflector, get3_as, standard_normal64
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 MODE_A = wp.constant(0)
 MODE_B = wp.constant(1)

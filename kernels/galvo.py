@@ -23,7 +23,7 @@ import warp as wp
 from kernels.frames import ROW_PULSE, ROW_SEED, put3
 from kernels.parts import Deflector, get3_as, standard_normal64
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 QUARTER_PI3 = wp.constant(wp.float64(2.356194490192345))  # 135° [rad]
 

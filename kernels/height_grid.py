@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+
 
 @wp.func
 def _cell_index(value: wp.float64, origin: wp.float64, cell: wp.float64, n: int) -> int:

@@ -25,6 +25,8 @@ import warp as wp
 
 from kernels import frames
 
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+
 SCALE_MM = wp.constant(wp.float64(0.001))  # LAS coordinate unit [m]
 SCAN_ANGLE_UNIT = wp.constant(wp.float64(0.006))  # LAS 1.4 scan-angle unit [deg]
 DEG_PER_RAD = wp.constant(wp.float64(57.29577951308232))  # numpy.degrees' factor 180/π
@@ -124,7 +126,7 @@ def pack_kernel(position_error: bool, edge_distance: bool, multi_return: bool = 
     number and number of returns from ``returns`` (``multi_return``) or 1 of 1."""
     words = BASE_WORDS + int(position_error) + int(edge_distance)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def pack_records(
         index: wp.array(dtype=wp.int32),  # slot of each return
         order: wp.array(dtype=wp.int32),  # return index of each sorted record

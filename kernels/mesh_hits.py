@@ -2,7 +2,7 @@
 rays the float32 query misses at shared edges and vertices), and the hit refined in float64 on its triangle."""
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.kernel

@@ -12,7 +12,7 @@ from typing import Any
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.func
@@ -109,7 +109,7 @@ def exit_fan_kernel(dtype: type):
     """
     vec3 = wp.types.vector(3, dtype)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def exit_fan(
         # In:
         phis: wp.array(dtype=dtype),  # prism angles [rad]

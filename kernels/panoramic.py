@@ -22,7 +22,7 @@ import warp as wp
 from kernels.frames import ROW_PULSE
 from kernels.parts import Deflector
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.struct

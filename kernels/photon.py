@@ -31,7 +31,7 @@ from kernels.canopy_photons import LeafRay, leaf_sum, transmission_to
 from kernels.frames import ROW_PULSE, ROW_SEED
 from kernels.trace import STATUS_RETURN
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 SQRT1_2 = wp.constant(wp.float64(0.7071067811865476))
 INV_SQRT_2PI = wp.constant(wp.float64(0.3989422804014327))
@@ -264,7 +264,7 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
     the scene's per-triangle reflectance (``per_face``) or the run's one value, and through the leaves of
     ``canopy`` (``leaves``) or not."""
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def photon_slots(det: PhotonDetector, reflectance: wp.float64, face_reflectance: wp.array(dtype=wp.float32),
                      pulses: wp.array2d(dtype=wp.float64), per_pulse: int, energy: wp.array(dtype=wp.float64),
                      status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),

@@ -20,7 +20,7 @@ from kernels.parts import Instrument
 from kernels.photon_grid import angle_cell
 from kernels.trace import HALF_LIGHT_SPEED, pulse_rows, scan_struct
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @functools.cache
@@ -31,7 +31,7 @@ def frame_photons_kernel(instrument: Instrument):
     Scan = scan_struct(instrument)
     row_believed = pulse_rows(instrument).believed
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def frame_photons(
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,

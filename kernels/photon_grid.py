@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+
 PACK_LOW = wp.constant(wp.int64(0x7FFFFFFF))  # the bin's place in a packed (window, bin) best pair
 
 

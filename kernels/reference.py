@@ -10,7 +10,7 @@ from kernels.frames import PulsePose64
 from kernels.optics import doe_direction, prism_exit, rigid_array_direction
 from kernels.wedge import Prism
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.kernel

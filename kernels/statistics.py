@@ -10,7 +10,7 @@ from kernels.parts import Instrument
 from kernels.trace import (COUNT_EDGE, COUNT_MISS, COUNT_TIR, STATUS_MISS, STATUS_RETURN, STATUS_TIR, Features,
                            scan_struct, slot_function)
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 # statistics-mode record codes of slots that do not count (a plane id otherwise)
 CODE_MISS = wp.constant(-1)
@@ -43,7 +43,7 @@ def records_kernel(f: Features, instrument: Instrument, max_registers: int | Non
     trace_slot = slot_function(f, instrument)
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
+    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
     def trace_records(
         # In:
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
@@ -88,7 +88,7 @@ def check_edges_kernel(instrument: Instrument):
     """The kernel settling near-boundary records (:func:`_check_edges`) for one instrument's scan struct."""
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def check_edges(
         scan: Scan,
         edge_buffer: wp.float32,  # returns closer than this to a plane boundary do not count [m]

@@ -23,7 +23,7 @@ from kernels.mesh_hits import fallback_hit, refine_hit
 from kernels.optics import rigid_array_rotation
 from kernels.parts import Instrument
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 STATUS_MISS = wp.constant(0)
 STATUS_RETURN = wp.constant(1)
@@ -113,7 +113,7 @@ def beam_table_kernel(instrument: Instrument):
     deflector = instrument.deflector
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def beam_table(scan: Scan):  # Out: scan.beam_truth, beam_believed, beam_rigid
         b = wp.tid()
         s1 = instrument.emitter.direction(b, scan.emitter)
@@ -135,7 +135,7 @@ def pulse_optics_kernel(instrument: Instrument, pose: bool = False):
     row_truth, row_believed = rows.truth, rows.believed
     row_direction, row_exit, row_ok = rows.axis_direction, rows.axis_exit, rows.axis_ok
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def pulse_optics(
         scan: Scan,
         # In: the pose rows; out: the optics rows
@@ -337,7 +337,7 @@ def points_kernel(f: Features, instrument: Instrument, max_registers: int | None
     trace_slot = slot_function(f, instrument)
     Scan = scan_struct(instrument)
 
-    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
+    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
     def trace_points(
         # In:
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
@@ -397,7 +397,7 @@ def emit_rays_kernel(instrument: Instrument, precise: bool = False, pose: bool =
     row_truth, row_pose = rows.truth, rows.true_pose
     vec = wp.vec3d if precise else wp.vec3f
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def emit_rays(
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,
@@ -428,7 +428,7 @@ def photon_points_kernel(instrument: Instrument):
     Scan = scan_struct(instrument)
     row_believed = pulse_rows(instrument).believed
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def photon_points(
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,

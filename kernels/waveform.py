@@ -21,7 +21,7 @@ from kernels.canopy import Canopy, g_of, walk_begin, walk_next
 from kernels.frames import ROW_PULSE, ROW_SEED
 from kernels.mesh_hits import fallback_hit, refine_hit
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 SUBRAYS_PER_THREAD = 32  # sub-rays one deposit thread casts in turn
 PULSE_SIGMAS = 8.0  # the pulse kernel's half length [σ]: its tails hold 1e-15 of the energy
@@ -171,7 +171,7 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
     surface's echo dimmed by the transmission left) or not (compiled out); ``max_registers`` caps its registers per
     thread on a GPU (None: the compiler's choice; the cap changes no result, only spills and occupancy)."""
 
-    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers)
+    @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
     def deposit(m: MeshRefs, p: WaveformParams, leaves: Canopy, starts: wp.array(dtype=wp.vec3d),
                 directions: wp.array(dtype=wp.vec3d), window_start: wp.array(dtype=wp.float64),
                 offsets: wp.array(dtype=wp.vec2d), weights: wp.array(dtype=wp.float64), per_thread: int,

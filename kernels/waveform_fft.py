@@ -20,7 +20,7 @@ import functools
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 FFT_SIZE = 8192  # N: samples per FFT (a power of two greater than the pulse's taps)
 DIRECT_BELOW = 256  # rows whose touched span is narrower [samples] are summed directly (fewer products than an FFT)
@@ -104,7 +104,7 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
 
     options = {"block_dim": block_dim, "enable_mathdx_fft": False}
 
-    @wp.kernel(enable_backward=False, module="unique", module_options=options)
+    @wp.kernel(enable_backward=False, module="unique", module_options=options, grid_stride=False)
     def convolve_fft(
         # In:
         o: Overlap,  # the impulse trains, their spans, the pulse's spectrum

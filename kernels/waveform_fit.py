@@ -16,7 +16,7 @@ import warp as wp
 from kernels.waveform_measures import GAIN_TOLERANCE, LAMBDA_TRIES, MAX_ITERATIONS, MAX_PEAKS, STATUS_CONVERGED, \
     STATUS_ITERATIONS, STATUS_SKIPPED, UNDERFLOW, _time
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.func

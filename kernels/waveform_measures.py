@@ -14,7 +14,7 @@ threads of a warp read one sample of 32 waveforms side by side (coalesced).
 """
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 MAX_PEAKS = wp.constant(8)  # Gaussians fitted on the device; a waveform with more is left to the host
 MAX_ITERATIONS = wp.constant(200)  # Levenberg–Marquardt steps

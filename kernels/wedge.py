@@ -12,7 +12,7 @@ from kernels.frames import ROW_PHI, ROW_PULSE, ROW_SEED, put3
 from kernels.optics import back_face_normal, enter_prism, leave_prism
 from kernels.parts import Deflector, get3_as, standard_normal64
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 ENCODER_STREAM = wp.constant(0x1B873593)  # seed key of the encoder-noise random stream
 

@@ -21,7 +21,7 @@ from kernels.frames import ROW_PHI, ROW_PULSE, ROW_SEED, TWO_PI, put3
 from kernels.optics import back_face_normal, enter_prism, leave_prism
 from kernels.parts import Deflector, get3_as, standard_normal64
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 MAX_PRISMS = 3
 ENCODER_STREAM = wp.constant(0x2E1B2138)  # seed key of the prisms' encoder-noise random stream
