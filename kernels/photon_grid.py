@@ -1,11 +1,11 @@
-"""Photons to points on the device: angle cells, per-cell height histograms by sorting (cell, height
-bin) keys, the fullest pair of adjacent bins per cell, background rejection and the windowed mean
-(the algorithm is described in flightsim.scoring.photon_grid, which drives these kernels).
+"""Photons to points on the device: angle cells, each cell's photons listed together (a count, a scan and a
+fill: no sort of the whole frame), then one thread per cell for its fullest pair of adjacent height bins,
+background rejection and the windowed mean (the algorithm is described in flightsim.scoring.photon_grid, which
+drives these kernels).
 
-A photon is *valid* when its position is finite and its cell's column and row are ≥ 0. Keys are
-``cell · stride + zbin`` (int64) with ``cell = row · columns + column`` and ``stride`` = highest
-height bin + 2, so bin + 1 never leaves its cell; invalid photons get the key ``invalid`` (above
-every valid key) and sort last.
+A photon is *valid* when its position is finite and its cell's column and row are ≥ 0; cells are numbered
+``row · columns + column``. A cell's photons are added up in the order they were made (by index), on the CPU
+and on a GPU alike, so the points do not depend on the order the threads ran in.
 """
 from __future__ import annotations
 
@@ -100,100 +100,111 @@ def merge_extent(zmin: wp.array(dtype=wp.float64), zmax: wp.array(dtype=wp.float
 
 
 @wp.kernel
-def bin_keys(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), lo: wp.float64, bin_m: wp.float64,
-             stride: wp.int64, columns: wp.int64, invalid: wp.int64,
-             keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32)):
-    """The (cell, height bin) key of every photon."""
+def cell_counts(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), columns: int,
+                counts: wp.array(dtype=wp.int32)):
+    """Count the valid photons of every cell (``counts`` zeroed first)."""
     i = wp.tid()
-    order[i] = i
-    keys[i] = invalid
     if valid(xyz[i], cell[i]):
-        zbin = wp.int64(wp.floor((xyz[i][2] - lo) / bin_m))
-        keys[i] = (wp.int64(cell[i][1]) * columns + wp.int64(cell[i][0])) * stride + zbin
+        wp.atomic_add(counts, cell[i][1] * columns + cell[i][0], 1)
 
 
 @wp.kernel
-def run_heads(keys: wp.array(dtype=wp.int64), heads: wp.array(dtype=wp.int32)):
-    """1 where a run of equal sorted keys starts."""
+def fill_cells(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), columns: int, lo: wp.float64,
+               bin_m: wp.float64, offsets: wp.array(dtype=wp.int32), filled: wp.array(dtype=wp.int32),
+               members: wp.array(dtype=wp.int32), zbins: wp.array(dtype=wp.int32)):
+    """List every valid photon (its index and height bin) in its cell's stretch of ``members`` / ``zbins``, which
+    starts at ``offsets[cell]`` (``filled`` zeroed first). In index order on the CPU; in any order on a GPU, put
+    back in index order by :func:`cell_points`."""
     i = wp.tid()
-    heads[i] = 0
-    if i == 0:
-        heads[i] = 1
-    elif keys[i] != keys[i - 1]:
-        heads[i] = 1
+    if valid(xyz[i], cell[i]):
+        c = cell[i][1] * columns + cell[i][0]
+        k = offsets[c] + wp.atomic_add(filled, c, 1)
+        members[k] = i
+        zbins[k] = int(wp.floor((xyz[i][2] - lo) / bin_m))
+
+
+@wp.func
+def _sort_members(members: wp.array(dtype=wp.int32), zbins: wp.array(dtype=wp.int32), a: int, b: int):
+    """Insertion sort of members[a:b] (with their bins) by photon index: the order the photons were made in."""
+    for j in range(a + 1, b):
+        m = members[j]
+        z = zbins[j]
+        k = j - 1
+        while k >= a and members[k] > m:
+            members[k + 1] = members[k]
+            zbins[k + 1] = zbins[k]
+            k -= 1
+        members[k + 1] = m
+        zbins[k + 1] = z
+
+
+@wp.func
+def _best_pair(zbins: wp.array(dtype=wp.int32), a: int, b: int):
+    """The fullest pair of adjacent height bins (an occupied bin and the next one up) among zbins[a:b], the lowest
+    on a tie, packed as window · 2³² + (2³¹ − 1 − bin)."""
+    best = wp.int64(0)
+    for j in range(a, b):
+        z = zbins[j]
+        window = int(0)
+        for k in range(a, b):
+            if zbins[k] == z or zbins[k] == z + 1:
+                window += 1
+        best = wp.max(best, (wp.int64(window) << wp.int64(32)) | (PACK_LOW - wp.int64(z)))
+    return best
+
+
+@wp.func
+def _window_sum(xyz: wp.array(dtype=wp.vec3d), members: wp.array(dtype=wp.int32), a: int, b: int, z: wp.float64,
+                window_m: wp.float64):
+    """(count, sum of positions [m]) of the photons members[a:b] within ``window_m`` of height ``z``, added in
+    the order listed."""
+    count = int(0)
+    total = wp.vec3d()
+    for j in range(a, b):
+        p = xyz[members[j]]
+        if wp.abs(p[2] - z) <= window_m:
+            count += 1
+            total += p
+    return count, total
 
 
 @wp.kernel
-def run_starts(heads: wp.array(dtype=wp.int32), run: wp.array(dtype=wp.int32), starts: wp.array(dtype=wp.int32)):
-    """Where each run starts (``run``: exclusive scan of ``heads``)."""
-    i = wp.tid()
-    if heads[i] == 1:
-        starts[run[i]] = i
-
-
-@wp.kernel
-def best_pairs(keys: wp.array(dtype=wp.int64), starts: wp.array(dtype=wp.int32), runs: int, stride: wp.int64,
-               best: wp.array(dtype=wp.int64), totals: wp.array(dtype=wp.int32)):
-    """Per run (one occupied bin): its photons plus those of the next bin up form a pair; each cell keeps
-    the fullest pair (the lowest bin on a tie) packed as window · 2³² + (2³¹ − 1 − bin), and counts its
+def cell_points(xyz: wp.array(dtype=wp.vec3d), offsets: wp.array(dtype=wp.int32), members: wp.array(dtype=wp.int32),
+                zbins: wp.array(dtype=wp.int32), stride: wp.int64, lo: wp.float64, bin_m: wp.float64, min_count: int,
+                window_m: wp.float64, totals: wp.array(dtype=wp.int32), centre: wp.array(dtype=wp.float64),
+                peak: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.vec3d)):
+    """One cell's surface from its listed photons: the fullest pair of adjacent height bins is the surface when it
+    holds >= min_count photons and beats the cell's own background per pair of bins by 5σ (``centre``: the pair's
+    middle height [m], else NaN; ``peak``: its photons); then the photons within ``window_m`` of that centre are
+    summed, and once more within ``window_m`` of their mean (``count``, ``sums`` [m]). ``totals``: the cell's
     photons."""
-    r = wp.tid()
-    a = starts[r]
-    b = starts[r + 1]
-    key = keys[a]
-    window = b - a
-    if r + 1 < runs:
-        if keys[b] == key + wp.int64(1):
-            window += starts[r + 2] - b
-    c = key / stride
-    zbin = key - c * stride
-    wp.atomic_max(best, int(c), (wp.int64(window) << wp.int64(32)) | (PACK_LOW - zbin))
-    wp.atomic_add(totals, int(c), b - a)
-
-
-@wp.kernel
-def accept_cells(best: wp.array(dtype=wp.int64), totals: wp.array(dtype=wp.int32), stride: wp.int64,
-                 lo: wp.float64, bin_m: wp.float64, min_count: int,
-                 centre: wp.array(dtype=wp.float64), peak: wp.array(dtype=wp.int32)):
-    """A cell's best pair is its surface when it holds ≥ min_count photons and beats the cell's own
-    background per pair of bins by 5σ; ``centre`` is then the pair's middle height [m], else NaN."""
     c = wp.tid()
+    a = offsets[c]
+    b = offsets[c + 1]
+    totals[c] = b - a
     centre[c] = wp.float64(wp.nan)
     peak[c] = 0
-    if totals[c] == 0:
+    count[c] = 0
+    sums[c] = wp.vec3d()
+    if b == a:
         return
-    window = int(best[c] >> wp.int64(32))
-    zbin = PACK_LOW - (best[c] & PACK_LOW)
-    background = wp.float64(2.0) * wp.float64(wp.max(totals[c] - window, 0)) / wp.float64(wp.max(stride - wp.int64(1), wp.int64(1)))
+    _sort_members(members, zbins, a, b)
+    best = _best_pair(zbins, a, b)
+    window = int(best >> wp.int64(32))
+    zbin = PACK_LOW - (best & PACK_LOW)
+    background = wp.float64(2.0) * wp.float64(wp.max(b - a - window, 0)) / wp.float64(wp.max(stride - wp.int64(1), wp.int64(1)))
     need = wp.max(wp.float64(min_count), background + wp.float64(5.0) * wp.sqrt(background))
-    if wp.float64(window) >= need:
-        centre[c] = lo + wp.float64(zbin + wp.int64(1)) * bin_m
-        peak[c] = window
-
-
-@wp.kernel
-def window_sums(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), columns: int,
-                centre: wp.array(dtype=wp.float64), window_m: wp.float64,
-                count: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.vec3d)):
-    """Add every photon within ``window_m`` of its accepted cell's centre height to the cell's sums."""
-    i = wp.tid()
-    if not valid(xyz[i], cell[i]):
+    if wp.float64(window) < need:
         return
-    c = cell[i][1] * columns + cell[i][0]
-    z = centre[c]
-    if wp.isnan(z):
-        return
-    if wp.abs(xyz[i][2] - z) <= window_m:
-        wp.atomic_add(count, c, 1)
-        wp.atomic_add(sums, c, xyz[i])
-
-
-@wp.kernel
-def recentre(count: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.vec3d), centre: wp.array(dtype=wp.float64)):
-    """The window's mean height becomes the cell's centre (cells whose window is empty keep theirs)."""
-    c = wp.tid()
-    if count[c] > 0:
-        centre[c] = sums[c][2] / wp.float64(count[c])
+    z = lo + wp.float64(zbin + wp.int64(1)) * bin_m
+    peak[c] = window
+    n, total = _window_sum(xyz, members, a, b, z, window_m)
+    if n > 0:
+        z = total[2] / wp.float64(n)
+        n, total = _window_sum(xyz, members, a, b, z, window_m)
+    centre[c] = z
+    count[c] = n
+    sums[c] = total
 
 
 @wp.kernel

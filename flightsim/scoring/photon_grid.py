@@ -174,55 +174,38 @@ def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, w
     page-locked ``host`` buffers when given (kept there for the next call), else into new arrays; the device
     arrays of the gridding taken from ``scratch`` when given (:func:`_take`).
 
-    Launches: extent, keys, the radix sort, run heads, a scan, run starts, best pairs, accept, 2 × window sums
-    (and a recentring), 2 × (flags, scan), compaction; host syncs: the extent (3 × 64k partials), the run count,
-    the last key, the occupied and the point counts, the points' copy."""
+    Launches: extent, cell counts, a scan, the cells' lists, one thread per cell for its point, 2 × (flags, scan),
+    compaction; host syncs: the extent (its merged partials), the occupied and the point counts, the points' copy."""
     extent = _extent(xyz, cell, n, scratch) if n else None
     if extent is None:
         return _empty()
     lo, hi, columns, rows = extent
     stride = int(np.floor((hi - lo) / bin_m)) + 2
-    runs, keys, starts = _sorted_runs(xyz, cell, n, lo, bin_m, stride, columns, rows, scratch)
     device, n_cells = xyz.device, columns * rows
-    best, totals = _take(scratch, "best", n_cells, wp.int64, device), _take(scratch, "totals", n_cells, wp.int32, device)
-    best.zero_()
-    totals.zero_()
-    wp.launch(k.best_pairs, runs, inputs=[keys, starts, runs, stride], outputs=[best, totals], device=device)
-    centre, peak = _take(scratch, "centre", n_cells, wp.float64, device), _take(scratch, "peak", n_cells, wp.int32, device)
-    wp.launch(k.accept_cells, n_cells, inputs=[best, totals, stride, lo, bin_m, int(min_count)],
-              outputs=[centre, peak], device=device)
-    count, sums = _take(scratch, "count", n_cells, wp.int32, device), _take(scratch, "sums", n_cells, wp.vec3d, device)
-    for step in range(2):
-        if step:
-            wp.launch(k.recentre, n_cells, inputs=[count, sums], outputs=[centre], device=device)
-        count.zero_()
-        sums.zero_()
-        wp.launch(k.window_sums, n, inputs=[xyz, cell, columns, centre, float(window_m)], outputs=[count, sums],
-                  device=device)
+    offsets, members, zbins = _cell_lists(xyz, cell, n, lo, bin_m, columns, n_cells, scratch)
+    totals, peak, count = (_take(scratch, name, n_cells, wp.int32, device) for name in ("totals", "peak", "count"))
+    centre, sums = _take(scratch, "centre", n_cells, wp.float64, device), _take(scratch, "sums", n_cells, wp.vec3d, device)
+    wp.launch(k.cell_points, n_cells, inputs=[xyz, offsets, members, zbins, stride, lo, float(bin_m), int(min_count),
+                                              float(window_m)],
+              outputs=[totals, centre, peak, count, sums], device=device)
     return _compacted(centre, count, sums, peak, totals, columns, host, scratch)
 
 
-def _sorted_runs(xyz: wp.array, cell: wp.array, n: int, lo: float, bin_m: float, stride: int, columns: int,
-                 rows: int, scratch=None):
-    """(number of runs, sorted keys, run starts) of the photons' (cell, height bin) keys; the runs of the
-    valid photons only (the invalid key sorts last and its run is dropped)."""
+def _cell_lists(xyz: wp.array, cell: wp.array, n: int, lo: float, bin_m: float, columns: int, n_cells: int,
+                scratch=None) -> tuple[wp.array, wp.array, wp.array]:
+    """(offsets, members, height bins): cell c's valid photons are members[offsets[c]:offsets[c + 1]] (photon
+    indices) with their height bins from ``lo`` at ``bin_m``."""
     device = xyz.device
-    invalid = columns * rows * stride
-    keys, order = _take(scratch, "keys", 2 * n, wp.int64, device), _take(scratch, "order", 2 * n, wp.int32, device)
-    wp.launch(k.bin_keys, n, inputs=[xyz, cell, lo, float(bin_m), stride, columns, invalid],
-              outputs=[keys, order], device=device)
-    wp.utils.radix_sort_pairs(keys, order, n, end_bit=invalid.bit_length())
-    heads, run = _take(scratch, "heads", n, wp.int32, device), _take(scratch, "run", n, wp.int32, device)
-    wp.launch(k.run_heads, n, inputs=[keys], outputs=[heads], device=device)
-    wp.utils.array_scan(heads, run, inclusive=False)
-    last_run, last_head, last_key = _last_values(run, heads, keys[:n])  # one sync
-    runs = last_run + last_head
-    starts = _take(scratch, "starts", runs + 1, wp.int32, device)
-    wp.launch(k.run_starts, n, inputs=[heads, run], outputs=[starts], device=device)
-    starts[runs:].fill_(n)
-    if last_key == invalid:
-        runs -= 1  # the invalid photons' run: its start becomes the end of the valid runs
-    return runs, keys, starts
+    counts, filled = (_take(scratch, name, n_cells + 1, wp.int32, device) for name in ("counts", "filled"))
+    offsets = _take(scratch, "offsets_cells", n_cells + 1, wp.int32, device)
+    members, zbins = (_take(scratch, name, n, wp.int32, device) for name in ("members", "zbins"))
+    counts.zero_()
+    filled.zero_()
+    wp.launch(k.cell_counts, n, inputs=[xyz, cell, columns], outputs=[counts], device=device)
+    wp.utils.array_scan(counts, offsets, inclusive=False)  # counts' last element is 0: offsets[n_cells] = total
+    wp.launch(k.fill_cells, n, inputs=[xyz, cell, columns, lo, float(bin_m), offsets], outputs=[filled, members, zbins],
+              device=device)
+    return offsets, members, zbins
 
 
 def _compacted(centre: wp.array, count: wp.array, sums: wp.array, peak: wp.array, totals: wp.array,
