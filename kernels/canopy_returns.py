@@ -27,8 +27,9 @@ import warp as wp
 
 from kernels.canopy import Canopy, g_of, walk_begin, walk_next
 from kernels.parts import Instrument
-from kernels.trace import (COUNT_MISS, COUNT_TIR, STATUS_LEAF, STATUS_MISS, STATUS_RETURN, STATUS_TIR, Features,
-                           SlotTrace, scan_struct, signed_off_nadir, slot_function)
+from kernels.trace import (COUNT_MISS, COUNT_TIR, FIRST_LOOK, SECOND_LOOK, STATUS_LEAF, STATUS_MISS, STATUS_RETRY,
+                           STATUS_RETURN, STATUS_TIR, Features, Misses, SlotTrace, list_miss, scan_struct,
+                           signed_off_nadir, slot_function)
 from kernels.edges import boundary_distance, near_boundary
 from kernels.frames import ROW_RIGHT, get3
 
@@ -165,21 +166,31 @@ def walk_register_options(max_registers: int | None) -> dict:
 
 
 @functools.cache
-def canopy_trace_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
-    """The first stage of the points kernel of a scene with a canopy: one thread per beam, its surface trace
-    (:class:`kernels.trace.SlotTrace`) into a per-beam scratch row that :func:`canopy_points_kernel` reads."""
-    trace_slot = slot_function(f, instrument)
+def canopy_trace_kernel(f: Features, instrument: Instrument, max_registers: int | None = None, look: int = FIRST_LOOK):
+    """The first stage of the points kernel of a scene with a canopy: one thread per beam (per listed beam in the
+    second look), its surface trace (:class:`kernels.trace.SlotTrace`) into a per-beam scratch row that
+    :func:`canopy_points_kernel` reads."""
+    trace_slot = slot_function(f, instrument, look)
     Scan = scan_struct(instrument)
 
     @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
     def trace_canopy_beams(
         pulses: wp.array2d(dtype=wp.float64),  # In: the chunk's pulse table
         scan: Scan,
+        misses: Misses,  # the first look's misses: listed by the first look, traced by the second
         traces: wp.array(dtype=SlotTrace),  # Out: per beam, its surface trace [m, local]
     ):
         beam_slot = wp.tid()
+        if wp.static(look == SECOND_LOOK):
+            if beam_slot >= misses.count[0]:
+                return
+            beam_slot = misses.slots[beam_slot]
         per_pulse = scan.per_pulse
-        traces[beam_slot] = trace_slot(pulses, beam_slot // per_pulse, beam_slot % per_pulse, scan)
+        s = trace_slot(pulses, beam_slot // per_pulse, beam_slot % per_pulse, scan)
+        if s.status == STATUS_RETRY:
+            list_miss(misses, beam_slot)
+        else:
+            traces[beam_slot] = s
 
     return trace_canopy_beams
 

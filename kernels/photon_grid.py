@@ -1,11 +1,12 @@
-"""Photons to points on the device: angle cells, each cell's photons listed together (a count, a scan and a
-fill: no sort of the whole frame), then one thread per cell for its fullest pair of adjacent height bins,
-background rejection and the windowed mean (the algorithm is described in flightsim.scoring.photon_grid, which
-drives these kernels).
+"""Photons to points on the device: angle cells, the photons sorted by (cell, height bin) keys, then one thread
+per cell for its fullest pair of adjacent height bins, background rejection and the windowed mean (the algorithm
+is described in flightsim.scoring.photon_grid, which drives these kernels).
 
-A photon is *valid* when its position is finite and its cell's column and row are ≥ 0; cells are numbered
-``row · columns + column``. A cell's photons are added up in the order they were made (by index), on the CPU
-and on a GPU alike, so the points do not depend on the order the threads ran in.
+A photon is *valid* when its position is finite and its cell's column and row are ≥ 0. Keys are
+``cell · stride + zbin`` (int64) with ``cell = row · columns + column`` and ``stride`` = highest height bin + 2,
+so bin + 1 never leaves its cell; invalid photons get the key ``invalid`` (above every valid key) and sort last.
+The sort is stable, so a cell's photons are added up in one order on the CPU and on a GPU alike (height bin,
+then the order they were made in): the points do not depend on the order the threads ran in.
 """
 from __future__ import annotations
 
@@ -100,87 +101,88 @@ def merge_extent(zmin: wp.array(dtype=wp.float64), zmax: wp.array(dtype=wp.float
 
 
 @wp.kernel
-def cell_counts(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), columns: int,
-                counts: wp.array(dtype=wp.int32)):
-    """Count the valid photons of every cell (``counts`` zeroed first)."""
+def bin_keys(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), lo: wp.float64, bin_m: wp.float64,
+             stride: wp.int64, columns: wp.int64, invalid: wp.int64,
+             keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32)):
+    """The (cell, height bin) key of every photon."""
     i = wp.tid()
+    order[i] = i
+    keys[i] = invalid
     if valid(xyz[i], cell[i]):
-        wp.atomic_add(counts, cell[i][1] * columns + cell[i][0], 1)
+        zbin = wp.int64(wp.floor((xyz[i][2] - lo) / bin_m))
+        keys[i] = (wp.int64(cell[i][1]) * columns + wp.int64(cell[i][0])) * stride + zbin
 
 
 @wp.kernel
-def fill_cells(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), columns: int, lo: wp.float64,
-               bin_m: wp.float64, offsets: wp.array(dtype=wp.int32), filled: wp.array(dtype=wp.int32),
-               members: wp.array(dtype=wp.int32), zbins: wp.array(dtype=wp.int32)):
-    """List every valid photon (its index and height bin) in its cell's stretch of ``members`` / ``zbins``, which
-    starts at ``offsets[cell]`` (``filled`` zeroed first). In index order on the CPU; in any order on a GPU, put
-    back in index order by :func:`cell_points`."""
-    i = wp.tid()
-    if valid(xyz[i], cell[i]):
-        c = cell[i][1] * columns + cell[i][0]
-        k = offsets[c] + wp.atomic_add(filled, c, 1)
-        members[k] = i
-        zbins[k] = int(wp.floor((xyz[i][2] - lo) / bin_m))
+def cell_bounds(keys: wp.array(dtype=wp.int64), n: int, stride: wp.int64, invalid: wp.int64,
+                first: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32)):
+    """Where each cell's photons start and end in the sorted keys (cells without photons keep 0, 0)."""
+    j = wp.tid()
+    key = keys[j]
+    if key == invalid:
+        return
+    c = key / stride
+    if j == 0 or keys[j - 1] / stride != c:
+        first[int(c)] = j
+    if j + 1 == n or keys[j + 1] == invalid or keys[j + 1] / stride != c:
+        last[int(c)] = j + 1
 
 
 @wp.func
-def _sort_members(members: wp.array(dtype=wp.int32), zbins: wp.array(dtype=wp.int32), a: int, b: int):
-    """Insertion sort of members[a:b] (with their bins) by photon index: the order the photons were made in."""
-    for j in range(a + 1, b):
-        m = members[j]
-        z = zbins[j]
-        k = j - 1
-        while k >= a and members[k] > m:
-            members[k + 1] = members[k]
-            zbins[k + 1] = zbins[k]
-            k -= 1
-        members[k + 1] = m
-        zbins[k + 1] = z
-
-
-@wp.func
-def _best_pair(zbins: wp.array(dtype=wp.int32), a: int, b: int):
-    """The fullest pair of adjacent height bins (an occupied bin and the next one up) among zbins[a:b], the lowest
-    on a tie, packed as window · 2³² + (2³¹ − 1 − bin)."""
+def _best_pair(keys: wp.array(dtype=wp.int64), a: int, b: int, base: wp.int64):
+    """The fullest pair of adjacent height bins (an occupied bin and the next one up) of the sorted keys[a:b] (bins
+    key − base), the lowest on a tie, packed as window · 2³² + (2³¹ − 1 − bin)."""
     best = wp.int64(0)
-    for j in range(a, b):
-        z = zbins[j]
-        window = int(0)
-        for k in range(a, b):
-            if zbins[k] == z or zbins[k] == z + 1:
-                window += 1
-        best = wp.max(best, (wp.int64(window) << wp.int64(32)) | (PACK_LOW - wp.int64(z)))
+    j = a
+    while j < b:
+        zbin = keys[j] - base
+        k = j
+        while k < b and keys[k] == keys[j]:
+            k += 1
+        window = k - j
+        m = k
+        while m < b and keys[m] == keys[j] + wp.int64(1):
+            m += 1
+        window += m - k
+        best = wp.max(best, (wp.int64(window) << wp.int64(32)) | (PACK_LOW - zbin))
+        j = k
     return best
 
 
 @wp.func
-def _window_sum(xyz: wp.array(dtype=wp.vec3d), members: wp.array(dtype=wp.int32), a: int, b: int, z: wp.float64,
+def _window_sum(xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
+                a: int, b: int, base: wp.int64, lo: wp.float64, bin_m: wp.float64, z: wp.float64,
                 window_m: wp.float64):
-    """(count, sum of positions [m]) of the photons members[a:b] within ``window_m`` of height ``z``, added in
-    the order listed."""
+    """(count, sum of positions [m]) of the photons order[a:b] within ``window_m`` of height ``z``, added in their
+    sorted order (height bin, then the order they were made in); only the bins the window reaches are read."""
+    low = wp.int64(wp.floor((z - window_m - lo) / bin_m)) - wp.int64(1)
+    high = wp.int64(wp.floor((z + window_m - lo) / bin_m)) + wp.int64(1)
     count = int(0)
     total = wp.vec3d()
     for j in range(a, b):
-        p = xyz[members[j]]
-        if wp.abs(p[2] - z) <= window_m:
-            count += 1
-            total += p
+        zbin = keys[j] - base
+        if zbin >= low and zbin <= high:
+            p = xyz[order[j]]
+            if wp.abs(p[2] - z) <= window_m:
+                count += 1
+                total += p
     return count, total
 
 
 @wp.kernel
-def cell_points(xyz: wp.array(dtype=wp.vec3d), offsets: wp.array(dtype=wp.int32), members: wp.array(dtype=wp.int32),
-                zbins: wp.array(dtype=wp.int32), stride: wp.int64, lo: wp.float64, bin_m: wp.float64, min_count: int,
-                window_m: wp.float64, totals: wp.array(dtype=wp.int32), centre: wp.array(dtype=wp.float64),
-                peak: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.vec3d)):
-    """One cell's surface from its listed photons: the fullest pair of adjacent height bins is the surface when it
-    holds >= min_count photons and beats the cell's own background per pair of bins by 5σ (``centre``: the pair's
-    middle height [m], else NaN; ``peak``: its photons); then the photons within ``window_m`` of that centre are
-    summed, and once more within ``window_m`` of their mean (``count``, ``sums`` [m]). ``totals``: the cell's
-    photons."""
+def cell_points(xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
+                first: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32), stride: wp.int64, lo: wp.float64,
+                bin_m: wp.float64, min_count: int, window_m: wp.float64, totals: wp.array(dtype=wp.int32),
+                centre: wp.array(dtype=wp.float64), peak: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                sums: wp.array(dtype=wp.vec3d)):
+    """One cell's surface from its photons (sorted by height bin): the fullest pair of adjacent height bins is the
+    surface when it holds >= min_count photons and beats the cell's own background per pair of bins by 5σ
+    (``centre``: the pair's middle height [m], else NaN; ``peak``: its photons); then the photons within
+    ``window_m`` of that centre are summed, and once more within ``window_m`` of their mean (``count``, ``sums``
+    [m]). ``totals``: the cell's photons."""
     c = wp.tid()
-    a = offsets[c]
-    b = offsets[c + 1]
+    a = first[c]
+    b = last[c]
     totals[c] = b - a
     centre[c] = wp.float64(wp.nan)
     peak[c] = 0
@@ -188,8 +190,8 @@ def cell_points(xyz: wp.array(dtype=wp.vec3d), offsets: wp.array(dtype=wp.int32)
     sums[c] = wp.vec3d()
     if b == a:
         return
-    _sort_members(members, zbins, a, b)
-    best = _best_pair(zbins, a, b)
+    base = wp.int64(c) * stride
+    best = _best_pair(keys, a, b, base)
     window = int(best >> wp.int64(32))
     zbin = PACK_LOW - (best & PACK_LOW)
     background = wp.float64(2.0) * wp.float64(wp.max(b - a - window, 0)) / wp.float64(wp.max(stride - wp.int64(1), wp.int64(1)))
@@ -198,10 +200,10 @@ def cell_points(xyz: wp.array(dtype=wp.vec3d), offsets: wp.array(dtype=wp.int32)
         return
     z = lo + wp.float64(zbin + wp.int64(1)) * bin_m
     peak[c] = window
-    n, total = _window_sum(xyz, members, a, b, z, window_m)
+    n, total = _window_sum(xyz, keys, order, a, b, base, lo, bin_m, z, window_m)
     if n > 0:
         z = total[2] / wp.float64(n)
-        n, total = _window_sum(xyz, members, a, b, z, window_m)
+        n, total = _window_sum(xyz, keys, order, a, b, base, lo, bin_m, z, window_m)
     centre[c] = z
     count[c] = n
     sums[c] = total

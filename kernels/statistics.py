@@ -7,8 +7,8 @@ import warp as wp
 
 from kernels.edges import boundary_distance, near_boundary
 from kernels.parts import Instrument
-from kernels.trace import (COUNT_EDGE, COUNT_MISS, COUNT_TIR, STATUS_MISS, STATUS_RETURN, STATUS_TIR, Features,
-                           scan_struct, slot_function)
+from kernels.trace import (COUNT_EDGE, COUNT_MISS, COUNT_TIR, FIRST_LOOK, SECOND_LOOK, STATUS_MISS, STATUS_RETRY,
+                           STATUS_RETURN, STATUS_TIR, Features, Misses, list_miss, scan_struct, slot_function)
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
@@ -30,7 +30,7 @@ def _outer6(d: wp.vec3d):
 
 
 @functools.cache
-def records_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
+def records_kernel(f: Features, instrument: Instrument, max_registers: int | None = None, look: int = FIRST_LOOK):
     """Statistics mode, step 1: one thread per slot traces and georeferences its beam and writes a
     compact record: the plane it hit (or why it does not count) and its points.
 
@@ -40,7 +40,7 @@ def records_kernel(f: Features, instrument: Instrument, max_registers: int | Non
     dense list, so the boundary queries do not hold up whole warps of returns that need none); the
     per-plane sums are left to :func:`reduce_records`.
     """
-    trace_slot = slot_function(f, instrument)
+    trace_slot = slot_function(f, instrument, look)
     Scan = scan_struct(instrument)
 
     @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
@@ -49,6 +49,7 @@ def records_kernel(f: Features, instrument: Instrument, max_registers: int | Non
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,
         face_plane: wp.array(dtype=wp.int32),  # plane id of each triangle
+        misses: Misses,  # the first look's misses: listed by the first look, traced by the second
         # Out: per slot
         codes: wp.array(dtype=wp.int32),  # plane id, CODE_MISS, CODE_TIR, or CODE_NEAR − plane id
         exact_points: wp.array(dtype=wp.vec3f),  # [m, local]
@@ -59,10 +60,16 @@ def records_kernel(f: Features, instrument: Instrument, max_registers: int | Non
         near_points: wp.array(dtype=wp.vec3f),  # their true points [m, local]
     ):
         slot = wp.tid()
+        if wp.static(look == SECOND_LOOK):
+            if slot >= misses.count[0]:
+                return
+            slot = misses.slots[slot]
         per_pulse = scan.per_pulse
         s = trace_slot(pulses, slot // per_pulse, slot % per_pulse, scan)
         code, face, p_exact, p_nominal, p_true = s.status, s.face, s.p_exact, s.p_nominal, s.p_true
-        if code == STATUS_TIR:
+        if code == STATUS_RETRY:
+            list_miss(misses, slot)
+        elif code == STATUS_TIR:
             codes[slot] = CODE_TIR
         elif code == STATUS_MISS:
             codes[slot] = CODE_MISS

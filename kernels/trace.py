@@ -29,11 +29,30 @@ STATUS_MISS = wp.constant(0)
 STATUS_RETURN = wp.constant(1)
 STATUS_TIR = wp.constant(2)
 STATUS_LEAF = wp.constant(3)  # a return from leaves (kernels.canopy_returns): compacted with the others, never scored
+STATUS_RETRY = wp.constant(4)  # missed by the mesh query: listed for the second look (never stored)
 HALF_LIGHT_SPEED = wp.constant(wp.float64(149896229.0))  # c / 2 [m/s]: one-way range per time of flight
 
 COUNT_TIR = 0
 COUNT_MISS = 1
 COUNT_EDGE = 2  # returns left out of the statistics for lying within the edge buffer
+
+FIRST_LOOK = 0  # a trace kernel's pass over every slot: Warp's mesh query; its misses are listed
+SECOND_LOOK = 1  # ... over the listed slots only: the padded-box cast (mesh_hits.fallback_hit)
+LOOKS = (FIRST_LOOK, SECOND_LOOK)
+
+
+@wp.struct
+class Misses:
+    """The slots the first look's mesh query missed, for the second look: ``count[0]`` of them in ``slots``."""
+
+    count: wp.array(dtype=wp.int32)
+    slots: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def list_miss(misses: Misses, slot: int):
+    """List ``slot`` for the second look."""
+    misses.slots[wp.atomic_add(misses.count, 0, 1)] = slot
 
 
 @functools.cache
@@ -233,8 +252,12 @@ def _a_return(r: wp.float32, face: wp.int32, direction: wp.vec3f, p_exact: wp.ve
 
 
 @functools.cache
-def slot_function(f: Features, instrument: Instrument):
-    """Build the per-slot body shared by the points, the statistics and the canopy kernels."""
+def slot_function(f: Features, instrument: Instrument, look: int = FIRST_LOOK):
+    """Build the per-slot body shared by the points, the statistics and the canopy kernels, for one of the trace
+    kernels' two looks: the first casts the slot's ray with Warp's mesh query and returns STATUS_RETRY where it
+    misses; the second casts those rays through the padded triangle boxes (rays the float32 query lets slip
+    between flat triangles at a shared edge or vertex, and true misses). The second look's code stays out of the
+    first look's kernel, which runs for every slot: its registers, and so the first look's spills, are fewer."""
 
     deflector = instrument.deflector
     Scan = scan_struct(instrument)
@@ -269,10 +292,13 @@ def slot_function(f: Features, instrument: Instrument):
             true_rot = true_rot * mat(get33(pulses, row_pose + 3, p))
         start = true_origin + true_rot * exit_point
         direction = true_rot * s3
-        hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
-        face = hit.face
-        t_hit = hit.t
-        if not hit.result:
+        if wp.static(look == FIRST_LOOK):
+            hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
+            if not hit.result:
+                return _no_return(STATUS_RETRY, wp.vec3f(direction))
+            face = hit.face
+            t_hit = hit.t
+        else:
             face, t_second = fallback_hit(scan.padded, scan.vertices64, scan.indices, wp.vec3d(start),
                                            wp.vec3d(direction), scan.max_range)
             if face < 0:
@@ -332,9 +358,9 @@ def slot_function(f: Features, instrument: Instrument):
 
 
 @functools.cache
-def points_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
-    """Kernel writing every slot's return: one thread per (pulse, beam)."""
-    trace_slot = slot_function(f, instrument)
+def points_kernel(f: Features, instrument: Instrument, max_registers: int | None = None, look: int = FIRST_LOOK):
+    """Kernel writing every slot's return: one thread per (pulse, beam), or per listed slot in the second look."""
+    trace_slot = slot_function(f, instrument, look)
     Scan = scan_struct(instrument)
 
     @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
@@ -342,6 +368,7 @@ def points_kernel(f: Features, instrument: Instrument, max_registers: int | None
         # In:
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,
+        misses: Misses,  # the first look's misses: listed by the first look, traced by the second
         # Out: per slot
         status: wp.array(dtype=wp.int32),
         ranges: wp.array(dtype=wp.float32),  # observed one-way range, exit point to hit [m]
@@ -355,10 +382,17 @@ def points_kernel(f: Features, instrument: Instrument, max_registers: int | None
         counters: wp.array(dtype=wp.int32),  # [TIR, misses, -]
     ):
         slot = wp.tid()
+        if wp.static(look == SECOND_LOOK):
+            if slot >= misses.count[0]:
+                return
+            slot = misses.slots[slot]
         per_pulse = scan.per_pulse
         pulse = slot // per_pulse
         s = trace_slot(pulses, pulse, slot % per_pulse, scan)
         code, r, face, direction = s.status, s.r, s.face, s.direction
+        if code == STATUS_RETRY:
+            list_miss(misses, slot)
+            return
         p_exact, p_nominal, p_true = s.p_exact, s.p_nominal, s.p_true
         status[slot] = code
         if code == STATUS_TIR:

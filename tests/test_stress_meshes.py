@@ -15,6 +15,7 @@ from flightsim.engine.run import simulate_to_directory
 from flightsim.scenes.scene import CLASS_GROUND, Scene, plane_info
 from flightsim.engine.tracer import Tracer
 from flightsim.engine.readouts.points import Points
+from flightsim.engine.readouts.statistics import run_statistics
 
 MM = 1e-3
 
@@ -106,6 +107,10 @@ def test_beams_aimed_exactly_at_shared_vertices_and_edges_all_return(device, sha
     assert counts.misses == 0, f"{counts.misses} of {counts.beams_fired} beams fell through a shared {shared}"
     landed = np.concatenate([c.true_points for c in chunks])
     assert np.abs(landed[:, 2]).max() <= MM
+    # the statistics readout's trace kernel takes the same second look at the beams its first look missed
+    moments, counts = run_statistics(Tracer(cfg, patches, [trajectory]))
+    assert counts.misses == 0 and counts.returns == len(hits)
+    assert int(moments["exact"].count[0]) + counts.edge_excluded == len(hits)
 
 
 def write_grid_ply(path, half: float, step: float) -> int:

@@ -244,6 +244,21 @@ class Tracer:
             readout.finish(counts)
         return counts
 
+    def launch_looks(self, kernels: tuple, dim: int, inputs: list, outputs: list) -> None:
+        """Launch a trace kernel's two looks over ``dim`` threads (``kernels``: the first look's and the second's,
+        :data:`kernels.trace.FIRST_LOOK`): the first casts every slot's ray with Warp's mesh query and lists those it
+        misses, the second casts only those through the padded triangle boxes. Their arguments: ``inputs``, the
+        list of misses, ``outputs``."""
+        misses = self._kept.get("misses")
+        if misses is None or misses.slots.shape[0] < dim:
+            misses = self._kept["misses"] = trace.Misses()
+            misses.count = wp.zeros(1, dtype=wp.int32, device=self.device)
+            misses.slots = wp.empty(max(dim, 1), dtype=wp.int32, device=self.device)
+        else:
+            misses.count.zero_()
+        for kernel in kernels:
+            wp.launch(kernel, dim, inputs=[*inputs, misses], outputs=outputs, device=self.device)
+
     @staticmethod
     def setup_kernels(instrument: Instrument) -> list:
         """The kernels a tracer of ``instrument`` launches while it is made (the scene's padded boxes, the per-beam

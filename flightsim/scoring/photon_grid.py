@@ -174,7 +174,7 @@ def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, w
     page-locked ``host`` buffers when given (kept there for the next call), else into new arrays; the device
     arrays of the gridding taken from ``scratch`` when given (:func:`_take`).
 
-    Launches: extent, cell counts, a scan, the cells' lists, one thread per cell for its point, 2 × (flags, scan),
+    Launches: extent, keys, the radix sort, the cells' bounds, one thread per cell for its point, 2 × (flags, scan),
     compaction; host syncs: the extent (its merged partials), the occupied and the point counts, the points' copy."""
     extent = _extent(xyz, cell, n, scratch) if n else None
     if extent is None:
@@ -182,30 +182,21 @@ def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, w
     lo, hi, columns, rows = extent
     stride = int(np.floor((hi - lo) / bin_m)) + 2
     device, n_cells = xyz.device, columns * rows
-    offsets, members, zbins = _cell_lists(xyz, cell, n, lo, bin_m, columns, n_cells, scratch)
+    invalid = n_cells * stride
+    keys, order = _take(scratch, "keys", 2 * n, wp.int64, device), _take(scratch, "order", 2 * n, wp.int32, device)
+    wp.launch(k.bin_keys, n, inputs=[xyz, cell, lo, float(bin_m), stride, columns, invalid],
+              outputs=[keys, order], device=device)
+    wp.utils.radix_sort_pairs(keys, order, n, end_bit=invalid.bit_length())
+    first, last = (_take(scratch, name, n_cells, wp.int32, device) for name in ("first", "last"))
+    first.zero_()
+    last.zero_()
+    wp.launch(k.cell_bounds, n, inputs=[keys, n, stride, invalid], outputs=[first, last], device=device)
     totals, peak, count = (_take(scratch, name, n_cells, wp.int32, device) for name in ("totals", "peak", "count"))
     centre, sums = _take(scratch, "centre", n_cells, wp.float64, device), _take(scratch, "sums", n_cells, wp.vec3d, device)
-    wp.launch(k.cell_points, n_cells, inputs=[xyz, offsets, members, zbins, stride, lo, float(bin_m), int(min_count),
+    wp.launch(k.cell_points, n_cells, inputs=[xyz, keys, order, first, last, stride, lo, float(bin_m), int(min_count),
                                               float(window_m)],
               outputs=[totals, centre, peak, count, sums], device=device)
     return _compacted(centre, count, sums, peak, totals, columns, host, scratch)
-
-
-def _cell_lists(xyz: wp.array, cell: wp.array, n: int, lo: float, bin_m: float, columns: int, n_cells: int,
-                scratch=None) -> tuple[wp.array, wp.array, wp.array]:
-    """(offsets, members, height bins): cell c's valid photons are members[offsets[c]:offsets[c + 1]] (photon
-    indices) with their height bins from ``lo`` at ``bin_m``."""
-    device = xyz.device
-    counts, filled = (_take(scratch, name, n_cells + 1, wp.int32, device) for name in ("counts", "filled"))
-    offsets = _take(scratch, "offsets_cells", n_cells + 1, wp.int32, device)
-    members, zbins = (_take(scratch, name, n, wp.int32, device) for name in ("members", "zbins"))
-    counts.zero_()
-    filled.zero_()
-    wp.launch(k.cell_counts, n, inputs=[xyz, cell, columns], outputs=[counts], device=device)
-    wp.utils.array_scan(counts, offsets, inclusive=False)  # counts' last element is 0: offsets[n_cells] = total
-    wp.launch(k.fill_cells, n, inputs=[xyz, cell, columns, lo, float(bin_m), offsets], outputs=[filled, members, zbins],
-              device=device)
-    return offsets, members, zbins
 
 
 def _compacted(centre: wp.array, count: wp.array, sums: wp.array, peak: wp.array, totals: wp.array,

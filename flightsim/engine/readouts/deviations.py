@@ -6,7 +6,7 @@ import warp as wp
 
 from flightsim.core.registry import register
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK
-from flightsim.engine.readouts.points import PointBuffers, points_kernel, trace_points
+from flightsim.engine.readouts.points import PointBuffers, points_kernels, trace_points
 from kernels.budget import accumulate_deviations
 
 
@@ -37,7 +37,7 @@ class Deviations:
                   outputs=self.outputs, device=tracer.device)
 
     def kernels_needed(self, tracer) -> list:
-        return [points_kernel(tracer, tracer.features, 1), accumulate_deviations]
+        return [*points_kernels(tracer, tracer.features, 1), accumulate_deviations]
 
     def end(self, tracer, counts) -> wp.array:
         return self.buffers.counters

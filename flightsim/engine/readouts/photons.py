@@ -13,7 +13,7 @@ import warp as wp
 from flightsim.core.registry import register
 from flightsim.core.warp_runtime import host_array, to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, SLOTS_PER_CHUNK, Segment
-from flightsim.engine.readouts.points import PointBuffers, points_kernel, trace_points
+from flightsim.engine.readouts.points import PointBuffers, points_kernels, trace_points
 from flightsim.scenes.canopy import no_canopy
 from kernels import photon, photon_frame, trace
 
@@ -183,7 +183,7 @@ class Photons:
     def kernels_needed(self, tracer) -> list:
         retro, leaves = len(tracer.cfg.scene.ccrs) > 0, tracer.scene.canopy is not None
         frame = [photon_frame.frame_photons_kernel(tracer.instrument.kernel), photon_frame.advance_total]
-        return [points_kernel(tracer, _ranges_only(tracer), 1),
+        return [*points_kernels(tracer, _ranges_only(tracer), 1),
                 photon.photon_slots_kernel(retro, tracer.meshes.per_face, leaves), photon.gather_events,
                 trace.photon_points_kernel(tracer.instrument.kernel), *([_rays_kernel(tracer)] if retro or leaves else []),
                 *(frame if self.frame is not None else [])]

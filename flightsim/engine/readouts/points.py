@@ -119,33 +119,36 @@ class PointBuffers:
 
 
 def trace_points(tracer, buffers: PointBuffers, n_slots: int, features: trace.Features | None = None) -> None:
-    """Launch the points kernel (``features``, default the tracer's) over a traced chunk's slots; over a canopy
-    the canopy kernels, one thread per beam: the beams' surface traces, then the leaf walks and the slots."""
+    """Launch the points kernel (``features``, default the tracer's) over a traced chunk's slots, its two looks
+    (:meth:`Tracer.launch_looks`); over a canopy the canopy kernels, one thread per beam: the beams' surface traces
+    (two looks), then the leaf walks and the slots."""
     f = features or tracer.features
-    kernel = points_kernel(tracer, f, buffers.per_beam)
     if buffers.per_beam > 1:
         leaves = tracer.kept("canopy_returns", lambda: CanopyReturns(tracer, buffers))
         beams, scan = n_slots // buffers.per_beam, tracer.scan
-        wp.launch(canopy_trace_kernel(tracer, f), beams, inputs=[buffers.pulses, scan], outputs=[leaves.traces],
+        tracer.launch_looks(canopy_trace_kernels(tracer, f), beams, inputs=[buffers.pulses, scan],
+                            outputs=[leaves.traces])
+        wp.launch(points_kernels(tracer, f, buffers.per_beam)[0], beams,
+                  inputs=[buffers.pulses, scan, leaves.traces, *leaves.inputs()], outputs=buffers.slot_outputs(),
                   device=tracer.device)
-        wp.launch(kernel, beams, inputs=[buffers.pulses, scan, leaves.traces, *leaves.inputs()],
-                  outputs=buffers.slot_outputs(), device=tracer.device)
         return
-    wp.launch(kernel, n_slots, inputs=[buffers.pulses, tracer.scan], outputs=buffers.slot_outputs(),
-              device=tracer.device)
+    tracer.launch_looks(points_kernels(tracer, f, 1), n_slots, inputs=[buffers.pulses, tracer.scan],
+                        outputs=buffers.slot_outputs())
 
 
-def points_kernel(tracer, f: trace.Features, per_beam: int):
-    """The points kernel of ``f`` on the tracer's instrument: over a canopy (``per_beam`` > 1 slots per beam) the
-    canopy kernel."""
+def points_kernels(tracer, f: trace.Features, per_beam: int) -> tuple:
+    """The points kernel of ``f`` on the tracer's instrument, its two looks; over a canopy (``per_beam`` > 1 slots
+    per beam) the canopy kernel, one."""
     if per_beam > 1:
-        return canopy_returns.canopy_points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
-    return trace.points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
+        return (canopy_returns.canopy_points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers),)
+    return tuple(trace.points_kernel(f, tracer.instrument.kernel, tracer.max_registers, look) for look in trace.LOOKS)
 
 
-def canopy_trace_kernel(tracer, f: trace.Features):
-    """The canopy kernels' first stage (each beam's surface trace) of ``f`` on the tracer's instrument."""
-    return canopy_returns.canopy_trace_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers)
+def canopy_trace_kernels(tracer, f: trace.Features) -> tuple:
+    """The canopy kernels' first stage (each beam's surface trace) of ``f`` on the tracer's instrument, its two
+    looks."""
+    return tuple(canopy_returns.canopy_trace_kernel(f, tracer.instrument.kernel, tracer.max_registers, look)
+                 for look in trace.LOOKS)
 
 
 class CanopyReturns:
@@ -204,8 +207,8 @@ class Points:
             consume(part)
 
     def kernels_needed(self, tracer) -> list:
-        canopy = [canopy_trace_kernel(tracer, tracer.features)] if tracer.returns_per_beam > 1 else []
-        return [points_kernel(tracer, tracer.features, tracer.returns_per_beam), *canopy, compaction.flag_returns]
+        canopy = canopy_trace_kernels(tracer, tracer.features) if tracer.returns_per_beam > 1 else ()
+        return [*points_kernels(tracer, tracer.features, tracer.returns_per_beam), *canopy, compaction.flag_returns]
 
     def end(self, tracer, counts) -> wp.array:
         per_line = to_host(self.buffers.line_returns)

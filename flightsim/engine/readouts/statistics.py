@@ -13,6 +13,7 @@ from flightsim.core.registry import register
 from flightsim.scoring.planes import PlaneMoments
 from flightsim.scoring.reduction import SLOTS_PER_THREAD, reduce_models, replica_totals, symmetric
 from kernels import statistics
+from kernels.trace import LOOKS
 
 
 class StatisticsBuffers:
@@ -59,14 +60,14 @@ class Statistics:
         return self.buffers.pulses
 
     def kernels_needed(self, tracer) -> list:
-        return [statistics.records_kernel(tracer.features, tracer.instrument.kernel, max_registers=tracer.max_registers),
-                statistics.check_edges_kernel(tracer.instrument.kernel), statistics.reduce_records]
+        return [*records_kernels(tracer), statistics.check_edges_kernel(tracer.instrument.kernel),
+                statistics.reduce_records]
 
     def chunk(self, tracer, segments, n_slots: int, counts, consume) -> None:
         b, d, spt = self.buffers, tracer.device, self.spt
-        trace_records, check_edges, _ = self.kernels
-        wp.launch(trace_records, n_slots, inputs=[b.pulses, tracer.scan, b.face_plane],
-                  outputs=[*b.records, *b.near], device=d)
+        tracer.launch_looks(self.kernels[:2], n_slots, inputs=[b.pulses, tracer.scan, b.face_plane],
+                            outputs=[*b.records, *b.near])
+        check_edges = self.kernels[2]
         if tracer.features.edges:
             wp.launch(check_edges, n_slots, inputs=[tracer.scan, tracer.edge_buffer_m, *b.near],
                       outputs=[b.records[0]], device=d)
@@ -85,6 +86,12 @@ class Statistics:
 
     def finish(self, counts) -> None:
         counts.returns = counts.beams_fired - counts.tir_dropped - counts.misses
+
+
+def records_kernels(tracer) -> tuple:
+    """The statistics trace kernel's two looks (:meth:`Tracer.launch_looks`) on the tracer's instrument."""
+    return tuple(statistics.records_kernel(tracer.features, tracer.instrument.kernel, tracer.max_registers, look)
+                 for look in LOOKS)
 
 
 def run_statistics(tracer, progress=None, slots_per_thread: int | None = None,
