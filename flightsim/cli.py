@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import sys
 import time
@@ -148,7 +149,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_compile(args: argparse.Namespace) -> int:
-    """Compile every kernel the runs would launch into Warp's kernel cache, so that their first start is warm."""
+    """Compile every kernel the runs would launch into Warp's kernel cache, so that their first start is warm; with
+    ``--ship``, into flightsim's prebuilt kernels instead (:mod:`flightsim.core.prebuilt`)."""
+    if args.ship:
+        return _ship(args)
     names = PRESETS if args.all else [args.instrument or "risley"]
     configs = []
     for name in names:
@@ -160,8 +164,43 @@ def cmd_compile(args: argparse.Namespace) -> int:
     modules = compile_kernels(configs)
     import warp as wp
 
+    if args.cuda_arch:
+        from flightsim.core.prebuilt import build_for_cuda, loaded_on_cpu
+
+        if any(configs[k].run.device != "cpu" for k in range(len(configs))):
+            raise InputError("--cuda-arch", args.cuda_arch, "a compile on the CPU (--device cpu)")
+        for arch in args.cuda_arch:
+            build_for_cuda(loaded_on_cpu(), arch)
+
     print(f"{modules} kernel modules of {', '.join(names)} ready in {time.perf_counter() - started:.1f} s "
           f"(Warp's kernel cache: {wp.config.kernel_cache_dir})")
+    return 0
+
+
+def _ship(args: argparse.Namespace) -> int:
+    """Remake the prebuilt kernels: each built-in instrument's run compiled in a process of its own (a module's
+    identity depends on what its process made before it, so as a run of that instrument would make them), on the
+    CPU and for the CUDA archs of the prebuilt set, into one empty kernel cache; then shipped."""
+    if not args.all or (args.device or "cpu") != "cpu":
+        raise InputError("--ship", "without --all" if not args.all else f"with --device {args.device}",
+                         "--all on the CPU (every built-in instrument; the GPU binaries are built without a GPU)")
+    import subprocess
+    import tempfile
+
+    from flightsim.core.prebuilt import CUDA_ARCHS, ship
+
+    started = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, WARP_CACHE_PATH=tmp, FLIGHTSIM_PREBUILT="0")
+        for name in PRESETS:
+            command = [sys.executable, "-m", "flightsim", "compile", "--device", "cpu", "--instrument", name,
+                       *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
+            subprocess.run(command, env=env, check=True, capture_output=True)
+        (cache,) = [p for p in Path(tmp).iterdir() if p.is_dir()]  # Warp's version folder
+        out = ship(cache)
+    modules = sum(1 for p in out.iterdir() if p.is_dir())
+    print(f"{modules} prebuilt kernel modules of every built-in instrument (CPU and sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
+          f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
 
 
@@ -311,6 +350,11 @@ def _add_run_commands(sub) -> None:
                                           "every built-in instrument: --all) into Warp's kernel cache, ahead of the run")
     _add_config_flags(comp)
     comp.add_argument("--all", action="store_true", help="every built-in instrument with its own scene")
+    comp.add_argument("--cuda-arch", type=int, action="append", metavar="N",
+                      help="also build the CPU run's kernels for CUDA sm_N into the kernel cache, without a GPU (a "
+                           "cache to copy to a GPU machine; repeatable)")
+    comp.add_argument("--ship", action="store_true", help="with --all: remake flightsim's prebuilt kernels (CPU and "
+                                                          "sm_90, on any machine) rather than fill the kernel cache")
     comp.set_defaults(func=cmd_compile)
 
     sweep = sub.add_parser("sweep", help="plane-fit RMS over a grid of configurations (no LAS written)")

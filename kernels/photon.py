@@ -137,7 +137,7 @@ def sampler(retro: bool, leaves: bool = False):
     or without them (compiled out: the surface-only sampler of the SPAD frames pays nothing for them); returns
     detect."""
 
-    @wp.func
+    @wp.func(module="unique")  # not in this file's module: each variant would replace the last there
     def integrated_intensity(det: PhotonDetector, t: wp.float64, e: Echoes, c: Canopy, leaf: LeafRay):
         """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]."""
         value = det.noise_rate * (t - det.gate_open) + e.n0 * (_normal_cdf((t - e.t0) / det.sigma_t) - e.cdf0)
@@ -147,7 +147,7 @@ def sampler(retro: bool, leaves: bool = False):
             value += leaf_sum(c, leaf, det.sigma_t, t, 0) - leaf.at_open
         return value
 
-    @wp.func
+    @wp.func(module="unique")  # not in this file's module: each variant would replace the last there
     def _first_guess(det: PhotonDetector, target: wp.float64, lo: wp.float64, at_lo: wp.float64, e: Echoes):
         """Λ⁻¹(target) for Λ's dominant part (the surface echo's): the noise line where the target lies before
         or after the echo (beyond ECHO_SIGMAS σ), else the echo's normal CDF plus the noise up to its centre
@@ -164,7 +164,7 @@ def sampler(retro: bool, leaves: bool = False):
         p = wp.min(wp.max(p, wp.float64(1.0e-15)), wp.float64(1.0 - 1.0e-15))
         return e.t0 + det.sigma_t * wp.float64(1.4142135623730951) * wp.erfinv(wp.float64(2.0) * p - wp.float64(1.0))
 
-    @wp.func
+    @wp.func(module="unique")  # not in this file's module: each variant would replace the last there
     def _invert(det: PhotonDetector, target: wp.float64, lo: wp.float64, at_lo: wp.float64, e: Echoes, c: Canopy,
                 leaf: LeafRay):
         """The time of flight t ≥ lo at which Λ(t) = target ≤ Λ(gate close), ``at_lo`` = Λ(lo) (safeguarded Newton)."""
@@ -195,7 +195,7 @@ def sampler(retro: bool, leaves: bool = False):
             t = step
         return t
 
-    @wp.func
+    @wp.func(module="unique")  # not in this file's module: each variant would replace the last there
     def detect(det: PhotonDetector, state: wp.uint32, e: Echoes, c: Canopy, leaf: LeafRay, row: int,
                times: wp.array2d(dtype=wp.float64), signal: wp.array2d(dtype=wp.int8)):
         """Sample one pixel's detections of one pulse (its echoes ``e``) into row ``row`` of ``times`` [s] and
@@ -231,16 +231,26 @@ def sampler(retro: bool, leaves: bool = False):
     return detect
 
 
-@wp.kernel
-def photon_events(det: PhotonDetector, seed: int, first_slot: wp.int64, n_signal: wp.array(dtype=wp.float64),
-                  t0: wp.array(dtype=wp.float64), times: wp.array2d(dtype=wp.float64),
-                  signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
-    """Detections of slots given their expected signal and echo time (slot i keyed by (seed, first_slot + i),
-    so splitting a run into launches never changes a photon)."""
-    i = wp.tid()
-    state = wp.rand_init(seed, int((first_slot + wp.int64(i)) % wp.int64(2147483647)))
-    counts[i] = wp.static(sampler(False))(det, state, echoes(det, n_signal[i], t0[i], wp.float64(0.0),
-                                                             wp.float64(0.0)), Canopy(), LeafRay(), i, times, signal)
+@functools.cache
+def photon_events_kernel():
+    """The kernel sampling detections of slots given their expected signal and echo time (a surface, no
+    retroreflector, no leaves). Made in a module of its own, like :func:`photon_slots_kernel`: a kernel of this file's
+    module that called the sampler would make the module's identity (its hash) depend on whether another kernel had
+    built the sampler's functions before, so a prebuilt module of it would not be found."""
+    detect = sampler(False)
+
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
+    def photon_events(det: PhotonDetector, seed: int, first_slot: wp.int64, n_signal: wp.array(dtype=wp.float64),
+                      t0: wp.array(dtype=wp.float64), times: wp.array2d(dtype=wp.float64),
+                      signal: wp.array2d(dtype=wp.int8), counts: wp.array(dtype=wp.int32)):
+        """Detections of slots given their expected signal and echo time (slot i keyed by (seed, first_slot + i),
+        so splitting a run into launches never changes a photon)."""
+        i = wp.tid()
+        state = wp.rand_init(seed, int((first_slot + wp.int64(i)) % wp.int64(2147483647)))
+        counts[i] = detect(det, state, echoes(det, n_signal[i], t0[i], wp.float64(0.0), wp.float64(0.0)), Canopy(),
+                           LeafRay(), i, times, signal)
+
+    return photon_events
 
 
 @wp.func
@@ -263,6 +273,7 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
     """The kernel turning a traced chunk's slots into detections, with or without retroreflectors, with
     the scene's per-triangle reflectance (``per_face``) or the run's one value, and through the leaves of
     ``canopy`` (``leaves``) or not."""
+    detect = sampler(retro, leaves)
 
     @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
     def photon_slots(det: PhotonDetector, reflectance: wp.float64, face_reflectance: wp.array(dtype=wp.float32),
@@ -321,8 +332,7 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
                 leaf.present = canopy.present
                 n = n * transmission_to(canopy, leaf)
                 leaf.at_open = leaf_sum(canopy, leaf, det.sigma_t, det.gate_open, 0)
-        counts[slot] = wp.static(sampler(retro, leaves))(det, state, echoes(det, n, echo, n1, t1), canopy, leaf, slot,
-                                                         times, signal)
+        counts[slot] = detect(det, state, echoes(det, n, echo, n1, t1), canopy, leaf, slot, times, signal)
 
     return photon_slots
 

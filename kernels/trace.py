@@ -271,7 +271,7 @@ def slot_function(f: Features, instrument: Instrument, look: int = FIRST_LOOK):
     mat = wp.types.matrix((3, 3), real)
     quat = wp.types.quaternion(real)
 
-    @wp.func
+    @wp.func(module="unique")  # not in this file's module: each variant would replace the last there
     def trace_slot(pulses: wp.array2d(dtype=wp.float64), p: int, beam: int, scan: Scan):
         """Trace beam ``beam`` of pulse ``p`` (a column of the chunk's pulse table).
 

@@ -35,11 +35,15 @@ def _native_stderr_without(noise: str):
 
 @functools.cache
 def init_warp() -> None:
-    """Initialise Warp quietly (the kernel cache is Warp's default or ``WARP_CACHE_PATH``); the
-    missing-driver notice of a machine without a GPU is dropped, anything else is shown."""
+    """Initialise Warp quietly (the kernel cache is Warp's default or ``WARP_CACHE_PATH``, seeded with flightsim's
+    prebuilt kernels: :mod:`flightsim.core.prebuilt`); the missing-driver notice of a machine without a GPU is
+    dropped, anything else is shown."""
+    from flightsim.core.prebuilt import seed_kernel_cache
+
     wp.config.log_level = wp.LOG_WARNING
     with _native_stderr_without(NO_DRIVER):
         wp.init()
+    seed_kernel_cache()
 
 
 def resolve_device(name: str) -> str:

@@ -30,7 +30,8 @@ from flightsim.scoring.reduction import sum_replicas
 from kernels import frames, mesh_hits, trace
 from trajectories import Trajectory
 
-MAX_REGISTERS = {"cpu": None, "cuda": 64}  # registers per thread of the trace kernels (None: the compiler's choice)
+MAX_REGISTERS = 64  # registers per thread of the trace kernels on a GPU (measured best: results/profile-experiments.md
+# section 19); the CPU's compiler ignores it, so a CPU run builds the very kernels a GPU run does (prebuilt kernels)
 
 
 @dataclass
@@ -167,7 +168,7 @@ class Tracer:
     @property
     def max_registers(self) -> int | None:
         """Register cap of the trace kernels on a GPU: the config's, else the measured default."""
-        return self.cfg.run.max_registers or MAX_REGISTERS[self.device_kind]
+        return self.cfg.run.max_registers or MAX_REGISTERS
 
     @property
     def beams_per_pulse(self) -> int:

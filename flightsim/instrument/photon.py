@@ -105,7 +105,7 @@ def detect(s: PhotonSettings, n_signal, t0, seed: int = 0, first_slot: int = 0, 
     times = wp.zeros((slots, s.max_events), dtype=wp.float64, device=device)
     signal = wp.zeros((slots, s.max_events), dtype=wp.int8, device=device)
     counts = wp.zeros(slots, dtype=wp.int32, device=device)
-    wp.launch(photon.photon_events, slots,
+    wp.launch(photon.photon_events_kernel(), slots,
               inputs=[det, int(seed), wp.int64(first_slot), wp.array(n_signal, dtype=wp.float64, device=device),
                       wp.array(np.ascontiguousarray(t0, dtype=np.float64), dtype=wp.float64, device=device)],
               outputs=[times, signal, counts], device=device)

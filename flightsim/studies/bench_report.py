@@ -182,15 +182,16 @@ def _startup(r: dict) -> list[str]:
     runs = [x for x in r["startup"] if "cli_s" in x]
     every = [x for x in r["startup"] if "cli_s" not in x]
     return ["", "### Start-up", "", f"`{runs[0]['command']}`, timed from before the process starts "
-            "(cold: an empty Warp kernel cache, the run compiling its set-up's modules in one parallel batch and "
-            "its chunks' in another before its first chunk; warm: the cache the cold run left; compiled ahead: "
-            "`flightsim compile` of the same flags first, in an "
-            "empty cache). Targets: first result <= 3 s cold, <= 1 s warm.", "",
+            "(cold: an empty Warp kernel cache, into which flightsim's prebuilt kernels are copied at start-up; "
+            "cold, nothing prebuilt: the same with FLIGHTSIM_PREBUILT=0, the run compiling its set-up's modules in "
+            "one parallel batch and its chunks' in another before its first chunk; warm: the cache the cold run "
+            "left; compiled ahead: `flightsim compile` of the same flags first, in an empty cache, nothing "
+            "prebuilt). Targets: first result <= 3 s cold, <= 1 s warm.", "",
             "| kernel cache | command line parsed [s] | first trace launch [s] | first LAS tile [s] | exit [s] | "
             "modules compiled | flightsim compile [s] |", "| --- | --- | --- | --- | --- | --- | --- |",
             *[f"| {x['cache']} | {x['cli_s']:.2f} | {x['first_ray_s']:.2f} | {_fmt(x['first_file_s'])} | "
               f"{x['exit_s']:.2f} | {x['modules_compiled']} | {_optional(x, 'compile_s', '.1f')} |" for x in runs], "",
-            *[f"`flightsim compile --all` (every built-in instrument, its own scene) in an empty cache: "
+            *[f"`flightsim compile --all` (every built-in instrument, its own scene) in an empty cache, nothing prebuilt: "
               f"{x['compile_s']:.1f} s." for x in every], ""]
 
 

@@ -16,23 +16,30 @@ from flightsim.studies.bench_common import Sizes
 
 
 def startup(device: str, s: Sizes) -> list[dict]:
-    """One record per cache state: cold (an empty Warp kernel cache), warm (the cache the cold run left), and
-    after `flightsim compile` of the same flags (``compile_s``) in another empty cache; the last record times
-    `flightsim compile --all` (every built-in instrument) in an empty cache."""
+    """One record per cache state: cold (an empty Warp kernel cache: the prebuilt kernels seeded into it), cold with
+    nothing prebuilt (every module compiled), warm (the cache the first cold run left), and after `flightsim compile`
+    of the same flags (``compile_s``) in another empty cache with nothing prebuilt; the last record times
+    `flightsim compile --all` (every built-in instrument) in an empty cache with nothing prebuilt."""
     device = resolve_device(device)
-    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as ahead:
-        records = [_launch(device, Path(tmp), state) for state in ("cold", "warm")]
+    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as bare, \
+            tempfile.TemporaryDirectory() as ahead:
+        records = [_launch(device, Path(tmp), "cold")]
+        records.append(_launch(device, Path(bare), "cold, nothing prebuilt", NOT_PREBUILT))
+        records.append(_launch(device, Path(tmp), "warm"))
         compiled = _compile(device, Path(ahead), [])
-        records.append({**_launch(device, Path(ahead), "compiled ahead"), "compile_s": compiled})
+        records.append({**_launch(device, Path(ahead), "compiled ahead", NOT_PREBUILT), "compile_s": compiled})
     with tempfile.TemporaryDirectory() as every:
         records.append({"cache": "compile --all", "device": device, "compile_s": _compile(device, Path(every),
                                                                                         ["--all"])})
     return records
 
 
+NOT_PREBUILT = {"FLIGHTSIM_PREBUILT": "0"}  # Warp's kernel cache left as it is: every module compiled
+
+
 def _compile(device: str, tmp: Path, flags: list[str]) -> float:
     """Seconds `flightsim compile` takes in the kernel cache under ``tmp``."""
-    env = dict(os.environ, WARP_CACHE_PATH=str(tmp / "kernels"), FLIGHTSIM_CACHE=str(tmp / "scenes"))
+    env = dict(os.environ, WARP_CACHE_PATH=str(tmp / "kernels"), FLIGHTSIM_CACHE=str(tmp / "scenes"), **NOT_PREBUILT)
     command = [sys.executable, "-m", "flightsim", "compile", "--device", device, *flags]
     started = time.time()
     done = subprocess.run(command, env=env, capture_output=True, text=True)
@@ -41,11 +48,12 @@ def _compile(device: str, tmp: Path, flags: list[str]) -> float:
     return time.time() - started
 
 
-def _launch(device: str, tmp: Path, state: str) -> dict:
-    out, timeline = tmp / f"run-{state.replace(' ', '-')}", tmp / f"timeline-{state.replace(' ', '-')}.txt"
+def _launch(device: str, tmp: Path, state: str, env_more: dict | None = None) -> dict:
+    tag = state.replace(" ", "-").replace(",", "")
+    out, timeline = tmp / f"run-{tag}", tmp / f"timeline-{tag}.txt"
     kernels = tmp / "kernels"
     env = dict(os.environ, WARP_CACHE_PATH=str(kernels), FLIGHTSIM_CACHE=str(tmp / "scenes"),
-               FLIGHTSIM_TIMELINE=str(timeline))
+               FLIGHTSIM_TIMELINE=str(timeline), **(env_more or {}))
     command = [sys.executable, "-m", "flightsim", "simulate", "--device", device, "--duration", "1",
                "--out", str(out)]
     modules_before = _modules(kernels)
@@ -64,5 +72,6 @@ def _launch(device: str, tmp: Path, state: str) -> dict:
 
 
 def _modules(cache: Path) -> int:
-    """Compiled modules in a Warp kernel cache (one ``wp_*`` folder each, under Warp's version)."""
-    return sum(1 for _ in cache.glob("*/wp_*")) if cache.exists() else 0
+    """Modules compiled into a Warp kernel cache (a module Warp compiles leaves its generated source beside its
+    binary; a prebuilt one has none)."""
+    return sum(1 for folder in cache.glob("*/wp_*") if any(folder.glob("*.cpp")) or any(folder.glob("*.cu")))

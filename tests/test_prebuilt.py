@@ -1,0 +1,68 @@
+"""The prebuilt kernels (flightsim/core/prebuilt.py): every module a built-in instrument's run loads is shipped for
+the CPU and for sm_90, and seeding copies into Warp's kernel cache only what it lacks."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from flightsim.core import prebuilt
+from flightsim.engine.config_io import PRESETS
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CHECK = """
+import json, sys
+from flightsim.cli import build_config, make_parser
+import pytest
+
+from flightsim.core import prebuilt
+from flightsim.engine.config_io import PRESETS
+from flightsim.engine.run import compile_kernels
+
+args = make_parser().parse_args(["compile", "--device", "cpu", "--instrument", sys.argv[1]])
+compile_kernels([build_config(args)])
+loaded = prebuilt.loaded_on_cpu()
+print(json.dumps({"loaded": len(loaded), "missing": prebuilt.missing(loaded)}))
+"""
+
+
+@pytest.mark.parametrize("instrument", PRESETS)
+def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument):
+    """A run of the instrument in a process of its own (as `flightsim simulate` runs it) finds every module it loads
+    prebuilt, for the CPU and for sm_90, and compiles nothing. A kernel changed without remaking the prebuilt set
+    fails here: run ``flightsim compile --all --ship``."""
+    env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "kernels"), FLIGHTSIM_CACHE=str(tmp_path / "scenes"),
+               FLIGHTSIM_PREBUILT="1")
+    done = subprocess.run([sys.executable, "-c", CHECK, instrument], env=env, capture_output=True, text=True,
+                          cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-3000:]
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    assert found["loaded"] >= 5
+    assert found["missing"] == [], "remake the prebuilt kernels: flightsim compile --all --ship"
+    compiled = sorted(p.parent.name for p in (tmp_path / "kernels").rglob("*.cpp"))
+    assert compiled == [], f"compiled though prebuilt: {compiled}"
+
+
+def test_seeding_copies_only_what_the_cache_lacks(tmp_path, monkeypatch):
+    shipped = tmp_path / "prebuilt" / "warp-test"
+    (shipped / "wp_a_1234567").mkdir(parents=True)
+    (shipped / "wp_a_1234567" / "wp_a_1234567.meta").write_text("{}")
+    (shipped / "wp_a_1234567" / "wp_a_1234567.o").write_bytes(b"object")
+    (shipped / prebuilt.MANIFEST).write_text("two files\n")
+    monkeypatch.setattr(prebuilt, "shipped", lambda: shipped)
+    cache = tmp_path / "cache"
+    (cache / "wp_a_1234567").mkdir(parents=True)
+    (cache / "wp_a_1234567" / "wp_a_1234567.o").write_bytes(b"compiled here")
+    assert prebuilt.seed_kernel_cache(cache) == 1  # the meta; the object compiled here stays
+    assert (cache / "wp_a_1234567" / "wp_a_1234567.o").read_bytes() == b"compiled here"
+    assert (cache / "wp_a_1234567" / "wp_a_1234567.meta").read_text() == "{}"
+    (cache / "wp_a_1234567" / "wp_a_1234567.meta").unlink()
+    assert prebuilt.seed_kernel_cache(cache) == 0  # the manifest's marker: not scanned again
+    (shipped / prebuilt.MANIFEST).write_text("remade\n")
+    assert prebuilt.seed_kernel_cache(cache) == 1
+    monkeypatch.setenv("FLIGHTSIM_PREBUILT", "0")
+    (shipped / prebuilt.MANIFEST).write_text("remade again\n")
+    assert prebuilt.seed_kernel_cache(cache) == 0
