@@ -27,9 +27,9 @@ import warp as wp
 
 from kernels.canopy import Canopy, g_of, walk_begin, walk_next
 from kernels.parts import Instrument
-from kernels.trace import (COUNT_MISS, COUNT_TIR, FIRST_LOOK, SECOND_LOOK, STATUS_LEAF, STATUS_MISS, STATUS_RETRY,
-                           STATUS_RETURN, STATUS_TIR, Features, Misses, SlotTrace, list_miss, scan_struct,
-                           signed_off_nadir, slot_function)
+from kernels.looks import FIRST_LOOK, SECOND_LOOK, Misses, list_miss
+from kernels.trace import (COUNT_MISS, COUNT_TIR, STATUS_LEAF, STATUS_MISS, STATUS_RETRY, STATUS_RETURN, STATUS_TIR,
+                           Features, SlotTrace, scan_struct, signed_off_nadir, slot_function)
 from kernels.edges import boundary_distance, near_boundary
 from kernels.frames import ROW_RIGHT, get3
 

@@ -7,8 +7,9 @@ import warp as wp
 
 from kernels.edges import boundary_distance, near_boundary
 from kernels.parts import Instrument
-from kernels.trace import (COUNT_EDGE, COUNT_MISS, COUNT_TIR, FIRST_LOOK, SECOND_LOOK, STATUS_MISS, STATUS_RETRY,
-                           STATUS_RETURN, STATUS_TIR, Features, Misses, list_miss, scan_struct, slot_function)
+from kernels.looks import FIRST_LOOK, SECOND_LOOK, Misses, list_miss
+from kernels.trace import (COUNT_EDGE, COUNT_MISS, COUNT_TIR, STATUS_MISS, STATUS_RETRY, STATUS_RETURN, STATUS_TIR,
+                           Features, scan_struct, slot_function)
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 

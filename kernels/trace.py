@@ -19,6 +19,7 @@ from kernels.frames import (POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT
                             put33)
 from kernels.edges import EdgeGrid, boundary_distance, near_boundary
 from kernels.error_models import PoseErrors, RangeErrors, true_pose
+from kernels.looks import FIRST_LOOK, SECOND_LOOK, Misses, list_miss
 from kernels.mesh_hits import fallback_hit, refine_hit
 from kernels.optics import rigid_array_rotation
 from kernels.parts import Instrument
@@ -35,25 +36,6 @@ HALF_LIGHT_SPEED = wp.constant(wp.float64(149896229.0))  # c / 2 [m/s]: one-way 
 COUNT_TIR = 0
 COUNT_MISS = 1
 COUNT_EDGE = 2  # returns left out of the statistics for lying within the edge buffer
-
-FIRST_LOOK = 0  # a trace kernel's pass over every slot: Warp's mesh query; its misses are listed
-SECOND_LOOK = 1  # ... over the listed slots only: the padded-box cast (mesh_hits.fallback_hit)
-LOOKS = (FIRST_LOOK, SECOND_LOOK)
-
-
-@wp.struct
-class Misses:
-    """The slots the first look's mesh query missed, for the second look: ``count[0]`` of them in ``slots``."""
-
-    count: wp.array(dtype=wp.int32)
-    slots: wp.array(dtype=wp.int32)
-
-
-@wp.func
-def list_miss(misses: Misses, slot: int):
-    """List ``slot`` for the second look."""
-    misses.slots[wp.atomic_add(misses.count, 0, 1)] = slot
-
 
 @functools.cache
 def scan_struct(instrument: Instrument) -> type:
@@ -254,10 +236,7 @@ def _a_return(r: wp.float32, face: wp.int32, direction: wp.vec3f, p_exact: wp.ve
 @functools.cache
 def slot_function(f: Features, instrument: Instrument, look: int = FIRST_LOOK):
     """Build the per-slot body shared by the points, the statistics and the canopy kernels, for one of the trace
-    kernels' two looks: the first casts the slot's ray with Warp's mesh query and returns STATUS_RETRY where it
-    misses; the second casts those rays through the padded triangle boxes (rays the float32 query lets slip
-    between flat triangles at a shared edge or vertex, and true misses). The second look's code stays out of the
-    first look's kernel, which runs for every slot: its registers, and so the first look's spills, are fewer."""
+    kernels' two looks (:mod:`kernels.looks`: the first returns STATUS_RETRY where the mesh query misses)."""
 
     deflector = instrument.deflector
     Scan = scan_struct(instrument)

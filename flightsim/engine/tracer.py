@@ -27,7 +27,7 @@ from flightsim.engine.instrument import Instrument
 from flightsim.engine.meshes import SceneMeshes
 from flightsim.scenes.scene import Scene
 from flightsim.scoring.reduction import sum_replicas
-from kernels import frames, mesh_hits, trace
+from kernels import frames, looks, mesh_hits, trace
 from trajectories import Trajectory
 
 MAX_REGISTERS = 64  # registers per thread of the trace kernels on a GPU (measured best: results/profile-experiments.md
@@ -247,12 +247,12 @@ class Tracer:
 
     def launch_looks(self, kernels: tuple, dim: int, inputs: list, outputs: list) -> None:
         """Launch a trace kernel's two looks over ``dim`` threads (``kernels``: the first look's and the second's,
-        :data:`kernels.trace.FIRST_LOOK`): the first casts every slot's ray with Warp's mesh query and lists those it
+        :mod:`kernels.looks`): the first casts every slot's ray with Warp's mesh query and lists those it
         misses, the second casts only those through the padded triangle boxes. Their arguments: ``inputs``, the
         list of misses, ``outputs``."""
         misses = self._kept.get("misses")
         if misses is None or misses.slots.shape[0] < dim:
-            misses = self._kept["misses"] = trace.Misses()
+            misses = self._kept["misses"] = looks.Misses()
             misses.count = wp.zeros(1, dtype=wp.int32, device=self.device)
             misses.slots = wp.empty(max(dim, 1), dtype=wp.int32, device=self.device)
         else:

@@ -15,6 +15,7 @@ from flightsim.core.registry import register
 from flightsim.core.warp_runtime import host_array, to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, Segment
 from kernels import canopy_returns, compaction, trace
+from kernels.looks import LOOKS
 
 
 @dataclass
@@ -141,14 +142,14 @@ def points_kernels(tracer, f: trace.Features, per_beam: int) -> tuple:
     per beam) the canopy kernel, one."""
     if per_beam > 1:
         return (canopy_returns.canopy_points_kernel(f, tracer.instrument.kernel, max_registers=tracer.max_registers),)
-    return tuple(trace.points_kernel(f, tracer.instrument.kernel, tracer.max_registers, look) for look in trace.LOOKS)
+    return tuple(trace.points_kernel(f, tracer.instrument.kernel, tracer.max_registers, look) for look in LOOKS)
 
 
 def canopy_trace_kernels(tracer, f: trace.Features) -> tuple:
     """The canopy kernels' first stage (each beam's surface trace) of ``f`` on the tracer's instrument, its two
     looks."""
     return tuple(canopy_returns.canopy_trace_kernel(f, tracer.instrument.kernel, tracer.max_registers, look)
-                 for look in trace.LOOKS)
+                 for look in LOOKS)
 
 
 class CanopyReturns:

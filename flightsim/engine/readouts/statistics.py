@@ -13,7 +13,7 @@ from flightsim.core.registry import register
 from flightsim.scoring.planes import PlaneMoments
 from flightsim.scoring.reduction import SLOTS_PER_THREAD, reduce_models, replica_totals, symmetric
 from kernels import statistics
-from kernels.trace import LOOKS
+from kernels.looks import LOOKS
 
 
 class StatisticsBuffers:
