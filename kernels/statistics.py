@@ -128,7 +128,6 @@ def reduce_records(
     count_codes: wp.int32,  # 1: also count the TIR, missed and edge-excluded slots (once per chunk)
     n_slots: wp.int32,
     slots_per_thread: wp.int32,
-    lanes: wp.int32,  # threads that interleave their slots (1: each thread's slots are consecutive)
     references: wp.array(dtype=wp.vec3d),  # reference point of each plane [m, local]
     # Out: per replica, per model, per plane
     counts: wp.array3d(dtype=wp.int64),
@@ -139,28 +138,24 @@ def reduce_records(
     """Statistics mode, step 2: per-plane float64 moments of one model's records of a chunk (a launch per
     model, so that a thread holds one model's running sums: half the registers of both at once).
 
-    Each thread takes ``slots_per_thread`` slots in slot order (beams of a pulse, then the next pulse: the order in
-    which the beams' footprints lie closest) and keeps running sums while the plane stays the same (slots that do
-    not count, in between, leave them running), adding them to the global sums (atomics) only when the plane
-    changes. With ``lanes`` = 1 a thread's slots are consecutive; with 32 (a GPU) the 32 threads of a warp take
-    every 32nd slot of a stretch of 32 × slots_per_thread, so that each load of the warp reads one line of
-    memory. Neighbouring threads mostly hold the same plane too, so thread t adds to replica t mod R of the sums
-    (R = the sums' first dimension), spreading the atomics on a busy plane over R addresses; the host adds the
-    replicas. A run of one plane is an inner loop of its own (the plane's reference point read once), which keeps
-    the kernel's registers at 70 rather than 124.
+    Each thread takes a run of consecutive slots (consecutive beams of a pulse, then the next pulse: the
+    order in which the beams' footprints lie closest) and keeps running sums while the plane stays the same
+    (slots that do not count, in between, leave them running), adding them to the global sums (atomics) only
+    when the plane changes. Neighbouring threads mostly hold the same plane too, so thread t adds to replica
+    t mod R of the sums (R = the sums' first dimension), spreading the atomics on a busy plane over R addresses;
+    the host adds the replicas. A run of one plane is an inner loop of its own (the plane's reference point read
+    once), which keeps the kernel's registers at 78 rather than 124.
     """
-    t = wp.tid()
-    stretch = (t / lanes) * lanes * slots_per_thread
-    begin = stretch + t % lanes
-    end = wp.min(stretch + lanes * slots_per_thread, n_slots)
-    replica = t % counts.shape[0]
+    begin = wp.tid() * slots_per_thread
+    end = wp.min(begin + slots_per_thread, n_slots)
+    replica = wp.tid() % counts.shape[0]
     left_out = wp.vec3i()  # TIR, missed and edge-excluded slots
     slot = begin
     while slot < end:
         plane = codes[slot]
         if plane < 0:
             left_out += _not_counted(plane)
-            slot += lanes
+            slot += 1
             continue
         reference = references[plane]
         n = wp.int64(0)
@@ -177,7 +172,7 @@ def reduce_records(
                 d = wp.vec3d(points[slot]) - reference
                 s += d
                 ss += _outer6(d)
-            slot += lanes
+            slot += 1
         _flush(counts, first, second, replica, model, plane, n, s, ss)
     if count_codes != 0:
         _add_count(counters, COUNT_TIR, left_out[0])

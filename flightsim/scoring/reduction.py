@@ -8,8 +8,7 @@ import warp as wp
 from flightsim.core.constants import MODELS
 from kernels import statistics
 
-SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # slots per reducing thread
-LANES = {"cpu": 1, "cuda": 32}  # reducing threads that interleave their slots (a GPU's warp: each load one line)
+SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # consecutive slots per reducing thread
 SUM_REPLICAS = 512  # copies of the per-group sums on a GPU, so busy groups' atomics spread
 SUM_REPLICA_BYTES = 1 << 26  # ... within this much device memory
 
@@ -24,18 +23,14 @@ def sum_replicas(device_kind: str, groups: int, asked: int = 0) -> int:
 
 
 def reduce_models(codes: wp.array, points: list[wp.array], models, n_slots: int, slots_per_thread: int,
-                  references: wp.array, sums: list[wp.array], device: str, lanes: int | None = None) -> None:
+                  references: wp.array, sums: list[wp.array], device: str) -> None:
     """Add a chunk's records to the per-group ``sums`` [counts, Σd, Σddᵀ, counters]: one launch of
     :func:`kernels.statistics.reduce_records` per model in ``models`` (``points`` indexed as MODELS: exact,
-    nominal), the first also counting the TIR, missed and edge-excluded slots; ``lanes``: the device kind's
-    (:data:`LANES`) unless given."""
+    nominal), the first also counting the TIR, missed and edge-excluded slots."""
     present = [k for k, model in enumerate(MODELS) if model in models]
-    lanes = lanes or LANES["cpu" if wp.get_device(device).is_cpu else "cuda"]
-    stretch = lanes * slots_per_thread
-    threads = (n_slots + stretch - 1) // stretch * lanes
     for k in present:
-        wp.launch(statistics.reduce_records, threads,
-                  inputs=[codes, points[k], k, int(k == present[0]), n_slots, slots_per_thread, lanes, references],
+        wp.launch(statistics.reduce_records, (n_slots + slots_per_thread - 1) // slots_per_thread,
+                  inputs=[codes, points[k], k, int(k == present[0]), n_slots, slots_per_thread, references],
                   outputs=sums, device=device)
 
 
