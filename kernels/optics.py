@@ -101,15 +101,22 @@ def rigid_array_direction(s1: Any, s3_center: Any):
     return wp.quat_rotate(rigid_array_rotation(s1), s3_center)
 
 
+PORTABLE_CPU_FLAGS = wp.config.cpu_compiler_flags.replace("-march=native", "").strip()  # Warp's, less the host's ISA
+
+
 @functools.cache
 def exit_fan_kernel(dtype: type):
     """Kernel tracing a whole fan at many prism angles, in ``dtype`` (wp.float32 or wp.float64).
 
-    Used for the optics figures and to check the device optics against float64 references.
+    Used for the optics figures, to check the device optics against float64 references, and (on the CPU, float64)
+    by every Risley run for its reach and distortion, a GPU run too. On the CPU it is compiled for any x86-64 host
+    rather than for this one's instructions, so its prebuilt object serves every machine (a GPU run then compiles
+    nothing) and its numbers do not depend on the host (no fused multiply-adds where a host lacks them).
     """
     vec3 = wp.types.vector(3, dtype)
 
-    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False,
+               module_options={"cpu_compiler_flags": PORTABLE_CPU_FLAGS})
     def exit_fan(
         # In:
         phis: wp.array(dtype=dtype),  # prism angles [rad]

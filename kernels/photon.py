@@ -275,7 +275,9 @@ def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
     ``canopy`` (``leaves``) or not."""
     detect = sampler(retro, leaves)
 
-    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
+    # 68 registers uncapped, 64 with 12 B spilled: four 256-thread blocks per multiprocessor instead of three
+    # (an H100: the SPAD frame's photon_slots 7.58 -> 7.27 ms; profile-experiments.md section 20)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False, cuda_max_registers=64)
     def photon_slots(det: PhotonDetector, reflectance: wp.float64, face_reflectance: wp.array(dtype=wp.float32),
                      pulses: wp.array2d(dtype=wp.float64), per_pulse: int, energy: wp.array(dtype=wp.float64),
                      status: wp.array(dtype=wp.int32), ranges: wp.array(dtype=wp.float32),
