@@ -139,57 +139,50 @@ def reduce_records(
     model, so that a thread holds one model's running sums: half the registers of both at once).
 
     Each thread takes a run of consecutive slots (consecutive beams of a pulse, then the next pulse: the
-    order in which the beams' footprints lie closest) and keeps running sums while the plane stays the same
-    (slots that do not count, in between, leave them running), adding them to the global sums (atomics) only
-    when the plane changes. Neighbouring threads mostly hold the same plane too, so thread t adds to replica
-    t mod R of the sums (R = the sums' first dimension), spreading the atomics on a busy plane over R addresses;
-    the host adds the replicas. A run of one plane is an inner loop of its own (the plane's reference point read
-    once), which keeps the kernel's registers at 78 rather than 124.
+    order in which the beams' footprints lie closest) and keeps running sums while the plane stays the same,
+    adding them to the global sums (atomics) only when the plane changes. Neighbouring threads mostly hold
+    the same plane too, so thread t adds to replica t mod R of the sums (R = the sums' first dimension),
+    spreading the atomics on a busy plane over R addresses; the host adds the replicas.
     """
     begin = wp.tid() * slots_per_thread
     end = wp.min(begin + slots_per_thread, n_slots)
     replica = wp.tid() % counts.shape[0]
-    left_out = wp.vec3i()  # TIR, missed and edge-excluded slots
-    slot = begin
-    while slot < end:
-        plane = codes[slot]
-        if plane < 0:
-            left_out += _not_counted(plane)
-            slot += 1
-            continue
-        reference = references[plane]
-        n = wp.int64(0)
-        s = wp.vec3d()
-        ss = vec6d()
-        while slot < end:
-            code = codes[slot]
-            if code >= 0 and code != plane:
-                break
-            if code < 0:
-                left_out += _not_counted(code)
-            else:
-                n += wp.int64(1)
-                d = wp.vec3d(points[slot]) - reference
-                s += d
-                ss += _outer6(d)
-            slot += 1
+    plane = int(-1)
+    n = wp.int64(0)
+    s = wp.vec3d()
+    ss = vec6d()
+    tir = int(0)
+    miss = int(0)
+    excluded = int(0)
+    for slot in range(begin, end):
+        code = codes[slot]
+        if code == CODE_TIR:
+            tir += 1
+        elif code == CODE_MISS:
+            miss += 1
+        elif code == CODE_EDGE:
+            excluded += 1
+        else:
+            if code != plane:
+                if plane >= 0:
+                    _flush(counts, first, second, replica, model, plane, n, s, ss)
+                plane = code
+                n = wp.int64(0)
+                s = wp.vec3d()
+                ss = vec6d()
+            n += wp.int64(1)
+            d = wp.vec3d(points[slot]) - references[plane]
+            s += d
+            ss += _outer6(d)
+    if plane >= 0:
         _flush(counts, first, second, replica, model, plane, n, s, ss)
     if count_codes != 0:
-        _add_count(counters, COUNT_TIR, left_out[0])
-        _add_count(counters, COUNT_MISS, left_out[1])
-        _add_count(counters, COUNT_EDGE, left_out[2])
-
-
-@wp.func
-def _add_count(counters: wp.array(dtype=wp.int32), k: int, n: int):
-    if n > 0:
-        wp.atomic_add(counters, k, n)
-
-
-@wp.func
-def _not_counted(code: wp.int32):
-    """A slot that does not count, by why: (TIR, missed, edge-excluded) as 0 or 1."""
-    return wp.vec3i(wp.where(code == CODE_TIR, 1, 0), wp.where(code == CODE_MISS, 1, 0), wp.where(code == CODE_EDGE, 1, 0))
+        if tir > 0:
+            wp.atomic_add(counters, COUNT_TIR, tir)
+        if miss > 0:
+            wp.atomic_add(counters, COUNT_MISS, miss)
+        if excluded > 0:
+            wp.atomic_add(counters, COUNT_EDGE, excluded)
 
 
 @wp.func
