@@ -85,3 +85,19 @@ def test_a_second_profile_keeps_the_other_workloads_records(tmp_path):
     run_profile("cpu", True, tmp_path, ("risley3",))
     saved = json.loads((tmp_path / "profile.json").read_text())
     assert [w["workload"] for w in saved["workloads"]] == ["risley3", "waveform_slope"]  # in WORKLOADS order
+
+
+def test_ptxas_report_read_per_kernel():
+    from flightsim.studies.kernel_resources import parse_ptxas
+
+    report = """ptxas info    : Compiling entry function 'helper_cuda_kernel_backward' for 'sm_90'
+ptxas info    : Function properties for helper_cuda_kernel_backward
+    0 bytes stack frame, 0 bytes spill stores, 0 bytes spill loads
+ptxas info    : Used 12 registers, used 0 barriers
+ptxas info    : Compiling entry function 'records_kernel__locals__trace_records_e84d2437_cuda_kernel_forward' for 'sm_90'
+ptxas info    : Function properties for records_kernel__locals__trace_records_e84d2437_cuda_kernel_forward
+    432 bytes stack frame, 156 bytes spill stores, 248 bytes spill loads
+ptxas info    : Used 64 registers, used 0 barriers, 432 bytes cumulative stack size, 33792 bytes smem
+"""
+    assert parse_ptxas(report) == {"records_kernel__locals__trace_records_e84d2437_cuda_kernel_forward": {
+        "frame": 432, "spill_stores": 156, "spill_loads": 248, "registers": 64}}
