@@ -119,65 +119,6 @@ def check_edges_kernel(instrument: Instrument):
     return check_edges
 
 
-@wp.struct
-class Run:
-    """A reducing thread's state: the plane whose sums are running (−1: none yet), those sums, and the slots that do
-    not count (TIR, missed, edge-excluded)."""
-
-    plane: wp.int32
-    n: wp.int64
-    s: wp.vec3d  # Σ (p − ref)
-    ss: vec6d  # Σ upper triangle of (p − ref)(p − ref)ᵀ
-    left_out: wp.vec3i
-
-
-@wp.func
-def _step(run: Run, code: wp.int32, point: wp.vec3f, references: wp.array(dtype=wp.vec3d),
-          counts: wp.array3d(dtype=wp.int64), first: wp.array3d(dtype=wp.vec3d), second: wp.array3d(dtype=vec6d),
-          replica: int, model: int):
-    """Add one slot's record to a reducing thread's run: a plane's return to its running sums (flushed to the
-    global sums when the plane changes), any other slot to the count of its kind."""
-    out = run
-    if code == CODE_TIR:
-        out.left_out[0] = out.left_out[0] + 1
-    elif code == CODE_MISS:
-        out.left_out[1] = out.left_out[1] + 1
-    elif code == CODE_EDGE:
-        out.left_out[2] = out.left_out[2] + 1
-    else:
-        if code != out.plane:
-            if out.plane >= 0:
-                _flush(counts, first, second, replica, model, out.plane, out.n, out.s, out.ss)
-            out.plane = code
-            out.n = wp.int64(0)
-            out.s = wp.vec3d()
-            out.ss = vec6d()
-        out.n = out.n + wp.int64(1)
-        d = wp.vec3d(point) - references[code]
-        out.s = out.s + d
-        out.ss = out.ss + _outer6(d)
-    return out
-
-
-@wp.func
-def _finish(run: Run, count_codes: int, counts: wp.array3d(dtype=wp.int64), first: wp.array3d(dtype=wp.vec3d),
-            second: wp.array3d(dtype=vec6d), counters: wp.array(dtype=wp.int32), replica: int, model: int):
-    """Flush a reducing thread's last run and (``count_codes``) count its slots that do not count."""
-    if run.plane >= 0:
-        _flush(counts, first, second, replica, model, run.plane, run.n, run.s, run.ss)
-    if count_codes != 0:
-        for k in range(3):  # counters[COUNT_TIR = 0, COUNT_MISS = 1, COUNT_EDGE = 2]
-            if run.left_out[k] > 0:
-                wp.atomic_add(counters, k, run.left_out[k])
-
-
-@wp.func
-def _new_run():
-    run = Run()
-    run.plane = -1
-    return run
-
-
 @wp.kernel
 def reduce_records(
     # In:
@@ -199,52 +140,49 @@ def reduce_records(
 
     Each thread takes a run of consecutive slots (consecutive beams of a pulse, then the next pulse: the
     order in which the beams' footprints lie closest) and keeps running sums while the plane stays the same,
-    adding them to the global sums (atomics) only when the plane changes (:func:`_step`). Neighbouring threads
-    mostly hold the same plane too, so thread t adds to replica t mod R of the sums (R = the sums' first
-    dimension), spreading the atomics on a busy plane over R addresses; the host adds the replicas.
+    adding them to the global sums (atomics) only when the plane changes. Neighbouring threads mostly hold
+    the same plane too, so thread t adds to replica t mod R of the sums (R = the sums' first dimension),
+    spreading the atomics on a busy plane over R addresses; the host adds the replicas.
     """
     begin = wp.tid() * slots_per_thread
     end = wp.min(begin + slots_per_thread, n_slots)
     replica = wp.tid() % counts.shape[0]
-    run = _new_run()
+    plane = int(-1)
+    n = wp.int64(0)
+    s = wp.vec3d()
+    ss = vec6d()
+    tir = int(0)
+    miss = int(0)
+    excluded = int(0)
     for slot in range(begin, end):
-        run = _step(run, codes[slot], points[slot], references, counts, first, second, replica, model)
-    _finish(run, count_codes, counts, first, second, counters, replica, model)
-
-
-REDUCE_BLOCK = 256  # threads of a block of the staged reduction
-REDUCE_SLOTS = 16  # slots per thread of the staged reduction (its block's stage: 4096 records, 64 kB)
-
-
-@wp.kernel
-def reduce_records_staged(
-    codes: wp.array(dtype=wp.int32),
-    points: wp.array(dtype=wp.vec3f),
-    model: wp.int32,
-    count_codes: wp.int32,
-    n_slots: wp.int32,
-    references: wp.array(dtype=wp.vec3d),
-    counts: wp.array3d(dtype=wp.int64),
-    first: wp.array3d(dtype=wp.vec3d),
-    second: wp.array3d(dtype=vec6d),
-    counters: wp.array(dtype=wp.int32),
-):
-    """:func:`reduce_records` on a GPU (launched tiled, REDUCE_BLOCK threads a block, REDUCE_SLOTS slots a thread):
-    each block first copies its records into shared memory together, each load of a warp one line of memory, then
-    each thread reduces its consecutive slots from there, as reduce_records does from global memory."""
-    block, thread = wp.tid()
-    stage = block * REDUCE_BLOCK * REDUCE_SLOTS
-    staged_codes = wp.tile_load(codes, shape=wp.static(REDUCE_BLOCK * REDUCE_SLOTS), offset=stage, storage="shared")
-    staged_points = wp.tile_load(points, shape=wp.static(REDUCE_BLOCK * REDUCE_SLOTS), offset=stage, storage="shared")
-    for lane in range(thread, REDUCE_BLOCK, wp.block_dim()):  # a GPU: one lane a thread; the CPU: all, in turn
-        begin = lane * REDUCE_SLOTS
-        end = wp.min(begin + REDUCE_SLOTS, n_slots - stage)
-        replica = (block * REDUCE_BLOCK + lane) % counts.shape[0]
-        run = _new_run()
-        for k in range(begin, end):
-            run = _step(run, wp.tile_extract(staged_codes, k), wp.tile_extract(staged_points, k), references,
-                        counts, first, second, replica, model)
-        _finish(run, count_codes, counts, first, second, counters, replica, model)
+        code = codes[slot]
+        if code == CODE_TIR:
+            tir += 1
+        elif code == CODE_MISS:
+            miss += 1
+        elif code == CODE_EDGE:
+            excluded += 1
+        else:
+            if code != plane:
+                if plane >= 0:
+                    _flush(counts, first, second, replica, model, plane, n, s, ss)
+                plane = code
+                n = wp.int64(0)
+                s = wp.vec3d()
+                ss = vec6d()
+            n += wp.int64(1)
+            d = wp.vec3d(points[slot]) - references[plane]
+            s += d
+            ss += _outer6(d)
+    if plane >= 0:
+        _flush(counts, first, second, replica, model, plane, n, s, ss)
+    if count_codes != 0:
+        if tir > 0:
+            wp.atomic_add(counters, COUNT_TIR, tir)
+        if miss > 0:
+            wp.atomic_add(counters, COUNT_MISS, miss)
+        if excluded > 0:
+            wp.atomic_add(counters, COUNT_EDGE, excluded)
 
 
 @wp.func

@@ -28,24 +28,10 @@ def reduce_models(codes: wp.array, points: list[wp.array], models, n_slots: int,
     :func:`kernels.statistics.reduce_records` per model in ``models`` (``points`` indexed as MODELS: exact,
     nominal), the first also counting the TIR, missed and edge-excluded slots."""
     present = [k for k, model in enumerate(MODELS) if model in models]
-    staged = staged_reduction(device, slots_per_thread)
-    stage = statistics.REDUCE_BLOCK * statistics.REDUCE_SLOTS
     for k in present:
-        first = int(k == present[0])
-        if staged:
-            wp.launch_tiled(statistics.reduce_records_staged, dim=[(n_slots + stage - 1) // stage],
-                            inputs=[codes, points[k], k, first, n_slots, references], outputs=sums,
-                            block_dim=statistics.REDUCE_BLOCK, device=device)
-        else:
-            wp.launch(statistics.reduce_records, (n_slots + slots_per_thread - 1) // slots_per_thread,
-                      inputs=[codes, points[k], k, first, n_slots, slots_per_thread, references],
-                      outputs=sums, device=device)
-
-
-def staged_reduction(device: str, slots_per_thread: int) -> bool:
-    """Whether :func:`reduce_models` stages each block's records in shared memory (a GPU, at the staged kernel's
-    slots per thread): the same runs per thread, read in whole lines."""
-    return slots_per_thread == statistics.REDUCE_SLOTS and not wp.get_device(device).is_cpu
+        wp.launch(statistics.reduce_records, (n_slots + slots_per_thread - 1) // slots_per_thread,
+                  inputs=[codes, points[k], k, int(k == present[0]), n_slots, slots_per_thread, references],
+                  outputs=sums, device=device)
 
 
 def replica_totals(sums: list[wp.array]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
