@@ -160,6 +160,8 @@ def cmd_compile(args: argparse.Namespace) -> int:
         configs.append(build_config(args))
     from flightsim.engine.run import compile_kernels
 
+    if args.cuda_arch and any(cfg.run.device != "cpu" for cfg in configs):
+        raise InputError("--cuda-arch", args.cuda_arch, "a compile on the CPU (--device cpu)")
     started = time.perf_counter()
     modules = compile_kernels(configs)
     import warp as wp
@@ -167,8 +169,6 @@ def cmd_compile(args: argparse.Namespace) -> int:
     if args.cuda_arch:
         from flightsim.core.prebuilt import build_for_cuda, loaded_on_cpu
 
-        if any(configs[k].run.device != "cpu" for k in range(len(configs))):
-            raise InputError("--cuda-arch", args.cuda_arch, "a compile on the CPU (--device cpu)")
         for arch in args.cuda_arch:
             build_for_cuda(loaded_on_cpu(), arch)
 

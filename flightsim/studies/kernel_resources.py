@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     print("| workload | kernel | registers | stack frame [B] | spill stores [B] | spill loads [B] |")
     print("| --- | --- | --- | --- | --- | --- |")
     for workload in args.workloads:
-        for key, kernel in launched(workload).items():
+        for kernel in launched(workload).values():
             for name, r in usage(kernel, tool).items():
                 if kernel.key.split("__")[-1] in name:
                     print(f"| {workload} | {kernel.key.split('__')[-1]} | {r['registers']} | {r['frame']} | "
