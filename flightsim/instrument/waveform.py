@@ -78,8 +78,9 @@ class WaveformSettings(Settings):
     cloud_method: str = setting("gedi", "over a point-cloud scene (.las/.laz): gedi sums the ALS points' pulses over "
                                 "the Gaussian footprint (the GEDI simulator's method); rays traces the sub-rays "
                                 "against the cloud's ground mesh and scene.canopy", choices=CLOUD_METHODS)
-    convolution: str = setting("direct", "the echo's convolution with the pulse on the device: direct sums, or fft "
-                               "(overlap-save over float64 tile FFTs; the same float32 waveforms to ~1e-7 of the peak)",
+    convolution: str = setting("fft", "the echo's convolution with the pulse on the device: fft (overlap-save over "
+                               "float64 tile FFTs; an echo narrower than 256 samples still by direct sums) or direct "
+                               "sums for every echo; the same float32 waveforms to ~1e-7 of the peak",
                                choices=CONVOLUTIONS)
     processing: str = setting("host", "where waveforms.h5's ranging (measures, Gaussian decomposition) is computed: "
                               "host (NumPy/SciPy, one waveform at a time) or device (batched kernels on the run's "
