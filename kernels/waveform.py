@@ -68,29 +68,48 @@ class MeshRefs:
 
 
 @wp.func
-def cast64(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
-    """(face or −1, range [m], unit face normal) of a float64 ray: float32 cast, float64 range on the face."""
+def face_of(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
+    """The face a float64 ray hits (float32 cast, the padded boxes where it slips through), or −1."""
     hit = wp.mesh_query_ray(m.mesh, wp.vec3f(start), wp.vec3f(direction), m.max_range)
     face = hit.face
     if not hit.result:
         face, t_second = fallback_hit(m.padded, m.vertices64, m.indices, start, direction, m.max_range)
-    if face < 0:
-        return -1, wp.float64(0.0), wp.vec3d()
-    v0 = m.vertices64[m.indices[3 * face]]
-    normal = wp.normalize(wp.cross(m.vertices64[m.indices[3 * face + 1]] - v0, m.vertices64[m.indices[3 * face + 2]] - v0))
-    return face, refine_hit(m.vertices64, m.indices, face, start, direction), normal
+    return face
 
 
 @wp.func
-def subray_direction(d: wp.vec3d, offset: wp.vec2d):
-    """The unit direction of a sub-ray at offset tan φ (cos θ, sin θ) from the beam axis d."""
+def face_normal(m: MeshRefs, face: int):
+    """The unit normal of ``face`` (float64)."""
+    v0 = m.vertices64[m.indices[3 * face]]
+    return wp.normalize(wp.cross(m.vertices64[m.indices[3 * face + 1]] - v0, m.vertices64[m.indices[3 * face + 2]] - v0))
+
+
+@wp.func
+def cast64(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
+    """(face or −1, range [m], unit face normal) of a float64 ray: float32 cast, float64 range on the face."""
+    face = face_of(m, start, direction)
+    if face < 0:
+        return -1, wp.float64(0.0), wp.vec3d()
+    return face, refine_hit(m.vertices64, m.indices, face, start, direction), face_normal(m, face)
+
+
+@wp.func
+def beam_frame(d: wp.vec3d):
+    """(u, v) across the unit beam axis d: u the local east made normal to d (north for a beam along east),
+    v = u × d."""
     east = wp.vec3d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0))
     u = east - wp.dot(east, d) * d
     if wp.length(u) < wp.float64(1.0e-6):  # a beam along east: measure θ from north instead
         north = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
         u = north - wp.dot(north, d) * d
     u = wp.normalize(u)
-    v = wp.cross(u, d)
+    return u, wp.cross(u, d)
+
+
+@wp.func
+def subray_direction(d: wp.vec3d, u: wp.vec3d, v: wp.vec3d, offset: wp.vec2d):
+    """The unit direction of a sub-ray at offset tan φ (cos θ, sin θ) from the beam axis d (frame
+    :func:`beam_frame`)."""
     return wp.normalize(d + offset[0] * u + offset[1] * v)
 
 
@@ -197,15 +216,22 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
         high = wp.float64(0.0)
         first = int(p.samples)
         last = int(-1)
+        start = starts[slot]
+        normal = wp.vec3d()
         for k in range(group * per_thread, wp.min((group + 1) * per_thread, offsets.shape[0])):
-            direction = subray_direction(directions[slot], offsets[k])
-            face, r, normal = cast64(m, starts[slot], direction)
+            u, v = beam_frame(directions[slot])
+            direction = subray_direction(directions[slot], u, v, offsets[k])
+            face = face_of(m, start, direction)
+            r = wp.float64(0.0)
+            if face >= 0:
+                r = refine_hit(m.vertices64, m.indices, face, start, direction)
+                normal = face_normal(m, face)
             transmission = wp.float64(1.0)
             if wp.static(canopy):
                 t_end = wp.float64(m.max_range)
                 if face >= 0:
                     t_end = r
-                transmission, e_in, e_out, e_first, e_last = leaf_echo(leaves, p, starts[slot], direction, t_end,
+                transmission, e_in, e_out, e_first, e_last = leaf_echo(leaves, p, start, direction, t_end,
                                                                        weights[k], t0, impulses, slot)
                 inside += e_in
                 outside += e_out
@@ -216,7 +242,7 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
                 if wp.static(per_face):
                     link = link * wp.float64(m.reflectance[face])
                 g = weights[k] * link * wp.abs(wp.dot(normal, direction)) / (r * r)
-                wz += weights[k] * (starts[slot][2] + r * direction[2])
+                wz += weights[k] * (start[2] + r * direction[2])
                 w += weights[k]
                 x = (wp.float64(2.0) * r / LIGHT_SPEED - t0) / p.dt
                 i = int(wp.floor(x))
@@ -266,16 +292,18 @@ def convolve(impulses: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.i
     Each thread makes CONVOLVE_OUTPUTS consecutive samples i0 … i0 + 7 from a window of eight impulses held
     in registers and slid by one per tap (r_j = impulse i0 + j − first_lag − k): one load and one tap per
     eight products. Each sample adds the same products in the same order (taps ascending) as a sample on
-    its own would; the products outside its own tap range are exact zeros. ``out`` must be zeroed: a thread
-    with no impulse within reach writes nothing."""
+    its own would; the products outside its own tap range are exact zeros. A thread with no impulse within reach
+    writes 0 to its samples: every sample of rows 0 … n − 1 is written (``out`` need not be zeroed)."""
     slot, block = wp.tid()
     i0 = block * CONVOLVE_OUTPUTS
     lo = span[slot, 0]
     hi = span[slot, 1]
     k0 = wp.max(0, i0 - first_lag - hi)
     k1 = wp.min(taps.shape[0] - 1, i0 + CONVOLVE_OUTPUTS - 1 - first_lag - lo)
-    if k1 < k0:
-        return  # no impulse within reach: the samples stay 0 (``out`` is zeroed beforehand)
+    if k1 < k0:  # no impulse within reach
+        for j in range(CONVOLVE_OUTPUTS):
+            _put(out, slot, i0 + j, wp.float64(0.0))
+        return
     base = i0 - first_lag - k0
     r0, r1, r2, r3 = (_impulse(impulses, slot, base, lo, hi), _impulse(impulses, slot, base + 1, lo, hi),
                       _impulse(impulses, slot, base + 2, lo, hi), _impulse(impulses, slot, base + 3, lo, hi))
@@ -318,6 +346,17 @@ def _put(out: wp.array2d(dtype=wp.float32), slot: int, i: int, value: wp.float64
 
 
 @wp.kernel
+def clear_spans(span: wp.array2d(dtype=wp.int32), impulses: wp.array2d(dtype=wp.float64)):
+    """impulses[slot, j] = 0 for the samples j of ``span[slot]``, CONVOLVE_OUTPUTS per thread: a chunk's impulse
+    trains cleared for the next (the deposits touch nothing outside their span)."""
+    slot, block = wp.tid()
+    lo = wp.max(span[slot, 0], block * CONVOLVE_OUTPUTS)
+    hi = wp.min(span[slot, 1], block * CONVOLVE_OUTPUTS + CONVOLVE_OUTPUTS - 1)
+    for j in range(lo, hi + 1):
+        impulses[slot, j] = wp.float64(0.0)
+
+
+@wp.kernel
 def start_span(samples: int, span: wp.array2d(dtype=wp.int32)):
     """(samples, −1): no sample touched yet."""
     slot = wp.tid()
@@ -333,7 +372,8 @@ def emit_subrays(starts: wp.array(dtype=wp.vec3d), directions: wp.array(dtype=wp
     slot, k = wp.tid()
     n = offsets.shape[0]
     ray_starts[slot * n + k] = wp.vec3f(starts[slot])
-    ray_directions[slot * n + k] = wp.vec3f(subray_direction(directions[slot], offsets[k]))
+    u, v = beam_frame(directions[slot])
+    ray_directions[slot * n + k] = wp.vec3f(subray_direction(directions[slot], u, v, offsets[k]))
 
 
 @wp.kernel

@@ -56,7 +56,7 @@ def _convolve(method: str, impulses: np.ndarray, span: np.ndarray, taps: np.ndar
     pulse = PulseConvolution(method, wp.array(taps, dtype=wp.float64, device=device), first_lag, impulses.shape[1],
                              device, **fft)
     out = wp.empty(impulses.shape, dtype=wp.float32, device=device)
-    out.fill_(7.0)  # launch zeroes its rows first
+    out.fill_(7.0)  # launch writes every sample of its rows
     pulse.launch(wp.array(impulses, dtype=wp.float64, device=device), wp.array(span, dtype=wp.int32, device=device),
                  out, len(impulses))
     return out.numpy()
@@ -156,6 +156,30 @@ def test_the_readout_runs_the_convolution_of_the_setting(device, scene, settings
         outside[touched.min():touched.max() + 1] = False
         assert np.all(f[outside] == 0.0) and np.all(f[d > 1e-12 * d.max()] > 0.0)
     assert np.abs(fft - direct).max() <= 2.0 * FLOAT32_HALF_ULP * direct.max()
+
+
+@pytest.mark.parametrize("scene", ["slope", "flat"])
+def test_a_chunk_clears_only_what_the_last_one_touched(device, scene, monkeypatch):
+    """The impulse trains are zeroed once, then each chunk clears only the last chunk's touched spans and the
+    convolution writes every sample: a run of one pulse per chunk gives every beam the waveform it gets when all
+    pulses share the first chunk (bit for bit on the CPU: no stale impulse, no stale output sample)."""
+    from flightsim.engine.readouts import waveforms as readout_module
+
+    power = {}
+    for per_chunk in ("all", "one"):
+        cfg = waveform_config(scene, device, **{"fixed.prf_hz": 1000.0, "flight.duration_s": 0.0035})  # 4 shots
+        if per_chunk == "one":
+            monkeypatch.setitem(readout_module.WAVEFORM_SAMPLES_PER_CHUNK, "cpu" if device == "cpu" else "cuda",
+                                cfg.waveform.samples)
+        mesh, parts = build_scene(cfg), []
+        Tracer(cfg, mesh, flight_trajectories(cfg, mesh)).run(Waveforms(), parts.append)
+        power[per_chunk] = np.concatenate([part.power_w for part in parts]).astype(np.float64)
+        assert len(parts) == (4 if per_chunk == "one" else 1)
+    assert power["one"].shape == power["all"].shape and power["all"].max() > 0.0
+    if device == "cpu":
+        assert np.array_equal(power["one"], power["all"])
+    else:  # a GPU's float64 atomics add in any order
+        assert np.abs(power["one"] - power["all"]).max() <= 2.0 * FLOAT32_HALF_ULP * power["all"].max()
 
 
 def test_bad_convolution_is_one_line_input_error(tmp_path):

@@ -26,7 +26,7 @@ from flightsim.studies.bench_common import kernel_times, simulator
 from kernels import waveform_fft as kf
 
 CHECKED_ROWS = 16  # rows whose error against the float64 convolution is measured
-ACCUMULATION = ("emit_rays", "pilot", "start_span", "deposit")  # the kernels before the convolution
+ACCUMULATION = ("emit_rays", "pilot", "clear_spans", "start_span", "deposit")  # the kernels before the convolution
 
 
 def captured_chunk(scene: str, device: str, shots: int) -> dict:

@@ -78,7 +78,8 @@ class _Buffers:
         self.clean = wp.empty((slots, params.samples), dtype=wp.float32, device=d) if keep_clean else None
         self.keys = wp.empty(slots, dtype=wp.int64, device=d)
         if traced:
-            self.impulses = wp.empty((slots, params.samples), dtype=wp.float64, device=d)
+            self.impulses = wp.zeros((slots, params.samples), dtype=wp.float64, device=d)  # 0 beyond ``touched``
+            self.touched = 0  # rows whose impulses are non-zero within their ``span`` (the last chunk's)
             self.received = wp.empty((slots, 4), dtype=wp.float64, device=d)
             self.span = wp.empty((slots, 2), dtype=wp.int32, device=d)
 
@@ -154,7 +155,10 @@ class Waveforms:
     def chunk(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b, d, params = self.buffers, tracer.device, self.params
         pilot_windows(tracer, b, self.refs, params, n)
-        b.impulses.zero_()
+        if b.touched:  # the last chunk's impulse trains, cleared within their spans only
+            wp.launch(kw.clear_spans, (b.touched, -(-params.samples // kw.CONVOLVE_OUTPUTS)), inputs=[b.span],
+                      outputs=[b.impulses], device=d)
+        b.touched = n
         b.received.zero_()
         wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[b.span], device=d)
         groups = -(-len(self.subrays) // kw.SUBRAYS_PER_THREAD)
@@ -171,7 +175,7 @@ class Waveforms:
         convolution = PulseConvolution(det.s.convolution, *det.pulse_taps(tracer.device), det.s.samples,
                                        tracer.device, **self.fft)
         return [*pilot_kernels(tracer), kw.deposit_kernel(tracer.meshes.per_face, tracer.scene.canopy is not None),
-                *convolution.kernels()]
+                kw.clear_spans, *convolution.kernels()]
 
     def _hand_over(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b = self.buffers
