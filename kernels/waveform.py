@@ -217,10 +217,11 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
         first = int(p.samples)
         last = int(-1)
         start = starts[slot]
+        d = directions[slot]
+        u, v = beam_frame(d)
         normal = wp.vec3d()
         for k in range(group * per_thread, wp.min((group + 1) * per_thread, offsets.shape[0])):
-            u, v = beam_frame(directions[slot])
-            direction = subray_direction(directions[slot], u, v, offsets[k])
+            direction = subray_direction(d, u, v, offsets[k])
             face = face_of(m, start, direction)
             r = wp.float64(0.0)
             if face >= 0:
@@ -292,18 +293,16 @@ def convolve(impulses: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.i
     Each thread makes CONVOLVE_OUTPUTS consecutive samples i0 … i0 + 7 from a window of eight impulses held
     in registers and slid by one per tap (r_j = impulse i0 + j − first_lag − k): one load and one tap per
     eight products. Each sample adds the same products in the same order (taps ascending) as a sample on
-    its own would; the products outside its own tap range are exact zeros. A thread with no impulse within reach
-    writes 0 to its samples: every sample of rows 0 … n − 1 is written (``out`` need not be zeroed)."""
+    its own would; the products outside its own tap range are exact zeros. ``out`` must be zeroed: a thread
+    with no impulse within reach writes nothing."""
     slot, block = wp.tid()
     i0 = block * CONVOLVE_OUTPUTS
     lo = span[slot, 0]
     hi = span[slot, 1]
     k0 = wp.max(0, i0 - first_lag - hi)
     k1 = wp.min(taps.shape[0] - 1, i0 + CONVOLVE_OUTPUTS - 1 - first_lag - lo)
-    if k1 < k0:  # no impulse within reach
-        for j in range(CONVOLVE_OUTPUTS):
-            _put(out, slot, i0 + j, wp.float64(0.0))
-        return
+    if k1 < k0:
+        return  # no impulse within reach: the samples stay 0 (``out`` is zeroed beforehand)
     base = i0 - first_lag - k0
     r0, r1, r2, r3 = (_impulse(impulses, slot, base, lo, hi), _impulse(impulses, slot, base + 1, lo, hi),
                       _impulse(impulses, slot, base + 2, lo, hi), _impulse(impulses, slot, base + 3, lo, hi))

@@ -56,7 +56,7 @@ def _convolve(method: str, impulses: np.ndarray, span: np.ndarray, taps: np.ndar
     pulse = PulseConvolution(method, wp.array(taps, dtype=wp.float64, device=device), first_lag, impulses.shape[1],
                              device, **fft)
     out = wp.empty(impulses.shape, dtype=wp.float32, device=device)
-    out.fill_(7.0)  # launch writes every sample of its rows
+    out.fill_(7.0)  # launch zeroes its rows first
     pulse.launch(wp.array(impulses, dtype=wp.float64, device=device), wp.array(span, dtype=wp.int32, device=device),
                  out, len(impulses))
     return out.numpy()
@@ -160,9 +160,9 @@ def test_the_readout_runs_the_convolution_of_the_setting(device, scene, settings
 
 @pytest.mark.parametrize("scene", ["slope", "flat"])
 def test_a_chunk_clears_only_what_the_last_one_touched(device, scene, monkeypatch):
-    """The impulse trains are zeroed once, then each chunk clears only the last chunk's touched spans and the
-    convolution writes every sample: a run of one pulse per chunk gives every beam the waveform it gets when all
-    pulses share the first chunk (bit for bit on the CPU: no stale impulse, no stale output sample)."""
+    """The impulse trains are zeroed once, then each chunk clears only the last chunk's touched spans: a run of one
+    pulse per chunk gives every beam the waveform it gets when all pulses share the first chunk (bit for bit on the
+    CPU: no stale impulse)."""
     from flightsim.engine.readouts import waveforms as readout_module
 
     power = {}

@@ -1,7 +1,7 @@
 """The waveform readout's convolution of each beam's impulse train with the pulse (``waveform.convolution``):
 ``direct`` sums the taps per output (kernels/waveform.py ``convolve``), ``fft`` runs overlap-save over float64 tile
-FFTs (kernels/waveform_fft.py). Both write float32 power [W]: the direct sums every sample of a row (exactly 0 beyond
-its reach, the outputs within the taps of its touched span), then the FFTs the reach of their rows."""
+FFTs (kernels/waveform_fft.py). Both write float32 power [W] into zeroed rows, only within each row's reach (the
+outputs within the taps of its touched span), so the samples beyond stay exactly 0."""
 from __future__ import annotations
 
 import numpy as np
@@ -54,9 +54,10 @@ class PulseConvolution:
         return [kw.convolve, kf.split_spans, kf.convolve_fft_kernel(self.n, self.block_dim)]
 
     def launch(self, impulses: wp.array, span: wp.array, out: wp.array, n: int) -> None:
-        """Rows 0 … n − 1 of ``out`` (every sample written) = rows of ``impulses`` (touched within ``span``)
+        """Rows 0 … n − 1 of ``out`` (zeroed here first) = rows of ``impulses`` (touched within ``span``)
         convolved with the pulse [W]."""
         samples, d = impulses.shape[1], self.device
+        out[:n].zero_()
         if self.method == "fft":
             if self.spans is None or self.spans[0].shape[0] < n:
                 self.spans = tuple(wp.empty((span.shape[0], 2), dtype=wp.int32, device=d) for _ in range(2))
