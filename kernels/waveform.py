@@ -345,14 +345,23 @@ def _put(out: wp.array2d(dtype=wp.float32), slot: int, i: int, value: wp.float64
 
 
 @wp.kernel
-def clear_spans(span: wp.array2d(dtype=wp.int32), impulses: wp.array2d(dtype=wp.float64)):
-    """impulses[slot, j] = 0 for the samples j of ``span[slot]``, CONVOLVE_OUTPUTS per thread: a chunk's impulse
-    trains cleared for the next (the deposits touch nothing outside their span)."""
+def clear_spans(span: wp.array2d(dtype=wp.int32), first_lag: int, taps: int, reach: int,
+                impulses: wp.array2d(dtype=wp.float64), power: wp.array2d(dtype=wp.float32)):
+    """A chunk's rows cleared for the next, CONVOLVE_OUTPUTS samples per thread: impulses[slot, j] = 0 over the
+    touched span [lo, hi] of ``span[slot]`` (the deposits touch nothing outside it) and, with ``reach`` = 1,
+    power[slot, i] = 0 over the reach [lo + first_lag, hi + first_lag + taps − 1] within the row (the convolution
+    writes nothing but 0 outside it)."""
     slot, block = wp.tid()
-    lo = wp.max(span[slot, 0], block * CONVOLVE_OUTPUTS)
-    hi = wp.min(span[slot, 1], block * CONVOLVE_OUTPUTS + CONVOLVE_OUTPUTS - 1)
-    for j in range(lo, hi + 1):
+    i0 = block * CONVOLVE_OUTPUTS
+    lo = span[slot, 0]
+    hi = span[slot, 1]
+    for j in range(wp.max(lo, i0), wp.min(hi, i0 + CONVOLVE_OUTPUTS - 1) + 1):
         impulses[slot, j] = wp.float64(0.0)
+    if reach != 0 and hi >= lo:
+        begin = wp.max(wp.max(lo + first_lag, 0), i0)
+        end = wp.min(wp.min(hi + first_lag + taps - 1, power.shape[1] - 1), i0 + CONVOLVE_OUTPUTS - 1)
+        for i in range(begin, end + 1):
+            power[slot, i] = wp.float32(0.0)
 
 
 @wp.kernel

@@ -182,6 +182,25 @@ def test_a_chunk_clears_only_what_the_last_one_touched(device, scene, monkeypatc
         assert np.abs(power["one"] - power["all"]).max() <= 2.0 * FLOAT32_HALF_ULP * power["all"].max()
 
 
+@pytest.mark.parametrize("reach", [0, 1])
+def test_clear_spans_zeroes_the_span_and_the_reach(device, reach):
+    """kernels/waveform.py clear_spans against NumPy: impulses zeroed over each row's span [lo, hi], power (with
+    reach = 1) over [lo + first_lag, hi + first_lag + taps − 1] within the row, nothing else touched."""
+    samples, first_lag, taps = 300, -7, 20
+    span = np.array([[0, 5], [290, 299], [100, 100], [samples, -1], [40, 180]], dtype=np.int32)
+    rows = len(span)
+    impulses = wp.array(np.ones((rows, samples)), dtype=wp.float64, device=device)
+    power = wp.array(np.ones((rows, samples)), dtype=wp.float32, device=device)
+    wp.launch(kw.clear_spans, (rows, -(-samples // kw.CONVOLVE_OUTPUTS)),
+              inputs=[wp.array(span, dtype=wp.int32, device=device), first_lag, taps, reach],
+              outputs=[impulses, power], device=device)
+    i = np.arange(samples)[None, :]
+    lo, hi = span[:, :1], span[:, 1:]
+    np.testing.assert_array_equal(impulses.numpy(), np.where((i >= lo) & (i <= hi), 0.0, 1.0))
+    in_reach = (i >= lo + first_lag) & (i <= hi + first_lag + taps - 1) & (hi >= lo)
+    np.testing.assert_array_equal(power.numpy(), np.where(in_reach & bool(reach), 0.0, 1.0))
+
+
 def test_bad_convolution_is_one_line_input_error(tmp_path):
     with pytest.raises(InputError) as raised:
         waveform_config("flat", "cpu", **{"waveform.convolution": "fast"})

@@ -53,11 +53,12 @@ class PulseConvolution:
             return [kw.convolve]
         return [kw.convolve, kf.split_spans, kf.convolve_fft_kernel(self.n, self.block_dim)]
 
-    def launch(self, impulses: wp.array, span: wp.array, out: wp.array, n: int) -> None:
-        """Rows 0 … n − 1 of ``out`` (zeroed here first) = rows of ``impulses`` (touched within ``span``)
-        convolved with the pulse [W]."""
+    def launch(self, impulses: wp.array, span: wp.array, out: wp.array, n: int, zeroed: bool = False) -> None:
+        """Rows 0 … n − 1 of ``out`` (zeroed here first, unless ``zeroed``: they are 0 already) = rows of
+        ``impulses`` (touched within ``span``) convolved with the pulse [W]."""
         samples, d = impulses.shape[1], self.device
-        out[:n].zero_()
+        if not zeroed:
+            out[:n].zero_()
         if self.method == "fft":
             if self.spans is None or self.spans[0].shape[0] < n:
                 self.spans = tuple(wp.empty((span.shape[0], 2), dtype=wp.int32, device=d) for _ in range(2))

@@ -44,7 +44,8 @@ class WaveformChunk:
 
 @dataclass
 class DeviceWaveforms:
-    """A chunk's waveforms on the device, one row per slot (valid until the next chunk)."""
+    """A chunk's waveforms on the device, one row per slot (valid until the next chunk; read only: the next chunk
+    clears only what this one wrote)."""
 
     count: int  # slots of the chunk (rows beyond are stale)
     window_start_s: wp.array  # float64 [s]; −1 where the central ray missed
@@ -74,7 +75,8 @@ class _Buffers:
         self.pulses = tracer.pulse_table(pulses)
         self.starts, self.directions = (wp.empty(slots, dtype=wp.vec3d, device=d) for _ in range(2))
         self.window = wp.empty(slots, dtype=wp.float64, device=d)
-        self.power = wp.empty((slots, params.samples), dtype=wp.float32, device=d)
+        self.power = wp.zeros((slots, params.samples), dtype=wp.float32, device=d)  # without a receiver: 0 beyond
+        # the last chunk's reach (Waveforms.chunk)
         self.clean = wp.empty((slots, params.samples), dtype=wp.float32, device=d) if keep_clean else None
         self.keys = wp.empty(slots, dtype=wp.int64, device=d)
         if traced:
@@ -155,9 +157,11 @@ class Waveforms:
     def chunk(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b, d, params = self.buffers, tracer.device, self.params
         pilot_windows(tracer, b, self.refs, params, n)
-        if b.touched:  # the last chunk's impulse trains, cleared within their spans only
-            wp.launch(kw.clear_spans, (b.touched, -(-params.samples // kw.CONVOLVE_OUTPUTS)), inputs=[b.span],
-                      outputs=[b.impulses], device=d)
+        conv, clean = self.convolution, self.receiver is None  # clean: no receiver writes whole rows of power
+        if b.touched:  # the last chunk's impulse trains (and power) cleared within their spans (reach) only
+            wp.launch(kw.clear_spans, (b.touched, -(-params.samples // kw.CONVOLVE_OUTPUTS)),
+                      inputs=[b.span, conv.first_lag, len(conv.taps), int(clean)], outputs=[b.impulses, b.power],
+                      device=d)
         b.touched = n
         b.received.zero_()
         wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[b.span], device=d)
@@ -166,7 +170,7 @@ class Waveforms:
                   inputs=[self.refs, params, self.leaves, b.starts, b.directions, b.window, self.subrays.offsets,
                           self.subrays.weights, kw.SUBRAYS_PER_THREAD],
                   outputs=[b.impulses, b.received, b.span], device=d)
-        self.convolution.launch(b.impulses, b.span, b.power, n)
+        conv.launch(b.impulses, b.span, b.power, n, zeroed=clean)
         receive(tracer, self.receiver, params, b, n)
         self._hand_over(tracer, segments, n, counts, consume)
 
