@@ -286,19 +286,25 @@ def _impulse(impulses: wp.array2d(dtype=wp.float64), slot: int, j: int, lo: int,
 
 @wp.kernel
 def convolve(impulses: wp.array2d(dtype=wp.float64), span: wp.array2d(dtype=wp.int32), taps: wp.array(dtype=wp.float64),
-             first_lag: int, out: wp.array2d(dtype=wp.float32)):
+             first_lag: int, from_reach: int, out: wp.array2d(dtype=wp.float32)):
     """out[slot, i] = Σ_j impulses[slot, j] · P((i − j)·dt): the received power [W] (taps: P at lags
     first_lag, first_lag + 1, … samples); only the impulses within ``span[slot]`` are visited.
 
     Each thread makes CONVOLVE_OUTPUTS consecutive samples i0 … i0 + 7 from a window of eight impulses held
     in registers and slid by one per tap (r_j = impulse i0 + j − first_lag − k): one load and one tap per
     eight products. Each sample adds the same products in the same order (taps ascending) as a sample on
-    its own would; the products outside its own tap range are exact zeros. ``out`` must be zeroed: a thread
-    with no impulse within reach writes nothing."""
+    its own would; the products outside its own tap range are exact zeros (so the samples' grouping by eight
+    changes no bit). ``out`` must be zeroed: a thread with no impulse within reach writes nothing.
+
+    Thread (slot, block) makes the samples from block·8, or with ``from_reach`` = 1 from block·8 after the group
+    of eight holding the row's first output in reach, max(lo + first_lag, 0): launched over as many blocks as
+    the widest reach needs rather than the whole row."""
     slot, block = wp.tid()
-    i0 = block * CONVOLVE_OUTPUTS
     lo = span[slot, 0]
     hi = span[slot, 1]
+    i0 = block * CONVOLVE_OUTPUTS
+    if from_reach != 0:
+        i0 += wp.max(lo + first_lag, 0) // CONVOLVE_OUTPUTS * CONVOLVE_OUTPUTS
     k0 = wp.max(0, i0 - first_lag - hi)
     k1 = wp.min(taps.shape[0] - 1, i0 + CONVOLVE_OUTPUTS - 1 - first_lag - lo)
     if k1 < k0:

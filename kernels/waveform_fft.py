@@ -9,9 +9,9 @@ linear one at positions m = T − 1 … N − 1 (output o + m − (T − 1)); th
 stored. As x and h are real, two consecutive blocks share one complex FFT (the first block's impulses as the real
 part, the second's as the imaginary part: the inverse transform of H·(A + iB) is h⊛a + i h⊛b).
 
-One tile of the launch (slot, pair) makes blocks 2·pair and 2·pair + 1 of its slot's reach; a tile beyond the
-reach returns at once. The outputs are float32 [W] rounded from the float64 sums, clamped at 0 (the exact sums of
-non-negative impulses and taps are ≥ 0, so the clamp only removes the FFT's rounding, ~1e−16 of the block's
+One tile of the launch (row, pair) makes blocks 2·pair and 2·pair + 1 of the reach of its row's slot (the launch runs
+over the rows listed by ``split_spans``); a tile beyond the reach returns at once. The outputs are float32 [W]
+rounded from the float64 sums, clamped at 0 (the exact sums of non-negative impulses and taps are ≥ 0, so the clamp only removes the FFT's rounding, ~1e−16 of the block's
 largest value). Outputs before the reach are never written and those after it only with 0 (the tail of the
 reach's last pair of blocks), so with ``out`` zeroed beforehand every sample beyond the reach stays exactly 0, as the
 direct sums leave it (they too write 0 to a few samples past the reach).
@@ -34,6 +34,7 @@ class Overlap:
 
     impulses: wp.array2d(dtype=wp.float64)  # (slots, samples) the impulse trains [1]
     span: wp.array2d(dtype=wp.int32)  # (slots, 2) lowest and highest sample touched ((samples, −1): none)
+    rows: wp.array(dtype=wp.int32)  # the slots of the launch's rows
     spectrum: wp.array2d(dtype=wp.vec2d)  # (1, N) FFT of the taps zero-padded to N, divided by N [W]
     taps: int  # T, taps of the pulse
     first_lag: int  # f, lag of the first tap [samples]
@@ -113,8 +114,9 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
         out: wp.array2d(dtype=wp.float32),  # (slots, samples) power [W], zeroed beforehand: only the reach is written
     ):
         """out[slot, i] = Σ_j impulses[slot, j] · taps[i − j − first_lag] [W] for the outputs of blocks 2·pair
-        and 2·pair + 1 of L outputs each, counted from the start of the slot's reach."""
-        slot, pair = wp.tid()
+        and 2·pair + 1 of L outputs each, counted from the start of the reach of slot o.rows[row]."""
+        row, pair = wp.tid()
+        slot = o.rows[row]
         samples = o.impulses.shape[1]
         lo = o.span[slot, 0]
         hi = o.span[slot, 1]
@@ -148,9 +150,13 @@ def split_spans(
     # Out:
     direct: wp.array2d(dtype=wp.int32),  # (slots, 2) the spans the direct sums make
     fft: wp.array2d(dtype=wp.int32),  # (slots, 2) the spans the FFTs make
+    rows: wp.array(dtype=wp.int32),  # the slots the FFTs make (count[0] of them, in any order)
+    count: wp.array(dtype=wp.int32),  # [1], zeroed beforehand
 ):
-    """Each row's touched span to ``direct`` if narrower than ``direct_below`` samples, else to ``fft``; the other
-    gets an empty span (2³⁰, −1), which both convolution kernels skip."""
+    """Each row's touched span to ``direct`` if narrower than ``direct_below`` samples, else to ``fft`` and the row
+    listed in ``rows`` (so that the FFTs are launched over those rows only: a tile that returns at once still holds
+    its multiprocessor's shared memory while it is scheduled); the other gets an empty span (2³⁰, −1), which both
+    convolution kernels skip."""
     slot = wp.tid()
     lo = span[slot, 0]
     hi = span[slot, 1]
@@ -159,3 +165,5 @@ def split_spans(
     direct[slot, 1] = wp.where(narrow, hi, -1)
     fft[slot, 0] = wp.where(narrow, 1 << 30, lo)
     fft[slot, 1] = wp.where(narrow, -1, hi)
+    if not narrow:
+        rows[wp.atomic_add(count, 0, 1)] = slot
