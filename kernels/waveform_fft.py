@@ -34,7 +34,6 @@ class Overlap:
 
     impulses: wp.array2d(dtype=wp.float64)  # (slots, samples) the impulse trains [1]
     span: wp.array2d(dtype=wp.int32)  # (slots, 2) lowest and highest sample touched ((samples, −1): none)
-    rows: wp.array(dtype=wp.int32)  # the slots of the launch's rows
     spectrum: wp.array2d(dtype=wp.vec2d)  # (1, N) FFT of the taps zero-padded to N, divided by N [W]
     taps: int  # T, taps of the pulse
     first_lag: int  # f, lag of the first tap [samples]
@@ -109,14 +108,15 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
     def convolve_fft(
         # In:
         o: Overlap,  # the impulse trains, their spans, the pulse's spectrum
+        rows: wp.array(dtype=wp.int32),  # the slots of the launch's rows (split_spans)
         block: int,  # L = n − taps + 1: outputs per block
         # Out:
         out: wp.array2d(dtype=wp.float32),  # (slots, samples) power [W], zeroed beforehand: only the reach is written
     ):
         """out[slot, i] = Σ_j impulses[slot, j] · taps[i − j − first_lag] [W] for the outputs of blocks 2·pair
-        and 2·pair + 1 of L outputs each, counted from the start of the reach of slot o.rows[row]."""
+        and 2·pair + 1 of L outputs each, counted from the start of the reach of slot rows[row]."""
         row, pair = wp.tid()
-        slot = o.rows[row]
+        slot = rows[row]
         samples = o.impulses.shape[1]
         lo = o.span[slot, 0]
         hi = o.span[slot, 1]

@@ -37,7 +37,7 @@ class PulseConvolution:
     def __init__(self, method: str, taps: wp.array, first_lag: int, samples: int, device: str,
                  fft_least: int = kf.FFT_SIZE, block_dim: int = kf.FFT_BLOCK_DIM, direct_below: int = kf.DIRECT_BELOW):
         self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
-        self.direct_below, self.spans, self.fft_rows = direct_below, None, None
+        self.direct_below, self.spans, self.rows, self.fft_rows = direct_below, None, None, None
         if method == "fft":
             self.n = fft_size(len(taps), samples, fft_least)
             self.block_dim = min(block_dim, self.n // 2)
@@ -62,11 +62,11 @@ class PulseConvolution:
         if self.method == "fft":
             if self.spans is None or self.spans[0].shape[0] < n:
                 self.spans = tuple(wp.empty((span.shape[0], 2), dtype=wp.int32, device=d) for _ in range(2))
-                self.overlap.rows = wp.empty(span.shape[0], dtype=wp.int32, device=d)
+                self.rows = wp.empty(span.shape[0], dtype=wp.int32, device=d)  # the rows the FFTs make
                 self.fft_rows = wp.zeros(1, dtype=wp.int32, device=d)  # how many rows the FFTs make
             self.fft_rows.zero_()
             wp.launch(kf.split_spans, n, inputs=[span, self.direct_below],
-                      outputs=[*self.spans, self.overlap.rows, self.fft_rows], device=d)
+                      outputs=[*self.spans, self.rows, self.fft_rows], device=d)
             span, self.overlap.span = self.spans
         blocks = -(-samples // kw.CONVOLVE_OUTPUTS)  # the whole row
         if self.method == "fft":  # the direct rows' reach: narrower than direct_below + taps − 1 samples
@@ -80,5 +80,5 @@ class PulseConvolution:
             return
         self.overlap.impulses = impulses
         pairs = -(-(-(-samples // self.block)) // 2)  # two blocks of L outputs per FFT, over the whole row at most
-        wp.launch_tiled(self.kernels()[-1], dim=(rows, pairs), inputs=[self.overlap, self.block], outputs=[out],
+        wp.launch_tiled(self.kernels()[-1], dim=(rows, pairs), inputs=[self.overlap, self.rows, self.block], outputs=[out],
                         block_dim=self.block_dim, device=self.device)
