@@ -159,7 +159,7 @@ def test_waveforms_h5_with_device_processing_is_the_hosts(tmp_path, device, case
                                         "component_sigma_s")}
     for n in names:
         if n.split("/", 1)[1] not in ranging:
-            np.testing.assert_array_equal(host[n][()], dev[n][()], err_msg=n)
+            _assert_same_run(host[n][()], dev[n][()], device, n)
     g, d = host["BEAM0000"], dev["BEAM0000"]
     for n in ("range_halfpower_m", "range_centroid_m", "range_peak_m"):  # c·t/2 of times within TIME_ULPS
         ulp = np.spacing(np.abs(g[f"ranging/{n}"][()]))
@@ -167,6 +167,17 @@ def test_waveforms_h5_with_device_processing_is_the_hosts(tmp_path, device, case
     np.testing.assert_allclose(d["ranging/fwhm_s"][()], g["ranging/fwhm_s"][()], rtol=1e-9)
     np.testing.assert_allclose(d["ranging/rms_width_s"][()], g["ranging/rms_width_s"][()], rtol=RMS_REL)
     _assert_components(system, g, d)
+
+
+def _assert_same_run(a: np.ndarray, b: np.ndarray, device: str, name: str) -> None:
+    """The same dataset of two runs of one command: bit for bit on the CPU; on a GPU, whose float64 atomics add a
+    sample's sub-ray echoes in any order, floating-point values to 1e-15 of the dataset's largest magnitude (the
+    FFT convolution carries a last-bit difference of one impulse into every output of its block: ~1e-19 of the
+    peak in the echo's far tails, 1236 of 163840 samples of the slope case on an H100)."""
+    if device == "cpu" or not np.issubdtype(a.dtype, np.floating):
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    else:
+        np.testing.assert_allclose(b, a, rtol=0.0, atol=1e-15 * float(np.nanmax(np.abs(a), initial=0.0)), err_msg=name)
 
 
 def _assert_components(system, g, d) -> None:
