@@ -182,6 +182,24 @@ def test_a_chunk_clears_only_what_the_last_one_touched(device, scene, monkeypatc
         assert np.abs(power["one"] - power["all"]).max() <= 2.0 * FLOAT32_HALF_ULP * power["all"].max()
 
 
+def test_a_tracers_second_run_reuses_its_buffers_cleanly(device):
+    """The waveform buffers are kept for a tracer's later runs: its second run starts on the impulse trains and
+    power its first left (cleared within their spans and reach by its first chunk) and makes the same waveforms
+    (bit for bit on the CPU)."""
+    cfg = waveform_config("slope", device, **{"fixed.prf_hz": 1000.0, "flight.duration_s": 0.0015})  # 2 shots
+    mesh = build_scene(cfg)
+    tracer, power = Tracer(cfg, mesh, flight_trajectories(cfg, mesh)), []
+    for _ in range(2):
+        parts = []
+        tracer.run(Waveforms(), parts.append)
+        power.append(np.concatenate([part.power_w for part in parts]).astype(np.float64))
+    assert power[0].max() > 0.0
+    if device == "cpu":
+        assert np.array_equal(power[0], power[1])
+    else:  # a GPU's float64 atomics add in any order
+        np.testing.assert_allclose(power[1], power[0], rtol=2.0 ** -22, atol=1e-14 * power[0].max())
+
+
 @pytest.mark.parametrize("reach", [0, 1])
 def test_clear_spans_zeroes_the_span_and_the_reach(device, reach):
     """kernels/waveform.py clear_spans against NumPy: impulses zeroed over each row's span [lo, hi], power (with

@@ -143,14 +143,16 @@ class Waveforms:
         det = tracer.instrument.detector
         canopy = tracer.scene.canopy
         self.params = det.struct(tracer.meshes.per_face, 0.0 if canopy is None else canopy.leaf_reflectance)
-        self.subrays = det.subrays(tracer.device)
+        self.subrays = tracer.kept("waveform subrays", lambda: det.subrays(tracer.device))
         self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
         self.canopy = canopy is not None
-        taps, first_lag = det.pulse_taps(tracer.device)
-        self.convolution = PulseConvolution(det.s.convolution, taps, first_lag, det.s.samples, tracer.device,
-                                            **self.fft)
+        self.convolution = tracer.kept(f"pulse convolution {sorted(self.fft.items())}", lambda: PulseConvolution(
+            det.s.convolution, *det.pulse_taps(tracer.device), det.s.samples, tracer.device, **self.fft))
         self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
-        self.buffers = _Buffers(tracer, self.params, keep_clean=self.keep_clean and self.receiver is not None)
+        clean = self.keep_clean and self.receiver is not None  # the device buffers are kept for the tracer's next
+        # run (a study runs one tracer many times): their allocation and first zeroing are paid once
+        self.buffers = tracer.kept(f"waveforms keep_clean={clean}",
+                                   lambda: _Buffers(tracer, self.params, keep_clean=clean))
         self.misses = 0
         return self.buffers.pulses
 
