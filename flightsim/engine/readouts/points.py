@@ -58,8 +58,9 @@ class DeviceReturns:
 
 
 class PointBuffers:
-    """Device arrays for one chunk of the points kernel, allocated once per run and reused; ``per_beam`` slots per
-    beam (the returns a beam may have)."""
+    """Device arrays for one chunk of the points kernel, allocated once (a readout keeps them for its tracer's later
+    runs, :meth:`Tracer.kept`) and reused chunk after chunk; ``per_beam`` slots per beam (the returns a beam may
+    have)."""
 
     def __init__(self, tracer, pulses: int, per_beam: int = 1):
         device, slots = tracer.device, pulses * tracer.beams_per_pulse * per_beam
@@ -188,7 +189,9 @@ class Points:
     def begin(self, tracer) -> wp.array:
         per_beam = tracer.returns_per_beam
         pulses = max(1, tracer.pulses_per_launch(POINT_SLOTS_PER_CHUNK) // per_beam)
-        self.buffers = PointBuffers(tracer, pulses, per_beam)
+        self.buffers = tracer.kept(f"points {per_beam}", lambda: PointBuffers(tracer, pulses, per_beam))
+        self.buffers.counters.zero_()  # kept for the tracer's later runs: the run's sums start again
+        self.buffers.line_returns.zero_()
         self.lines: dict[int, None] = {}  # indices of the lines the chunks held, in order
         return self.buffers.pulses
 
