@@ -101,3 +101,27 @@ ptxas info    : Used 64 registers, used 0 barriers, 432 bytes cumulative stack s
 """
     assert parse_ptxas(report) == {"records_kernel__locals__trace_records_e84d2437_cuda_kernel_forward": {
         "frame": 432, "spill_stores": 156, "spill_loads": 248, "registers": 64}}
+
+
+def test_native_timing_brackets_each_sort_and_scan_and_restores_them(monkeypatch):
+    """Warp's sort and scan primitives launch CUB kernels its activity timing does not see: within native_timing
+    each call is bracketed by two events (stubbed here: no GPU) and runs as before; afterwards the primitives are
+    Warp's own again."""
+    import numpy as np
+    import warp as wp
+
+    from flightsim.studies.profile import NATIVE, native_timing
+
+    recorded = []
+    monkeypatch.setattr(wp, "Event", lambda device, enable_timing: object())
+    monkeypatch.setattr(wp, "record_event", lambda event: recorded.append(event))
+    originals = {name: getattr(wp.utils, name) for name in NATIVE}
+    values = wp.array(np.array([3, 1, 2], dtype=np.int32), device="cpu")
+    out = wp.empty(3, dtype=wp.int32, device="cpu")
+    with native_timing("cpu") as spans:
+        wp.utils.array_scan(values, out, inclusive=True)
+        wp.utils.array_scan(values, out, inclusive=False)
+    assert [name for name, _, _ in spans] == ["array_scan", "array_scan"] and len(recorded) == 4
+    assert [(start, end) for _, start, end in spans] == [tuple(recorded[0:2]), tuple(recorded[2:4])]
+    assert out.numpy().tolist() == [0, 3, 4]
+    assert all(getattr(wp.utils, name) is primitive for name, primitive in originals.items())

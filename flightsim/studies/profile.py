@@ -5,11 +5,14 @@ the plane and the lunar scene, the waveform altimeter over flat and sloped groun
 ALS through a voxel forest and point-cloud waveforms) it runs the workload once to compile and warm up, once timed,
 and once under Warp's CUDA activity timing, and writes per kernel: launches, GPU time and its share of the wall
 time, registers and spilled bytes per thread, theoretical occupancy (:mod:`flightsim.studies.profile_cuda`); and
-per workload the memory copies, the time no kernel ran (host work and launch gaps), and the bare ray cast of the
-same rays. Results go to DIR/profile.json and DIR/profile.md.
+per workload the memory copies, Warp's sort and scan primitives (:data:`NATIVE`: CUB kernels launched from Warp's
+native code, which its activity timing does not see; timed here by CUDA events around each call), the time no
+kernel ran (host work and launch gaps), and the bare ray cast of the same rays. Results go to DIR/profile.json and
+DIR/profile.md.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from dataclasses import dataclass
@@ -128,19 +131,54 @@ def build(name: str, device: str, quick: bool) -> Workload:
     }[name]()
 
 
+NATIVE = ("radix_sort_pairs", "array_scan", "runlength_encode")  # wp.utils primitives whose CUB kernels Warp's
+# activity timing does not record
+
+
+@contextlib.contextmanager
+def native_timing(device: str):
+    """Within the block, each call of a :data:`NATIVE` primitive is bracketed by two timing events on ``device``'s
+    current stream; yields the list of (primitive, start event, end event), read once the device is synchronised.
+    The primitives are restored on leaving."""
+    spans: list[tuple[str, wp.Event, wp.Event]] = []
+    saved = {name: getattr(wp.utils, name) for name in NATIVE}
+
+    def timed(name: str, primitive: Callable) -> Callable:
+        def call(*args, **kwargs):
+            start, end = wp.Event(device, enable_timing=True), wp.Event(device, enable_timing=True)
+            wp.record_event(start)
+            out = primitive(*args, **kwargs)
+            wp.record_event(end)
+            spans.append((name, start, end))
+            return out
+        return call
+
+    for name, primitive in saved.items():
+        setattr(wp.utils, name, timed(name, primitive))
+    try:
+        yield spans
+    finally:
+        for name, primitive in saved.items():
+            setattr(wp.utils, name, primitive)
+
+
 def _activities(run: Callable[[], int], cuda: bool) -> tuple[float, dict[str, dict], dict[str, float]]:
-    """(wall [s] of one timed run, per kernel {launches, gpu_s}, seconds per other activity kind)."""
+    """(wall [s] of one timed run, per kernel {launches, gpu_s}, seconds per other activity kind: Warp's copies and
+    memsets, and the :data:`NATIVE` primitives as "<name> (CUB)")."""
     if not cuda:
         started = time.perf_counter()
         run()
         return time.perf_counter() - started, {}, {}
     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-    started = time.perf_counter()
-    run()
-    wp.synchronize()
-    wall = time.perf_counter() - started
+    with native_timing(wp.get_device()) as spans:
+        started = time.perf_counter()
+        run()
+        wp.synchronize()
+        wall = time.perf_counter() - started
     kernels: dict[str, dict] = {}
     other: dict[str, float] = {}
+    for name, start, end in spans:
+        other[f"{name} (CUB)"] = other.get(f"{name} (CUB)", 0.0) + wp.get_event_elapsed_time(start, end) * 1e-3
     for result in wp.timing_end():
         if result.filter == wp.TIMING_KERNEL:
             row = kernels.setdefault(kernel_name(result.name), {"launches": 0, "gpu_s": 0.0})

@@ -16,13 +16,15 @@ def _fmt(value, digits: int = 3) -> str:
 
 def _summary(records: list[dict]) -> list[str]:
     lines = ["| workload | units | rate [units/s] | bare cast [rays/s] | ratio | wall [ms] | kernels [ms] | "
-             "copies [ms] | idle [ms] |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "copies [ms] | sorts and scans [ms] | idle [ms] |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in records:
         kernels = sum(k["gpu_s"] for k in r["kernels"].values())
-        copies = sum(r["other_activity_s"].values())
+        native = sum(s for kind, s in r["other_activity_s"].items() if kind.endswith("(CUB)"))
+        copies = sum(r["other_activity_s"].values()) - native
         lines.append(f"| {r['workload']} | {r['units']:.3g} {r['unit']} | {_fmt(r['rate'])} | "
                      f"{_fmt(r['bare_rays_per_s'])} | {_fmt(r['ratio_to_bare'], 2)} | {1e3 * r['profiled_wall_s']:.1f} | "
-                     f"{1e3 * kernels:.1f} | {1e3 * copies:.1f} | {1e3 * r['idle_s']:.1f} |")
+                     f"{1e3 * kernels:.1f} | {1e3 * copies:.1f} | {1e3 * native:.1f} | {1e3 * r['idle_s']:.1f} |")
     return lines
 
 
