@@ -3,6 +3,7 @@ from typing import Any
 
 import warp as wp
 
+from kernels.frames import Segments
 from kernels.trace import STATUS_LEAF, STATUS_RETURN
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
@@ -53,10 +54,11 @@ def count_returns(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.in
 
 @wp.kernel
 def add_segment_returns(flags: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), n_slots: int,
-                        segments: wp.array(dtype=wp.int32), n_segments: int, per_line: wp.array(dtype=wp.int64)):
-    """per_line[line] += the returns of each segment of the chunk (one thread per segment). ``segments`` holds the
-    segments' slot bounds (n_segments + 1 of them, the last n_slots), then each segment's line."""
+                        segments: Segments, slots_per_pulse: int, per_line: wp.array(dtype=wp.int64)):
+    """per_line[line] += the returns of each segment of the chunk (one thread per segment): the chunk's segment table
+    (the tracer's, already on the device), whose segment i holds the slots pulse_start[i] · slots_per_pulse up to
+    the next segment's (pulse_start's last entry: the chunk's pulse count)."""
     i = wp.tid()
-    n = (_returns_before(flags, offsets, n_slots, segments[i + 1]) -
-         _returns_before(flags, offsets, n_slots, segments[i]))
-    wp.atomic_add(per_line, segments[n_segments + 1 + i], wp.int64(n))
+    n = (_returns_before(flags, offsets, n_slots, wp.min(segments.pulse_start[i + 1] * slots_per_pulse, n_slots)) -
+         _returns_before(flags, offsets, n_slots, segments.pulse_start[i] * slots_per_pulse))
+    wp.atomic_add(per_line, segments.line[i], wp.int64(n))

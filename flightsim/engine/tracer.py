@@ -102,6 +102,7 @@ class Tracer:
         self._cone_rad: float | None = None
         self._windows: dict[int, list[tuple[int, int]]] = {}
         self._kept: dict[str, Any] = {}
+        self.segment_table: frames.Segments | None = None  # the device segment table of the chunk being traced
 
     def _features(self, with_truth: bool) -> trace.Features:
         instrument = self.instrument
@@ -323,6 +324,7 @@ class Tracer:
         total = sum(s.count for chunk in mine for s in chunk) if progress else 0
         optics = trace.pulse_optics_kernel(self.instrument.kernel, self.features.pose)
         for chunk, table in zip(mine, segment_tables(mine, self.device)):
+            self.segment_table = table  # the chunk's pieces of lines on the device, for the readouts
             n_pulses = sum(s.count for s in chunk)
             wp.launch(frames.pulse_poses, n_pulses, inputs=[self.lines, table, len(chunk)], outputs=[pulses],
                       device=self.device)

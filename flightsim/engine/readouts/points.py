@@ -81,7 +81,6 @@ class PointBuffers:
         self.index = wp.empty(slots, dtype=wp.int32, device=device)
         self.total = wp.zeros(1, dtype=wp.int32, device=device)  # the returns of the chunk last compacted
         self.line_returns = wp.zeros(len(tracer.trajectories), dtype=wp.int64, device=device)  # per line of the run
-        self.segments = wp.empty(64, dtype=wp.int32, device=device)  # a chunk's segment bounds and lines
         self.compacted: dict[int, wp.array] = {}
 
     def slot_outputs(self) -> list[wp.array]:
@@ -99,16 +98,12 @@ class PointBuffers:
         wp.launch(compaction.count_returns, 1, inputs=[flags, offsets, n_slots], outputs=[self.total],
                   device=self.device)
 
-    def add_line_returns(self, segments: list[Segment], beams_per_pulse: int) -> None:
-        """Add the returns of each segment of the chunk last compacted to ``line_returns`` (on the device: no wait;
-        the segments' slot bounds and lines go up in one small copy)."""
-        bounds = np.cumsum([0] + [s.count for s in segments]) * beams_per_pulse * self.per_beam
-        table = np.concatenate([bounds, [s.line for s in segments]]).astype(np.int32)
-        if len(table) > len(self.segments):
-            self.segments = wp.empty(2 * len(table), dtype=wp.int32, device=self.device)
-        self.segments[:len(table)].assign(table)
-        wp.launch(compaction.add_segment_returns, len(segments), inputs=[self.flags, self.offsets, int(bounds[-1]),
-                  self.segments, len(segments)], outputs=[self.line_returns], device=self.device)
+    def add_line_returns(self, tracer, segments: list[Segment], n_slots: int) -> None:
+        """Add the returns of each segment of the chunk last compacted (``n_slots`` slots) to ``line_returns``, by the
+        tracer's segment table of the chunk (on the device already: no copy, so no wait for the device)."""
+        wp.launch(compaction.add_segment_returns, len(segments),
+                  inputs=[self.flags, self.offsets, n_slots, tracer.segment_table,
+                          tracer.beams_per_pulse * self.per_beam], outputs=[self.line_returns], device=self.device)
 
     def gather(self, src: wp.array, n_slots: int, n_returns: int) -> np.ndarray:
         """Compact ``src`` on the device and copy only the returns to the host (an array of the caller's own)."""
@@ -200,7 +195,7 @@ class Points:
         n_slots *= buffers.per_beam  # the tracer counts beams
         trace_points(tracer, buffers, n_slots)
         buffers.compact_index(n_slots)
-        buffers.add_line_returns(segments, tracer.beams_per_pulse)
+        buffers.add_line_returns(tracer, segments, n_slots)
         for segment in segments:  # the lines in the order they come (their counts are added in end)
             self.lines.setdefault(segment.line, None)
         returns = DeviceReturns(segments, n_slots, buffers)
