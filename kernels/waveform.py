@@ -69,17 +69,29 @@ class MeshRefs:
 
 
 @wp.func
-def cast64(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
-    """(face or −1, range [m], unit face normal) of a float64 ray: float32 cast, float64 range on the face."""
+def face_of(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
+    """The face a float64 ray hits (float32 cast, the padded boxes where it slips through), or −1."""
     hit = wp.mesh_query_ray(m.mesh, wp.vec3f(start), wp.vec3f(direction), m.max_range)
     face = hit.face
     if not hit.result:
         face, t_second = fallback_hit(m.padded, m.vertices64, m.indices, start, direction, m.max_range)
+    return face
+
+
+@wp.func
+def face_normal(m: MeshRefs, face: int):
+    """The unit normal of ``face`` (float64)."""
+    v0 = m.vertices64[m.indices[3 * face]]
+    return wp.normalize(wp.cross(m.vertices64[m.indices[3 * face + 1]] - v0, m.vertices64[m.indices[3 * face + 2]] - v0))
+
+
+@wp.func
+def cast64(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
+    """(face or −1, range [m], unit face normal) of a float64 ray: float32 cast, float64 range on the face."""
+    face = face_of(m, start, direction)
     if face < 0:
         return -1, wp.float64(0.0), wp.vec3d()
-    v0 = m.vertices64[m.indices[3 * face]]
-    normal = wp.normalize(wp.cross(m.vertices64[m.indices[3 * face + 1]] - v0, m.vertices64[m.indices[3 * face + 2]] - v0))
-    return face, refine_hit(m.vertices64, m.indices, face, start, direction), normal
+    return face, refine_hit(m.vertices64, m.indices, face, start, direction), face_normal(m, face)
 
 
 @wp.func
@@ -185,12 +197,10 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
                 offsets: wp.array(dtype=wp.vec2d), weights: wp.array(dtype=wp.float64), per_thread: int,
                 impulses: wp.array2d(dtype=wp.float64), received: wp.array2d(dtype=wp.float64),
                 span: wp.array2d(dtype=wp.int32)):
-        """Sub-rays ``group``·per_thread … of beam ``slot`` in turn: each cast, its share of the received power
-        g_k [1] added to the impulse train at its delay (linear split). Consecutive sub-rays in one sample (a ring of
-        a flat footprint) are summed in registers and added once, the sums below once per thread.
-        ``received[slot]`` gathers Σ g_k inside the window (column 0) and outside it (1), and over the hits
-        Σ w_k z_k [m] (2) and Σ w_k (3): the footprint-weighted mean height (local z). ``span[slot]``
-        narrows to the lowest and highest sample touched (start it at (samples, −1))."""
+        """Sub-rays ``group``·per_thread … of beam ``slot`` in turn: each cast, its power share g_k [1] added to the
+        impulse train at its delay (linear split; consecutive sub-rays in one sample summed first, the sums below once
+        per thread). ``received[slot]``: Σ g_k inside (0) and outside (1) the window, Σ w_k z_k [m] (2) and Σ w_k (3)
+        over the hits (local z); ``span[slot]``: the lowest and highest sample touched (start it at (samples, −1))."""
         slot, group = wp.tid()
         t0 = window_start[slot]
         if t0 < wp.float64(0.0):
@@ -207,20 +217,21 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
         start = starts[slot]
         d = directions[slot]
         u, v = beam_frame(d)
+        normal = wp.vec3d()
         for k in range(group * per_thread, wp.min((group + 1) * per_thread, offsets.shape[0])):
             direction = subray_direction(d, u, v, offsets[k])
-            face, r, normal = cast64(m, start, direction)
+            face = face_of(m, start, direction)
+            r = wp.float64(0.0)
+            if face >= 0:
+                r = refine_hit(m.vertices64, m.indices, face, start, direction)
+                normal = face_normal(m, face)
             transmission = wp.float64(1.0)
             if wp.static(canopy):
-                t_end = wp.float64(m.max_range)
-                if face >= 0:
-                    t_end = r
+                t_end = wp.where(face >= 0, r, wp.float64(m.max_range))
                 transmission, e_in, e_out, e_first, e_last = leaf_echo(leaves, p, start, direction, t_end,
                                                                        weights[k], t0, impulses, slot)
-                inside += e_in
-                outside += e_out
-                first = wp.min(first, e_first)
-                last = wp.max(last, e_last)
+                inside, outside = inside + e_in, outside + e_out
+                first, last = wp.min(first, e_first), wp.max(last, e_last)
             if face >= 0:
                 link = p.link * transmission
                 if wp.static(per_face):
