@@ -319,11 +319,11 @@ class Tracer:
         line, pulse, beam), so culling, chunking and sharing never change it.
         """
         plans = [self.windows(t) for t in self.trajectories]
-        pieces = [(line, k0, k1) for line, windows in enumerate(plans) for k0, k1 in windows]
-        mine = pack(pieces, pulses.shape[1])[share[0]::share[1]]
+        mine, tables = self.kept(f"chunks of {pulses.shape[1]} pulses, share {share}",
+                                 lambda: self._plan_chunks(plans, pulses.shape[1], share))
         total = sum(s.count for chunk in mine for s in chunk) if progress else 0
         optics = trace.pulse_optics_kernel(self.instrument.kernel, self.features.pose)
-        for chunk, table in zip(mine, segment_tables(mine, self.device)):
+        for chunk, table in zip(mine, tables):
             self.segment_table = table  # the chunk's pieces of lines on the device, for the readouts
             n_pulses = sum(s.count for s in chunk)
             wp.launch(frames.pulse_poses, n_pulses, inputs=[self.lines, table, len(chunk)], outputs=[pulses],
@@ -336,6 +336,14 @@ class Tracer:
         if share[0] == 0:  # counted once the device has every chunk queued (a many-line run's host work)
             counts.pulses_culled = sum(self._limited_count(t) - sum(k1 - k0 for k0, k1 in w)
                                        for t, w in zip(self.trajectories, plans))
+
+    def _plan_chunks(self, plans: list, pulses: int, share: tuple[int, int]) -> tuple[list, list]:
+        """(the chunks of at most ``pulses`` pulses this ``share`` of the run traces, their segment tables on the
+        device): worked out, and the tables copied up, once per tracer (both follow from the lines' windows, which
+        are worked out once too)."""
+        pieces = [(line, k0, k1) for line, windows in enumerate(plans) for k0, k1 in windows]
+        mine = pack(pieces, pulses)[share[0]::share[1]]
+        return mine, segment_tables(mine, self.device)
 
     @functools.cached_property
     def lines(self) -> frames.Lines:

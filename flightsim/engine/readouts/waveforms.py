@@ -146,8 +146,7 @@ class Waveforms:
         self.subrays = tracer.kept("waveform subrays", lambda: det.subrays(tracer.device))
         self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
         self.canopy = canopy is not None
-        self.convolution = tracer.kept(f"pulse convolution {sorted(self.fft.items())}", lambda: PulseConvolution(
-            det.s.convolution, *det.pulse_taps(tracer.device), det.s.samples, tracer.device, **self.fft))
+        self.convolution = self._convolution(tracer)
         self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
         clean = self.keep_clean and self.receiver is not None  # the device buffers are kept for the tracer's next
         # run (a study runs one tracer many times): their allocation and first zeroing are paid once
@@ -177,11 +176,16 @@ class Waveforms:
         self._hand_over(tracer, segments, n, counts, consume)
 
     def kernels_needed(self, tracer) -> list:
-        det = tracer.instrument.detector
-        convolution = PulseConvolution(det.s.convolution, *det.pulse_taps(tracer.device), det.s.samples,
-                                       tracer.device, **self.fft)
         return [*pilot_kernels(tracer), kw.deposit_kernel(tracer.meshes.per_face, tracer.scene.canopy is not None),
-                kw.clear_spans, *convolution.kernels()]
+                kw.clear_spans, *self._convolution(tracer).kernels()]
+
+    def _convolution(self, tracer) -> PulseConvolution:
+        """The run's pulse convolution (its taps and spectrum on the device), made once per tracer: every run asks
+        for it twice (the kernels it compiles ahead, then ``begin``), and making it is host work the device waits
+        for at the run's start."""
+        det = tracer.instrument.detector
+        return tracer.kept(f"pulse convolution {sorted(self.fft.items())}", lambda: PulseConvolution(
+            det.s.convolution, *det.pulse_taps(tracer.device), det.s.samples, tracer.device, **self.fft))
 
     def _hand_over(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b = self.buffers
