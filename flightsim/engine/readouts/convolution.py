@@ -80,5 +80,5 @@ class PulseConvolution:
             return
         self.overlap.impulses = impulses
         pairs = -(-(-(-samples // self.block)) // 2)  # two blocks of L outputs per FFT, over the whole row at most
-        wp.launch_tiled(self.kernels()[-1], dim=(rows, pairs), inputs=[self.overlap, self.rows, self.block], outputs=[out],
-                        block_dim=self.block_dim, device=self.device)
+        wp.launch_tiled(self.kernels()[-1], dim=(rows, pairs), inputs=[self.overlap, self.rows, self.block],
+                        outputs=[out], block_dim=self.block_dim, device=self.device)

@@ -148,10 +148,10 @@ class Waveforms:
         self.canopy = canopy is not None
         self.convolution = self._convolution(tracer)
         self.receiver, self.refs = det.receiver(), mesh_refs(tracer)
-        clean = self.keep_clean and self.receiver is not None  # the device buffers are kept for the tracer's next
-        # run (a study runs one tracer many times): their allocation and first zeroing are paid once
-        self.buffers = tracer.kept(f"waveforms keep_clean={clean}",
-                                   lambda: _Buffers(tracer, self.params, keep_clean=clean))
+        keep_clean = self.keep_clean and self.receiver is not None  # the device buffers are kept for the tracer's
+        # next run (a study runs one tracer many times): their allocation and first zeroing are paid once
+        self.buffers = tracer.kept(f"waveforms keep_clean={keep_clean}",
+                                   lambda: _Buffers(tracer, self.params, keep_clean=keep_clean))
         self.misses = 0
         return self.buffers.pulses
 
