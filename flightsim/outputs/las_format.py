@@ -24,13 +24,16 @@ from __future__ import annotations
 import datetime
 import math
 
-import laspy
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pyproj
-from laspy.vlrs.known import WktCoordinateSystemVlr
 from pyproj.enums import WktVersion
 
 from flightsim.core.errors import InputError
+
+if TYPE_CHECKING:
+    import laspy
 
 SCALE_M = 0.001
 """Coordinate resolution of every tile [m]."""
@@ -106,14 +109,22 @@ def wkt1(crs: pyproj.CRS) -> str | None:
         return None
 
 
-def _tile_header_template(
-    crs: pyproj.CRS, creation_date: datetime.date, software: str, dims: tuple[tuple, ...]
-) -> laspy.LasHeader:
-    """Header shared by every tile (all but the offsets)."""
+def _check_header_fields(creation_date: datetime.date, software: str) -> None:
+    """Raise :class:`InputError` unless the tiles' creation date and generating software can be written."""
     if not isinstance(creation_date, datetime.date):
         raise InputError("creation_date", creation_date, "a datetime.date")
     if not (isinstance(software, str) and software.isascii() and len(software) <= 32):
         raise InputError("software", software, "an ASCII string of at most 32 characters")
+
+
+def _tile_header_template(
+    crs: pyproj.CRS, creation_date: datetime.date, software: str, dims: tuple[tuple, ...]
+) -> laspy.LasHeader:
+    """Header shared by every tile (all but the offsets). laspy is imported here, where a run first needs it."""
+    import laspy
+    from laspy.vlrs.known import WktCoordinateSystemVlr
+
+    _check_header_fields(creation_date, software)
     header = laspy.LasHeader(version="1.4", point_format=6)
     header.system_identifier = SYSTEM_IDENTIFIER
     header.generating_software = software

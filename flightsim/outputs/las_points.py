@@ -6,13 +6,16 @@ import dataclasses
 import os
 import warnings
 from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
 
-import laspy
 import numpy as np
 import pyproj
 
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_format import SCAN_ANGLE_UNIT_DEG
+
+if TYPE_CHECKING:
+    import laspy
 
 
 @dataclasses.dataclass
@@ -136,6 +139,8 @@ def read_points(
     paths = list(paths)
     if not paths:
         raise InputError("paths", paths, "at least one LAS/LAZ file")
+    import laspy  # here: a run that only writes points does not load laspy before its first ray
+
     batches = []
     crs = None
     for path in paths:

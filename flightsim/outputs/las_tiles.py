@@ -13,22 +13,26 @@ from __future__ import annotations
 
 import copy
 import datetime
+import functools
 import os
 from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import laspy
 import numpy as np
 import pyproj
-from laspy.lasappender import LasAppender
 
 from flightsim.core.version import __version__
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_format import (_EXTRA_DIMS, _MM_PER_M, OPTIONAL_DIMS, SCAN_ANGLE_UNIT_DEG, _quantized_mm,
-                                          _tile_header_template, _tile_size_mm, _validated_crs)
+                                          _check_header_fields, _tile_header_template, _tile_size_mm, _validated_crs)
 from flightsim.outputs.las_points import PointBatch
 from flightsim.outputs.laz_workers import LazWorkers
+
+if TYPE_CHECKING:
+    import laspy
+    from laspy.lasappender import LasAppender
 
 
 class TileWriter:
@@ -102,7 +106,8 @@ class TileWriter:
             raise InputError("extras", sorted(unknown), f"names among {', '.join(OPTIONAL_DIMS)}")
         self._dims = _EXTRA_DIMS + tuple(OPTIONAL_DIMS[name] for name in OPTIONAL_DIMS if name in extras)
         crs = _validated_crs(crs)
-        self._template = _tile_header_template(crs, creation_date, software, self._dims)
+        _check_header_fields(creation_date, software)
+        self._header_fields = (crs, creation_date, software)
         self._max_open = max_open_tiles
         self._open: OrderedDict[tuple[int, int], _TileFile] = OrderedDict()
         self._counts: dict[tuple[int, int], int] = {}
@@ -113,6 +118,12 @@ class TileWriter:
                 directory=str(self._directory), crs=crs, tile_size_m=tile_size_m, compress=True, extras=tuple(extras),
                 creation_date=creation_date, software=software, max_open_tiles=max_open_tiles, processes=0,
                 parallel_compression=False))
+
+    @functools.cached_property
+    def _template(self) -> laspy.LasHeader:
+        """The header every tile shares but for its offsets, made at the first write: laspy (and the HTTP stack its
+        COPC reader imports) is loaded by the thread that writes, not before a run's first ray."""
+        return _tile_header_template(*self._header_fields, self._dims)
 
     def __enter__(self) -> TileWriter:
         return self
@@ -162,6 +173,7 @@ class TileWriter:
         if len(records) == 0:
             return
         if self._workers is None:
+            import laspy
             self._tile(key).write(laspy.PackedPointRecord(records, self._template.point_format), lowest, highest)
             self._bound_held(dtype.itemsize)
         else:
@@ -174,6 +186,7 @@ class TileWriter:
         angle = np.rint(points.scan_angle_deg.astype(np.float64) / SCAN_ANGLE_UNIT_DEG)
         if not np.all(np.abs(angle) <= 30000):
             raise ValueError("scan_angle_deg must be finite and within [-180, 180] deg")
+        import laspy
         record = laspy.PackedPointRecord.zeros(len(points), self._template.point_format)
         ones = np.ones(len(points), dtype=np.uint8)
         record["return_number"] = ones
@@ -297,6 +310,7 @@ def _laz_backend(compress: bool, parallel: bool) -> laspy.LazBackend | None:
     """lazrs's compressor over every core (parallel) or in the calling thread; None for LAS."""
     if not compress:
         return None
+    import laspy
     return laspy.LazBackend.LazrsParallel if parallel else laspy.LazBackend.Lazrs
 
 
@@ -318,6 +332,7 @@ class _TileFile:
 
     @classmethod
     def create(cls, path: Path, header: laspy.LasHeader, compress: bool, parallel: bool) -> _TileFile:
+        import laspy
         file = open(path, "w+b")
         try:
             sink = laspy.LasWriter(
@@ -330,6 +345,7 @@ class _TileFile:
 
     @classmethod
     def reopen(cls, path: Path, compress: bool, parallel: bool) -> _TileFile:
+        from laspy.lasappender import LasAppender
         file = open(path, "r+b")
         try:  # always lazrs's parallel appender: its sequential one (lazrs 0.8) fails on reopening a tile
             sink = LasAppender(file, laz_backend=_laz_backend(compress, True), closefd=False)
@@ -345,6 +361,7 @@ class _TileFile:
         offset, counts by return number; every record is return 1 of 1, and no extra-bytes statistics
         are kept), without laspy's passes over the records: the bounds come from the caller.
         """
+        import laspy
         if self._batch:
             self._held.append(laspy.PackedPointRecord(record.array.copy(), record.point_format))
             self.held_points += len(record)
@@ -366,6 +383,7 @@ class _TileFile:
         """Compress and write the records held back, and wait until the disk has them: a run's compressed
         bytes reach the disk while it traces (batch by batch), not all in the final fsyncs of its tiles."""
         if self._held:
+            import laspy
             format_ = self._held[0].point_format
             self._append(laspy.PackedPointRecord(np.concatenate([r.array for r in self._held]), format_))
             self._held, self.held_points = [], 0
@@ -387,6 +405,7 @@ class _TileFile:
         self._written = end
 
     def _append(self, record: laspy.PackedPointRecord) -> None:
+        import laspy
         if isinstance(self._sink, laspy.LasWriter):
             self._sink.point_writer.write_points(record)
         else:

@@ -27,8 +27,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.special import ndtr, ndtri
 
 from flightsim.core.errors import InputError
 
@@ -170,6 +168,8 @@ def truncated_normal(rng: np.random.Generator, count: int, mean: float, sd: floa
     """``count`` draws of a normal (``mean``, ``sd``) truncated to [lo, hi] (inverse CDF); ``mean`` if sd is 0."""
     if sd == 0.0:
         return np.full(count, float(mean))
+    from scipy.special import ndtr, ndtri  # here, as the other SciPy imports: a run without a forest never loads it
+
     u = rng.uniform(ndtr((lo - mean) / sd), ndtr((hi - mean) / sd), count)
     return np.clip(mean + sd * ndtri(u), lo, hi)
 
@@ -197,6 +197,8 @@ def _inhibit(kept: np.ndarray, candidates: np.ndarray, spacing: float) -> np.nda
     candidate."""
     if spacing <= 0.0:
         return candidates
+    from scipy.spatial import cKDTree
+
     ok = np.ones(len(candidates), dtype=bool)
     if len(kept):
         distance, _ = cKDTree(kept).query(candidates, distance_upper_bound=spacing)

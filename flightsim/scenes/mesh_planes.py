@@ -12,8 +12,6 @@ import itertools
 import math
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from flightsim.scenes.mesh_format import kind_from_class
 from flightsim.scenes.scene import CLASS_BUILDING, CLASS_GROUND, CLASS_ROAD, PlaneInfo, pitch_azimuth_deg, plane_info
@@ -128,6 +126,9 @@ def _edge_pairs(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _connected(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Component label (0..C-1) of each of ``n`` nodes linked by edges (a, b)."""
+    from scipy.sparse import coo_matrix  # here: a run whose scene needs no plane labelling does not load SciPy
+    from scipy.sparse.csgraph import connected_components
+
     graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
     return connected_components(graph, directed=False)[1].astype(np.int64)
 
