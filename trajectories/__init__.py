@@ -1,6 +1,7 @@
 """Flight paths for flightsim: flight-line plans, attitude, pulse timing, trajectory files.
 
-Depends only on numpy, scipy and the standard library (never on flightsim or warp).
+Depends only on numpy and the standard library (never on flightsim or warp; SciPy's rotations are repeated
+bit for bit by :mod:`trajectories.rotation`, which keeps scipy.spatial out of the simulator's start-up).
 """
 import importlib
 
@@ -15,7 +16,7 @@ __all__ = sorted(_HOMES)
 
 def __getattr__(name: str):
     """Each name imported from its module on first use: importing one module (``trajectories.errors``)
-    does not import SciPy's rotations with the rest."""
+    does not import the rest."""
     if name in _HOMES:
         return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
     raise AttributeError(f"module 'trajectories' has no attribute {name!r}")

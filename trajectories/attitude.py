@@ -11,7 +11,8 @@ Conventions (float64, radians, vectorised over leading axes):
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from . import rotation as quaternions
 
 NED_TO_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 TWO_PI = 2.0 * np.pi
@@ -51,11 +52,12 @@ def euler_from_rotation(rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 
 
 def quaternion_from_matrix(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of rotation matrices (..., 3, 3); shape (..., 4)."""
-    rotation = np.asarray(rotation, dtype=np.float64)
-    flat = rotation.reshape(-1, 3, 3)
-    quat = Rotation.from_matrix(flat).as_quat()
-    return quat.reshape(rotation.shape[:-2] + (4,))
+    """Unit quaternion (x, y, z, w) of rotation matrices (..., 3, 3); shape (..., 4).
+
+    SciPy's numbers (:func:`trajectories.rotation.from_matrix`); a matrix that is not a rotation to within
+    1e-12 (as :func:`rotation_body_to_enu`'s always are) raises ValueError.
+    """
+    return quaternions.from_matrix(rotation)
 
 
 def make_continuous(quat: np.ndarray) -> np.ndarray:

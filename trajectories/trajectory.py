@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from . import rotation as quaternions
 from .attitude import make_continuous, quaternion_from_matrix, rotation_body_to_enu
 from .checks import integer_in
 from .errors import TrajectoryError
@@ -100,10 +100,9 @@ class Trajectory:
         i = np.clip(np.searchsorted(self.gps_time, t, side="right") - 1, 0, len(self.gps_time) - 2)
         u = ((t - self.gps_time[i]) / (self.gps_time[i + 1] - self.gps_time[i]))[..., None]
         position = self.position[i] + u * (self.position[i + 1] - self.position[i])
-        start = Rotation.from_quat(self._quaternions[i].reshape(-1, 4))
-        partial = Rotation.from_rotvec((u * self._segment_rotvecs[i]).reshape(-1, 3))
-        rotation = (start * partial).as_matrix().reshape(t.shape + (3, 3))
-        return position, rotation
+        start = quaternions.normalize(self._quaternions[i])
+        partial = quaternions.from_rotvec(u * self._segment_rotvecs[i])
+        return position, quaternions.as_matrix(quaternions.multiply(start, partial))
 
     @cached_property
     def _quaternions(self) -> np.ndarray:
@@ -113,9 +112,8 @@ class Trajectory:
     @cached_property
     def _segment_rotvecs(self) -> np.ndarray:
         """(n−1, 3) rotation vector of R_i⁻¹·R_(i+1) (body frame), angle ≤ π: the shorter arc."""
-        quat = self._quaternions
-        relative = Rotation.from_quat(quat[:-1]).inv() * Rotation.from_quat(quat[1:])
-        return relative.as_rotvec()
+        quat = quaternions.normalize(self._quaternions)
+        return quaternions.as_rotvec(quaternions.multiply(quaternions.inverse(quat[:-1]), quat[1:]))
 
     @classmethod
     def read_csv(cls, path: str | os.PathLike, line_id: int = 1) -> "Trajectory":

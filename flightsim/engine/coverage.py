@@ -11,18 +11,20 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from trajectories import PulseTiming, Trajectory
+from trajectories import PulseTiming, Trajectory, rotation
 
 MARGIN_RAD = math.radians(1.0)  # added to the fan's largest exit angle
 NO_CULLING_RAD = math.radians(80.0)  # cones wider than this reach everywhere: keep every pulse
 
 
-def _reach(trajectory: Trajectory, local_position: np.ndarray, boresight: Rotation, cone: float,
+def _reach(trajectory: Trajectory, local_position: np.ndarray, boresight: np.ndarray, cone: float,
            floor_z: float) -> np.ndarray:
-    """Horizontal reach of each sample's beam cone [m]; inf where the cone is too wide to bound."""
-    axis = (Rotation.from_quat(trajectory.quaternions()) * boresight).apply([0.0, 0.0, 1.0])
+    """Horizontal reach of each sample's beam cone [m]; inf where the cone is too wide to bound.
+
+    boresight: (4,) quaternion (x, y, z, w) of the sensor frame in the body frame."""
+    sensor = rotation.multiply(rotation.normalize(trajectory.quaternions()), boresight)
+    axis = rotation.rotate(sensor, [0.0, 0.0, 1.0])
     tilt = np.arccos(np.clip(-axis[:, 2], -1.0, 1.0))
     half_angle = tilt + cone
     depth = np.maximum(local_position[:, 2] - floor_z, 0.0)
@@ -38,7 +40,7 @@ def _gap(local_position: np.ndarray, bounds: tuple[np.ndarray, np.ndarray]) -> n
 
 
 def miss_distance(trajectory: Trajectory, local_position: np.ndarray, bounds: tuple[np.ndarray, np.ndarray],
-                  cone_rad: float, boresight: Rotation) -> float:
+                  cone_rad: float, boresight: np.ndarray) -> float:
     """How far the beams' reach stays from the scene's bounding rectangle over a trajectory's samples [m]: the
     least gap less reach (without the culling margin); ≤ 0 where they can reach it."""
     reach = _reach(trajectory, local_position, boresight, cone_rad, bounds[0][2])
@@ -46,11 +48,12 @@ def miss_distance(trajectory: Trajectory, local_position: np.ndarray, bounds: tu
 
 
 def pulse_windows(trajectory: Trajectory, local_position: np.ndarray, bounds: tuple[np.ndarray, np.ndarray],
-                  timing: PulseTiming, cone_rad: float, boresight: Rotation) -> list[tuple[int, int]]:
+                  timing: PulseTiming, cone_rad: float, boresight: np.ndarray) -> list[tuple[int, int]]:
     """Ranges [k0, k1) of pulse indices (from the trajectory's first pulse) that can reach the scene.
 
     local_position: (n, 3) trajectory positions in the scene's local frame [m]; bounds: the
-    scene's local (lo, hi) corners; cone_rad: the fan's largest off-axis angle [rad].
+    scene's local (lo, hi) corners; cone_rad: the fan's largest off-axis angle [rad]; boresight: (4,) quaternion
+    (x, y, z, w) of the sensor frame in the body frame.
     """
     reach = _reach(trajectory, local_position, boresight, cone_rad + MARGIN_RAD, bounds[0][2])
     gap = _gap(local_position, bounds)  # horizontal distance to the scene's rectangle [m]

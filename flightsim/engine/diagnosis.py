@@ -38,7 +38,7 @@ def _no_pulse(tracer, counts) -> str:
     if counts.pulses_culled == 0:
         return "the flight fires no pulse (its duration is shorter than one pulse interval)"
     miss = min(miss_distance(t, tracer.scene.world_to_local(t.position), tracer.scene.bounds(), tracer.cone_rad,
-                             tracer.boresight_rotation) for t in tracer.trajectories)
+                             tracer.boresight_quat) for t in tracer.trajectories)
     return (f"the swath misses the scene by {max(miss, 0.0):.1f} m: none of the {counts.pulses_culled} pulses can "
             f"reach it (the beams reach at most {math.degrees(tracer.cone_rad):.2f} deg from the sensor axis; move "
             f"the flight over the scene, or the scene under it)")

@@ -15,7 +15,6 @@ from typing import Any, Callable, Iterator, Protocol
 
 import numpy as np
 import warp as wp
-from scipy.spatial.transform import Rotation
 
 from flightsim.core import registry
 from flightsim.core.errors import InputError
@@ -28,7 +27,7 @@ from flightsim.engine.meshes import SceneMeshes
 from flightsim.scenes.scene import Scene
 from flightsim.scoring.reduction import sum_replicas
 from kernels import frames, looks, mesh_hits, trace
-from trajectories import Trajectory
+from trajectories import Trajectory, rotation
 
 MAX_REGISTERS = 64  # registers per thread of the trace kernels on a GPU (measured best: results/profile-experiments.md
 # section 19); the CPU's compiler ignores it, so a CPU run builds the very kernels a GPU run does (prebuilt kernels)
@@ -94,9 +93,8 @@ class Tracer:
         self.edge_buffer_m = edge_buffer_m
         self.features = self._features(with_truth)
         self.rows = trace.pulse_rows(self.instrument.kernel, self.features.pose)
-        self.boresight_rotation = Rotation.from_euler("ZYX", cfg.instrument.boresight_deg[::-1],
-                                                      degrees=True)  # body←sensor
-        self.boresight = wp.quatd(*self.boresight_rotation.as_quat())
+        self.boresight_quat = rotation.from_euler_zyx(cfg.instrument.boresight_deg[::-1], degrees=True)  # body←sensor
+        self.boresight = wp.quatd(*self.boresight_quat)
         self.meshes = meshes or SceneMeshes(scene, self.device, cfg.run.bvh, cfg.run.bvh_leaf_size or None)
         self.scan = self._scan()
         self._cone_rad: float | None = None
@@ -300,7 +298,7 @@ class Tracer:
             windows = [(0, hi)]
         else:
             windows = pulse_windows(trajectory, self.scene.world_to_local(trajectory.position), self.scene.bounds(),
-                                    self.timing, self.cone_rad, self.boresight_rotation)
+                                    self.timing, self.cone_rad, self.boresight_quat)
         return [(max(k0, lo), min(k1, hi)) for k0, k1 in windows if min(k1, hi) > max(k0, lo)]
 
     @property

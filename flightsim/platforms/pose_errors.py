@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
-from scipy.spatial.transform import Rotation
 
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.core.constants import ARCSEC
 from kernels import error_models
+from trajectories import rotation
 
 
 @dataclass
@@ -52,7 +52,7 @@ class PoseErrors:
     def mount_rotation(self) -> np.ndarray:
         """The boresight error as a float64 3×3 matrix: true sensor axes in the believed sensor frame."""
         roll, pitch, yaw = (v * ARCSEC for v in self.s.boresight_arcsec)
-        return Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
+        return rotation.as_matrix(rotation.from_euler_zyx([yaw, pitch, roll]))
 
     def struct(self) -> error_models.PoseErrors:
         """The kernels' struct of the pose errors."""
