@@ -113,19 +113,32 @@ def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec
     while w.done == 0:
         kappa = g * wp.float64(w.lad)
         s = w.t_in
+        across = wp.float64(1.0)  # what the voxel lets through: exp(−κ ℓ), ℓ its whole length (1 when empty)
+        if kappa != wp.float64(0.0):
+            across = wp.exp(-kappa * (w.t_out - w.t_in))
         while kappa > wp.float64(0.0) and s < w.t_out:
-            # over the next x metres of this voxel the leaves send back T(s) (1 − exp(−κ x)) ρ_l
-            room = det.leaf_reflectance * transmission * wp.exp(-kappa * (s - w.t_in))
+            # over the next x metres of this voxel the leaves send back T(s) (1 − exp(−κ x)) ρ_l; from the voxel's
+            # entry (s = t_in: exp(−κ (s − t_in)) = 1) to its exit, exp(−κ x) is `across`: the same numbers as
+            # evaluating each exp, with one exp for a leafy voxel the beam crosses without a return instead of three
+            room = det.leaf_reflectance * transmission
+            if s != w.t_in:
+                room = room * wp.exp(-kappa * (s - w.t_in))
             if s < armed:  # blind: the echo joins the last return's
                 end = wp.min(armed, w.t_out)
+                passed = across  # what [s, end] lets through
+                if s != w.t_in or end != w.t_out:
+                    passed = wp.exp(-kappa * (end - s))
                 if count <= det.max_returns:
                     e = echoes[base + count - 1]
-                    e.strength += room * (wp.float64(1.0) - wp.exp(-kappa * (end - s)))
+                    e.strength += room * (wp.float64(1.0) - passed)
                     echoes[base + count - 1] = e
                 s = end
             else:
                 need = det.threshold - gathered
-                full = room * (wp.float64(1.0) - wp.exp(-kappa * (w.t_out - s)))
+                rest = across
+                if s != w.t_in:
+                    rest = wp.exp(-kappa * (w.t_out - s))
+                full = room * (wp.float64(1.0) - rest)
                 if full < need:
                     gathered += full
                     s = w.t_out
@@ -140,8 +153,8 @@ def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec
                     gathered = wp.float64(0.0)
                     armed = s + x + det.min_separation
                     s = s + x
-        if kappa != wp.float64(0.0):  # an empty voxel leaves it as it is (exp(0) = 1): no exp
-            transmission *= wp.exp(-kappa * (w.t_out - w.t_in))
+        if kappa != wp.float64(0.0):  # an empty voxel leaves it as it is
+            transmission *= across
         w = walk_next(c, w)
     return wp.min(count, det.max_returns), transmission, armed
 
