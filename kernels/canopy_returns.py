@@ -25,7 +25,7 @@ import functools
 
 import warp as wp
 
-from kernels.canopy import Canopy, g_of, walk_begin, walk_next
+from kernels.canopy import NO_INTERACTION, Canopy, g_of, walk_begin, walk_next
 from kernels.parts import Instrument
 from kernels.looks import FIRST_LOOK, SECOND_LOOK, Misses, list_miss
 from kernels.trace import (COUNT_MISS, COUNT_TIR, STATUS_LEAF, STATUS_MISS, STATUS_RETRY, STATUS_RETURN, STATUS_TIR,
@@ -98,65 +98,103 @@ def box_depth(c: Canopy, point: wp.vec3d, up: wp.vec3d) -> wp.float64:
 
 
 @wp.func
+def depth_at(transmission: wp.float64) -> wp.float64:
+    """The optical depth τ at which the beam keeps ``transmission`` = exp(−τ) of its energy; +inf where it is 0 or
+    less (the light that is left can never be reached)."""
+    if transmission <= wp.float64(0.0):
+        return NO_INTERACTION
+    return -wp.log(transmission)
+
+
+@wp.struct
+class Trigger:
+    """The detector's state on the way down a beam (:func:`leaf_returns`)."""
+
+    count: wp.int32  # returns so far (also those past max_returns, which are not kept)
+    armed: wp.float64  # distance down from the walk's top at which the detector listens again [m]
+    blind: wp.int32  # 1: the last return's blind stretch has not ended: its echo is still gathering
+    at_return: wp.float64  # the beam's transmission where the last return was placed
+    above: wp.float64  # the last return's distance above the surface along the beam [m]
+    next_left: wp.float64  # the transmission at which the next return triggers
+    target: wp.float64  # the optical depth at which it does (depth_at(next_left))
+
+
+@wp.func
+def arm(det: EchoDetection, t: Trigger, transmission: wp.float64) -> Trigger:
+    """``t`` listening again where the beam's transmission is ``transmission``: the leaves' echo gathered from there,
+    ρ_l (transmission − exp(−τ)), reaches the threshold where exp(−τ) = transmission − threshold / ρ_l."""
+    r = t
+    r.next_left = transmission - det.threshold / det.leaf_reflectance
+    r.target = depth_at(r.next_left)
+    return r
+
+
+@wp.func
+def end_blind(det: EchoDetection, t: Trigger, transmission: wp.float64, echoes: wp.array(dtype=Echo),
+              base: int) -> Trigger:
+    """The last return's blind stretch over where the beam's transmission is ``transmission``: its echo is the
+    threshold plus what the leaves sent back meanwhile, ρ_l (transmission at the return − ``transmission``); the
+    detector listens again."""
+    if t.count <= det.max_returns:
+        e = Echo()
+        e.above = t.above
+        e.strength = det.threshold + det.leaf_reflectance * (t.at_return - transmission)
+        echoes[base + t.count - 1] = e
+    r = arm(det, t, transmission)
+    r.blind = 0
+    return r
+
+
+@wp.func
 def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec3d, depth: wp.float64,
                  echoes: wp.array(dtype=Echo), base: int):
     """Walk the beam down from ``top`` (``depth`` [m] above the surface hit) and write its leaf returns into
     ``echoes[base:]`` (each one's echo: the threshold it reached and what the leaves sent back while the detector
     was blind after it); returns (their count, the transmission left at the surface, the end of the last blind
-    stretch as a distance down from ``top`` [m])."""
+    stretch as a distance down from ``top`` [m]).
+
+    The echo the leaves send back between two points of the beam is ρ_l times the energy they intercept there, the
+    difference of the beam's transmissions exp(−τ) at the two, so the walk carries the optical depth τ alone: a
+    return lies where τ reaches the trigger's target (linear within a voxel), and an exp is taken only where a
+    blind stretch ends and at the surface, not in every voxel the beam crosses."""
     g = g_of(c, direction)
-    transmission = wp.float64(1.0)
-    gathered = wp.float64(0.0)
-    armed = wp.float64(0.0)  # distance down from top at which the detector listens again
-    count = int(0)
+    tau = wp.float64(0.0)  # the optical depth from top to the current voxel's entry
+    t = Trigger()
+    t.count = 0
+    t.armed = wp.float64(0.0)
+    t.blind = 0
+    t.at_return = wp.float64(1.0)
+    t.above = wp.float64(0.0)
+    t = arm(det, t, wp.float64(1.0))
     w = walk_begin(c, top, direction, wp.float64(0.0), depth)
     while w.done == 0:
         kappa = g * wp.float64(w.lad)
-        s = w.t_in
-        across = wp.float64(1.0)  # what the voxel lets through: exp(−κ ℓ), ℓ its whole length (1 when empty)
-        if kappa != wp.float64(0.0):
-            across = wp.exp(-kappa * (w.t_out - w.t_in))
-        while kappa > wp.float64(0.0) and s < w.t_out:
-            # over the next x metres of this voxel the leaves send back T(s) (1 − exp(−κ x)) ρ_l; from the voxel's
-            # entry (s = t_in: exp(−κ (s − t_in)) = 1) to its exit, exp(−κ x) is `across`: the same numbers as
-            # evaluating each exp, with one exp for a leafy voxel the beam crosses without a return instead of three
-            room = det.leaf_reflectance * transmission
-            if s != w.t_in:
-                room = room * wp.exp(-kappa * (s - w.t_in))
-            if s < armed:  # blind: the echo joins the last return's
-                end = wp.min(armed, w.t_out)
-                passed = across  # what [s, end] lets through
-                if s != w.t_in or end != w.t_out:
-                    passed = wp.exp(-kappa * (end - s))
-                if count <= det.max_returns:
-                    e = echoes[base + count - 1]
-                    e.strength += room * (wp.float64(1.0) - passed)
-                    echoes[base + count - 1] = e
-                s = end
-            else:
-                need = det.threshold - gathered
-                rest = across
-                if s != w.t_in:
-                    rest = wp.exp(-kappa * (w.t_out - s))
-                full = room * (wp.float64(1.0) - rest)
-                if full < need:
-                    gathered += full
-                    s = w.t_out
+        if kappa > wp.float64(0.0):
+            tau_out = tau + kappa * (w.t_out - w.t_in)
+            s = w.t_in
+            while s < w.t_out:
+                if t.blind != 0:
+                    if t.armed > w.t_out:
+                        break
+                    s = wp.max(s, t.armed)  # the blind stretch ends in this voxel (or ended in empty ones before it)
+                    t = end_blind(det, t, wp.exp(-(tau + kappa * (s - w.t_in))), echoes, base)
+                elif tau_out < t.target:
+                    break
                 else:
-                    x = -wp.log(wp.float64(1.0) - need / room) / kappa
-                    count += 1
-                    if count <= det.max_returns:
-                        e = Echo()
-                        e.above = depth - (s + x)
-                        e.strength = det.threshold
-                        echoes[base + count - 1] = e
-                    gathered = wp.float64(0.0)
-                    armed = s + x + det.min_separation
-                    s = s + x
-        if kappa != wp.float64(0.0):  # an empty voxel leaves it as it is
-            transmission *= across
+                    s = wp.min(wp.max(s, w.t_in + (t.target - tau) / kappa), w.t_out)
+                    t.count += 1
+                    t.at_return = t.next_left
+                    t.above = depth - s
+                    t.armed = s + det.min_separation
+                    t.blind = 1
+                    if det.min_separation == wp.float64(0.0):  # no blind stretch: listening again at once
+                        t = end_blind(det, t, t.at_return, echoes, base)
+            tau = tau_out
         w = walk_next(c, w)
-    return wp.min(count, det.max_returns), transmission, armed
+    transmission = wp.exp(-tau)
+    if t.blind != 0:  # the walk ended blind: the echo gathered to its end
+        t = end_blind(det, t, transmission, echoes, base)
+    return wp.min(t.count, det.max_returns), transmission, t.armed
 
 
 SMEM_SPILLING = True  # the walk kernel's register spills go to shared memory first (False: all to local memory)
