@@ -98,9 +98,16 @@ ptxas info    : Compiling entry function 'records_kernel__locals__trace_records_
 ptxas info    : Function properties for records_kernel__locals__trace_records_e84d2437_cuda_kernel_forward
     432 bytes stack frame, 156 bytes spill stores, 248 bytes spill loads
 ptxas info    : Used 64 registers, used 0 barriers, 432 bytes cumulative stack size, 33792 bytes smem
+ptxas info    : Compiling entry function 'canopy_points_kernel__locals__trace_canopy_points_24d91470_cuda_kernel_forward' for 'sm_90'
+ptxas info    : Function properties for canopy_points_kernel__locals__trace_canopy_points_24d91470_cuda_kernel_forward
+    0 bytes stack frame, 0 bytes spill stores, -4 bytes spill loads
+ptxas info    : Used 64 registers, used 0 barriers, 18432 bytes smem
 """
-    assert parse_ptxas(report) == {"records_kernel__locals__trace_records_e84d2437_cuda_kernel_forward": {
-        "frame": 432, "spill_stores": 156, "spill_loads": 248, "registers": 64}}
+    assert parse_ptxas(report) == {
+        "records_kernel__locals__trace_records_e84d2437_cuda_kernel_forward": {
+            "frame": 432, "spill_stores": 156, "spill_loads": 248, "registers": 64, "smem": 33792},
+        "canopy_points_kernel__locals__trace_canopy_points_24d91470_cuda_kernel_forward": {  # spilling to shared memory
+            "frame": 0, "spill_stores": 0, "spill_loads": -4, "registers": 64, "smem": 18432}}
 
 
 def test_native_timing_brackets_each_sort_and_scan_and_restores_them(monkeypatch):

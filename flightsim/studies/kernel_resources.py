@@ -38,17 +38,20 @@ def ptxas() -> str | None:
 
 
 def parse_ptxas(report: str) -> dict[str, dict[str, int]]:
-    """Per entry function of ``ptxas -v``'s report: registers, stack frame, spill stores and loads [bytes]."""
+    """Per entry function of ``ptxas -v``'s report: registers, stack frame, spill stores and loads, static shared
+    memory [bytes] (a kernel spilling to shared memory may report negative spill bytes: what it moved there)."""
     out: dict[str, dict[str, int]] = {}
     name = None
     for line in report.splitlines():
         if m := re.search(r"Function properties for (\w+)", line):
             name = m.group(1)
-        elif name and (m := re.search(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads",
+        elif name and (m := re.search(r"(\d+) bytes stack frame, (-?\d+) bytes spill stores, (-?\d+) bytes spill loads",
                                       line)):
             out[name] = dict(zip(("frame", "spill_stores", "spill_loads"), map(int, m.groups())))
         elif name and (m := re.search(r"Used (\d+) registers", line)):
             out.setdefault(name, {})["registers"] = int(m.group(1))
+            smem = re.search(r"(\d+) bytes smem", line)  # with shared-memory spilling, the spills' share of it too
+            out[name]["smem"] = int(smem.group(1)) if smem else 0
     return {k: v for k, v in out.items() if k.endswith("_cuda_kernel_forward")}
 
 
@@ -93,14 +96,14 @@ def main(argv: list[str] | None = None) -> int:
     if tool is None:
         print("kernel_resources: no ptxas (python3 -m pip install nvidia-cuda-nvcc)", file=sys.stderr)
         return 2
-    print("| workload | kernel | registers | stack frame [B] | spill stores [B] | spill loads [B] |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    print("| workload | kernel | registers | stack frame [B] | spill stores [B] | spill loads [B] | shared [B] |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for workload in args.workloads:
         for kernel in launched(workload).values():
             for name, r in usage(kernel, tool).items():
                 if kernel.key.split("__")[-1] in name:
                     print(f"| {workload} | {kernel.key.split('__')[-1]} | {r['registers']} | {r['frame']} | "
-                          f"{r['spill_stores']} | {r['spill_loads']} |")
+                          f"{r['spill_stores']} | {r['spill_loads']} | {r['smem']} |")
     return 0
 
 
