@@ -53,6 +53,8 @@ class Canopy:
     dims: wp.vec3i  # voxels per axis
     g_table: wp.array(dtype=wp.float64)  # G(μ) at μ = |cos zenith| = i / (n − 1), i = 0 … n − 1
     present: wp.int32  # 0: no canopy (every function returns at once: depth 0, no voxel)
+    leaf_layers: wp.array3d(dtype=wp.int32)  # per tile of tile × tile columns: lowest leafy layer, one past the highest
+    tile: wp.int32  # voxel columns per tile side of leaf_layers
 
 
 @wp.struct
@@ -209,6 +211,49 @@ def walk_next(c: Canopy, w: VoxelWalk) -> VoxelWalk:
     v.lad = c.lad[index[0], index[1], index[2]]
     v.steps = v.steps + 1
     return v
+
+
+MAX_SPAN_TILES = wp.constant(4)
+"""Tiles per axis above which :func:`leaf_span` keeps the whole segment (a far slanted ray)."""
+
+
+@wp.func
+def _column(c: Canopy, axis: int, x: wp.float64) -> int:
+    """The voxel column index along ``axis`` (0 east, 1 north) holding coordinate ``x``, clamped to the grid."""
+    f = wp.clamp((x - c.lower[axis]) / c.cell[axis], wp.float64(-1.0), wp.float64(c.dims[axis]))
+    return wp.clamp(int(wp.floor(f)), 0, c.dims[axis] - 1)
+
+
+@wp.func
+def leaf_span(c: Canopy, start: wp.vec3d, direction: wp.vec3d, t1: wp.float64) -> wp.vec2d:
+    """The part [s0, s1] of the segment ``start + t · direction``, t in [0, t1], beyond which it crosses no leaves:
+    from one voxel layer above the highest leaves of the tiles of columns its horizontal path may cross (a column's
+    margin each side) to one layer below their lowest. A walk over [s0, s1] visits the same leafy voxels with the same
+    entry and exit parameters as one over [0, t1] (each is a plane crossing of the same start and direction); s0 > s1
+    where the path meets no leaves; [0, t1] for a horizontal ray or one across more than MAX_SPAN_TILES tiles."""
+    whole = wp.vec2d(wp.float64(0.0), t1)
+    dz = direction[2]
+    if c.present == 0 or wp.abs(dz) < PARALLEL:
+        return whole
+    end = start + t1 * direction
+    tile_lo = wp.vec2i(0, 0)
+    tile_hi = wp.vec2i(0, 0)
+    for a in range(2):
+        tile_lo[a] = wp.max(wp.min(_column(c, a, start[a]), _column(c, a, end[a])) - 1, 0) // c.tile
+        tile_hi[a] = wp.min(wp.max(_column(c, a, start[a]), _column(c, a, end[a])) + 1, c.dims[a] - 1) // c.tile
+        if tile_hi[a] - tile_lo[a] >= MAX_SPAN_TILES:
+            return whole
+    lowest = c.dims[2]
+    highest = int(0)
+    for i in range(tile_lo[0], tile_hi[0] + 1):
+        for j in range(tile_lo[1], tile_hi[1] + 1):
+            lowest = wp.min(lowest, c.leaf_layers[i, j, 0])
+            highest = wp.max(highest, c.leaf_layers[i, j, 1])
+    if highest <= lowest:
+        return wp.vec2d(t1, wp.float64(0.0))
+    above = (c.lower[2] + wp.float64(highest + 1) * c.cell[2] - start[2]) / dz
+    below = (c.lower[2] + wp.float64(lowest - 1) * c.cell[2] - start[2]) / dz
+    return wp.vec2d(wp.max(wp.float64(0.0), wp.min(above, below)), wp.min(t1, wp.max(above, below)))
 
 
 @wp.func

@@ -25,7 +25,7 @@ import functools
 
 import warp as wp
 
-from kernels.canopy import NO_INTERACTION, Canopy, g_of, walk_begin, walk_next
+from kernels.canopy import NO_INTERACTION, Canopy, g_of, leaf_span, walk_begin, walk_next
 from kernels.parts import Instrument
 from kernels.looks import FIRST_LOOK, SECOND_LOOK, Misses, list_miss
 from kernels.trace import (COUNT_MISS, COUNT_TIR, STATUS_LEAF, STATUS_MISS, STATUS_RETRY, STATUS_RETURN, STATUS_TIR,
@@ -166,7 +166,8 @@ def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec
     t.at_return = wp.float64(1.0)
     t.above = wp.float64(0.0)
     t = arm(det, t, wp.float64(1.0))
-    w = walk_begin(c, top, direction, wp.float64(0.0), depth)
+    span = leaf_span(c, top, direction, depth)  # the walk crosses no leaves outside it: the same numbers
+    w = walk_begin(c, top, direction, span[0], span[1])
     while w.done == 0:
         kappa = g * wp.float64(w.lad)
         if kappa > wp.float64(0.0):

@@ -11,7 +11,7 @@ import warp as wp
 
 from flightsim.core.errors import InputError
 from flightsim.scenes import leaf_angles as la
-from flightsim.scenes.canopy import VoxelCanopy, no_canopy
+from flightsim.scenes.canopy import VoxelCanopy, leaf_layers, no_canopy
 from flightsim.scenes.macarthur_horn import lad_from_points, sampling_sigma
 from kernels import canopy as kc
 from tests import reference_canopy as ref
@@ -478,6 +478,84 @@ def test_voxel_canopy_lai_bounds_and_device_struct(device):
     assert c.present == 1 and tuple(c.dims) == (3, 4, 5) and np.array_equal(c.lad.numpy(), lad)
     assert c.g_table.shape[0] == 257
     assert no_canopy(device).present == 0
+
+
+def test_leaf_layers_bound_each_tiles_leaves():
+    rng = np.random.default_rng(5)
+    lad = np.zeros((11, 6, 9), np.float32)
+    for _ in range(25):  # blobs of leaves at random heights; some columns and tiles stay empty
+        i, j, k = rng.integers(0, 11), rng.integers(0, 6), rng.integers(0, 9)
+        lad[i, j, k:k + rng.integers(1, 4)] = rng.uniform(0.1, 1.0)
+    for tile in (1, 3, 4, 16):
+        layers = leaf_layers(lad, tile)
+        assert layers.dtype == np.int32 and layers.shape == (-(-11 // tile), -(-6 // tile), 2)
+        for ti in range(layers.shape[0]):
+            for tj in range(layers.shape[1]):
+                block = lad[ti * tile:(ti + 1) * tile, tj * tile:(tj + 1) * tile]
+                k = np.flatnonzero((block > 0).any(axis=(0, 1)))
+                want = (k.min(), k.max() + 1) if len(k) else (9, 0)
+                assert tuple(layers[ti, tj]) == want
+
+
+@wp.kernel
+def _leafy_depths(c: kc.Canopy, starts: wp.array(dtype=wp.vec3d), dirs: wp.array(dtype=wp.vec3d),
+                  t1: wp.array(dtype=wp.float64), clip: int, depth: wp.array(dtype=wp.float64),
+                  leafy: wp.array(dtype=wp.int32)):
+    """Σ lad · length over the leafy voxels of [0, t1] (and their count), walked whole or over its leaf_span."""
+    r = wp.tid()
+    s0 = wp.float64(0.0)
+    s1 = t1[r]
+    if clip != 0:
+        span = kc.leaf_span(c, starts[r], dirs[r], t1[r])
+        s0 = span[0]
+        s1 = span[1]
+    w = kc.walk_begin(c, starts[r], dirs[r], s0, s1)
+    total = wp.float64(0.0)
+    n = int(0)
+    while w.done == 0:
+        if w.lad > wp.float32(0.0):
+            total += wp.float64(w.lad) * (w.t_out - w.t_in)
+            n += 1
+        w = kc.walk_next(c, w)
+    depth[r] = total
+    leafy[r] = n
+
+
+def test_leaf_span_keeps_every_leafy_voxel_bit_for_bit(device):
+    """The walk over a ray's leaf span crosses the same leafy voxels with the same parameters as the whole walk: crowns
+    of leaves in a tall grid with empty columns, rays down from above it at ALS angles, slanted, upward, horizontal,
+    and every kind of the walk's own test rays."""
+    rng = np.random.default_rng(11)
+    lad = np.zeros((40, 33, 30), np.float32)
+    for _ in range(60):  # crowns: boxes of leaves between 5 and 25 layers up
+        i, j, k = rng.integers(0, 40), rng.integers(0, 33), rng.integers(5, 20)
+        lad[i:i + rng.integers(1, 5), j:j + rng.integers(1, 5), k:k + rng.integers(1, 6)] = rng.uniform(0.05, 1.5)
+    canopy = VoxelCanopy(lad, (-20.3, 7.1, 0.4), (0.9, 1.1, 0.7))
+    lo, hi = canopy.bounds()
+    n = 3000
+    top = lo + (hi - lo) * rng.random((n, 3))
+    top[:, 2] = hi[2] + rng.uniform(0.0, 5.0, n)
+    tilt = np.radians(rng.uniform(0.0, 25.0, n))
+    azimuth = rng.uniform(0.0, 2.0 * np.pi, n)
+    down = np.stack([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), -np.cos(tilt)], axis=1)
+    reach = rng.uniform(0.0, 40.0, n)
+    starts, dirs, t0, t1 = _ray_set(rng, canopy, 1500)
+    others = t0 == 0.0
+    starts = np.concatenate([top, starts[others], lo + (hi - lo) * rng.random((500, 3))])
+    dirs = np.concatenate([down, dirs[others], _unit(rng.normal(size=(500, 3)) * [1.0, 1.0, 0.1])])
+    t1 = np.concatenate([reach, t1[others], rng.uniform(0.0, 60.0, 500)])
+    c = canopy.to_device(device)
+    s, d = _arrays(device, starts, dirs, dtype=wp.vec3d)
+    (a1,) = _arrays(device, t1)
+    results = []
+    for clip in (0, 1):
+        depth = wp.zeros(len(t1), dtype=wp.float64, device=device)
+        leafy = wp.zeros(len(t1), dtype=wp.int32, device=device)
+        wp.launch(_leafy_depths, len(t1), [c, s, d, a1, clip, depth, leafy], device=device)
+        results.append((depth.numpy(), leafy.numpy()))
+    (whole, n_whole), (clipped, n_clipped) = results
+    assert (n_whole > 0).sum() > 500 and (n_whole == 0).sum() > 500  # rays through leaves and rays past them
+    assert np.array_equal(n_whole, n_clipped) and whole.tobytes() == clipped.tobytes()
 
 
 @pytest.mark.parametrize("kwargs, field, value", [

@@ -102,6 +102,8 @@ class VoxelCanopy:
             c.dims = wp.vec3i(*self.dims)
             c.g_table = wp.array(self.g_table(), dtype=wp.float64, device=device)
             c.present = 1
+            c.leaf_layers = wp.array(leaf_layers(self.lad, LEAF_TILE), dtype=wp.int32, device=device)
+            c.tile = LEAF_TILE
             self._device[key] = c
         return self._device[key]
 
@@ -124,11 +126,33 @@ def no_canopy(device: str):
         c.dims = wp.vec3i(1, 1, 1)
         c.g_table = wp.array(np.array([0.5, 0.5]), dtype=wp.float64, device=device)
         c.present = 0
+        c.leaf_layers = wp.zeros((1, 1, 2), dtype=wp.int32, device=device)
+        c.tile = 1
         _NO_CANOPY[key] = c
     return _NO_CANOPY[key]
 
 
 _NO_CANOPY: dict = {}
+
+LEAF_TILE = 4
+"""Voxel columns per side of the tiles whose leafy layers bound a beam's walk (kernels.canopy.leaf_span)."""
+
+
+def leaf_layers(lad: np.ndarray, tile: int) -> np.ndarray:
+    """(⌈nx / tile⌉, ⌈ny / tile⌉, 2) int32: per tile of tile × tile voxel columns of ``lad`` (nx, ny, nz), the lowest
+    voxel layer holding leaves and one past the highest (nz and 0 where none does)."""
+    leafy = np.asarray(lad) > 0.0
+    nx, ny, nz = leafy.shape
+    some = leafy.any(axis=2)
+    lowest = np.where(some, leafy.argmax(axis=2), nz)
+    highest = np.where(some, nz - leafy[:, :, ::-1].argmax(axis=2), 0)
+    tx, ty = -(-nx // tile), -(-ny // tile)
+
+    def tiles(columns: np.ndarray, fill: int) -> np.ndarray:
+        padded = np.pad(columns, ((0, tx * tile - nx), (0, ty * tile - ny)), constant_values=fill)
+        return padded.reshape(tx, tile, ty, tile)
+
+    return np.stack([tiles(lowest, nz).min(axis=(1, 3)), tiles(highest, 0).max(axis=(1, 3))], axis=-1).astype(np.int32)
 
 
 def _leaf_area_density(value) -> np.ndarray:
