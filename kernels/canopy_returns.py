@@ -122,10 +122,15 @@ class Trigger:
 @wp.func
 def arm(det: EchoDetection, t: Trigger, transmission: wp.float64) -> Trigger:
     """``t`` listening again where the beam's transmission is ``transmission``: the leaves' echo gathered from there,
-    ρ_l (transmission − exp(−τ)), reaches the threshold where exp(−τ) = transmission − threshold / ρ_l."""
+    ρ_l (transmission − exp(−τ)), reaches the threshold where exp(−τ) = transmission − threshold / ρ_l. Once
+    ``max_returns`` are kept it listens no more: a later return would change nothing kept (with them kept, the
+    surface's return is not), and without a blind stretch a tiny threshold would otherwise make ρ_l / threshold
+    returns."""
     r = t
     r.next_left = transmission - det.threshold / det.leaf_reflectance
     r.target = depth_at(r.next_left)
+    if t.count >= det.max_returns:
+        r.target = NO_INTERACTION
     return r
 
 

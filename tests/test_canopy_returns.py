@@ -139,6 +139,22 @@ def test_returns_lie_where_the_trigger_puts_them(tmp_path, lad, pitch, device):
     assert result.stats["beams_returned"] == len(pulses) and result.stats["dark"] == 0
 
 
+def test_without_a_blind_stretch_a_tiny_threshold_keeps_the_first_max_returns(tmp_path):
+    """No blind stretch and a threshold of 1e-4: the leaves could trigger ρ_l / threshold = 4000 returns a beam; the
+    first 15 are kept, each where the echo gathered since the last one reaches the threshold (closed form in float64),
+    and the detector stops listening there (the surface's return is not kept either)."""
+    thr, lad = 1e-4, 0.6
+    result = _run(tmp_path, lad, min_separation_m=0.0, max_returns=15, threshold=thr)
+    r = result.returns
+    kappa = 0.5 * lad
+    want = [TOP + math.log(1.0 - k * thr / 0.4) / kappa for k in range(1, 16)]  # heights above the plane
+    for pulse in np.unique(r.pulse):
+        mine = np.flatnonzero(r.pulse == pulse)
+        z = r.true_points[mine[np.argsort(r.return_number[mine])], 2] - ORIGIN[2]
+        assert len(z) == 15 and np.abs(z - want).max() < 2e-4, (z, want)
+    assert (np.asarray(result.points["exact"].classification) == 5).all()
+
+
 def test_a_dense_layer_hides_the_ground_and_max_returns_keeps_the_first(tmp_path):
     d = flightsim.load_config().discrete
     depths, ground = _expected(0.6, 1.0, d.threshold, d.min_separation_m, 0.4, d.reflectance, d.max_returns)
