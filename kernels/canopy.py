@@ -239,8 +239,10 @@ def leaf_span(c: Canopy, start: wp.vec3d, direction: wp.vec3d, t1: wp.float64) -
     tile_lo = wp.vec2i(0, 0)
     tile_hi = wp.vec2i(0, 0)
     for a in range(2):
-        tile_lo[a] = wp.max(wp.min(_column(c, a, start[a]), _column(c, a, end[a])) - 1, 0) // c.tile
-        tile_hi[a] = wp.min(wp.max(_column(c, a, start[a]), _column(c, a, end[a])) + 1, c.dims[a] - 1) // c.tile
+        first = _column(c, a, start[a])
+        last = _column(c, a, end[a])
+        tile_lo[a] = wp.max(wp.min(first, last) - 1, 0) // c.tile
+        tile_hi[a] = wp.min(wp.max(first, last) + 1, c.dims[a] - 1) // c.tile
         if tile_hi[a] - tile_lo[a] >= MAX_SPAN_TILES:
             return whole
     lowest = c.dims[2]

@@ -62,12 +62,14 @@ def from_matrix(matrix) -> np.ndarray:
     quat = np.empty((m.shape[0], 4))
     for i in range(3):  # the largest diagonal element: its axis' component is the best conditioned
         j, k = (i + 1) % 3, (i + 2) % 3
-        rows, c = choice == i, m[choice == i]
+        rows = choice == i
+        c = m[rows]
         quat[rows, i] = 1 - trace[rows] + 2 * c[:, i, i]
         quat[rows, j] = c[:, j, i] + c[:, i, j]
         quat[rows, k] = c[:, k, i] + c[:, i, k]
         quat[rows, 3] = c[:, k, j] - c[:, j, k]
-    rows, c = choice == 3, m[choice == 3]  # the trace: w is the best conditioned
+    rows = choice == 3  # the trace: w is the best conditioned
+    c = m[rows]
     quat[rows] = np.stack([c[:, 2, 1] - c[:, 1, 2], c[:, 0, 2] - c[:, 2, 0], c[:, 1, 0] - c[:, 0, 1],
                            1 + trace[rows]], axis=-1)
     return normalize(quat).reshape(matrix.shape[:-2] + (4,))
