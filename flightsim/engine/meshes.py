@@ -12,6 +12,9 @@ from flightsim.scenes.scene import Scene
 from kernels import edges, mesh_hits
 
 EDGE_GRID_CELLS = 4096  # the edge grid has at most this many cells along a side
+EDGE_CELLS_PER_CAP = 4  # ... and cells of a quarter of the edge cap where that allows: a cell is marked out to the
+# cap plus half its diagonal from its centre, so the returns sent to the boundary query lie within 1.35 caps of a
+# boundary (cells of one cap: 2.41)
 EDGE_GRIDS_KEPT = 4  # edge grids (one per edge cap) a SceneMeshes keeps
 
 
@@ -88,7 +91,7 @@ class SceneMeshes:
     def _build_edge_grid(self, cap_m: float) -> edges.EdgeGrid:
         lower, upper = self.scene.bounds()
         extent = float(max(upper[0] - lower[0], upper[1] - lower[1])) + 2.0 * cap_m
-        cell = max(cap_m, extent / EDGE_GRID_CELLS, 1e-6)
+        cell = max(cap_m / EDGE_CELLS_PER_CAP, extent / EDGE_GRID_CELLS, 1e-6)
         shape = tuple(int(math.ceil((upper[k] - lower[k] + 2.0 * cap_m) / cell)) + 1 for k in (0, 1))
         grid = edges.EdgeGrid()
         grid.near = wp.zeros(shape, dtype=wp.uint8, device=self.device)
