@@ -1,6 +1,6 @@
-"""Bounded least-squares fit of k Gaussians to each of many waveforms, one thread per waveform (float64): the device
-form of ``flightsim.instrument.waveform_model.decompose``'s ``curve_fit``, in the same units (x = (t − t0)/σ, y = the
-echo over its maximum) and bounds (a ≥ 0, 0 ≤ μ ≤ x_last, Δt/σ ≤ s ≤ x_last).
+"""Bounded least-squares fit of k Gaussians to each of many waveforms (float64): the device form of
+``flightsim.instrument.waveform_model.decompose``'s ``curve_fit``, in the same units (x = (t − t0)/σ, y = the echo over
+its maximum) and bounds (a ≥ 0, 0 ≤ μ ≤ x_last, Δt/σ ≤ s ≤ x_last).
 
 Levenberg–Marquardt with Marquardt's scaling (JᵀJ + λ·diag JᵀJ) δ = −Jᵀr, projected on the bounds: a parameter at a
 bound whose gradient points out of the box is held (its row and column left out of the step), and each step is
@@ -8,8 +8,14 @@ clipped into the box. A step is taken only when it lowers the sum of squared res
 The fit ends when LAMBDA_TRIES successive ×10 increases of λ find no lower SSR, or a step lowers it by less than
 GAIN_TOLERANCE of it (float64 rounding), or after MAX_ITERATIONS steps.
 
-Scratch arrays, parameter first and waveform last: ``jac`` (3·MAX_PEAKS, W), ``normal`` and ``chol``
-(3·MAX_PEAKS, 3·MAX_PEAKS, W), ``grad``, ``trial``, ``delta`` (3·MAX_PEAKS, W), ``free`` (3·MAX_PEAKS, W).
+Each waveform's fit advances one evaluation of the SSR (with JᵀJ and Jᵀr, or without at a trial point) per round of
+two launches: :data:`evaluate_chunks`, one thread per FIT_CHUNK samples of a waveform (a long waveform's sums are
+spread over many threads), then :data:`advance_fits`, one thread per waveform, adding the chunks' sums in chunk order
+(so a fit is the same on every run) and taking the Levenberg–Marquardt decision the sums call for. The host launches
+rounds until no fit is left (:func:`flightsim.instrument.waveform_batch.process`).
+
+Scratch arrays, parameter first and waveform last: ``normal`` and ``chol`` (3·MAX_PEAKS, 3·MAX_PEAKS, W), ``grad``,
+``trial``, ``delta`` (3·MAX_PEAKS, W), ``free`` (3·MAX_PEAKS, W); the chunks' sums (:class:`ChunkSums`).
 """
 import warp as wp
 
@@ -18,45 +24,44 @@ from kernels.waveform_measures import GAIN_TOLERANCE, LAMBDA_TRIES, MAX_ITERATIO
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
+FIT_CHUNK = 1024  # samples whose SSR, JᵀJ and Jᵀr one thread of evaluate_chunks sums
+PARAMETERS = 3 * int(MAX_PEAKS)  # (a, μ, s) per Gaussian
+PACKED = PARAMETERS * (PARAMETERS + 1) // 2  # entries of JᵀJ's upper triangle
+vec_packed = wp.types.vector(PACKED, wp.float64)
+vec_parameters = wp.types.vector(PARAMETERS, wp.float64)
+
+PHASE_DONE = wp.constant(0)  # the fit has ended (or was never started)
+PHASE_BUILD = wp.constant(1)  # the next evaluation: SSR, JᵀJ and Jᵀr at ``params``
+PHASE_TRIAL = wp.constant(2)  # the next evaluation: the SSR at ``trial``
+
+
+@wp.struct
+class FitState:
+    """Each waveform's Levenberg–Marquardt state between rounds (arrays of W)."""
+
+    phase: wp.array(dtype=wp.int32)  # PHASE_*
+    accepted: wp.array(dtype=wp.int32)  # 1: the pending build follows a step taken (its gain to be checked)
+    cost: wp.array(dtype=wp.float64)  # SSR at ``params``
+    gain: wp.array(dtype=wp.float64)  # the SSR the last step took off
+    lam: wp.array(dtype=wp.float64)  # λ
+    tries: wp.array(dtype=wp.int32)  # λ increases since the last step
+    steps: wp.array(dtype=wp.int32)  # steps taken
+
+
+@wp.struct
+class ChunkSums:
+    """One evaluation's sums per chunk of samples and waveform: [chunk, w]; JᵀJ packed row by row over the first
+    3k parameters of the waveform's k Gaussians (row r's entries c ≥ r)."""
+
+    ssr: wp.array2d(dtype=wp.float64)
+    grad: wp.array3d(dtype=wp.float64)  # [r, chunk, w]
+    normal: wp.array3d(dtype=wp.float64)  # [packed entry, chunk, w]
+
 
 @wp.func
-def _residuals(echo: wp.array2d(dtype=wp.float64), w: int, t0: wp.float64, dt: wp.float64, sigma: wp.float64,
-               scale: wp.float64, p: wp.array2d(dtype=wp.float64), k: int, jac: wp.array2d(dtype=wp.float64),
-               normal: wp.array3d(dtype=wp.float64), grad: wp.array2d(dtype=wp.float64), build: int) -> wp.float64:
-    """SSR of Σ a·exp(−(x − μ)²/2s²) − y over the waveform; with ``build`` also JᵀJ (upper triangle) and Jᵀr."""
-    m = 3 * k
-    if build != 0:
-        for r in range(m):
-            grad[r, w] = wp.float64(0.0)
-            for c in range(r, m):
-                normal[r, c, w] = wp.float64(0.0)
-    ssr = wp.float64(0.0)
-    for j in range(echo.shape[0]):
-        x = (_time(t0, dt, j) - t0) / sigma
-        model = wp.float64(0.0)
-        for q in range(k):
-            a = p[3 * q, w]
-            s = p[3 * q + 2, w]
-            z = (x - p[3 * q + 1, w]) / s
-            h = wp.float64(0.5) * z * z
-            e = wp.float64(0.0)
-            if h < UNDERFLOW:
-                e = wp.exp(-h)
-            model += a * e
-            if build != 0:
-                jac[3 * q, w] = e
-                jac[3 * q + 1, w] = a * e * z / s
-                jac[3 * q + 2, w] = a * e * z * z / s
-        res = model - echo[j, w] / scale
-        ssr += res * res
-        if build != 0:
-            for q in range(k):
-                if jac[3 * q, w] != wp.float64(0.0):
-                    for r in range(3 * q, 3 * q + 3):
-                        grad[r, w] = grad[r, w] + jac[r, w] * res
-                        for c in range(r, m):
-                            normal[r, c, w] = normal[r, c, w] + jac[r, w] * jac[c, w]
-    return ssr
+def _packed(r: int, c: int, m: int) -> int:
+    """Index of JᵀJ's entry (r, c ≥ r) in the upper triangle of an m × m matrix packed row by row."""
+    return r * m - r * (r - 1) // 2 + c - r
 
 
 @wp.func
@@ -137,71 +142,181 @@ def _clipped_step(p: wp.array2d(dtype=wp.float64), delta: wp.array2d(dtype=wp.fl
 
 
 @wp.kernel
-def fit_gaussians(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.float64), dt: wp.float64,
-                  step: wp.array(dtype=wp.float64), sigma: wp.float64, maximum: wp.array2d(dtype=wp.float64),
-                  count: wp.array(dtype=wp.int32), params: wp.array2d(dtype=wp.float64),
-                  trial: wp.array2d(dtype=wp.float64), jac: wp.array2d(dtype=wp.float64),
-                  normal: wp.array3d(dtype=wp.float64), chol: wp.array3d(dtype=wp.float64),
-                  grad: wp.array2d(dtype=wp.float64), delta: wp.array2d(dtype=wp.float64),
-                  free: wp.array2d(dtype=wp.int32), ssr: wp.array(dtype=wp.float64),
-                  status: wp.array2d(dtype=wp.int32)):
-    """Each waveform's ``count`` Gaussians fitted from their start ``params`` (find_echo_peaks), in place.
-
-    # In:
-    echo      (N, W) received power [W]; t0 (W,) time of sample 0 [s]; dt: sample interval [s]
-    step      (W,) t_1 − t_0 of each waveform [s]: s ≥ step/σ; sigma: σ of the pulse [s]
-    maximum   (7, W) echo_measures' output (row 5: each waveform's maximum, the unit of a)
-    count     (W,) peaks per waveform (none, more than MAX_PEAKS, or a start outside the bounds: not fitted)
-    # In/Out:
-    params    (3·MAX_PEAKS, W) (a, μ, s) per Gaussian: a in units of the maximum, μ and s in σ from t0
-    # Out:
-    ssr       (W,) sum of squared residuals at the end, in units of the maximum squared
-    status    (2, W) STATUS_* and the steps taken
-    """
+def start_fits(count: wp.array(dtype=wp.int32), params: wp.array2d(dtype=wp.float64), state: FitState,
+               status: wp.array2d(dtype=wp.int32)):
+    """Each waveform's fit of its ``count`` Gaussians from their start ``params`` (find_echo_peaks) set going: none
+    for no peak, more than MAX_PEAKS, or a start amplitude below 0 (curve_fit refuses it, so does this fit)."""
     w = wp.tid()
     k = count[w]
-    outside = int(0)  # a start amplitude below 0 (a peak on a negative sample): curve_fit refuses it, so does this
+    outside = int(0)
     for q in range(wp.min(k, MAX_PEAKS)):
         if params[3 * q, w] < wp.float64(0.0):
             outside = 1
+    state.phase[w] = PHASE_DONE
     if k == 0 or k > MAX_PEAKS or outside != 0:
         status[0, w] = STATUS_SKIPPED
         status[1, w] = 0
         return
+    state.phase[w] = PHASE_BUILD
+    state.accepted[w] = 0
+    state.lam[w] = wp.float64(1.0e-3)
+    state.tries[w] = 0
+    state.steps[w] = 0
+
+
+@wp.kernel
+def evaluate_chunks(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.float64), dt: wp.float64,
+                    sigma: wp.float64, maximum: wp.array2d(dtype=wp.float64), count: wp.array(dtype=wp.int32),
+                    params: wp.array2d(dtype=wp.float64), trial: wp.array2d(dtype=wp.float64), state: FitState,
+                    sums: ChunkSums):
+    """Chunk ``chunk``'s share (samples chunk·FIT_CHUNK …) of the SSR of Σ a·exp(−(x − μ)²/2s²) − y at ``params``
+    (PHASE_BUILD: with JᵀJ and Jᵀr) or ``trial`` (PHASE_TRIAL), of each waveform whose fit goes on."""
+    chunk, w = wp.tid()
+    phase = state.phase[w]
+    if phase == PHASE_DONE:
+        return
+    k = count[w]
+    m = 3 * k
+    build = phase == PHASE_BUILD
     start = t0[w]
     scale = maximum[5, w]
+    grad = vec_parameters()
+    normal = vec_packed()
+    jac = vec_parameters()
+    ssr = wp.float64(0.0)
+    for j in range(chunk * FIT_CHUNK, wp.min((chunk + 1) * FIT_CHUNK, echo.shape[0])):
+        x = (_time(start, dt, j) - start) / sigma
+        model = wp.float64(0.0)
+        for q in range(k):
+            a = params[3 * q, w]
+            mu = params[3 * q + 1, w]
+            s = params[3 * q + 2, w]
+            if not build:
+                a = trial[3 * q, w]
+                mu = trial[3 * q + 1, w]
+                s = trial[3 * q + 2, w]
+            z = (x - mu) / s
+            h = wp.float64(0.5) * z * z
+            e = wp.float64(0.0)
+            if h < UNDERFLOW:
+                e = wp.exp(-h)
+            model += a * e
+            if build:
+                jac[3 * q] = e
+                jac[3 * q + 1] = a * e * z / s
+                jac[3 * q + 2] = a * e * z * z / s
+        res = model - echo[j, w] / scale
+        ssr += res * res
+        if build:
+            for q in range(k):
+                if jac[3 * q] != wp.float64(0.0):
+                    for r in range(3 * q, 3 * q + 3):
+                        grad[r] = grad[r] + jac[r] * res
+                        for c in range(r, m):
+                            i = _packed(r, c, m)
+                            normal[i] = normal[i] + jac[r] * jac[c]
+    sums.ssr[chunk, w] = ssr
+    if build:
+        for r in range(m):
+            sums.grad[r, chunk, w] = grad[r]
+        for i in range(m * (m + 1) // 2):
+            sums.normal[i, chunk, w] = normal[i]
+
+
+@wp.func
+def _added(sums: ChunkSums, chunks: int, k: int, build: int, normal: wp.array3d(dtype=wp.float64),
+           grad: wp.array2d(dtype=wp.float64), w: int) -> wp.float64:
+    """The SSR of the evaluation the chunks summed, their sums added in chunk order; with ``build`` also JᵀJ (upper
+    triangle) into ``normal`` and Jᵀr into ``grad``."""
+    ssr = wp.float64(0.0)
+    for chunk in range(chunks):
+        ssr += sums.ssr[chunk, w]
+    if build != 0:
+        m = 3 * k
+        for r in range(m):
+            g = wp.float64(0.0)
+            for chunk in range(chunks):
+                g += sums.grad[r, chunk, w]
+            grad[r, w] = g
+            for c in range(r, m):
+                i = _packed(r, c, m)
+                v = wp.float64(0.0)
+                for chunk in range(chunks):
+                    v += sums.normal[i, chunk, w]
+                normal[r, c, w] = v
+    return ssr
+
+
+@wp.func
+def _propose(normal: wp.array3d(dtype=wp.float64), grad: wp.array2d(dtype=wp.float64), free: wp.array2d(dtype=wp.int32),
+             chol: wp.array3d(dtype=wp.float64), delta: wp.array2d(dtype=wp.float64), params: wp.array2d(dtype=wp.float64),
+             trial: wp.array2d(dtype=wp.float64), k: int, x_last: wp.float64, s_min: wp.float64, state: FitState,
+             w: int):
+    """The next trial point: solved at the current λ, λ × 10 while the system is not positive definite; the fit
+    ends (converged) once LAMBDA_TRIES increases of λ have found no lower SSR."""
+    while state.tries[w] < LAMBDA_TRIES:
+        if _solve(normal, grad, free, state.lam[w], 3 * k, chol, delta, w) != 0:
+            _clipped_step(params, delta, k, x_last, s_min, trial, w)
+            state.phase[w] = PHASE_TRIAL
+            return
+        state.lam[w] = state.lam[w] * wp.float64(10.0)
+        state.tries[w] = state.tries[w] + 1
+    state.phase[w] = PHASE_DONE
+
+
+@wp.kernel
+def advance_fits(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.float64), dt: wp.float64,
+                 step: wp.array(dtype=wp.float64), sigma: wp.float64, count: wp.array(dtype=wp.int32),
+                 sums: ChunkSums, chunks: int, state: FitState, params: wp.array2d(dtype=wp.float64),
+                 trial: wp.array2d(dtype=wp.float64), normal: wp.array3d(dtype=wp.float64),
+                 chol: wp.array3d(dtype=wp.float64), grad: wp.array2d(dtype=wp.float64),
+                 delta: wp.array2d(dtype=wp.float64), free: wp.array2d(dtype=wp.int32), ssr: wp.array(dtype=wp.float64),
+                 status: wp.array2d(dtype=wp.int32)):
+    """Each going fit's decision on the evaluation just summed (the steps of decompose's curve_fit, one at a time).
+
+    # In:
+    echo (N, W) received power [W]; t0 (W,) time of sample 0 [s]; dt: sample interval [s]
+    step (W,) t_1 − t_0 of each waveform [s]: s ≥ step/σ; sigma: σ of the pulse [s]; count (W,) Gaussians per waveform
+    sums, chunks: evaluate_chunks' sums over ``chunks`` chunks
+    # In/Out:
+    params (3·MAX_PEAKS, W) (a, μ, s) per Gaussian: a in units of the maximum, μ and s in σ from t0
+    # Out (as each fit ends):
+    ssr (W,) sum of squared residuals at the end, in units of the maximum squared; status (2, W) STATUS_* and steps
+    """
+    w = wp.tid()
+    phase = state.phase[w]
+    if phase == PHASE_DONE:
+        return
+    k = count[w]
+    start = t0[w]
     x_last = (_time(start, dt, echo.shape[0] - 1) - start) / sigma
     s_min = step[w] / sigma
-    cost = _residuals(echo, w, start, dt, sigma, scale, params, k, jac, normal, grad, 1)
-    lam = wp.float64(1.0e-3)
-    state = STATUS_ITERATIONS
-    steps = int(0)
-    while steps < MAX_ITERATIONS:
-        _hold(params, grad, k, x_last, s_min, free, w)
-        better = int(0)
-        tries = int(0)
-        new_cost = cost
-        while tries < LAMBDA_TRIES and better == 0:
-            if _solve(normal, grad, free, lam, 3 * k, chol, delta, w) != 0:
-                _clipped_step(params, delta, k, x_last, s_min, trial, w)
-                new_cost = _residuals(echo, w, start, dt, sigma, scale, trial, k, jac, normal, grad, 0)
-                if new_cost < cost:
-                    better = 1
-            if better == 0:
-                lam = lam * wp.float64(10.0)
-            tries = tries + 1
-        if better == 0:
-            state = STATUS_CONVERGED
-            break
-        steps = steps + 1
+    value = _added(sums, chunks, k, int(phase == PHASE_BUILD), normal, grad, w)
+    ending = STATUS_CONVERGED
+    if phase == PHASE_BUILD:
+        state.cost[w] = value
+        if state.accepted[w] != 0 and state.gain[w] <= GAIN_TOLERANCE * value:
+            state.phase[w] = PHASE_DONE
+        elif state.steps[w] >= MAX_ITERATIONS:
+            state.phase[w] = PHASE_DONE
+            ending = STATUS_ITERATIONS
+        else:
+            _hold(params, grad, k, x_last, s_min, free, w)
+            state.tries[w] = 0
+            _propose(normal, grad, free, chol, delta, params, trial, k, x_last, s_min, state, w)
+    elif value < state.cost[w]:  # the trial lowers the SSR: the step is taken
+        state.steps[w] = state.steps[w] + 1
         for r in range(3 * k):
             params[r, w] = trial[r, w]
-        gain = cost - new_cost
-        lam = wp.max(lam * wp.float64(0.1), wp.float64(1.0e-12))
-        cost = _residuals(echo, w, start, dt, sigma, scale, params, k, jac, normal, grad, 1)
-        if gain <= GAIN_TOLERANCE * cost:
-            state = STATUS_CONVERGED
-            break
-    ssr[w] = cost
-    status[0, w] = state
-    status[1, w] = steps
+        state.gain[w] = state.cost[w] - value
+        state.lam[w] = wp.max(state.lam[w] * wp.float64(0.1), wp.float64(1.0e-12))
+        state.accepted[w] = 1
+        state.phase[w] = PHASE_BUILD
+    else:
+        state.lam[w] = state.lam[w] * wp.float64(10.0)
+        state.tries[w] = state.tries[w] + 1
+        _propose(normal, grad, free, chol, delta, params, trial, k, x_last, s_min, state, w)
+    if state.phase[w] == PHASE_DONE:
+        ssr[w] = state.cost[w]
+        status[0, w] = ending
+        status[1, w] = state.steps[w]

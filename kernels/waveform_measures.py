@@ -10,7 +10,8 @@ threads of a warp read one sample of 32 waveforms side by side (coalesced).
 3. :data:`find_echo_peaks` (one thread per waveform): scipy.signal.find_peaks' local maxima (plateaus to their
    midpoint), their prominences over the whole waveform, those ≥ a share of the smoothed maximum kept, their
    widths at half the prominence (peak_widths, rel_height 0.5), and each kept peak's start parameters.
-4. :data:`fit_gaussians` (one thread per waveform): a bounded Levenberg–Marquardt fit of the kept peaks' Gaussians.
+4. kernels/waveform_fit.py: a bounded Levenberg–Marquardt fit of the kept peaks' Gaussians, its sums over the samples
+   spread over a thread per FIT_CHUNK samples of each waveform.
 """
 import warp as wp
 

@@ -34,6 +34,7 @@ MAX_PEAKS = int(km.MAX_PEAKS)
 BATCH_SAMPLES = {"cpu": 1 << 24, "cuda": 1 << 26}  # samples per launch (W·N): the float64 echo and its smoothing
 # take 8 bytes each (128 MiB each on the CPU, 512 MiB on a GPU: 2048 change1 waveforms, 67,108 GEDI ones)
 MEASURES = ("half_power_s", "centroid_s", "peak_s", "fwhm_s", "rms_width_s")
+FIT_ROUNDS = 8  # rounds of the fit launched between two reads of whether any fit goes on
 
 
 @dataclass(frozen=True)
@@ -114,15 +115,39 @@ def _launch(system, t0_s, echo_w, device, min_prominence) -> dict[str, np.ndarra
                                                       wp.float64(min_prominence), out],
               outputs=[count, peaks, params], device=device)
     del smooth
-    scratch = [wp.zeros(shape, dtype=wp.float64, device=device)
-               for shape in ((p, n_wave), (p, n_wave), (p, p, n_wave), (p, p, n_wave), (p, n_wave), (p, n_wave))]
-    free = wp.zeros((p, n_wave), dtype=wp.int32, device=device)
     ssr = wp.zeros(n_wave, dtype=wp.float64, device=device)
     status = wp.zeros((2, n_wave), dtype=wp.int32, device=device)
-    wp.launch(kf.fit_gaussians, dim=n_wave, inputs=[echo, t0, wp.float64(dt), step, wp.float64(sigma), out, count,
-                                                    params, *scratch, free], outputs=[ssr, status], device=device)
+    _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device)
     return {"out": out.numpy().T, "count": count.numpy(), "peaks": peaks.numpy().T, "params": params.numpy().T,
             "ssr": ssr.numpy(), "status": status.numpy().T, "t0": t0_s}
+
+
+def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> None:
+    """The Gaussians of ``params`` fitted in place (kernels/waveform_fit.py): rounds of one SSR evaluation per going
+    fit, until none goes on (its state read every FIT_ROUNDS rounds) or the most rounds a fit can take."""
+    n, n_wave = echo.shape
+    p, chunks = 3 * MAX_PEAKS, -(-n // kf.FIT_CHUNK)
+    zeros = lambda shape, dtype=wp.float64: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
+    state = kf.FitState()
+    state.phase, state.accepted, state.tries, state.steps = (zeros(n_wave, wp.int32) for _ in range(4))
+    state.cost, state.gain, state.lam = (zeros(n_wave) for _ in range(3))
+    sums = kf.ChunkSums()
+    sums.ssr, sums.grad, sums.normal = zeros((chunks, n_wave)), zeros((p, chunks, n_wave)), \
+        zeros((kf.PACKED, chunks, n_wave))
+    trial, grad, delta = (zeros((p, n_wave)) for _ in range(3))
+    normal, chol = zeros((p, p, n_wave)), zeros((p, p, n_wave))
+    free = zeros((p, n_wave), wp.int32)
+    wp.launch(kf.start_fits, n_wave, inputs=[count, params, state], outputs=[status], device=device)
+    most = 1 + int(km.MAX_ITERATIONS) * (int(km.LAMBDA_TRIES) + 1)  # a fit's evaluations at the most
+    for first in range(0, most, FIT_ROUNDS):
+        for _ in range(min(FIT_ROUNDS, most - first)):
+            wp.launch(kf.evaluate_chunks, (chunks, n_wave), inputs=[echo, t0, wp.float64(dt), wp.float64(sigma), out,
+                                                                    count, params, trial, state, sums], device=device)
+            wp.launch(kf.advance_fits, n_wave, inputs=[echo, t0, wp.float64(dt), step, wp.float64(sigma), count,
+                                                       sums, chunks, state, params, trial, normal, chol, grad, delta,
+                                                       free], outputs=[ssr, status], device=device)
+        if not state.phase.numpy().any():
+            break
 
 
 def _joined(parts: list[dict]) -> dict[str, np.ndarray]:
