@@ -24,7 +24,8 @@ from kernels.waveform_measures import GAIN_TOLERANCE, LAMBDA_TRIES, MAX_ITERATIO
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
-FIT_CHUNK = 1024  # samples whose SSR, JᵀJ and Jᵀr one thread of evaluate_chunks sums
+FIT_CHUNK = 256  # samples whose SSR, JᵀJ and Jᵀr one thread of evaluate_chunks sums (an H100: change1's 32,768
+# samples 339 waveforms/s at 1024, 423 at 256; GEDI's 1000: 8.2e3 at 1024, 1.9e4 at 256; profile-experiments.md 29)
 PARAMETERS = 3 * int(MAX_PEAKS)  # (a, μ, s) per Gaussian
 PACKED = PARAMETERS * (PARAMETERS + 1) // 2  # entries of JᵀJ's upper triangle
 vec_packed = wp.types.vector(PACKED, wp.float64)
@@ -54,8 +55,8 @@ class ChunkSums:
     3k parameters of the waveform's k Gaussians (row r's entries c ≥ r)."""
 
     ssr: wp.array2d(dtype=wp.float64)
-    grad: wp.array3d(dtype=wp.float64)  # [r, chunk, w]
-    normal: wp.array3d(dtype=wp.float64)  # [packed entry, chunk, w]
+    grad: wp.array3d(dtype=wp.float64)  # [r, chunk, w]: r < 3k
+    normal: wp.array3d(dtype=wp.float64)  # [packed entry, chunk, w]: as many entries as the most Gaussians need
 
 
 @wp.func

@@ -127,13 +127,14 @@ def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> 
     fit, until none goes on (its state read every FIT_ROUNDS rounds) or the most rounds a fit can take."""
     n, n_wave = echo.shape
     p, chunks = 3 * MAX_PEAKS, -(-n // kf.FIT_CHUNK)
+    m = 3 * min(int(count.numpy().max(initial=0)), MAX_PEAKS)  # the parameters of the most Gaussians fitted
     zeros = lambda shape, dtype=wp.float64: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
     state = kf.FitState()
     state.phase, state.accepted, state.tries, state.steps = (zeros(n_wave, wp.int32) for _ in range(4))
     state.cost, state.gain, state.lam = (zeros(n_wave) for _ in range(3))
     sums = kf.ChunkSums()
-    sums.ssr, sums.grad, sums.normal = zeros((chunks, n_wave)), zeros((p, chunks, n_wave)), \
-        zeros((kf.PACKED, chunks, n_wave))
+    sums.ssr, sums.grad, sums.normal = zeros((chunks, n_wave)), zeros((max(m, 1), chunks, n_wave)), \
+        zeros((max(m * (m + 1) // 2, 1), chunks, n_wave))
     trial, grad, delta = (zeros((p, n_wave)) for _ in range(3))
     normal, chol = zeros((p, p, n_wave)), zeros((p, p, n_wave))
     free = zeros((p, n_wave), wp.int32)
