@@ -260,21 +260,23 @@ def add_replicas(
     counts: wp.array3d(dtype=wp.int64),  # per replica, model, group (reduce_records' sums)
     first: wp.array3d(dtype=wp.vec3d),
     second: wp.array3d(dtype=vec6d),
-    # Out: per model, group
-    total_counts: wp.array2d(dtype=wp.int64),
-    total_first: wp.array2d(dtype=wp.vec3d),
-    total_second: wp.array2d(dtype=vec6d),
+    block: wp.int32,  # replicas a thread adds
+    # Out: per block of replicas, model, group
+    block_counts: wp.array3d(dtype=wp.int64),
+    block_first: wp.array3d(dtype=wp.vec3d),
+    block_second: wp.array3d(dtype=vec6d),
 ):
-    """Add the replicas of the reduction's sums, replica 0 first: one thread per (model, group), so only
-    the totals leave the device."""
-    model, group = wp.tid()
+    """Add the replicas of the reduction's sums in blocks of ``block`` (the block's first replica first): one
+    thread per (block, model, group), so that few groups still make threads enough to hide the loads' latency and
+    only the totals leave the device."""
+    b, model, group = wp.tid()
     n = wp.int64(0)
     s = wp.vec3d()
     ss = vec6d()
-    for replica in range(counts.shape[0]):
+    for replica in range(b * block, wp.min((b + 1) * block, counts.shape[0])):
         n += counts[replica, model, group]
         s += first[replica, model, group]
         ss += second[replica, model, group]
-    total_counts[model, group] = n
-    total_first[model, group] = s
-    total_second[model, group] = ss
+    block_counts[b, model, group] = n
+    block_first[b, model, group] = s
+    block_second[b, model, group] = ss

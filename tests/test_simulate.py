@@ -183,7 +183,8 @@ def test_fallback_boxes_are_the_triangle_bounds_padded_by_the_used_corners_exten
     assert np.array_equal(meshes._padded_boxes[1].numpy(), corners.max(axis=1) + pad)
 
 
-def test_replica_totals_add_every_copy_of_the_sums_in_float64():
+@pytest.mark.parametrize("block", [32, 4])
+def test_replica_totals_add_every_copy_of_the_sums_in_float64(block):
     import warp as wp
 
     from flightsim.scoring.reduction import replica_totals
@@ -196,10 +197,13 @@ def test_replica_totals_add_every_copy_of_the_sums_in_float64():
     second = rng.normal(0.0, 1e6, (replicas, models, groups, 6))
     sums = [wp.array(counts, dtype=wp.int64, device="cpu"), wp.array(first, dtype=wp.vec3d, device="cpu"),
             wp.array(second, dtype=vec6d, device="cpu")]
-    count, s, ss = replica_totals(sums)
+    count, s, ss = replica_totals(sums, block)
     expected_s, expected_ss = np.zeros((models, groups, 3)), np.zeros((models, groups, 6))
-    for r in range(replicas):  # replica 0 first, in float64
-        expected_s = expected_s + first[r]
-        expected_ss = expected_ss + second[r]
+    for lo in range(0, replicas, block):  # each block of replicas in order from its first, then the blocks in order
+        block_s, block_ss = np.zeros((models, groups, 3)), np.zeros((models, groups, 6))
+        for r in range(lo, min(lo + block, replicas)):
+            block_s = block_s + first[r]
+            block_ss = block_ss + second[r]
+        expected_s, expected_ss = expected_s + block_s, expected_ss + block_ss
     assert np.array_equal(count, counts.sum(axis=0))
     assert np.array_equal(s, expected_s) and np.array_equal(ss, expected_ss)

@@ -11,6 +11,7 @@ from kernels import statistics
 SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # consecutive slots per reducing thread
 SUM_REPLICAS = 512  # copies of the per-group sums on a GPU, so busy groups' atomics spread
 SUM_REPLICA_BYTES = 1 << 26  # ... within this much device memory
+REPLICA_BLOCK = 32  # replicas one thread adds (replica_totals)
 
 
 def sum_replicas(device_kind: str, groups: int, asked: int = 0) -> int:
@@ -34,15 +35,19 @@ def reduce_models(codes: wp.array, points: list[wp.array], models, n_slots: int,
                   outputs=sums, device=device)
 
 
-def replica_totals(sums: list[wp.array]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The reduction's (count, Σd, Σ upper triangle of ddᵀ) per model and group, its replicas added on
-    the device (replica 0 first, the order the host's sum took): (2, G), (2, G, 3), (2, G, 6)."""
-    counts, first, second = sums
-    shape, d = counts.shape[1:], counts.device
-    totals = [wp.empty(shape, dtype=wp.int64, device=d), wp.empty(shape, dtype=wp.vec3d, device=d),
-              wp.empty(shape, dtype=statistics.vec6d, device=d)]
-    wp.launch(statistics.add_replicas, shape, inputs=[counts, first, second], outputs=totals, device=d)
-    return tuple(a.numpy() for a in totals)
+def replica_totals(sums: list[wp.array], block: int = REPLICA_BLOCK) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reduction's (count, Σd, Σ upper triangle of ddᵀ) per model and group, its replicas added on the device:
+    (2, G), (2, G, 3), (2, G, 6). Replicas are added in order in blocks of ``block``, then the blocks in order
+    (a single replica, as on the CPU: as it is)."""
+    while True:
+        blocks = -(-sums[0].shape[0] // block)
+        shape, d = (blocks, *sums[0].shape[1:]), sums[0].device
+        added = [wp.empty(shape, dtype=wp.int64, device=d), wp.empty(shape, dtype=wp.vec3d, device=d),
+                 wp.empty(shape, dtype=statistics.vec6d, device=d)]
+        wp.launch(statistics.add_replicas, shape, inputs=[*sums, block], outputs=added, device=d)
+        if blocks == 1:
+            return tuple(a.numpy()[0] for a in added)
+        sums, block = added, blocks
 
 
 def symmetric(upper: np.ndarray) -> np.ndarray:
