@@ -9,14 +9,16 @@ The fit ends when LAMBDA_TRIES successive ×10 increases of λ find no lower SSR
 GAIN_TOLERANCE of it (float64 rounding), or after MAX_ITERATIONS steps.
 
 Each waveform's fit advances one evaluation of the SSR (with JᵀJ and Jᵀr, or without at a trial point) per round of
-two launches: :data:`evaluate_chunks`, one thread per FIT_CHUNK samples of a waveform (a long waveform's sums are
-spread over many threads), then :data:`advance_fits`, one thread per waveform, adding the chunks' sums in chunk order
-(so a fit is the same on every run) and taking the Levenberg–Marquardt decision the sums call for. The host launches
-rounds until no fit is left (:func:`flightsim.instrument.waveform_batch.process`).
+two launches: ``evaluate_chunks`` (:func:`evaluate_kernel`), one thread per FIT_CHUNK samples of a waveform (a long
+waveform's sums are spread over many threads), then :data:`advance_fits`, one thread per waveform, adding the chunks'
+sums in chunk order (so a fit is the same on every run) and taking the Levenberg–Marquardt decision the sums call
+for. The host launches rounds until no fit is left (:func:`flightsim.instrument.waveform_batch.process`).
 
 Scratch arrays, parameter first and waveform last: ``normal`` and ``chol`` (3·MAX_PEAKS, 3·MAX_PEAKS, W), ``grad``,
 ``trial``, ``delta`` (3·MAX_PEAKS, W), ``free`` (3·MAX_PEAKS, W); the chunks' sums (:class:`ChunkSums`).
 """
+import functools
+
 import warp as wp
 
 from kernels.waveform_measures import GAIN_TOLERANCE, LAMBDA_TRIES, MAX_ITERATIONS, MAX_PEAKS, STATUS_CONVERGED, \
@@ -26,10 +28,8 @@ wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 FIT_CHUNK = 256  # samples whose SSR, JᵀJ and Jᵀr one thread of evaluate_chunks sums (an H100: change1's 32,768
 # samples 339 waveforms/s at 1024, 423 at 256; GEDI's 1000: 8.2e3 at 1024, 1.9e4 at 256; profile-experiments.md 29)
-PARAMETERS = 3 * int(MAX_PEAKS)  # (a, μ, s) per Gaussian
-PACKED = PARAMETERS * (PARAMETERS + 1) // 2  # entries of JᵀJ's upper triangle
-vec_packed = wp.types.vector(PACKED, wp.float64)
-vec_parameters = wp.types.vector(PARAMETERS, wp.float64)
+FEW_GAUSSIANS = 4  # batches fitting at most this many Gaussians per waveform take evaluate_kernel(4): its thread's
+# sums of JᵀJ (78 entries, not MAX_PEAKS' 300) take a quarter of the local memory
 
 PHASE_DONE = wp.constant(0)  # the fit has ended (or was never started)
 PHASE_BUILD = wp.constant(1)  # the next evaluation: SSR, JᵀJ and Jᵀr at ``params``
@@ -165,63 +165,72 @@ def start_fits(count: wp.array(dtype=wp.int32), params: wp.array2d(dtype=wp.floa
     state.steps[w] = 0
 
 
-@wp.kernel
-def evaluate_chunks(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.float64), dt: wp.float64,
-                    sigma: wp.float64, maximum: wp.array2d(dtype=wp.float64), count: wp.array(dtype=wp.int32),
-                    params: wp.array2d(dtype=wp.float64), trial: wp.array2d(dtype=wp.float64), state: FitState,
-                    sums: ChunkSums):
-    """Chunk ``chunk``'s share (samples chunk·FIT_CHUNK …) of the SSR of Σ a·exp(−(x − μ)²/2s²) − y at ``params``
-    (PHASE_BUILD: with JᵀJ and Jᵀr) or ``trial`` (PHASE_TRIAL), of each waveform whose fit goes on."""
-    chunk, w = wp.tid()
-    phase = state.phase[w]
-    if phase == PHASE_DONE:
-        return
-    k = count[w]
-    m = 3 * k
-    build = phase == PHASE_BUILD
-    start = t0[w]
-    scale = maximum[5, w]
-    grad = vec_parameters()
-    normal = vec_packed()
-    jac = vec_parameters()
-    ssr = wp.float64(0.0)
-    for j in range(chunk * FIT_CHUNK, wp.min((chunk + 1) * FIT_CHUNK, echo.shape[0])):
-        x = (_time(start, dt, j) - start) / sigma
-        model = wp.float64(0.0)
-        for q in range(k):
-            a = params[3 * q, w]
-            mu = params[3 * q + 1, w]
-            s = params[3 * q + 2, w]
-            if not build:
-                a = trial[3 * q, w]
-                mu = trial[3 * q + 1, w]
-                s = trial[3 * q + 2, w]
-            z = (x - mu) / s
-            h = wp.float64(0.5) * z * z
-            e = wp.float64(0.0)
-            if h < UNDERFLOW:
-                e = wp.exp(-h)
-            model += a * e
-            if build:
-                jac[3 * q] = e
-                jac[3 * q + 1] = a * e * z / s
-                jac[3 * q + 2] = a * e * z * z / s
-        res = model - echo[j, w] / scale
-        ssr += res * res
-        if build:
+@functools.cache
+def evaluate_kernel(gaussians: int):
+    """:data:`evaluate_chunks` for waveforms of at most ``gaussians`` Gaussians (its per-thread sums sized for them)."""
+    parameters = 3 * gaussians
+    vec_parameters = wp.types.vector(parameters, wp.float64)
+    vec_packed = wp.types.vector(parameters * (parameters + 1) // 2, wp.float64)
+
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
+    def evaluate_chunks(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.float64), dt: wp.float64,
+                        sigma: wp.float64, maximum: wp.array2d(dtype=wp.float64), count: wp.array(dtype=wp.int32),
+                        params: wp.array2d(dtype=wp.float64), trial: wp.array2d(dtype=wp.float64), state: FitState,
+                        sums: ChunkSums):
+        """Chunk ``chunk``'s share (samples chunk·FIT_CHUNK …) of the SSR of Σ a·exp(−(x − μ)²/2s²) − y at
+        ``params`` (PHASE_BUILD: with JᵀJ and Jᵀr) or ``trial`` (PHASE_TRIAL), of each waveform whose fit goes on."""
+        chunk, w = wp.tid()
+        phase = state.phase[w]
+        if phase == PHASE_DONE:
+            return
+        k = count[w]
+        m = 3 * k
+        build = phase == PHASE_BUILD
+        start = t0[w]
+        scale = maximum[5, w]
+        grad = vec_parameters()
+        normal = vec_packed()
+        jac = vec_parameters()
+        ssr = wp.float64(0.0)
+        for j in range(chunk * FIT_CHUNK, wp.min((chunk + 1) * FIT_CHUNK, echo.shape[0])):
+            x = (_time(start, dt, j) - start) / sigma
+            model = wp.float64(0.0)
             for q in range(k):
-                if jac[3 * q] != wp.float64(0.0):
-                    for r in range(3 * q, 3 * q + 3):
-                        grad[r] = grad[r] + jac[r] * res
-                        for c in range(r, m):
-                            i = _packed(r, c, m)
-                            normal[i] = normal[i] + jac[r] * jac[c]
-    sums.ssr[chunk, w] = ssr
-    if build:
-        for r in range(m):
-            sums.grad[r, chunk, w] = grad[r]
-        for i in range(m * (m + 1) // 2):
-            sums.normal[i, chunk, w] = normal[i]
+                a = params[3 * q, w]
+                mu = params[3 * q + 1, w]
+                s = params[3 * q + 2, w]
+                if not build:
+                    a = trial[3 * q, w]
+                    mu = trial[3 * q + 1, w]
+                    s = trial[3 * q + 2, w]
+                z = (x - mu) / s
+                h = wp.float64(0.5) * z * z
+                e = wp.float64(0.0)
+                if h < UNDERFLOW:
+                    e = wp.exp(-h)
+                model += a * e
+                if build:
+                    jac[3 * q] = e
+                    jac[3 * q + 1] = a * e * z / s
+                    jac[3 * q + 2] = a * e * z * z / s
+            res = model - echo[j, w] / scale
+            ssr += res * res
+            if build:
+                for q in range(k):
+                    if jac[3 * q] != wp.float64(0.0):
+                        for r in range(3 * q, 3 * q + 3):
+                            grad[r] = grad[r] + jac[r] * res
+                            for c in range(r, m):
+                                i = _packed(r, c, m)
+                                normal[i] = normal[i] + jac[r] * jac[c]
+        sums.ssr[chunk, w] = ssr
+        if build:
+            for r in range(m):
+                sums.grad[r, chunk, w] = grad[r]
+            for i in range(m * (m + 1) // 2):
+                sums.normal[i, chunk, w] = normal[i]
+
+    return evaluate_chunks
 
 
 @wp.func
@@ -249,10 +258,10 @@ def _added(sums: ChunkSums, chunks: int, k: int, build: int, normal: wp.array3d(
 
 
 @wp.func
-def _propose(normal: wp.array3d(dtype=wp.float64), grad: wp.array2d(dtype=wp.float64), free: wp.array2d(dtype=wp.int32),
-             chol: wp.array3d(dtype=wp.float64), delta: wp.array2d(dtype=wp.float64), params: wp.array2d(dtype=wp.float64),
-             trial: wp.array2d(dtype=wp.float64), k: int, x_last: wp.float64, s_min: wp.float64, state: FitState,
-             w: int):
+def _propose(normal: wp.array3d(dtype=wp.float64), grad: wp.array2d(dtype=wp.float64),
+             free: wp.array2d(dtype=wp.int32), chol: wp.array3d(dtype=wp.float64), delta: wp.array2d(dtype=wp.float64),
+             params: wp.array2d(dtype=wp.float64), trial: wp.array2d(dtype=wp.float64), k: int, x_last: wp.float64,
+             s_min: wp.float64, state: FitState, w: int):
     """The next trial point: solved at the current λ, λ × 10 while the system is not positive definite; the fit
     ends (converged) once LAMBDA_TRIES increases of λ have found no lower SSR."""
     while state.tries[w] < LAMBDA_TRIES:

@@ -123,6 +123,21 @@ def test_gedi_plane_and_forest_waveforms_match_scipy(device):
     assert c["components"] > c["waveforms"]  # the forest's canopy and ground
 
 
+def test_six_gaussians_are_fitted_on_the_device_as_scipy_fits_them(device):
+    """More Gaussians than kernels.waveform_fit.FEW_GAUSSIANS: the fit's per-thread sums sized for MAX_PEAKS."""
+    sigma = model.pulse_sigma_s(GEDI)
+    times = 1.3e-3 + 1e-9 * np.arange(1500)
+    centres = times[0] + np.array([150.0, 330.0, 560.0, 760.0, 1010.0, 1290.0]) * 1e-9
+    widths = sigma * np.array([1.0, 1.6, 1.2, 2.0, 1.1, 1.4])
+    heights = np.array([0.5, 1.0, 0.35, 0.8, 0.6, 0.45])
+    echo = np.sum(heights[:, None] * np.exp(-0.5 * ((times[None, :] - centres[:, None]) / widths[:, None]) ** 2),
+                  axis=0)
+    echo = (echo + np.random.default_rng(5).normal(0.0, 0.005, len(times))).astype(np.float32).astype(np.float64)
+    c = study.compare(GEDI, times[:1], echo[None, :], device)
+    _assert_equivalent(c)
+    assert c["components"] == 6
+
+
 def test_more_peaks_than_the_device_fits_are_decomposed_by_the_host(device):
     sigma = model.pulse_sigma_s(GEDI)
     times = 1.3e-3 + 1e-9 * np.arange(1200)

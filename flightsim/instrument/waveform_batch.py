@@ -127,7 +127,9 @@ def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> 
     fit, until none goes on (its state read every FIT_ROUNDS rounds) or the most rounds a fit can take."""
     n, n_wave = echo.shape
     p, chunks = 3 * MAX_PEAKS, -(-n // kf.FIT_CHUNK)
-    m = 3 * min(int(count.numpy().max(initial=0)), MAX_PEAKS)  # the parameters of the most Gaussians fitted
+    most = min(int(count.numpy().max(initial=0)), MAX_PEAKS)  # the most Gaussians a waveform fits
+    m = 3 * most
+    evaluate = kf.evaluate_kernel(kf.FEW_GAUSSIANS if most <= kf.FEW_GAUSSIANS else MAX_PEAKS)
     zeros = lambda shape, dtype=wp.float64: wp.zeros(shape, dtype=dtype, device=device)  # noqa: E731
     state = kf.FitState()
     state.phase, state.accepted, state.tries, state.steps = (zeros(n_wave, wp.int32) for _ in range(4))
@@ -139,10 +141,10 @@ def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> 
     normal, chol = zeros((p, p, n_wave)), zeros((p, p, n_wave))
     free = zeros((p, n_wave), wp.int32)
     wp.launch(kf.start_fits, n_wave, inputs=[count, params, state], outputs=[status], device=device)
-    most = 1 + int(km.MAX_ITERATIONS) * (int(km.LAMBDA_TRIES) + 1)  # a fit's evaluations at the most
-    for first in range(0, most, FIT_ROUNDS):
-        for _ in range(min(FIT_ROUNDS, most - first)):
-            wp.launch(kf.evaluate_chunks, (chunks, n_wave), inputs=[echo, t0, wp.float64(dt), wp.float64(sigma), out,
+    rounds = 1 + int(km.MAX_ITERATIONS) * (int(km.LAMBDA_TRIES) + 1)  # a fit's evaluations at the most
+    for first in range(0, rounds, FIT_ROUNDS):
+        for _ in range(min(FIT_ROUNDS, rounds - first)):
+            wp.launch(evaluate, (chunks, n_wave), inputs=[echo, t0, wp.float64(dt), wp.float64(sigma), out,
                                                                     count, params, trial, state, sums], device=device)
             wp.launch(kf.advance_fits, n_wave, inputs=[echo, t0, wp.float64(dt), step, wp.float64(sigma), count,
                                                        sums, chunks, state, params, trial, normal, chol, grad, delta,
