@@ -7,7 +7,8 @@ threads of a warp read one sample of 32 waveforms side by side (coalesced).
 1. :data:`smooth_echoes` (one thread per sample and waveform): scipy.ndimage.gaussian_filter1d's correlation with
    its ``reflect`` extension, the taps added in the C code's order (centre, then the pairs from the outermost in).
 2. :data:`echo_measures` (one thread per waveform): half-power, centroid and peak times, FWHM and RMS width.
-3. :data:`find_echo_peaks` (one thread per waveform): scipy.signal.find_peaks' local maxima (plateaus to their
+3. :data:`chunk_extremes` and :data:`chunk_peaks` (one thread per PEAK_CHUNK samples of a waveform), then
+   :data:`find_echo_peaks` (one thread per waveform): scipy.signal.find_peaks' local maxima (plateaus to their
    midpoint), their prominences over the whole waveform, those ≥ a share of the smoothed maximum kept, their
    widths at half the prominence (peak_widths, rel_height 0.5), and each kept peak's start parameters.
 4. kernels/waveform_fit.py: a bounded Levenberg–Marquardt fit of the kept peaks' Gaussians, its sums over the samples
@@ -222,38 +223,50 @@ def _plateau_end(x: wp.array2d(dtype=wp.float64), w: int, i: int) -> int:
     return ahead
 
 
-@wp.kernel
-def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype=wp.float64),
-                    t0: wp.array(dtype=wp.float64), dt: wp.float64, step: wp.array(dtype=wp.float64),
-                    sigma: wp.float64, min_prominence: wp.float64, maximum: wp.array2d(dtype=wp.float64),
-                    count: wp.array(dtype=wp.int32), peaks: wp.array2d(dtype=wp.int32),
-                    params: wp.array2d(dtype=wp.float64)):
-    """The smoothed waveform's peaks standing out by ``min_prominence`` of its maximum, and their start parameters.
+PEAK_CHUNK = 256  # samples of the smoothed waveform a thread of chunk_extremes and chunk_peaks scans
 
-    # In:
-    echo, smooth    (N, W) the waveforms and the smoothed waveforms [W]
-    t0              (W,) time of sample 0 [s]; dt: sample interval [s]
-    step            (W,) t_1 − t_0 of each waveform as the host forms it [s]
-    sigma           σ of the pulse [s]; min_prominence: share of the smoothed maximum a peak must stand out by
-    maximum         (7, W) echo_measures' output (row 5: each waveform's maximum [W])
-    # Out:
-    count           (W,) peaks kept (may exceed MAX_PEAKS: only the first MAX_PEAKS are stored)
-    peaks           (MAX_PEAKS, W) their samples, in time order
-    params          (3·MAX_PEAKS, W) start (a, μ, s) of each: a in units of the maximum, μ and s in σ from t0
-    """
-    w = wp.tid()
-    n = smooth.shape[0]
-    top = smooth[0, w]
+
+@wp.kernel
+def chunk_extremes(smooth: wp.array2d(dtype=wp.float64), extremes: wp.array3d(dtype=wp.float64)):
+    """The highest (row 0) and lowest (row 1) sample of each chunk of PEAK_CHUNK samples of each smoothed waveform:
+    extremes (2, chunks, W)."""
+    chunk, w = wp.tid()
+    first = chunk * PEAK_CHUNK
+    top = smooth[first, w]
     bottom = top
-    for j in range(1, n):
+    for j in range(first + 1, wp.min(first + PEAK_CHUNK, smooth.shape[0])):
         top = wp.max(top, smooth[j, w])
         bottom = wp.min(bottom, smooth[j, w])
+    extremes[0, chunk, w] = top
+    extremes[1, chunk, w] = bottom
+
+
+@wp.kernel
+def chunk_peaks(smooth: wp.array2d(dtype=wp.float64), extremes: wp.array3d(dtype=wp.float64),
+                min_prominence: wp.float64, kept: wp.array2d(dtype=wp.int32), found: wp.array3d(dtype=wp.int32),
+                prominences: wp.array3d(dtype=wp.float64)):
+    """The peaks of each chunk of PEAK_CHUNK samples of each smoothed waveform that stand out by ``min_prominence`` of
+    its maximum: scipy.signal.find_peaks' local maxima (a plateau's midpoint, rounded down; a plateau belongs to the
+    chunk where it starts) and their prominences over the whole waveform (peak_prominences).
+
+    # In:
+    smooth          (N, W) the smoothed waveforms [W]; extremes (2, chunks, W) chunk_extremes' output
+    # Out:
+    kept            (chunks, W) the chunk's peaks standing out enough (only the first MAX_PEAKS are stored)
+    found           (3·MAX_PEAKS, chunks, W) per peak in time order: its sample, left and right base
+    prominences     (MAX_PEAKS, chunks, W) [W]
+    """
+    chunk, w = wp.tid()
+    n = smooth.shape[0]
+    top = extremes[0, 0, w]
+    bottom = extremes[1, 0, w]
+    for c in range(1, extremes.shape[1]):
+        top = wp.max(top, extremes[0, c, w])
+        bottom = wp.min(bottom, extremes[1, c, w])
     floor = min_prominence * top
-    scale = maximum[5, w]
-    kept = int(0)
-    i = int(1)
-    while i < n - 1:
-        if smooth[i - 1, w] < smooth[i, w]:
+    count = int(0)
+    for i in range(wp.max(chunk * PEAK_CHUNK, 1), wp.min((chunk + 1) * PEAK_CHUNK, n - 1)):
+        if smooth[i - 1, w] < smooth[i, w]:  # a plateau starts here (inside one, the sample before is as high)
             ahead = _plateau_end(smooth, w, i)
             if smooth[ahead, w] < smooth[i, w]:
                 peak = (i + ahead - 1) // 2
@@ -263,14 +276,51 @@ def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype
                 if prominence >= floor:
                     prominence, left, right = _prominence(smooth, w, peak)
                 if prominence >= floor:
-                    if kept < MAX_PEAKS:
-                        width_s = _width(smooth, w, peak, prominence, left, right) * step[w] / FWHM_PER_SIGMA
-                        spread = wp.sqrt(wp.max(width_s * width_s - sigma * sigma, wp.float64(0.0)))
-                        peaks[kept, w] = peak
-                        params[3 * kept, w] = echo[peak, w] / scale
-                        params[3 * kept + 1, w] = (_time(t0[w], dt, peak) - t0[w]) / sigma
-                        params[3 * kept + 2, w] = wp.max(spread, wp.float64(0.5) * sigma) / sigma
-                    kept = kept + 1
-                i = ahead
-        i = i + 1
-    count[w] = kept
+                    if count < MAX_PEAKS:
+                        found[3 * count, chunk, w] = peak
+                        found[3 * count + 1, chunk, w] = left
+                        found[3 * count + 2, chunk, w] = right
+                        prominences[count, chunk, w] = prominence
+                    count = count + 1
+    kept[chunk, w] = count
+
+
+@wp.kernel
+def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype=wp.float64),
+                    t0: wp.array(dtype=wp.float64), dt: wp.float64, step: wp.array(dtype=wp.float64),
+                    sigma: wp.float64, maximum: wp.array2d(dtype=wp.float64), kept: wp.array2d(dtype=wp.int32),
+                    found: wp.array3d(dtype=wp.int32), prominences: wp.array3d(dtype=wp.float64),
+                    count: wp.array(dtype=wp.int32), peaks: wp.array2d(dtype=wp.int32),
+                    params: wp.array2d(dtype=wp.float64)):
+    """Each waveform's peaks (chunk_peaks' over its chunks in order) and their start parameters.
+
+    # In:
+    echo, smooth    (N, W) the waveforms and the smoothed waveforms [W]
+    t0              (W,) time of sample 0 [s]; dt: sample interval [s]
+    step            (W,) t_1 − t_0 of each waveform as the host forms it [s]
+    sigma           σ of the pulse [s]
+    maximum         (7, W) echo_measures' output (row 5: each waveform's maximum [W])
+    kept, found, prominences: chunk_peaks' output
+    # Out:
+    count           (W,) peaks kept (may exceed MAX_PEAKS: only the first MAX_PEAKS are stored)
+    peaks           (MAX_PEAKS, W) their samples, in time order
+    params          (3·MAX_PEAKS, W) start (a, μ, s) of each: a in units of the maximum, μ and s in σ from t0
+    """
+    w = wp.tid()
+    scale = maximum[5, w]
+    total = int(0)
+    for chunk in range(kept.shape[0]):
+        in_chunk = kept[chunk, w]
+        for q in range(wp.min(in_chunk, MAX_PEAKS)):
+            k = total + q
+            if k < MAX_PEAKS:
+                peak = found[3 * q, chunk, w]
+                width_s = _width(smooth, w, peak, prominences[q, chunk, w], found[3 * q + 1, chunk, w],
+                                 found[3 * q + 2, chunk, w]) * step[w] / FWHM_PER_SIGMA
+                spread = wp.sqrt(wp.max(width_s * width_s - sigma * sigma, wp.float64(0.0)))
+                peaks[k, w] = peak
+                params[3 * k, w] = echo[peak, w] / scale
+                params[3 * k + 1, w] = (_time(t0[w], dt, peak) - t0[w]) / sigma
+                params[3 * k + 2, w] = wp.max(spread, wp.float64(0.5) * sigma) / sigma
+        total = total + in_chunk
+    count[w] = total

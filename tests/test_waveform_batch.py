@@ -15,7 +15,7 @@ from scipy.signal import find_peaks, peak_widths
 
 from flightsim.cli import main
 from flightsim.instrument import waveform_model as model
-from flightsim.instrument.waveform_batch import MAX_PEAKS, process, smoothing_taps
+from flightsim.instrument.waveform_batch import MAX_PEAKS, echo_peaks, process, smoothing_taps
 from flightsim.studies import waveform_processing as study
 from kernels import waveform_measures as km
 
@@ -56,8 +56,9 @@ def _plateaus(waveforms: int, samples: int, seed: int) -> np.ndarray:
     return np.round(line / line.max(axis=1, keepdims=True) * 40.0) / 40.0
 
 
-def test_peaks_are_find_peaks_with_plateaus_and_widths_are_peak_widths(device):
-    x, sigma, dt = _plateaus(40, 500, 5), 2.0, 0.5
+@pytest.mark.parametrize("waveforms, samples", [(40, 500), (20, 2000)])  # 2 and 8 chunks of PEAK_CHUNK samples
+def test_peaks_are_find_peaks_with_plateaus_and_widths_are_peak_widths(device, waveforms, samples):
+    x, sigma, dt = _plateaus(waveforms, samples, 5), 2.0, 0.5
     n_wave = len(x)
     t0, steps = np.zeros(n_wave), np.full(n_wave, dt)
     maximum = np.zeros((7, n_wave))
@@ -66,11 +67,9 @@ def test_peaks_are_find_peaks_with_plateaus_and_widths_are_peak_widths(device):
     peaks = wp.zeros((MAX_PEAKS, n_wave), dtype=wp.int32, device=device)
     params = wp.zeros((3 * MAX_PEAKS, n_wave), dtype=wp.float64, device=device)
     smooth = _columns(x, device)
-    wp.launch(km.find_echo_peaks, dim=n_wave, inputs=[smooth, smooth, wp.array(t0, dtype=wp.float64, device=device),
-                                                      wp.float64(dt), wp.array(steps, dtype=wp.float64, device=device),
-                                                      wp.float64(sigma), wp.float64(0.05),
-                                                      wp.array(maximum, dtype=wp.float64, device=device)],
-              outputs=[count, peaks, params], device=device)
+    echo_peaks(smooth, smooth, wp.array(t0, dtype=wp.float64, device=device), dt,
+               wp.array(steps, dtype=wp.float64, device=device), sigma, 0.05,
+               wp.array(maximum, dtype=wp.float64, device=device), count, peaks, params)
     count, peaks, params = count.numpy(), peaks.numpy().T, params.numpy().T
     plateaus = 0
     for w in range(n_wave):

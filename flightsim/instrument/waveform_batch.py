@@ -111,15 +111,32 @@ def _launch(system, t0_s, echo_w, device, min_prominence) -> dict[str, np.ndarra
     count = wp.zeros(n_wave, dtype=wp.int32, device=device)
     peaks = wp.zeros((MAX_PEAKS, n_wave), dtype=wp.int32, device=device)
     params = wp.zeros((p, n_wave), dtype=wp.float64, device=device)
-    wp.launch(km.find_echo_peaks, dim=n_wave, inputs=[echo, smooth, t0, wp.float64(dt), step, wp.float64(sigma),
-                                                      wp.float64(min_prominence), out],
-              outputs=[count, peaks, params], device=device)
+    echo_peaks(echo, smooth, t0, dt, step, sigma, min_prominence, out, count, peaks, params)
     del smooth
     ssr = wp.zeros(n_wave, dtype=wp.float64, device=device)
     status = wp.zeros((2, n_wave), dtype=wp.int32, device=device)
     _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device)
     return {"out": out.numpy().T, "count": count.numpy(), "peaks": peaks.numpy().T, "params": params.numpy().T,
             "ssr": ssr.numpy(), "status": status.numpy().T, "t0": t0_s}
+
+
+def echo_peaks(echo: wp.array, smooth: wp.array, t0: wp.array, dt: float, step: wp.array, sigma: float,
+               min_prominence: float, out: wp.array, count: wp.array, peaks: wp.array, params: wp.array) -> None:
+    """The peaks of the smoothed waveforms ``smooth`` (N, W) standing out by ``min_prominence`` of their maximum, and
+    their start parameters, into ``count``, ``peaks`` and ``params`` (kernels/waveform_measures.py: a thread per
+    PEAK_CHUNK samples of a waveform finds its chunk's peaks, a thread per waveform keeps the first MAX_PEAKS)."""
+    n, n_wave = smooth.shape
+    device, chunks = smooth.device, -(-n // km.PEAK_CHUNK)
+    extremes = wp.empty((2, chunks, n_wave), dtype=wp.float64, device=device)
+    wp.launch(km.chunk_extremes, (chunks, n_wave), inputs=[smooth], outputs=[extremes], device=device)
+    kept = wp.empty((chunks, n_wave), dtype=wp.int32, device=device)
+    found = wp.empty((3 * MAX_PEAKS, chunks, n_wave), dtype=wp.int32, device=device)
+    prominences = wp.empty((MAX_PEAKS, chunks, n_wave), dtype=wp.float64, device=device)
+    wp.launch(km.chunk_peaks, (chunks, n_wave), inputs=[smooth, extremes, wp.float64(min_prominence)],
+              outputs=[kept, found, prominences], device=device)
+    wp.launch(km.find_echo_peaks, n_wave, inputs=[echo, smooth, t0, wp.float64(dt), step, wp.float64(sigma), out,
+                                                  kept, found, prominences], outputs=[count, peaks, params],
+              device=device)
 
 
 def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> None:
