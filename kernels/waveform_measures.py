@@ -4,6 +4,7 @@
 Every array is laid out sample (or parameter) first and waveform last, ``[j, w]``: with one thread per waveform the
 threads of a warp read one sample of 32 waveforms side by side (coalesced).
 
+0. :data:`echo_columns`: the waveforms, as they come one per row, into that layout on the device.
 1. :data:`smooth_echoes` (one thread per sample and waveform): scipy.ndimage.gaussian_filter1d's correlation with
    its ``reflect`` extension, the taps added in the C code's order (centre, then the pairs from the outermost in).
 2. :data:`echo_measures` (one thread per waveform): half-power, centroid and peak times, FWHM and RMS width.
@@ -14,6 +15,8 @@ threads of a warp read one sample of 32 waveforms side by side (coalesced).
 4. kernels/waveform_fit.py: a bounded Levenberg–Marquardt fit of the kept peaks' Gaussians, its sums over the samples
    spread over a thread per FIT_CHUNK samples of each waveform.
 """
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
@@ -28,6 +31,14 @@ UNDERFLOW = wp.constant(wp.float64(750.0))  # exp(−h) of h above this is 0 in 
 STATUS_CONVERGED = wp.constant(0)  # no step lowers the SSR any more, or the last lowered it by < GAIN_TOLERANCE
 STATUS_ITERATIONS = wp.constant(1)  # MAX_ITERATIONS steps taken
 STATUS_SKIPPED = wp.constant(-1)  # no peak, more than MAX_PEAKS, or a start amplitude < 0: not fitted
+
+
+@wp.kernel
+def echo_columns(rows: wp.array2d(dtype=Any), columns: wp.array2d(dtype=wp.float64)):
+    """The waveforms as they come, one per row (W, N) of float32 or float64 [W], as the float64 columns (N, W) the
+    kernels read."""
+    j, w = wp.tid()
+    columns[j, w] = wp.float64(rows[w, j])
 
 
 @wp.func

@@ -101,7 +101,11 @@ def _launch(system, t0_s, echo_w, device, min_prominence) -> dict[str, np.ndarra
     steps = (t0_s + dt) - t0_s  # t_1 − t_0 as the host forms the time base
     group, radius, taps = smoothing_taps(sigma, steps)
     arr = lambda a, dtype=wp.float64: wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)  # noqa: E731
-    echo, t0, step = arr(echo_w.astype(np.float64).T), arr(t0_s), arr(steps)
+    t0, step = arr(t0_s), arr(steps)
+    rows = echo_w if echo_w.dtype in (np.float32, np.float64) else echo_w.astype(np.float64)
+    echo = wp.empty((n, n_wave), dtype=wp.float64, device=device)  # transposed on the device, not the host
+    wp.launch(km.echo_columns, dim=(n, n_wave), inputs=[arr(rows, wp.float32 if rows.dtype == np.float32 else
+                                                            wp.float64)], outputs=[echo], device=device)
     smooth = wp.empty((n, n_wave), dtype=wp.float64, device=device)
     wp.launch(km.smooth_echoes, dim=(n, n_wave), inputs=[echo, arr(group, wp.int32), arr(radius, wp.int32),
                                                         arr(taps)], outputs=[smooth], device=device)
