@@ -186,6 +186,9 @@ def evaluate_kernel(gaussians: int):
         k = count[w]
         m = 3 * k
         build = phase == PHASE_BUILD
+        p = trial  # the point evaluated
+        if build:
+            p = params
         start = t0[w]
         scale = maximum[5, w]
         grad = vec_parameters()
@@ -196,14 +199,9 @@ def evaluate_kernel(gaussians: int):
             x = (_time(start, dt, j) - start) / sigma
             model = wp.float64(0.0)
             for q in range(k):
-                a = params[3 * q, w]
-                mu = params[3 * q + 1, w]
-                s = params[3 * q + 2, w]
-                if not build:
-                    a = trial[3 * q, w]
-                    mu = trial[3 * q + 1, w]
-                    s = trial[3 * q + 2, w]
-                z = (x - mu) / s
+                a = p[3 * q, w]
+                s = p[3 * q + 2, w]
+                z = (x - p[3 * q + 1, w]) / s
                 h = wp.float64(0.5) * z * z
                 e = wp.float64(0.0)
                 if h < UNDERFLOW:

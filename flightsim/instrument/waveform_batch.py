@@ -165,8 +165,8 @@ def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> 
     rounds = 1 + int(km.MAX_ITERATIONS) * (int(km.LAMBDA_TRIES) + 1)  # a fit's evaluations at the most
     for first in range(0, rounds, FIT_ROUNDS):
         for _ in range(min(FIT_ROUNDS, rounds - first)):
-            wp.launch(evaluate, (chunks, n_wave), inputs=[echo, t0, wp.float64(dt), wp.float64(sigma), out,
-                                                                    count, params, trial, state, sums], device=device)
+            wp.launch(evaluate, (chunks, n_wave), inputs=[echo, t0, wp.float64(dt), wp.float64(sigma), out, count,
+                                                          params, trial, state, sums], device=device)
             wp.launch(kf.advance_fits, n_wave, inputs=[echo, t0, wp.float64(dt), step, wp.float64(sigma), count,
                                                        sums, chunks, state, params, trial, normal, chol, grad, delta,
                                                        free], outputs=[ssr, status], device=device)
