@@ -1,4 +1,4 @@
-"""The waveforms' convolution with the pulse by overlap-save over Warp's tile FFT (float64 complex, ``wp.vec2d``).
+"""The waveforms' convolution with the pulse by overlap-save over float64 FFTs in a tile's shared memory.
 
 The direct sum (kernels/waveform.py ``convolve``) makes out[i] = Σ_j x[j] · h[i − j − f] from a beam's impulse
 train x (float64, non-zero only within its touched span [lo, hi]) and the T pulse taps h (lags f … f + T − 1
@@ -9,23 +9,31 @@ linear one at positions m = T − 1 … N − 1 (output o + m − (T − 1)); th
 stored. As x and h are real, two consecutive blocks share one complex FFT (the first block's impulses as the real
 part, the second's as the imaginary part: the inverse transform of H·(A + iB) is h⊛a + i h⊛b).
 
+The FFTs are radix-2 over the N complex float64 points of one shared-memory tile, the tile's threads sharing each
+stage's butterflies: the forward transform by decimation in frequency (natural order in, bit-reversed order out),
+the product with the pulse's spectrum in that bit-reversed order, the inverse by decimation in time (bit-reversed
+in, natural out), so no permutation is ever made; the twiddles exp(−2πik/N) come from a float64 table
+(:func:`twiddles`), not from sines per butterfly. Each butterfly's arithmetic is the same whichever thread does it,
+so every device and block size gives the same bits.
+
 One tile of the launch (row, pair) makes blocks 2·pair and 2·pair + 1 of the reach of its row's slot (the launch runs
 over the rows listed by ``split_spans``); a tile beyond the reach returns at once. The outputs are float32 [W]
-rounded from the float64 sums, clamped at 0 (the exact sums of non-negative impulses and taps are ≥ 0, so the clamp only removes the FFT's rounding, ~1e−16 of the block's
-largest value). Outputs before the reach are never written and those after it only with 0 (the tail of the
-reach's last pair of blocks), so with ``out`` zeroed beforehand every sample beyond the reach stays exactly 0, as the
-direct sums leave it (they too write 0 to a few samples past the reach).
+rounded from the float64 sums, clamped at 0 (the exact sums of non-negative impulses and taps are ≥ 0, so the clamp
+only removes the FFT's rounding, ~1e−16 of the block's largest value). Outputs before the reach are never written
+and those after it only with 0 (the tail of the reach's last pair of blocks), so with ``out`` zeroed beforehand every
+sample beyond the reach stays exactly 0, as the direct sums leave it (they too write 0 to a few samples past the
+reach).
 """
 import functools
 
+import numpy as np
 import warp as wp
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 FFT_SIZE = 8192  # N: samples per FFT (a power of two greater than the pulse's taps)
 DIRECT_BELOW = 256  # rows whose touched span is narrower [samples] are summed directly (fewer products than an FFT)
-FFT_BLOCK_DIM = 256  # threads per tile on a GPU (cuFFTDx: at most N/2); a CPU tile runs on one
-OUTSIDE = -(1 << 30)  # a store index that lands outside every row: nothing written
+FFT_BLOCK_DIM = 256  # threads per tile on a GPU (at most N/2)
 
 
 @wp.struct
@@ -34,80 +42,153 @@ class Overlap:
 
     impulses: wp.array2d(dtype=wp.float64)  # (slots, samples) the impulse trains [1]
     span: wp.array2d(dtype=wp.int32)  # (slots, 2) lowest and highest sample touched ((samples, −1): none)
-    spectrum: wp.array2d(dtype=wp.vec2d)  # (1, N) FFT of the taps zero-padded to N, divided by N [W]
+    spectrum: wp.array(dtype=wp.vec2d)  # (N,) FFT of the taps zero-padded to N, divided by N, bit-reversed order [W]
+    twiddles: wp.array(dtype=wp.vec2d)  # (N/2,) exp(−2πik/N) [1]
     taps: int  # T, taps of the pulse
     first_lag: int  # f, lag of the first tap [samples]
 
 
-@wp.func
-def _segments(m: int, o: Overlap, slot: int, start: int, step: int) -> wp.vec2d:
-    """(x[start + m], x[start + step + m]) of ``slot``'s impulse train as one complex number; 0 outside the row
-    and outside its touched span (the rest of the row is 0)."""
-    a = wp.float64(0.0)
-    b = wp.float64(0.0)
-    lo = o.span[slot, 0]
-    hi = o.span[slot, 1]
-    j = start + m
-    if j >= lo and j <= hi:
-        a = o.impulses[slot, j]
-    j = j + step
-    if j >= lo and j <= hi:
-        b = o.impulses[slot, j]
-    return wp.vec2d(a, b)
+def bit_reversed(n: int) -> np.ndarray:
+    """The indices 0 … n − 1 (n a power of two) with their log₂ n bits reversed."""
+    bits = n.bit_length() - 1
+    index = np.arange(n)
+    return np.array([int(format(i, f"0{bits}b")[::-1], 2) for i in index]) if bits else index
 
 
-@wp.func
-def _filtered(z: wp.vec2d, m: int, o: Overlap) -> wp.vec2d:
-    """z times the pulse's spectrum at bin m (the complex product)."""
-    h = o.spectrum[0, m]
-    return wp.vec2d(z[0] * h[0] - z[1] * h[1], z[0] * h[1] + z[1] * h[0])
+def twiddles(n: int) -> np.ndarray:
+    """(n/2, 2) float64: exp(−2πik/n), k = 0 … n/2 − 1, as (real, imaginary)."""
+    angle = -2.0 * np.pi * np.arange(n // 2) / n
+    return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
 
 
-@wp.func
-def _clamped(value: wp.float64, output: int, last: int) -> wp.float32:
-    """``value`` as float32 power [W], clamped at 0; 0 where its output lies past ``last`` (the reach's end)."""
-    power = wp.float32(0.0)
-    if output <= last:
-        power = wp.float32(wp.max(value, wp.float64(0.0)))
-    return power
+RADIX_LEVELS = 4  # butterfly levels a thread makes in registers between two passes through shared memory (radix 16)
+PAD_EVERY = 16  # one padding element after every 16 in shared memory (spreads strided accesses over the banks)
+
+_HELPERS = """
+    wp::vec2d* z = tile.data.ptr;
+    auto at = [](int e) { return e + e / %(pad)d; };  // the padded shared-memory index of position e
+    auto sample = [&](int e) {  // (x[start + e], x[start + step + e]), 0 outside the touched span [lo, hi]
+        int j = start + e;
+        const double a = (j >= lo && j <= hi) ? *wp::address(impulses, slot, j) : 0.0;
+        j += step;
+        const double b = (j >= lo && j <= hi) ? *wp::address(impulses, slot, j) : 0.0;
+        return wp::vec2d(a, b);
+    };
+    auto dif = [&](wp::vec2d& u, wp::vec2d& v, int k) {  // (u + v, (u − v) · exp(−2πik/N))
+        const wp::vec2d w = *wp::address(twiddles, k);
+        const double dr = u[0] - v[0], di = u[1] - v[1];
+        u = wp::vec2d(u[0] + v[0], u[1] + v[1]);
+        v = wp::vec2d(dr * w[0] - di * w[1], dr * w[1] + di * w[0]);
+    };
+    auto dit = [&](wp::vec2d& u, wp::vec2d& v, int k) {  // (u + t, u − t), t = v · exp(+2πik/N)
+        const wp::vec2d w = *wp::address(twiddles, k);
+        const double tr = v[0] * w[0] + v[1] * w[1], ti = v[1] * w[0] - v[0] * w[1];
+        v = wp::vec2d(u[0] - tr, u[1] - ti);
+        u = wp::vec2d(u[0] + tr, u[1] + ti);
+    };
+    auto filter = [&](wp::vec2d& v, int e) {  // times the pulse's spectrum at bit-reversed position e
+        const wp::vec2d h = *wp::address(spectrum, e);
+        v = wp::vec2d(v[0] * h[0] - v[1] * h[1], v[0] * h[1] + v[1] * h[0]);
+    };
+    const int samples = out.shape[1];
+    auto emit = [&](int e, const wp::vec2d& v) {  // position e ≥ wrapped: real part to output first + e, imaginary
+        if (e < wrapped) return;                 // part to first + step + e; float32, clamped at 0, 0 past last
+        int output = first + e;
+        if (output < samples)
+            *wp::address(out, slot, output) = output <= last ? wp::float32(v[0] > 0.0 ? v[0] : 0.0) : wp::float32(0.0);
+        output += step;
+        if (output < samples)
+            *wp::address(out, slot, output) = output <= last ? wp::float32(v[1] > 0.0 ? v[1] : 0.0) : wp::float32(0.0);
+    };
+""" % {"pad": PAD_EVERY}
 
 
-@wp.func
-def _real_power(z: wp.vec2d, m: int, first: int, last: int) -> wp.float32:
-    """The real part (the first block's output first + m) as :func:`_clamped` power."""
-    return _clamped(z[0], first + m, last)
+def fft_passes(n: int) -> list[tuple[int, int]]:
+    """The forward FFT's passes as (half of its first level, levels): log₂ n levels in passes of RADIX_LEVELS, the
+    remainder second, so that the first pass (which reads the impulses from global memory, and its inverse, which
+    writes the outputs) and the last (down to the half 1, which the product with the spectrum joins) have
+    RADIX_LEVELS levels each: a thread then has that many independent global loads in flight."""
+    levels = n.bit_length() - 1
+    full, rest = divmod(levels, RADIX_LEVELS)
+    counts = [RADIX_LEVELS] * full
+    if rest:
+        counts.insert(1 if full else 0, rest)
+    passes, half = [], n // 2
+    for count in counts:
+        passes.append((half, count))
+        half >>= count
+    return passes
 
 
-@wp.func
-def _imag_power(z: wp.vec2d, m: int, first: int, last: int) -> wp.float32:
-    """The imaginary part (the second block's output first + m) as :func:`_clamped` power."""
-    return _clamped(z[1], first + m, last)
+def _levels(half: int, count: int, n: int, inverse: bool) -> list[str]:
+    """The butterflies of ``count`` levels (halves half, half/2, …; reversed for the inverse) on a group's
+    registers v[0 … 2^count − 1], the elements pos + j·q of their block (q = half / 2^(count − 1))."""
+    group, q, lines = 1 << count, half >> (count - 1), []
+    order = range(count - 1, -1, -1) if inverse else range(count)
+    for level in order:
+        jh = group >> (level + 1)  # the butterfly's half in elements of the group
+        stride = n // (2 * jh * q)  # twiddle index per position
+        for j in range(group):
+            if not j & jh:
+                position = f"pos + {(j & (2 * jh - 1)) * q}" if j & (2 * jh - 1) else "pos"
+                lines.append(f"{'dit' if inverse else 'dif'}(v[{j}], v[{j + jh}], ({position}) * {stride});")
+    return lines
 
 
-@wp.func
-def _store_index(m: int, wrapped: int) -> int:
-    """Output offset of position m (m − wrapped) past the block's start; OUTSIDE for the wrapped positions."""
-    index = OUTSIDE
-    if m >= wrapped:
-        index = m - wrapped
-    return index
+def _pass(half: int, count: int, n: int, source: str, body: list[str], sink: str) -> str:
+    """One pass over the groups of 2^count elements (every thread of the tile taking every block_dim-th group):
+    each group's elements loaded by ``source`` (``shared`` or ``impulses``), ``body`` applied, stored by ``sink``
+    (``shared`` or ``out``); a sync after."""
+    group, q = 1 << count, half >> (count - 1)
+    load = {"shared": "v[{j}] = z[at(base + {o})];", "impulses": "v[{j}] = sample(base + {o});"}[source]
+    store = {"shared": "z[at(base + {o})] = v[{j}];", "out": "emit(base + {o}, v[{j}]);"}[sink]
+    lines = [f"for (int g = WP_TILE_THREAD_IDX; g < {n // group}; g += WP_TILE_BLOCK_DIM) {{",
+             f"    const int pos = g & {q - 1}, base = (g / {q}) * {2 * half} + pos;",
+             f"    wp::vec2d v[{group}];",
+             *(f"    {load.format(j=j, o=j * q)}" for j in range(group)),
+             *(f"    {line}" for line in body),
+             *(f"    {store.format(j=j, o=j * q)}" for j in range(group)),
+             "}", "WP_TILE_SYNC();"]
+    return "\n".join(lines)
+
+
+def overlap_save_snippet(n: int) -> str:
+    """The native code of one tile's overlap-save: the forward passes (the first loading the impulses), the last
+    forward pass, the product with the spectrum and the first inverse pass on the same registers, the inverse
+    passes (the last writing the outputs). Positions are natural in the forward passes' input and the inverse
+    passes' output, bit-reversed between."""
+    passes = fft_passes(n)
+    group = 1 << passes[-1][1]
+    middle = [*_levels(*passes[-1], n, False), *(f"filter(v[{j}], base + {j});" for j in range(group)),
+              *_levels(*passes[-1], n, True)]
+    if len(passes) == 1:
+        return _HELPERS + _pass(*passes[0], n, "impulses", middle, "out")
+    code = [_pass(*passes[0], n, "impulses", _levels(*passes[0], n, False), "shared")]
+    code += [_pass(*p, n, "shared", _levels(*p, n, False), "shared") for p in passes[1:-1]]
+    code += [_pass(*passes[-1], n, "shared", middle, "shared")]
+    code += [_pass(*p, n, "shared", _levels(*p, n, True), "shared") for p in passes[-2:0:-1]]
+    code += [_pass(*passes[0], n, "shared", _levels(*passes[0], n, True), "out")]
+    return _HELPERS + "\n".join(code)
 
 
 @functools.cache
 def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
     """The overlap-save kernel of FFT size ``n`` (a power of two) for tiles of ``block_dim`` threads (its module's
-    block_dim, so that compiling it ahead compiles what runs; n divisible by block_dim). The FFTs are Warp's own
-    cooperative radix-2 FFT on every device: cuFFTDx (Warp's default on a GPU) failed to build the float64
-    8192-point FFT for an H100 with Warp 1.19 (LTO error), and at 512 or 1024 threads per tile the kernel asks for
-    more registers than a block has. Launch with ``wp.launch_tiled`` over (slots, pairs of blocks) with the same
-    block_dim."""
+    block_dim, so that compiling it ahead compiles what runs). Launch with ``wp.launch_tiled`` over (slots, pairs of
+    blocks) with the same block_dim."""
 
-    options = {"block_dim": block_dim, "enable_mathdx_fft": False}
+    options = {"block_dim": block_dim}
+    padded = n + n // PAD_EVERY  # shared-memory elements of the tile
+    @wp.func_native(overlap_save_snippet(n))
+    def overlap_save(tile: wp.tile(dtype=wp.vec2d, shape=(padded,), storage="shared"),
+                     impulses: wp.array2d(dtype=wp.float64), slot: int, lo: int, hi: int, start: int, step: int,
+                     spectrum: wp.array(dtype=wp.vec2d), twiddles: wp.array(dtype=wp.vec2d), wrapped: int,
+                     first: int, last: int, out: wp.array2d(dtype=wp.float32)): ...
 
     @wp.kernel(enable_backward=False, module="unique", module_options=options, grid_stride=False)
     def convolve_fft(
         # In:
-        o: Overlap,  # the impulse trains, their spans, the pulse's spectrum
+        o: Overlap,  # the impulse trains, their spans, the pulse's spectrum and the twiddles
         rows: wp.array(dtype=wp.int32),  # the slots of the launch's rows (split_spans)
         block: int,  # L = n − taps + 1: outputs per block
         # Out:
@@ -126,18 +207,9 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
         if hi < lo or origin > reach_hi:
             return
         wrapped = o.taps - 1
-        start = origin - o.first_lag - wrapped
-        lanes = wp.tile_reshape(wp.tile_arange(n, dtype=int), shape=(1, n))
-        z = wp.tile_map(_segments, lanes, o, slot, start, block)
-        wp.tile_fft(z)
-        z = wp.tile_map(_filtered, z, lanes, o)
-        wp.tile_ifft(z)
-        first = origin - wrapped
-        index = wp.tile_map(_store_index, wp.tile_arange(n, dtype=int), wrapped)
-        power = wp.tile_map(_real_power, z, lanes, first, reach_hi)
-        wp.tile_store_indexed(out, index, power, offset=(slot, origin), axis=1)
-        power = wp.tile_map(_imag_power, z, lanes, first + block, reach_hi)
-        wp.tile_store_indexed(out, index, power, offset=(slot, origin + block), axis=1)
+        z = wp.tile_empty(shape=padded, dtype=wp.vec2d, storage="shared")
+        overlap_save(z, o.impulses, slot, lo, hi, origin - o.first_lag - wrapped, block, o.spectrum, o.twiddles,
+                     wrapped, origin - wrapped, reach_hi, out)
 
     return convolve_fft
 

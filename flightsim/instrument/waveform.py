@@ -79,7 +79,7 @@ class WaveformSettings(Settings):
                                 "the Gaussian footprint (the GEDI simulator's method); rays traces the sub-rays "
                                 "against the cloud's ground mesh and scene.canopy", choices=CLOUD_METHODS)
     convolution: str = setting("fft", "the echo's convolution with the pulse on the device: fft (overlap-save over "
-                               "float64 tile FFTs; an echo narrower than 256 samples still by direct sums) or direct "
+                               "float64 FFTs; an echo narrower than 256 samples still by direct sums) or direct "
                                "sums for every echo; the same float32 waveforms to ~1e-7 of the peak",
                                choices=CONVOLUTIONS)
     processing: str = setting("host", "where waveforms.h5's ranging (measures, Gaussian decomposition) is computed: "

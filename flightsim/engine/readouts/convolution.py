@@ -21,10 +21,10 @@ def fft_size(taps: int, samples: int, least: int = kf.FFT_SIZE) -> int:
 
 
 def pulse_spectrum(taps: np.ndarray, n: int) -> np.ndarray:
-    """(1, n, 2) float64: the FFT of the taps zero-padded to n, divided by n (the inverse tile FFT is unscaled)
-    as (real, imaginary)."""
-    h = np.fft.fft(np.asarray(taps, dtype=np.float64), n) / n
-    return np.stack([h.real, h.imag], axis=-1)[None]
+    """(n, 2) float64: the FFT of the taps zero-padded to n, divided by n (the inverse FFT is unscaled), as (real,
+    imaginary), in bit-reversed order (the order the kernel's forward FFT leaves its bins in)."""
+    h = np.fft.fft(np.asarray(taps, dtype=np.float64), n)[kf.bit_reversed(n)] / n
+    return np.stack([h.real, h.imag], axis=-1)
 
 
 class PulseConvolution:
@@ -45,6 +45,7 @@ class PulseConvolution:
             spectrum = pulse_spectrum(taps.numpy(), self.n)
             self.overlap = kf.Overlap()
             self.overlap.spectrum = wp.array(spectrum, dtype=wp.vec2d, device=device)
+            self.overlap.twiddles = wp.array(kf.twiddles(self.n), dtype=wp.vec2d, device=device)
             self.overlap.taps, self.overlap.first_lag = len(taps), first_lag
 
     def kernels(self) -> list:
