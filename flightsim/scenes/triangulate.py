@@ -41,29 +41,30 @@ def _wound(ring, counter_clockwise: bool) -> np.ndarray:
     return ring if (area > 0.0) == counter_clockwise else ring[::-1].copy()
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> float:
-    return float(a[0] * b[1] - a[1] * b[0])
+def _cross(a: np.ndarray, b: np.ndarray):
+    """z of the cross product of 2-vectors a and b (or of their (k, 2) rows, broadcast)."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
-def _segments_cross(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether closed segments pq and ab share a point other than a common endpoint."""
-    shared = [x for x in (a, b) if np.array_equal(x, p) or np.array_equal(x, q)]
-    if shared:
-        return False
+def _crosses_any(p: np.ndarray, q: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether the closed segment pq shares a point with any closed segment a[i] b[i] ((k, 2) each) other than a
+    common endpoint; a segment with an endpoint at p or q is not counted."""
+    shared = (a == p).all(axis=1) | (a == q).all(axis=1) | (b == p).all(axis=1) | (b == q).all(axis=1)
     d1 = _cross(q - p, a - p)
     d2 = _cross(q - p, b - p)
     d3 = _cross(b - a, p - a)
     d4 = _cross(b - a, q - a)
-    if ((d1 > 0) != (d2 > 0)) and ((d3 > 0) != (d4 > 0)) and d1 != 0 and d2 != 0 and d3 != 0 and d4 != 0:
-        return True
-    return any(
-        d == 0 and _on_segment(x, s0, s1)
-        for d, x, s0, s1 in ((d1, a, p, q), (d2, b, p, q), (d3, p, a, b), (d4, q, a, b))
-    )
+    proper = ((d1 > 0) != (d2 > 0)) & ((d3 > 0) != (d4 > 0)) & (d1 != 0) & (d2 != 0) & (d3 != 0) & (d4 != 0)
+    touching = ((d1 == 0) & _on_segment(a, p, q)) | ((d2 == 0) & _on_segment(b, p, q)) \
+        | ((d3 == 0) & _on_segment(p, a, b)) | ((d4 == 0) & _on_segment(q, a, b))
+    return bool((~shared & (proper | touching)).any())
 
 
-def _on_segment(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
-    return bool(min(a[0], b[0]) <= x[0] <= max(a[0], b[0]) and min(a[1], b[1]) <= x[1] <= max(a[1], b[1]))
+def _on_segment(x: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Whether x lies in the bounding box of segment ab (any of them broadcast over (k, 2) rows)."""
+    x, a, b = np.broadcast_arrays(x, a, b)
+    return ((np.minimum(a[..., 0], b[..., 0]) <= x[..., 0]) & (x[..., 0] <= np.maximum(a[..., 0], b[..., 0]))
+            & (np.minimum(a[..., 1], b[..., 1]) <= x[..., 1]) & (x[..., 1] <= np.maximum(a[..., 1], b[..., 1])))
 
 
 def _in_sector(points: np.ndarray, polygon: list[int], k: int, target: np.ndarray) -> bool:
@@ -82,6 +83,7 @@ def _bridge_hole(points: np.ndarray, polygon: list[int], hole: list[int], others
     edges = [(polygon[i], polygon[(i + 1) % len(polygon)]) for i in range(len(polygon))]
     for ring in [hole] + others:
         edges += [(ring[i], ring[(i + 1) % len(ring)]) for i in range(len(ring))]
+    ends = points[np.array(edges)]  # (edges, 2 ends, 2)
     candidates = sorted(
         (float(np.sum((points[polygon[k]] - points[m]) ** 2)), j, k)
         for j, m in enumerate(hole) for k in range(len(polygon))
@@ -90,7 +92,7 @@ def _bridge_hole(points: np.ndarray, polygon: list[int], hole: list[int], others
         m, v = points[hole[j]], points[polygon[k]]
         if not _in_sector(points, polygon, k, m):
             continue
-        if any(_segments_cross(m, v, points[e0], points[e1]) for e0, e1 in edges):
+        if _crosses_any(m, v, ends[:, 0], ends[:, 1]):
             continue
         ring = hole[j:] + hole[:j]
         return polygon[:k + 1] + ring + [hole[j], polygon[k]] + polygon[k + 1:]
@@ -98,31 +100,44 @@ def _bridge_hole(points: np.ndarray, polygon: list[int], hole: list[int], others
 
 
 def _clip_ears(points: np.ndarray, polygon: list[int]) -> list[tuple[int, int, int]]:
-    """Ear clipping of a counter-clockwise (weakly) simple polygon; picks the fattest ear first."""
+    """Ear clipping of a counter-clockwise (weakly) simple polygon; picks the fattest ear first (the first of equals
+    in the polygon's order). An ear's quality is kept between clips unless its triangle changed (the clipped
+    vertex's neighbours) or it was no ear for a vertex inside while being convex (the clipped vertex may have been
+    that one): a clip only removes a vertex, so an ear stays an ear with the same quality and a reflex vertex with
+    the same neighbours stays reflex."""
     polygon = list(polygon)
     triangles = []
+    ring = points[polygon]
+    quality = [_ear_quality(ring, i) for i in range(len(polygon))]
     while len(polygon) > 3:
-        best, best_quality = -1, -1.0
-        ring = points[polygon]
-        for i in range(len(polygon)):
-            quality = _ear_quality(ring, i)
-            if quality > best_quality:
-                best, best_quality = i, quality
-        if best < 0:
+        best = int(np.argmax(quality))
+        if quality[best] < 0.0:
             raise RuntimeError("ear clipping found no ear; the polygon is not simple")
         n = len(polygon)
         triangles.append((polygon[best - 1], polygon[best], polygon[(best + 1) % n]))
-        del polygon[best]
+        del polygon[best], quality[best]
+        ring = points[polygon]
+        n -= 1
+        for i in range(n):
+            neighbour = i == (best - 1) % n or i == best % n
+            if neighbour or (quality[i] < 0.0 and _convex(ring, i)):
+                quality[i] = _ear_quality(ring, i)
     triangles.append(tuple(polygon))
     return triangles
+
+
+def _convex(ring: np.ndarray, i: int) -> bool:
+    """Whether the polygon ``ring`` (n, 2) turns left (strictly) at vertex i."""
+    a, b, c = ring[i - 1], ring[i], ring[(i + 1) % len(ring)]
+    return _cross(b - a, c - b) > 0.0
 
 
 def _ear_quality(ring: np.ndarray, i: int) -> float:
     """Smallest angle [rad] of the ear at vertex i of the polygon ``ring`` (n, 2), or −1 if it is not an ear:
     convex there, and no other vertex (one at a corner's position aside) in the closed triangle."""
-    a, b, c = ring[i - 1], ring[i], ring[(i + 1) % len(ring)]
-    if _cross(b - a, c - b) <= 0.0:
+    if not _convex(ring, i):
         return -1.0
+    a, b, c = ring[i - 1], ring[i], ring[(i + 1) % len(ring)]
     at_corner = (ring == a).all(axis=1) | (ring == b).all(axis=1) | (ring == c).all(axis=1)
     inside = ~at_corner
     for p, q in ((a, b), (b, c), (c, a)):
