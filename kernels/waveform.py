@@ -344,23 +344,26 @@ def _put(out: wp.array2d(dtype=wp.float32), slot: int, i: int, value: wp.float64
         out[slot, i] = wp.float32(value)
 
 
+CLEAR_THREADS = 128  # threads per row clearing a chunk's spans (each takes every CLEAR_THREADS-th sample)
+
+
 @wp.kernel
 def clear_spans(span: wp.array2d(dtype=wp.int32), first_lag: int, taps: int, reach: int,
                 impulses: wp.array2d(dtype=wp.float64), power: wp.array2d(dtype=wp.float32)):
-    """A chunk's rows cleared for the next, CONVOLVE_OUTPUTS samples per thread: impulses[slot, j] = 0 over the
+    """A chunk's rows cleared for the next, launched over (rows, CLEAR_THREADS), thread k taking samples k, k +
+    CLEAR_THREADS, … from the start of each range (a warp's stores side by side): impulses[slot, j] = 0 over the
     touched span [lo, hi] of ``span[slot]`` (the deposits touch nothing outside it) and, with ``reach`` = 1,
     power[slot, i] = 0 over the reach [lo + first_lag, hi + first_lag + taps − 1] within the row (the convolution
     writes nothing but 0 outside it)."""
-    slot, block = wp.tid()
-    i0 = block * CONVOLVE_OUTPUTS
+    slot, k = wp.tid()
     lo = span[slot, 0]
     hi = span[slot, 1]
-    for j in range(wp.max(lo, i0), wp.min(hi, i0 + CONVOLVE_OUTPUTS - 1) + 1):
+    for j in range(lo + k, hi + 1, CLEAR_THREADS):
         impulses[slot, j] = wp.float64(0.0)
     if reach != 0 and hi >= lo:
-        begin = wp.max(wp.max(lo + first_lag, 0), i0)
-        end = wp.min(wp.min(hi + first_lag + taps - 1, power.shape[1] - 1), i0 + CONVOLVE_OUTPUTS - 1)
-        for i in range(begin, end + 1):
+        begin = wp.max(lo + first_lag, 0)
+        end = wp.min(hi + first_lag + taps - 1, power.shape[1] - 1)
+        for i in range(begin + k, end + 1, CLEAR_THREADS):
             power[slot, i] = wp.float32(0.0)
 
 

@@ -202,14 +202,15 @@ def test_a_tracers_second_run_reuses_its_buffers_cleanly(device):
 
 @pytest.mark.parametrize("reach", [0, 1])
 def test_clear_spans_zeroes_the_span_and_the_reach(device, reach):
-    """kernels/waveform.py clear_spans against NumPy: impulses zeroed over each row's span [lo, hi], power (with
-    reach = 1) over [lo + first_lag, hi + first_lag + taps − 1] within the row, nothing else touched."""
+    """kernels/waveform.py clear_spans against NumPy (a span wider than its threads, 141 samples, among them):
+    impulses zeroed over each row's span [lo, hi], power (with reach = 1) over [lo + first_lag, hi + first_lag +
+    taps − 1] within the row, nothing else touched."""
     samples, first_lag, taps = 300, -7, 20
     span = np.array([[0, 5], [290, 299], [100, 100], [samples, -1], [40, 180]], dtype=np.int32)
     rows = len(span)
     impulses = wp.array(np.ones((rows, samples)), dtype=wp.float64, device=device)
     power = wp.array(np.ones((rows, samples)), dtype=wp.float32, device=device)
-    wp.launch(kw.clear_spans, (rows, -(-samples // kw.CONVOLVE_OUTPUTS)),
+    wp.launch(kw.clear_spans, (rows, kw.CLEAR_THREADS),
               inputs=[wp.array(span, dtype=wp.int32, device=device), first_lag, taps, reach],
               outputs=[impulses, power], device=device)
     i = np.arange(samples)[None, :]

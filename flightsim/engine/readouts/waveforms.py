@@ -160,7 +160,7 @@ class Waveforms:
         pilot_windows(tracer, b, self.refs, params, n)
         conv, clean = self.convolution, self.receiver is None  # clean: no receiver writes whole rows of power
         if b.touched:  # the last chunk's impulse trains (and power) cleared within their spans (reach) only
-            wp.launch(kw.clear_spans, (b.touched, -(-params.samples // kw.CONVOLVE_OUTPUTS)),
+            wp.launch(kw.clear_spans, (b.touched, kw.CLEAR_THREADS),
                       inputs=[b.span, conv.first_lag, len(conv.taps), int(clean)], outputs=[b.impulses, b.power],
                       device=d)
         b.touched = n
