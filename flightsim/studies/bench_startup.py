@@ -1,7 +1,10 @@
 """`flightsim bench` section startup: seconds from launching `flightsim simulate` (the default scene and
 instrument, 1 s of flight) to its command line parsed, to the first trace launch and to the first LAS tile on
 disk, with an empty Warp kernel cache (cold: every module compiled), again with the cache it left (warm), and
-after `flightsim compile` filled an empty cache ahead of the run; and what `flightsim compile --all` takes."""
+after `flightsim compile` filled an empty cache ahead of the run; and what `flightsim compile --all` takes. Every
+process reads Python's bytecode, as an installed package's are (written by a first, untimed run into a bytecode
+folder of the section's own: an environment with PYTHONDONTWRITEBYTECODE, or packages installed without their
+bytecode, would otherwise compile every module's source at every start)."""
 from __future__ import annotations
 
 import os
@@ -21,6 +24,19 @@ def startup(device: str, s: Sizes) -> list[dict]:
     of the same flags (``compile_s``) in another empty cache with nothing prebuilt; the last record times
     `flightsim compile --all` (every built-in instrument) in an empty cache with nothing prebuilt."""
     device = resolve_device(device)
+    saved = {name: os.environ.pop(name, None) for name in ("PYTHONPYCACHEPREFIX", "PYTHONDONTWRITEBYTECODE")}
+    with tempfile.TemporaryDirectory() as bytecode, tempfile.TemporaryDirectory() as prime:
+        os.environ["PYTHONPYCACHEPREFIX"] = bytecode  # the children's bytecode (this process keeps its own)
+        try:
+            _launch(device, Path(prime), "bytecode")
+            return _records(device)
+        finally:
+            os.environ.pop("PYTHONPYCACHEPREFIX")
+            os.environ.update({name: value for name, value in saved.items() if value is not None})
+
+
+def _records(device: str) -> list[dict]:
+    """The records of :func:`startup`."""
     with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as bare, \
             tempfile.TemporaryDirectory() as ahead:
         records = [_launch(device, Path(tmp), "cold")]
@@ -67,7 +83,7 @@ def _launch(device: str, tmp: Path, state: str, env_more: dict | None = None) ->
     return {"cache": state, "device": device, "command": "flightsim " + " ".join(command[3:-1]),
             "cli_s": float(events["cli"]) - started, "first_ray_s": float(events["first_ray"]) - started,
             "first_file_s": min(t.stat().st_mtime for t in tiles) - started if tiles else None,
-            "exit_s": ended - started,
+            "exit_s": ended - started, "bytecode": True,
             "modules_compiled": _modules(kernels) - modules_before}
 
 
