@@ -74,14 +74,13 @@ _HELPERS = """
         const double b = (j >= lo && j <= hi) ? *wp::address(impulses, slot, j) : 0.0;
         return wp::vec2d(a, b);
     };
-    auto dif = [&](wp::vec2d& u, wp::vec2d& v, int k) {  // (u + v, (u − v) · exp(−2πik/N))
-        const wp::vec2d w = *wp::address(twiddles, k);
+    auto twiddle = [&](int k) { return *wp::address(twiddles, k); };  // exp(−2πik/N)
+    auto dif = [&](wp::vec2d& u, wp::vec2d& v, const wp::vec2d& w) {  // (u + v, (u − v) · w)
         const double dr = u[0] - v[0], di = u[1] - v[1];
         u = wp::vec2d(u[0] + v[0], u[1] + v[1]);
         v = wp::vec2d(dr * w[0] - di * w[1], dr * w[1] + di * w[0]);
     };
-    auto dit = [&](wp::vec2d& u, wp::vec2d& v, int k) {  // (u + t, u − t), t = v · exp(+2πik/N)
-        const wp::vec2d w = *wp::address(twiddles, k);
+    auto dit = [&](wp::vec2d& u, wp::vec2d& v, const wp::vec2d& w) {  // (u + t, u − t), t = v · conj(w)
         const double tr = v[0] * w[0] + v[1] * w[1], ti = v[1] * w[0] - v[0] * w[1];
         v = wp::vec2d(u[0] - tr, u[1] - ti);
         u = wp::vec2d(u[0] + tr, u[1] + ti);
@@ -122,16 +121,20 @@ def fft_passes(n: int) -> list[tuple[int, int]]:
 
 def _levels(half: int, count: int, n: int, inverse: bool) -> list[str]:
     """The butterflies of ``count`` levels (halves half, half/2, …; reversed for the inverse) on a group's
-    registers v[0 … 2^count − 1], the elements pos + j·q of their block (q = half / 2^(count − 1))."""
+    registers v[0 … 2^count − 1], the elements pos + j·q of their block (q = half / 2^(count − 1)); each level
+    reads each of its distinct twiddles once."""
     group, q, lines = 1 << count, half >> (count - 1), []
     order = range(count - 1, -1, -1) if inverse else range(count)
     for level in order:
         jh = group >> (level + 1)  # the butterfly's half in elements of the group
         stride = n // (2 * jh * q)  # twiddle index per position
+        name = f"w{'i' if inverse else 'f'}{level}_"  # the twiddles' names (the middle pass has both directions)
+        for c in range(jh):
+            position = f"pos + {c * q}" if c else "pos"
+            lines.append(f"const wp::vec2d {name}{c} = twiddle(({position}) * {stride});")
         for j in range(group):
             if not j & jh:
-                position = f"pos + {(j & (2 * jh - 1)) * q}" if j & (2 * jh - 1) else "pos"
-                lines.append(f"{'dit' if inverse else 'dif'}(v[{j}], v[{j + jh}], ({position}) * {stride});")
+                lines.append(f"{'dit' if inverse else 'dif'}(v[{j}], v[{j + jh}], {name}{j & (2 * jh - 1)});")
     return lines
 
 
