@@ -39,3 +39,19 @@ def test_copy_into_through_a_small_staging_buffer(device, monkeypatch):
     out = np.empty_like(values)
     copy_into(out, wp.array(values, dtype=wp.float32, device=device))
     np.testing.assert_array_equal(out, values)
+
+
+@pytest.mark.parametrize("dtype, scalar, shape", [(wp.vec3d, np.float64, (1001, 3)), (wp.int32, np.int32, (1001,)),
+                                                   (wp.float32, np.float32, (13, 77))])
+def test_host_array_is_a_copy_of_the_callers_own(device, monkeypatch, dtype, scalar, shape):
+    """Scalars, vectors (a row per element) and 2-D arrays, through a staging buffer smaller than the array; the
+    result stays when the device array is overwritten."""
+    monkeypatch.setattr(warp_runtime, "STAGING_BYTES", 4000)
+    monkeypatch.setattr(warp_runtime, "HOST_COPY_SLICE", 256)
+    monkeypatch.setattr(warp_runtime, "_PINNED", {})
+    values = (np.random.default_rng(5).random(shape) * 1000).astype(scalar)
+    a = wp.array(values, dtype=dtype, device=device)
+    host = warp_runtime.host_array(a)
+    a.zero_()
+    assert host.shape == values.shape and host.dtype == values.dtype
+    np.testing.assert_array_equal(host, values)

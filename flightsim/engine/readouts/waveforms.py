@@ -12,6 +12,7 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.registry import register
+from flightsim.core.warp_runtime import host_array
 from flightsim.engine.chunks import Segment
 from flightsim.engine.readouts.convolution import PulseConvolution
 from flightsim.scenes.canopy import no_canopy
@@ -193,11 +194,11 @@ class Waveforms:
             counts.returns += n * len(self.subrays)
             consume(DeviceWaveforms(n, b.window, b.power, b.received, b.starts, b.directions))
             return
-        found = b.window.numpy()[:n]
+        found = host_array(b.window[:n])
         slot = np.flatnonzero(found >= 0.0)
         counts.returns += len(slot) * len(self.subrays)
         self.misses += n - len(slot)
-        rows = {name: None if a is None else a.numpy()[slot]
+        rows = {name: None if a is None else host_array(a[:n])[slot]  # the chunk's rows only, not the buffers'
                 for name, a in (("power", b.power), ("received", b.received), ("start", b.starts),
                                 ("direction", b.directions), ("clean", b.clean))}
         hand_over(tracer, segments, slot, {**rows, "window": found[slot]}, counts, consume)
@@ -246,9 +247,9 @@ class CloudWaveforms:
     def chunk(self, tracer, segments: list[Segment], n: int, counts, consume) -> None:
         b, params = self.buffers, self.params
         pilot_windows(tracer, b, self.refs, params, n)
-        window = b.window.numpy()[:n]
+        window = host_array(b.window[:n])
         slot = np.flatnonzero(window >= 0.0)
-        start, direction = b.starts.numpy()[slot], b.directions.numpy()[slot]
+        start, direction = host_array(b.starts[:n])[slot], host_array(b.directions[:n])[slot]
         power = np.zeros((n, params.samples), dtype=np.float32)
         power[slot], received = self._waveforms(tracer, window[slot], start, direction)
         wp.copy(b.power, wp.array(power, dtype=wp.float32, device=tracer.device), count=power.size)
@@ -257,9 +258,9 @@ class CloudWaveforms:
         kept = slot[made]
         counts.returns += len(kept)
         self.misses += n - len(kept)
-        rows = {"power": b.power.numpy()[kept], "received": received[made], "start": start[made],
+        rows = {"power": host_array(b.power[:n])[kept], "received": received[made], "start": start[made],
                 "direction": direction[made], "window": window[kept],
-                "clean": None if b.clean is None else b.clean.numpy()[kept]}
+                "clean": None if b.clean is None else host_array(b.clean[:n])[kept]}
         hand_over(tracer, segments, kept, rows, counts, consume)
 
     def kernels_needed(self, tracer) -> list:
