@@ -16,8 +16,9 @@ in, natural out), so no permutation is ever made; the twiddles exp(−2πik/N) c
 (:func:`twiddles`), not from sines per butterfly. Each butterfly's arithmetic is the same whichever thread does it,
 so every device and block size gives the same bits.
 
-One tile of the launch (row, pair) makes blocks 2·pair and 2·pair + 1 of the reach of its row's slot (the launch runs
-over the rows listed by ``split_spans``); a tile beyond the reach returns at once. The outputs are float32 [W]
+An item (row, pair) makes blocks 2·pair and 2·pair + 1 of the reach of its row's slot, the rows those listed by
+``split_spans``; the launch has a tile per multiprocessor, each taking the items in turn (their count read on the
+device: the host never waits for it), an item beyond the reach making nothing. The outputs are float32 [W]
 rounded from the float64 sums, clamped at 0 (the exact sums of non-negative impulses and taps are ≥ 0, so the clamp
 only removes the FFT's rounding, ~1e−16 of the block's largest value). Outputs before the reach are never written
 and those after it only with 0 (the tail of the reach's last pair of blocks), so with ``out`` zeroed beforehand every
@@ -177,8 +178,9 @@ def overlap_save_snippet(n: int) -> str:
 @functools.cache
 def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
     """The overlap-save kernel of FFT size ``n`` (a power of two) for tiles of ``block_dim`` threads (its module's
-    block_dim, so that compiling it ahead compiles what runs). Launch with ``wp.launch_tiled`` over (slots, pairs of
-    blocks) with the same block_dim."""
+    block_dim, so that compiling it ahead compiles what runs). Launch with ``wp.launch_tiled`` over ``tiles``
+    tiles (one per multiprocessor: a tile holds one's shared memory) with the same block_dim; the tiles take
+    the listed rows' items in turn, their count read on the device (no wait for it on the host)."""
 
     options = {"block_dim": block_dim}
     padded = n + n // PAD_EVERY  # shared-memory elements of the tile
@@ -192,27 +194,31 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
     def convolve_fft(
         # In:
         o: Overlap,  # the impulse trains, their spans, the pulse's spectrum and the twiddles
-        rows: wp.array(dtype=wp.int32),  # the slots of the launch's rows (split_spans)
+        rows: wp.array(dtype=wp.int32),  # the slots of the rows the FFTs make (split_spans)
+        count: wp.array(dtype=wp.int32),  # [1] how many of them
+        pairs: int,  # pairs of blocks per row (over a whole row)
+        tiles: int,  # the launch's tiles
         block: int,  # L = n − taps + 1: outputs per block
         # Out:
         out: wp.array2d(dtype=wp.float32),  # (slots, samples) power [W], zeroed beforehand: only the reach is written
     ):
-        """out[slot, i] = Σ_j impulses[slot, j] · taps[i − j − first_lag] [W] for the outputs of blocks 2·pair
-        and 2·pair + 1 of L outputs each, counted from the start of the reach of slot rows[row]."""
-        row, pair = wp.tid()
-        slot = rows[row]
+        """out[slot, i] = Σ_j impulses[slot, j] · taps[i − j − first_lag] [W]: tile t makes the items t, t + tiles,
+        … of the count[0] × pairs (row, pair), each the outputs of blocks 2·pair and 2·pair + 1 of L outputs,
+        counted from the start of the reach of slot rows[row] (an item beyond the reach makes nothing)."""
+        first = wp.tid()
         samples = o.impulses.shape[1]
-        lo = o.span[slot, 0]
-        hi = o.span[slot, 1]
-        reach_lo = wp.max(lo + o.first_lag, 0)
-        reach_hi = wp.min(hi + o.first_lag + o.taps - 1, samples - 1)
-        origin = reach_lo + 2 * pair * block
-        if hi < lo or origin > reach_hi:
-            return
         wrapped = o.taps - 1
         z = wp.tile_empty(shape=padded, dtype=wp.vec2d, storage="shared")
-        overlap_save(z, o.impulses, slot, lo, hi, origin - o.first_lag - wrapped, block, o.spectrum, o.twiddles,
-                     wrapped, origin - wrapped, reach_hi, out)
+        for item in range(first, count[0] * pairs, tiles):
+            row = item // pairs
+            slot = rows[row]
+            lo = o.span[slot, 0]
+            hi = o.span[slot, 1]
+            reach_hi = wp.min(hi + o.first_lag + o.taps - 1, samples - 1)
+            origin = wp.max(lo + o.first_lag, 0) + 2 * (item - row * pairs) * block
+            if hi >= lo and origin <= reach_hi:
+                overlap_save(z, o.impulses, slot, lo, hi, origin - o.first_lag - wrapped, block, o.spectrum,
+                             o.twiddles, wrapped, origin - wrapped, reach_hi, out)
 
     return convolve_fft
 
@@ -229,8 +235,7 @@ def split_spans(
     count: wp.array(dtype=wp.int32),  # [1], zeroed beforehand
 ):
     """Each row's touched span to ``direct`` if narrower than ``direct_below`` samples, else to ``fft`` and the row
-    listed in ``rows`` (so that the FFTs are launched over those rows only: a tile that returns at once still holds
-    its multiprocessor's shared memory while it is scheduled); the other gets an empty span (2³⁰, −1), which both
+    listed in ``rows`` (the FFT tiles take those rows only); the other gets an empty span (2³⁰, −1), which both
     convolution kernels skip."""
     slot = wp.tid()
     lo = span[slot, 0]

@@ -42,6 +42,8 @@ class PulseConvolution:
             self.n = fft_size(len(taps), samples, fft_least)
             self.block_dim = min(block_dim, self.n // 2)
             self.block = self.n - len(taps) + 1  # L: outputs per FFT
+            device_info = wp.get_device(device)
+            self.tiles = device_info.sm_count if device_info.is_cuda else 1  # one tile per multiprocessor
             spectrum = pulse_spectrum(taps.numpy(), self.n)
             self.overlap = kf.Overlap()
             self.overlap.spectrum = wp.array(spectrum, dtype=wp.vec2d, device=device)
@@ -76,10 +78,8 @@ class PulseConvolution:
                                                     int(self.method == "fft")], outputs=[out], device=d)
         if self.method == "direct":
             return
-        rows = int(self.fft_rows.numpy()[0])  # the rows the FFTs make (a wait for the device, the launch's size)
-        if rows == 0:
-            return
         self.overlap.impulses = impulses
         pairs = -(-(-(-samples // self.block)) // 2)  # two blocks of L outputs per FFT, over the whole row at most
-        wp.launch_tiled(self.kernels()[-1], dim=(rows, pairs), inputs=[self.overlap, self.rows, self.block],
+        wp.launch_tiled(self.kernels()[-1], dim=self.tiles, inputs=[self.overlap, self.rows, self.fft_rows, pairs,
+                                                                     self.tiles, self.block],
                         outputs=[out], block_dim=self.block_dim, device=self.device)
