@@ -196,6 +196,8 @@ def _startup(r: dict) -> list[str]:
             "left; compiled ahead: `flightsim compile` of the same flags first, in an empty cache, nothing "
             "prebuilt). " + ("Every process reads Python's bytecode, as an installed package's are (a first, untimed "
                              "run writes it). " if runs[0].get("bytecode") else "")
+            + (f"Each row: the median of {runs[0]['runs']} runs (each cold one in an empty cache of its own). "
+               if runs[0].get("runs", 1) > 1 else "")
             + "Targets: first result <= 3 s cold, <= 1 s warm.", "",
             "| kernel cache | command line parsed [s] | first trace launch [s] | first LAS tile [s] | exit [s] | "
             "modules compiled | flightsim compile [s] |", "| --- | --- | --- | --- | --- | --- | --- |",

@@ -8,11 +8,14 @@ bytecode, would otherwise compile every module's source at every start)."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 from flightsim.core.warp_runtime import resolve_device
 from flightsim.studies.bench_common import Sizes
@@ -22,7 +25,8 @@ def startup(device: str, s: Sizes) -> list[dict]:
     """One record per cache state: cold (an empty Warp kernel cache: the prebuilt kernels seeded into it), cold with
     nothing prebuilt (every module compiled), warm (the cache the first cold run left), and after `flightsim compile`
     of the same flags (``compile_s``) in another empty cache with nothing prebuilt; the last record times
-    `flightsim compile --all` (every built-in instrument) in an empty cache with nothing prebuilt."""
+    `flightsim compile --all` (every built-in instrument) in an empty cache with nothing prebuilt. A run record
+    holds the medians of REPEATS runs."""
     device = resolve_device(device)
     saved = {name: os.environ.pop(name, None) for name in ("PYTHONPYCACHEPREFIX", "PYTHONDONTWRITEBYTECODE")}
     with tempfile.TemporaryDirectory() as bytecode, tempfile.TemporaryDirectory() as prime:
@@ -35,19 +39,34 @@ def startup(device: str, s: Sizes) -> list[dict]:
             os.environ.update({name: value for name, value in saved.items() if value is not None})
 
 
+REPEATS = 3  # runs per cache state (each cold one in a cache of its own); the record holds their medians
+
+
 def _records(device: str) -> list[dict]:
     """The records of :func:`startup`."""
-    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as bare, \
-            tempfile.TemporaryDirectory() as ahead:
-        records = [_launch(device, Path(tmp), "cold")]
-        records.append(_launch(device, Path(bare), "cold, nothing prebuilt", NOT_PREBUILT))
-        records.append(_launch(device, Path(tmp), "warm"))
+    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as ahead:
+        colds = [Path(tmp) / f"cold{k}" for k in range(REPEATS)]
+        records = [_median(device, colds, "cold")]
+        records.append(_median(device, [Path(tmp) / f"bare{k}" for k in range(REPEATS)], "cold, nothing prebuilt",
+                               NOT_PREBUILT))
+        records.append(_median(device, colds[:1] * REPEATS, "warm"))
         compiled = _compile(device, Path(ahead), [])
-        records.append({**_launch(device, Path(ahead), "compiled ahead", NOT_PREBUILT), "compile_s": compiled})
+        records.append({**_median(device, [Path(ahead)] * REPEATS, "compiled ahead", NOT_PREBUILT),
+                        "compile_s": compiled})
     with tempfile.TemporaryDirectory() as every:
         records.append({"cache": "compile --all", "device": device, "compile_s": _compile(device, Path(every),
                                                                                         ["--all"])})
     return records
+
+
+def _median(device: str, folders: list[Path], state: str, env_more: dict | None = None) -> dict:
+    """One run in each of ``folders`` (its kernel cache and output there): the first run's record with the median
+    of every time over the runs, and their count."""
+    runs = [_launch(device, folder, state, env_more) for folder in folders]
+    times = {key: float(np.median([r[key] for r in runs])) for key in ("cli_s", "first_ray_s", "exit_s")}
+    files = [r["first_file_s"] for r in runs if r["first_file_s"] is not None]
+    return {**runs[0], **times, "first_file_s": float(np.median(files)) if files else None, "runs": len(runs),
+            "modules_compiled": max(r["modules_compiled"] for r in runs)}
 
 
 NOT_PREBUILT = {"FLIGHTSIM_PREBUILT": "0"}  # Warp's kernel cache left as it is: every module compiled
@@ -66,7 +85,9 @@ def _compile(device: str, tmp: Path, flags: list[str]) -> float:
 
 def _launch(device: str, tmp: Path, state: str, env_more: dict | None = None) -> dict:
     tag = state.replace(" ", "-").replace(",", "")
+    tmp.mkdir(parents=True, exist_ok=True)
     out, timeline = tmp / f"run-{tag}", tmp / f"timeline-{tag}.txt"
+    shutil.rmtree(out, ignore_errors=True)
     kernels = tmp / "kernels"
     env = dict(os.environ, WARP_CACHE_PATH=str(kernels), FLIGHTSIM_CACHE=str(tmp / "scenes"),
                FLIGHTSIM_TIMELINE=str(timeline), **(env_more or {}))
