@@ -1,6 +1,6 @@
 """`python -m flightsim` runs the command line."""
 import sys
 
-from flightsim.cli import main
+from flightsim.entry import main
 
 sys.exit(main())

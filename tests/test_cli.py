@@ -71,3 +71,19 @@ def test_info_reports_versions_devices_and_cache():
     info = json.loads(result.stdout)
     assert info["warp"].startswith("1.19") and any(d["name"] == "cpu" for d in info["devices"])
     assert info["kernel_cache"]
+
+
+def test_the_entry_point_runs_the_command_line_and_leaves_the_collector_on(capsys):
+    """``flightsim.entry.main`` (the console script and ``python -m flightsim``) imports the command line with the
+    garbage collector paused, freezes what the imports made and turns the collector back on for the run."""
+    import gc
+
+    from flightsim import entry
+
+    try:
+        assert entry.main(["info"]) == 0
+        assert gc.isenabled()
+        assert json.loads(capsys.readouterr().out)["warp"].startswith("1.19")
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
