@@ -9,12 +9,13 @@ linear one at positions m = T − 1 … N − 1 (output o + m − (T − 1)); th
 stored. As x and h are real, two consecutive blocks share one complex FFT (the first block's impulses as the real
 part, the second's as the imaginary part: the inverse transform of H·(A + iB) is h⊛a + i h⊛b).
 
-The FFTs are radix-2 over the N complex float64 points of one shared-memory tile, the tile's threads sharing each
-stage's butterflies: the forward transform by decimation in frequency (natural order in, bit-reversed order out),
-the product with the pulse's spectrum in that bit-reversed order, the inverse by decimation in time (bit-reversed
-in, natural out), so no permutation is ever made; the twiddles exp(−2πik/N) come from a float64 table
-(:func:`twiddles`), not from sines per butterfly. Each butterfly's arithmetic is the same whichever thread does it,
-so every device and block size gives the same bits.
+The FFTs run over the N complex float64 points of one shared-memory tile: the forward transform by decimation in
+frequency (natural order in, bit-reversed order out), the product with the pulse's spectrum in that bit-reversed
+order, the inverse by decimation in time (bit-reversed in, natural out), so no permutation is ever made. Each pass
+gives every thread groups of 2^RADIX_LEVELS points that it takes through as many levels of radix-2 butterflies in
+registers (:func:`fft_passes`); the twiddles exp(−2πik/N) come from a float64 table made on the host
+(``flightsim.engine.readouts.convolution.twiddles``), not from sines per butterfly. Each butterfly's arithmetic is
+the same whichever thread makes it, so every device and block size gives the same bits.
 
 An item (row, pair) makes blocks 2·pair and 2·pair + 1 of the reach of its row's slot, the rows those listed by
 ``split_spans``; the launch has a tile per multiprocessor, each taking the items in turn (their count read on the
@@ -27,7 +28,6 @@ reach).
 """
 import functools
 
-import numpy as np
 import warp as wp
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
@@ -47,19 +47,6 @@ class Overlap:
     twiddles: wp.array(dtype=wp.vec2d)  # (N/2,) exp(−2πik/N) [1]
     taps: int  # T, taps of the pulse
     first_lag: int  # f, lag of the first tap [samples]
-
-
-def bit_reversed(n: int) -> np.ndarray:
-    """The indices 0 … n − 1 (n a power of two) with their log₂ n bits reversed."""
-    bits = n.bit_length() - 1
-    index = np.arange(n)
-    return np.array([int(format(i, f"0{bits}b")[::-1], 2) for i in index]) if bits else index
-
-
-def twiddles(n: int) -> np.ndarray:
-    """(n/2, 2) float64: exp(−2πik/n), k = 0 … n/2 − 1, as (real, imaginary)."""
-    angle = -2.0 * np.pi * np.arange(n // 2) / n
-    return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
 
 
 RADIX_LEVELS = 4  # butterfly levels a thread makes in registers between two passes through shared memory (radix 16)

@@ -20,10 +20,23 @@ def fft_size(taps: int, samples: int, least: int = kf.FFT_SIZE) -> int:
     return n
 
 
+def bit_reversed(n: int) -> np.ndarray:
+    """The indices 0 … n − 1 (n a power of two) with their log₂ n bits reversed."""
+    bits = n.bit_length() - 1
+    index = np.arange(n)
+    return np.array([int(format(i, f"0{bits}b")[::-1], 2) for i in index]) if bits else index
+
+
+def twiddles(n: int) -> np.ndarray:
+    """(n/2, 2) float64: exp(−2πik/n), k = 0 … n/2 − 1, as (real, imaginary)."""
+    angle = -2.0 * np.pi * np.arange(n // 2) / n
+    return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+
+
 def pulse_spectrum(taps: np.ndarray, n: int) -> np.ndarray:
     """(n, 2) float64: the FFT of the taps zero-padded to n, divided by n (the inverse FFT is unscaled), as (real,
     imaginary), in bit-reversed order (the order the kernel's forward FFT leaves its bins in)."""
-    h = np.fft.fft(np.asarray(taps, dtype=np.float64), n)[kf.bit_reversed(n)] / n
+    h = np.fft.fft(np.asarray(taps, dtype=np.float64), n)[bit_reversed(n)] / n
     return np.stack([h.real, h.imag], axis=-1)
 
 
@@ -47,7 +60,7 @@ class PulseConvolution:
             spectrum = pulse_spectrum(taps.numpy(), self.n)
             self.overlap = kf.Overlap()
             self.overlap.spectrum = wp.array(spectrum, dtype=wp.vec2d, device=device)
-            self.overlap.twiddles = wp.array(kf.twiddles(self.n), dtype=wp.vec2d, device=device)
+            self.overlap.twiddles = wp.array(twiddles(self.n), dtype=wp.vec2d, device=device)
             self.overlap.taps, self.overlap.first_lag = len(taps), first_lag
 
     def kernels(self) -> list:
