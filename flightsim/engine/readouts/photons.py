@@ -230,7 +230,7 @@ def beam_energy(emitter) -> np.ndarray:
 def _host_photons(tracer, segments: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
     """Bring a chunk's detections (ordered by slot) to the host, split by flight line (arrays of the caller's own:
     a consumer may keep them while later chunks reuse the device buffers)."""
-    slot = found.slot.numpy().astype(np.int64)
+    slot = host_array(found.slot).astype(np.int64)
     tof, kind = host_array(found.time_of_flight_s), host_array(found.signal)
     points, directions = host_array(found.points), host_array(found.directions)
     return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], kind[a:b] > 0, kind[a:b],

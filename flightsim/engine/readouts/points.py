@@ -225,7 +225,7 @@ class Points:
 def host_returns(tracer, returns: DeviceReturns) -> list[ReturnChunk]:
     """Compact a chunk's returning slots on the device, bring them to the host, split by line."""
     buffers, n_slots, n_returns = returns.buffers, returns.n_slots, returns.count
-    slots = buffers.index.numpy()[:n_returns].astype(np.int64)
+    slots = host_array(buffers.index[:n_returns]).astype(np.int64)  # the chunk's returns only, not the buffer
     gather = buffers.gather
     echo = None if buffers.returns is None else gather(buffers.returns, n_slots, n_returns)
     f = tracer.features
