@@ -67,9 +67,10 @@ class RunSettings(Settings):
     optics: str = setting("float64", "per-beam arithmetic: float64, float32, or lut (float32, exit rays tabulated "
                           "over the prism angle)", choices=OPTICS)
     lut_samples: int = setting(4096, "prism angles per turn of the lut optics", "angles", range=(8, 1 << 22))
-    bvh: str = setting("auto", "BVH constructor: auto (sah on the CPU, cubql on a GPU), sah, median, lbvh, cubql",
-                       choices=BVH_CONSTRUCTORS)
-    bvh_leaf_size: int = setting(0, "triangles per BVH leaf; 0 = Warp's default", "triangles", range=(0, 64))
+    bvh: str = setting("auto", "BVH constructor: auto (sah on the CPU, cubql with 2 triangles a leaf on a GPU), sah, "
+                       "median, lbvh, cubql", choices=BVH_CONSTRUCTORS)
+    bvh_leaf_size: int = setting(0, "triangles per BVH leaf; 0 = the automatic BVH's, else Warp's default",
+                                 "triangles", range=(0, 64))
     slots_per_thread: int = setting(0, "statistics mode: consecutive slots per reducing thread; 0 = automatic",
                                     "slots", range=(0, 4096))
     sum_replicas: int = setting(0, "statistics mode on a GPU: copies of the per-plane sums; 0 = automatic",

@@ -16,6 +16,18 @@ EDGE_CELLS_PER_CAP = 4  # ... and cells of a quarter of the edge cap where that 
 # cap plus half its diagonal from its centre, so the returns sent to the boundary query lie within 1.35 caps of a
 # boundary (cells of one cap: 2.41)
 EDGE_GRIDS_KEPT = 4  # edge grids (one per edge cap) a SceneMeshes keeps
+GPU_LEAF_SIZE = 2  # triangles per leaf of the automatic BVH on a GPU (cubql; an H100, bare casts against cubql's own
+# default: the 720k-triangle sandbox 2.65 -> 3.31e9 rays/s, lunar 3.07 -> 3.28e9, DEMs of 1e6 / 8e6 triangles 1.39 ->
+# 1.50e9 / 1.04 -> 1.19e9, the 546-triangle calibration field unchanged; profile-experiments.md section 32)
+
+
+def bvh_choice(constructor: str, leaf_size: int | None, cpu: bool) -> tuple[str, int | None]:
+    """(Warp's BVH constructor, triangles per leaf or None for Warp's default) of a run's ``run.bvh`` and
+    ``run.bvh_leaf_size`` (0 or None: automatic) on a CPU or a GPU: auto is the measured fastest of each (README,
+    run.bvh)."""
+    if constructor != "auto":
+        return constructor, leaf_size or None
+    return ("sah", leaf_size or None) if cpu else ("cubql", leaf_size or GPU_LEAF_SIZE)
 
 
 class SceneMeshes:
@@ -23,10 +35,11 @@ class SceneMeshes:
     plane-boundary segments for edge-buffer queries and the per-triangle reflectance (both on first use)."""
 
     def __init__(self, scene: Scene, device: str, bvh_constructor: str = "auto", leaf_size: int | None = None):
+        """``bvh_constructor``: Warp's (sah, median, lbvh, cubql) or auto (sah on the CPU with Warp's leaf size, cubql
+        on a GPU with GPU_LEAF_SIZE triangles a leaf); ``leaf_size``: triangles per leaf (None: as just said)."""
         self.scene = scene
         self.device = device
-        if bvh_constructor == "auto":  # measured fastest per device kind (README, run.bvh)
-            bvh_constructor = "sah" if wp.get_device(device).is_cpu else "cubql"
+        bvh_constructor, leaf_size = bvh_choice(bvh_constructor, leaf_size, wp.get_device(device).is_cpu)
         points = scene.vertices.astype(np.float32)
         self.mesh = wp.Mesh(points=wp.array(points, dtype=wp.vec3f, device=device),
                             indices=wp.array(scene.triangles.astype(np.int32).ravel(), dtype=wp.int32, device=device),

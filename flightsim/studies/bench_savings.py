@@ -91,7 +91,7 @@ def knob_variants(kind: str, quick: bool) -> list[tuple[str, str, dict]]:
         return variants
     constructors = ("sah", "median") + (("lbvh", "cubql") if kind == "cuda" else ())  # lbvh/cubql: GPU only
     variants += [("bvh", f"{c}/leaf{leaf or 'default'}", {"run.bvh": c, "run.bvh_leaf_size": leaf})
-                 for c in constructors for leaf in (0, 1, 4)]
+                 for c in constructors for leaf in (0, 1, 2, 4)]
     slots = (1 << 16, 1 << 18, 1 << 20) + ((1 << 22, 1 << 24) if kind == "cuda" else ())
     variants += [("chunk", f"{n} slots", {"run.chunk_pulses": n // 9}) for n in slots]
     variants += [("slots_per_thread", f"{n}", {"run.slots_per_thread": n}) for n in (1, 4, 16, 64, 256)]
