@@ -1,6 +1,7 @@
 """Bare ray casts (Warp's mesh query, nothing else) per BVH constructor and leaf size, over the scenes and rays of
 the workloads that cast against large meshes: the SPAD's 32×32 fans over the sandbox, the galvo imager's cone
-over the lunar scene, the Risley's cone over the calibration field and over fractal DEMs. Rays/s of each
+over the lunar scene, the Risley's cone over the calibration field and over the scale section's terrain
+(:func:`flightsim.scenes.testdem.terrain`, 3 km square). Rays/s of each
 (constructor, leaf size), the BVH's build time, and how many rays hit another face than the first variant's::
 
     python3 -m flightsim.studies.bvh_probe --device cuda --rays 4194304
@@ -13,7 +14,6 @@ import argparse
 import time
 
 import numpy as np
-import pyproj
 import warp as wp
 
 from flightsim.core.warp_runtime import init_warp, resolve_device
@@ -22,17 +22,6 @@ from kernels.trace import cast_rays
 VARIANTS = (("cubql", None), ("cubql", 1), ("cubql", 2), ("cubql", 4), ("cubql", 8), ("sah", 1), ("sah", 2),
             ("sah", 4), ("lbvh", 1))
 MAX_RANGE_M = 5000.0
-
-
-def fractal_dem(nodes: int, rng: np.random.Generator, step_m: float = 1.5, relief_m: float = 30.0):
-    """A nodes × nodes grid scene of red-noise relief (spectral slope −1.5, ``relief_m`` rms)."""
-    from flightsim.scenes.dem import grid_scene
-
-    k = np.fft.fftfreq(nodes)
-    kk = np.hypot(*np.meshgrid(k, k))
-    kk[0, 0] = 1.0
-    h = np.real(np.fft.ifft2(np.fft.fft2(rng.normal(size=(nodes, nodes))) * kk ** -1.5))
-    return grid_scene("dem", h / h.std() * relief_m, np.zeros(2), (step_m, step_m), pyproj.CRS("EPSG:32633"))
 
 
 def cone(origin, half_rad: float, n: int, rng: np.random.Generator, jitter_m: float = 0.0):
@@ -54,19 +43,20 @@ def fans(origin, half_rad: float, n: int, rng: np.random.Generator, k: int = 32)
     return np.tile(np.asarray(origin, dtype=np.float64), (len(d), 1)), d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def cases(rays: int, dem_nodes: tuple[int, ...], rng: np.random.Generator):
+def cases(rays: int, dem_triangles: tuple[int, ...], rng: np.random.Generator):
     """(label, scene, starts, directions) of each measured set."""
     from flightsim.scenes.calibration import calibration_scene
     from flightsim.scenes.lunar import lunar_scene
     from flightsim.scenes.smallbody import sandbox_scene
+    from flightsim.scenes.testdem import terrain
 
     yield "sandbox, SPAD fans from 100 m", sandbox_scene(), *fans([0.0, 0.0, 100.0], 0.0567, rays, rng)
     yield "lunar, ±0.3 rad from 100 m", lunar_scene(), *cone([0.0, 0.0, 100.0], 0.3, rays, rng)
     yield "calibration field, ±0.35 rad from 500 m", calibration_scene(400.0), *cone([0.0, 0.0, 500.0], 0.35, rays,
                                                                                        rng, 150.0)
-    for nodes in dem_nodes:
-        yield (f"DEM {nodes}², ±0.35 rad from 500 m", fractal_dem(nodes, rng),
-               *cone([0.0, 0.0, 500.0], 0.35, rays, rng, 0.3 * nodes))
+    for triangles in dem_triangles:
+        yield (f"terrain of {triangles:.0e} triangles, ±0.35 rad from 500 m", terrain(triangles),
+               *cone([0.0, 0.0, 500.0], 0.35, rays, rng, 1000.0))
 
 
 def casts(mesh: wp.Mesh, starts: wp.array, directions: wp.array, repeats: int = 5) -> tuple[float, np.ndarray]:
@@ -85,11 +75,11 @@ def casts(mesh: wp.Mesh, starts: wp.array, directions: wp.array, repeats: int = 
     return n / best, faces.numpy()
 
 
-def probe(device: str, rays: int, dem_nodes: tuple[int, ...] = (710, 2000), seed: int = 1) -> list[dict]:
+def probe(device: str, rays: int, dem_triangles: tuple[int, ...] = (10**6, 8 * 10**6), seed: int = 1) -> list[dict]:
     """One record per (set, constructor, leaf size): rays/s, build [s], faces differing from the first variant."""
     d = resolve_device(device)
     records = []
-    for label, scene, s, v in cases(rays, dem_nodes, np.random.default_rng(seed)):
+    for label, scene, s, v in cases(rays, dem_triangles, np.random.default_rng(seed)):
         points = wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3f, device=d)
         indices = wp.array(scene.triangles.astype(np.int32).ravel(), dtype=wp.int32, device=d)
         starts = wp.array(s.astype(np.float32), dtype=wp.vec3f, device=d)
@@ -114,13 +104,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     parser.add_argument("--rays", type=int, default=1 << 22, help="rays a set (default 4194304)")
-    parser.add_argument("--dem-nodes", default="710,2000", help="nodes a side of each DEM (1e6 and 8e6 triangles)")
+    parser.add_argument("--terrain", default="1e6,8e6", help="triangles of each terrain (default 1e6,8e6)")
     args = parser.parse_args(argv)
     init_warp()
-    nodes = tuple(int(x) for x in args.dem_nodes.split(",") if x)
+    triangles = tuple(int(float(x)) for x in args.terrain.split(",") if x)
     print("| set | triangles | BVH | leaf | rays/s | build [s] | faces differing |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
-    for r in probe(args.device, args.rays, nodes):
+    for r in probe(args.device, args.rays, triangles):
         print(f"| {r['set']} | {r['triangles']} | {r['constructor']} | {r['leaf']} | {r['rays_per_s']:.3g} | "
               f"{r['build_s']:.2f} | {r['faces_differ']} |", flush=True)
     return 0
