@@ -80,3 +80,17 @@ def test_scale_section_las_run_counts_every_byte_of_its_tiles(tmp_path):
     assert sum(h.point_count for h in headers) == 2 * counts.returns  # both models
     assert written == sum(h.offset_to_point_data + h.point_count * h.point_format.size for h in headers)
     assert written == sum(t.stat().st_size for t in tiles)
+
+
+def test_waveform_report_gives_end_to_end_over_accumulation():
+    from flightsim.studies.bench_report import markdown
+
+    row = {"scene": "slope", "shots": 20000, "subrays": 144000000, "samples": 32768, "wall_s": 0.04,
+           "subray_returns_per_s": 3.6e9, "raycast_returns_per_s": 3.0e10, "ratio": 0.12,
+           "accumulation_returns_per_s": 1.2e10, "kernels_s": {"deposit": 0.012, "convolve_fft": 0.025}}
+    cpu_row = {**row, "accumulation_returns_per_s": None, "kernels_s": {}}
+    text = markdown({"cuda": {"gpu_name": "GPU", "device": "cuda:0", "git_commit": "x", "date": "d",
+                              "waveform": [row, cpu_row]}})
+    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| slope | 20,000 |")]
+    assert [r[9] for r in rows] == ["0.30", "n/a"]  # 3.6e9 ÷ 1.2e10; no kernels' times on the CPU
+    assert rows[0][10] == "25.0 |"  # the FFTs' 25 ms
