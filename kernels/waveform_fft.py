@@ -62,7 +62,11 @@ _HELPERS = """
         const double b = (j >= lo && j <= hi) ? *wp::address(impulses, slot, j) : 0.0;
         return wp::vec2d(a, b);
     };
-    auto twiddle = [&](int k) { return *wp::address(twiddles, k); };  // exp(−2πik/N)
+    auto twiddle = [&](int k) { return *wp::address(twiddles, k); };  // exp(−2πik/N), k < N/2
+    auto turn = [&](int k) {  // exp(−2πik/N), 0 ≤ k < N
+        const wp::vec2d w = twiddle(k & (%(n)d / 2 - 1));
+        return k < %(n)d / 2 ? w : wp::vec2d(-w[0], -w[1]);
+    };
     auto dif = [&](wp::vec2d& u, wp::vec2d& v, const wp::vec2d& w) {  // (u + v, (u − v) · w)
         const double dr = u[0] - v[0], di = u[1] - v[1];
         u = wp::vec2d(u[0] + v[0], u[1] + v[1]);
@@ -87,24 +91,12 @@ _HELPERS = """
         if (output < samples)
             *wp::address(out, slot, output) = output <= last ? wp::float32(v[1] > 0.0 ? v[1] : 0.0) : wp::float32(0.0);
     };
-""" % {"pad": PAD_EVERY}
+"""
 
 
 def fft_passes(n: int) -> list[tuple[int, int]]:
-    """The forward FFT's passes as (half of its first level, levels): log₂ n levels in passes of RADIX_LEVELS, the
-    remainder second, so that the first pass (which reads the impulses from global memory, and its inverse, which
-    writes the outputs) and the last (down to the half 1, which the product with the spectrum joins) have
-    RADIX_LEVELS levels each: a thread then has that many independent global loads in flight."""
-    levels = n.bit_length() - 1
-    full, rest = divmod(levels, RADIX_LEVELS)
-    counts = [RADIX_LEVELS] * full
-    if rest:
-        counts.insert(1 if full else 0, rest)
-    passes, half = [], n // 2
-    for count in counts:
-        passes.append((half, count))
-        half >>= count
-    return passes
+    """The forward FFT's passes as (half of its first level, levels): all log₂ n levels (:func:`_passes`)."""
+    return _passes(n.bit_length() - 1, n)
 
 
 def _levels(half: int, count: int, n: int, inverse: bool) -> list[str]:
@@ -131,7 +123,8 @@ def _pass(half: int, count: int, n: int, source: str, body: list[str], sink: str
     each group's elements loaded by ``source`` (``shared`` or ``impulses``), ``body`` applied, stored by ``sink``
     (``shared`` or ``out``); a sync after."""
     group, q = 1 << count, half >> (count - 1)
-    load = {"shared": "v[{j}] = z[at(base + {o})];", "impulses": "v[{j}] = sample(base + {o});"}[source]
+    load = {"shared": "v[{j}] = z[at(base + {o})];", "impulses": "v[{j}] = sample(base + {o});",
+            "kept": "v[{j}] = expand(base + {o});"}[source]
     store = {"shared": "z[at(base + {o})] = v[{j}];", "out": "emit(base + {o}, v[{j}]);"}[sink]
     lines = [f"for (int g = WP_TILE_THREAD_IDX; g < {n // group}; g += WP_TILE_BLOCK_DIM) {{",
              f"    const int pos = g & {q - 1}, base = (g / {q}) * {2 * half} + pos;",
@@ -143,35 +136,122 @@ def _pass(half: int, count: int, n: int, source: str, body: list[str], sink: str
     return "\n".join(lines)
 
 
-def overlap_save_snippet(n: int) -> str:
+def kept_levels(n: int, keep: int) -> int:
+    """The forward levels a transform of size ``n`` makes in full when only the bins |k| ≤ ``keep`` are kept: the
+    fewest whose 2^levels sub-transforms give each of those bins its own (2^levels ≥ 2·keep + 1), or all log₂ n
+    (nothing pruned) where that saves fewer than two levels or ``keep`` < 0 (keep every bin)."""
+    levels = n.bit_length() - 1
+    if keep < 0:
+        return levels
+    kept = max(1, (2 * keep).bit_length())
+    return kept if levels - kept >= 2 else levels
+
+
+def _kept_bins(n: int, keep: int, levels: int) -> str:
+    """The native code between a pruned transform's forward and inverse passes. After ``levels`` levels of
+    decimation in frequency the tile holds 2^levels blocks of m = n / 2^levels points; block b's m-point DFT gives
+    the bins r + 2^levels·j (r = b with its ``levels`` bits reversed), so bin r ≤ keep is its j = 0 output, the sum
+    of its points, and bin n − (2^levels − r) its j = m − 1 output, Σ z[i] exp(+2πi·i/m); every other block holds
+    no kept bin. Each such sum times the pulse's spectrum there is stored after the tile's points (kept[b] for
+    j = 0, kept[blocks + b] for j = m − 1, 0 elsewhere), from which ``expand`` makes the inverse's first ``levels``
+    levels' input: the m-point inverse DFT of one non-zero bin, that bin times exp(−2πi·i/m)^j."""
+    blocks, m = 1 << levels, n >> levels
+    return f"""
+    wp::vec2d* kept = z + {n + n // PAD_EVERY};
+    for (int b = WP_TILE_THREAD_IDX; b < {blocks}; b += WP_TILE_BLOCK_DIM) {{
+        int r = 0;
+        for (int bit = 0; bit < {levels}; ++bit) r |= ((b >> bit) & 1) << ({levels} - 1 - bit);
+        wp::vec2d low(0.0, 0.0), high(0.0, 0.0);
+        if (r <= {keep}) {{
+            double re = 0.0, im = 0.0;
+            for (int i = 0; i < {m}; ++i) {{ const wp::vec2d v = z[at(b * {m} + i)]; re += v[0]; im += v[1]; }}
+            low = wp::vec2d(re, im);
+            filter(low, b * {m});
+        }} else if (r >= {blocks - keep}) {{
+            double re = 0.0, im = 0.0;
+            for (int i = 0; i < {m}; ++i) {{
+                const wp::vec2d v = z[at(b * {m} + i)], w = turn(i * {n // m});
+                re += v[0] * w[0] + v[1] * w[1];
+                im += v[1] * w[0] - v[0] * w[1];
+            }}
+            high = wp::vec2d(re, im);
+            filter(high, b * {m} + {m - 1});
+        }}
+        kept[b] = low;
+        kept[{blocks} + b] = high;
+    }}
+    WP_TILE_SYNC();
+    auto expand = [&](int e) {{  // the inverse's input after its first levels: position e of block e / m
+        const wp::vec2d a = kept[e / {m}], c = kept[{blocks} + e / {m}], w = turn((e % {m}) * {n // m});
+        return wp::vec2d(a[0] + c[0] * w[0] - c[1] * w[1], a[1] + c[0] * w[1] + c[1] * w[0]);
+    }};
+"""
+
+
+def _passes(levels: int, n: int) -> list[tuple[int, int]]:
+    """The first ``levels`` levels of a size-``n`` forward FFT as passes (half of their first level, levels) of
+    RADIX_LEVELS levels, the remainder second, so that the first pass (which reads the impulses from global memory,
+    and its inverse, which writes the outputs) and the last (down to the half 1, which the product with the
+    spectrum joins) have RADIX_LEVELS levels each: a thread then has that many independent global loads in
+    flight."""
+    full, rest = divmod(levels, RADIX_LEVELS)
+    counts = [RADIX_LEVELS] * full
+    if rest:
+        counts.insert(1 if full else 0, rest)
+    passes, half = [], n // 2
+    for count in counts:
+        passes.append((half, count))
+        half >>= count
+    return passes
+
+
+def overlap_save_snippet(n: int, keep: int = -1) -> str:
     """The native code of one tile's overlap-save: the forward passes (the first loading the impulses), the last
     forward pass, the product with the spectrum and the first inverse pass on the same registers, the inverse
     passes (the last writing the outputs). Positions are natural in the forward passes' input and the inverse
-    passes' output, bit-reversed between."""
+    passes' output, bit-reversed between. With ``keep`` ≥ 0 (the pulse's spectrum is 0 to float64's rounding
+    beyond the bins |k| ≤ keep) and :func:`kept_levels` short of log₂ n, the forward transform stops after those
+    levels, the kept bins are summed from its blocks (:func:`_kept_bins`) and the inverse starts from them: the
+    same circular convolution with the other bins' products dropped, in fewer butterflies."""
+    helpers = _HELPERS % {"pad": PAD_EVERY, "n": n}
+    levels = kept_levels(n, keep)
+    if levels < n.bit_length() - 1:
+        passes = _passes(levels, n)
+        code = [_pass(*passes[0], n, "impulses", _levels(*passes[0], n, False), "shared")]
+        code += [_pass(*p, n, "shared", _levels(*p, n, False), "shared") for p in passes[1:]]
+        code += [_kept_bins(n, keep, levels)]
+        inverse = passes[::-1]
+        sources = ["kept"] + ["shared"] * (len(inverse) - 1)
+        sinks = ["shared"] * (len(inverse) - 1) + ["out"]
+        code += [_pass(*p, n, source, _levels(*p, n, True), sink) for p, source, sink in zip(inverse, sources, sinks)]
+        return helpers + "\n".join(code)
     passes = fft_passes(n)
     group = 1 << passes[-1][1]
     middle = [*_levels(*passes[-1], n, False), *(f"filter(v[{j}], base + {j});" for j in range(group)),
               *_levels(*passes[-1], n, True)]
     if len(passes) == 1:
-        return _HELPERS + _pass(*passes[0], n, "impulses", middle, "out")
+        return helpers + _pass(*passes[0], n, "impulses", middle, "out")
     code = [_pass(*passes[0], n, "impulses", _levels(*passes[0], n, False), "shared")]
     code += [_pass(*p, n, "shared", _levels(*p, n, False), "shared") for p in passes[1:-1]]
     code += [_pass(*passes[-1], n, "shared", middle, "shared")]
     code += [_pass(*p, n, "shared", _levels(*p, n, True), "shared") for p in passes[-2:0:-1]]
     code += [_pass(*passes[0], n, "shared", _levels(*passes[0], n, True), "out")]
-    return _HELPERS + "\n".join(code)
+    return helpers + "\n".join(code)
 
 
 @functools.cache
-def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM):
+def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM, keep: int = -1):
     """The overlap-save kernel of FFT size ``n`` (a power of two) for tiles of ``block_dim`` threads (its module's
-    block_dim, so that compiling it ahead compiles what runs). Launch with ``wp.launch_tiled`` over ``tiles``
-    tiles (one per multiprocessor: a tile holds one's shared memory) with the same block_dim; the tiles take
-    the listed rows' items in turn, their count read on the device (no wait for it on the host)."""
+    block_dim, so that compiling it ahead compiles what runs), keeping the spectrum's bins |k| ≤ ``keep`` (< 0:
+    every bin; :func:`overlap_save_snippet`). Launch with ``wp.launch_tiled`` over ``tiles`` tiles (one per
+    multiprocessor: a tile holds one's shared memory) with the same block_dim; the tiles take the listed rows'
+    items in turn, their count read on the device (no wait for it on the host)."""
 
     options = {"block_dim": block_dim}
-    padded = n + n // PAD_EVERY  # shared-memory elements of the tile
-    @wp.func_native(overlap_save_snippet(n))
+    levels = kept_levels(n, keep)
+    kept = 2 << levels if levels < n.bit_length() - 1 else 0  # the kept bins' two rows (_kept_bins)
+    padded = n + n // PAD_EVERY + kept  # shared-memory elements of the tile
+    @wp.func_native(overlap_save_snippet(n, keep))
     def overlap_save(tile: wp.tile(dtype=wp.vec2d, shape=(padded,), storage="shared"),
                      impulses: wp.array2d(dtype=wp.float64), slot: int, lo: int, hi: int, start: int, step: int,
                      spectrum: wp.array(dtype=wp.vec2d), twiddles: wp.array(dtype=wp.vec2d), wrapped: int,

@@ -106,6 +106,51 @@ def test_a_single_impulse_gives_the_sampled_pulse(device):
             assert np.abs(got - expected).max() <= 1.5 * FLOAT32_HALF_ULP * peak, (method, j0)
 
 
+def test_the_kept_bins_are_where_a_gaussian_pulses_spectrum_falls_to_the_floor():
+    """A Gaussian pulse of σ samples has the spectrum exp(−(2πσk/N)²/2): it falls to 1e-15 of its peak at
+    k = N·√(2 ln 1e15)/(2πσ) (change1: σ = 297 samples, N = 8192: 36.5); a pulse cut at ±6.7σ leaks above the floor
+    everywhere, so every bin is kept."""
+    from flightsim.engine.readouts.convolution import kept_bins
+
+    for sigma, n in ((297.0, 8192), (59.4, 4096), (20.0, 1024)):
+        lags = np.arange(-int(8 * sigma), int(8 * sigma) + 1)
+        expected = n * math.sqrt(2.0 * math.log(1e15)) / (2.0 * math.pi * sigma)
+        assert kept_bins(np.exp(-0.5 * (lags / sigma) ** 2), n) == math.floor(expected), (sigma, n)
+    short = np.exp(-0.5 * (np.arange(-200, 201) / 30.0) ** 2)
+    assert kept_bins(short, 1024) == 512
+
+
+@pytest.mark.parametrize("scene", ["slope", "bump"])
+def test_dropping_the_bins_beyond_the_floor_keeps_the_error(device, scene):
+    """The FFTs with the pulse's spectrum cut at its float64 floor (fewer levels of butterflies) and with every bin
+    both give the float64 convolution to the float32 output's rounding; the cut one differs from the other only in
+    that rounding (the products it drops are ~1e-15 of the largest)."""
+    settings = {"waveform.sample_interval_s": 5e-11, "waveform.samples": 2048} if scene == "bump" else {}
+    cfg = waveform_config(scene, device, **settings)
+    mesh, readout, kept = build_scene(cfg), Waveforms(on_device=True), []
+    Tracer(cfg, mesh, flight_trajectories(cfg, mesh)).run(
+        readout, lambda found: kept.append((readout.buffers.impulses.numpy()[:found.count].copy(),
+                                            readout.buffers.span.numpy()[:found.count].copy())))
+    (impulses, span), = kept
+    taps, first_lag = (a.numpy() if hasattr(a, "numpy") else a
+                       for a in WaveformDetector(cfg.waveform).pulse_taps("cpu"))
+    outs, keeps = {}, {}
+    for name, floor in (("cut", {}), ("every bin", {"floor": 0.0})):
+        pulse = PulseConvolution("fft", wp.array(taps, dtype=wp.float64, device=device), first_lag,
+                                 impulses.shape[1], device, direct_below=0, **floor)
+        keeps[name] = pulse.keep
+        out = wp.zeros(impulses.shape, dtype=wp.float32, device=device)
+        pulse.launch(wp.array(impulses, dtype=wp.float64, device=device), wp.array(span, dtype=wp.int32,
+                                                                                  device=device), out, len(impulses))
+        outs[name] = out.numpy().astype(np.float64)
+    assert 0 < keeps["cut"] < pulse.n // 8 and keeps["every bin"] == -1  # change1: 36 of 8192; bump: 91 of 4096
+    for name, out in outs.items():
+        for row, got in zip(impulses, out):
+            ref = _reference(row, taps, first_lag)
+            assert np.abs(got - ref).max() <= 1.5 * FLOAT32_HALF_ULP * ref.max(), name
+    assert np.abs(outs["cut"] - outs["every bin"]).max() <= 2.0 * FLOAT32_HALF_ULP * outs["every bin"].max()
+
+
 def test_fft_sizes():
     """N is the smallest power of two that exceeds the taps and reaches the least asked for, or the row plus the
     taps − 1 if shorter (change1: 4759 taps, 32768 samples; gedi: ~100 taps, 1000 samples)."""

@@ -5,7 +5,7 @@ against the float64 NumPy convolution of the same trains (max |out − ref| over
 the samples it wrote beyond the taps' reach of the touched span (must be 0), and, on CUDA, the GPU time of the
 accumulation it follows (emit_rays, pilot and deposit of the same run; in the JSON also the direct convolution of that run).
 
-    python3 -m flightsim.studies.bench_convolution --device cuda [--shots 500] [--fft 8192:256,8192:512:0] [--out DIR]
+    python3 -m flightsim.studies.bench_convolution --device cuda [--shots 500] [--fft 8192:256,8192:256:256:0] [--out DIR]
 
 prints a Markdown table; with --out also writes DIR/convolution.json and DIR/convolution.md.
 """
@@ -92,7 +92,7 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
     out = wp.empty(impulses.shape, dtype=wp.float32, device=device)
     records, direct = [], None
     for method, *fft_args in [("direct",), *(("fft", *f) for f in ffts)]:
-        fft = dict(zip(("fft_least", "block_dim", "direct_below"), fft_args))
+        fft = dict(zip(("fft_least", "block_dim", "direct_below", "floor"), fft_args))
         pulse = PulseConvolution(method, chunk["taps"], chunk["first_lag"], impulses.shape[1], device, **fft)
         wall = seconds_per_launch(lambda: pulse.launch(impulses, span, out, impulses.shape[0]), device, repeats)
         power = out.numpy().copy()
@@ -100,6 +100,7 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
         record = {"scene": chunk["scene"], "shots": chunk["shots"], "method": method,
                   "fft_size": getattr(pulse, "n", None), "block_dim": getattr(pulse, "block_dim", None),
                   "direct_below": pulse.direct_below if method == "fft" else None,
+                  "kept_bins": getattr(pulse, "keep", None),
                   "seconds": wall, "accumulation_s": chunk["accumulation_s"], "direct_in_run_s": chunk["direct_in_run_s"],
                   "max_difference_from_direct_of_peak": float(np.abs(power - direct).max() / max(direct.max(), 1e-300))}
         records.append({**record, **errors(power, host["impulses"], host["span"], chunk["taps"].numpy(),
@@ -109,16 +110,31 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
 
 def table(records: list[dict]) -> str:
     """The records as a Markdown table."""
-    lines = ["| scene | shots | path | N | block_dim | direct below [samples] | time per chunk [ms] "
+    lines = ["| scene | shots | path | N | block_dim | direct below [samples] | bins kept | time per chunk [ms] "
              "| accumulation [ms] | max error / peak (float64 ref.) | vs direct / peak | written beyond reach |",
-             "|---" * 11 + "|"]
+             "|---" * 12 + "|"]
     dash = lambda value: "–" if value is None else value  # noqa: E731
     for r in records:
         acc = "–" if r["accumulation_s"] is None else f"{r['accumulation_s'] * 1e3:.3f}"
         lines.append(f"| {r['scene']} | {r['shots']} | {r['method']} | {dash(r['fft_size'])} | {dash(r['block_dim'])} "
-                     f"| {dash(r['direct_below'])} | {r['seconds'] * 1e3:.3f} | {acc} | {r['max_error_of_peak']:.2e} "
+                     f"| {dash(r['direct_below'])} | {_kept(r)} | {r['seconds'] * 1e3:.3f} | {acc} "
+                     f"| {r['max_error_of_peak']:.2e} "
                      f"| {r['max_difference_from_direct_of_peak']:.2e} | {r['written_beyond_reach']} |")
     return "\n".join(lines)
+
+
+def _kept(record: dict) -> str:
+    """The FFT's kept bins as ±K (bins |k| ≤ K; 'all': none dropped; '–': the direct sums)."""
+    keep = record.get("kept_bins")
+    if record["method"] != "fft":
+        return "–"
+    return "all" if keep is None or keep < 0 else f"±{keep}"
+
+
+def _fft_variant(item: str) -> tuple:
+    """'N:block_dim[:direct_below[:floor]]' → (N, block_dim, direct_below, floor) as far as given."""
+    values = item.split(":")
+    return (*(int(v) for v in values[:3]), *(float(v) for v in values[3:4]))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,9 +143,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--shots", type=int, default=None, help="shots per scene (500 on CUDA, 4 on the CPU)")
     parser.add_argument("--fft", default=f"{kf.FFT_SIZE}:{kf.FFT_BLOCK_DIM}",
-                        help="comma-separated N:block_dim[:direct_below] of the FFT path (N a power of two; "
-                        f"rows whose span is narrower than direct_below samples summed directly, default "
-                        f"{kf.DIRECT_BELOW})")
+                        help="comma-separated N:block_dim[:direct_below[:floor]] of the FFT path (N a power of "
+                        f"two; rows whose span is narrower than direct_below samples summed directly, default "
+                        f"{kf.DIRECT_BELOW}; the pulse's spectrum kept above floor of its largest, 0: every bin)")
     parser.add_argument("--scenes", default="slope,flat")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--out", default=None, help="folder for convolution.json and convolution.md")
@@ -137,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     device = resolve_device(args.device)
     wp.init()
     shots = args.shots or (4 if device == "cpu" else 500)
-    ffts = [tuple(int(v) for v in item.split(":")) for item in args.fft.split(",") if item]
+    ffts = [_fft_variant(item) for item in args.fft.split(",") if item]
     records = []
     for scene in args.scenes.split(","):
         records += compare(captured_chunk(scene, device, shots), device, ffts, args.repeats)
