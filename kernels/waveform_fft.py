@@ -35,6 +35,9 @@ wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 FFT_SIZE = 8192  # N: samples per FFT (a power of two greater than the pulse's taps)
 DIRECT_BELOW = 256  # rows whose touched span is narrower [samples] are summed directly (fewer products than an FFT)
 FFT_BLOCK_DIM = 256  # threads per tile on a GPU (at most N/2)
+PRUNED_BLOCK_DIM = 512  # ... for a pruned transform (kept_levels), whose fewer live values let twice as many run
+# (H100, 500 sloped change1 shots: 0.336-0.344 ms a chunk against 0.362-0.364 at 256; profile-experiments.md, 36)
+SM_REGISTERS = 65536  # 32-bit registers of a multiprocessor: a tile of more than 256 threads gets at most its share
 
 
 @wp.struct
@@ -99,11 +102,12 @@ def fft_passes(n: int) -> list[tuple[int, int]]:
     return _passes(n.bit_length() - 1, n)
 
 
-def _levels(half: int, count: int, n: int, inverse: bool) -> list[str]:
+def _levels(half: int, count: int, n: int, inverse: bool, tables: dict[int, int] | None = None) -> list[str]:
     """The butterflies of ``count`` levels (halves half, half/2, …; reversed for the inverse) on a group's
     registers v[0 … 2^count − 1], the elements pos + j·q of their block (q = half / 2^(count − 1)); each level
-    reads each of its distinct twiddles once."""
-    group, q, lines = 1 << count, half >> (count - 1), []
+    reads each of its distinct twiddles once, from ``tables`` (stride → offset in shared memory: twiddle
+    (k·stride) at ``table[offset + k]``) where it has the level's stride, else from global memory."""
+    group, q, lines, tables = 1 << count, half >> (count - 1), [], tables or {}
     order = range(count - 1, -1, -1) if inverse else range(count)
     for level in order:
         jh = group >> (level + 1)  # the butterfly's half in elements of the group
@@ -111,7 +115,8 @@ def _levels(half: int, count: int, n: int, inverse: bool) -> list[str]:
         name = f"w{'i' if inverse else 'f'}{level}_"  # the twiddles' names (the middle pass has both directions)
         for c in range(jh):
             position = f"pos + {c * q}" if c else "pos"
-            lines.append(f"const wp::vec2d {name}{c} = twiddle(({position}) * {stride});")
+            load = f"table[{tables[stride]} + {position}]" if stride in tables else f"twiddle(({position}) * {stride})"
+            lines.append(f"const wp::vec2d {name}{c} = {load};")
         for j in range(group):
             if not j & jh:
                 lines.append(f"{'dit' if inverse else 'dif'}(v[{j}], v[{j + jh}], {name}{j & (2 * jh - 1)});")
@@ -152,25 +157,32 @@ def _kept_bins(n: int, keep: int, levels: int) -> str:
     decimation in frequency the tile holds 2^levels blocks of m = n / 2^levels points; block b's m-point DFT gives
     the bins r + 2^levels·j (r = b with its ``levels`` bits reversed), so bin r ≤ keep is its j = 0 output, the sum
     of its points, and bin n − (2^levels − r) its j = m − 1 output, Σ z[i] exp(+2πi·i/m); every other block holds
-    no kept bin. Each such sum times the pulse's spectrum there is stored after the tile's points (kept[b] for
+    no kept bin. Thread b sums block b from its point b mod m on (neighbouring threads' loads on different banks).
+    Each such sum times the pulse's spectrum there is stored after the tile's points (kept[b] for
     j = 0, kept[blocks + b] for j = m − 1, 0 elsewhere), from which ``expand`` makes the inverse's first ``levels``
-    levels' input: the m-point inverse DFT of one non-zero bin, that bin times exp(−2πi·i/m)^j."""
+    levels' input: the m-point inverse DFT of one non-zero bin, that bin times exp(−2πi·i/m)^j. The m roots
+    exp(−2πi·i/m) come from shared memory too (``roots``, after the kept bins: :func:`_prologue`), not from the
+    twiddles in global memory: each point of the expand would otherwise load one, 2 kB from its neighbour's."""
     blocks, m = 1 << levels, n >> levels
     return f"""
-    wp::vec2d* kept = z + {n + n // PAD_EVERY};
     for (int b = WP_TILE_THREAD_IDX; b < {blocks}; b += WP_TILE_BLOCK_DIM) {{
         int r = 0;
         for (int bit = 0; bit < {levels}; ++bit) r |= ((b >> bit) & 1) << ({levels} - 1 - bit);
         wp::vec2d low(0.0, 0.0), high(0.0, 0.0);
         if (r <= {keep}) {{
             double re = 0.0, im = 0.0;
-            for (int i = 0; i < {m}; ++i) {{ const wp::vec2d v = z[at(b * {m} + i)]; re += v[0]; im += v[1]; }}
+            for (int s = 0; s < {m}; ++s) {{
+                const wp::vec2d v = z[at(b * {m} + ((s + b) & {m - 1}))];
+                re += v[0];
+                im += v[1];
+            }}
             low = wp::vec2d(re, im);
             filter(low, b * {m});
         }} else if (r >= {blocks - keep}) {{
             double re = 0.0, im = 0.0;
-            for (int i = 0; i < {m}; ++i) {{
-                const wp::vec2d v = z[at(b * {m} + i)], w = turn(i * {n // m});
+            for (int s = 0; s < {m}; ++s) {{
+                const int i = (s + b) & {m - 1};
+                const wp::vec2d v = z[at(b * {m} + i)], w = roots[i];
                 re += v[0] * w[0] + v[1] * w[1];
                 im += v[1] * w[0] - v[0] * w[1];
             }}
@@ -182,9 +194,55 @@ def _kept_bins(n: int, keep: int, levels: int) -> str:
     }}
     WP_TILE_SYNC();
     auto expand = [&](int e) {{  // the inverse's input after its first levels: position e of block e / m
-        const wp::vec2d a = kept[e / {m}], c = kept[{blocks} + e / {m}], w = turn((e % {m}) * {n // m});
+        const wp::vec2d a = kept[e / {m}], c = kept[{blocks} + e / {m}], w = roots[e % {m}];
         return wp::vec2d(a[0] + c[0] * w[0] - c[1] * w[1], a[1] + c[0] * w[1] + c[1] * w[0]);
     }};
+"""
+
+
+TABLE_STRIDE = 16  # twiddles of a level whose index steps by this or more per position come from shared memory
+
+
+def twiddle_tables(n: int, levels: int) -> tuple[dict[int, int], int]:
+    """The shared-memory twiddle tables of a transform making the first ``levels`` levels of a size-``n`` FFT: per
+    level whose twiddle index steps by ``stride`` ≥ TABLE_STRIDE per position (half h = n / (2·stride)), its h
+    twiddles exp(−2πi·k·stride/n) in a row; (stride → offset, total entries). A warp's positions then read
+    neighbouring entries, where from the global table each would load a line of its own."""
+    offsets, total = {}, 0
+    for level in range(levels):
+        stride = 1 << level
+        if stride >= TABLE_STRIDE:
+            offsets[stride], total = total, total + n // (2 * stride)
+    return offsets, total
+
+
+def shared_extra(n: int, levels: int) -> int:
+    """The elements a tile keeps after its points (:func:`_prologue`): for a pruned transform (``levels`` short of
+    log₂ n) the kept bins' two rows and the m roots, then the twiddle tables."""
+    pruned = (2 << levels) + (n >> levels) if levels < n.bit_length() - 1 else 0
+    return pruned + twiddle_tables(n, levels)[1]
+
+
+def _prologue(n: int, levels: int) -> str:
+    """The native code, before the first pass (whose sync it shares: that pass's levels, strides 1 … 2^(RADIX_LEVELS
+    − 1) < TABLE_STRIDE, read no table), that puts after the tile's points: for a pruned transform the kept bins'
+    rows and the m = n / 2^levels roots exp(−2πi·i/m) (``kept``, ``roots``: :func:`_kept_bins`); the twiddle tables
+    (``table``: :func:`twiddle_tables`)."""
+    offsets, total = twiddle_tables(n, levels)
+    fill = "".join(f"""
+        if (i >= {offset} && i < {offset + n // (2 * stride)}) table[i] = twiddle((i - {offset}) * {stride});"""
+                   for stride, offset in offsets.items())
+    code = f"""
+    wp::vec2d* table = z + {n + n // PAD_EVERY + shared_extra(n, levels) - total};"""
+    if levels < n.bit_length() - 1:
+        blocks, m = 1 << levels, n >> levels
+        code += f"""
+    wp::vec2d* kept = z + {n + n // PAD_EVERY};
+    wp::vec2d* roots = kept + {2 * blocks};
+    for (int i = WP_TILE_THREAD_IDX; i < {m}; i += WP_TILE_BLOCK_DIM) roots[i] = turn(i * {n // m});"""
+    return code + f"""
+    for (int i = WP_TILE_THREAD_IDX; i < {total}; i += WP_TILE_BLOCK_DIM) {{{fill}
+    }}
 """
 
 
@@ -216,25 +274,27 @@ def overlap_save_snippet(n: int, keep: int = -1) -> str:
     helpers = _HELPERS % {"pad": PAD_EVERY, "n": n}
     levels = kept_levels(n, keep)
     if levels < n.bit_length() - 1:
-        passes = _passes(levels, n)
-        code = [_pass(*passes[0], n, "impulses", _levels(*passes[0], n, False), "shared")]
-        code += [_pass(*p, n, "shared", _levels(*p, n, False), "shared") for p in passes[1:]]
+        passes, tables = _passes(levels, n), twiddle_tables(n, levels)[0]
+        code = [_prologue(n, levels), _pass(*passes[0], n, "impulses", _levels(*passes[0], n, False, tables),
+                                            "shared")]
+        code += [_pass(*p, n, "shared", _levels(*p, n, False, tables), "shared") for p in passes[1:]]
         code += [_kept_bins(n, keep, levels)]
         inverse = passes[::-1]
         sources = ["kept"] + ["shared"] * (len(inverse) - 1)
         sinks = ["shared"] * (len(inverse) - 1) + ["out"]
-        code += [_pass(*p, n, source, _levels(*p, n, True), sink) for p, source, sink in zip(inverse, sources, sinks)]
+        code += [_pass(*p, n, source, _levels(*p, n, True, tables), sink)
+                 for p, source, sink in zip(inverse, sources, sinks)]
         return helpers + "\n".join(code)
-    passes = fft_passes(n)
+    passes, tables = fft_passes(n), twiddle_tables(n, levels)[0]
     group = 1 << passes[-1][1]
-    middle = [*_levels(*passes[-1], n, False), *(f"filter(v[{j}], base + {j});" for j in range(group)),
-              *_levels(*passes[-1], n, True)]
-    if len(passes) == 1:
+    middle = [*_levels(*passes[-1], n, False, tables), *(f"filter(v[{j}], base + {j});" for j in range(group)),
+              *_levels(*passes[-1], n, True, tables)]
+    if len(passes) == 1:  # n ≤ 2^RADIX_LEVELS: no table (strides < TABLE_STRIDE)
         return helpers + _pass(*passes[0], n, "impulses", middle, "out")
-    code = [_pass(*passes[0], n, "impulses", _levels(*passes[0], n, False), "shared")]
-    code += [_pass(*p, n, "shared", _levels(*p, n, False), "shared") for p in passes[1:-1]]
+    code = [_prologue(n, levels), _pass(*passes[0], n, "impulses", _levels(*passes[0], n, False), "shared")]
+    code += [_pass(*p, n, "shared", _levels(*p, n, False, tables), "shared") for p in passes[1:-1]]
     code += [_pass(*passes[-1], n, "shared", middle, "shared")]
-    code += [_pass(*p, n, "shared", _levels(*p, n, True), "shared") for p in passes[-2:0:-1]]
+    code += [_pass(*p, n, "shared", _levels(*p, n, True, tables), "shared") for p in passes[-2:0:-1]]
     code += [_pass(*passes[0], n, "shared", _levels(*passes[0], n, True), "out")]
     return helpers + "\n".join(code)
 
@@ -248,8 +308,9 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM, keep:
     items in turn, their count read on the device (no wait for it on the host)."""
 
     options = {"block_dim": block_dim}
+    cap = SM_REGISTERS // block_dim if block_dim > 256 else None  # so that one tile's threads fit a multiprocessor
     levels = kept_levels(n, keep)
-    kept = 2 << levels if levels < n.bit_length() - 1 else 0  # the kept bins' two rows (_kept_bins)
+    kept = shared_extra(n, levels)  # a pruned transform's kept bins and roots, the twiddle tables
     padded = n + n // PAD_EVERY + kept  # shared-memory elements of the tile
     @wp.func_native(overlap_save_snippet(n, keep))
     def overlap_save(tile: wp.tile(dtype=wp.vec2d, shape=(padded,), storage="shared"),
@@ -257,7 +318,8 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM, keep:
                      spectrum: wp.array(dtype=wp.vec2d), twiddles: wp.array(dtype=wp.vec2d), wrapped: int,
                      first: int, last: int, out: wp.array2d(dtype=wp.float32)): ...
 
-    @wp.kernel(enable_backward=False, module="unique", module_options=options, grid_stride=False)
+    @wp.kernel(enable_backward=False, module="unique", module_options=options, grid_stride=False,
+               cuda_max_registers=cap)
     def convolve_fft(
         # In:
         o: Overlap,  # the impulse trains, their spans, the pulse's spectrum and the twiddles

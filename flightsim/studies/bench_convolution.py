@@ -134,7 +134,9 @@ def _kept(record: dict) -> str:
 def _fft_variant(item: str) -> tuple:
     """'N:block_dim[:direct_below[:floor]]' → (N, block_dim, direct_below, floor) as far as given."""
     values = item.split(":")
-    return (*(int(v) for v in values[:3]), *(float(v) for v in values[3:4]))
+    fixed = [int(v) for v in values[:3]]
+    fixed[1:2] = [fixed[1] or None] if len(fixed) > 1 else []  # block_dim 0: PulseConvolution chooses
+    return (*fixed, *(float(v) for v in values[3:4]))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -142,8 +144,9 @@ def main(argv: list[str] | None = None) -> int:
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--shots", type=int, default=None, help="shots per scene (500 on CUDA, 4 on the CPU)")
-    parser.add_argument("--fft", default=f"{kf.FFT_SIZE}:{kf.FFT_BLOCK_DIM}",
-                        help="comma-separated N:block_dim[:direct_below[:floor]] of the FFT path (N a power of "
+    parser.add_argument("--fft", default=f"{kf.FFT_SIZE}:0",
+                        help="comma-separated N:block_dim[:direct_below[:floor]] of the FFT path (block_dim 0: "
+                        "the readout's choice; N a power of "
                         f"two; rows whose span is narrower than direct_below samples summed directly, default "
                         f"{kf.DIRECT_BELOW}; the pulse's spectrum kept above floor of its largest, 0: every bin)")
     parser.add_argument("--scenes", default="slope,flat")

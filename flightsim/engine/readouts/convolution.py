@@ -57,21 +57,23 @@ class PulseConvolution:
     ``first_lag`` samples): ``method`` ``direct`` or ``fft``. With fft, the rows whose touched span is narrower
     than ``direct_below`` samples are still summed directly (bit for bit as with direct: a flat footprint's few
     samples need fewer products than an FFT), the others by FFTs of size :func:`fft_size` of ``fft_least`` (a power
-    of two) launched with ``block_dim`` threads per tile (at most N/2), keeping the bins of the pulse's spectrum
-    above ``floor`` of its largest (:func:`kept_bins`; 0: every bin)."""
+    of two) launched with ``block_dim`` threads per tile (at most N/2; None: kernels.waveform_fft's choice for the
+    transform), keeping the bins of the pulse's spectrum above ``floor`` of its largest (:func:`kept_bins`; 0:
+    every bin)."""
 
     def __init__(self, method: str, taps: wp.array, first_lag: int, samples: int, device: str,
-                 fft_least: int = kf.FFT_SIZE, block_dim: int = kf.FFT_BLOCK_DIM, direct_below: int = kf.DIRECT_BELOW,
+                 fft_least: int = kf.FFT_SIZE, block_dim: int | None = None, direct_below: int = kf.DIRECT_BELOW,
                  floor: float = SPECTRUM_FLOOR):
         self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
         self.direct_below, self.spans, self.rows, self.fft_rows = direct_below, None, None, None
         if method == "fft":
             self.n = fft_size(len(taps), samples, fft_least)
-            self.block_dim = min(block_dim, self.n // 2)
+            self.keep = kept_bins(taps.numpy(), self.n, floor) if floor > 0.0 else -1
+            pruned = kf.kept_levels(self.n, self.keep) < self.n.bit_length() - 1
+            self.block_dim = min(block_dim or (kf.PRUNED_BLOCK_DIM if pruned else kf.FFT_BLOCK_DIM), self.n // 2)
             self.block = self.n - len(taps) + 1  # L: outputs per FFT
             device_info = wp.get_device(device)
             self.tiles = device_info.sm_count if device_info.is_cuda else 1  # one tile per multiprocessor
-            self.keep = kept_bins(taps.numpy(), self.n, floor) if floor > 0.0 else -1
             spectrum = pulse_spectrum(taps.numpy(), self.n)
             self.overlap = kf.Overlap()
             self.overlap.spectrum = wp.array(spectrum, dtype=wp.vec2d, device=device)
