@@ -194,14 +194,17 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
     @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
     def deposit(m: MeshRefs, p: WaveformParams, leaves: Canopy, starts: wp.array(dtype=wp.vec3d),
                 directions: wp.array(dtype=wp.vec3d), window_start: wp.array(dtype=wp.float64),
-                offsets: wp.array(dtype=wp.vec2d), weights: wp.array(dtype=wp.float64), per_thread: int,
+                offsets: wp.array2d(dtype=wp.vec2d), weights: wp.array2d(dtype=wp.float64), subrays: int,
                 impulses: wp.array2d(dtype=wp.float64), received: wp.array2d(dtype=wp.float64),
                 span: wp.array2d(dtype=wp.int32)):
-        """Sub-rays ``group``·per_thread … of beam ``slot`` in turn: each cast, its power share g_k [1] added to the
+        """Sub-rays k = ``group``·P … (group + 1)·P − 1 (of ``subrays``) of beam ``slot`` in turn, P = per thread, their
+        offsets and weights at [k − group·P, group] (:func:`flightsim.engine.readouts.waveforms.by_lane`: a warp's
+        threads, neighbouring groups, read neighbouring entries): each cast, its power share g_k [1] added to the
         impulse train at its delay (linear split; consecutive sub-rays in one sample summed first, the sums below once
         per thread). ``received[slot]``: Σ g_k inside (0) and outside (1) the window, Σ w_k z_k [m] (2) and Σ w_k (3)
         over the hits (local z); ``span[slot]``: the lowest and highest sample touched (start it at (samples, −1))."""
         slot, group = wp.tid()
+        per_thread = offsets.shape[0]
         t0 = window_start[slot]
         if t0 < wp.float64(0.0):
             return
@@ -218,8 +221,9 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
         d = directions[slot]
         u, v = beam_frame(d)
         normal = wp.vec3d()
-        for k in range(group * per_thread, wp.min((group + 1) * per_thread, offsets.shape[0])):
-            direction = subray_direction(d, u, v, offsets[k])
+        for i in range(wp.min(per_thread, subrays - group * per_thread)):
+            weight = weights[i, group]
+            direction = subray_direction(d, u, v, offsets[i, group])
             face = face_of(m, start, direction)
             r = wp.float64(0.0)
             if face >= 0:
@@ -229,16 +233,16 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
             if wp.static(canopy):
                 t_end = wp.where(face >= 0, r, wp.float64(m.max_range))
                 transmission, e_in, e_out, e_first, e_last = leaf_echo(leaves, p, start, direction, t_end,
-                                                                       weights[k], t0, impulses, slot)
+                                                                       weight, t0, impulses, slot)
                 inside, outside = inside + e_in, outside + e_out
                 first, last = wp.min(first, e_first), wp.max(last, e_last)
             if face >= 0:
                 link = p.link * transmission
                 if wp.static(per_face):
                     link = link * wp.float64(m.reflectance[face])
-                g = weights[k] * link * wp.abs(wp.dot(normal, direction)) / (r * r)
-                wz += weights[k] * (start[2] + r * direction[2])
-                w += weights[k]
+                g = weight * link * wp.abs(wp.dot(normal, direction)) / (r * r)
+                wz += weight * (start[2] + r * direction[2])
+                w += weight
                 x = (wp.float64(2.0) * r / LIGHT_SPEED - t0) / p.dt
                 i = int(wp.floor(x))
                 f = x - wp.float64(i)

@@ -99,6 +99,21 @@ def pilot_windows(tracer, b: _Buffers, refs: kw.MeshRefs, params: kw.WaveformPar
     wp.launch(kw.pilot, n, inputs=[refs, params, b.starts, b.directions], outputs=[b.window], device=d)
 
 
+def by_lane(subrays, per_thread: int) -> tuple[wp.array, wp.array]:
+    """The sub-rays' offsets and weights as the deposit kernel reads them: (per_thread, groups) arrays holding
+    sub-ray group·per_thread + i at [i, group] (0 past the last), so that the threads of a warp, which take
+    neighbouring groups, read neighbouring entries at each step (rather than each its own line, per_thread entries
+    from its neighbour's)."""
+    count, device = len(subrays), subrays.weights.device
+    groups = -(-count // per_thread)
+    tables = []
+    for values in (subrays.offsets.numpy(), subrays.weights.numpy()):
+        padded = np.zeros((groups * per_thread, *values.shape[1:]), dtype=values.dtype)
+        padded[:count] = values
+        tables.append(np.ascontiguousarray(np.swapaxes(padded.reshape(groups, per_thread, *values.shape[1:]), 0, 1)))
+    return (wp.array(tables[0], dtype=wp.vec2d, device=device), wp.array(tables[1], dtype=wp.float64, device=device))
+
+
 def receive(tracer, receiver: kw.Receiver | None, params: kw.WaveformParams, b: _Buffers, n: int) -> None:
     """The receiver's reading of the first ``n`` rows of ``b.power`` (kept first in ``b.clean`` when it is kept)."""
     if receiver is None:
@@ -145,6 +160,7 @@ class Waveforms:
         canopy = tracer.scene.canopy
         self.params = det.struct(tracer.meshes.per_face, 0.0 if canopy is None else canopy.leaf_reflectance)
         self.subrays = tracer.kept("waveform subrays", lambda: det.subrays(tracer.device))
+        self.by_lane = tracer.kept("waveform subrays by lane", lambda: by_lane(self.subrays, kw.SUBRAYS_PER_THREAD))
         self.leaves = no_canopy(tracer.device) if canopy is None else canopy.to_device(tracer.device)
         self.canopy = canopy is not None
         self.convolution = self._convolution(tracer)
@@ -167,10 +183,10 @@ class Waveforms:
         b.touched = n
         b.received.zero_()
         wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[b.span], device=d)
-        groups = -(-len(self.subrays) // kw.SUBRAYS_PER_THREAD)
-        wp.launch(kw.deposit_kernel(tracer.meshes.per_face, self.canopy), (n, groups),
-                  inputs=[self.refs, params, self.leaves, b.starts, b.directions, b.window, self.subrays.offsets,
-                          self.subrays.weights, kw.SUBRAYS_PER_THREAD],
+        offsets, weights = self.by_lane
+        wp.launch(kw.deposit_kernel(tracer.meshes.per_face, self.canopy), (n, offsets.shape[1]),
+                  inputs=[self.refs, params, self.leaves, b.starts, b.directions, b.window, offsets, weights,
+                          len(self.subrays)],
                   outputs=[b.impulses, b.received, b.span], device=d)
         conv.launch(b.impulses, b.span, b.power, n, zeroed=clean)
         receive(tracer, self.receiver, params, b, n)
