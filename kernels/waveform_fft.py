@@ -14,8 +14,13 @@ frequency (natural order in, bit-reversed order out), the product with the pulse
 order, the inverse by decimation in time (bit-reversed in, natural out), so no permutation is ever made. Each pass
 gives every thread groups of 2^RADIX_LEVELS points that it takes through as many levels of radix-2 butterflies in
 registers (:func:`fft_passes`); the twiddles exp(−2πik/N) come from a float64 table made on the host
-(``flightsim.engine.readouts.convolution.twiddles``), not from sines per butterfly. Each butterfly's arithmetic is
-the same whichever thread makes it, so every device and block size gives the same bits.
+(``flightsim.engine.readouts.convolution.twiddles``), not from sines per butterfly; a level whose twiddle index steps
+by TABLE_STRIDE or more per point reads them from a copy in shared memory (:func:`twiddle_tables`). Each butterfly's
+arithmetic is the same whichever thread makes it, so every device and block size gives the same bits.
+
+Where the pulse's spectrum is 0 to float64's rounding beyond the bins |k| ≤ K (``kept_bins``: change1's ±36 of
+8192), the transforms are pruned (:func:`kept_levels`, :func:`_kept_bins`): the forward stops once each kept bin has a
+block of its own, those bins are summed from their blocks, and the inverse starts from them.
 
 An item (row, pair) makes blocks 2·pair and 2·pair + 1 of the reach of its row's slot, the rows those listed by
 ``split_spans``; the launch has a tile per multiprocessor, each taking the items in turn (their count read on the
