@@ -118,6 +118,7 @@ def test_the_kept_bins_are_where_a_gaussian_pulses_spectrum_falls_to_the_floor()
         assert kept_bins(np.exp(-0.5 * (lags / sigma) ** 2), n) == math.floor(expected), (sigma, n)
     short = np.exp(-0.5 * (np.arange(-200, 201) / 30.0) ** 2)
     assert kept_bins(short, 1024) == 512
+    assert kept_bins(np.zeros(101), 256) == 128  # a pulse whose taps underflowed: every bin, no error
 
 
 @pytest.mark.parametrize("scene", ["slope", "bump"])

@@ -49,7 +49,8 @@ def kept_bins(taps: np.ndarray, n: int, floor: float = SPECTRUM_FLOOR) -> int:
     with the impulses' spectrum are below float64's rounding of the largest (a Gaussian pulse of σ samples:
     K ≈ 8.4·n / (2πσ); change1: 36 of 8192 bins)."""
     magnitude = np.abs(np.fft.fft(np.asarray(taps, dtype=np.float64), n))[: n // 2 + 1]
-    return int(np.flatnonzero(magnitude > floor * magnitude.max()).max())
+    above = np.flatnonzero(magnitude > floor * magnitude.max())
+    return int(above.max()) if len(above) else n // 2  # taps that underflowed to 0: nothing to prune by
 
 
 class PulseConvolution:
