@@ -164,8 +164,9 @@ def _kept_bins(n: int, keep: int, levels: int) -> str:
     of its points, and bin n − (2^levels − r) its j = m − 1 output, Σ z[i] exp(+2πi·i/m); every other block holds
     no kept bin. Thread b sums block b from its point b mod m on (neighbouring threads' loads on different banks).
     Each such sum times the pulse's spectrum there is stored after the tile's points (kept[b] for
-    j = 0, kept[blocks + b] for j = m − 1, 0 elsewhere), from which ``expand`` makes the inverse's first ``levels``
-    levels' input: the m-point inverse DFT of one non-zero bin, that bin times exp(−2πi·i/m)^j. The m roots
+    j = 0, kept[blocks + b] for j = m − 1, 0 elsewhere), from which ``expand`` makes what the inverse's first log₂ m
+    levels would make of a block holding one non-zero bin: its m-point inverse DFT, that bin times exp(−2πi·i/m)^j
+    (2^levels > 2·keep, so no block holds two). The m roots
     exp(−2πi·i/m) come from shared memory too (``roots``, after the kept bins: :func:`_prologue`), not from the
     twiddles in global memory: each point of the expand would otherwise load one, 2 kB from its neighbour's."""
     blocks, m = 1 << levels, n >> levels
