@@ -186,10 +186,9 @@ DEPOSIT_MAX_REGISTERS = 128  # on a GPU: two 256-thread blocks per SM; 137 uncap
 
 @functools.cache
 def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | None = DEPOSIT_MAX_REGISTERS):
-    """The deposit kernel, with each sub-ray's link times the albedo of the triangle it hits (``per_face``:
-    ``m.reflectance``) or the run's one link; through the leaves of ``leaves`` (``canopy``: :func:`leaf_echo`, the
-    surface's echo dimmed by the transmission left) or not (compiled out); ``max_registers`` caps its registers per
-    thread on a GPU (None: the compiler's choice; the cap changes no result, only spills and occupancy)."""
+    """The deposit kernel, each sub-ray's link times its triangle's albedo (``per_face``: ``m.reflectance``) or the run's
+    one link; through the leaves (``canopy``: :func:`leaf_echo`, the surface's echo dimmed by what they let through) or
+    not (compiled out); ``max_registers`` caps its registers on a GPU (None: the compiler's; no result changes)."""
 
     @wp.kernel(module="unique", enable_backward=False, cuda_max_registers=max_registers, grid_stride=False)
     def deposit(m: MeshRefs, p: WaveformParams, leaves: Canopy, starts: wp.array(dtype=wp.vec3d),
@@ -197,14 +196,12 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
                 offsets: wp.array2d(dtype=wp.vec2d), weights: wp.array2d(dtype=wp.float64), subrays: int,
                 impulses: wp.array2d(dtype=wp.float64), received: wp.array2d(dtype=wp.float64),
                 span: wp.array2d(dtype=wp.int32)):
-        """Sub-rays k = ``group``·P … (group + 1)·P − 1 (of ``subrays``) of beam ``slot`` in turn, P = per thread, their
-        offsets and weights at [k − group·P, group] (:func:`flightsim.engine.readouts.waveforms.by_lane`: a warp's
-        threads, neighbouring groups, read neighbouring entries): each cast, its power share g_k [1] added to the
-        impulse train at its delay (linear split; consecutive sub-rays in one sample summed first, the sums below once
-        per thread). ``received[slot]``: Σ g_k inside (0) and outside (1) the window, Σ w_k z_k [m] (2) and Σ w_k (3)
-        over the hits (local z); ``span[slot]``: the lowest and highest sample touched (start it at (samples, −1))."""
+        """Sub-rays k = group·P + step (of ``subrays``; P per thread) of beam ``slot`` in turn, their offsets and weights
+        at [step, group] (``readouts.waveforms.by_lane``): each cast, its power share g_k [1] added to the impulse
+        train at its delay (linear split; consecutive sub-rays in one sample summed first, the sums below once per
+        thread). ``received[slot]``: Σ g_k inside (0) and outside (1) the window, Σ w_k z_k [m] (2) and Σ w_k (3) over
+        the hits (local z); ``span[slot]``: the lowest and highest sample touched (start it at (samples, −1))."""
         slot, group = wp.tid()
-        per_thread = offsets.shape[0]
         t0 = window_start[slot]
         if t0 < wp.float64(0.0):
             return
@@ -221,9 +218,9 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
         d = directions[slot]
         u, v = beam_frame(d)
         normal = wp.vec3d()
-        for i in range(wp.min(per_thread, subrays - group * per_thread)):
-            weight = weights[i, group]
-            direction = subray_direction(d, u, v, offsets[i, group])
+        for step in range(wp.min(offsets.shape[0], subrays - group * offsets.shape[0])):
+            weight = weights[step, group]
+            direction = subray_direction(d, u, v, offsets[step, group])
             face = face_of(m, start, direction)
             r = wp.float64(0.0)
             if face >= 0:

@@ -157,6 +157,11 @@ def kept_levels(n: int, keep: int) -> int:
     return kept if levels - kept >= 2 else levels
 
 
+def is_pruned(n: int, levels: int) -> bool:
+    """Whether a size-``n`` transform making ``levels`` forward levels (:func:`kept_levels`) is pruned."""
+    return levels < n.bit_length() - 1
+
+
 def _kept_bins(n: int, keep: int, levels: int) -> str:
     """The native code between a pruned transform's forward and inverse passes. After ``levels`` levels of
     decimation in frequency the tile holds 2^levels blocks of m = n / 2^levels points; block b's m-point DFT gives
@@ -225,7 +230,7 @@ def twiddle_tables(n: int, levels: int) -> tuple[dict[int, int], int]:
 def shared_extra(n: int, levels: int) -> int:
     """The elements a tile keeps after its points (:func:`_prologue`): for a pruned transform (``levels`` short of
     log₂ n) the kept bins' two rows and the m roots, then the twiddle tables."""
-    pruned = (2 << levels) + (n >> levels) if levels < n.bit_length() - 1 else 0
+    pruned = (2 << levels) + (n >> levels) if is_pruned(n, levels) else 0
     return pruned + twiddle_tables(n, levels)[1]
 
 
@@ -240,7 +245,7 @@ def _prologue(n: int, levels: int) -> str:
                    for stride, offset in offsets.items())
     code = f"""
     wp::vec2d* table = z + {n + n // PAD_EVERY + shared_extra(n, levels) - total};"""
-    if levels < n.bit_length() - 1:
+    if is_pruned(n, levels):
         blocks, m = 1 << levels, n >> levels
         code += f"""
     wp::vec2d* kept = z + {n + n // PAD_EVERY};
@@ -279,7 +284,7 @@ def overlap_save_snippet(n: int, keep: int = -1) -> str:
     same circular convolution with the other bins' products dropped, in fewer butterflies."""
     helpers = _HELPERS % {"pad": PAD_EVERY, "n": n}
     levels = kept_levels(n, keep)
-    if levels < n.bit_length() - 1:
+    if is_pruned(n, levels):
         passes, tables = _passes(levels, n), twiddle_tables(n, levels)[0]
         code = [_prologue(n, levels), _pass(*passes[0], n, "impulses", _levels(*passes[0], n, False, tables),
                                             "shared")]

@@ -135,7 +135,8 @@ def _fft_variant(item: str) -> tuple:
     """'N:block_dim[:direct_below[:floor]]' → (N, block_dim, direct_below, floor) as far as given."""
     values = item.split(":")
     fixed = [int(v) for v in values[:3]]
-    fixed[1:2] = [fixed[1] or None] if len(fixed) > 1 else []  # block_dim 0: PulseConvolution chooses
+    if len(fixed) > 1:
+        fixed[1] = fixed[1] or None  # block_dim 0: PulseConvolution chooses
     return (*fixed, *(float(v) for v in values[3:4]))
 
 

@@ -70,7 +70,7 @@ class PulseConvolution:
         if method == "fft":
             self.n = fft_size(len(taps), samples, fft_least)
             self.keep = kept_bins(taps.numpy(), self.n, floor) if floor > 0.0 else -1
-            pruned = kf.kept_levels(self.n, self.keep) < self.n.bit_length() - 1
+            pruned = kf.is_pruned(self.n, kf.kept_levels(self.n, self.keep))
             self.block_dim = min(block_dim or (kf.PRUNED_BLOCK_DIM if pruned else kf.FFT_BLOCK_DIM), self.n // 2)
             self.block = self.n - len(taps) + 1  # L: outputs per FFT
             device_info = wp.get_device(device)
