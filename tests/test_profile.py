@@ -59,11 +59,11 @@ def test_timeline_marks_each_event_once(tmp_path, monkeypatch):
 
 
 NCU_CSV = '''==PROF== Connected to process 1234
-"ID","Process ID","Process Name","Host Name","Kernel Name","Context","Stream","Block Size","Grid Size","Device","CC","dram__bytes.sum","gpu__time_duration.sum","sm__warps_active.avg.pct_of_peak_sustained_active","smsp__thread_inst_executed_per_inst_executed.ratio"
-"","","","","","","","","","","","byte","nsecond","%",""
-"0","1234","python3","host","records_kernel__locals__trace_records_1a2b3c4_cuda_kernel_forward","1","7","(256, 1, 1)","(100, 1, 1)","0","9.0","2,000,000","1,000","40.0","30.0"
-"1","1234","python3","host","records_kernel__locals__trace_records_1a2b3c4_cuda_kernel_forward","1","7","(256, 1, 1)","(100, 1, 1)","0","9.0","4,000,000","1,000","50.0","28.0"
-"2","1234","python3","host","pulse_poses_9f8e7d6_cuda_kernel_forward","1","7","(256, 1, 1)","(4, 1, 1)","0","9.0","1000","500","20.0","32.0"
+"ID","Process ID","Process Name","Host Name","Kernel Name","Context","Stream","Block Size","Grid Size","Device","CC","dram__bytes.sum","gpu__time_duration.sum","sm__warps_active.avg.pct_of_peak_sustained_active","smsp__thread_inst_executed_per_inst_executed.ratio","l1tex__t_sectors_pipe_lsu_mem_global_op_ld.sum","l1tex__t_requests_pipe_lsu_mem_global_op_ld.sum"
+"","","","","","","","","","","","byte","nsecond","%","","sector",""
+"0","1234","python3","host","records_kernel__locals__trace_records_1a2b3c4_cuda_kernel_forward","1","7","(256, 1, 1)","(100, 1, 1)","0","9.0","2,000,000","1,000","40.0","30.0","1,000","250"
+"1","1234","python3","host","records_kernel__locals__trace_records_1a2b3c4_cuda_kernel_forward","1","7","(256, 1, 1)","(100, 1, 1)","0","9.0","4,000,000","1,000","50.0","28.0","3,000","250"
+"2","1234","python3","host","pulse_poses_9f8e7d6_cuda_kernel_forward","1","7","(256, 1, 1)","(4, 1, 1)","0","9.0","1000","500","20.0","32.0","0","0"
 '''
 
 
@@ -78,6 +78,22 @@ def test_ncu_csv_is_averaged_per_kernel_under_our_names():
     assert trace["dram_gb_per_s"] == 3000.0  # 3e6 bytes in 1 µs on average: 3 TB/s
     assert trace["dram_pct_of_peak"] is None  # not in this CSV
     assert kernels["pulse_poses"]["dram_gb_per_s"] == 2.0  # 1000 bytes in 500 ns
+    assert trace["sectors_per_request"] == 8.0  # 2000 sectors over 250 requests on average
+    assert "sectors_per_request" not in kernels["pulse_poses"]  # no global loads: no ratio
+
+
+def test_only_the_metrics_ncu_lists_are_asked_for():
+    from flightsim.studies.profile_ncu import known
+
+    listing = """Device NVIDIA H100 80GB HBM3 (GH100)
+Metric Name                      Metric Description
+dram__bytes                      # of bytes accessed in DRAM
+sm__warps_active                 cumulative # of warps in flight
+"""
+    asked = ["dram__bytes.sum", "sm__pipe_fp64_cycles_active.avg.pct_of_peak_sustained_active",
+             "sm__warps_active.avg.pct_of_peak_sustained_active"]
+    assert known(asked, listing) == ["dram__bytes.sum", "sm__warps_active.avg.pct_of_peak_sustained_active"]
+    assert known(asked, "") == asked  # the query failed: ask for all, ncu names what it does not know
 
 
 def test_a_second_profile_keeps_the_other_workloads_records(tmp_path):

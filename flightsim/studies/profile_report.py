@@ -48,15 +48,17 @@ def _ncu_table(r: dict) -> list[str]:
         return [f"Nsight Compute: {counters['error']}", ""]
     lines = ["Nsight Compute (the workload at the same size, its first launches of these kernels; means over them):", "",
              "| kernel | launches | achieved occupancy | DRAM [% of peak] | DRAM [GB/s] | SM [% of peak] | "
-             "spill traffic [MB] | atomics + reductions | threads per warp instruction |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "spill traffic [MB] | atomics + reductions | threads per warp instruction | global load sectors per "
+             "request | L1 hits | FP64 pipe |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for name, k in counters["kernels"].items():
         spill = sum(k.get(key) or 0.0 for key in ("local_load_bytes", "local_store_bytes")) / 1e6
         atomics = sum(k.get(key) or 0.0 for key in ("atomic_requests", "reduction_requests"))
         lines.append(f"| {name} | {k['launches']} | {_pct(k.get('achieved_occupancy_pct'))} | "
                      f"{_pct(k.get('dram_pct_of_peak'))} | {_fmt(k.get('dram_gb_per_s'))} | "
                      f"{_pct(k.get('sm_pct_of_peak'))} | {spill:.3g} | {atomics:.3g} | "
-                     f"{_fmt(k.get('threads_per_warp_instruction'))} |")
+                     f"{_fmt(k.get('threads_per_warp_instruction'))} | {_fmt(k.get('sectors_per_request'))} | "
+                     f"{_pct(k.get('l1_hit_pct'))} | {_pct(k.get('fp64_pipe_pct'))} |")
     return lines + [""]
 
 
