@@ -35,7 +35,7 @@ def _reduce(device, codes, points, references, slots_per_thread: int, replicas: 
     return count[0], first[0], second[0], sums[3].numpy()
 
 
-@pytest.mark.parametrize("slots_per_thread,replicas", [(256, 1), (16, 64), (5, 7)])
+@pytest.mark.parametrize("slots_per_thread,replicas", [(256, 1), (16, 64), (5, 7), (1, 3), (4096, 2)])
 def test_reduction_is_the_float64_sum_of_each_planes_points(device, slots_per_thread, replicas):
     rng = np.random.default_rng(3)
     n_slots, planes = 20011, 17
