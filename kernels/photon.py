@@ -203,10 +203,12 @@ def sampler(retro: bool, leaves: bool = False):
         their count."""
         live = det.gate_open
         total = integrated_intensity(det, det.gate_close, e, c, leaf)
+        at_live = wp.float64(0.0)  # Λ(gate open): each of its terms is a value less itself
         count = int(0)
         while count < det.max_events and live < det.gate_close:
             u, state = _uniform64(state)
-            at_live = integrated_intensity(det, live, e, c, leaf)  # once per detection, not three times
+            if count > 0:
+                at_live = integrated_intensity(det, live, e, c, leaf)  # once per detection, not three times
             target = at_live - wp.log(u)
             if target >= total:
                 break

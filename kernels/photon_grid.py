@@ -129,24 +129,35 @@ def cell_bounds(keys: wp.array(dtype=wp.int64), n: int, stride: wp.int64, invali
 
 
 @wp.func
+def _pack(window: int, zbin: wp.int64) -> wp.int64:
+    """A pair of bins as _best_pair compares them: window · 2³² + (2³¹ − 1 − bin) (the lowest bin wins a tie)."""
+    return (wp.int64(window) << wp.int64(32)) | (PACK_LOW - zbin)
+
+
+@wp.func
 def _best_pair(keys: wp.array(dtype=wp.int64), a: int, b: int, base: wp.int64):
     """The fullest pair of adjacent height bins (an occupied bin and the next one up) of the sorted keys[a:b] (bins
-    key − base), the lowest on a tie, packed as window · 2³² + (2³¹ − 1 − bin)."""
+    key − base, a < b), the lowest on a tie, packed by :func:`_pack`. One pass over the keys: each run of one bin
+    settles the pair of the run before it (that run's photons, and this run's when its bin is the next one up)."""
     best = wp.int64(0)
-    j = a
-    while j < b:
+    prev_bin = wp.int64(-2)
+    prev_count = int(0)
+    run_bin = keys[a] - base
+    run_count = int(0)
+    for j in range(a, b):
         zbin = keys[j] - base
-        k = j
-        while k < b and keys[k] == keys[j]:
-            k += 1
-        window = k - j
-        m = k
-        while m < b and keys[m] == keys[j] + wp.int64(1):
-            m += 1
-        window += m - k
-        best = wp.max(best, (wp.int64(window) << wp.int64(32)) | (PACK_LOW - zbin))
-        j = k
-    return best
+        if zbin != run_bin:
+            if prev_count > 0:
+                best = wp.max(best, _pack(prev_count + wp.where(run_bin == prev_bin + wp.int64(1), run_count, 0),
+                                          prev_bin))
+            prev_bin = run_bin
+            prev_count = run_count
+            run_bin = zbin
+            run_count = 0
+        run_count += 1
+    if prev_count > 0:
+        best = wp.max(best, _pack(prev_count + wp.where(run_bin == prev_bin + wp.int64(1), run_count, 0), prev_bin))
+    return wp.max(best, _pack(run_count, run_bin))
 
 
 @wp.func
@@ -154,14 +165,17 @@ def _window_sum(xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), o
                 a: int, b: int, base: wp.int64, lo: wp.float64, bin_m: wp.float64, z: wp.float64,
                 window_m: wp.float64):
     """(count, sum of positions [m]) of the photons order[a:b] within ``window_m`` of height ``z``, added in their
-    sorted order (height bin, then the order they were made in); only the bins the window reaches are read."""
+    sorted order (height bin, then the order they were made in); only the photons of the bins the window reaches are
+    read, and no key above them."""
     low = wp.int64(wp.floor((z - window_m - lo) / bin_m)) - wp.int64(1)
     high = wp.int64(wp.floor((z + window_m - lo) / bin_m)) + wp.int64(1)
     count = int(0)
     total = wp.vec3d()
     for j in range(a, b):
         zbin = keys[j] - base
-        if zbin >= low and zbin <= high:
+        if zbin > high:  # the keys are sorted: none further on is in the window
+            break
+        if zbin >= low:
             p = xyz[order[j]]
             if wp.abs(p[2] - z) <= window_m:
                 count += 1
