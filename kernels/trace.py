@@ -20,6 +20,7 @@ from kernels.frames import (POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT
 from kernels.edges import EdgeGrid, boundary_distance, near_boundary
 from kernels.error_models import PoseErrors, RangeErrors, true_pose
 from kernels.looks import FIRST_LOOK, SECOND_LOOK, Misses, list_miss
+from kernels.mesh_cast import closest_hit
 from kernels.mesh_hits import fallback_hit, refine_hit
 from kernels.optics import rigid_array_rotation
 from kernels.parts import Instrument
@@ -272,11 +273,9 @@ def slot_function(f: Features, instrument: Instrument, look: int = FIRST_LOOK):
         start = true_origin + true_rot * exit_point
         direction = true_rot * s3
         if wp.static(look == FIRST_LOOK):
-            hit = wp.mesh_query_ray(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
-            if not hit.result:
+            face, t_hit = closest_hit(scan.mesh, wp.vec3f(start), wp.vec3f(direction), scan.max_range)
+            if face < 0:
                 return _no_return(STATUS_RETRY, wp.vec3f(direction))
-            face = hit.face
-            t_hit = hit.t
         else:
             face, t_second = fallback_hit(scan.padded, scan.vertices64, scan.indices, wp.vec3d(start),
                                            wp.vec3d(direction), scan.max_range)
@@ -475,7 +474,23 @@ def cast_rays(
     # Out:
     faces: wp.array(dtype=wp.int32),  # face hit, -1 for none
 ):
-    """Nothing but ``wp.mesh_query_ray``: the baseline the pipeline's throughput is compared with."""
+    """Nothing but the ray cast (:func:`kernels.mesh_cast.closest_hit`): the baseline the pipeline's throughput is
+    compared with."""
+    i = wp.tid()
+    face, t = closest_hit(mesh, starts[i], directions[i], max_range)
+    faces[i] = face
+
+
+@wp.kernel
+def cast_rays_warp(
+    mesh: wp.uint64,
+    starts: wp.array(dtype=wp.vec3f),
+    directions: wp.array(dtype=wp.vec3f),
+    max_range: wp.float32,
+    # Out:
+    faces: wp.array(dtype=wp.int32),  # face hit, -1 for none
+):
+    """:func:`cast_rays` through Warp's own ``wp.mesh_query_ray`` (what closest_hit is measured against)."""
     i = wp.tid()
     hit = wp.mesh_query_ray(mesh, starts[i], directions[i], max_range)
     faces[i] = wp.where(hit.result, hit.face, -1)

@@ -19,6 +19,7 @@ import warp as wp
 
 from kernels.canopy import Canopy, g_of, walk_begin, walk_next
 from kernels.frames import ROW_PULSE, ROW_SEED
+from kernels.mesh_cast import closest_hit
 from kernels.mesh_hits import fallback_hit, refine_hit
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
@@ -71,9 +72,8 @@ class MeshRefs:
 @wp.func
 def face_of(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
     """The face a float64 ray hits (float32 cast, the padded boxes where it slips through), or −1."""
-    hit = wp.mesh_query_ray(m.mesh, wp.vec3f(start), wp.vec3f(direction), m.max_range)
-    face = hit.face
-    if not hit.result:
+    face, t = closest_hit(m.mesh, wp.vec3f(start), wp.vec3f(direction), m.max_range)
+    if face < 0:
         face, t_second = fallback_hit(m.padded, m.vertices64, m.indices, start, direction, m.max_range)
     return face
 

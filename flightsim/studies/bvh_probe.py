@@ -1,12 +1,13 @@
-"""Bare ray casts (Warp's mesh query, nothing else) per BVH constructor and leaf size, over the scenes and rays of
-the workloads that cast against large meshes: the SPAD's 32×32 fans over the sandbox, the galvo imager's cone
-over the lunar scene, the Risley's cone over the calibration field and over the scale section's terrain
-(:func:`flightsim.scenes.testdem.terrain`, 3 km square). Rays/s of each
-(constructor, leaf size), the BVH's build time, and how many rays hit another face than the first variant's::
+"""Bare ray casts (the pipeline's :func:`kernels.mesh_cast.closest_hit`, nothing else) per BVH constructor and leaf
+size, over the scenes and rays of the workloads that cast against large meshes: the SPAD's 32×32 fans over the
+sandbox, the galvo imager's cone over the lunar scene, the Risley's cone over the calibration field and over the
+scale section's terrain (:func:`flightsim.scenes.testdem.terrain`, 3 km square). Rays/s of each (constructor, leaf
+size), the same with Warp's own ``wp.mesh_query_ray`` and how many rays the two cast to another face or t, the
+BVH's build time, and how many rays hit another face than the first variant's::
 
     python3 -m flightsim.studies.bvh_probe --device cuda --rays 4194304
 
-(profile-experiments.md section 32 chose the GPU's automatic BVH with it.)
+(profile-experiments.md section 32 chose the GPU's automatic BVH with it; section 40 measured closest_hit.)
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.warp_runtime import init_warp, resolve_device
-from kernels.trace import cast_rays
+from kernels.trace import cast_rays, cast_rays_warp
 
 VARIANTS = (("cubql", None), ("cubql", 1), ("cubql", 2), ("cubql", 4), ("cubql", 8), ("sah", 1), ("sah", 2),
             ("sah", 4), ("lbvh", 1))
@@ -59,24 +60,26 @@ def cases(rays: int, dem_triangles: tuple[int, ...], rng: np.random.Generator):
                *cone([0.0, 0.0, 500.0], 0.35, rays, rng, 1000.0))
 
 
-def casts(mesh: wp.Mesh, starts: wp.array, directions: wp.array, repeats: int = 5) -> tuple[float, np.ndarray]:
-    """(rays/s, best of ``repeats``, after one untimed cast; the faces hit, −1 for none)."""
+def casts(mesh: wp.Mesh, starts: wp.array, directions: wp.array, repeats: int = 5,
+          kernel=cast_rays) -> tuple[float, np.ndarray]:
+    """(rays/s, best of ``repeats``, after one untimed cast; the faces hit, −1 for none) of ``kernel``."""
     n, device = len(starts), starts.device
     faces = wp.empty(n, dtype=wp.int32, device=device)
     args = dict(dim=n, inputs=[mesh.id, starts, directions, MAX_RANGE_M], outputs=[faces], device=device)
-    wp.launch(cast_rays, **args)
+    wp.launch(kernel, **args)
     best = float("inf")
     for _ in range(repeats):
         wp.synchronize_device(device)
         started = time.perf_counter()
-        wp.launch(cast_rays, **args)
+        wp.launch(kernel, **args)
         wp.synchronize_device(device)
         best = min(best, time.perf_counter() - started)
     return n / best, faces.numpy()
 
 
 def probe(device: str, rays: int, dem_triangles: tuple[int, ...] = (10**6, 8 * 10**6), seed: int = 1) -> list[dict]:
-    """One record per (set, constructor, leaf size): rays/s, build [s], faces differing from the first variant."""
+    """One record per (set, constructor, leaf size): rays/s (closest_hit and Warp's query), faces differing between
+    the two, build [s], faces differing from the first variant."""
     d = resolve_device(device)
     records = []
     for label, scene, s, v in cases(rays, dem_triangles, np.random.default_rng(seed)):
@@ -93,9 +96,11 @@ def probe(device: str, rays: int, dem_triangles: tuple[int, ...] = (10**6, 8 * 1
             wp.synchronize_device(d)
             build = time.perf_counter() - started
             rate, faces = casts(mesh, starts, directions)
+            warp_rate, warp_faces = casts(mesh, starts, directions, kernel=cast_rays_warp)
             first = faces if first is None else first
             records.append({"set": label, "triangles": len(scene.triangles), "constructor": constructor,
-                            "leaf": leaf or "default", "rays_per_s": rate, "build_s": build,
+                            "leaf": leaf or "default", "rays_per_s": rate, "warp_rays_per_s": warp_rate,
+                            "differ_from_warp": int((faces != warp_faces).sum()), "build_s": build,
                             "faces_differ": int((faces != first).sum())})
     return records
 
@@ -108,11 +113,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     init_warp()
     triangles = tuple(int(float(x)) for x in args.terrain.split(",") if x)
-    print("| set | triangles | BVH | leaf | rays/s | build [s] | faces differing |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+    print("| set | triangles | BVH | leaf | rays/s | Warp's mesh query [rays/s] | faces differing from it | "
+          "build [s] | faces differing from the first BVH |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in probe(args.device, args.rays, triangles):
         print(f"| {r['set']} | {r['triangles']} | {r['constructor']} | {r['leaf']} | {r['rays_per_s']:.3g} | "
-              f"{r['build_s']:.2f} | {r['faces_differ']} |", flush=True)
+              f"{r['warp_rays_per_s']:.3g} | {r['differ_from_warp']} | {r['build_s']:.2f} | {r['faces_differ']} |",
+              flush=True)
     return 0
 
 
