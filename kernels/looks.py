@@ -1,6 +1,7 @@
 """The trace kernels' two looks at a slot's ray.
 
-The first look, over every slot, casts the ray with Warp's mesh query; a slot it misses (STATUS_RETRY) is listed.
+The first look, over every slot, casts the ray with the float32 closest-hit cast (:func:`kernels.mesh_cast.closest_hit`:
+Warp's mesh query, its per-ray work hoisted); a slot it misses (STATUS_RETRY) is listed.
 The second look, over the listed slots only, casts them through the padded triangle boxes
 (:func:`kernels.mesh_hits.fallback_hit`): rays the float32 query lets slip between flat triangles at a shared edge or
 vertex, and true misses. The second look's code stays out of the kernel every slot runs, whose registers, and so
@@ -11,7 +12,7 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
-FIRST_LOOK = 0  # a trace kernel's pass over every slot: Warp's mesh query; its misses are listed
+FIRST_LOOK = 0  # a trace kernel's pass over every slot: the closest-hit cast; its misses are listed
 SECOND_LOOK = 1  # ... over the listed slots only: the padded-box cast (mesh_hits.fallback_hit)
 LOOKS = (FIRST_LOOK, SECOND_LOOK)
 

@@ -90,11 +90,11 @@ _CLOSEST_HIT = r"""
             float t0 = FLT_MAX;
             float t1 = FLT_MAX;
             const bool h0 = wp::mesh_query_ray_intersect_aabb(start, direction, rcp_dir, fast_aabb,
-                wp::vec3(left_lower.x, left_lower.y, left_lower.z), wp::vec3(left_upper.x, left_upper.y, left_upper.z),
-                t0) && t0 < min_t;
+                wp::vec3(left_lower.x, left_lower.y, left_lower.z),
+                wp::vec3(left_upper.x, left_upper.y, left_upper.z), t0) && t0 < min_t;
             const bool h1 = wp::mesh_query_ray_intersect_aabb(start, direction, rcp_dir, fast_aabb,
-                wp::vec3(right_lower.x, right_lower.y, right_lower.z), wp::vec3(right_upper.x, right_upper.y, right_upper.z),
-                t1) && t1 < min_t;
+                wp::vec3(right_lower.x, right_lower.y, right_lower.z),
+                wp::vec3(right_upper.x, right_upper.y, right_upper.z), t1) && t1 < min_t;
             if (h0 && h1) {
                 if (stack_size >= BVH_QUERY_STACK_SIZE)
                     break;

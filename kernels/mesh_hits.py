@@ -1,5 +1,6 @@
-"""Ray–mesh hits beyond Warp's mesh query: the fallback cast through a BVH of slightly padded triangle boxes (for
-rays the float32 query misses at shared edges and vertices), and the hit refined in float64 on its triangle."""
+"""Ray–mesh hits beyond the float32 closest-hit cast (:mod:`kernels.mesh_cast`, Warp's mesh query): the fallback
+cast through a BVH of slightly padded triangle boxes (for rays the float32 cast misses at shared edges and vertices),
+and the hit refined in float64 on its triangle."""
 import warp as wp
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})

@@ -246,8 +246,8 @@ class Tracer:
 
     def launch_looks(self, kernels: tuple, dim: int, inputs: list, outputs: list) -> None:
         """Launch a trace kernel's two looks over ``dim`` threads (``kernels``: the first look's and the second's,
-        :mod:`kernels.looks`): the first casts every slot's ray with Warp's mesh query and lists those it
-        misses, the second casts only those through the padded triangle boxes. Their arguments: ``inputs``, the
+        :mod:`kernels.looks`): the first casts every slot's ray with the float32 closest-hit cast (Warp's mesh
+        query) and lists those it misses, the second casts only those through the padded triangle boxes. Their arguments: ``inputs``, the
         list of misses, ``outputs``."""
         misses = self._kept.get("misses")
         if misses is None or misses.slots.shape[0] < dim:

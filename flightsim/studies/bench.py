@@ -1,8 +1,8 @@
 """`flightsim bench`: measured speed, the cost in accuracy of every speed knob, and what skipping saves.
 
 Every number is measured in the run that reports it. Throughput records compare the end-to-end
-pipeline with bare ``wp.mesh_query_ray`` on the same scene, the same rays and the same number of
-processes, so the ratio holds however busy the machine is. Results merge into DIR/bench.json
+pipeline with the bare ray cast it makes (:func:`kernels.mesh_cast.closest_hit`, nothing else) on the same scene,
+the same rays and the same number of processes, so the ratio holds however busy the machine is. Results merge into DIR/bench.json
 (one entry per device kind) and DIR/bench.md; the knob study goes to DIR/pareto.csv and .png.
 """
 from __future__ import annotations
