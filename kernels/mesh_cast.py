@@ -7,7 +7,7 @@ and it works out the hit's barycentrics, sign and normal, which flightsim never 
 per ray and each triangle test makes the same float32 operations on the same values in the same order, so the face
 and t are Warp's bit for bit (the traversal, its nearer-child-first order and its stack of 32 nodes are Warp's, so
 ties between triangles at one t resolve as Warp resolves them). An H100 casts 1.2-1.3× the rays per second of
-``wp.mesh_query_ray`` with it (profile-experiments.md section 40; ``python3 -m flightsim.studies.bvh_probe``).
+``wp.mesh_query_ray`` with it (profile-experiments.md section 41; ``python3 -m flightsim.studies.bvh_probe``).
 """
 import warp as wp
 

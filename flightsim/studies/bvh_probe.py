@@ -7,7 +7,7 @@ BVH's build time, and how many rays hit another face than the first variant's::
 
     python3 -m flightsim.studies.bvh_probe --device cuda --rays 4194304
 
-(profile-experiments.md section 32 chose the GPU's automatic BVH with it; section 40 measured closest_hit.)
+(profile-experiments.md section 32 chose the GPU's automatic BVH with it; section 41 measured closest_hit.)
 """
 from __future__ import annotations
 
