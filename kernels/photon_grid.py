@@ -6,7 +6,9 @@ A photon is *valid* when its position is finite and its cell's column and row ar
 ``cell · stride + zbin`` (int64) with ``cell = row · columns + column`` and ``stride`` = highest height bin + 2,
 so bin + 1 never leaves its cell; invalid photons get the key ``invalid`` (above every valid key) and sort last.
 The sort is stable, so a cell's photons are added up in one order on the CPU and on a GPU alike (height bin,
-then the order they were made in): the points do not depend on the order the threads ran in.
+then the order they were made in): the points do not depend on the order the threads ran in. The photons'
+positions are gathered into that order once (:func:`cell_bounds`), so that each cell's thread reads its own
+photons side by side rather than through the sort's permutation.
 """
 from __future__ import annotations
 
@@ -114,13 +116,16 @@ def bin_keys(xyz: wp.array(dtype=wp.vec3d), cell: wp.array(dtype=wp.vec2i), lo: 
 
 
 @wp.kernel
-def cell_bounds(keys: wp.array(dtype=wp.int64), n: int, stride: wp.int64, invalid: wp.int64,
-                first: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32)):
-    """Where each cell's photons start and end in the sorted keys (cells without photons keep 0, 0)."""
+def cell_bounds(keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32), xyz: wp.array(dtype=wp.vec3d),
+                n: int, stride: wp.int64, invalid: wp.int64, first: wp.array(dtype=wp.int32),
+                last: wp.array(dtype=wp.int32), sorted_xyz: wp.array(dtype=wp.vec3d)):
+    """Where each cell's photons start and end in the sorted keys (cells without photons keep 0, 0), and the valid
+    photons' positions in sorted order (``sorted_xyz[j] = xyz[order[j]]`` [m])."""
     j = wp.tid()
     key = keys[j]
     if key == invalid:
         return
+    sorted_xyz[j] = xyz[order[j]]
     c = key / stride
     if j == 0 or keys[j - 1] / stride != c:
         first[int(c)] = j
@@ -130,7 +135,7 @@ def cell_bounds(keys: wp.array(dtype=wp.int64), n: int, stride: wp.int64, invali
 
 @wp.func
 def _pack(window: int, zbin: wp.int64) -> wp.int64:
-    """A pair of bins as _best_pair compares them: window · 2³² + (2³¹ − 1 − bin) (the lowest bin wins a tie)."""
+    """A pair of bins as _best_pair ranks them: window · 2³² + (2³¹ − 1 − bin) (ties to the lower bin)."""
     return (wp.int64(window) << wp.int64(32)) | (PACK_LOW - zbin)
 
 
@@ -161,10 +166,9 @@ def _best_pair(keys: wp.array(dtype=wp.int64), a: int, b: int, base: wp.int64):
 
 
 @wp.func
-def _window_sum(xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
-                a: int, b: int, base: wp.int64, lo: wp.float64, bin_m: wp.float64, z: wp.float64,
-                window_m: wp.float64):
-    """(count, sum of positions [m]) of the photons order[a:b] within ``window_m`` of height ``z``, added in their
+def _window_sum(sorted_xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), a: int, b: int,
+                base: wp.int64, lo: wp.float64, bin_m: wp.float64, z: wp.float64, window_m: wp.float64):
+    """(count, sum of positions [m]) of the sorted photons [a, b) within ``window_m`` of height ``z``, added in their
     sorted order (height bin, then the order they were made in); only the photons of the bins the window reaches are
     read, and no key above them."""
     low = wp.int64(wp.floor((z - window_m - lo) / bin_m)) - wp.int64(1)
@@ -176,7 +180,7 @@ def _window_sum(xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), o
         if zbin > high:  # the keys are sorted: none further on is in the window
             break
         if zbin >= low:
-            p = xyz[order[j]]
+            p = sorted_xyz[j]
             if wp.abs(p[2] - z) <= window_m:
                 count += 1
                 total += p
@@ -184,11 +188,10 @@ def _window_sum(xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), o
 
 
 @wp.kernel
-def cell_points(xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32),
-                first: wp.array(dtype=wp.int32), last: wp.array(dtype=wp.int32), stride: wp.int64, lo: wp.float64,
-                bin_m: wp.float64, min_count: int, window_m: wp.float64, totals: wp.array(dtype=wp.int32),
-                centre: wp.array(dtype=wp.float64), peak: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
-                sums: wp.array(dtype=wp.vec3d)):
+def cell_points(sorted_xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), first: wp.array(dtype=wp.int32),
+                last: wp.array(dtype=wp.int32), stride: wp.int64, lo: wp.float64, bin_m: wp.float64, min_count: int,
+                window_m: wp.float64, totals: wp.array(dtype=wp.int32), centre: wp.array(dtype=wp.float64),
+                peak: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.vec3d)):
     """One cell's surface from its photons (sorted by height bin): the fullest pair of adjacent height bins is the
     surface when it holds >= min_count photons and beats the cell's own background per pair of bins by 5σ
     (``centre``: the pair's middle height [m], else NaN; ``peak``: its photons); then the photons within
@@ -214,10 +217,10 @@ def cell_points(xyz: wp.array(dtype=wp.vec3d), keys: wp.array(dtype=wp.int64), o
         return
     z = lo + wp.float64(zbin + wp.int64(1)) * bin_m
     peak[c] = window
-    n, total = _window_sum(xyz, keys, order, a, b, base, lo, bin_m, z, window_m)
+    n, total = _window_sum(sorted_xyz, keys, a, b, base, lo, bin_m, z, window_m)
     if n > 0:
         z = total[2] / wp.float64(n)
-        n, total = _window_sum(xyz, keys, order, a, b, base, lo, bin_m, z, window_m)
+        n, total = _window_sum(sorted_xyz, keys, a, b, base, lo, bin_m, z, window_m)
     centre[c] = z
     count[c] = n
     sums[c] = total

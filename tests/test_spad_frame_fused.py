@@ -145,4 +145,4 @@ def test_traffic_adds_the_stages_bytes():
     assert bits == (1100 ** 2 * (int(595.0 / 0.13) + 2)).bit_length() == 33
     t = frame_traffic(1000, 900, 100, bits)
     assert t["place"] == pytest.approx(8 * 1000 + 41 * 900)
-    assert t["grid"] == pytest.approx((32 + 44 + 24 * 5 + 8 + 8 + 24) * 900 + 100 * 100)
+    assert t["grid"] == pytest.approx((32 + 44 + 24 * 5 + 8 + 52 + 8 + 24) * 900 + 100 * 100)

@@ -190,11 +190,13 @@ def _grid(xyz: wp.array, cell: wp.array, n: int, bin_m: float, min_count: int, w
     first, last = (_take(scratch, name, n_cells, wp.int32, device) for name in ("first", "last"))
     first.zero_()
     last.zero_()
-    wp.launch(k.cell_bounds, n, inputs=[keys, n, stride, invalid], outputs=[first, last], device=device)
+    sorted_xyz = _take(scratch, "sorted_xyz", n, wp.vec3d, device)
+    wp.launch(k.cell_bounds, n, inputs=[keys, order, xyz, n, stride, invalid], outputs=[first, last, sorted_xyz],
+              device=device)
     totals, peak, count = (_take(scratch, name, n_cells, wp.int32, device) for name in ("totals", "peak", "count"))
     centre, sums = _take(scratch, "centre", n_cells, wp.float64, device), _take(scratch, "sums", n_cells, wp.vec3d, device)
-    wp.launch(k.cell_points, n_cells, inputs=[xyz, keys, order, first, last, stride, lo, float(bin_m), int(min_count),
-                                              float(window_m)],
+    wp.launch(k.cell_points, n_cells, inputs=[sorted_xyz, keys, first, last, stride, lo, float(bin_m),
+                                              int(min_count), float(window_m)],
               outputs=[totals, centre, peak, count, sums], device=device)
     return _compacted(centre, count, sums, peak, totals, columns, host, scratch)
 

@@ -10,7 +10,7 @@ chunk; launches in brackets; no host sync before the gridding):
 | photon sampling and dead time (kernels/photon.py) | 1 | reads 16 B/slot, writes the count 4 B/slot and 9 B/photon |
 | scan of the counts | ~3 | reads 4, writes 4 B/slot (twice over, up and down) |
 | placing into the frame (kernels/photon_frame.py) | 2 | reads 8 B/slot and 9 B/photon, writes 32 B/photon |
-| gridding: extent (1 sync), keys, radix sort, cell bounds, one thread per cell (fullest pair of bins, background test, two window means), compaction (2 syncs) | ~12 | per photon 32 (extent) + 44 (keys) + 24 per 8-bit sort pass + 8 (bounds) + 8 (the cell's keys) + 24 (the window's positions, about one photon in two read twice); per cell ~100 B |
+| gridding: extent (1 sync), keys, radix sort, cell bounds and the positions in sorted order, one thread per cell (fullest pair of bins, background test, two window means), compaction (2 syncs) | ~12 | per photon 32 (extent) + 44 (keys) + 24 per 8-bit sort pass + 8 (bounds) + 52 (the sorted positions: the permutation, the position, its copy) + 8 (the cell's keys) + 24 (the window's positions, about one photon in two read twice); per cell ~100 B |
 
 The separate gather, placing and appending passes it replaced moved about 150 B/photon and synced the host
 twice per chunk. :func:`frame_traffic` adds these up for a frame's counts; :func:`copy_bandwidth` measures
@@ -37,7 +37,7 @@ def frame_traffic(slots: int, photons: int, cells: int, bits: int) -> dict[str, 
     passes = math.ceil(bits / SORT_PASS_BITS)
     return {"trace": 20.0 * slots, "photons": 20.0 * slots + 9.0 * photons, "scan": 16.0 * slots,
             "place": 8.0 * slots + 41.0 * photons,
-            "grid": (32.0 + 44.0 + 24.0 * passes + 8.0 + 8.0 + 24.0) * photons + 100.0 * cells}
+            "grid": (32.0 + 44.0 + 24.0 * passes + 8.0 + 52.0 + 8.0 + 24.0) * photons + 100.0 * cells}
 
 
 def copy_bandwidth(device: str, size: int = 1 << 30, repeats: int = 3) -> float | None:
