@@ -6,8 +6,11 @@ three ratios Sx, Sy, Sz of Woop, Benthin and Wald's watertight test, JCGT 2(1) 2
 and it works out the hit's barycentrics, sign and normal, which flightsim never reads. Here the shear is computed once
 per ray and each triangle test makes the same float32 operations on the same values in the same order, so the face
 and t are Warp's bit for bit (the traversal, its nearer-child-first order and its stack of 32 nodes are Warp's, so
-ties between triangles at one t resolve as Warp resolves them). An H100 casts 1.2-1.3× the rays per second of
-``wp.mesh_query_ray`` with it (profile-experiments.md section 41; ``python3 -m flightsim.studies.bvh_probe``).
+ties between triangles at one t resolve as Warp resolves them). An H100 casts 1.1-1.3× the rays per second of
+``wp.mesh_query_ray`` with it through the GPU's default BVH (cubql, two triangles a leaf), up to 1.7× through BVHs of
+larger leaves (profile-experiments.md section 41; ``python3 -m flightsim.studies.bvh_probe``). It reads Warp's BVH
+and mesh structures directly, which is why pyproject.toml holds warp-lang to 1.19.x: a new Warp is checked against
+``tests/test_mesh_cast.py`` before the bound moves.
 """
 import warp as wp
 
