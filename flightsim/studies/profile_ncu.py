@@ -10,6 +10,7 @@ child is slow, and its own wall times mean nothing; only the counters are kept).
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import shutil
 import subprocess
@@ -84,14 +85,20 @@ def known(metrics: list[str], listing: str) -> list[str]:
     return [m for m in metrics if m.split(".")[0] in names]
 
 
+@functools.cache
+def _asked() -> str:
+    """The METRICS this machine's ncu lists, comma-separated (asked of ncu once per process)."""
+    listing = subprocess.run(["ncu", "--query-metrics"], capture_output=True, text=True).stdout
+    return ",".join(known(list(METRICS.values()), listing))
+
+
 def workload_counters(workload: str, device: str, kernels: list[str], quick: bool) -> dict:
     """{"kernels": parse(...)} of ``kernels`` (our short names) for ``workload`` (at its ``quick`` size or not)
     under ncu, or {"error": what went wrong}."""
-    listing = subprocess.run(["ncu", "--query-metrics"], capture_output=True, text=True).stdout
     with tempfile.TemporaryDirectory() as tmp:
         command = ["ncu", "--csv", "--page", "raw", "--kernel-name", "regex:" + "|".join(kernels),
-                   "--launch-count", str(LAUNCHES), "--metrics",
-                   ",".join(known(list(METRICS.values()), listing)), sys.executable, "-m", "flightsim", "profile", "--device", device,
+                   "--launch-count", str(LAUNCHES), "--metrics", _asked(),
+                   sys.executable, "-m", "flightsim", "profile", "--device", device,
                    *(["--quick"] if quick else []), "--workloads", workload, "--out", tmp]
         done = subprocess.run(command, capture_output=True, text=True)
     kernels = parse(done.stdout)
