@@ -2,6 +2,7 @@
 plane boundaries, and the reduction of the records to per-plane float64 moments (several copies of the sums,
 added at the end); the plane and patch codes of the points path's reductions."""
 import functools
+import string
 
 import warp as wp
 
@@ -119,6 +120,93 @@ def check_edges_kernel(instrument: Instrument):
     return check_edges
 
 
+_REDUCE_RUN = string.Template(r"""
+    // the reference of the run's plane and the run's sums held in registers: loaded and reset when the plane changes
+    int plane = -1;
+    wp::int64 n = 0;
+    double r0 = 0.0, r1 = 0.0, r2 = 0.0;
+    double s0 = 0.0, s1 = 0.0, s2 = 0.0;
+    double q0 = 0.0, q1 = 0.0, q2 = 0.0, q3 = 0.0, q4 = 0.0, q5 = 0.0;
+    int tir = 0, miss = 0, excluded = 0;
+    auto flush = [&]() {
+        wp::atomic_add(counts, replica, model, plane, n);
+        wp::atomic_add(first, replica, model, plane, wp::vec_t<3, wp::float64>(s0, s1, s2));
+        wp::vec_t<6, wp::float64> q;
+        q.c[0] = q0; q.c[1] = q1; q.c[2] = q2; q.c[3] = q3; q.c[4] = q4; q.c[5] = q5;
+        wp::atomic_add(second, replica, model, plane, q);
+    };
+    auto take = [&](const int code, const float x, const float y, const float z) {  // one slot's record
+        if (code < 0) {
+            tir += code == $CODE_TIR ? 1 : 0;
+            miss += code == $CODE_MISS ? 1 : 0;
+            excluded += code == $CODE_EDGE ? 1 : 0;
+            return;
+        }
+        if (code != plane) {
+            if (plane >= 0)
+                flush();
+            plane = code;
+            const wp::vec_t<3, wp::float64> reference = *wp::address(references, plane);
+            r0 = reference[0]; r1 = reference[1]; r2 = reference[2];
+            n = 0;
+            s0 = 0.0; s1 = 0.0; s2 = 0.0;
+            q0 = 0.0; q1 = 0.0; q2 = 0.0; q3 = 0.0; q4 = 0.0; q5 = 0.0;
+        }
+        const double d0 = (double)x - r0;
+        const double d1 = (double)y - r1;
+        const double d2 = (double)z - r2;
+        n += 1;
+        s0 = s0 + d0; s1 = s1 + d1; s2 = s2 + d2;
+        // each product a statement of its own, then its sum: the operations Warp's generated code makes
+        const double xx = d0 * d0; const double xy = d0 * d1; const double xz = d0 * d2;
+        const double yy = d1 * d1; const double yz = d1 * d2; const double zz = d2 * d2;
+        q0 = q0 + xx; q1 = q1 + xy; q2 = q2 + xz; q3 = q3 + yy; q4 = q4 + yz; q5 = q5 + zz;
+    };
+    int slot = begin;
+#if defined(__CUDA_ARCH__)
+    // four slots' records in four 16-byte loads (a code each, then their twelve coordinates) where the arrays are
+    // dense and aligned: a thread's slots are consecutive, so a warp's scalar loads touch 32 cache lines each
+    const bool dense = codes.strides[0] == 4 && points.strides[0] == 12 && (begin & 3) == 0
+        && (reinterpret_cast<unsigned long long>(codes.data) & 15) == 0 && (reinterpret_cast<unsigned long long>(points.data) & 15) == 0;
+    if (dense) {
+        for (; slot + 4 <= end; slot += 4) {
+            const int4 c = *reinterpret_cast<const int4*>(codes.data + slot);
+            const float4* xyz = reinterpret_cast<const float4*>(reinterpret_cast<const float*>(points.data) + 3 * slot);
+            const float4 a = xyz[0], b = xyz[1], e = xyz[2];
+            take(c.x, a.x, a.y, a.z);
+            take(c.y, a.w, b.x, b.y);
+            take(c.z, b.z, b.w, e.x);
+            take(c.w, e.y, e.z, e.w);
+        }
+    }
+#endif
+    for (; slot < end; ++slot) {
+        const int code = *wp::address(codes, slot);
+        if (code < 0) {
+            take(code, 0.0f, 0.0f, 0.0f);
+        } else {
+            const wp::vec3 p = *wp::address(points, slot);
+            take(code, p[0], p[1], p[2]);
+        }
+    }
+    if (plane >= 0)
+        flush();
+    if (count_codes != 0) {
+        if (tir > 0) wp::atomic_add(counters, $COUNT_TIR, tir);
+        if (miss > 0) wp::atomic_add(counters, $COUNT_MISS, miss);
+        if (excluded > 0) wp::atomic_add(counters, $COUNT_EDGE, excluded);
+    }
+""").substitute(CODE_TIR=CODE_TIR, CODE_MISS=CODE_MISS, CODE_EDGE=CODE_EDGE, COUNT_TIR=COUNT_TIR,
+                COUNT_MISS=COUNT_MISS, COUNT_EDGE=COUNT_EDGE)
+
+
+@wp.func_native(_REDUCE_RUN)
+def _reduce_run(codes: wp.array(dtype=wp.int32), points: wp.array(dtype=wp.vec3f), model: int, count_codes: int,
+                begin: int, end: int, replica: int, references: wp.array(dtype=wp.vec3d),
+                counts: wp.array3d(dtype=wp.int64), first: wp.array3d(dtype=wp.vec3d),
+                second: wp.array3d(dtype=vec6d), counters: wp.array(dtype=wp.int32)): ...
+
+
 @wp.kernel
 def reduce_records(
     # In:
@@ -143,46 +231,14 @@ def reduce_records(
     adding them to the global sums (atomics) only when the plane changes. Neighbouring threads mostly hold
     the same plane too, so thread t adds to replica t mod R of the sums (R = the sums' first dimension),
     spreading the atomics on a busy plane over R addresses; the host adds the replicas.
+
+    The loop is native code (:data:`_REDUCE_RUN`): written in Warp, each branch's assignments become selects
+    over every running sum (Warp's code is in static single assignment), some 200 instructions a slot.
     """
     begin = wp.tid() * slots_per_thread
     end = wp.min(begin + slots_per_thread, n_slots)
-    replica = wp.tid() % counts.shape[0]
-    plane = int(-1)
-    n = wp.int64(0)
-    s = wp.vec3d()
-    ss = vec6d()
-    tir = int(0)
-    miss = int(0)
-    excluded = int(0)
-    for slot in range(begin, end):
-        code = codes[slot]
-        if code == CODE_TIR:
-            tir += 1
-        elif code == CODE_MISS:
-            miss += 1
-        elif code == CODE_EDGE:
-            excluded += 1
-        else:
-            if code != plane:
-                if plane >= 0:
-                    _flush(counts, first, second, replica, model, plane, n, s, ss)
-                plane = code
-                n = wp.int64(0)
-                s = wp.vec3d()
-                ss = vec6d()
-            n += wp.int64(1)
-            d = wp.vec3d(points[slot]) - references[plane]
-            s += d
-            ss += _outer6(d)
-    if plane >= 0:
-        _flush(counts, first, second, replica, model, plane, n, s, ss)
-    if count_codes != 0:
-        if tir > 0:
-            wp.atomic_add(counters, COUNT_TIR, tir)
-        if miss > 0:
-            wp.atomic_add(counters, COUNT_MISS, miss)
-        if excluded > 0:
-            wp.atomic_add(counters, COUNT_EDGE, excluded)
+    _reduce_run(codes, points, model, count_codes, begin, end, wp.tid() % counts.shape[0], references, counts,
+                first, second, counters)
 
 
 @wp.func

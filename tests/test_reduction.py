@@ -21,26 +21,32 @@ def _records(rng, n_slots: int, planes: int):
     codes[left] = rng.choice([statistics.CODE_TIR, statistics.CODE_MISS, statistics.CODE_EDGE], left.sum())
     references = rng.uniform(-500.0, 500.0, (planes, 3))
     points = (references[np.maximum(codes, 0)] + rng.normal(0.0, 20.0, (n_slots, 3))).astype(np.float32)
+    points[codes < 0] = np.nan  # a slot without a return has no point written (a GPU reads them four at a time)
     return codes, points, references
 
 
-def _reduce(device, codes, points, references, slots_per_thread: int, replicas: int):
+def _reduce(device, codes, points, references, slots_per_thread: int, replicas: int, offset: int = 0):
+    """The reduction's totals of the records from slot ``offset`` on (arrays whose data do not start at a multiple of
+    16 bytes for an odd offset)."""
     shape = (replicas, 2, len(references))
     sums = [wp.zeros(shape, dtype=wp.int64, device=device), wp.zeros(shape, dtype=wp.vec3d, device=device),
             wp.zeros(shape, dtype=statistics.vec6d, device=device), wp.zeros(3, dtype=wp.int32, device=device)]
-    reduce_models(wp.array(codes, dtype=wp.int32, device=device), [wp.array(points, dtype=wp.vec3f, device=device)],
-                  ("exact",), len(codes), slots_per_thread, wp.array(references, dtype=wp.vec3d, device=device), sums,
+    codes_d = wp.array(codes, dtype=wp.int32, device=device)[offset:]
+    points_d = wp.array(points, dtype=wp.vec3f, device=device)[offset:]
+    reduce_models(codes_d, [points_d], ("exact",), len(codes) - offset, slots_per_thread, wp.array(references, dtype=wp.vec3d, device=device), sums,
                   device)
     count, first, second = replica_totals(sums[:3])
     return count[0], first[0], second[0], sums[3].numpy()
 
 
-@pytest.mark.parametrize("slots_per_thread,replicas", [(256, 1), (16, 64), (5, 7), (1, 3), (4096, 2)])
-def test_reduction_is_the_float64_sum_of_each_planes_points(device, slots_per_thread, replicas):
+@pytest.mark.parametrize("slots_per_thread,replicas,offset", [(256, 1, 0), (16, 64, 0), (64, 512, 0), (5, 7, 0),
+                                                              (1, 3, 0), (4096, 2, 0), (64, 512, 1), (12, 8, 3)])
+def test_reduction_is_the_float64_sum_of_each_planes_points(device, slots_per_thread, replicas, offset):
     rng = np.random.default_rng(3)
     n_slots, planes = 20011, 17
     codes, points, references = _records(rng, n_slots, planes)
-    count, first, second, left = _reduce(device, codes, points, references, slots_per_thread, replicas)
+    count, first, second, left = _reduce(device, codes, points, references, slots_per_thread, replicas, offset)
+    codes, points = codes[offset:], points[offset:]
     scored = codes >= 0
     d = points[scored].astype(np.float64) - references[codes[scored]]
     plane = codes[scored]

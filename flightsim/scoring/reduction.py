@@ -8,7 +8,7 @@ import warp as wp
 from flightsim.core.constants import MODELS
 from kernels import statistics
 
-SLOTS_PER_THREAD = {"cpu": 256, "cuda": 16}  # consecutive slots per reducing thread
+SLOTS_PER_THREAD = {"cpu": 256, "cuda": 64}  # consecutive slots per reducing thread
 SUM_REPLICAS = 512  # copies of the per-group sums on a GPU, so busy groups' atomics spread
 SUM_REPLICA_BYTES = 1 << 26  # ... within this much device memory
 REPLICA_BLOCK = 32  # replicas one thread adds (replica_totals)

@@ -30,7 +30,7 @@ REDUCE_TRIANGLES = (1e6, 1e7)  # terrain sizes of the reduce section
 
 
 # the reduce section's settings: (run.sum_replicas, run.slots_per_thread)
-REDUCE_KNOBS = [(replicas, spt) for replicas in (64, 512, 2048) for spt in (16, 32)]
+REDUCE_KNOBS = [(replicas, spt) for replicas in (64, 512, 2048) for spt in (16, 32, 64, 128)]
 
 
 SURVEY_KM = {"cuda": 10.0, "cpu": 1.0}  # side of the survey section's square area
