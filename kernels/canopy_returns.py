@@ -319,7 +319,7 @@ def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int
         surface_edge = scan.edge_cap
         if wp.static(f.edges):
             if near_boundary(scan.edge_grid, s.p_true):
-                surface_edge = boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, s.p_true,
+                surface_edge = boundary_distance(scan.edge_grid, scan.boundary_a, scan.boundary_b, s.p_true,
                                                  scan.edge_cap)
         for k in range(total):
             slot = base + k

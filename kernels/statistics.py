@@ -113,7 +113,7 @@ def check_edges_kernel(instrument: Instrument):
         k = wp.tid()
         if k < near_count[0]:
             slot = near_slots[k]
-            distance = boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, near_points[k],
+            distance = boundary_distance(scan.edge_grid, scan.boundary_a, scan.boundary_b, near_points[k],
                                           scan.edge_cap)
             codes[slot] = wp.where(distance < edge_buffer, CODE_EDGE, CODE_NEAR - codes[slot])
 

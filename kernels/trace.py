@@ -53,11 +53,10 @@ def scan_struct(instrument: Instrument) -> type:
         noise_sigma: wp.float32  # Gaussian range noise, 1σ [m]
         ranging: RangeErrors
         pose: PoseErrors
-        boundary: wp.uint64  # BVH of the plane-boundary segments (edge buffer queries)
-        boundary_a: wp.array(dtype=wp.vec3f)  # segment end points [m, local]
+        boundary_a: wp.array(dtype=wp.vec3f)  # plane-boundary segments' end points [m, local] (edge buffer queries)
         boundary_b: wp.array(dtype=wp.vec3f)
         edge_cap: wp.float32  # edge distances are measured up to this [m]
-        edge_grid: EdgeGrid  # where the boundary query can be skipped
+        edge_grid: EdgeGrid  # where the boundary query can be skipped, and the segments it visits
         lut_directions: wp.array2d(dtype=wp.vec3f)  # [φ sample, beam] exit directions (optics "lut")
         lut_exits: wp.array2d(dtype=wp.vec3f)  # exit points [m]; a zero direction marks reflection
         beam_truth: wp.array(dtype=wp.vec3d)  # per-beam deflector state of the true deflector
@@ -385,7 +384,7 @@ def points_kernel(f: Features, instrument: Instrument, max_registers: int | None
             if wp.static(f.edges):
                 edge = scan.edge_cap
                 if near_boundary(scan.edge_grid, p_true):
-                    edge = boundary_distance(scan.boundary, scan.boundary_a, scan.boundary_b, p_true, scan.edge_cap)
+                    edge = boundary_distance(scan.edge_grid, scan.boundary_a, scan.boundary_b, p_true, scan.edge_cap)
                 edge_distance[slot] = edge
             if wp.static(f.with_truth):
                 true_points[slot] = p_true

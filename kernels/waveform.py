@@ -217,15 +217,15 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
         start = starts[slot]
         d = directions[slot]
         u, v = beam_frame(d)
-        normal = wp.vec3d()
         for step in range(wp.min(offsets.shape[0], subrays - group * offsets.shape[0])):
             weight = weights[step, group]
             direction = subray_direction(d, u, v, offsets[step, group])
             face = face_of(m, start, direction)
             r = wp.float64(0.0)
+            cos_incidence = wp.float64(0.0)
             if face >= 0:
                 r = refine_hit(m.vertices64, m.indices, face, start, direction)
-                normal = face_normal(m, face)
+                cos_incidence = wp.abs(wp.dot(face_normal(m, face), direction))
             transmission = wp.float64(1.0)
             if wp.static(canopy):
                 t_end = wp.where(face >= 0, r, wp.float64(m.max_range))
@@ -237,7 +237,7 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
                 link = p.link * transmission
                 if wp.static(per_face):
                     link = link * wp.float64(m.reflectance[face])
-                g = weight * link * wp.abs(wp.dot(normal, direction)) / (r * r)
+                g = weight * link * cos_incidence / (r * r)
                 wz += weight * (start[2] + r * direction[2])
                 w += weight
                 x = (wp.float64(2.0) * r / LIGHT_SPEED - t0) / p.dt

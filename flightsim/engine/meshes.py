@@ -47,7 +47,7 @@ class SceneMeshes:
         self.vertices64 = wp.array(scene.vertices, dtype=wp.vec3d, device=device)
         self.indices = self.mesh.indices
         self.padded = self._padded_bvh(scene, device)
-        self._boundary: tuple[wp.Bvh, wp.array, wp.array] | None = None
+        self._boundary: tuple[wp.array, wp.array] | None = None
         self._reflectance: wp.array | None = None
         self._grids: dict[float, edges.EdgeGrid] = {}
 
@@ -79,17 +79,14 @@ class SceneMeshes:
         return self._reflectance
 
     @property
-    def boundary(self) -> tuple[wp.Bvh, wp.array, wp.array]:
-        """(BVH of segment boxes, segment starts, segment ends)."""
+    def boundary(self) -> tuple[wp.array, wp.array]:
+        """(segment starts, segment ends) of the plane boundaries [m, local]."""
         if self._boundary is None:
             segments = self.scene.boundary_segments().astype(np.float32)
             if len(segments) == 0:  # a closed surface has no boundary: one far-away dummy segment
                 segments = np.full((1, 2, 3), 1e9, dtype=np.float32)
-            a = wp.array(segments[:, 0], dtype=wp.vec3f, device=self.device)
-            b = wp.array(segments[:, 1], dtype=wp.vec3f, device=self.device)
-            lowers = wp.array(segments.min(axis=1), dtype=wp.vec3f, device=self.device)
-            uppers = wp.array(segments.max(axis=1), dtype=wp.vec3f, device=self.device)
-            self._boundary = (wp.Bvh(lowers, uppers), a, b)
+            self._boundary = (wp.array(segments[:, 0], dtype=wp.vec3f, device=self.device),
+                              wp.array(segments[:, 1], dtype=wp.vec3f, device=self.device))
         return self._boundary
 
     def edge_grid(self, cap_m: float) -> edges.EdgeGrid:
@@ -110,12 +107,28 @@ class SceneMeshes:
         grid.near = wp.zeros(shape, dtype=wp.uint8, device=self.device)
         grid.origin = wp.vec2f(float(lower[0]) - cap_m, float(lower[1]) - cap_m)
         grid.inv_cell = 1.0 / cell
-        _, a, b = self.boundary
-        wp.launch(edges.mark_near_cells, a.shape[0], inputs=[a, b, cap_m], outputs=[grid], device=self.device)
+        a, b = self.boundary
+        lists = tuple(-(-n // edges.LIST_CELLS) for n in shape)  # list cells of LIST_CELLS cells a side
+        grid.list_shape = wp.vec2i(*lists)
+        cells = lists[0] * lists[1]
+        grid.offsets = wp.empty(cells + 1, dtype=wp.int32, device=self.device)
+        grid.listed = wp.empty(1, dtype=wp.int32, device=self.device)
+        filled = wp.zeros(cells + 1, dtype=wp.int32, device=self.device)
+        for step in (edges.MARK, edges.COUNT, edges.WRITE):
+            if step == edges.WRITE:  # the counts scanned into each list's start, the lists' room made
+                wp.utils.array_scan(filled, grid.offsets, inclusive=False)
+                grid.listed = wp.empty(max(1, int(to_host(grid.offsets[cells:])[0])), dtype=wp.int32,
+                                       device=self.device)
+                filled.zero_()
+            wp.launch(edges.near_cells, a.shape[0], inputs=[a, b, cap_m, grid, step], outputs=[filled],
+                      device=self.device)
         return grid
 
     def none_grid(self) -> edges.EdgeGrid:
         """An empty edge grid, for runs without an edge buffer."""
         grid = edges.EdgeGrid()
         grid.near = wp.zeros((1, 1), dtype=wp.uint8, device=self.device)
+        grid.list_shape = wp.vec2i(0, 0)
+        grid.offsets = wp.zeros(1, dtype=wp.int32, device=self.device)
+        grid.listed = wp.zeros(1, dtype=wp.int32, device=self.device)
         return grid

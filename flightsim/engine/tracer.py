@@ -125,11 +125,9 @@ class Tracer:
         scan.ranging = instrument.ranging.struct(self.beams_per_pulse, d)
         scan.pose = instrument.pose.struct()
         if self.features.edges:
-            bvh, scan.boundary_a, scan.boundary_b = self.meshes.boundary
-            scan.boundary = bvh.id
+            scan.boundary_a, scan.boundary_b = self.meshes.boundary
             scan.edge_grid = self.meshes.edge_grid(self.edge_buffer_m)
         else:
-            scan.boundary = 0
             scan.boundary_a = scan.boundary_b = wp.zeros(1, dtype=wp.vec3f, device=d)
             scan.edge_grid = self.meshes.none_grid()
         scan.edge_cap = self.edge_buffer_m

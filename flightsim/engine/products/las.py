@@ -36,7 +36,7 @@ class LasProduct:
             return []
         from kernels import edges
 
-        return [(edges.mark_near_cells, None)]
+        return [(edges.near_cells, None)]
 
     def __init__(self, cfg, scene):
         self.cfg, self.scene = cfg, scene

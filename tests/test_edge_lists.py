@@ -1,0 +1,66 @@
+"""The edge buffer's distance query (kernels/edges.py ``boundary_distance``, over the segments listed for a point's
+list cell) against the minimum over every boundary segment in the same float32 arithmetic: the lists leave out no
+segment that comes within the cap, so the two are the same numbers."""
+import numpy as np
+import pytest
+import warp as wp
+
+from flightsim.engine.meshes import SceneMeshes
+from flightsim.scenes.calibration import calibration_scene
+from flightsim.scenes.scene import DEFAULT_CRS
+from kernels import edges
+
+
+@wp.kernel
+def _distances(grid: edges.EdgeGrid, a: wp.array(dtype=wp.vec3f), b: wp.array(dtype=wp.vec3f),
+               points: wp.array(dtype=wp.vec3f), cap: wp.float32, listed: wp.array(dtype=wp.float32),
+               every: wp.array(dtype=wp.float32)):
+    i = wp.tid()
+    p = points[i]
+    listed[i] = edges.boundary_distance(grid, a, b, p, cap)
+    best = cap
+    for k in range(a.shape[0]):
+        best = wp.min(best, edges._segment_distance(p, a[k], b[k]))
+    every[i] = best
+
+
+def _points(rng, a: np.ndarray, b: np.ndarray, cap: float, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Points along random segments moved up to 1.5 caps across and 1 along z (most within the cap), points over
+    the whole scene, and points beyond the grid."""
+    k = rng.integers(0, len(a), 20000)
+    on = a[k] + rng.random((len(k), 1)) * (b[k] - a[k])
+    near = on + rng.uniform(-1.5, 1.5, on.shape) * np.array([cap, cap, cap / 1.5])
+    spread = rng.uniform(lower - 2 * cap, upper + 2 * cap, (5000, 3))
+    beyond = np.array([[lower[0] - 50 * cap, lower[1], lower[2]], [upper[0] + 50 * cap, upper[1], upper[2]],
+                       [lower[0], upper[1] + 1e6, lower[2]]])
+    return np.concatenate([near, spread, beyond]).astype(np.float32)
+
+
+@pytest.mark.parametrize("cap", [0.4, 1.2, 6.0])
+def test_listed_distances_are_the_minimum_over_every_segment(device, cap):
+    scene = calibration_scene(300.0, np.array([409000.0, 3393000.0, 450.0]), DEFAULT_CRS)
+    meshes = SceneMeshes(scene, device)
+    grid = meshes.edge_grid(cap)
+    a, b = meshes.boundary
+    lower, upper = (np.asarray(v, dtype=np.float64) for v in scene.bounds())
+    points = _points(np.random.default_rng(7), a.numpy(), b.numpy(), cap, lower, upper)
+    listed, every = (wp.empty(len(points), dtype=wp.float32, device=device) for _ in range(2))
+    wp.launch(_distances, len(points), inputs=[grid, a, b, wp.array(points, dtype=wp.vec3f, device=device), cap],
+              outputs=[listed, every], device=device)
+    listed, every = listed.numpy(), every.numpy()
+    assert 0.3 < np.mean(every < np.float32(cap)) < 0.9  # both sides of the cap
+    assert np.array_equal(listed, every)
+    counts = np.diff(grid.offsets.numpy())
+    assert counts[counts > 0].mean() < 8.0  # short lists: a few segments a cell on average
+
+
+def test_a_point_that_is_not_a_number_is_the_cap_away(device):
+    scene = calibration_scene(300.0, np.array([409000.0, 3393000.0, 450.0]), DEFAULT_CRS)
+    meshes = SceneMeshes(scene, device)
+    a, b = meshes.boundary
+    grid = meshes.edge_grid(1.0)
+    listed, every = (wp.empty(2, dtype=wp.float32, device=device) for _ in range(2))
+    points = wp.array(np.array([[np.nan, 0.0, 0.0], [0.0, np.nan, 0.0]], dtype=np.float32), dtype=wp.vec3f,
+                      device=device)
+    wp.launch(_distances, 2, inputs=[grid, a, b, points, 1.0], outputs=[listed, every], device=device)
+    assert listed.numpy().tolist() == [1.0, 1.0]
