@@ -140,7 +140,7 @@ def test_beams_that_miss_a_small_mesh_are_counted(tmp_path):
 
 
 def test_edge_distances_equal_a_brute_force_over_every_boundary_segment():
-    """The kernels' capped distance to the nearest plane boundary (edge grid + segment BVH) against
+    """The kernels' capped distance to the nearest plane boundary (edge grid + listed segments) against
     an exhaustive float64 search over every boundary segment of the calibration field."""
     from flightsim.studies.bench_common import simulator, workload
     from flightsim.scenes.edges import boundary_segments

@@ -3,7 +3,8 @@
 A point whose true hit lies within the edge buffer of its plane's boundary is left out of the
 plane fits: near an edge a real footprint straddles two surfaces, and a distorted point may
 land on the neighbouring one. The kernels measure that distance exactly, visiting only the
-boundary segments whose boxes (in a BVH) come within the buffer of the point.
+boundary segments listed for the point's cell of the edge grid (every segment that may come within the buffer
+of a point of the cell; kernels/edges.py).
 """
 from __future__ import annotations
 
