@@ -2,7 +2,6 @@
 plane boundaries, and the reduction of the records to per-plane float64 moments (several copies of the sums,
 added at the end); the plane and patch codes of the points path's reductions."""
 import functools
-import string
 
 import warp as wp
 
@@ -120,7 +119,10 @@ def check_edges_kernel(instrument: Instrument):
     return check_edges
 
 
-_REDUCE_RUN = string.Template(r"""
+_REDUCE_RUN = f"""
+    const int code_tir = {CODE_TIR}, code_miss = {CODE_MISS}, code_edge = {CODE_EDGE};
+    const int count_tir = {COUNT_TIR}, count_miss = {COUNT_MISS}, count_edge = {COUNT_EDGE};
+""" + r"""
     // the reference of the run's plane and the run's sums held in registers: loaded and reset when the plane changes
     int plane = -1;
     wp::int64 n = 0;
@@ -137,9 +139,9 @@ _REDUCE_RUN = string.Template(r"""
     };
     auto take = [&](const int code, const float x, const float y, const float z) {  // one slot's record
         if (code < 0) {
-            tir += code == $CODE_TIR ? 1 : 0;
-            miss += code == $CODE_MISS ? 1 : 0;
-            excluded += code == $CODE_EDGE ? 1 : 0;
+            tir += code == code_tir ? 1 : 0;
+            miss += code == code_miss ? 1 : 0;
+            excluded += code == code_edge ? 1 : 0;
             return;
         }
         if (code != plane) {
@@ -192,12 +194,11 @@ _REDUCE_RUN = string.Template(r"""
     if (plane >= 0)
         flush();
     if (count_codes != 0) {
-        if (tir > 0) wp::atomic_add(counters, $COUNT_TIR, tir);
-        if (miss > 0) wp::atomic_add(counters, $COUNT_MISS, miss);
-        if (excluded > 0) wp::atomic_add(counters, $COUNT_EDGE, excluded);
+        if (tir > 0) wp::atomic_add(counters, count_tir, tir);
+        if (miss > 0) wp::atomic_add(counters, count_miss, miss);
+        if (excluded > 0) wp::atomic_add(counters, count_edge, excluded);
     }
-""").substitute(CODE_TIR=CODE_TIR, CODE_MISS=CODE_MISS, CODE_EDGE=CODE_EDGE, COUNT_TIR=COUNT_TIR,
-                COUNT_MISS=COUNT_MISS, COUNT_EDGE=COUNT_EDGE)
+"""
 
 
 @wp.func_native(_REDUCE_RUN)
