@@ -126,6 +126,34 @@ ptxas info    : Used 64 registers, used 0 barriers, 18432 bytes smem
             "frame": 0, "spill_stores": 0, "spill_loads": -4, "registers": 64, "smem": 18432}}
 
 
+def test_sass_listing_counted_per_function():
+    """cuobjdump -sass's listing (abridged from reduce_records and a kernel spilling): instructions, selects and
+    local-memory accesses per function; the encodings' comment lines and predicates are not instructions."""
+    from flightsim.studies.kernel_resources import parse_sass
+
+    listing = """
+\tcode for sm_90
+\t\tFunction : reduce_records_e046634c_cuda_kernel_forward
+\t.headerflags\t@"EF_CUDA_SM90 EF_CUDA_VIRTUAL_SM(EF_CUDA_SM90)"
+        /*0000*/                   LDC R1, c[0x0][0x28] ;                 /* 0x00000a00ff017b82 */
+                                                                          /* 0x000fe20000000800 */
+        /*2160*/              @!P4 IMAD.MOV.U32 R60, RZ, RZ, R6 ;         /* 0x000000ffff3cc224 */
+        /*21d0*/                   FSEL R64, R22, RZ, !P4 ;               /* 0x000000ff16407208 */
+        /*2540*/                   SEL R106, R29, R102, !P3 ;             /* 0x000000661d6a7207 */
+        /*2550*/               @P0 BRA 0x1060 ;                           /* 0x0000000000500947 */
+        /*2560*/                   EXIT ;                                 /* 0x000000000000794d */
+\t\t..........
+
+\t\tFunction : trace_records_6b2f4723_cuda_kernel_forward
+        /*0000*/                   STL [R1+0x8], R4 ;                     /* 0x0000080401007387 */
+        /*0010*/              @!UP0 LDL.64 R2, [R1+0x10] ;               /* 0x0000100001027983 */
+        /*0020*/                   FSETP.GEU.AND P0, PT, R2, RZ, PT ;     /* 0x000000ff0200720b */
+"""
+    assert parse_sass(listing) == {
+        "reduce_records_e046634c_cuda_kernel_forward": {"instructions": 6, "selects": 2, "local": 0},
+        "trace_records_6b2f4723_cuda_kernel_forward": {"instructions": 3, "selects": 0, "local": 2}}
+
+
 def test_native_timing_brackets_each_sort_and_scan_and_restores_them(monkeypatch):
     """Warp's sort and scan primitives launch CUB kernels its activity timing does not see: within native_timing
     each call is bracketed by two events (stubbed here: no GPU) and runs as before; afterwards the primitives are
