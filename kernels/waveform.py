@@ -345,27 +345,52 @@ def _put(out: wp.array2d(dtype=wp.float32), slot: int, i: int, value: wp.float64
         out[slot, i] = wp.float32(value)
 
 
-CLEAR_THREADS = 128  # threads per row clearing a chunk's spans (each takes every CLEAR_THREADS-th sample)
+CLEAR_THREADS = 128  # threads per row clearing a chunk's rows (each takes every CLEAR_THREADS-th sample)
 
 
 @wp.kernel
-def clear_spans(span: wp.array2d(dtype=wp.int32), first_lag: int, taps: int, reach: int,
-                impulses: wp.array2d(dtype=wp.float64), power: wp.array2d(dtype=wp.float32)):
-    """A chunk's rows cleared for the next, launched over (rows, CLEAR_THREADS), thread k taking samples k, k +
-    CLEAR_THREADS, … from the start of each range (a warp's stores side by side): impulses[slot, j] = 0 over the
-    touched span [lo, hi] of ``span[slot]`` (the deposits touch nothing outside it) and, with ``reach`` = 1,
-    power[slot, i] = 0 over the reach [lo + first_lag, hi + first_lag + taps − 1] within the row (the convolution
-    writes nothing but 0 outside it)."""
+def clear_impulses(span: wp.array2d(dtype=wp.int32), narrower: int, impulses: wp.array2d(dtype=wp.float64)):
+    """A chunk's impulse trains zeroed for the next, launched over (rows, CLEAR_THREADS), thread k taking samples k,
+    k + CLEAR_THREADS, … of the range (a warp's stores side by side): impulses[slot, j] = 0 over the touched span
+    [lo, hi] of ``span[slot]`` (the deposits touch nothing outside it) of the rows narrower than ``narrower``
+    samples; the wider ones the FFT convolution zeroed as it read them (kernels/waveform_fft.py)."""
     slot, k = wp.tid()
     lo = span[slot, 0]
     hi = span[slot, 1]
-    for j in range(lo + k, hi + 1, CLEAR_THREADS):
-        impulses[slot, j] = wp.float64(0.0)
-    if reach != 0 and hi >= lo:
-        begin = wp.max(lo + first_lag, 0)
-        end = wp.min(hi + first_lag + taps - 1, power.shape[1] - 1)
-        for i in range(begin + k, end + 1, CLEAR_THREADS):
-            power[slot, i] = wp.float32(0.0)
+    if hi - lo + 1 < narrower:
+        for j in range(lo + k, hi + 1, CLEAR_THREADS):
+            impulses[slot, j] = wp.float64(0.0)
+
+
+@wp.func
+def reach_of(span: wp.array2d(dtype=wp.int32), slot: int, first_lag: int, taps: int, samples: int):
+    """The samples [begin, end] of row ``slot`` whose power its touched span [lo, hi] reaches, [lo + first_lag,
+    hi + first_lag + taps − 1] within the row (begin > end: none)."""
+    lo = span[slot, 0]
+    hi = span[slot, 1]
+    if hi < lo:
+        return samples, -1
+    return wp.max(lo + first_lag, 0), wp.min(hi + first_lag + taps - 1, samples - 1)
+
+
+@wp.kernel
+def clear_power(last: wp.array2d(dtype=wp.int32), span: wp.array2d(dtype=wp.int32), rows: int, first_lag: int,
+                taps: int, power: wp.array2d(dtype=wp.float32)):
+    """power[slot, i] = 0 over the reach of the last chunk's span ``last[slot]`` where it is outside the reach of this
+    chunk's ``span[slot]`` (none for the slots from ``rows`` on), which the convolution writes whole (its outputs
+    there are 0 or the new waveform): launched over (the last chunk's rows, CLEAR_THREADS) as ``clear_impulses``."""
+    slot, k = wp.tid()
+    samples = power.shape[1]
+    begin, end = reach_of(last, slot, first_lag, taps, samples)
+    keep_begin, keep_end = int(samples), int(-1)
+    if slot < rows:
+        keep_begin, keep_end = reach_of(span, slot, first_lag, taps, samples)
+    if keep_end < keep_begin:  # no new reach: the whole old one
+        keep_begin, keep_end = end + 1, end
+    for i in range(begin + k, wp.min(end, keep_begin - 1) + 1, CLEAR_THREADS):
+        power[slot, i] = wp.float32(0.0)
+    for i in range(wp.max(begin, keep_end + 1) + k, end + 1, CLEAR_THREADS):
+        power[slot, i] = wp.float32(0.0)
 
 
 @wp.kernel

@@ -22,9 +22,11 @@ Where the pulse's spectrum is 0 to float64's rounding beyond the bins |k| ≤ K 
 8192), the transforms are pruned (:func:`kept_levels`, :func:`_kept_bins`): the forward stops once each kept bin has a
 block of its own, those bins are summed from their blocks, and the inverse starts from them.
 
-An item (row, pair) makes blocks 2·pair and 2·pair + 1 of the reach of its row's slot, the rows those listed by
-``split_spans``; the launch has a tile per multiprocessor, each taking the items in turn (their count read on the
-device: the host never waits for it), an item beyond the reach making nothing. The outputs are float32 [W]
+A tile makes one row at a time (the rows those listed by ``split_spans``; the launch has a tile per multiprocessor,
+each taking the rows in turn, their count read on the device: the host never waits for it), its pairs of blocks in
+turn from the start of the reach, pair p making blocks 2p and 2p + 1. Once a pair's FFT has read its impulses, the
+tile zeroes those of the row's touched span that no later pair reads (after the last pair, the rest of the span), so
+the rows the FFTs make leave zero impulse trains behind: the next chunk's deposits need no clearing of them. The outputs are float32 [W]
 rounded from the float64 sums, clamped at 0 (the exact sums of non-negative impulses and taps are ≥ 0, so the clamp
 only removes the FFT's rounding, ~1e−16 of the block's largest value). Outputs before the reach are never written
 and those after it only with 0 (the tail of the reach's last pair of blocks), so with ``out`` zeroed beforehand every
@@ -211,6 +213,12 @@ def _kept_bins(n: int, keep: int, levels: int) -> str:
 """
 
 
+_ZERO_SAMPLES = """
+    for (int j = lo + WP_TILE_THREAD_IDX; j <= hi; j += WP_TILE_BLOCK_DIM) *wp::address(impulses, slot, j) = 0.0;
+"""  # a tile's threads zero samples lo … hi of a row, neighbouring threads neighbouring samples (after the tile's
+# last sync: every thread's loads of them are done)
+
+
 TABLE_STRIDE = 16  # twiddles of a level whose index steps by this or more per position come from shared memory
 
 
@@ -315,8 +323,8 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM, keep:
     """The overlap-save kernel of FFT size ``n`` (a power of two) for tiles of ``block_dim`` threads (its module's
     block_dim, so that compiling it ahead compiles what runs), keeping the spectrum's bins |k| ≤ ``keep`` (< 0:
     every bin; :func:`overlap_save_snippet`). Launch with ``wp.launch_tiled`` over ``tiles`` tiles (one per
-    multiprocessor: a tile holds one's shared memory) with the same block_dim; the tiles take the listed rows'
-    items in turn, their count read on the device (no wait for it on the host)."""
+    multiprocessor: a tile holds one's shared memory) with the same block_dim; the tiles take the listed rows in
+    turn, their count read on the device (no wait for it on the host), zeroing the impulses they read."""
 
     options = {"block_dim": block_dim}
     cap = SM_REGISTERS // block_dim if block_dim > 256 else None  # so that one tile's threads fit a multiprocessor
@@ -329,36 +337,48 @@ def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM, keep:
                      spectrum: wp.array(dtype=wp.vec2d), twiddles: wp.array(dtype=wp.vec2d), wrapped: int,
                      first: int, last: int, out: wp.array2d(dtype=wp.float32)): ...
 
+    @wp.func_native(_ZERO_SAMPLES)
+    def zero_samples(impulses: wp.array2d(dtype=wp.float64), slot: int, lo: int, hi: int): ...
+
     @wp.kernel(enable_backward=False, module="unique", module_options=options, grid_stride=False,
                cuda_max_registers=cap)
     def convolve_fft(
         # In:
-        o: Overlap,  # the impulse trains, their spans, the pulse's spectrum and the twiddles
+        o: Overlap,  # the impulse trains (zeroed here as they are read), their spans, the pulse's spectrum, twiddles
         rows: wp.array(dtype=wp.int32),  # the slots of the rows the FFTs make (split_spans)
         count: wp.array(dtype=wp.int32),  # [1] how many of them
-        pairs: int,  # pairs of blocks per row (over a whole row)
         tiles: int,  # the launch's tiles
         block: int,  # L = n − taps + 1: outputs per block
         # Out:
         out: wp.array2d(dtype=wp.float32),  # (slots, samples) power [W], zeroed beforehand: only the reach is written
     ):
-        """out[slot, i] = Σ_j impulses[slot, j] · taps[i − j − first_lag] [W]: tile t makes the items t, t + tiles,
-        … of the count[0] × pairs (row, pair), each the outputs of blocks 2·pair and 2·pair + 1 of L outputs,
-        counted from the start of the reach of slot rows[row] (an item beyond the reach makes nothing)."""
+        """out[slot, i] = Σ_j impulses[slot, j] · taps[i − j − first_lag] [W]: tile t makes the rows t, t + tiles, …
+        of the count[0] listed, each row's pairs of blocks of L outputs in turn from the start of the reach of its
+        slot rows[row]; then impulses[slot, j] = 0 over the row's touched span [lo, hi], each stretch zeroed once no
+        later pair reads it (pair p reads the impulses from its start s_p = origin − first_lag − (taps − 1) on, and
+        s_{p+1} = s_p + 2L)."""
         first = wp.tid()
         samples = o.impulses.shape[1]
         wrapped = o.taps - 1
         z = wp.tile_empty(shape=padded, dtype=wp.vec2d, storage="shared")
-        for item in range(first, count[0] * pairs, tiles):
-            row = item // pairs
+        for row in range(first, count[0], tiles):
             slot = rows[row]
             lo = o.span[slot, 0]
             hi = o.span[slot, 1]
-            reach_hi = wp.min(hi + o.first_lag + o.taps - 1, samples - 1)
-            origin = wp.max(lo + o.first_lag, 0) + 2 * (item - row * pairs) * block
-            if hi >= lo and origin <= reach_hi:
-                overlap_save(z, o.impulses, slot, lo, hi, origin - o.first_lag - wrapped, block, o.spectrum,
-                             o.twiddles, wrapped, origin - wrapped, reach_hi, out)
+            reach_hi = wp.min(hi + o.first_lag + wrapped, samples - 1)
+            origin = wp.max(lo + o.first_lag, 0)
+            cleared = lo  # the impulses below are zero
+            while cleared <= hi:
+                start = origin - o.first_lag - wrapped  # the pair's first impulse
+                end = hi  # the last impulse that no later pair reads
+                if origin <= reach_hi:
+                    overlap_save(z, o.impulses, slot, lo, hi, start, block, o.spectrum, o.twiddles, wrapped,
+                                 origin - wrapped, reach_hi, out)
+                    if origin + 2 * block <= reach_hi:
+                        end = wp.min(start + 2 * block - 1, hi)
+                zero_samples(o.impulses, slot, cleared, end)
+                cleared = wp.max(cleared, end + 1)
+                origin += 2 * block
 
     return convolve_fft
 

@@ -27,8 +27,9 @@ FLOAT32_HALF_ULP = 2.0 ** -24  # the float32 output's rounding, relative to the 
 
 
 def _chunk(scene: str, device: str):
-    """(impulse rows, spans, pulse taps, first lag) of one change1 shot over ``scene``, on the host."""
-    cfg = waveform_config(scene, device)
+    """(impulse rows, spans, pulse taps, first lag) of one change1 shot over ``scene``, on the host (summed directly:
+    the FFTs zero the trains as they read them)."""
+    cfg = waveform_config(scene, device, **{"waveform.convolution": "direct"})
     mesh = build_scene(cfg)
     readout, kept = Waveforms(on_device=True), []
 
@@ -52,13 +53,16 @@ def _reference(row: np.ndarray, taps: np.ndarray, first_lag: int) -> np.ndarray:
 
 
 def _convolve(method: str, impulses: np.ndarray, span: np.ndarray, taps: np.ndarray, first_lag: int,
-              device: str, **fft) -> np.ndarray:
+              device: str, left: list | None = None, **fft) -> np.ndarray:
+    """The convolution's output rows; ``left`` gets the impulse trains as the launch left them."""
     pulse = PulseConvolution(method, wp.array(taps, dtype=wp.float64, device=device), first_lag, impulses.shape[1],
                              device, **fft)
     out = wp.empty(impulses.shape, dtype=wp.float32, device=device)
     out.fill_(7.0)  # launch zeroes its rows first
-    pulse.launch(wp.array(impulses, dtype=wp.float64, device=device), wp.array(span, dtype=wp.int32, device=device),
-                 out, len(impulses))
+    trains = wp.array(impulses, dtype=wp.float64, device=device)
+    pulse.launch(trains, wp.array(span, dtype=wp.int32, device=device), out, len(impulses))
+    if left is not None:
+        left.append(trains.numpy())
     return out.numpy()
 
 
@@ -127,7 +131,7 @@ def test_dropping_the_bins_beyond_the_floor_keeps_the_error(device, scene):
     both give the float64 convolution to the float32 output's rounding; the cut one differs from the other only in
     that rounding (the products it drops are ~1e-15 of the largest)."""
     settings = {"waveform.sample_interval_s": 5e-11, "waveform.samples": 2048} if scene == "bump" else {}
-    cfg = waveform_config(scene, device, **settings)
+    cfg = waveform_config(scene, device, **settings, **{"waveform.convolution": "direct"})  # the trains kept
     mesh, readout, kept = build_scene(cfg), Waveforms(on_device=True), []
     Tracer(cfg, mesh, flight_trajectories(cfg, mesh)).run(
         readout, lambda found: kept.append((readout.buffers.impulses.numpy()[:found.count].copy(),
@@ -170,16 +174,20 @@ def test_a_small_fft_many_blocks_and_rows(device):
     for r in range(3):
         lo, hi = span[r]
         rows[r, lo:hi + 1] = rng.random(hi - lo + 1)
-    fft = {"fft_least": 1024, "block_dim": 64}
-    out = _convolve("fft", rows, span, taps, first_lag, device, direct_below=0, **fft)
-    for r in range(4):
-        ref = _reference(rows[r], taps, first_lag)
-        assert np.abs(out[r] - ref).max() <= 1.5 * FLOAT32_HALF_ULP * max(ref.max(), 1e-300)
-        assert np.all(out[r][ref == 0.0] == 0.0)
-    # rows narrower than direct_below are the direct sums bit for bit, the others the FFTs'
-    mixed = _convolve("fft", rows, span, taps, first_lag, device, direct_below=200, **fft)
-    direct = _convolve("direct", rows, span, taps, first_lag, device)
-    assert np.array_equal(mixed[1:], direct[1:]) and np.array_equal(mixed[0], out[0])
+    for least in (1024, 512):  # 512: each FFT makes 112 outputs, its pairs of blocks step less than the taps
+        fft, left = {"fft_least": least, "block_dim": 64}, []
+        out = _convolve("fft", rows, span, taps, first_lag, device, left, direct_below=0, **fft)
+        for r in range(4):
+            ref = _reference(rows[r], taps, first_lag)
+            assert np.abs(out[r] - ref).max() <= 1.5 * FLOAT32_HALF_ULP * max(ref.max(), 1e-300)
+            assert np.all(out[r][ref == 0.0] == 0.0)
+        assert not left[0].any(), least  # every train the FFTs read is left zero
+        # rows narrower than direct_below are the direct sums bit for bit (their trains left as they were), the
+        # others the FFTs'
+        mixed = _convolve("fft", rows, span, taps, first_lag, device, left, direct_below=200, **fft)
+        direct = _convolve("direct", rows, span, taps, first_lag, device, left)
+        assert np.array_equal(mixed[1:], direct[1:]) and np.array_equal(mixed[0], out[0])
+        assert np.array_equal(left[1][1:], rows[1:]) and not left[1][0].any() and np.array_equal(left[2], rows)
 
 
 @pytest.mark.parametrize("scene, settings", [("slope", {}), ("bump", {"waveform.sample_interval_s": 5e-11,
@@ -246,24 +254,45 @@ def test_a_tracers_second_run_reuses_its_buffers_cleanly(device):
         np.testing.assert_allclose(power[1], power[0], rtol=2.0 ** -22, atol=1e-14 * power[0].max())
 
 
-@pytest.mark.parametrize("reach", [0, 1])
-def test_clear_spans_zeroes_the_span_and_the_reach(device, reach):
-    """kernels/waveform.py clear_spans against NumPy (a span wider than its threads, 141 samples, among them):
-    impulses zeroed over each row's span [lo, hi], power (with reach = 1) over [lo + first_lag, hi + first_lag +
-    taps − 1] within the row, nothing else touched."""
-    samples, first_lag, taps = 300, -7, 20
+def test_clear_impulses_zeroes_the_spans_of_the_narrow_rows(device):
+    """kernels/waveform.py clear_impulses against NumPy (a span wider than its threads, 141 samples, among them):
+    impulses zeroed over each row's span [lo, hi] if it is narrower than the given width, nothing else touched."""
+    samples = 300
     span = np.array([[0, 5], [290, 299], [100, 100], [samples, -1], [40, 180]], dtype=np.int32)
-    rows = len(span)
-    impulses = wp.array(np.ones((rows, samples)), dtype=wp.float64, device=device)
-    power = wp.array(np.ones((rows, samples)), dtype=wp.float32, device=device)
-    wp.launch(kw.clear_spans, (rows, kw.CLEAR_THREADS),
-              inputs=[wp.array(span, dtype=wp.int32, device=device), first_lag, taps, reach],
-              outputs=[impulses, power], device=device)
+    i, lo, hi = np.arange(samples)[None, :], span[:, :1], span[:, 1:]
+    for narrower in (1 << 30, 10):
+        impulses = wp.array(np.ones((len(span), samples)), dtype=wp.float64, device=device)
+        wp.launch(kw.clear_impulses, (len(span), kw.CLEAR_THREADS),
+                  inputs=[wp.array(span, dtype=wp.int32, device=device), narrower], outputs=[impulses], device=device)
+        cleared = (i >= lo) & (i <= hi) & (hi - lo + 1 < narrower)
+        np.testing.assert_array_equal(impulses.numpy(), np.where(cleared, 0.0, 1.0))
+        assert cleared[4].any() == (narrower > 141)
+
+
+def test_clear_power_zeroes_the_last_reach_outside_the_new_one(device):
+    """kernels/waveform.py clear_power against NumPy: power zeroed over the reach of each row's last span [lo +
+    first_lag, hi + first_lag + taps − 1] (within the row) less the reach of its new span (none from ``rows`` on),
+    nothing else touched: new reaches to either side, inside, around, disjoint, empty; a row beyond ``rows``."""
+    samples, first_lag, taps = 400, -7, 20
+    last = np.array([[0, 5], [100, 250], [100, 250], [100, 250], [100, 250], [100, 250], [380, 399], [samples, -1],
+                     [50, 60]], dtype=np.int32)
+    new = np.array([[3, 3], [50, 150], [200, 300], [150, 160], [20, 300], [samples, -1], [10, 20], [5, 9],
+                    [50, 60]], dtype=np.int32)
+    rows = len(last) - 1  # the last row has no new span
+    power = wp.array(np.ones((len(last), samples)), dtype=wp.float32, device=device)
+    wp.launch(kw.clear_power, (len(last), kw.CLEAR_THREADS),
+              inputs=[wp.array(last, dtype=wp.int32, device=device), wp.array(new, dtype=wp.int32, device=device),
+                      rows, first_lag, taps], outputs=[power], device=device)
     i = np.arange(samples)[None, :]
-    lo, hi = span[:, :1], span[:, 1:]
-    np.testing.assert_array_equal(impulses.numpy(), np.where((i >= lo) & (i <= hi), 0.0, 1.0))
-    in_reach = (i >= lo + first_lag) & (i <= hi + first_lag + taps - 1) & (hi >= lo)
-    np.testing.assert_array_equal(power.numpy(), np.where(in_reach & bool(reach), 0.0, 1.0))
+
+    def reach(s):
+        lo, hi = s[:, :1], s[:, 1:]
+        return (i >= lo + first_lag) & (i <= hi + first_lag + taps - 1) & (hi >= lo)
+
+    kept = reach(new) & (np.arange(len(last)) < rows)[:, None]
+    expected = np.where(reach(last) & ~kept, 0.0, 1.0)
+    np.testing.assert_array_equal(power.numpy(), expected)
+    assert (expected == 0.0).sum(axis=1).tolist()[-1] == 11 + taps - 1 and expected[2, 93:192].min() == 0.0
 
 
 def test_bad_convolution_is_one_line_input_error(tmp_path):

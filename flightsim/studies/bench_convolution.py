@@ -26,7 +26,7 @@ from flightsim.studies.bench_common import kernel_times, simulator
 from kernels import waveform_fft as kf
 
 CHECKED_ROWS = 16  # rows whose error against the float64 convolution is measured
-ACCUMULATION = ("emit_rays", "pilot", "clear_spans", "start_span", "deposit")  # the kernels before the convolution
+ACCUMULATION = ("emit_rays", "pilot", "clear_impulses", "start_span", "deposit")  # the kernels before the convolution
 
 
 def captured_chunk(scene: str, device: str, shots: int) -> dict:
@@ -34,16 +34,17 @@ def captured_chunk(scene: str, device: str, shots: int) -> dict:
     run's accumulation kernels [s] of the change1 preset over ``scene`` (flat, slope) with ``shots`` shots."""
     from flightsim.studies.waveform import waveform_config
 
-    cfg = waveform_config(scene, device, **{"fixed.prf_hz": 1000.0, "flight.duration_s": (shots - 0.5) / 1000.0})
-    sim, kept = simulator(cfg), {}
-    readout = Waveforms(on_device=True)
+    shots_set = {"fixed.prf_hz": 1000.0, "flight.duration_s": (shots - 0.5) / 1000.0}
+    kept, readout = {}, Waveforms(on_device=True)
 
     def consume(found):
         if not kept:
             b = readout.buffers
             kept.update(impulses=wp.clone(b.impulses[:found.count]), span=wp.clone(b.span[:found.count]))
 
-    sim.run(readout, consume)
+    # the trains captured from a run that sums directly (the FFTs zero them as they read them)
+    simulator(waveform_config(scene, device, **shots_set, **{"waveform.convolution": "direct"})).run(readout, consume)
+    sim = simulator(waveform_config(scene, device, **shots_set))
     kernels = kernel_times(lambda: sim.run(Waveforms(on_device=True), lambda found: None)) if device != "cpu" else {}
     taps, first_lag = sim.instrument.detector.pulse_taps(sim.device)
     accumulate = sum(kernels.get(name, 0.0) for name in ACCUMULATION) if kernels else None
@@ -94,7 +95,10 @@ def compare(chunk: dict, device: str, ffts: list[tuple[int, ...]], repeats: int)
     for method, *fft_args in [("direct",), *(("fft", *f) for f in ffts)]:
         fft = dict(zip(("fft_least", "block_dim", "direct_below", "floor"), fft_args))
         pulse = PulseConvolution(method, chunk["taps"], chunk["first_lag"], impulses.shape[1], device, **fft)
-        wall = seconds_per_launch(lambda: pulse.launch(impulses, span, out, impulses.shape[0]), device, repeats)
+        work = wp.clone(impulses)  # the FFTs zero the trains they read; their values do not change the work
+        wall = seconds_per_launch(lambda: pulse.launch(work, span, out, impulses.shape[0]), device, repeats)
+        wp.copy(work, impulses)
+        pulse.launch(work, span, out, impulses.shape[0])
         power = out.numpy().copy()
         direct = power if direct is None else direct
         record = {"scene": chunk["scene"], "shots": chunk["shots"], "method": method,

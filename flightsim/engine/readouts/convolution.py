@@ -1,7 +1,8 @@
 """The waveform readout's convolution of each beam's impulse train with the pulse (``waveform.convolution``):
 ``direct`` sums the taps per output (kernels/waveform.py ``convolve``), ``fft`` runs overlap-save over float64 tile
-FFTs (kernels/waveform_fft.py). Both write float32 power [W] into zeroed rows, only within each row's reach (the
-outputs within the taps of its touched span), so the samples beyond stay exactly 0."""
+FFTs (kernels/waveform_fft.py). Both write float32 power [W] into rows zeroed outside each row's reach (the outputs
+within the taps of its touched span), the whole reach, so the samples beyond stay exactly 0; the FFTs zero the
+impulse trains they read."""
 from __future__ import annotations
 
 import numpy as np
@@ -67,6 +68,8 @@ class PulseConvolution:
                  floor: float = SPECTRUM_FLOOR):
         self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
         self.direct_below, self.spans, self.rows, self.fft_rows = direct_below, None, None, None
+        self.zeroes_narrower = direct_below if method == "fft" else 1 << 30  # the rows whose impulse trains the
+        # convolution does not zero as it reads them: those narrower than this [samples] (the FFTs zero theirs)
         if method == "fft":
             self.n = fft_size(len(taps), samples, fft_least)
             self.keep = kept_bins(taps.numpy(), self.n, floor) if floor > 0.0 else -1
@@ -88,8 +91,9 @@ class PulseConvolution:
         return [kw.convolve, kf.split_spans, kf.convolve_fft_kernel(self.n, self.block_dim, self.keep)]
 
     def launch(self, impulses: wp.array, span: wp.array, out: wp.array, n: int, zeroed: bool = False) -> None:
-        """Rows 0 … n − 1 of ``out`` (zeroed here first, unless ``zeroed``: they are 0 already) = rows of
-        ``impulses`` (touched within ``span``) convolved with the pulse [W]."""
+        """Rows 0 … n − 1 of ``out`` (zeroed here first, unless ``zeroed``: they are 0 already, or 0 outside the
+        reach of ``span``, which is written whole) = rows of ``impulses`` (touched within ``span``) convolved with the
+        pulse [W]; the impulse trains of the rows the FFTs make (not narrower than ``zeroes_narrower``) are left 0."""
         samples, d = impulses.shape[1], self.device
         if not zeroed:
             out[:n].zero_()
@@ -110,7 +114,6 @@ class PulseConvolution:
         if self.method == "direct":
             return
         self.overlap.impulses = impulses
-        pairs = -(-(-(-samples // self.block)) // 2)  # two blocks of L outputs per FFT, over the whole row at most
-        wp.launch_tiled(self.kernels()[-1], dim=self.tiles, inputs=[self.overlap, self.rows, self.fft_rows, pairs,
-                                                                     self.tiles, self.block],
+        wp.launch_tiled(self.kernels()[-1], dim=self.tiles, inputs=[self.overlap, self.rows, self.fft_rows, self.tiles,
+                                                                     self.block],
                         outputs=[out], block_dim=self.block_dim, device=self.device)

@@ -85,6 +85,7 @@ class _Buffers:
             self.touched = 0  # rows whose impulses are non-zero within their ``span`` (the last chunk's)
             self.received = wp.empty((slots, 4), dtype=wp.float64, device=d)
             self.span = wp.empty((slots, 2), dtype=wp.int32, device=d)
+            self.last_span = wp.empty((slots, 2), dtype=wp.int32, device=d)  # the last chunk's (rows < touched)
 
 
 def pilot_kernels(tracer) -> list:
@@ -176,11 +177,11 @@ class Waveforms:
         b, d, params = self.buffers, tracer.device, self.params
         pilot_windows(tracer, b, self.refs, params, n)
         conv, clean = self.convolution, self.receiver is None  # clean: no receiver writes whole rows of power
-        if b.touched:  # the last chunk's impulse trains (and power) cleared within their spans (reach) only
-            wp.launch(kw.clear_spans, (b.touched, kw.CLEAR_THREADS),
-                      inputs=[b.span, conv.first_lag, len(conv.taps), int(clean)], outputs=[b.impulses, b.power],
-                      device=d)
-        b.touched = n
+        last = b.touched  # the last chunk's rows: their impulse trains and power are cleared within their spans only
+        if last:  # the trains the convolution did not zero as it read them
+            wp.launch(kw.clear_impulses, (last, kw.CLEAR_THREADS), inputs=[b.span, conv.zeroes_narrower],
+                      outputs=[b.impulses], device=d)
+        b.span, b.last_span, b.touched = b.last_span, b.span, n
         b.received.zero_()
         wp.launch(kw.start_span, n, inputs=[params.samples], outputs=[b.span], device=d)
         offsets, weights = self.by_lane
@@ -188,13 +189,16 @@ class Waveforms:
                   inputs=[self.refs, params, self.leaves, b.starts, b.directions, b.window, offsets, weights,
                           len(self.subrays)],
                   outputs=[b.impulses, b.received, b.span], device=d)
+        if clean and last:  # the last chunk's power beyond this one's reach (which the convolution writes whole)
+            wp.launch(kw.clear_power, (last, kw.CLEAR_THREADS),
+                      inputs=[b.last_span, b.span, n, conv.first_lag, len(conv.taps)], outputs=[b.power], device=d)
         conv.launch(b.impulses, b.span, b.power, n, zeroed=clean)
         receive(tracer, self.receiver, params, b, n)
         self._hand_over(tracer, segments, n, counts, consume)
 
     def kernels_needed(self, tracer) -> list:
         return [*pilot_kernels(tracer), kw.deposit_kernel(tracer.meshes.per_face, tracer.scene.canopy is not None),
-                kw.clear_spans, *self._convolution(tracer).kernels()]
+                kw.clear_impulses, kw.clear_power, *self._convolution(tracer).kernels()]
 
     def _convolution(self, tracer) -> PulseConvolution:
         """The run's pulse convolution (its taps and spectrum on the device), made once per tracer: every run asks
