@@ -97,8 +97,20 @@ def expected_signal(det: PhotonDetector, distance: wp.float64, cos_incidence: wp
             / wp.float64(3.141592653589793) * det.aperture_area / (distance * distance) * det.efficiency)
 
 
+NORMAL_TAIL = wp.constant(wp.float64(40.0))
+"""|x| from which float64 gives Φ(x) = erfc(−x/√2)/2 exactly 0 (x ≤ −40: erfc(28.3) ≈ 1e-349 underflows to 0) or
+exactly 1 (x ≥ 40: erfc(−28.3) = 2 − 1e-349 rounds to 2), and exp(−x²/2) exactly 0 (e^−800 underflows): the
+detections far from an echo, most of the noise, skip the erfc and the exp for the same values."""
+
+
 @wp.func
 def _normal_cdf(x: wp.float64):
+    """Φ(x), the standard normal CDF: erfc(−x/√2)/2, its tails beyond ±NORMAL_TAIL without the erfc (the same
+    values)."""
+    if x <= -NORMAL_TAIL:
+        return wp.float64(0.0)
+    if x >= NORMAL_TAIL:
+        return wp.float64(1.0)
     return wp.float64(0.5) * wp.erfc(-x * SQRT1_2)
 
 
@@ -106,7 +118,10 @@ def _normal_cdf(x: wp.float64):
 def echo_rate(det: PhotonDetector, t: wp.float64, t0: wp.float64, n_signal: wp.float64):
     """One echo's part of λ(t) = Λ'(t) at time of flight t [1/s] (λ = noise rate + the echoes' rates)."""
     z = (t - t0) / det.sigma_t
-    return n_signal * INV_SQRT_2PI * wp.exp(wp.float64(-0.5) * z * z) / det.sigma_t
+    shape = wp.float64(0.0)  # exp(−z²/2): exactly 0 beyond NORMAL_TAIL σ
+    if wp.abs(z) < NORMAL_TAIL:
+        shape = wp.exp(wp.float64(-0.5) * z * z)
+    return n_signal * INV_SQRT_2PI * shape / det.sigma_t
 
 
 @wp.func

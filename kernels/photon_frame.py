@@ -22,6 +22,9 @@ from kernels.trace import HALF_LIGHT_SPEED, pulse_rows, scan_struct
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
+MAX_REGISTERS = 64  # on a GPU: 72 uncapped (38 % occupancy); at 64 (50 %), with 56/64 B spilled, the frame kernel
+# takes 2.36 ms of a MODE-A frame against 2.77 (H100; results/profile-experiments.md, section 50)
+
 
 @functools.cache
 def frame_photons_kernel(instrument: Instrument):
@@ -31,7 +34,7 @@ def frame_photons_kernel(instrument: Instrument):
     Scan = scan_struct(instrument)
     row_believed = pulse_rows(instrument).believed
 
-    @wp.kernel(module="unique", enable_backward=False, grid_stride=False)
+    @wp.kernel(module="unique", enable_backward=False, grid_stride=False, cuda_max_registers=MAX_REGISTERS)
     def frame_photons(
         pulses: wp.array2d(dtype=wp.float64),  # the chunk's pulse table
         scan: Scan,

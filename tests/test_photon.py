@@ -233,3 +233,34 @@ def test_photon_chunks_kept_by_the_consumer_are_its_own():
     assert chunks >= 10 and len(one[0]) > 1000
     for a, b in zip(many, one):
         assert np.array_equal(a, b)
+
+
+@wp.kernel
+def _normal_tails(x: wp.array(dtype=wp.float64), det: photon.PhotonDetector, cdf: wp.array(dtype=wp.float64),
+                  rate: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    cdf[i] = photon._normal_cdf(x[i])
+    rate[i] = photon.echo_rate(det, x[i] * det.sigma_t, wp.float64(0.0), wp.float64(1.0))
+
+
+def test_the_normal_tails_are_the_float64_values_without_erfc_or_exp(device):
+    """Φ(x) and the echo's rate φ(x)/σ against float64 libm (math.erfc, math.exp): beyond ±NORMAL_TAIL the sampler
+    returns 0, 1 and 0 without evaluating them, which are exactly what they give there; inside, the tails' tiny
+    values (x = ±10: Φ = 7.6e-24, φ = 7.7e-23) are still made, to float64 rounding."""
+    xs = np.array([-1e6, -40.5, -40.0, -39.9, -37.0, -10.0, -1.0, 0.0, 2.5, 10.0, 39.9, 40.0, 40.5, 1e6])
+    det = photon.PhotonDetector()
+    det.sigma_t = 1.0e-9
+    cdf, rate = (wp.zeros(len(xs), dtype=wp.float64, device=device) for _ in range(2))
+    wp.launch(_normal_tails, len(xs), inputs=[wp.array(xs, dtype=wp.float64, device=device), det],
+              outputs=[cdf, rate], device=device)
+    expected_cdf = np.array([0.5 * math.erfc(-x / math.sqrt(2.0)) for x in xs])
+    expected_rate = np.array([math.exp(-0.5 * x * x) / math.sqrt(2.0 * math.pi) / det.sigma_t for x in xs])
+    tail = np.abs(xs) >= float(photon.NORMAL_TAIL)
+    assert np.array_equal(cdf.numpy()[tail], expected_cdf[tail]) and set(expected_cdf[tail]) == {0.0, 1.0}
+    assert np.array_equal(rate.numpy()[tail], expected_rate[tail]) and not expected_rate[tail].any()
+    # inside, to float64 rounding: the argument's rounding δ ≈ 1.1e-16 |x| moves erfc and exp in the tails by a
+    # relative x·δx ≈ x² · 1.1e-16 (2e-13 at x = 37), whatever the implementation
+    rtol = 1e-14 + 4.0 * xs[~tail] ** 2 * 2.2e-16
+    assert np.all(np.abs(cdf.numpy()[~tail] - expected_cdf[~tail]) <= rtol * expected_cdf[~tail])
+    assert np.all(np.abs(rate.numpy()[~tail] - expected_rate[~tail]) <= rtol * expected_rate[~tail])
+    assert 0.0 < cdf.numpy()[xs == -10.0][0] < 1e-23 and 0.0 < rate.numpy()[xs == 10.0][0]
