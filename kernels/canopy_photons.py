@@ -17,12 +17,11 @@ finite.
 import warp as wp
 
 from kernels.canopy import Canopy, g_of, walk_begin, walk_next
+from kernels.normal import normal_cdf
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 LIGHT_SPEED = wp.constant(wp.float64(299792458.0))  # [m/s]
-SQRT1_2 = wp.constant(wp.float64(0.7071067811865476))
-INV_SQRT_2PI = wp.constant(wp.float64(0.3989422804014327))
 FAR_SIGMAS = wp.constant(wp.float64(12.0))
 THIN = wp.constant(wp.float64(1.0e-12))  # optical depth of a voxel below which it holds no leaves
 
@@ -42,11 +41,6 @@ class LeafRay:
 
 
 @wp.func
-def _cdf(x: wp.float64):
-    return wp.float64(0.5) * wp.erfc(-x * SQRT1_2)
-
-
-@wp.func
 def _voxel_part(sigma: wp.float64, t: wp.float64, a: wp.float64, b: wp.float64, k: wp.float64, density: wp.float64,
                 rate: int):
     """One voxel's share of the leaves' rate (``rate`` = 1) or of its integral up to t (0); ``density`` = A/k, the
@@ -59,11 +53,11 @@ def _voxel_part(sigma: wp.float64, t: wp.float64, a: wp.float64, b: wp.float64, 
             return wp.float64(0.0)
         return density * (wp.float64(1.0) - decay)
     shift = k * sigma * sigma
-    j = wp.exp(-k * (t - a) + wp.float64(0.5) * k * shift) * (_cdf((b - t + shift) / sigma)
-                                                             - _cdf((a - t + shift) / sigma))
+    j = wp.exp(-k * (t - a) + wp.float64(0.5) * k * shift) * (normal_cdf((b - t + shift) / sigma)
+                                                             - normal_cdf((a - t + shift) / sigma))
     if rate == 1:
         return density * k * j
-    return density * (_cdf((t - a) / sigma) - decay * _cdf((t - b) / sigma) - j)
+    return density * (normal_cdf((t - a) / sigma) - decay * normal_cdf((t - b) / sigma) - j)
 
 
 @wp.func

@@ -29,12 +29,11 @@ import warp as wp
 from kernels.canopy import Canopy
 from kernels.canopy_photons import LeafRay, leaf_sum, transmission_to
 from kernels.frames import ROW_PULSE, ROW_SEED
+from kernels.normal import INV_SQRT_2PI, normal_cdf, normal_shape
 from kernels.trace import STATUS_RETURN
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
-SQRT1_2 = wp.constant(wp.float64(0.7071067811865476))
-INV_SQRT_2PI = wp.constant(wp.float64(0.3989422804014327))
 LIGHT_SPEED = wp.constant(wp.float64(299792458.0))  # [m/s]
 PHOTON_STREAM = wp.constant(0x68E31DA4)  # seed key of the photon streams of traced runs
 INVERSION_TOL_S = wp.constant(wp.float64(1.0e-15))  # Λ⁻¹ to 1 fs (0.15 µm of range)
@@ -79,12 +78,12 @@ def echoes(det: PhotonDetector, n0: wp.float64, t0: wp.float64, n1: wp.float64, 
     e = Echoes()
     e.n0 = n0
     e.t0 = t0
-    e.cdf0 = _normal_cdf((det.gate_open - t0) / det.sigma_t)
+    e.cdf0 = normal_cdf((det.gate_open - t0) / det.sigma_t)
     e.n1 = n1
     e.t1 = t1
     e.cdf1 = wp.float64(0.0)
     if n1 > wp.float64(0.0):
-        e.cdf1 = _normal_cdf((det.gate_open - t1) / det.sigma_t)
+        e.cdf1 = normal_cdf((det.gate_open - t1) / det.sigma_t)
     return e
 
 
@@ -97,31 +96,11 @@ def expected_signal(det: PhotonDetector, distance: wp.float64, cos_incidence: wp
             / wp.float64(3.141592653589793) * det.aperture_area / (distance * distance) * det.efficiency)
 
 
-NORMAL_TAIL = wp.constant(wp.float64(40.0))
-"""|x| from which float64 gives Φ(x) = erfc(−x/√2)/2 exactly 0 (x ≤ −40: erfc(28.3) ≈ 1e-349 underflows to 0) or
-exactly 1 (x ≥ 40: erfc(−28.3) = 2 − 1e-349 rounds to 2), and exp(−x²/2) exactly 0 (e^−800 underflows): the
-detections far from an echo, most of the noise, skip the erfc and the exp for the same values."""
-
-
-@wp.func
-def _normal_cdf(x: wp.float64):
-    """Φ(x), the standard normal CDF: erfc(−x/√2)/2, its tails beyond ±NORMAL_TAIL without the erfc (the same
-    values)."""
-    if x <= -NORMAL_TAIL:
-        return wp.float64(0.0)
-    if x >= NORMAL_TAIL:
-        return wp.float64(1.0)
-    return wp.float64(0.5) * wp.erfc(-x * SQRT1_2)
-
-
 @wp.func
 def echo_rate(det: PhotonDetector, t: wp.float64, t0: wp.float64, n_signal: wp.float64):
     """One echo's part of λ(t) = Λ'(t) at time of flight t [1/s] (λ = noise rate + the echoes' rates)."""
     z = (t - t0) / det.sigma_t
-    shape = wp.float64(0.0)  # exp(−z²/2): exactly 0 beyond NORMAL_TAIL σ
-    if wp.abs(z) < NORMAL_TAIL:
-        shape = wp.exp(wp.float64(-0.5) * z * z)
-    return n_signal * INV_SQRT_2PI * shape / det.sigma_t
+    return n_signal * INV_SQRT_2PI * normal_shape(z) / det.sigma_t
 
 
 @wp.func
@@ -155,9 +134,9 @@ def sampler(retro: bool, leaves: bool = False):
     @wp.func(module="unique")  # not in this file's module: each variant would replace the last there
     def integrated_intensity(det: PhotonDetector, t: wp.float64, e: Echoes, c: Canopy, leaf: LeafRay):
         """Λ(t): expected arrivals from the gate's opening to time of flight t [photo-electrons]."""
-        value = det.noise_rate * (t - det.gate_open) + e.n0 * (_normal_cdf((t - e.t0) / det.sigma_t) - e.cdf0)
+        value = det.noise_rate * (t - det.gate_open) + e.n0 * (normal_cdf((t - e.t0) / det.sigma_t) - e.cdf0)
         if wp.static(retro):
-            value += e.n1 * (_normal_cdf((t - e.t1) / det.sigma_t) - e.cdf1)
+            value += e.n1 * (normal_cdf((t - e.t1) / det.sigma_t) - e.cdf1)
         if wp.static(leaves):
             value += leaf_sum(c, leaf, det.sigma_t, t, 0) - leaf.at_open
         return value

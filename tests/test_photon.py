@@ -13,7 +13,7 @@ from scipy.special import gammainc
 from flightsim.core.errors import InputError
 from flightsim.instrument.photon import PhotonSettings as PhotonConfig
 from flightsim.instrument.photon import check_settings, detect, detector_struct, first_photon_bias_s, sigma_t
-from kernels import photon
+from kernels import normal, photon
 
 C = 299_792_458.0
 SLOTS = 20_000
@@ -239,7 +239,7 @@ def test_photon_chunks_kept_by_the_consumer_are_its_own():
 def _normal_tails(x: wp.array(dtype=wp.float64), det: photon.PhotonDetector, cdf: wp.array(dtype=wp.float64),
                   rate: wp.array(dtype=wp.float64)):
     i = wp.tid()
-    cdf[i] = photon._normal_cdf(x[i])
+    cdf[i] = normal.normal_cdf(x[i])
     rate[i] = photon.echo_rate(det, x[i] * det.sigma_t, wp.float64(0.0), wp.float64(1.0))
 
 
@@ -255,7 +255,7 @@ def test_the_normal_tails_are_the_float64_values_without_erfc_or_exp(device):
               outputs=[cdf, rate], device=device)
     expected_cdf = np.array([0.5 * math.erfc(-x / math.sqrt(2.0)) for x in xs])
     expected_rate = np.array([math.exp(-0.5 * x * x) / math.sqrt(2.0 * math.pi) / det.sigma_t for x in xs])
-    tail = np.abs(xs) >= float(photon.NORMAL_TAIL)
+    tail = np.abs(xs) >= float(normal.NORMAL_TAIL)
     assert np.array_equal(cdf.numpy()[tail], expected_cdf[tail]) and set(expected_cdf[tail]) == {0.0, 1.0}
     assert np.array_equal(rate.numpy()[tail], expected_rate[tail]) and not expected_rate[tail].any()
     # inside, to float64 rounding: the argument's rounding δ ≈ 1.1e-16 |x| moves erfc and exp in the tails by a
