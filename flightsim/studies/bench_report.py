@@ -121,11 +121,11 @@ def _spad_traffic(t: dict | None) -> list[str]:
             f"{100 * t['floor_over_wall']:.0f} % of the frame's wall.", ""]
 
 
-def _convolution_s(kernels: dict) -> float:
-    """GPU time of the pulse convolution [s]: the direct sums and, with waveform.convolution = fft, the FFTs and
-    the split of the spans between them (NaN where a record holds none of them)."""
+def _convolution_ms(kernels: dict) -> str:
+    """GPU time of the pulse convolution [ms]: the direct sums and, with waveform.convolution = fft, the FFTs and
+    the split of the spans between them ('n/a' where a record holds none of them: the CPU's)."""
     parts = [t for name, t in kernels.items() if name.startswith("convolve") or name == "split_spans"]
-    return sum(parts) if parts else float("nan")
+    return f"{1e3 * sum(parts):.1f}" if parts else "n/a"
 
 
 def _waveform(r: dict) -> list[str]:
@@ -135,7 +135,7 @@ def _waveform(r: dict) -> list[str]:
             f"{_fmt(w['subray_returns_per_s'])} | "
             f"{_fmt(w['accumulation_returns_per_s']) if w.get('accumulation_returns_per_s') else 'n/a'} | "
             f"{_fmt(w['raycast_returns_per_s'])} | {w['ratio']:.2f} | {_of_accumulation(w)} | "
-            f"{1e3 * _convolution_s(w.get('kernels_s', {})):.1f} |"
+            f"{_convolution_ms(w.get('kernels_s', {}))} |"
             for w in r["waveform"]]
     return ["", "### Waveform altimeter (change1: sub-rays summed into waveforms on the device)", "",
             "Target (H100): ≥ 1e9 sub-ray returns/s with the waveform accumulation. End to end: pilot ray, "
