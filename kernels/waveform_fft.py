@@ -22,16 +22,15 @@ Where the pulse's spectrum is 0 to float64's rounding beyond the bins |k| ≤ K 
 8192), the transforms are pruned (:func:`kept_levels`, :func:`_kept_bins`): the forward stops once each kept bin has a
 block of its own, those bins are summed from their blocks, and the inverse starts from them.
 
-A tile makes one row at a time (the rows those listed by ``split_spans``; the launch has a tile per multiprocessor,
-each taking the rows in turn, their count read on the device: the host never waits for it), its pairs of blocks in
-turn from the start of the reach, pair p making blocks 2p and 2p + 1. Once a pair's FFT has read its impulses, the
-tile zeroes those of the row's touched span that no later pair reads (after the last pair, the rest of the span), so
-the rows the FFTs make leave zero impulse trains behind: the next chunk's deposits need no clearing of them. The outputs are float32 [W]
-rounded from the float64 sums, clamped at 0 (the exact sums of non-negative impulses and taps are ≥ 0, so the clamp
-only removes the FFT's rounding, ~1e−16 of the block's largest value). Outputs before the reach are never written
-and those after it only with 0 (the tail of the reach's last pair of blocks), so with ``out`` zeroed beforehand every
-sample beyond the reach stays exactly 0, as the direct sums leave it (they too write 0 to a few samples past the
-reach).
+A tile makes one row at a time (the rows those listed by ``split_spans``; the launch has a tile per multiprocessor, each
+taking the rows in turn, their count read on the device: the host never waits for it), its pairs of blocks in turn from
+the start of the reach, pair p making blocks 2p and 2p + 1. Once a pair's FFT has read its impulses, the tile zeroes
+those of the row's touched span that no later pair reads (after the last pair, the rest of the span), so the rows the
+FFTs make leave zero impulse trains behind: the next chunk's deposits need no clearing of them. The outputs are float32
+[W] rounded from the float64 sums, clamped at 0 (the exact sums of non-negative impulses and taps are ≥ 0, so the clamp
+only removes the FFT's rounding, ~1e−16 of the block's largest value). Outputs before the reach are never written and
+those after it only with 0 (the tail of the reach's last pair of blocks), so with ``out`` zeroed beforehand every sample
+beyond the reach stays exactly 0, as the direct sums leave it (they too write 0 to a few samples past the reach).
 """
 import functools
 

@@ -82,7 +82,7 @@ class _Buffers:
         self.keys = wp.empty(slots, dtype=wp.int64, device=d)
         if traced:
             self.impulses = wp.zeros((slots, params.samples), dtype=wp.float64, device=d)  # 0 beyond ``touched``
-            self.touched = 0  # rows whose impulses are non-zero within their ``span`` (the last chunk's)
+            self.touched = 0  # the last chunk's rows: their power and narrow rows' impulses, within ``span``, to clear
             self.received = wp.empty((slots, 4), dtype=wp.float64, device=d)
             self.span = wp.empty((slots, 2), dtype=wp.int32, device=d)
             self.last_span = wp.empty((slots, 2), dtype=wp.int32, device=d)  # the last chunk's (rows < touched)
