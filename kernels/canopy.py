@@ -48,6 +48,7 @@ class Canopy:
     """A voxel grid of leaf area density in the local frame (:meth:`flightsim.scenes.canopy.VoxelCanopy.to_device`)."""
 
     lad: wp.array3d(dtype=wp.float32)  # leaf area density [m²/m³], [ix, iy, iz] = local east, north, up
+    lad_flat: wp.array(dtype=wp.float32)  # the same, C order: voxel (ix, iy, iz) at (ix · ny + iy) · nz + iz
     lower: wp.vec3d  # local coordinates [m] of the grid's lower corner
     cell: wp.vec3d  # voxel edge lengths [m] (east, north, up)
     dims: wp.vec3i  # voxels per axis
@@ -81,6 +82,14 @@ def _plane_t(c: Canopy, w: VoxelWalk, axis: int, k: int) -> wp.float64:
     """t where the ray crosses plane k (0 … dims) of ``axis``; the one formula for every plane crossing."""
     plane = c.lower[axis] + wp.float64(k) * c.cell[axis]
     return (plane - w.start[axis]) * w.inv_dir[axis]
+
+
+@wp.func
+def _lad(c: Canopy, index: wp.vec3i) -> wp.float32:
+    """The leaf area density [m²/m³] of voxel ``index`` (in the grid), read from the flat copy: one product for the
+    row rather than one per axis."""
+    row = wp.int64(index[0]) * wp.int64(c.dims[1]) + wp.int64(index[1])
+    return c.lad_flat[row * wp.int64(c.dims[2]) + wp.int64(index[2])]
 
 
 @wp.func
@@ -182,7 +191,11 @@ def walk_begin(c: Canopy, start: wp.vec3d, direction: wp.vec3d, t0: wp.float64, 
 
 @wp.func
 def walk_next(c: Canopy, w: VoxelWalk) -> VoxelWalk:
-    """The voxel after ``w`` along the ray; ``done = 1`` past the clipped segment's end or the grid."""
+    """The voxel after ``w`` along the ray; ``done = 1`` past the clipped segment's end or the grid.
+
+    Every axis is stepped by selects, not branches (the ray crosses one axis's plane in most steps, so branches would
+    split a warp's lanes three ways): each axis's next exit plane is computed whether or not the ray crosses it at t
+    and kept only where it does (parallel axes have ``t_next`` = +inf, never ≤ t)."""
     v = w
     if v.done != 0:
         return v
@@ -194,13 +207,11 @@ def walk_next(c: Canopy, w: VoxelWalk) -> VoxelWalk:
     t_next = v.t_next
     outside = int(0)
     for a in range(3):
-        if v.step[a] != 0 and t_next[a] <= t:  # every axis whose plane the ray crosses at t (edges, corners)
-            i = index[a] + v.step[a]
-            if i < 0 or i >= c.dims[a]:
-                outside = 1
-            else:
-                index[a] = i
-                t_next[a] = _plane_t(c, v, a, _exit_plane(i, v.step[a]))
+        crossed = t_next[a] <= t  # every axis whose plane the ray crosses at t (edges, corners)
+        i = index[a] + v.step[a]
+        outside += wp.where(crossed and wp.uint32(i) >= wp.uint32(c.dims[a]), 1, 0)  # i < 0 or i ≥ dims
+        index[a] = wp.where(crossed, i, index[a])
+        t_next[a] = wp.where(crossed, _plane_t(c, v, a, _exit_plane(i, v.step[a])), t_next[a])
     if outside != 0:
         v.done = 1
         return v
@@ -208,7 +219,7 @@ def walk_next(c: Canopy, w: VoxelWalk) -> VoxelWalk:
     v.t_next = t_next
     v.t_in = t
     v.t_out = wp.max(t, wp.min(wp.min(wp.min(t_next[0], t_next[1]), t_next[2]), v.t_end))
-    v.lad = c.lad[index[0], index[1], index[2]]
+    v.lad = _lad(c, index)
     v.steps = v.steps + 1
     return v
 

@@ -97,6 +97,7 @@ class VoxelCanopy:
         if key not in self._device:
             c = kc.Canopy()
             c.lad = wp.array(self.lad, dtype=wp.float32, device=device)
+            c.lad_flat = c.lad.flatten()
             c.lower = wp.vec3d(*(float(v) for v in self.lower))
             c.cell = wp.vec3d(*(float(v) for v in self.cell))
             c.dims = wp.vec3i(*self.dims)
@@ -121,6 +122,7 @@ def no_canopy(device: str):
     if key not in _NO_CANOPY:
         c = kc.Canopy()
         c.lad = wp.zeros((1, 1, 1), dtype=wp.float32, device=device)
+        c.lad_flat = c.lad.flatten()
         c.lower = wp.vec3d(0.0, 0.0, 0.0)
         c.cell = wp.vec3d(1.0, 1.0, 1.0)
         c.dims = wp.vec3i(1, 1, 1)
