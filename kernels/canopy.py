@@ -85,11 +85,22 @@ def _plane_t(c: Canopy, w: VoxelWalk, axis: int, k: int) -> wp.float64:
 
 
 @wp.func
+def _earlier(a: wp.float64, b: wp.float64) -> wp.float64:
+    """The smaller of two ray parameters of a walk, which are never NaN: a select (``wp.min`` also orders NaN)."""
+    return wp.where(a <= b, a, b)
+
+
+@wp.func
+def _later(a: wp.float64, b: wp.float64) -> wp.float64:
+    """The larger of two ray parameters of a walk, which are never NaN: a select (``wp.max`` also orders NaN)."""
+    return wp.where(a >= b, a, b)
+
+
+@wp.func
 def _lad(c: Canopy, index: wp.vec3i) -> wp.float32:
-    """The leaf area density [m²/m³] of voxel ``index`` (in the grid), read from the flat copy: one product for the
-    row rather than one per axis."""
-    row = wp.int64(index[0]) * wp.int64(c.dims[1]) + wp.int64(index[1])
-    return c.lad_flat[row * wp.int64(c.dims[2]) + wp.int64(index[2])]
+    """The leaf area density [m²/m³] of voxel ``index`` (in the grid), read from the flat copy: two products for its
+    place rather than one per axis (32-bit: a grid holds at most ``flightsim.scenes.canopy.MAX_VOXELS``)."""
+    return c.lad_flat[(index[0] * c.dims[1] + index[1]) * c.dims[2] + index[2]]
 
 
 @wp.func
@@ -218,7 +229,7 @@ def walk_next(c: Canopy, w: VoxelWalk) -> VoxelWalk:
     v.index = index
     v.t_next = t_next
     v.t_in = t
-    v.t_out = wp.max(t, wp.min(wp.min(wp.min(t_next[0], t_next[1]), t_next[2]), v.t_end))
+    v.t_out = _later(t, _earlier(_earlier(_earlier(t_next[0], t_next[1]), t_next[2]), v.t_end))
     v.lad = _lad(c, index)
     v.steps = v.steps + 1
     return v

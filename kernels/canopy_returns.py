@@ -152,9 +152,9 @@ def end_blind(det: EchoDetection, t: Trigger, transmission: wp.float64, echoes: 
 
 @wp.func
 def trigger_in(t: Trigger, kappa: wp.float64, tau_out: wp.float64, t_in: wp.float64, t_out: wp.float64) -> bool:
-    """Whether something happens to the detector ``t`` in a voxel of extinction ``kappa`` [1/m] spanning t_in … t_out
-    [m] at whose end the optical depth is ``tau_out``: its blind stretch ends there (or ended before it), or, listening,
-    it triggers there. Only a voxel with leaves and a length can hold either."""
+    """Whether the detector ``t`` changes state in a voxel of extinction ``kappa`` [1/m] spanning t_in … t_out [m], at
+    whose end the optical depth is ``tau_out``: its blind stretch ends there (or ended in voxels without leaves before
+    it), or, listening, it triggers there. Only a voxel with leaves and a length can hold either."""
     if not (kappa > wp.float64(0.0) and t_in < t_out):
         return False
     if t.blind != 0:
@@ -186,36 +186,27 @@ def leaf_returns(c: Canopy, det: EchoDetection, top: wp.vec3d, direction: wp.vec
     span = leaf_span(c, top, direction, depth)  # the walk crosses no leaves outside it: the same numbers
     w = walk_begin(c, top, direction, span[0], span[1])
     while w.done == 0:
-        # The voxels before the next one where the detector triggers or its blind stretch ends, in a loop of their
-        # own: on a GPU a warp's lanes leave it one by one and meet at its end, so the events below (an exp and a log
-        # each) run for many lanes at once rather than for one lane while the others wait, voxel after voxel.
         kappa = g * wp.float64(w.lad)
-        tau_out = tau + kappa * (w.t_out - w.t_in)  # tau itself where the voxel has no leaves
-        while w.done == 0 and not trigger_in(t, kappa, tau_out, w.t_in, w.t_out):
-            tau = tau_out
-            w = walk_next(c, w)
-            kappa = g * wp.float64(w.lad)
-            tau_out = tau + kappa * (w.t_out - w.t_in)
-        if w.done != 0:
-            break
-        s = w.t_in
-        while s < w.t_out:
-            if t.blind != 0:
-                if t.armed > w.t_out:
+        tau_out = tau + kappa * (w.t_out - w.t_in)  # tau itself in a voxel without leaves
+        if trigger_in(t, kappa, tau_out, w.t_in, w.t_out):  # the rare voxel where the detector's state changes
+            s = w.t_in
+            while s < w.t_out:
+                if t.blind != 0:
+                    if t.armed > w.t_out:
+                        break
+                    s = wp.max(s, t.armed)  # the blind stretch ends in this voxel (or ended in empty ones before it)
+                    t = end_blind(det, t, wp.exp(-(tau + kappa * (s - w.t_in))), echoes, base)
+                elif tau_out < t.target:
                     break
-                s = wp.max(s, t.armed)  # the blind stretch ends in this voxel (or ended in empty ones before it)
-                t = end_blind(det, t, wp.exp(-(tau + kappa * (s - w.t_in))), echoes, base)
-            elif tau_out < t.target:
-                break
-            else:
-                s = wp.min(wp.max(s, w.t_in + (t.target - tau) / kappa), w.t_out)
-                t.count += 1
-                t.at_return = t.next_left
-                t.above = depth - s
-                t.armed = s + det.min_separation
-                t.blind = 1
-                if det.min_separation == wp.float64(0.0):  # no blind stretch: listening again at once
-                    t = end_blind(det, t, t.at_return, echoes, base)
+                else:
+                    s = wp.min(wp.max(s, w.t_in + (t.target - tau) / kappa), w.t_out)
+                    t.count += 1
+                    t.at_return = t.next_left
+                    t.above = depth - s
+                    t.armed = s + det.min_separation
+                    t.blind = 1
+                    if det.min_separation == wp.float64(0.0):  # no blind stretch: listening again at once
+                        t = end_blind(det, t, t.at_return, echoes, base)
         tau = tau_out
         w = walk_next(c, w)
     transmission = wp.exp(-tau)
