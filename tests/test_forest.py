@@ -19,6 +19,7 @@ from flightsim.core.errors import InputError
 from flightsim.scenes.forest import PlaneGround, StandSpec, Trees, grow_stand
 from flightsim.scenes.forest_mesh import crown_template, ground_mesh, prism_template, stand_mesh
 from flightsim.scenes.forest_scene import ForestSettings, forest_scene, stand
+from flightsim.scenes import forest_voxels
 from flightsim.scenes.forest_voxels import lai_map, stand_voxels
 from flightsim.studies.forest_truth import canopy_cover, canopy_height_model
 
@@ -178,6 +179,37 @@ def test_a_cylinder_crown_fills_whole_voxels_exactly():
     expected = quad(lambda x: min(1.0, 0.5 + math.sqrt(max(9.0 - (x - 0.5) ** 2, 0.0)))
                     - max(0.0, 0.5 - math.sqrt(max(9.0 - (x - 0.5) ** 2, 0.0))), 3.0, 3.5, epsabs=1e-13)[0]
     assert lad[i + 3, j, k] == pytest.approx(expected, abs=1e-7)
+
+
+def test_crown_volumes_in_threads_are_the_serial_ones_bit_for_bit(monkeypatch):
+    """Crowns of different chunks share voxels, so their float64 volumes must add up in the chunks' order whatever
+    the threads: a chunk per crown in eight threads against one thread."""
+    dense = dataclasses.replace(SPEC, size_m=25.0, stems_per_ha=2000.0, min_spacing_m=1.0, crown_ratio_radius=0.3)
+    trees = grow_stand(dense, 5, PlaneGround(0.1))  # crowns overlapping three and more deep
+    lower, shape = forest_voxels.voxel_grid(trees, 0.5)
+    monkeypatch.setattr(forest_voxels, "_COLUMNS_PER_CHUNK", 1)
+    monkeypatch.setattr(forest_voxels, "_THREADS", 1)
+    serial = forest_voxels.crown_volumes(trees, lower, shape, 0.5)
+    monkeypatch.setattr(forest_voxels, "_THREADS", 8)
+    monkeypatch.setattr(forest_voxels.os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    threaded = forest_voxels.crown_volumes(trees, lower, shape, 0.5)
+    assert len(forest_voxels._chunks(trees, lower, 0.5)) == len(trees)
+    assert threaded.tobytes() == serial.tobytes()
+
+
+@pytest.mark.parametrize("r", [0.3, 1.0, 2.7])
+def test_disc_square_area_has_the_closed_forms_of_discs_squares_and_segments(r):
+    big = 4.0 * r
+    cases = {(-big, big, -big, big): math.pi * r * r,  # the disc inside
+             (0.0, big, 0.0, big): math.pi * r * r / 4.0,  # a quadrant
+             (-big, big, 0.0, big): math.pi * r * r / 2.0,  # a half
+             (-0.3 * r, 0.4 * r, -0.2 * r, 0.5 * r): 0.7 * r * 0.7 * r,  # a rectangle inside the disc
+             (1.1 * r, big, -big, big): 0.0}  # beside it
+    for d in (0.25, 0.6, 0.95):  # the circular segment beyond x = d·r: r² acos(d) − d·r · r√(1 − d²)
+        cases[(d * r, big, -big, big)] = r * r * (math.acos(d) - d * math.sqrt(1.0 - d * d))
+    for (x0, x1, y0, y1), expected in cases.items():
+        got = forest_voxels.disc_square_area(np.array([r]), *(np.array([v]) for v in (x0, x1, y0, y1)))
+        assert got[0] == pytest.approx(expected, rel=1e-13, abs=1e-15 * r * r), (x0, x1, y0, y1)
 
 
 # ------------------------------------------------------------------------------------------------

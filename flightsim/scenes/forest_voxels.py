@@ -18,7 +18,10 @@ adaptive quadrature), a cylinder's (A constant in z) to rounding.
 """
 from __future__ import annotations
 
+import collections
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -28,6 +31,7 @@ from flightsim.scenes.forest import Trees, box_cells, crown_radius_at
 MAX_VOXELS = 500_000_000  # 2 GB of float32 leaf area density
 GAUSS_NODES = 8
 _COLUMNS_PER_CHUNK = 8192  # crown columns integrated at once (bounds the memory of the pieces)
+_THREADS = 8  # threads integrating chunks at once (each holds ~0.2 GB of a chunk's pieces)
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(GAUSS_NODES)
 _T = 0.5 * (_NODES + 1.0)  # on [0, 1]
 _SUB = 0.5 * (1.0 - np.cos(math.pi * _T))  # z = a + (b − a)·_SUB
@@ -58,13 +62,36 @@ def stand_voxels(trees: Trees, cell_m: float = 1.0) -> tuple[np.ndarray, np.ndar
     if not (math.isfinite(cell) and cell > 0.0):
         raise InputError("scene.forest_voxel_m", cell_m, "a voxel side > 0 m")
     lower, shape = voxel_grid(trees, cell)
+    lad = (crown_volumes(trees, lower, shape, cell) * (trees.lad / cell ** 3)).reshape(shape).astype(np.float32)
+    return lad, lower, np.full(3, cell)
+
+
+def crown_volumes(trees: Trees, lower: np.ndarray, shape: tuple[int, int, int], cell: float) -> np.ndarray:
+    """Volume [m³] of each voxel of the grid (``lower``, ``shape``, cubic ``cell`` [m]) inside the crowns, summed
+    over them: float64, flat in C order."""
     volume = np.zeros(math.prod(shape))
-    for chunk in _chunks(trees, lower, cell):
-        flat, inside = _crown_volumes(trees, chunk, lower, shape, cell)
+    for flat, inside in _in_threads(lambda chunk: _crown_volumes(trees, chunk, lower, shape, cell),
+                                    _chunks(trees, lower, cell)):
         cells, where = np.unique(flat, return_inverse=True)
         volume[cells] += np.bincount(where, weights=inside, minlength=len(cells))
-    lad = (volume * (trees.lad / cell ** 3)).reshape(shape).astype(np.float32)
-    return lad, lower, np.full(3, cell)
+    return volume
+
+
+def _in_threads(work, items: list):
+    """``work(item)`` of each item, yielded in the items' order (so the volumes add up in the same order, to the same
+    bits, whatever the threads) and computed by up to _THREADS threads (NumPy releases the GIL in its array
+    arithmetic), at most two items per thread ahead of the one yielded."""
+    threads = min(_THREADS, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    if threads <= 1 or len(items) <= 1:
+        yield from map(work, items)
+        return
+    with ThreadPoolExecutor(threads, thread_name_prefix="crowns") as pool:
+        pending = collections.deque(pool.submit(work, item) for item in items[:2 * threads])
+        for item in items[2 * threads:] + [None] * len(pending):
+            done = pending.popleft().result()
+            if item is not None:
+                pending.append(pool.submit(work, item))
+            yield done
 
 
 def lai_map(lad: np.ndarray, cell) -> np.ndarray:
@@ -145,20 +172,24 @@ def _crown_volumes(trees: Trees, chunk: np.ndarray, lower: np.ndarray, shape, ce
 
 def disc_square_area(r, x0, x1, y0, y1) -> np.ndarray:
     """Area [m²] of the disc of radius ``r`` centred on (0, 0) inside the rectangle [x0, x1] × [y0, y1] [m]
-    (arrays broadcast together)."""
-    return _corner(x1, y1, r) - _corner(x0, y1, r) - _corner(x1, y0, r) + _corner(x0, y0, r)
-
-
-def _corner(u, v, r) -> np.ndarray:
-    """Signed area of the disc of radius r centred on (0, 0) inside the rectangle between (0, 0) and (u, v):
-    with a = min(|u|, r), b = min(|v|, r) and c = min(√(r² − b²), a), the area is c·b plus the area under the
-    circle from c to a (the circle's primitive S(x) = (x√(r² − x²) + r² asin(x/r)) / 2)."""
-    a, b = np.minimum(np.abs(u), r), np.minimum(np.abs(v), r)
+    (arrays broadcast together): the signed areas of the disc inside the rectangles between (0, 0) and each corner
+    (u, v), added with alternating signs. With a = min(|u|, r), b = min(|v|, r) and c = min(√(r² − b²), a), such an
+    area is c·b plus the area under the circle from c to a (the circle's primitive S(x) = (x√(r² − x²) +
+    r² asin(x/r)) / 2). a and S(a) depend on the corner's u alone, √(r² − b²) on its v alone: each is taken once
+    for the two corners that share it."""
     r2 = r * r
-    c = np.minimum(np.sqrt(np.maximum(r2 - b * b, 0.0)), a)
     scale = np.where(r > 0.0, r, 1.0)
 
     def primitive(x):
         return 0.5 * (x * np.sqrt(np.maximum(r2 - x * x, 0.0)) + r2 * np.arcsin(np.minimum(x / scale, 1.0)))
 
-    return np.sign(u) * np.sign(v) * (c * b + primitive(a) - primitive(c))
+    a = [np.minimum(np.abs(u), r) for u in (x0, x1)]
+    s_a = [primitive(x) for x in a]
+    b = [np.minimum(np.abs(v), r) for v in (y0, y1)]
+    w = [np.sqrt(np.maximum(r2 - y * y, 0.0)) for y in b]
+
+    def corner(i: int, j: int, u, v) -> np.ndarray:
+        c = np.minimum(w[j], a[i])
+        return np.sign(u) * np.sign(v) * (c * b[j] + s_a[i] - primitive(c))
+
+    return corner(1, 1, x1, y1) - corner(0, 1, x0, y1) - corner(1, 0, x1, y0) + corner(0, 0, x0, y0)
