@@ -12,7 +12,7 @@ from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.engine import world as plan
 from flightsim.platforms.lines import MAX_CLIMB_MPS
-from flightsim.scenes import cache, mesh_obj, mesh_ply, meshio
+from flightsim.scenes import cache, forest_scene, mesh_obj, mesh_ply, meshio
 from flightsim.scenes import mesh as scene_mesh
 from flightsim.scenes.height_grid import HeightGrid
 from flightsim.scenes.mesh_planes import COPLANAR_ANGLE_DEG, COPLANAR_OFFSET_M
@@ -467,3 +467,44 @@ def test_entries_of_vanished_sources_are_removed(tmp_path, monkeypatch):
     set_value(cfg, "scene.name", str(other))
     plan.build_scene(cfg)
     assert [p.name.split("-")[0] for p in (tmp_path / "cache").glob("*.npz")] == ["other"]
+
+
+def forest_config(tmp_path, monkeypatch, **settings):
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "cache"))
+    cfg = RunConfig()
+    for key, value in {"scene.name": "forest", "scene.forest_size_m": 30.0, "flight.duration_s": 0.1,
+                       **settings}.items():
+        set_value(cfg, key, value)
+    return validate(cfg)
+
+
+def test_a_second_forest_run_reads_its_voxels_from_the_cache_bit_for_bit(tmp_path, monkeypatch):
+    cfg = forest_config(tmp_path, monkeypatch)
+    fresh = plan.build_scene(cfg).canopy
+    (entry,) = (tmp_path / "cache").glob("forest-*.npz")
+    monkeypatch.setattr(forest_scene, "stand_voxels", refuse_to_load)
+    cached = plan.build_scene(cfg).canopy
+    for name in ("lad", "lower", "cell"):
+        assert getattr(cached, name).tobytes() == getattr(fresh, name).tobytes()
+        assert getattr(cached, name).dtype == getattr(fresh, name).dtype
+    # another seed, voxel size or stand setting is another stand: computed afresh, kept beside the first
+    for key, value in (("run.seed", 5), ("scene.forest_voxel_m", 0.5), ("scene.forest_stems_per_ha", 300.0)):
+        other = forest_config(tmp_path, monkeypatch, **{key: value})
+        with pytest.raises(AssertionError, match="from the cache"):
+            plan.build_scene(other)
+    monkeypatch.undo()
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "cache"))
+    entry.write_bytes(entry.read_bytes()[: entry.stat().st_size // 2])  # cut short: computed again
+    assert plan.build_scene(cfg).canopy.lad.tobytes() == fresh.lad.tobytes()
+
+
+def test_forest_voxels_outlive_the_orphan_sweep_and_stay_out_with_the_cache_off(tmp_path, monkeypatch):
+    cfg = forest_config(tmp_path, monkeypatch)
+    plan.build_scene(cfg)
+    mesh_cfg, _ = cached_config(tmp_path, monkeypatch)  # a file scene's entry: the sweep of vanished sources runs
+    plan.build_scene(mesh_cfg)
+    assert sorted(p.name.split("-")[0] for p in (tmp_path / "cache").glob("*.npz")) == ["forest", "terrain"]
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "unused"))
+    set_value(cfg, "run.scene_cache", "false")
+    assert plan.build_scene(cfg).canopy is not None
+    assert not (tmp_path / "unused").exists()

@@ -20,10 +20,12 @@ def scene_part(scene):
 def build_scene(scene, half_extent_m: float, seed: int = 0, use_cache: bool = True, device: str = "cpu") -> Scene:
     """The scene of the ``[scene]`` section ``scene``: a built-in kind with ground of ``half_extent_m`` [m] where it
     is sized to the flight (relief from ``seed``); a file through the scene cache when ``use_cache`` (keyed on
-    every scene setting and the files they name; its height grid built on ``device``); with the leaf area grid of
+    every scene setting and the files they name; its height grid built on ``device``), and what a built-in kind
+    computes from its settings alone (a procedural forest's voxels) kept there too; with the leaf area grid of
     ``scene.canopy`` over it, read every time."""
     parse_crs(scene.crs, field="scene.crs")
     part = scene_part(scene)
+    part.use_cache = use_cache
     if not getattr(part, "suffixes", ()) or not use_cache or not part.cacheable:
         built = part.build(half_extent_m, seed)
     else:

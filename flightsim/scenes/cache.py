@@ -18,6 +18,10 @@ arrays are used (``np.load`` copies every member through 256 kB reads: 0.6 s for
 The members' CRCs are not checked (that would be the pass over the data); an entry that is not a whole
 zip of stored ``.npy`` members, or whose arrays do not make a valid scene, is ignored as above.
 
+Arrays a scene computes from its settings alone (a procedural forest's leaf voxels) are kept the same way
+(:func:`cached_arrays`): keyed on those settings, the seed and the source of the code that computes them, and never
+removed as orphans (they name no source file).
+
 The folder is ``$FLIGHTSIM_CACHE``, else ``~/.cache/flightsim/scenes``.
 """
 from __future__ import annotations
@@ -79,6 +83,33 @@ def cached_scene(path, options: dict, load: Callable[[], Scene], folder: Path | 
     return scene
 
 
+def cached_arrays(name: str, inputs: dict, code: tuple, compute: Callable[[], dict[str, np.ndarray]],
+                  folder: Path | None = None) -> dict[str, np.ndarray]:
+    """The arrays ``compute()`` makes, from the cache or computed (then stored for next time).
+
+    Args:
+        name: what they are (the entry's file name starts with it).
+        inputs: JSON-serialisable values that are everything the arrays depend on besides the code.
+        code: the modules whose source computes them: an entry is used only by the same source.
+        compute: makes them afresh (a dict of arrays, none of them object arrays).
+        folder: the cache folder; :func:`cache_folder` by default.
+    """
+    folder = cache_folder() if folder is None else Path(folder)
+    source = hashlib.sha256(b"".join(Path(module.__file__).read_bytes() for module in code)).hexdigest()
+    key = json.dumps({"format": CACHE_FORMAT, "flightsim": __version__, "numpy": np.__version__, "computed": name,
+                      "code": source, "inputs": inputs}, sort_keys=True, default=str)
+    entry = folder / f"{name}-{hashlib.sha256(key.encode('utf-8')).hexdigest()[:24]}.npz"
+    try:
+        stored = _stored_arrays(entry)
+        if str(stored.pop("key")) == key:
+            return stored
+    except (OSError, EOFError, KeyError, ValueError, TypeError, zipfile.BadZipFile):
+        pass
+    arrays = compute()
+    _store(folder, entry, {"key": np.array(key), **arrays})
+    return arrays
+
+
 def _key(path: Path, options: dict) -> str | None:
     """The entry's key as canonical JSON, None when the source cannot be stat'ed (``load`` then says why)."""
     try:
@@ -134,10 +165,19 @@ def _write_entry(folder: Path, entry: Path, key: str, scene: Scene) -> None:
         **{f"grid_{name}": array for name, array in scene.height_grid.arrays().items()},
         **{f"plane_{name}": np.array([getattr(p, name) for p in scene.planes]) for name in _PLANE_FIELDS},
     }
+    try:
+        _drop_orphans(folder)
+    except OSError:
+        pass
+    _store(folder, entry, arrays)
+
+
+def _store(folder: Path, entry: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write ``arrays`` to ``entry`` through a temporary file renamed into place; a folder that cannot be written
+    only costs the saving."""
     temporary = None
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        _drop_orphans(folder)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{entry.stem}.", suffix=".part", delete=False) as fh:
             temporary = Path(fh.name)
             np.savez(fh, **arrays)
@@ -148,13 +188,14 @@ def _write_entry(folder: Path, entry: Path, key: str, scene: Scene) -> None:
 
 
 def _drop_orphans(folder: Path) -> None:
-    """Remove the entries whose source file no longer exists, and unreadable ones."""
+    """Remove the entries whose source file no longer exists, and unreadable ones (computed arrays name none)."""
     for entry in folder.glob("*.npz"):
         try:
-            source = json.loads(str(_stored_arrays(entry)["key"]))["source"]
+            key = json.loads(str(_stored_arrays(entry)["key"]))
+            source = "" if "computed" in key else key["source"]
         except (OSError, EOFError, KeyError, ValueError, TypeError, zipfile.BadZipFile):
             source = None
-        if source is None or not Path(source).exists():
+        if source is None or (source and not Path(source).exists()):
             entry.unlink(missing_ok=True)
 
 

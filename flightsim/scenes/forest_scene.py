@@ -12,6 +12,7 @@ The trees come from the run's seed alone: :func:`stand` gives the same trees for
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,8 @@ import numpy as np
 from flightsim.core.errors import InputError
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, check_settings, field_names, setting
+from flightsim.scenes import forest, forest_voxels
+from flightsim.scenes.cache import cached_arrays
 from flightsim.scenes.canopy import VoxelCanopy
 from flightsim.scenes.forest import CROWN_SHAPES, MAX_PACKING, PlaneGround, StandSpec, Trees, grow_stand
 from flightsim.scenes.forest_mesh import CLASS_CROWN, CLASS_STEM, ground_mesh, join, stand_mesh
@@ -86,7 +89,7 @@ class ForestScene(ScenePart):
     sized = True
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
-        return forest_scene(self.s, half_extent_m, seed)
+        return forest_scene(self.s, half_extent_m, seed, self.use_cache)
 
 
 def forest_settings(settings) -> ForestSettings:
@@ -110,9 +113,11 @@ def stand(settings, seed: int) -> Trees:
     return grow_stand(spec, seed, forest_ground(s))
 
 
-def forest_scene(settings, half_extent_m: float, seed: int) -> Scene:
+def forest_scene(settings, half_extent_m: float, seed: int, use_cache: bool = False) -> Scene:
     """The forest of ``settings`` (its ``[scene]``: crs, origin, margin_m and the forest's) from ``seed``; ground
-    of half side ``half_extent_m`` [m] or the stand's half side plus the margin, whichever is larger."""
+    of half side ``half_extent_m`` [m] or the stand's half side plus the margin, whichever is larger. With
+    ``use_cache`` the crowns' voxels come from the scene cache when this code made them for these settings and seed
+    (:func:`flightsim.scenes.cache.cached_arrays`), and are kept there when it did not."""
     s = forest_settings(settings)
     trees = stand(s, seed)
     ground = forest_ground(s)
@@ -122,7 +127,7 @@ def forest_scene(settings, half_extent_m: float, seed: int) -> Scene:
     return Scene(name="forest", crs=parse_crs(settings.crs), origin=settings.origin, vertices=mesh.vertices,
                  triangles=mesh.triangles, plane_id=mesh.part, classification=mesh.classification,
                  planes=_planes(trees, s.forest_slope, s.forest_crowns == "mesh"), ground_z=0.0, planar=False,
-                 canopy=_canopy(trees, s))
+                 canopy=_canopy(trees, s, seed, use_cache))
 
 
 def _planes(trees: Trees, slope: float, crowns: bool) -> list[PlaneInfo]:
@@ -136,10 +141,19 @@ def _planes(trees: Trees, slope: float, crowns: bool) -> list[PlaneInfo]:
                   azimuth_deg=float("nan")) for first, cls in parts for i in range(len(trees))]
 
 
-def _canopy(trees: Trees, s: ForestSettings):
-    """The crowns' leaf area as a VoxelCanopy (voxel crowns with leaves), else None."""
+def _canopy(trees: Trees, s: ForestSettings, seed: int, use_cache: bool):
+    """The crowns' leaf area as a VoxelCanopy (voxel crowns with leaves), else None; its voxels from the scene cache
+    with ``use_cache`` (keyed on every forest setting, the seed and the source that grows and voxelises the stand)."""
     if s.forest_crowns != "voxels" or len(trees) == 0 or trees.lad <= 0.0:
         return None
-    lad, lower, cell = stand_voxels(trees, s.forest_voxel_m)
-    return VoxelCanopy(lad=lad, lower=lower, cell=cell, leaf_angles=s.forest_leaf_angles,
+
+    def voxels() -> dict[str, np.ndarray]:
+        return dict(zip(("lad", "lower", "cell"), stand_voxels(trees, s.forest_voxel_m)))
+
+    if use_cache:
+        inputs = {"settings": {name: getattr(s, name) for name in field_names(ForestSettings)}, "seed": seed}
+        arrays = cached_arrays("forest", inputs, (forest, forest_voxels, sys.modules[__name__]), voxels)
+    else:
+        arrays = voxels()
+    return VoxelCanopy(lad=arrays["lad"], lower=arrays["lower"], cell=arrays["cell"], leaf_angles=s.forest_leaf_angles,
                        leaf_reflectance=s.forest_leaf_reflectance, leaf_transmittance=s.forest_leaf_transmittance)
