@@ -142,18 +142,26 @@ def _planes(trees: Trees, slope: float, crowns: bool) -> list[PlaneInfo]:
 
 
 def _canopy(trees: Trees, s: ForestSettings, seed: int, use_cache: bool):
-    """The crowns' leaf area as a VoxelCanopy (voxel crowns with leaves), else None; its voxels from the scene cache
-    with ``use_cache`` (keyed on every forest setting, the seed and the source that grows and voxelises the stand)."""
+    """The crowns' leaf area as a VoxelCanopy (voxel crowns with leaves), else None."""
     if s.forest_crowns != "voxels" or len(trees) == 0 or trees.lad <= 0.0:
         return None
+    lad, lower, cell = crown_voxels(trees, s, seed, use_cache)
+    return VoxelCanopy(lad=lad, lower=lower, cell=cell, leaf_angles=s.forest_leaf_angles,
+                       leaf_reflectance=s.forest_leaf_reflectance, leaf_transmittance=s.forest_leaf_transmittance)
+
+
+def crown_voxels(trees: Trees, settings, seed: int, use_cache: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`~flightsim.scenes.forest_voxels.stand_voxels` of ``trees``, the stand of ``settings``' forest from
+    ``seed``, on its ``forest_voxel_m`` grid; with ``use_cache`` from the scene cache when this code made them for
+    these settings and seed, and kept there when it did not (keyed on every forest setting, the seed and the source
+    that grows and voxelises the stand)."""
+    s = forest_settings(settings)
+    if not use_cache:
+        return stand_voxels(trees, s.forest_voxel_m)
 
     def voxels() -> dict[str, np.ndarray]:
         return dict(zip(("lad", "lower", "cell"), stand_voxels(trees, s.forest_voxel_m)))
 
-    if use_cache:
-        inputs = {"settings": {name: getattr(s, name) for name in field_names(ForestSettings)}, "seed": seed}
-        arrays = cached_arrays("forest", inputs, (forest, forest_voxels, sys.modules[__name__]), voxels)
-    else:
-        arrays = voxels()
-    return VoxelCanopy(lad=arrays["lad"], lower=arrays["lower"], cell=arrays["cell"], leaf_angles=s.forest_leaf_angles,
-                       leaf_reflectance=s.forest_leaf_reflectance, leaf_transmittance=s.forest_leaf_transmittance)
+    inputs = {"settings": {name: getattr(s, name) for name in field_names(ForestSettings)}, "seed": seed}
+    arrays = cached_arrays("forest", inputs, (forest, forest_voxels, sys.modules[__name__]), voxels)
+    return arrays["lad"], arrays["lower"], arrays["cell"]

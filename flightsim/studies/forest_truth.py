@@ -11,7 +11,8 @@ Written into the output directory, each file atomically, the same bytes for the 
   height is above the ground at its stem).
 - ``trees.csv``: tree_id, x_m, y_m (world E, N of the stem), ground_z_m (world H at the stem), height_m,
   crown_radius_m, crown_base_height_m, dbh_m.
-- ``canopy.npz``: the leaf area density voxels of :func:`~flightsim.scenes.forest_voxels.stand_voxels`: ``lad``
+- ``canopy.npz``: the leaf area density voxels of :func:`~flightsim.scenes.forest_voxels.stand_voxels` (through
+  the scene cache with ``run.scene_cache``, as a forest run's): ``lad``
   float32 (nx, ny, nz) [m²/m³] indexed east, north, up; ``lower_world`` (3,) world E, N, H of voxel (0, 0, 0)'s
   lower corner [m]; ``cell`` (3,) [m]; ``crs`` the CRS as WKT; the leaves' ``leaf_angles``, ``leaf_reflectance``
   and ``leaf_transmittance``: the format of :mod:`flightsim.scenes.canopy_io`, so ``scene.canopy = ".../canopy.npz"``
@@ -37,8 +38,7 @@ from flightsim.outputs.grid_products import write_geotiff
 from flightsim.scenes.canopy import VoxelCanopy
 from flightsim.scenes.canopy_io import write_canopy_npz
 from flightsim.scenes.forest import Trees, box_cells, crown_top
-from flightsim.scenes.forest_scene import stand
-from flightsim.scenes.forest_voxels import stand_voxels
+from flightsim.scenes.forest_scene import crown_voxels, stand
 from flightsim.scenes.scene import parse_crs
 
 FILES = ("chm.tif", "trees.csv", "canopy.npz", "forest.json")
@@ -135,7 +135,7 @@ def run_forest(out: Path, items=(), seed: int | None = None, chm_cell_m: float =
     s, crs = cfg.scene, parse_crs(cfg.scene.crs)
     origin = np.asarray(s.origin, dtype=np.float64)
     trees = stand(s, cfg.run.seed)
-    lad, lower, cell = stand_voxels(trees, s.forest_voxel_m)
+    lad, lower, cell = crown_voxels(trees, s, cfg.run.seed, cfg.run.scene_cache)
     heights, west, north = canopy_height_model(trees, chm_cell_m)
     area = trees.size_m ** 2
     summary = {
