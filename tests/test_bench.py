@@ -94,3 +94,23 @@ def test_waveform_report_gives_end_to_end_over_accumulation():
     rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| slope | 20,000 |")]
     assert [r[9] for r in rows] == ["0.30", "n/a"]  # 3.6e9 ÷ 1.2e10; no kernels' times on the CPU
     assert rows[0][10] == "25.0 |"  # the FFTs' 25 ms
+
+
+def test_the_forest_scene_build_is_measured_through_its_own_cache_folder(tmp_path, monkeypatch):
+    from flightsim.studies.bench_forest import scene_build
+    from flightsim.studies.bench_report import markdown
+
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "users"))
+    b = scene_build(30.0)
+    assert set(b) == {"forest_size_m", "voxels", "threads", "computed_s", "stored_s", "cached_s"}
+    assert len(b["voxels"]) == 3 and b["voxels"][2] > 1 and b["threads"] >= 1
+    assert not (tmp_path / "users").exists()  # its entries went to a folder of its own, and the user's is set back
+    text = markdown({"cpu": {"gpu_name": "none", "device": "cpu", "git_commit": "x", "date": "d", "forest": {
+        "cloud": {"samples": 1000, "points": 1, "footprints": 1, "device_s": 1.0, "footprints_per_s": 1.0,
+                  "numpy_footprints_per_s": 1.0, "speedup": 1.0, "min_correlation": 1.0, "prepare_s": 1.0,
+                  "numpy_footprints": 1},
+        "voxels": {"rays": 1, "grid": [1, 1, 1], "steps": 1, "wall_s": 1.0, "steps_per_s": 1.0},
+        "scene": {**b, "computed_s": 17.25, "stored_s": 18.0, "cached_s": 0.5},
+        "als": {"forest_size_m": 30.0, "forest": {"beams": 1, "returns": 1, "wall_s": 1.0, "beams_per_s": 1.0},
+                "bare": {"beams": 1, "returns": 1, "wall_s": 1.0, "beams_per_s": 1.0}, "ratio": 1.0}}}})
+    assert "17.2 s with its voxels computed, 18.0 s computed and stored in the scene cache, 0.50 s from it" in text

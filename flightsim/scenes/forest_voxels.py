@@ -77,17 +77,22 @@ def crown_volumes(trees: Trees, lower: np.ndarray, shape: tuple[int, int, int], 
     return volume
 
 
+def threads() -> int:
+    """Threads that integrate a stand's crowns on this machine: _THREADS or the cores this process may use."""
+    return min(_THREADS, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
 def _in_threads(work, items: list):
     """``work(item)`` of each item, yielded in the items' order (so the volumes add up in the same order, to the same
     bits, whatever the threads) and computed by up to _THREADS threads (NumPy releases the GIL in its array
     arithmetic), at most two items per thread ahead of the one yielded."""
-    threads = min(_THREADS, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-    if threads <= 1 or len(items) <= 1:
+    count = threads()
+    if count <= 1 or len(items) <= 1:
         yield from map(work, items)
         return
-    with ThreadPoolExecutor(threads, thread_name_prefix="crowns") as pool:
-        pending = collections.deque(pool.submit(work, item) for item in items[:2 * threads])
-        for item in items[2 * threads:] + [None] * len(pending):
+    with ThreadPoolExecutor(count, thread_name_prefix="crowns") as pool:
+        pending = collections.deque(pool.submit(work, item) for item in items[:2 * count])
+        for item in items[2 * count:] + [None] * len(pending):
             done = pending.popleft().result()
             if item is not None:
                 pending.append(pool.submit(work, item))

@@ -1,8 +1,11 @@
 """`flightsim bench` section forest: large-footprint waveforms from a point cloud against the same method in
-vectorised NumPy (the stand-in for today's CPU tools), the leaf voxel walk, and discrete ALS through a voxel forest
-against the same flight over its bare ground. Every ratio is measured in one run."""
+vectorised NumPy (the stand-in for today's CPU tools), the leaf voxel walk, the procedural forest scene's build (its
+voxels computed, and from the scene cache), and discrete ALS through a voxel forest against the same flight over its
+bare ground. Every ratio is measured in one run."""
 from __future__ import annotations
 
+import os
+import tempfile
 import time
 
 import numpy as np
@@ -15,6 +18,7 @@ from flightsim.engine.readouts.points import Points
 from flightsim.engine.tracer import Tracer
 from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.instrument.cloud_waveform_model import CloudBeam, model_waveforms, synthetic_forest
+from flightsim.scenes import forest_voxels
 from flightsim.studies.bench_common import Sizes
 from kernels import canopy as kc
 
@@ -27,9 +31,40 @@ def forest(device: str, s: Sizes) -> dict:
     cuda = resolve_device(device) != "cpu"
     points = (1e6 if s.quick else 1e7) if cuda else (2e5 if s.quick else 1e6)
     footprints = (2e4 if s.quick else 1e5) if cuda else (500 if s.quick else 2000)
+    size_m = 300.0 if s.quick else 1000.0
     return {"cloud": cloud_rate(device, int(points), int(footprints)),
             "voxels": walk_rate(device, 10 ** 5 if s.quick or not cuda else 10 ** 7),
-            "als": als_ratio(device, 2e5 if s.quick else (5e7 if cuda else 2e6), 300.0 if s.quick else 1000.0)}
+            "scene": scene_build(size_m),
+            "als": als_ratio(device, 2e5 if s.quick else (5e7 if cuda else 2e6), size_m)}
+
+
+def scene_build(size_m: float) -> dict:
+    """Seconds to build the forest scene of ``size_m`` square (LAI 3; on the host): with the scene cache off (the
+    stand's voxels computed), then twice through an empty cache folder (computed and stored; mapped from the entry)."""
+    cfg = RunConfig()
+    for key, value in {"scene.name": "forest", "scene.forest_size_m": size_m, "scene.forest_lai": 3.0,
+                       "run.scene_cache": False}.items():
+        set_value(cfg, key, value)
+    cfg = validate(cfg)
+    started = time.perf_counter()
+    scene = build_scene(cfg)
+    record = {"forest_size_m": size_m, "voxels": list(scene.canopy.dims), "threads": forest_voxels.threads(),
+              "computed_s": time.perf_counter() - started}
+    set_value(cfg, "run.scene_cache", True)
+    saved = os.environ.get("FLIGHTSIM_CACHE")
+    with tempfile.TemporaryDirectory() as folder:
+        os.environ["FLIGHTSIM_CACHE"] = folder
+        try:
+            for name in ("stored_s", "cached_s"):
+                started = time.perf_counter()
+                build_scene(cfg)
+                record[name] = time.perf_counter() - started
+        finally:
+            if saved is None:
+                os.environ.pop("FLIGHTSIM_CACHE", None)
+            else:
+                os.environ["FLIGHTSIM_CACHE"] = saved
+    return record
 
 
 def cloud_rate(device: str, points: int, footprints: int) -> dict:

@@ -182,12 +182,22 @@ def _forest(r: dict) -> list[str]:
             f"Device: end to end (the waveforms copied to the host), the cloud sorted once beforehand in "
             f"{c['prepare_s']:.2f} s; NumPy: {c['numpy_footprints']} footprints, its KD-tree built in the call.", "",
             f"Leaf voxel walk: {v['rays']:,} rays through a {'×'.join(map(str, v['grid']))} grid, {v['steps']:,} "
-            f"steps in {v['wall_s']:.4f} s: {_fmt(v['steps_per_s'])} steps/s.", "",
+            f"steps in {v['wall_s']:.4f} s: {_fmt(v['steps_per_s'])} steps/s.", "", *_forest_scene(r["forest"]),
             "| discrete ALS, points readout on the device | beams | returns | wall [s] | beams/s |",
             "| --- | --- | --- | --- | --- |",
             *[f"| {name} ({a['forest_size_m']:g} m square) | {x['beams']:,} | {x['returns']:,} | {x['wall_s']:.3f} | "
               f"{_fmt(x['beams_per_s'])} |" for name, x in (("forest, LAI 3", a["forest"]), ("bare ground", a["bare"]))],
             "", f"Forest ÷ bare ground: {a['ratio']:.2f}.", ""]
+
+
+def _forest_scene(f: dict) -> list[str]:
+    """The forest scene's build, where the section measured it."""
+    if "scene" not in f:
+        return []
+    b = f["scene"]
+    return [f"Forest scene ({b['forest_size_m']:g} m square, LAI 3, {'×'.join(map(str, b['voxels']))} voxels, on the "
+            f"host in {b['threads']} threads): {b['computed_s']:.1f} s with its voxels computed, {b['stored_s']:.1f} s "
+            f"computed and stored in the scene cache, {b['cached_s']:.2f} s from it.", ""]
 
 
 def _startup(r: dict) -> list[str]:
