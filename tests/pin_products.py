@@ -100,6 +100,12 @@ CASES: dict[str, dict] = {
              "--set", "scene.buildings={work}/terrain/buildings.obj", "--out", "{work}/run"],
         ],
     },
+    # the procedural forest: leaf returns through the voxel walk (classes 3-5, return numbers), its chm.tif
+    "las_forest": {
+        "steps": [
+            ["simulate", "--scene", "forest", "--duration", "0.3", "--device", "{device}", "--out", "{work}/run"],
+        ],
+    },
     # the Chang'e-3 galvo imager (channels emitter, galvo deflector, ranging chain) hovering over a plane
     "galvo_change3": {
         "steps": [
