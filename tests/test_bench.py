@@ -114,3 +114,14 @@ def test_the_forest_scene_build_is_measured_through_its_own_cache_folder(tmp_pat
         "als": {"forest_size_m": 30.0, "forest": {"beams": 1, "returns": 1, "wall_s": 1.0, "beams_per_s": 1.0},
                 "bare": {"beams": 1, "returns": 1, "wall_s": 1.0, "beams_per_s": 1.0}, "ratio": 1.0}}}})
     assert "17.2 s with its voxels computed, 18.0 s computed and stored in the scene cache, 0.50 s from it" in text
+
+
+def test_the_forest_breakdown_runs_its_variants_over_one_stand():
+    from flightsim.studies.forest_events import forest_events
+
+    rows = forest_events("cpu", 3e3, 150.0, ["as is", "no blind stretch", "no echo reaches the threshold"], runs=1)
+    assert [r["variant"] for r in rows] == ["as is", "no blind stretch", "no echo reaches the threshold"]
+    assert len({r["beams"] for r in rows}) == 1 and rows[0]["beams"] > 0
+    assert rows[0]["returns"] > rows[0]["beams"]  # leaf returns besides the ground's
+    assert rows[1]["returns"] > rows[0]["returns"]  # a detector that is never blind misses no leaf echo
+    assert rows[2]["returns"] == 0  # no echo reaches a white target's: ρ_l (1 − T) < 1 and T ρ cos θ < 1

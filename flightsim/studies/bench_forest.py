@@ -137,13 +137,18 @@ def als_ratio(device: str, beams: float, size_m: float) -> dict:
 def forest_tracer(device: str, lai: float, beams: float, size_m: float) -> Tracer:
     """The default airborne instrument at 500 m over a procedural forest of ``size_m`` square and leaf area index
     ``lai`` (0: bare ground, no canopy), lines flown back and forth over it for about ``beams`` beams."""
+    cfg = forest_config(device, lai, beams, size_m)
+    scene = build_scene(cfg)
+    return Tracer(cfg, scene, flight_trajectories(cfg, scene))
+
+
+def forest_config(device: str, lai: float, beams: float, size_m: float, **settings) -> RunConfig:
+    """:func:`forest_tracer`'s run config, with ``settings`` (config keys to values) over it; validated."""
     cfg = RunConfig()
     duration = size_m / (200.0 / 3.6)
     lines = max(1, round(beams / (5000.0 * 9 * duration)))
     for key, value in {"scene.name": "forest", "scene.forest_size_m": size_m, "scene.forest_lai": lai,
                        "flight.duration_s": duration, "flight.lines": lines, "flight.line_spacing_m": 0.01,
-                       "output.models": ["exact"], "run.device": device}.items():
+                       "output.models": ["exact"], "run.device": device, **settings}.items():
         set_value(cfg, key, value)
-    cfg = validate(cfg)
-    scene = build_scene(cfg)
-    return Tracer(cfg, scene, flight_trajectories(cfg, scene))
+    return validate(cfg)
