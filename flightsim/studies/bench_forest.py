@@ -41,11 +41,7 @@ def forest(device: str, s: Sizes) -> dict:
 def scene_build(size_m: float) -> dict:
     """Seconds to build the forest scene of ``size_m`` square (LAI 3; on the host): with the scene cache off (the
     stand's voxels computed), then twice through an empty cache folder (computed and stored; mapped from the entry)."""
-    cfg = RunConfig()
-    for key, value in {"scene.name": "forest", "scene.forest_size_m": size_m, "scene.forest_lai": 3.0,
-                       "run.scene_cache": False}.items():
-        set_value(cfg, key, value)
-    cfg = validate(cfg)
+    cfg = forest_config("cpu", 3.0, 1.0, size_m, **{"run.scene_cache": False})
     started = time.perf_counter()
     scene = build_scene(cfg)
     record = {"forest_size_m": size_m, "voxels": list(scene.canopy.dims), "threads": forest_voxels.threads(),
