@@ -104,7 +104,8 @@ def cmd_forest(args: argparse.Namespace) -> int:
         return 0
     from flightsim.studies.forest_truth import run_forest
 
-    summary = run_forest(Path(args.out), set_items(args), seed=args.seed, chm_cell_m=args.chm_cell_m)
+    summary = run_forest(Path(args.out), set_items(args), seed=args.seed, chm_cell_m=args.chm_cell_m,
+                         device=args.device)
     print(f"{summary['stems']} trees, LAI {summary['lai_achieved']:.3f} (target {summary['lai_target']:g}), "
           f"canopy cover {summary['canopy_cover']:.3f}; {', '.join(summary['files'])} written to {args.out}")
     return 0
@@ -137,7 +138,8 @@ def add_study_commands(sub) -> None:
     forest.add_argument("--chm-cell-m", type=float, default=1.0, help="cell of the canopy height model [m] (default 1)")
     forest.add_argument("--report", action="store_true", help="check the forests against closed forms, a float64 "
                         "implementation and the stand's truth instead: REPORT.md, forest_report.json, a figure")
-    forest.add_argument("--device", default="cpu", help="with --report: cpu (default), cuda or cuda:N")
+    forest.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N: where the leaf voxels are "
+                        "integrated (as a flight on it does, so the two share them), or the report's runs")
     forest.add_argument("--out", required=True, help="directory for the four files (or the report)")
     forest.set_defaults(func=cmd_forest)
     selfcal = sub.add_parser("selfcal", help="Risley self-calibration (n, apex, encoder offset, boresight) from blind "

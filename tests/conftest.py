@@ -34,3 +34,9 @@ def _devices() -> list[str]:
 def device(request) -> str:
     """A Warp device name; tests taking it run once per device."""
     return request.param
+
+
+@pytest.fixture(params=[None, *_devices()], ids=lambda d: d or "host")
+def voxels_on(request) -> str | None:
+    """Where a stand's leaf voxels are integrated: None the host's NumPy, else the kernel on that Warp device."""
+    return request.param

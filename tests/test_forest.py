@@ -135,10 +135,10 @@ def reference_volume(shape, tree, x0, x1, y0, y1, z0, z1):
 
 @pytest.mark.filterwarnings("ignore::scipy.integrate.IntegrationWarning")
 @pytest.mark.parametrize("shape", ["cone", "ellipsoid", "cylinder"])
-def test_voxel_fractions_match_nested_quadrature(shape):
+def test_voxel_fractions_match_nested_quadrature(shape, voxels_on):
     tree = one_tree(shape)
     cell = 0.5
-    lad, lower, cells = stand_voxels(tree, cell)
+    lad, lower, cells = stand_voxels(tree, cell, voxels_on)
     assert np.all(cells == cell) and np.allclose(lower / cell, np.round(lower / cell))
     partial = np.argwhere((lad > 1e-3) & (lad < 0.999))
     picks = partial[np.random.default_rng(0).choice(len(partial), 8, replace=False)]
@@ -149,9 +149,9 @@ def test_voxel_fractions_match_nested_quadrature(shape):
 
 
 @pytest.mark.parametrize("shape", ["cone", "ellipsoid", "cylinder"])
-def test_voxel_leaf_area_is_the_analytic_crown_volume_times_lad(shape):
+def test_voxel_leaf_area_is_the_analytic_crown_volume_times_lad(shape, voxels_on):
     trees = grow_stand(dataclasses.replace(SPEC, size_m=100.0, crown_shape=shape), 11, PlaneGround(0.2))
-    lad, lower, cell = stand_voxels(trees, 1.0)
+    lad, lower, cell = stand_voxels(trees, 1.0, voxels_on)
     analytic = trees.lad * np.sum(SHAPE_FACTOR[shape] * math.pi * trees.crown_radius ** 2 * trees.crown_length)
     leaf_area = lad.sum(dtype=np.float64) * np.prod(cell)
     assert lad.min() >= 0.0
@@ -169,9 +169,9 @@ def test_stand_lai_achieved_is_the_target(lai):
     assert lad.sum(dtype=np.float64) * np.prod(cell) / 80.0 ** 2 == pytest.approx(lai, rel=0.01)
 
 
-def test_a_cylinder_crown_fills_whole_voxels_exactly():
+def test_a_cylinder_crown_fills_whole_voxels_exactly(voxels_on):
     tree = one_tree("cylinder", x=0.5, y=0.5, height=8.0, crown_base=3.0, radius=3.0)
-    lad, lower, cell = stand_voxels(tree, 1.0)
+    lad, lower, cell = stand_voxels(tree, 1.0, voxels_on)
     k = int(round((5.0 - lower[2]) / cell[2]))  # the layer from 5 to 6 m: wholly inside the crown's height
     i, j = (int(round((v - lower[n]) / cell[n])) for n, v in enumerate((0.0, 0.0)))
     assert lad[i, j, k] == pytest.approx(1.0, abs=1e-7)  # [0, 1]² lies within 3 m of (0.5, 0.5)
@@ -195,6 +195,37 @@ def test_crown_volumes_in_threads_are_the_serial_ones_bit_for_bit(monkeypatch):
     threaded = forest_voxels.crown_volumes(trees, lower, shape, 0.5)
     assert len(forest_voxels._chunks(trees, lower, 0.5)) == len(trees)
     assert threaded.tobytes() == serial.tobytes()
+
+
+@pytest.mark.parametrize("shape", ["cone", "ellipsoid", "cylinder"])
+def test_the_device_integrates_the_hosts_voxels_to_float64_rounding(shape, device):
+    """Overlapping crowns on a slope: the kernel's pieces, nodes and sums are the host's, so the densities agree
+    to the rounding of float64 (a crown barely touching a voxel leaves ~1e-16 m²/m³ of cancellation either way)
+    and most voxels are the same float32; a piece lost or misplaced would be off by 1e-6 or more."""
+    dense = dataclasses.replace(SPEC, size_m=25.0, stems_per_ha=2000.0, min_spacing_m=1.0, crown_ratio_radius=0.3,
+                                crown_shape=shape)
+    trees = grow_stand(dense, 5, PlaneGround(0.3))
+    for cell in (1.0, 0.35):
+        host, lower, _ = stand_voxels(trees, cell)
+        kernel, kernel_lower, _ = stand_voxels(trees, cell, device)
+        assert kernel.shape == host.shape and kernel.dtype == np.float32 and np.array_equal(kernel_lower, lower)
+        assert np.abs(kernel.astype(np.float64) - host).max() <= 1e-12 * host.max()
+        assert np.mean(kernel == host) > 0.95 and np.count_nonzero(host) > 1000
+
+
+def test_the_device_lists_each_column_with_its_crowns_in_order():
+    trees = one_tree("cone", x=0.37, y=-0.21, radius=1.2)
+    two = dataclasses.replace(trees, **{k: np.append(getattr(trees, k), getattr(trees, k) + d) for k, d in
+                                        (("x", 1.0), ("y", 0.0), ("base_z", 0.0), ("height", 0.0),
+                                         ("crown_radius", 0.0), ("crown_base", 0.0), ("dbh", 0.0))})
+    lower, shape = forest_voxels.voxel_grid(two, 1.0)
+    columns, first, members = forest_voxels.column_trees(two, lower, shape, 1.0)
+    # tree 0's box: x in [-0.83, 1.57] → i 0..2 of the grid from x = -1; y in [-1.41, 0.99] → j 0..2; tree 1 x + 1
+    boxes = {0: {(i, j) for i in range(3) for j in range(3)}, 1: {(i, j) for i in range(1, 4) for j in range(3)}}
+    listed = {(int(c) // shape[1], int(c) % shape[1]): members[first[n]:first[n + 1]].tolist()
+              for n, c in enumerate(columns)}
+    assert listed == {ij: [t for t in (0, 1) if ij in boxes[t]] for ij in boxes[0] | boxes[1]}
+    assert np.all(np.diff(columns) > 0) and lower[0] == -1.0 and lower[1] == -2.0
 
 
 @pytest.mark.parametrize("r", [0.3, 1.0, 2.7])
@@ -393,6 +424,14 @@ def test_cli_refuses_bad_forest_settings_in_one_line(tmp_path, setting, field):
     result = flightsim("forest", "--set", setting, "--out", str(tmp_path / "out"))
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.returncode == 2 and len(lines) == 1 and field in lines[0] and "Traceback" not in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("device, allowed", [("gpu", "cpu, cuda or cuda:N"), ("cuda:7", "a device present")])
+def test_cli_refuses_a_device_to_integrate_on_in_one_line(tmp_path, device, allowed):
+    result = flightsim("forest", "--set", "scene.forest_size_m=20", "--device", device, "--out", str(tmp_path / "out"))
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines) == 1 and "run.device" in lines[0] and allowed in lines[0]
     assert not (tmp_path / "out").exists()
 
 

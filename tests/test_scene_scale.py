@@ -519,3 +519,22 @@ def test_the_forest_truth_and_a_forest_run_compute_the_stands_voxels_once(tmp_pa
     canopy = plan.build_scene(cfg).canopy
     with np.load(tmp_path / "truth" / "canopy.npz") as truth:
         assert truth["lad"].tobytes() == canopy.lad.tobytes()
+
+
+def test_voxels_integrated_on_a_device_are_cached_apart_from_the_hosts(tmp_path, monkeypatch):
+    """A run on a GPU integrates its stand's voxels there (``kernels.crown_voxels``, a few float64 ulps from the
+    host's NumPy): each kind of integration keeps an entry of its own, read back bit for bit."""
+    monkeypatch.setenv("FLIGHTSIM_CACHE", str(tmp_path / "cache"))
+    s = forest_config(tmp_path, monkeypatch).scene
+    from flightsim.scenes.forest_voxels import stand_voxels
+
+    kernel = forest_scene.forest_scene(s, 30.0, 3, use_cache=True, device="cpu").canopy
+    assert kernel.lad.tobytes() == stand_voxels(forest_scene.stand(s, 3), s.forest_voxel_m, "cpu")[0].tobytes()
+    host = forest_scene.forest_scene(s, 30.0, 3, use_cache=True).canopy  # not the kernel's entry
+    assert host.lad.tobytes() == stand_voxels(forest_scene.stand(s, 3), s.forest_voxel_m)[0].tobytes()
+    assert len(list((tmp_path / "cache").glob("forest-*.npz"))) == 2
+    monkeypatch.setattr(forest_scene, "stand_voxels", refuse_to_load)
+    for device, made in (("cpu", kernel), (None, host)):
+        again = forest_scene.forest_scene(s, 30.0, 3, use_cache=True, device=device).canopy
+        assert again.lad.tobytes() == made.lad.tobytes()
+    assert forest_scene.voxel_device("cpu") is None and forest_scene.voxel_device("cuda:1") == "cuda:1"

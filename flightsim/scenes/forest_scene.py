@@ -11,9 +11,11 @@ The trees come from the run's seed alone: :func:`stand` gives the same trees for
 """
 from __future__ import annotations
 
+import importlib.util
 import math
 import sys
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -89,7 +91,7 @@ class ForestScene(ScenePart):
     sized = True
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
-        return forest_scene(self.s, half_extent_m, seed, self.use_cache)
+        return forest_scene(self.s, half_extent_m, seed, self.use_cache, voxel_device(self.device))
 
 
 def forest_settings(settings) -> ForestSettings:
@@ -113,11 +115,13 @@ def stand(settings, seed: int) -> Trees:
     return grow_stand(spec, seed, forest_ground(s))
 
 
-def forest_scene(settings, half_extent_m: float, seed: int, use_cache: bool = False) -> Scene:
+def forest_scene(settings, half_extent_m: float, seed: int, use_cache: bool = False,
+                 device: str | None = None) -> Scene:
     """The forest of ``settings`` (its ``[scene]``: crs, origin, margin_m and the forest's) from ``seed``; ground
     of half side ``half_extent_m`` [m] or the stand's half side plus the margin, whichever is larger. With
     ``use_cache`` the crowns' voxels come from the scene cache when this code made them for these settings and seed
-    (:func:`flightsim.scenes.cache.cached_arrays`), and are kept there when it did not."""
+    (:func:`flightsim.scenes.cache.cached_arrays`), and are kept there when it did not; ``device``: where they are
+    integrated (:func:`crown_voxels`)."""
     s = forest_settings(settings)
     trees = stand(s, seed)
     ground = forest_ground(s)
@@ -127,7 +131,7 @@ def forest_scene(settings, half_extent_m: float, seed: int, use_cache: bool = Fa
     return Scene(name="forest", crs=parse_crs(settings.crs), origin=settings.origin, vertices=mesh.vertices,
                  triangles=mesh.triangles, plane_id=mesh.part, classification=mesh.classification,
                  planes=_planes(trees, s.forest_slope, s.forest_crowns == "mesh"), ground_z=0.0, planar=False,
-                 canopy=_canopy(trees, s, seed, use_cache))
+                 canopy=_canopy(trees, s, seed, use_cache, device))
 
 
 def _planes(trees: Trees, slope: float, crowns: bool) -> list[PlaneInfo]:
@@ -141,27 +145,42 @@ def _planes(trees: Trees, slope: float, crowns: bool) -> list[PlaneInfo]:
                   azimuth_deg=float("nan")) for first, cls in parts for i in range(len(trees))]
 
 
-def _canopy(trees: Trees, s: ForestSettings, seed: int, use_cache: bool):
+def _canopy(trees: Trees, s: ForestSettings, seed: int, use_cache: bool, device: str | None):
     """The crowns' leaf area as a VoxelCanopy (voxel crowns with leaves), else None."""
     if s.forest_crowns != "voxels" or len(trees) == 0 or trees.lad <= 0.0:
         return None
-    lad, lower, cell = crown_voxels(trees, s, seed, use_cache)
+    lad, lower, cell = crown_voxels(trees, s, seed, use_cache, device)
     return VoxelCanopy(lad=lad, lower=lower, cell=cell, leaf_angles=s.forest_leaf_angles,
                        leaf_reflectance=s.forest_leaf_reflectance, leaf_transmittance=s.forest_leaf_transmittance)
 
 
-def crown_voxels(trees: Trees, settings, seed: int, use_cache: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def crown_voxels(trees: Trees, settings, seed: int, use_cache: bool, device: str | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`~flightsim.scenes.forest_voxels.stand_voxels` of ``trees``, the stand of ``settings``' forest from
-    ``seed``, on its ``forest_voxel_m`` grid; with ``use_cache`` from the scene cache when this code made them for
-    these settings and seed, and kept there when it did not (keyed on every forest setting, the seed and the source
-    that grows and voxelises the stand)."""
+    ``seed``, on its ``forest_voxel_m`` grid, integrated on the host (``device`` None) or on that Warp device; with
+    ``use_cache`` from the scene cache when this code made them for these settings and seed on the same kind of
+    device (the two agree to a few float64 ulps, not bit for bit), and kept there when it did not (keyed on every
+    forest setting, the seed, the device kind and the source that grows and voxelises the stand)."""
     s = forest_settings(settings)
     if not use_cache:
-        return stand_voxels(trees, s.forest_voxel_m)
+        return stand_voxels(trees, s.forest_voxel_m, device)
 
     def voxels() -> dict[str, np.ndarray]:
-        return dict(zip(("lad", "lower", "cell"), stand_voxels(trees, s.forest_voxel_m)))
+        return dict(zip(("lad", "lower", "cell"), stand_voxels(trees, s.forest_voxel_m, device)))
 
-    inputs = {"settings": {name: getattr(s, name) for name in field_names(ForestSettings)}, "seed": seed}
-    arrays = cached_arrays("forest", inputs, (forest, forest_voxels, sys.modules[__name__]), voxels)
+    inputs = {"settings": {name: getattr(s, name) for name in field_names(ForestSettings)}, "seed": seed,
+              "integrated": "host" if device is None else "cuda"}
+    code = (forest, forest_voxels, sys.modules[__name__]) + (() if device is None else (_crown_kernels(),))
+    arrays = cached_arrays("forest", inputs, code, voxels)
     return arrays["lad"], arrays["lower"], arrays["cell"]
+
+
+def voxel_device(run_device: str) -> str | None:
+    """Where a run on Warp device ``run_device`` integrates a stand's voxels: None (the host's NumPy, in threads,
+    faster there than a CPU kernel's one thread) for "cpu", else that device."""
+    return None if run_device == "cpu" else run_device
+
+
+def _crown_kernels() -> SimpleNamespace:
+    """The device integration's module (:mod:`kernels.crown_voxels`) as its source file, for the cache key."""
+    return SimpleNamespace(__file__=importlib.util.find_spec("kernels.crown_voxels").origin)

@@ -55,15 +55,59 @@ def voxel_grid(trees: Trees, cell_m: float) -> tuple[np.ndarray, tuple[int, int,
     return first * cell_m, shape
 
 
-def stand_voxels(trees: Trees, cell_m: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def stand_voxels(trees: Trees, cell_m: float = 1.0, device: str | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The stand's leaf area density: ``(lad, lower, cell)``: lad float32 (nx, ny, nz) [m²/m³] indexed east,
-    north, up; lower (3,) float64 local corner of voxel (0, 0, 0) [m]; cell (3,) float64 voxel sides [m]."""
+    north, up; lower (3,) float64 local corner of voxel (0, 0, 0) [m]; cell (3,) float64 voxel sides [m].
+    ``device``: None integrates on the host (NumPy, in threads); a Warp device ("cpu", "cuda:0", …) in
+    :mod:`kernels.crown_voxels`, the same integrals (a few float64 ulps apart, see there)."""
     cell = float(cell_m)
     if not (math.isfinite(cell) and cell > 0.0):
         raise InputError("scene.forest_voxel_m", cell_m, "a voxel side > 0 m")
     lower, shape = voxel_grid(trees, cell)
+    if device is not None and len(trees):
+        return device_lad(trees, lower, shape, cell, device), lower, np.full(3, cell)
     lad = (crown_volumes(trees, lower, shape, cell) * (trees.lad / cell ** 3)).reshape(shape).astype(np.float32)
     return lad, lower, np.full(3, cell)
+
+
+def device_lad(trees: Trees, lower: np.ndarray, shape: tuple[int, int, int], cell: float, device: str) -> np.ndarray:
+    """The leaf area density (nx, ny, nz) float32 [m²/m³] of the grid (``lower``, ``shape``, cubic ``cell`` [m]),
+    integrated on the Warp ``device``: a thread per voxel column that some crown's box covers (the columns and
+    their trees listed here)."""
+    import warp as wp
+
+    from flightsim.core.warp_runtime import resolve_device
+    from kernels import crown_voxels as kc
+
+    d = resolve_device(device)
+    columns, first, members = column_trees(trees, lower, shape, cell)
+    lad = wp.zeros(math.prod(shape), dtype=wp.float32, device=d)
+
+    def f64(values) -> wp.array:
+        return wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=d)
+
+    def i32(values) -> wp.array:
+        return wp.array(np.ascontiguousarray(values, dtype=np.int32), dtype=wp.int32, device=d)
+
+    code = {"cone": kc.CONE, "ellipsoid": kc.ELLIPSOID, "cylinder": kc.CYLINDER}[trees.shape]
+    wp.launch(kc.column_lad, len(columns),
+              inputs=[i32(columns), i32(first), i32(members), f64(trees.x), f64(trees.y), f64(trees.crown_bottom_z()),
+                      f64(trees.top_z()), f64(trees.crown_length), f64(trees.crown_radius), code,
+                      wp.vec3d(*lower), wp.float64(cell), shape[1], shape[2], f64(_SUB), f64(_JAC),
+                      wp.float64(trees.lad / cell ** 3)], outputs=[lad], device=d)
+    return lad.numpy().reshape(shape)
+
+
+def column_trees(trees: Trees, lower: np.ndarray, shape: tuple[int, int, int], cell: float
+                 ) -> tuple[np.ndarray, ...]:
+    """(columns, first, members): the flat index i·ny + j of every voxel column some crown's bounding box covers,
+    ascending, and its trees ``members[first[c]:first[c + 1]]``, ascending."""
+    owner, i, j = box_cells(*_box(trees, lower, cell))
+    column = i * shape[1] + j
+    order = np.argsort(column, kind="stable")
+    columns, first = np.unique(column[order], return_index=True)
+    return columns, np.append(first, len(order)), owner[order]
 
 
 def crown_volumes(trees: Trees, lower: np.ndarray, shape: tuple[int, int, int], cell: float) -> np.ndarray:

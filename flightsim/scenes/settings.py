@@ -43,12 +43,14 @@ class ScenePart:
     the file suffixes that choose it (a built-in scene has none and is chosen by name); ``cacheable``: whether
     the scene cache may keep a file kind's Scene (it keeps the mesh, labels and height grid, not a canopy or
     point cloud); ``use_cache``: whether ``build`` may keep what it computes in the scene cache (``run.scene_cache``,
-    set by :func:`flightsim.scenes.build.build_scene`)."""
+    set by :func:`flightsim.scenes.build.build_scene`); ``device``: the run's Warp device, on which ``build`` may
+    compute (``run.device``, set there too)."""
 
     sized = False
     suffixes: tuple[str, ...] = ()
     cacheable = True  # a file kind whose Scene the scene cache can hold (its mesh and labels only)
     use_cache = False
+    device = "cpu"
 
     def __init__(self, scene):
         self.s = scene

@@ -34,18 +34,21 @@ def forest(device: str, s: Sizes) -> dict:
     size_m = 300.0 if s.quick else 1000.0
     return {"cloud": cloud_rate(device, int(points), int(footprints)),
             "voxels": walk_rate(device, 10 ** 5 if s.quick or not cuda else 10 ** 7),
-            "scene": scene_build(size_m),
+            "scene": scene_build(size_m, device),
             "als": als_ratio(device, 2e5 if s.quick else (5e7 if cuda else 2e6), size_m)}
 
 
-def scene_build(size_m: float) -> dict:
+def scene_build(size_m: float, device: str = "cpu") -> dict:
     """Seconds to build the forest scene of ``size_m`` square (LAI 3; on the host): with the scene cache off (the
-    stand's voxels computed), then twice through an empty cache folder (computed and stored; mapped from the entry)."""
+    stand's voxels computed), then twice through an empty cache folder (computed and stored; mapped from the entry);
+    on a GPU ``device`` also with the voxels integrated there (:func:`device_build`)."""
     cfg = forest_config("cpu", 3.0, 1.0, size_m, **{"run.scene_cache": False})
     started = time.perf_counter()
     scene = build_scene(cfg)
     record = {"forest_size_m": size_m, "voxels": list(scene.canopy.dims), "threads": forest_voxels.threads(),
               "computed_s": time.perf_counter() - started}
+    if resolve_device(device) != "cpu":
+        record["device"] = device_build(size_m, device, scene.canopy.lad)
     set_value(cfg, "run.scene_cache", True)
     saved = os.environ.get("FLIGHTSIM_CACHE")
     with tempfile.TemporaryDirectory() as folder:
@@ -61,6 +64,19 @@ def scene_build(size_m: float) -> dict:
             else:
                 os.environ["FLIGHTSIM_CACHE"] = saved
     return record
+
+
+def device_build(size_m: float, device: str, host_lad: np.ndarray) -> dict:
+    """Seconds to build the same forest scene for a run on the GPU ``device`` (scene cache off: its voxels
+    integrated there, the kernel compiled beforehand over a small stand), and how its float32 densities differ from
+    the host's ``host_lad``: voxels that differ, the largest difference [m²/m³] and the largest density."""
+    build_scene(forest_config(device, 3.0, 1.0, 30.0, **{"run.scene_cache": False}))
+    started = time.perf_counter()
+    lad = build_scene(forest_config(device, 3.0, 1.0, size_m, **{"run.scene_cache": False})).canopy.lad
+    wall = time.perf_counter() - started
+    difference = np.abs(lad.astype(np.float64) - host_lad)
+    return {"computed_s": wall, "voxels_differing": int(np.count_nonzero(difference)),
+            "max_difference": float(difference.max()), "max_lad": float(host_lad.max())}
 
 
 def cloud_rate(device: str, points: int, footprints: int) -> dict:

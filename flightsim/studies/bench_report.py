@@ -195,9 +195,15 @@ def _forest_scene(f: dict) -> list[str]:
     if "scene" not in f:
         return []
     b = f["scene"]
-    return [f"Forest scene ({b['forest_size_m']:g} m square, LAI 3, {'×'.join(map(str, b['voxels']))} voxels, on the "
-            f"host in {b['threads']} threads): {b['computed_s']:.1f} s with its voxels computed, {b['stored_s']:.1f} s "
-            f"computed and stored in the scene cache, {b['cached_s']:.2f} s from it.", ""]
+    lines = [f"Forest scene ({b['forest_size_m']:g} m square, LAI 3, {'×'.join(map(str, b['voxels']))} voxels, on the "
+             f"host in {b['threads']} threads): {b['computed_s']:.1f} s with its voxels computed, {b['stored_s']:.1f} s "
+             f"computed and stored in the scene cache, {b['cached_s']:.2f} s from it."]
+    if "device" in b:
+        d = b["device"]
+        lines.append(f"For a run on the GPU, its voxels integrated there: {d['computed_s']:.2f} s; "
+                     f"{d['voxels_differing']:,} of the voxels differ from the host's, by at most "
+                     f"{d['max_difference']:.1e} m²/m³ (densities up to {d['max_lad']:.2f}).")
+    return lines + [""]
 
 
 def _startup(r: dict) -> list[str]:
@@ -275,9 +281,9 @@ def _scale(r: dict) -> list[str]:
     lines = [f"### Scale: terrain meshes (testdem GeoTIFF, 3 km square, 8×8 array at 500 m; disk writes "
              f"{disk / 1e6:.0f} MB/s)", "",
              "| triangles | read [s] | plan [s] | per line [ms] | BVH [s] | ready [s] | from cache: read / ready [s] | "
-             "statistics returns/s | bare ray cast /s | ratio | LAS points/s | LAS MB/s | of disk | "
+             "statistics returns/s | bare ray cast /s | ratio | LAS points/s | LAS MB/s | disk MB/s | of disk | "
              "LAS ÷ statistics | device MiB |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for e in x["scenes"]:
         memory = "–" if e["device_memory_mib"] is None else f"{e['device_memory_mib']:.0f}"
         at = f" (at {e['git_commit']})" if "git_commit" in e else ""
@@ -287,14 +293,21 @@ def _scale(r: dict) -> list[str]:
                      f"{_optional(e, 'ready_cached_s', '.2f')} | "
                      f"{_fmt(e['stats_returns_per_s'])} | {_fmt(e['raycast_returns_per_s'])} | {e['stats_ratio']:.2f} | "
                      f"{_fmt(e['las_points_per_s'])} | {e['las_bytes_per_s'] / 1e6:.0f} | "
-                     f"{e['las_fraction_of_disk']:.2f} | {e['las_fraction_of_stats']:.2f} | {memory} |")
+                     f"{_row_disk(e, disk) / 1e6:.0f} | {e['las_fraction_of_disk']:.2f} | {e['las_fraction_of_stats']:.2f} | {memory} |")
     return lines + ["", "Ready: the GeoTIFF read into a scene without the scene cache, the flight lines planned "
                         "(plan: the scene's height grid built, then each line's clearance checked over it; per line: "
                         "a second plan over the built grid) and the BVHs built; from cache: the same with the scene "
                         "read from the scene cache. LAS: both models, records packed on the device, one writer "
                         "thread per model; its wall runs until every tile is closed. Ratio: statistics-mode "
-                        "returns/s ÷ bare ray cast of the same rays. A row measured at another commit than the "
-                        "section says so; its 'of disk' is against the disk rate measured in its own run.", ""]
+                        "returns/s ÷ bare ray cast of the same rays. Disk: the disk's sequential write rate probed "
+                        "right before the row's LAS run, both on an idle disk (what earlier steps wrote synced first); "
+                        "'of disk' is the LAS rate against it. A row measured at another commit than the section "
+                        "says so.", ""]
+
+
+def _row_disk(e: dict, section_disk: float) -> float:
+    """The disk rate a scale row's 'of disk' compares with: its own probe (rows before it had one: the section's)."""
+    return e.get("disk_write_bytes_per_s", section_disk)
 
 
 def _reduce(r: dict) -> list[str]:

@@ -38,7 +38,7 @@ from flightsim.outputs.grid_products import write_geotiff
 from flightsim.scenes.canopy import VoxelCanopy
 from flightsim.scenes.canopy_io import write_canopy_npz
 from flightsim.scenes.forest import Trees, box_cells, crown_top
-from flightsim.scenes.forest_scene import crown_voxels, stand
+from flightsim.scenes.forest_scene import crown_voxels, stand, voxel_device
 from flightsim.scenes.scene import parse_crs
 
 FILES = ("chm.tif", "trees.csv", "canopy.npz", "forest.json")
@@ -127,15 +127,16 @@ def trees_csv(trees: Trees, origin) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run_forest(out: Path, items=(), seed: int | None = None, chm_cell_m: float = 1.0) -> dict:
+def run_forest(out: Path, items=(), seed: int | None = None, chm_cell_m: float = 1.0, device: str = "cpu") -> dict:
     """Write the four truth files of the forest of ``items`` (``[scene]`` settings as (key, value) pairs) and
-    ``seed`` into ``out``; returns forest.json's content. Everything is computed before any file is written."""
-    cfg = forest_config(items, seed)
+    ``seed`` into ``out``, its leaf voxels integrated for a run on ``device`` (:func:`voxel_device`); returns
+    forest.json's content. Everything is computed before any file is written."""
+    cfg = forest_config([*items, ("run.device", device)], seed)
     out = Path(out)
     s, crs = cfg.scene, parse_crs(cfg.scene.crs)
     origin = np.asarray(s.origin, dtype=np.float64)
     trees = stand(s, cfg.run.seed)
-    lad, lower, cell = crown_voxels(trees, s, cfg.run.seed, cfg.run.scene_cache)
+    lad, lower, cell = crown_voxels(trees, s, cfg.run.seed, cfg.run.scene_cache, voxel_device(cfg.run.device))
     heights, west, north = canopy_height_model(trees, chm_cell_m)
     area = trees.size_m ** 2
     summary = {
