@@ -115,7 +115,7 @@ def test_the_forest_scene_build_is_measured_through_its_own_cache_folder(tmp_pat
         "als": {"forest_size_m": 30.0, "forest": {"beams": 1, "returns": 1, "wall_s": 1.0, "beams_per_s": 1.0},
                 "bare": {"beams": 1, "returns": 1, "wall_s": 1.0, "beams_per_s": 1.0}, "ratio": 1.0}}}})
     assert "17.2 s with its voxels computed, 18.0 s computed and stored in the scene cache, 0.50 s from it" in text
-    assert ("on the GPU, its voxels integrated there: 0.73 s; 1,234 of the voxels differ from the host's, by at "
+    assert ("for a run on the GPU, its voxels integrated there: 0.73 s; 1,234 of the voxels differ from the host's, by at "
             "most 3.1e-14 m²/m³ (densities up to 1.96)") in text
 
 

@@ -200,7 +200,7 @@ def _forest_scene(f: dict) -> list[str]:
              f"computed and stored in the scene cache, {b['cached_s']:.2f} s from it."]
     if "device" in b:
         d = b["device"]
-        lines.append(f"For a run on the GPU, its voxels integrated there: {d['computed_s']:.2f} s; "
+        lines.append(f"The same scene for a run on the GPU, its voxels integrated there: {d['computed_s']:.2f} s; "
                      f"{d['voxels_differing']:,} of the voxels differ from the host's, by at most "
                      f"{d['max_difference']:.1e} m²/m³ (densities up to {d['max_lad']:.2f}).")
     return lines + [""]
