@@ -152,3 +152,26 @@ def test_laz_records_held_back_for_parallel_compression_give_the_same_bytes(tmp_
     tiles = [las_points.read_points(p)[0] for p in sorted((tmp_path / "batched").rglob("*.laz"))]
     assert max(len(t.x) for t in tiles) > 3 * las_tiles.LAZ_CHUNK_POINTS
     assert digests["batched"] == digests["one by one"] == digests["capped"]
+
+
+def test_face_labels_are_uploaded_once_per_scene_and_end_with_the_leaves(tmp_path):
+    """The records' class and plane tables are the scene's meshes' (made once, like its BVH), not each LAS
+    output's; a forest's leaf faces follow its triangles with their classes and plane −1."""
+    cfg = _config("cpu")
+    scene = build_scene(cfg)
+    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene))
+    first = DeviceLasOutput(tmp_path / "a", cfg.output, simulator, False, cfg.flight.start_gps_time)
+    second = DeviceLasOutput(tmp_path / "b", cfg.output, simulator, False, cfg.flight.start_gps_time)
+    assert first.tables.face_class.ptr == second.tables.face_class.ptr == simulator.meshes.face_labels[0].ptr
+    assert np.array_equal(first.tables.face_plane.numpy(), scene.plane_id)
+    assert np.array_equal(first.tables.face_class.numpy(), scene.classification)
+    first.abort(), second.abort()
+    from flightsim.scenes.canopy import LEAF_CLASSES
+
+    forest = build_scene(validate(_config("cpu", **{"scene.name": "forest", "scene.forest_size_m": 20.0})))
+    classes, planes = forest.face_labels()
+    n = len(forest.triangles)
+    assert list(classes[n:]) == list(LEAF_CLASSES) and list(planes[n:]) == [-1] * len(LEAF_CLASSES)
+    assert np.array_equal(classes[:n], forest.classification) and np.array_equal(planes[:n], forest.plane_id)
+    custom = forest.face_labels(np.arange(n, dtype=np.int64))[1]
+    assert custom.dtype == np.int32 and list(custom[:3]) == [0, 1, 2] and custom[-1] == -1

@@ -49,6 +49,7 @@ class SceneMeshes:
         self.padded = self._padded_bvh(scene, device)
         self._boundary: tuple[wp.array, wp.array] | None = None
         self._reflectance: wp.array | None = None
+        self._labels: tuple[wp.array, wp.array] | None = None
         self._grids: dict[float, edges.EdgeGrid] = {}
 
     def _padded_bvh(self, scene: Scene, device: str) -> wp.Bvh:
@@ -77,6 +78,15 @@ class SceneMeshes:
             rho = self.scene.reflectance if self.per_face else np.ones(1, dtype=np.float32)
             self._reflectance = wp.array(rho, dtype=wp.float32, device=self.device)
         return self._reflectance
+
+    @property
+    def face_labels(self) -> tuple[wp.array, wp.array]:
+        """(ASPRS class, plane id) int32 of each face a return can come from, on the device (uploaded on first use,
+        like the BVH made once per scene, not per product): the triangles', then a canopy's leaf faces."""
+        if self._labels is None:
+            self._labels = tuple(wp.array(a, dtype=wp.int32, device=self.device)
+                                 for a in self.scene.face_labels())
+        return self._labels
 
     @property
     def boundary(self) -> tuple[wp.array, wp.array]:
@@ -132,3 +142,4 @@ class SceneMeshes:
         grid.offsets = wp.zeros(1, dtype=wp.int32, device=self.device)
         grid.listed = wp.zeros(1, dtype=wp.int32, device=self.device)
         return grid
+

@@ -28,7 +28,6 @@ from flightsim.core.version import __version__
 from flightsim.core.warp_runtime import to_host
 from flightsim.outputs.las_format import gps_week_date
 from flightsim.outputs.las_tiles import TileWriter
-from flightsim.scenes.canopy import LEAF_CLASSES
 from flightsim.scenes.scene import Scene
 from kernels import las_records as kl
 
@@ -271,12 +270,11 @@ def _tables(tile_size_m: int, simulator, scene: Scene, plane_ids: np.ndarray | N
     tables.beams_per_pulse = simulator.beams_per_pulse
     tables.returns_per_beam = simulator.returns_per_beam
     tables.beam_columns = simulator.instrument.emitter.beam_columns
-    ids = scene.plane_id if plane_ids is None else plane_ids
-    classes, ids = scene.classification.astype(np.int32), np.asarray(ids, dtype=np.int32)
-    if scene.canopy is not None:  # leaf returns' faces follow the triangles (kernels.canopy_returns.leaf_face)
-        classes, ids = np.concatenate([classes, LEAF_CLASSES]), np.concatenate([ids, [-1] * len(LEAF_CLASSES)])
-    tables.face_class = wp.array(classes, dtype=wp.int32, device=d)
-    tables.face_plane = wp.array(ids.astype(np.int32), dtype=wp.int32, device=d)
+    if plane_ids is None:  # the scene's own labels, kept on the device with its meshes
+        tables.face_class, tables.face_plane = simulator.meshes.face_labels
+    else:
+        tables.face_class, tables.face_plane = (wp.array(a, dtype=wp.int32, device=d)
+                                                for a in scene.face_labels(plane_ids))
     tables.line_start = wp.array([t.start_time for t in simulator.trajectories], dtype=wp.float64, device=d)
     tables.line_source = wp.array([t.line_id for t in simulator.trajectories], dtype=wp.int32, device=d)
     return tables

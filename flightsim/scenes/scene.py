@@ -24,6 +24,7 @@ from pyproj.enums import WktVersion
 
 from flightsim.core.errors import InputError
 from flightsim.scenes import edges
+from flightsim.scenes.canopy import LEAF_CLASSES
 from flightsim.scenes.height_grid import HeightGrid
 
 DEFAULT_ORIGIN: tuple[float, float, float] = (409000.0, 3393000.0, 450.0)
@@ -249,6 +250,17 @@ class Scene:
         """Use the stored grid ``arrays`` (:meth:`HeightGrid.arrays` of this mesh) as :attr:`height_grid`;
         ValueError when they cannot be this mesh's grid."""
         self._height_grid = HeightGrid.from_arrays(arrays, self.vertices, self.triangles)
+
+    def face_labels(self, plane_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(ASPRS class, plane id) int32 of each face a return can come from: the triangles' (their plane ids
+        ``plane_ids``, default :attr:`plane_id`), then, with a canopy, its leaf faces (:data:`LEAF_CLASSES`, plane
+        −1; :func:`kernels.canopy_returns.leaf_face` numbers them after the triangles)."""
+        classes = self.classification.astype(np.int32)
+        ids = np.asarray(self.plane_id if plane_ids is None else plane_ids, dtype=np.int32)
+        if self.canopy is not None:
+            classes = np.concatenate([classes, np.asarray(LEAF_CLASSES, dtype=np.int32)])
+            ids = np.concatenate([ids, np.full(len(LEAF_CLASSES), -1, dtype=np.int32)])
+        return classes, ids
 
     def world_to_local(self, xyz) -> np.ndarray:
         """World coordinates (..., 3) [m] → local float64 (..., 3) [m]."""
