@@ -12,7 +12,7 @@ from pathlib import Path
 
 from flightsim.core.version import __version__
 from flightsim.engine.config import RunConfig, get_value, set_value, validate
-from flightsim.engine.config_io import PRESETS, load_toml, preset_config, to_toml
+from flightsim.engine.config_io import PREBUILT_RUNS, PRESETS, load_toml, preset_config, to_toml
 from flightsim.scoring import score
 from flightsim.core.errors import InputError
 from flightsim.core.timeline import mark
@@ -168,7 +168,11 @@ def cmd_compile(args: argparse.Namespace) -> int:
 
     if args.cuda_arch:
         from flightsim.core.prebuilt import build_for_cuda, loaded_on_cpu
+        from flightsim.core.warp_runtime import compile_ahead
+        from flightsim.scenes.build import scene_part
 
+        # what the scenes build with on a GPU only (a forest's voxels) joins the modules built for it
+        compile_ahead("cpu", [k for cfg in configs for k in scene_part(cfg.scene).build_kernels("cuda")])
         for arch in args.cuda_arch:
             build_for_cuda(loaded_on_cpu(), arch)
 
@@ -192,14 +196,15 @@ def _ship(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         env = dict(os.environ, WARP_CACHE_PATH=tmp, FLIGHTSIM_PREBUILT="0")
-        for name in PRESETS:
+        for name, scene in PREBUILT_RUNS:
             command = [sys.executable, "-m", "flightsim", "compile", "--device", "cpu", "--instrument", name,
-                       *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
+                       *(["--scene", scene] if scene else []), *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
             subprocess.run(command, env=env, check=True, capture_output=True)
         (cache,) = [p for p in Path(tmp).iterdir() if p.is_dir()]  # Warp's version folder
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
-    print(f"{modules} prebuilt kernel modules of every built-in instrument (CPU and sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
+    print(f"{modules} prebuilt kernel modules of every built-in instrument, and three over the forest (CPU and "
+          f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
 

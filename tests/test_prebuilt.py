@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from flightsim.core import prebuilt
-from flightsim.engine.config_io import PRESETS
+from flightsim.engine.config_io import PREBUILT_RUNS
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -19,28 +19,33 @@ from flightsim.cli import build_config, make_parser
 import pytest
 
 from flightsim.core import prebuilt
-from flightsim.engine.config_io import PRESETS
+from flightsim.core.warp_runtime import compile_ahead
 from flightsim.engine.run import compile_kernels
+from flightsim.scenes.build import scene_part
 
-args = make_parser().parse_args(["compile", "--device", "cpu", "--instrument", sys.argv[1]])
-compile_kernels([build_config(args)])
+args = make_parser().parse_args(["compile", "--device", "cpu", "--instrument", *sys.argv[1:]])
+cfg = build_config(args)
+compile_kernels([cfg])
+gpu_only = scene_part(cfg.scene).build_kernels("cuda")  # what the scene builds with on a GPU (a forest's voxels)
+compile_ahead("cpu", gpu_only)
 loaded = prebuilt.loaded_on_cpu()
-print(json.dumps({"loaded": len(loaded), "missing": prebuilt.missing(loaded)}))
+print(json.dumps({"loaded": len(loaded), "gpu_only": len(gpu_only), "missing": prebuilt.missing(loaded)}))
 """
 
 
-@pytest.mark.parametrize("instrument", PRESETS)
-def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument):
-    """A run of the instrument in a process of its own (as `flightsim simulate` runs it) finds every module it loads
-    prebuilt, for the CPU and for sm_90, and compiles nothing. A kernel changed without remaking the prebuilt set
-    fails here: run ``flightsim compile --all --ship``."""
+@pytest.mark.parametrize("instrument, scene", PREBUILT_RUNS, ids=[f"{n}-{s or 'own'}" for n, s in PREBUILT_RUNS])
+def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument, scene):
+    """A run of the instrument (over its own scene, or the procedural forest) in a process of its own (as `flightsim
+    simulate` runs it) finds every module it loads prebuilt, for the CPU and for sm_90 (a forest's also the voxel
+    kernel a GPU run builds its scene with), and compiles nothing. A kernel changed without remaking the prebuilt
+    set fails here: run ``flightsim compile --all --ship``."""
     env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "kernels"), FLIGHTSIM_CACHE=str(tmp_path / "scenes"),
                FLIGHTSIM_PREBUILT="1")
-    done = subprocess.run([sys.executable, "-c", CHECK, instrument], env=env, capture_output=True, text=True,
-                          cwd=ROOT)
+    args = [instrument] + (["--scene", scene] if scene else [])
+    done = subprocess.run([sys.executable, "-c", CHECK, *args], env=env, capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-3000:]
     found = json.loads(done.stdout.strip().splitlines()[-1])
-    assert found["loaded"] >= 5
+    assert found["loaded"] >= 5 and found["gpu_only"] == (1 if scene == "forest" else 0)
     assert found["missing"] == [], "remake the prebuilt kernels: flightsim compile --all --ship"
     compiled = sorted(p.parent.name for p in (tmp_path / "kernels").rglob("*.cpp"))
     assert compiled == [], f"compiled though prebuilt: {compiled}"

@@ -1,5 +1,6 @@
-"""Prebuilt kernels: Warp's compiled modules of the built-in instruments' runs, shipped with flightsim, so that the
-first run on a new machine compiles nothing it ships.
+"""Prebuilt kernels: Warp's compiled modules of the built-in instruments' runs (each over its own scene, and the
+discrete, waveform and photon ones over the procedural forest: ``PREBUILT_RUNS``), shipped with flightsim, so that
+the first run on a new machine compiles nothing it ships.
 
 ``flightsim/prebuilt/warp-<version>/`` holds, per module, what Warp's kernel cache would (its ``.meta``, the CPU's
 object file for x86-64 and the CUDA binary for sm_90: the H100 and H200), made by ``flightsim compile --all --ship``

@@ -93,6 +93,13 @@ class ForestScene(ScenePart):
     def build(self, half_extent_m: float, seed: int) -> Scene:
         return forest_scene(self.s, half_extent_m, seed, self.use_cache, voxel_device(self.device))
 
+    def build_kernels(self, device: str) -> list:
+        if voxel_device(device) is None or self.s.forest_crowns != "voxels":
+            return []
+        from kernels import crown_voxels
+
+        return [crown_voxels.column_lad]
+
 
 def forest_settings(settings) -> ForestSettings:
     """The forest settings of ``settings`` (a ``[scene]`` section or anything with the ``forest_*`` fields),

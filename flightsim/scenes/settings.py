@@ -59,6 +59,10 @@ class ScenePart:
         """The scene, in its local frame (``half_extent_m``: the half side the flight reaches [m])."""
         raise NotImplementedError
 
+    def build_kernels(self, device: str) -> list:
+        """The Warp kernels ``build`` launches for a run on ``device`` (none: it builds on the host)."""
+        return []
+
 
 def scene_kind(name: str) -> str | None:
     """The scene kind of ``scene.name``: a built-in scene by name, a file kind by suffix; None if neither."""
