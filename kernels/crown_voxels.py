@@ -15,7 +15,8 @@ float32 rounding boundary, or whose crowns barely touch it (~1e-16 m²/m³ of ca
 """
 import warp as wp
 
-wp.set_module_options({"enable_backward": False, "default_grid_stride": False, "fuse_fp": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+wp.set_module_options({"fuse_fp": False})  # no fused multiply-adds: the host's roundings (see above)
 
 CONE = wp.constant(0)
 ELLIPSOID = wp.constant(1)
