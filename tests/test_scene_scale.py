@@ -510,11 +510,13 @@ def test_forest_voxels_outlive_the_orphan_sweep_and_stay_out_with_the_cache_off(
     assert not (tmp_path / "unused").exists()
 
 
-def test_the_forest_truth_and_a_forest_run_compute_the_stands_voxels_once(tmp_path, monkeypatch):
+def test_the_forest_truth_and_a_forest_run_compute_the_stands_voxels_once(tmp_path, monkeypatch, device):
+    """On every device: `flightsim forest --device` integrates the voxels where a flight on that device does (the
+    host for the CPU, the GPU for a GPU), so the flight reads the truth's voxels from the cache."""
     from flightsim.studies.forest_truth import run_forest
 
-    cfg = forest_config(tmp_path, monkeypatch, **{"run.seed": 7})
-    run_forest(tmp_path / "truth", [("scene.forest_size_m", "30")], seed=7)
+    cfg = forest_config(tmp_path, monkeypatch, **{"run.seed": 7, "run.device": device})
+    run_forest(tmp_path / "truth", [("scene.forest_size_m", "30")], seed=7, device=device)
     monkeypatch.setattr(forest_scene, "stand_voxels", refuse_to_load)
     canopy = plan.build_scene(cfg).canopy
     with np.load(tmp_path / "truth" / "canopy.npz") as truth:
