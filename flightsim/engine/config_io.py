@@ -19,7 +19,8 @@ from flightsim.engine.config import RunConfig, copy_config, set_value
 
 PRESET_DIR = Path(__file__).resolve().parent.parent / "instrument" / "presets"
 PRESETS = ("risley", "change3", "spad", "change1", "atlas", "gedi", "vz2000")
-PREBUILT_RUNS = tuple((name, None) for name in PRESETS) + tuple((name, "forest") for name in ("risley", "gedi", "atlas"))
+PREBUILT_RUNS = (tuple((name, None) for name in PRESETS)
+                 + tuple((name, "forest") for name in ("risley", "gedi", "atlas")))
 """(instrument, scene) of each run whose kernels ship prebuilt (:mod:`flightsim.core.prebuilt`): every built-in
 instrument over its own scene (None), and the discrete, waveform and photon detectors over the procedural forest."""
 SELECTORS = {"scene": ("name",), "flight": ("platform",)}  # applied before the other settings of their table

@@ -142,4 +142,3 @@ class SceneMeshes:
         grid.offsets = wp.zeros(1, dtype=wp.int32, device=self.device)
         grid.listed = wp.zeros(1, dtype=wp.int32, device=self.device)
         return grid
-

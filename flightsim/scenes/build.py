@@ -22,8 +22,7 @@ def build_scene(scene, half_extent_m: float, seed: int = 0, use_cache: bool = Tr
     is sized to the flight (relief from ``seed``); a file through the scene cache when ``use_cache`` (keyed on
     every scene setting and the files they name; its height grid built on ``device``), and what a built-in kind
     computes from its settings alone (a procedural forest's voxels, integrated on ``device`` unless it is the CPU)
-    kept there too; with the leaf area grid of
-    ``scene.canopy`` over it, read every time."""
+    kept there too; with the leaf area grid of ``scene.canopy`` over it, read every time."""
     parse_crs(scene.crs, field="scene.crs")
     part = scene_part(scene)
     part.use_cache, part.device = use_cache, device

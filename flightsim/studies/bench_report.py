@@ -196,8 +196,8 @@ def _forest_scene(f: dict) -> list[str]:
         return []
     b = f["scene"]
     lines = [f"Forest scene ({b['forest_size_m']:g} m square, LAI 3, {'×'.join(map(str, b['voxels']))} voxels, on the "
-             f"host in {b['threads']} threads): {b['computed_s']:.1f} s with its voxels computed, {b['stored_s']:.1f} s "
-             f"computed and stored in the scene cache, {b['cached_s']:.2f} s from it."]
+             f"host in {b['threads']} threads): {b['computed_s']:.1f} s with its voxels computed, "
+             f"{b['stored_s']:.1f} s computed and stored in the scene cache, {b['cached_s']:.2f} s from it."]
     if "device" in b:
         d = b["device"]
         lines.append(f"The same scene for a run on the GPU, its voxels integrated there: {d['computed_s']:.2f} s; "
@@ -293,7 +293,8 @@ def _scale(r: dict) -> list[str]:
                      f"{_optional(e, 'ready_cached_s', '.2f')} | "
                      f"{_fmt(e['stats_returns_per_s'])} | {_fmt(e['raycast_returns_per_s'])} | {e['stats_ratio']:.2f} | "
                      f"{_fmt(e['las_points_per_s'])} | {e['las_bytes_per_s'] / 1e6:.0f} | "
-                     f"{_row_disk(e, disk) / 1e6:.0f} | {e['las_fraction_of_disk']:.2f} | {e['las_fraction_of_stats']:.2f} | {memory} |")
+                     f"{_row_disk(e, disk) / 1e6:.0f} | {e['las_fraction_of_disk']:.2f} | "
+                     f"{e['las_fraction_of_stats']:.2f} | {memory} |")
     return lines + ["", "Ready: the GeoTIFF read into a scene without the scene cache, the flight lines planned "
                         "(plan: the scene's height grid built, then each line's clearance checked over it; per line: "
                         "a second plan over the built grid) and the BVHs built; from cache: the same with the scene "

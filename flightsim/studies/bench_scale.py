@@ -69,8 +69,6 @@ def scale(device: str, s: Sizes) -> dict:
     with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
         disk = disk_write_rate(Path(tmp) / "probe", DISK_PROBE_BYTES[kind])
         scenes = [_scale_record(device, int(n), s, Path(tmp)) for n in SCALE_TRIANGLES[kind]]
-    for record in scenes:
-        record["las_fraction_of_disk"] = record["las_bytes_per_s"] / record["disk_write_bytes_per_s"]
     return {"disk_write_bytes_per_s": disk, "scenes": scenes}
 
 
@@ -205,7 +203,7 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
     las_sim = Tracer(las_cfg, scene, trajectories[:las_cfg.flight.lines], meshes=meshes)
     _las_run_into(las_sim, las_cfg, tmp / "warm-up")  # compiles the points path's kernels
     shutil.rmtree(tmp / "warm-up")
-    disk = idle_disk_rate(tmp / "probe", DISK_PROBE_BYTES["cpu" if sim.device_kind == "cpu" else "cuda"])
+    disk = idle_disk_rate(tmp / "probe", DISK_PROBE_BYTES[sim.device_kind])
     las_wall, las_counts, written = _las_run_into(las_sim, las_cfg, tmp / "las")
     shutil.rmtree(tmp / "las")
     points = las_counts.returns * len(las_sim.models)
@@ -214,7 +212,8 @@ def _scale_record(device: str, triangles: int, s: Sizes, tmp: Path) -> dict:
             "cache_write_s": cache_write_s, "cached_load_s": warm["load_s"], "ready_cached_s": warm["ready_s"],
             "stats_returns_per_s": counts.returns / wall, "raycast_returns_per_s": hits / bare_wall,
             "stats_ratio": counts.returns / wall / (hits / bare_wall),
-            "las_points_per_s": points / las_wall, "las_bytes_per_s": written / las_wall, "disk_write_bytes_per_s": disk,
+            "las_points_per_s": points / las_wall, "las_bytes_per_s": written / las_wall,
+            "disk_write_bytes_per_s": disk, "las_fraction_of_disk": written / las_wall / disk,
             "las_fraction_of_stats": las_counts.returns / las_wall / (counts.returns / wall),
             "device_memory_mib": _device_memory_mib(resolve_device(device)), "stats_kernels_s": kernels}
 
