@@ -8,12 +8,7 @@ import os
 import shutil
 import tempfile
 
-# The product pins (test_product_pins.py) were made with OpenBLAS's AVX2 (Haswell) kernels. OpenBLAS picks its kernels
-# by the CPU it runs on (AVX-512 ones on Skylake-X and later), and those round the plane fits' eigen-decompositions
-# and the solvers' steps differently in the last bits. Name the kernels before NumPy or SciPy load OpenBLAS, so that
-# the suite gives the same bits on every x86-64 machine (test_blas.py checks that this took effect).
-os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
-
+import same_bits  # noqa: E402,F401  (before NumPy loads: its loops and OpenBLAS's kernels named)
 import pytest  # noqa: E402
 
 os.environ.setdefault("WARP_CACHE_PATH", os.path.join(os.path.dirname(__file__), "..", ".warp-cache"))

@@ -56,6 +56,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import same_bits  # noqa: F401  (before NumPy loads: the same bits on every x86-64 machine)
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))

@@ -1,4 +1,5 @@
-"""The BLAS kernels the suite runs with: the product pins hold only for the kernels they were made with."""
+"""The BLAS kernels and NumPy loops the suite runs with (``same_bits``): the product pins hold only for those they were
+made with."""
 import ctypes
 import glob
 import os
@@ -30,3 +31,11 @@ def test_openblas_runs_the_kernels_the_pins_were_made_with():
         assert "openblas" not in blas.lower(), f"NumPy's {blas} library not found in numpy.libs"
         pytest.skip(f"NumPy uses {blas} here, not its own OpenBLAS")
     assert core.lower() == os.environ["OPENBLAS_CORETYPE"].lower() == "haswell"
+
+
+def test_numpy_runs_no_avx512_loops():
+    from numpy._core._multiarray_umath import __cpu_features__
+
+    assert "X86_V4" in os.environ["NPY_DISABLE_CPU_FEATURES"]
+    on = sorted(name for name, enabled in __cpu_features__.items() if enabled and ("AVX512" in name or name == "X86_V4"))
+    assert on == [], f"NumPy dispatches to {on}: NPY_DISABLE_CPU_FEATURES was set after NumPy loaded"
