@@ -76,8 +76,8 @@ class PointBuffers:
         self.model_points = {m: wp.empty(slots, dtype=wp.vec3f, device=device) for m in MODELS}
         self.counters = wp.zeros(canopy_returns.COUNTERS if per_beam > 1 else 3, dtype=wp.int32, device=device)
         self.returns = wp.empty(slots, dtype=wp.int32, device=device) if per_beam > 1 else None
-        self.flags = wp.empty(slots, dtype=wp.int32, device=device)
-        self.offsets = wp.empty(slots, dtype=wp.int32, device=device)
+        self.counts = wp.empty(slots // per_beam, dtype=wp.int32, device=device)  # per beam: its returns
+        self.offsets = wp.empty(slots // per_beam, dtype=wp.int32, device=device)  # ... and the beams' before it
         self.index = wp.empty(slots, dtype=wp.int32, device=device)
         self.total = wp.zeros(1, dtype=wp.int32, device=device)  # the returns of the chunk last compacted
         self.line_returns = wp.zeros(len(tracer.trajectories), dtype=wp.int64, device=device)  # per line of the run
@@ -90,28 +90,31 @@ class PointBuffers:
                 self.true_points, self.model_points["exact"], self.model_points["nominal"], *returns, self.counters]
 
     def compact_index(self, n_slots: int) -> None:
-        """Flag and prefix-sum the returning slots; fill ``index`` and ``total`` (on the device: no wait)."""
-        flags, offsets = self.flags[:n_slots], self.offsets[:n_slots]
-        wp.launch(compaction.flag_returns, n_slots, inputs=[self.status[:n_slots]], outputs=[flags], device=self.device)
-        wp.utils.array_scan(flags, offsets, inclusive=False)
-        wp.launch(compaction.slot_indices, n_slots, inputs=[flags, offsets], outputs=[self.index], device=self.device)
-        wp.launch(compaction.count_returns, 1, inputs=[flags, offsets, n_slots], outputs=[self.total],
+        """Count each beam's returns and prefix-sum them; fill ``index`` and ``total`` (on the device: no wait)."""
+        n_beams = n_slots // self.per_beam
+        counts, offsets = self.counts[:n_beams], self.offsets[:n_beams]
+        wp.launch(compaction.beam_returns, n_beams, inputs=[self.status, self.per_beam], outputs=[counts],
+                  device=self.device)
+        wp.utils.array_scan(counts, offsets, inclusive=False)
+        wp.launch(compaction.slot_indices, n_beams, inputs=[self.status, self.per_beam, offsets], outputs=[self.index],
+                  device=self.device)
+        wp.launch(compaction.count_returns, 1, inputs=[counts, offsets, n_beams], outputs=[self.total],
                   device=self.device)
 
     def add_line_returns(self, tracer, segments: list[Segment], n_slots: int) -> None:
         """Add the returns of each segment of the chunk last compacted (``n_slots`` slots) to ``line_returns``, by the
         tracer's segment table of the chunk (on the device already: no copy, so no wait for the device)."""
         wp.launch(compaction.add_segment_returns, len(segments),
-                  inputs=[self.flags, self.offsets, n_slots, tracer.segment_table,
-                          tracer.beams_per_pulse * self.per_beam], outputs=[self.line_returns], device=self.device)
+                  inputs=[self.counts, self.offsets, n_slots // self.per_beam, tracer.segment_table,
+                          tracer.beams_per_pulse], outputs=[self.line_returns], device=self.device)
 
-    def gather(self, src: wp.array, n_slots: int, n_returns: int) -> np.ndarray:
-        """Compact ``src`` on the device and copy only the returns to the host (an array of the caller's own)."""
+    def gather(self, src: wp.array, n_returns: int) -> np.ndarray:
+        """The returning slots of ``src`` (the chunk last compacted: ``n_returns`` of them), gathered on the device in
+        slot order and copied to the host (an array of the caller's own)."""
         dst = self.compacted.get(id(src))
         if dst is None:
             dst = self.compacted[id(src)] = wp.empty(src.shape[0], dtype=src.dtype, device=self.device)
-        wp.launch(compaction.compact_slots, n_slots, inputs=[self.flags[:n_slots], self.offsets[:n_slots],
-                                                             src[:n_slots]], outputs=[dst], device=self.device)
+        wp.launch(compaction.gather_returns, n_returns, inputs=[self.index, src], outputs=[dst], device=self.device)
         return host_array(dst[:n_returns])
 
 
@@ -207,7 +210,7 @@ class Points:
 
     def kernels_needed(self, tracer) -> list:
         canopy = canopy_trace_kernels(tracer, tracer.features) if tracer.returns_per_beam > 1 else ()
-        return [*points_kernels(tracer, tracer.features, tracer.returns_per_beam), *canopy, compaction.flag_returns]
+        return [*points_kernels(tracer, tracer.features, tracer.returns_per_beam), *canopy, compaction.beam_returns]
 
     def end(self, tracer, counts) -> wp.array:
         per_line = to_host(self.buffers.line_returns)
@@ -224,19 +227,19 @@ class Points:
 
 def host_returns(tracer, returns: DeviceReturns) -> list[ReturnChunk]:
     """Compact a chunk's returning slots on the device, bring them to the host, split by line."""
-    buffers, n_slots, n_returns = returns.buffers, returns.n_slots, returns.count
+    buffers, n_returns = returns.buffers, returns.count
     slots = host_array(buffers.index[:n_returns]).astype(np.int64)  # the chunk's returns only, not the buffer
-    gather = buffers.gather
-    echo = None if buffers.returns is None else gather(buffers.returns, n_slots, n_returns)
+    gather = functools.partial(buffers.gather, n_returns=n_returns)
+    echo = None if buffers.returns is None else gather(buffers.returns)
     f = tracer.features
     fields = dict(
-        range_m=gather(buffers.ranges, n_slots, n_returns),
-        face=gather(buffers.faces, n_slots, n_returns),
-        scan_angle_deg=gather(buffers.scan_angles, n_slots, n_returns),
-        cos_incidence=gather(buffers.cos_incidence, n_slots, n_returns),
-        edge_distance_m=gather(buffers.edge_distance, n_slots, n_returns) if f.edges else None,
-        points={m: gather(buffers.model_points[m], n_slots, n_returns).astype(np.float64) for m in tracer.models},
-        true_points=gather(buffers.true_points, n_slots, n_returns).astype(np.float64) if f.with_truth else None,
+        range_m=gather(buffers.ranges),
+        face=gather(buffers.faces),
+        scan_angle_deg=gather(buffers.scan_angles),
+        cos_incidence=gather(buffers.cos_incidence),
+        edge_distance_m=gather(buffers.edge_distance) if f.edges else None,
+        points={m: gather(buffers.model_points[m]).astype(np.float64) for m in tracer.models},
+        true_points=gather(buffers.true_points).astype(np.float64) if f.with_truth else None,
         return_number=None if echo is None else (echo & 15).astype(np.uint8),
         number_of_returns=None if echo is None else (echo >> 4).astype(np.uint8),
     )
