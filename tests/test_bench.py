@@ -1,6 +1,9 @@
 """Benchmark plumbing and the float64 reference path (no timing is asserted: machines are noisy)."""
 import json
+import os
+import sys
 
+import numpy as np
 import pytest
 
 from flightsim.studies.accuracy import measure_errors
@@ -128,3 +131,15 @@ def test_the_forest_breakdown_runs_its_variants_over_one_stand():
     assert rows[0]["returns"] > rows[0]["beams"]  # leaf returns besides the ground's
     assert rows[1]["returns"] > rows[0]["returns"]  # a detector that is never blind misses no leaf echo
     assert rows[2]["returns"] == 0  # no echo reaches a white target's: ρ_l (1 − T) < 1 and T ρ cos θ < 1
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="the child's own high-water mark is read from /proc")
+def test_a_benchmark_process_peak_memory_is_its_own_not_the_benchmarks():
+    from flightsim.studies.bench_common import run_measured
+
+    held = np.ones(600 << 17)  # 600 MiB resident here, in the process that starts the child
+    child = [sys.executable, "-c", "import time; b = bytearray(150 << 20); time.sleep(0.3)"]  # 150 MiB
+    wall, code, peak_mib, _ = run_measured(child)
+    assert code == 0 and wall >= 0.3
+    assert 150 <= peak_mib < 250, peak_mib  # wait4's ru_maxrss alone gives > 600 here (the fork's pages)
+    assert held[-1] == 1.0

@@ -24,7 +24,7 @@ from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.outputs.las_tiles import FADVISE
 from flightsim.studies.bench_common import (DISK_PROBE_BYTES, REDUCE_KNOBS, REDUCE_TRIANGLES, SCALE_TRIANGLES,
                                             SURVEY_CELL_M, SURVEY_KM, bare_raycast, kernel_times, simulator, Sizes,
-                                            timed_statistics, workload)
+                                            run_measured, timed_statistics, workload)
 
 
 def las_output(device: str, s: Sizes) -> list[dict]:
@@ -47,17 +47,13 @@ def _las_run(device: str, returns: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         command = [sys.executable, "-m", "flightsim", "simulate", "--scene", "plane", "--array", str(array),
                    "--duration", f"{duration:.3f}", "--device", device, "--out", str(Path(tmp) / "run")]
-        started = time.perf_counter()
-        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        _, status, usage = os.wait4(process.pid, 0)
-        wall = time.perf_counter() - started
-        process.returncode = os.waitstatus_to_exitcode(status)
-        if process.returncode != 0:
+        wall, code, peak_mib, _ = run_measured(command)
+        if code != 0:
             raise RuntimeError(f"LAS benchmark run failed: {' '.join(command)}")
         summary = json.loads((Path(tmp) / "run" / "summary.json").read_text())
     points = sum(summary["points"].values())
     return {"device": resolve_device(device), "points_written": points, "wall_s": wall,
-            "points_per_s": points / wall, "peak_rss_mib": usage.ru_maxrss / 1024.0}
+            "points_per_s": points / wall, "peak_rss_mib": peak_mib}
 
 
 def scale(device: str, s: Sizes) -> dict:
@@ -266,11 +262,8 @@ def survey_area(device: str, s: Sizes) -> dict:
         (Path(tmp) / "survey.toml").write_text(to_toml(validate(cfg)))
         command = [sys.executable, "-m", "flightsim", "simulate", "--config", str(Path(tmp) / "survey.toml"),
                    "--out", str(Path(tmp) / "run")]
-        started = time.perf_counter()
-        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        _, status, usage = os.wait4(process.pid, 0)
-        wall = time.perf_counter() - started
-        if os.waitstatus_to_exitcode(status) != 0:
+        wall, code, peak_mib, process = run_measured(command, stderr=subprocess.PIPE)
+        if code != 0:
             raise RuntimeError(f"survey benchmark failed: {' '.join(command)}: {process.stderr.read().decode()[-2000:]}")
         summary = json.loads((Path(tmp) / "run" / "summary.json").read_text())
         written = sum(f.stat().st_size for f in (Path(tmp) / "run").rglob("*.laz"))
@@ -278,7 +271,7 @@ def survey_area(device: str, s: Sizes) -> dict:
     return {"area_km2": km * km, "dem_cell_m": SURVEY_CELL_M, "lines": lines.lines, "line_km": km,
             "beams": summary["beams_fired"], "points_written": points, "laz_bytes": written, "wall_s": wall,
             "simulate_wall_s": summary["wall_s"], "points_per_s": points / wall,
-            "peak_rss_mib": usage.ru_maxrss / 1024.0, "tiles": sum(len(t) for t in summary["tiles"].values()),
+            "peak_rss_mib": peak_mib, "tiles": sum(len(t) for t in summary["tiles"].values()),
             "stages_s": summary["stages_s"],
             "patch_rms_m": summary.get("patches", {}).get("rms_m")}
 
