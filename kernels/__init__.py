@@ -24,8 +24,9 @@ def _cpu_flags() -> frozenset[str]:
 
 
 def _portable_cpu_target() -> None:
-    """Warp's CPU compiler flags with ``-march=x86-64-v3`` for its default ``-march=native``, where the host has that
-    level (elsewhere, and where the flags were set otherwise, they stay as they are)."""
+    """Warp's CPU compiler flags with ``-target-cpu x86-64-v3`` (the form its compiler takes) for its default
+    ``-march=native``, where the host has that level (elsewhere, and where the flags were set otherwise, they stay as
+    they are)."""
     flags = wp.config.cpu_compiler_flags
     if flags and flags.startswith("-march=native") and X86_64_V3 <= _cpu_flags():
         wp.config.cpu_compiler_flags = flags.replace("-march=native", "-target-cpu x86-64-v3", 1)
