@@ -17,6 +17,14 @@ os.environ["FLIGHTSIM_CACHE"] = _SCENE_CACHE
 atexit.register(shutil.rmtree, _SCENE_CACHE, ignore_errors=True)
 
 
+MAX_WORKERS = 4  # processes of `-n auto` (pyproject's addopts): each holds Warp, its kernels and a CUDA context
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    """`-n auto`: a process per core the suite may use, at most MAX_WORKERS."""
+    return max(1, min(len(os.sched_getaffinity(0)), MAX_WORKERS))
+
+
 def _devices() -> list[str]:
     from flightsim.core.warp_runtime import init_warp
     import warp as wp

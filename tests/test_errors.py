@@ -254,3 +254,15 @@ ORBIT_CASES = [
 ]
 CASES.extend(ORBIT_CASES)
 PARAMS.extend(pytest.param(*case, id=case[0]) for case in ORBIT_CASES)
+
+
+def test_a_long_path_is_named_whole_and_a_long_list_is_cut():
+    from flightsim.core.errors import InputError
+
+    path = "/tmp/" + "deep/" * 30 + "notes.txt"  # 164 characters: the file's name at its end
+    assert repr(path) in str(InputError("PATH", path, "a .las file"))
+    huge = "x" * 5000 + "end.las"
+    text = str(InputError("PATH", huge, "a .las file"))
+    assert text.startswith("invalid PATH = 'xxx") and "end.las'" in text and "..." in text and len(text) < 1100
+    listed = str(InputError("fan.angles", list(range(100)), "at most 8 angles"))
+    assert "[0, 1, 2" in listed and "99" not in listed and len(listed.split(" = ", 1)[1].split(":")[0]) == 80

@@ -9,12 +9,20 @@ from __future__ import annotations
 import math
 
 
+SHORT = 80  # characters of a value other than a string (a list, an array) an error message shows
+LONG = 1000  # characters of a string (a path, a name): its end, a file's name, is what the reader needs
+
+
 def describe_value(value: object) -> str:
-    """Short, readable form of an offending value for an error message (at most 80 characters)."""
+    """Short, readable form of an offending value for an error message: a string whole up to LONG characters
+    (a longer one cut in the middle, keeping its end), anything else at most SHORT characters."""
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
+    if isinstance(value, str):
+        half = (LONG - 3) // 2
+        return text if len(text) <= LONG else text[:half] + "..." + text[-half:]
+    return text if len(text) <= SHORT else text[:SHORT - 3] + "..."
 
 
 class TrajectoryError(ValueError):
