@@ -1,0 +1,34 @@
+"""The command line's start (flightsim/entry.py): the CUDA device a command line names is started on a thread
+while the modules import, and it is the context Warp then uses."""
+import pytest
+
+from flightsim.entry import cuda_ordinal, start_cuda
+
+
+@pytest.mark.parametrize("argv, ordinal", [
+    (["simulate", "--device", "cuda", "--out", "x"], 0),
+    (["simulate", "--device=cuda:1"], 1),
+    (["sweep", "--device", "cuda:12"], 12),
+    (["simulate", "--device", "cpu"], None),
+    (["simulate", "--device"], None),
+    (["simulate", "--device", "cudax"], None),
+    (["simulate", "--device=cuda:"], None),
+    (["simulate", "--out", "cuda"], None),
+    (["simulate", "--set", "run.device=cuda"], None),  # a config field: the run starts CUDA itself
+])
+def test_the_device_a_command_line_names(argv, ordinal):
+    assert cuda_ordinal(argv) == ordinal
+
+
+def test_the_context_started_is_the_one_warp_uses(device):
+    if not device.startswith("cuda"):
+        pytest.skip("a CUDA device only")
+    import warp as wp
+
+    ordinal = int(device.split(":")[1])
+    context = start_cuda(ordinal)
+    assert context is not None and context == wp.get_device(device).context  # an int (ctypes c_void_p)
+
+
+def test_no_such_device_starts_nothing():
+    assert start_cuda(1 << 20) is None
