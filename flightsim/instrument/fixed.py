@@ -7,11 +7,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.instrument.base import footprint_buffer_m
-from kernels import fixed
 from trajectories import PulseTiming
+
+fixed = lazy_module("kernels.fixed")
 
 
 @dataclass
@@ -26,9 +28,13 @@ class FixedDeflector:
     """No scan: pulses at ``prf_hz``."""
 
     settings = FixedSettings
-    kernel = fixed.FIXED  # the kernel side: its struct and device functions
     rigid_nominal = False
     believed_is_truth = True
+
+    @property
+    def kernel(self):
+        """The kernel side: its struct and device functions."""
+        return fixed.FIXED
 
     def __init__(self, s: FixedSettings, emitter):
         self.s = s

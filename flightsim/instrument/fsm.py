@@ -9,13 +9,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from flightsim.core.errors import InputError
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.instrument.base import footprint_buffer_m
 from flightsim.core.constants import ARCSEC
 from flightsim.instrument import fsm_model
-from kernels import fsm
 from trajectories import PulseTiming
+
+fsm = lazy_module("kernels.fsm")
 
 MAX_SPAN_MRAD = 200.0  # full tilt span of either axis
 MODES = ("A", "B")
@@ -90,8 +92,12 @@ class FsmDeflector:
     """``[fsm]`` as built and scanned, in front of a fan emitter."""
 
     settings = FsmSettings
-    kernel = fsm.FSM  # the kernel side: its struct and device functions
     rigid_nominal = False
+
+    @property
+    def kernel(self):
+        """The kernel side: its struct and device functions."""
+        return fsm.FSM
 
     def __init__(self, s: FsmSettings, emitter):
         self.s = s

@@ -9,13 +9,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from flightsim.core.errors import InputError
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.instrument.base import footprint_buffer_m
 from flightsim.core.constants import ARCSEC
 from flightsim.instrument import galvo_model
-from kernels import galvo
 from trajectories import PulseTiming
+
+galvo = lazy_module("kernels.galvo")
 
 MAX_FIELD_DEG = 80.0  # full field of either axis [deg]
 ANGLE_ERRORS = ("b1_arcsec", "b2_arcsec", "b3_arcsec", "c1_arcsec", "h_noise_arcsec", "v_noise_arcsec")
@@ -108,8 +110,12 @@ class GalvoDeflector:
     """``[galvo]`` (resolved settings) in front of a channel emitter."""
 
     settings = GalvoSettings
-    kernel = galvo.GALVO  # the kernel side: its struct and device functions
     rigid_nominal = False
+
+    @property
+    def kernel(self):
+        """The kernel side: its struct and device functions."""
+        return galvo.GALVO
 
     def __init__(self, s: GalvoSettings, emitter):
         self.s = s

@@ -9,11 +9,13 @@ from dataclasses import dataclass
 
 from flightsim.core.constants import ARCSEC
 from flightsim.core.errors import InputError
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.instrument.base import footprint_buffer_m
-from kernels import panoramic
 from trajectories import PulseTiming
+
+panoramic = lazy_module("kernels.panoramic")
 
 MAX_SCAN_PULSES = 2 ** 31 - 1  # measurements of one scan (the kernels count them in int32)
 
@@ -76,8 +78,12 @@ class PanoramicDeflector:
     """``[panoramic]``: vertical lines turned in azimuth, pulses at ``measurement_rate_hz``."""
 
     settings = PanoramicSettings
-    kernel = panoramic.PANORAMIC  # the kernel side: its struct and device functions
     rigid_nominal = False
+
+    @property
+    def kernel(self):
+        """The kernel side: its struct and device functions."""
+        return panoramic.PANORAMIC
 
     def __init__(self, s: PanoramicSettings, emitter):
         self.s = s

@@ -9,9 +9,11 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.errors import InputError
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, check_settings, setting
-from kernels import photon
+
+photon = lazy_module("kernels.photon")
 
 H = 6.62607015e-34  # Planck constant [J s]
 C = 299_792_458.0  # [m/s]

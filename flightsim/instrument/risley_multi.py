@@ -21,11 +21,13 @@ import warp as wp
 
 from flightsim.core.constants import ARCSEC
 from flightsim.core.errors import InputError
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.instrument import risley_multi_model as model
-from kernels import wedges
 from trajectories import PulseTiming
+
+wedges = lazy_module("kernels.wedges")
 
 PER_PRISM = ("rotation_hz", "phase0_deg", "apex_angle_deg", "refractive_index", "thickness_mm", "encoder_arcsec")
 BELIEVED = {"believed_refractive_index": "refractive_index", "believed_apex_angle_deg": "apex_angle_deg",
@@ -184,8 +186,12 @@ class RisleyNDeflector:
     """The prisms of ``[risley_n]`` (resolved settings) in front of an emitter."""
 
     settings = RisleyNSettings
-    kernel = wedges.RISLEY_N  # the kernel side: its struct and device functions
     rigid_nominal = True  # the rigid-array (nominal) georeferencing model is defined for it
+
+    @property
+    def kernel(self):
+        """The kernel side: its struct and device functions."""
+        return wedges.RISLEY_N
 
     def __init__(self, s: RisleyNSettings, emitter):
         self.s = s

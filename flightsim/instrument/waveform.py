@@ -27,11 +27,12 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.errors import InputError
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.instrument import waveform_model as model
-from kernels import waveform as kw
 
+kw = lazy_module("kernels.waveform")
 
 H = 6.62607015e-34  # Planck constant [J s]
 C = 299_792_458.0  # [m/s]

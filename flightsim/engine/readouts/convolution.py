@@ -8,13 +8,17 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from kernels import waveform as kw
-from kernels import waveform_fft as kf
+from flightsim.core.lazy import lazy_module
+
+kw = lazy_module("kernels.waveform")
+kf = lazy_module("kernels.waveform_fft")
 
 
-def fft_size(taps: int, samples: int, least: int = kf.FFT_SIZE) -> int:
-    """N: the smallest power of two that exceeds the taps and reaches ``least``, or the samples plus the taps − 1
-    (one FFT then makes a whole row's outputs) if fewer; each FFT makes N − taps + 1 outputs."""
+def fft_size(taps: int, samples: int, least: int | None = None) -> int:
+    """N: the smallest power of two that exceeds the taps and reaches ``least`` (the kernels' FFT_SIZE by default),
+    or the samples plus the taps − 1 (one FFT then makes a whole row's outputs) if fewer; each FFT makes N − taps + 1
+    outputs."""
+    least = kf.FFT_SIZE if least is None else least
     n = 1
     while n < max(min(least, samples + taps - 1), taps + 1):
         n *= 2
@@ -61,11 +65,13 @@ class PulseConvolution:
     samples need fewer products than an FFT), the others by FFTs of size :func:`fft_size` of ``fft_least`` (a power
     of two) launched with ``block_dim`` threads per tile (at most N/2; None: kernels.waveform_fft's choice for the
     transform), keeping the bins of the pulse's spectrum above ``floor`` of its largest (:func:`kept_bins`; 0:
-    every bin)."""
+    every bin). ``fft_least`` and ``direct_below`` default (None) to kernels.waveform_fft's FFT_SIZE and
+    DIRECT_BELOW."""
 
     def __init__(self, method: str, taps: wp.array, first_lag: int, samples: int, device: str,
-                 fft_least: int = kf.FFT_SIZE, block_dim: int | None = None, direct_below: int = kf.DIRECT_BELOW,
+                 fft_least: int | None = None, block_dim: int | None = None, direct_below: int | None = None,
                  floor: float = SPECTRUM_FLOOR):
+        direct_below = kf.DIRECT_BELOW if direct_below is None else direct_below
         self.method, self.taps, self.first_lag, self.device = method, taps, first_lag, device
         self.direct_below, self.spans, self.rows, self.fft_rows = direct_below, None, None, None
         self.zeroes_narrower = direct_below if method == "fft" else 1 << 30  # the rows whose impulse trains the

@@ -10,12 +10,16 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.warp_runtime import host_array, to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, SLOTS_PER_CHUNK, Segment
 from flightsim.engine.readouts.points import PointBuffers, points_kernels, trace_points
 from flightsim.scenes.canopy import no_canopy
-from kernels import photon, photon_frame, trace
+from kernels import trace
+
+photon = lazy_module("kernels.photon")
+photon_frame = lazy_module("kernels.photon_frame")
 
 FRAME_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 26}  # into a frame: a whole SPAD frame (44M beams) one chunk
 

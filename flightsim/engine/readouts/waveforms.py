@@ -11,13 +11,15 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.warp_runtime import host_array
 from flightsim.engine.chunks import Segment
 from flightsim.engine.readouts.convolution import PulseConvolution
 from flightsim.scenes.canopy import no_canopy
 from kernels import trace
-from kernels import waveform as kw
+
+kw = lazy_module("kernels.waveform")
 
 WAVEFORM_SAMPLES_PER_CHUNK = {"cpu": 1 << 22, "cuda": 1 << 28}  # waveform samples per launch
 C = 299_792_458.0  # [m/s]
