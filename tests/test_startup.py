@@ -32,3 +32,16 @@ def test_the_context_started_is_the_one_warp_uses(device):
 
 def test_no_such_device_starts_nothing():
     assert start_cuda(1 << 20) is None
+
+
+def test_source_trees_are_timed_side_by_side():
+    from pathlib import Path
+
+    from flightsim.studies.startup_ab import compare, table
+
+    tree = Path(__file__).resolve().parents[1]
+    records = compare("cpu", 1, [tree])
+    (run,) = records[tree]
+    assert 0.0 < run["cli_s"] < run["first_ray_s"] < run["first_file_s"] <= run["exit_s"] < 60.0
+    assert run["modules_compiled"] == 0  # the first, untimed run filled the kernel cache
+    assert table(records).splitlines()[2].startswith(f"| {tree} | 1 | {run['cli_s']:.3f} / ")

@@ -83,7 +83,9 @@ def _compile(device: str, tmp: Path, flags: list[str]) -> float:
     return time.time() - started
 
 
-def _launch(device: str, tmp: Path, state: str, env_more: dict | None = None) -> dict:
+def _launch(device: str, tmp: Path, state: str, env_more: dict | None = None, tree: Path | None = None) -> dict:
+    """One timed `flightsim simulate` in a fresh process, its kernel cache and output under ``tmp``; ``tree``: a
+    source tree of flightsim to run instead of the installed one."""
     tag = state.replace(" ", "-").replace(",", "")
     tmp.mkdir(parents=True, exist_ok=True)
     out, timeline = tmp / f"run-{tag}", tmp / f"timeline-{tag}.txt"
@@ -91,11 +93,13 @@ def _launch(device: str, tmp: Path, state: str, env_more: dict | None = None) ->
     kernels = tmp / "kernels"
     env = dict(os.environ, WARP_CACHE_PATH=str(kernels), FLIGHTSIM_CACHE=str(tmp / "scenes"),
                FLIGHTSIM_TIMELINE=str(timeline), **(env_more or {}))
+    if tree is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(tree), *filter(None, [os.environ.get("PYTHONPATH")])])
     command = [sys.executable, "-m", "flightsim", "simulate", "--device", device, "--duration", "1",
                "--out", str(out)]
     modules_before = _modules(kernels)
     started = time.time()
-    done = subprocess.run(command, env=env, capture_output=True, text=True)
+    done = subprocess.run(command, env=env, capture_output=True, text=True, cwd=tree)
     ended = time.time()
     if done.returncode != 0:
         raise RuntimeError(f"start-up run failed: {' '.join(command)}\n{done.stderr[-4000:]}")
