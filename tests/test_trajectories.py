@@ -376,13 +376,16 @@ def test_write_csv_to_missing_directory(tmp_path):
     assert info.value.field == "trajectory.file"
 
 
-def test_error_message_format_and_short_value():
+def test_error_message_format_and_value_lengths():
     err = TrajectoryError("flight.length_m", "x" * 500, "a finite number > 0 [m]")
     assert (err.field, err.value, err.allowed) == ("flight.length_m", "x" * 500, "a finite number > 0 [m]")
     assert isinstance(err, ValueError)
     assert str(TrajectoryError("a.b", -1.0, "> 0")) == "invalid a.b = -1.0: expected > 0"
-    head = str(err).split(": expected")[0]
-    assert len(head) <= len("invalid flight.length_m = ") + 80
+    assert str(err) == f"invalid flight.length_m = {'x' * 500!r}: expected a finite number > 0 [m]"  # a string whole
+    head = str(TrajectoryError("flight.length_m", "x" * 5000, "> 0")).split(": expected")[0]
+    assert len(head) <= len("invalid flight.length_m = ") + 1000  # … up to 1000 characters
+    head = str(TrajectoryError("a.b", list(range(500)), "> 0")).split(": expected")[0]
+    assert len(head) <= len("invalid a.b = ") + 80  # anything else at most 80
 
 
 # ---------------------------------------------------------------- flight lines

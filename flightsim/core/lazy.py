@@ -6,12 +6,20 @@ uses it as usual (``photon.PhotonDetector()``); the module loads at the first su
 from __future__ import annotations
 
 import importlib
+import threading
 from types import ModuleType
+
+PARSING = threading.RLock()
+"""Held while a lazy module imports and while a tile writer's thread first loads laspy. CPython 3.11 keeps the AST
+constructor's recursion depth per interpreter, not per thread: two threads building syntax trees at once (Warp's
+decorators parse each kernel's source as a kernels module imports; laspy's import runs NumPy's literal_eval of
+dtype strings) can fail with SystemError ("AST constructor recursion depth mismatch")."""
 
 
 class LazyModule:
     """Stands in for module ``name`` until an attribute is looked up on it, which imports the module (under
-    Python's import lock: threads that look up at once get the one module) and returns the module's attribute."""
+    :data:`PARSING` and Python's import lock: threads that look up at once get the one module) and returns the
+    module's attribute."""
 
     def __init__(self, name: str):
         self._name = name
@@ -20,7 +28,8 @@ class LazyModule:
     def __getattr__(self, attribute: str):
         module = self._module
         if module is None:
-            module = self._module = importlib.import_module(self._name)
+            with PARSING:
+                module = self._module = importlib.import_module(self._name)
         return getattr(module, attribute)
 
     def __repr__(self) -> str:

@@ -198,13 +198,8 @@ class DeviceLasOutput:
             self._jobs[model].put(_Slab(slab, first, count, groups))
 
     def _write_loop(self, model: str) -> None:
-        """Writer thread of one model: make the tiles' header while the run sets up, then append each queued slab's
-        part of every tile to its file."""
+        """Writer thread of one model: append each queued slab's part of every tile to its file."""
         writer, jobs = self.writers[model], self._jobs[model]
-        try:
-            writer.prepare()
-        except BaseException as exc:  # handed to the simulating thread
-            self._errors.append(exc)
         while (slab := jobs.get()) is not None:
             try:
                 if not self._errors:

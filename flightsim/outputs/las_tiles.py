@@ -25,6 +25,7 @@ import pyproj
 
 from flightsim.core.version import __version__
 from flightsim.core.errors import InputError
+from flightsim.core.lazy import PARSING
 from flightsim.outputs.las_format import (_EXTRA_DIMS, _MM_PER_M, OPTIONAL_DIMS, SCAN_ANGLE_UNIT_DEG, _quantized_mm,
                                           _check_header_fields, _tile_header_template, _tile_size_mm, _validated_crs)
 from flightsim.outputs.las_points import PointBatch
@@ -121,14 +122,11 @@ class TileWriter:
 
     @functools.cached_property
     def _template(self) -> laspy.LasHeader:
-        """The header every tile shares but for its offsets, made at the first write or by :meth:`prepare`: laspy (and
-        the HTTP stack its COPC reader imports) is loaded by the thread that writes, not before a run's first ray."""
-        return _tile_header_template(*self._header_fields, self._dims)
-
-    def prepare(self) -> None:
-        """Make the tiles' header now (laspy loaded, the CRS's WKT written out: ~0.2 s on a 2-core machine), so that
-        a writer thread started with the run has it before its first records arrive."""
-        self._template  # noqa: B018  (a cached property: made once)
+        """The header every tile shares but for its offsets, made at the first write: laspy (and the HTTP stack its
+        COPC reader imports) is loaded by the thread that writes, not before a run's first ray (under
+        :data:`flightsim.core.lazy.PARSING`: laspy's import parses, as a kernels module's does)."""
+        with PARSING:
+            return _tile_header_template(*self._header_fields, self._dims)
 
     def __enter__(self) -> TileWriter:
         return self
