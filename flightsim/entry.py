@@ -3,7 +3,8 @@
 Where the command line names a CUDA device (``--device cuda``, ``--device=cuda:N``), the CUDA driver starts and
 makes that device's primary context on a thread while the command's modules import: two calls into the driver
 that hold no interpreter lock (~0.2 s of a run's start on an H100 machine). Warp, started later by the run, finds
-the driver initialised and the context made (the primary context is one per device and process).
+the driver initialised and the context made (the primary context is one per device and process). A command that
+ends before the thread has (a bad flag) waits for it: the process never exits inside the driver's start.
 
 The modules import with Python's cyclic garbage collector paused, then frozen: an import allocates long-lived
 objects only (Warp's built-ins, the parts' kernels, ~1e6 of them), which the collector would otherwise traverse
@@ -22,8 +23,18 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line (:func:`flightsim.cli.main`)."""
     argv = sys.argv[1:] if argv is None else argv
     device = cuda_ordinal(argv)
+    starting = threading.Thread(target=start_cuda, args=(device,), name="cuda-start", daemon=True)
     if device is not None:
-        threading.Thread(target=start_cuda, args=(device,), name="cuda-start", daemon=True).start()
+        starting.start()
+    try:
+        return _command_line(argv)
+    finally:  # a command that ends at once (a bad flag) leaves only after the driver's start, never inside it
+        if starting.is_alive():
+            starting.join()
+
+
+def _command_line(argv: list[str]) -> int:
+    """Import the command line's modules with the collector paused, then run it."""
     collecting = gc.isenabled()
     gc.disable()
     try:

@@ -45,3 +45,15 @@ def test_source_trees_are_timed_side_by_side():
     assert 0.0 < run["cli_s"] < run["first_ray_s"] < run["first_file_s"] <= run["exit_s"] < 60.0
     assert run["modules_compiled"] == 0  # the first, untimed run filled the kernel cache
     assert table(records).splitlines()[2].startswith(f"| {tree} | 1 | {run['cli_s']:.3f} / ")
+
+
+def test_a_command_that_ends_at_once_waits_for_the_driver_start(monkeypatch):
+    import time
+
+    from flightsim import entry
+
+    started = []
+    monkeypatch.setattr(entry, "start_cuda", lambda ordinal: (time.sleep(0.5), started.append(ordinal)))
+    with pytest.raises(SystemExit) as ended:
+        entry.main(["simulate", "--device", "cuda:1", "--no-such-flag"])
+    assert ended.value.code == 2 and started == [1]  # the process would exit only now

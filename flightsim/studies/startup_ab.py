@@ -27,7 +27,8 @@ def compare(device: str, runs: int, trees: list[Path]) -> dict[Path, list[dict]]
         place = Path(tmp)
 
         def launch(tree: Path) -> dict:
-            bytecode = {"PYTHONPYCACHEPREFIX": str(place / f"bytecode-{trees.index(tree)}"), "PYTHONDONTWRITEBYTECODE": ""}
+            bytecode = {"PYTHONPYCACHEPREFIX": str(place / f"bytecode-{trees.index(tree)}"),
+                        "PYTHONDONTWRITEBYTECODE": ""}  # empty: bytecode written and read
             return _launch(device, place, "warm", bytecode, tree)
 
         for tree in trees:

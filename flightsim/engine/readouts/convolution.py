@@ -15,9 +15,9 @@ kf = lazy_module("kernels.waveform_fft")
 
 
 def fft_size(taps: int, samples: int, least: int | None = None) -> int:
-    """N: the smallest power of two that exceeds the taps and reaches ``least`` (the kernels' FFT_SIZE by default),
-    or the samples plus the taps − 1 (one FFT then makes a whole row's outputs) if fewer; each FFT makes N − taps + 1
-    outputs."""
+    """N: the smallest power of two that exceeds the taps and reaches ``least`` (by default the kernels'
+    FFT_SIZE), or the samples plus the taps − 1 (one FFT then makes a whole row's outputs) if fewer; each FFT makes
+    N − taps + 1 outputs."""
     least = kf.FFT_SIZE if least is None else least
     n = 1
     while n < max(min(least, samples + taps - 1), taps + 1):
