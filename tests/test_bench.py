@@ -143,3 +143,18 @@ def test_a_benchmark_process_peak_memory_is_its_own_not_the_benchmarks():
     assert code == 0 and wall >= 0.3
     assert 150 <= peak_mib < 250, peak_mib  # wait4's ru_maxrss alone gives > 600 here (the fork's pages)
     assert held[-1] == 1.0
+
+
+def test_the_benchmarks_children_read_and_write_their_bytecode(monkeypatch):
+    import subprocess
+
+    from flightsim.studies.bench_common import child_bytecode
+
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")  # as on the GPU machines
+    monkeypatch.setenv("PYTHONPYCACHEPREFIX", "/elsewhere")
+    probe = [sys.executable, "-c", "import sys; print(sys.dont_write_bytecode, sys.pycache_prefix)"]
+    with child_bytecode() as folder:
+        seen = subprocess.run(probe, capture_output=True, text=True, check=True).stdout.split()
+        assert seen == ["False", folder] and os.path.isdir(folder)
+    assert not os.path.exists(folder)
+    assert os.environ["PYTHONDONTWRITEBYTECODE"] == "1" and os.environ["PYTHONPYCACHEPREFIX"] == "/elsewhere"

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from flightsim.core.warp_runtime import resolve_device
-from flightsim.studies.bench_common import git_commit, gpu_name, sizes
+from flightsim.studies.bench_common import child_bytecode, git_commit, gpu_name, sizes
 from flightsim.studies.bench_forest import forest
 from flightsim.studies.bench_runs import galvo, spad_frame, stages, study, throughput, waveform_altimeter
 from flightsim.studies.bench_savings import pareto, skipping
@@ -37,11 +37,12 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
                "pareto": pareto, "galvo": galvo, "spad": spad_frame,
                "waveform": waveform_altimeter, "scale": scale, "reduce": reduce_knobs, "survey": survey_area,
                "forest": forest, "startup": startup, "ranging": ranging_bench}
-    for name in sections:  # written after each section, so an interrupted bench keeps what it measured
-        started = time.perf_counter()
-        results[name] = runners[name](device, s)
-        results.setdefault("section_wall_s", {})[name] = time.perf_counter() - started
-        results.setdefault("section_measured", {})[name] = f"{results['git_commit']} {results['date']}"
-        merge_and_write(Path(out), kind, results)
+    with child_bytecode():  # the sections' commands start as an installed package's would
+        for name in sections:  # written after each section, so an interrupted bench keeps what it measured
+            started = time.perf_counter()
+            results[name] = runners[name](device, s)
+            results.setdefault("section_wall_s", {})[name] = time.perf_counter() - started
+            results.setdefault("section_measured", {})[name] = f"{results['git_commit']} {results['date']}"
+            merge_and_write(Path(out), kind, results)
     return results
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.core.warp_runtime import resolve_device
-from flightsim.studies.bench_common import Sizes
+from flightsim.studies.bench_common import Sizes, child_bytecode
 
 
 def startup(device: str, s: Sizes) -> list[dict]:
@@ -28,15 +28,9 @@ def startup(device: str, s: Sizes) -> list[dict]:
     `flightsim compile --all` (every built-in instrument) in an empty cache with nothing prebuilt. A run record
     holds the medians of REPEATS runs."""
     device = resolve_device(device)
-    saved = {name: os.environ.pop(name, None) for name in ("PYTHONPYCACHEPREFIX", "PYTHONDONTWRITEBYTECODE")}
-    with tempfile.TemporaryDirectory() as bytecode, tempfile.TemporaryDirectory() as prime:
-        os.environ["PYTHONPYCACHEPREFIX"] = bytecode  # the children's bytecode (this process keeps its own)
-        try:
-            _launch(device, Path(prime), "bytecode")
-            return _records(device)
-        finally:
-            os.environ.pop("PYTHONPYCACHEPREFIX")
-            os.environ.update({name: value for name, value in saved.items() if value is not None})
+    with child_bytecode(), tempfile.TemporaryDirectory() as prime:  # the children's bytecode (this process: its own)
+        _launch(device, Path(prime), "bytecode")
+        return _records(device)
 
 
 REPEATS = 3  # runs per cache state (each cold one in a cache of its own); the record holds their medians
