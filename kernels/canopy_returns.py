@@ -21,10 +21,10 @@ return shares the beam's ranging errors. Its class is 3, 4 or 5 (low, medium, hi
 written as the face index ``triangles + class − 3`` (:func:`leaf_face`), so per-face tables extended by three
 rows label it.
 """
+import functools
 
 import warp as wp
 
-from flightsim.core.lazy import parsed
 from kernels.canopy import NO_INTERACTION, Canopy, g_of, leaf_span, walk_begin, walk_next
 from kernels.parts import Instrument
 from kernels.looks import FIRST_LOOK, SECOND_LOOK, Misses, list_miss
@@ -234,7 +234,7 @@ def walk_register_options(max_registers: int | None) -> dict:
     return {"launch_bounds": (BLOCK_THREADS, blocks), "enable_cuda_smem_spilling": True}
 
 
-@parsed
+@functools.cache
 def canopy_trace_kernel(f: Features, instrument: Instrument, max_registers: int | None = None, look: int = FIRST_LOOK):
     """The first stage of the points kernel of a scene with a canopy: one thread per beam (per listed beam in the
     second look), its surface trace (:class:`kernels.trace.SlotTrace`) into a per-beam scratch row that
@@ -264,7 +264,7 @@ def canopy_trace_kernel(f: Features, instrument: Instrument, max_registers: int 
     return trace_canopy_beams
 
 
-@parsed
+@functools.cache
 def canopy_points_kernel(f: Features, instrument: Instrument, max_registers: int | None = None):
     """The second stage of the points kernel of a scene with a canopy: one thread per beam, ``max_returns`` slots
     per beam. It walks the leaves from what the walk needs of the beam's trace (:func:`canopy_trace_kernel`) and

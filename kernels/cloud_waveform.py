@@ -16,10 +16,9 @@ sample and divides by the footprint's total weight, so ∫ rx dr = 1 as the mode
 Units: local metres (float32: a cloud's local frame keeps |x|, |y| within ~1e4 m, 1 mm); ranges in bins of
 the histogram (``inv_bin`` [1/m]).
 """
+import functools
 
 import warp as wp
-
-from flightsim.core.lazy import parsed
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
@@ -86,7 +85,7 @@ def _row_run(g: CloudGrid, b: CloudBeamParams, c: wp.vec2f, j: int):
     return first, end
 
 
-@parsed
+@functools.cache
 def cloud_waveform_kernel(bins: int):
     """The waveform kernel for a shared histogram of ``bins`` bins per component (launch tiled, one block per
     footprint)."""

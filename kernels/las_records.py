@@ -19,10 +19,10 @@ less the tile's lower-left corner; gps time = line start + k / PRF; intensity = 
 """
 from __future__ import annotations
 
+import functools
 
 import warp as wp
 
-from flightsim.core.lazy import parsed
 from kernels import frames
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
@@ -120,7 +120,7 @@ def _low16(v: wp.int64):
     return wp.uint32(v & wp.int64(0xFFFF))
 
 
-@parsed
+@functools.cache
 def pack_kernel(position_error: bool, edge_distance: bool, multi_return: bool = False):
     """The record-packing kernel with the optional extra bytes compiled in or out, and each record's return
     number and number of returns from ``returns`` (``multi_return``) or 1 of 1."""

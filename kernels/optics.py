@@ -7,11 +7,10 @@ Sensor frame: +z is the prism axis, x and y span the prism faces. The front face
 z = 0; all sub-beams of the fan cross Σ1 at the origin. The back face Σ2 passes through
 (0, 0, thickness) with normal N2(φ) = (sin α cos φ, sin α sin φ, cos α).
 """
+import functools
 from typing import Any
 
 import warp as wp
-
-from flightsim.core.lazy import parsed
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
@@ -105,7 +104,7 @@ def rigid_array_direction(s1: Any, s3_center: Any):
 PORTABLE_CPU_FLAGS = wp.config.cpu_compiler_flags.replace("-march=native", "").strip()  # Warp's, less the host's ISA
 
 
-@parsed
+@functools.cache
 def exit_fan_kernel(dtype: type):
     """Kernel tracing a whole fan at many prism angles, in ``dtype`` (wp.float32 or wp.float64).
 

@@ -21,11 +21,11 @@ n_s φ/σ ÷ λ at its time. Random numbers are Warp's counter-based PCG keyed b
 same seed gives the same photons on the CPU and the GPU. The TDC reads each detection as the centre
 of its bin (the dead time runs from the true time).
 """
+import functools
 import math
 
 import warp as wp
 
-from flightsim.core.lazy import parsed
 from kernels.canopy import Canopy
 from kernels.canopy_photons import LeafRay, leaf_sum, transmission_to
 from kernels.frames import ROW_PULSE, ROW_SEED
@@ -124,7 +124,7 @@ def _source(v: wp.float64, surface: wp.float64, lit: wp.float64, green: wp.float
     return wp.int8(0)
 
 
-@parsed
+@functools.cache
 def sampler(retro: bool, leaves: bool = False):
     """The photon sampler's device functions, with the retroreflector's echo (``retro``) and the leaves' along the
     beam (``leaves``: :mod:`kernels.canopy_photons`, whose integral up to the gate's opening is ``leaf.at_open``)
@@ -227,7 +227,7 @@ def sampler(retro: bool, leaves: bool = False):
     return detect
 
 
-@parsed
+@functools.cache
 def photon_events_kernel():
     """The kernel sampling detections of slots given their expected signal and echo time (a surface, no
     retroreflector, no leaves). Made in a module of its own, like :func:`photon_slots_kernel`: a kernel of this file's
@@ -264,7 +264,7 @@ def retro_echo(position: wp.vec3d, photons: wp.float64, footprint: wp.float64, s
     return photons * wp.exp(wp.float64(-2.0) * off2 / (w * w)), wp.float64(2.0) * wp.length(v) / LIGHT_SPEED
 
 
-@parsed
+@functools.cache
 def photon_slots_kernel(retro: bool, per_face: bool, leaves: bool = False):
     """The kernel turning a traced chunk's slots into detections, with or without retroreflectors, with
     the scene's per-triangle reflectance (``per_face``) or the run's one value, and through the leaves of

@@ -11,10 +11,10 @@ sees the overflow once, at the end of the frame, and runs the frame again in lar
 keyed by slot: the same photons again). Per detection it reads 9 bytes and writes 32, where the separate
 gather, placing and appending passes moved about 150.
 """
+import functools
 
 import warp as wp
 
-from flightsim.core.lazy import parsed
 from kernels.frames import ROW_ORIGIN, ROW_ROT, get3, get33
 from kernels.parts import Instrument
 from kernels.photon_grid import angle_cell
@@ -26,7 +26,7 @@ MAX_REGISTERS = 64  # on a GPU: 72 uncapped (38 % occupancy); at 64 (50 %), with
 # takes 2.36 ms of a MODE-A frame against 2.77 (H100; results/profile-experiments.md, section 50)
 
 
-@parsed
+@functools.cache
 def frame_photons_kernel(instrument: Instrument):
     """The kernel placing a chunk's detections into a frame's arrays (one thread per slot), for one instrument's
     believed deflector."""

@@ -1,10 +1,10 @@
 """Statistics mode on the device: each slot's record (the plane it hit and its points), the settling of records near
 plane boundaries, and the reduction of the records to per-plane float64 moments (several copies of the sums,
 added at the end); the plane and patch codes of the points path's reductions."""
+import functools
 
 import warp as wp
 
-from flightsim.core.lazy import parsed
 from kernels.edges import boundary_distance, near_boundary
 from kernels.parts import Instrument
 from kernels.looks import FIRST_LOOK, SECOND_LOOK, Misses, list_miss
@@ -30,7 +30,7 @@ def _outer6(d: wp.vec3d):
     return vec6d(d[0] * d[0], d[0] * d[1], d[0] * d[2], d[1] * d[1], d[1] * d[2], d[2] * d[2])
 
 
-@parsed
+@functools.cache
 def records_kernel(f: Features, instrument: Instrument, max_registers: int | None = None, look: int = FIRST_LOOK):
     """Statistics mode, step 1: one thread per slot traces and georeferences its beam and writes a
     compact record: the plane it hit (or why it does not count) and its points.
@@ -91,7 +91,7 @@ def records_kernel(f: Features, instrument: Instrument, max_registers: int | Non
     return trace_records
 
 
-@parsed
+@functools.cache
 def check_edges_kernel(instrument: Instrument):
     """The kernel settling near-boundary records (:func:`_check_edges`) for one instrument's scan struct."""
     Scan = scan_struct(instrument)

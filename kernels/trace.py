@@ -11,10 +11,10 @@ the wedge's back-face normal, the galvo's mirror normals; the on-axis ray of the
 once per pulse in the pulse table, and only the rest per beam.
 """
 
+import functools
 from dataclasses import dataclass
 import warp as wp
 
-from flightsim.core.lazy import parsed
 from kernels.frames import (POSE_ROWS, ROW_ORIGIN, ROW_PHI, ROW_PULSE, ROW_RIGHT, ROW_ROT, ROW_SEED, get3, get33, put3,
                             put33)
 from kernels.edges import EdgeGrid, boundary_distance, near_boundary
@@ -38,7 +38,7 @@ COUNT_TIR = 0
 COUNT_MISS = 1
 COUNT_EDGE = 2  # returns left out of the statistics for lying within the edge buffer
 
-@parsed
+@functools.cache
 def scan_struct(instrument: Instrument) -> type:
     """The struct of everything a slot needs besides its pose, for one instrument's parts."""
 
@@ -108,7 +108,7 @@ def pulse_rows(instrument: Instrument, pose: bool = False) -> Rows:
                 end if pose else -1, end + 12 if pose else end)
 
 
-@parsed
+@functools.cache
 def beam_table_kernel(instrument: Instrument):
     """Kernel tabulating the per-beam part of the optics, in float64, once per run (one thread per beam)."""
     deflector = instrument.deflector
@@ -125,7 +125,7 @@ def beam_table_kernel(instrument: Instrument):
     return beam_table
 
 
-@parsed
+@functools.cache
 def pulse_optics_kernel(instrument: Instrument, pose: bool = False):
     """Kernel filling the per-pulse optics rows of a chunk's pulse table (float64), one thread per pulse,
     and with ``pose`` the pulse's true pose (boresight error and POS noise, shared by its beams)."""
@@ -233,7 +233,7 @@ def _a_return(r: wp.float32, face: wp.int32, direction: wp.vec3f, p_exact: wp.ve
     return s
 
 
-@parsed
+@functools.cache
 def slot_function(f: Features, instrument: Instrument, look: int = FIRST_LOOK):
     """Build the per-slot body shared by the points, the statistics and the canopy kernels, for one of the trace
     kernels' two looks (:mod:`kernels.looks`: the first returns STATUS_RETRY where the mesh query misses)."""
@@ -334,7 +334,7 @@ def slot_function(f: Features, instrument: Instrument, look: int = FIRST_LOOK):
     return trace_slot
 
 
-@parsed
+@functools.cache
 def points_kernel(f: Features, instrument: Instrument, max_registers: int | None = None, look: int = FIRST_LOOK):
     """Kernel writing every slot's return: one thread per (pulse, beam), or per listed slot in the second look."""
     trace_slot = slot_function(f, instrument, look)
@@ -396,7 +396,7 @@ def points_kernel(f: Features, instrument: Instrument, max_registers: int | None
     return trace_points
 
 
-@parsed
+@functools.cache
 def emit_rays_kernel(instrument: Instrument, precise: bool = False, pose: bool = False):
     """Kernel writing the rays the pipeline casts, one per slot: rounded to float32 as the ray cast takes
     them (for timing the bare ray cast), or in float64 with ``precise`` (the waveform detector's beams and
@@ -431,7 +431,7 @@ def emit_rays_kernel(instrument: Instrument, precise: bool = False, pose: bool =
     return emit_rays
 
 
-@parsed
+@functools.cache
 def photon_points_kernel(instrument: Instrument):
     """Kernel placing each photon detection: its beam as the processing believes it (float64), at the
     photon's range c·t/2 — the georeferencing of the exact model, per photon."""

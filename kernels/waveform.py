@@ -13,10 +13,10 @@ is kept to first order: its error is below dt²/(8σ²) of the echo). The wavefo
 convolved with the transmitted pulse P(t) = P_max exp(−(t − τ/2)²/2σ²) sampled at multiples of dt
 over ±PULSE_SIGMAS σ: the received power [W] at t = window start + i·dt.
 """
+import functools
 
 import warp as wp
 
-from flightsim.core.lazy import parsed
 from kernels.canopy import Canopy, g_of, walk_begin, walk_next
 from kernels.frames import ROW_PULSE, ROW_SEED
 from kernels.mesh_cast import closest_hit
@@ -184,7 +184,7 @@ DEPOSIT_MAX_REGISTERS = 128  # on a GPU: two 256-thread blocks per SM; 137 uncap
 # 64/96/128/uncapped on an H100 (results/profile-experiments.md, section 13)
 
 
-@parsed
+@functools.cache
 def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | None = DEPOSIT_MAX_REGISTERS):
     """The deposit kernel, each sub-ray's link times its triangle's albedo (``per_face``: ``m.reflectance``) or the run's
     one link; through the leaves (``canopy``: :func:`leaf_echo`, the surface's echo dimmed by what they let through) or

@@ -32,9 +32,9 @@ only removes the FFT's rounding, ~1e−16 of the block's largest value). Outputs
 those after it only with 0 (the tail of the reach's last pair of blocks), so with ``out`` zeroed beforehand every sample
 beyond the reach stays exactly 0, as the direct sums leave it (they too write 0 to a few samples past the reach).
 """
+import functools
 
 import warp as wp
-from flightsim.core.lazy import parsed
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
@@ -317,7 +317,7 @@ def overlap_save_snippet(n: int, keep: int = -1) -> str:
     return helpers + "\n".join(code)
 
 
-@parsed
+@functools.cache
 def convolve_fft_kernel(n: int = FFT_SIZE, block_dim: int = FFT_BLOCK_DIM, keep: int = -1):
     """The overlap-save kernel of FFT size ``n`` (a power of two) for tiles of ``block_dim`` threads (its module's
     block_dim, so that compiling it ahead compiles what runs), keeping the spectrum's bins |k| ≤ ``keep`` (< 0:

@@ -17,10 +17,10 @@ for. The host launches rounds until no fit is left (:func:`flightsim.instrument.
 Scratch arrays, parameter first and waveform last: ``normal`` and ``chol`` (3·MAX_PEAKS, 3·MAX_PEAKS, W), ``grad``,
 ``trial``, ``delta`` (3·MAX_PEAKS, W), ``free`` (3·MAX_PEAKS, W); the chunks' sums (:class:`ChunkSums`).
 """
+import functools
 
 import warp as wp
 
-from flightsim.core.lazy import parsed
 from kernels.waveform_measures import GAIN_TOLERANCE, LAMBDA_TRIES, MAX_ITERATIONS, MAX_PEAKS, STATUS_CONVERGED, \
     STATUS_ITERATIONS, STATUS_SKIPPED, UNDERFLOW, _time
 
@@ -165,7 +165,7 @@ def start_fits(count: wp.array(dtype=wp.int32), params: wp.array2d(dtype=wp.floa
     state.steps[w] = 0
 
 
-@parsed
+@functools.cache
 def evaluate_kernel(gaussians: int):
     """:data:`evaluate_chunks` for waveforms of at most ``gaussians`` Gaussians (its per-thread sums sized for them)."""
     parameters = 3 * gaussians

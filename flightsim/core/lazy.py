@@ -2,36 +2,18 @@
 needs the kernels of the parts it flies only: a kernels module defines its Warp kernels when it is imported (the
 photon, waveform, FSM, galvo, panoramic, fixed and N-prism kernels together ~0.1 s of a 2-core machine's start,
 none of which a Risley run to LAS uses). A part's module names its kernels module with :func:`lazy_module` and
-uses it as usual (``photon.PhotonDetector()``); the module loads at the first such look-up.
-
-A kernel builder (a function that makes Warp kernels for its arguments, once per arguments) is :func:`parsed`:
-cached, and run under :data:`PARSING`, as lazy imports are, because Warp parses the source of what it makes."""
+uses it as usual (``photon.PhotonDetector()``); the module loads at the first such look-up."""
 from __future__ import annotations
 
-import functools
 import importlib
 import threading
 from types import ModuleType
 
 PARSING = threading.RLock()
-"""Held while a lazy module imports, while a kernel builder (:func:`parsed`) runs and while a tile writer's thread
-first loads laspy. CPython 3.11 keeps the AST constructor's recursion depth per interpreter, not per thread: two
-threads building syntax trees at once (Warp's decorators parse each kernel's source, as a kernels module imports or
-a builder makes a kernel; laspy's import runs NumPy's literal_eval of dtype strings) can fail with SystemError ("AST
-constructor recursion depth mismatch")."""
-
-
-def parsed(builder):
-    """``functools.cache`` for a kernel builder (a function that makes Warp kernels, functions or structs for its
-    arguments, once per arguments), its calls holding :data:`PARSING`: Warp parses the source of what it makes."""
-    cached = functools.cache(builder)
-
-    @functools.wraps(builder)
-    def build(*args, **kwargs):
-        with PARSING:
-            return cached(*args, **kwargs)
-
-    return build
+"""Held while a lazy module imports and while a tile writer's thread first loads laspy. CPython 3.11 keeps the AST
+constructor's recursion depth per interpreter, not per thread: two threads building syntax trees at once (Warp's
+decorators parse each kernel's source as a kernels module imports; laspy's import runs NumPy's literal_eval of
+dtype strings) can fail with SystemError ("AST constructor recursion depth mismatch")."""
 
 
 class LazyModule:
