@@ -14,9 +14,23 @@ from flightsim.engine.config_io import PREBUILT_RUNS
 ROOT = Path(__file__).resolve().parents[1]
 
 CHECK = """
-import json, sys
+import json, sys, threading, traceback
+from warp._src import context
+
+compiles = []  # what compiled, from which thread and call: the failure's own account of itself
+_compile = context.Module._compile
+
+
+def recording_compile(self, *args, **kwargs):
+    did = _compile(self, *args, **kwargs)
+    if did:
+        compiles.append({"module": self.name, "thread": threading.current_thread().name,
+                         "stack": traceback.format_stack(limit=12)})
+    return did
+
+
+context.Module._compile = recording_compile
 from flightsim.cli import build_config, make_parser
-import pytest
 
 from flightsim.core import prebuilt
 from flightsim.core.warp_runtime import compile_ahead
@@ -29,7 +43,8 @@ compile_kernels([cfg])
 gpu_only = scene_part(cfg.scene).build_kernels("cuda")  # what the scene builds with on a GPU (a forest's voxels)
 compile_ahead("cpu", gpu_only)
 loaded = prebuilt.loaded_on_cpu()
-print(json.dumps({"loaded": len(loaded), "gpu_only": len(gpu_only), "missing": prebuilt.missing(loaded)}))
+print(json.dumps({"loaded": len(loaded), "gpu_only": len(gpu_only), "missing": prebuilt.missing(loaded),
+                  "compiles": compiles}))
 """
 
 
@@ -48,7 +63,7 @@ def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument
     assert found["loaded"] >= 5 and found["gpu_only"] == (1 if scene == "forest" else 0)
     assert found["missing"] == [], "remake the prebuilt kernels: flightsim compile --all --ship"
     compiled = sorted(p.parent.name for p in (tmp_path / "kernels").rglob("*.cpp"))
-    assert compiled == [], f"compiled though prebuilt: {compiled}"
+    assert compiled == [], f"compiled though prebuilt: {compiled}; {json.dumps(found['compiles'], indent=1)}"
 
 
 def test_seeding_copies_only_what_the_cache_lacks(tmp_path, monkeypatch):
