@@ -165,6 +165,10 @@ def test_survey_command_on_two_workers_reports_points_per_second_and_memory(tmp_
     assert summary["points_per_s"] == pytest.approx(points / summary["wall_s"], rel=0.01)
     assert set(summary["workers"]) == {"cpu0", "cpu1"}
     assert all(0 < w["peak_rss_mb"] < 2048 for w in summary["workers"].values())
+    busy = [w["busy_s"] for w in summary["workers"].values()]  # one task at a time per single-threaded worker
+    assert all(0 < b <= summary["wall_s"] + 0.01 for b in busy)
+    assert sum(busy) == pytest.approx(summary["segments_s"] + summary["merges_s"], abs=0.01)
+    assert summary["segments_s"] > 0 and summary["merges_s"] > 0
     again = subprocess.run(args, capture_output=True, text=True)  # a finished survey is not replaced
     assert again.returncode == 2 and "--overwrite" in again.stderr
 

@@ -103,10 +103,11 @@ def merge_task(out: str, model: str, tile: str, compress: bool, *results: dict) 
     """
     from flightsim.engine.distributed import worker_stats
 
+    started = time.perf_counter()
     mine = sorted((r for r in results if tile in r["tiles"].get(model, {})), key=lambda r: r["name"])
     expected = sum(r["tiles"][model][tile] for r in mine)
     if not mine:
-        return {"model": model, "tile": None, "points": 0, **worker_stats()}
+        return {"model": model, "tile": None, "points": 0, "wall_s": 0.0, **worker_stats()}
     parts = [Path(out) / PARTS / r["name"] / model / tile for r in mine]
     target = Path(out) / model / (tile[:-4] + (".laz" if compress else ".las"))
     if target.is_file() and not all(p.is_file() for p in parts):
@@ -120,7 +121,8 @@ def merge_task(out: str, model: str, tile: str, compress: bool, *results: dict) 
             part.unlink(missing_ok=True)
     if points != expected:
         raise RuntimeError(f"{target}: {points} points merged, the tasks wrote {expected}")
-    return {"model": model, "tile": target.name, "points": points, **worker_stats()}
+    return {"model": model, "tile": target.name, "points": points, "wall_s": time.perf_counter() - started,
+            **worker_stats()}
 
 
 def merge_tile(parts: list[Path], target: Path, compress: bool) -> int:
@@ -250,8 +252,9 @@ def _summary(plan: SurveyPlan, segments: list[dict], merges: list[dict], wall_s:
     written = sum(points.values())
     workers: dict[str, dict] = {}
     for r in [*segments, *merges]:
-        w = workers.setdefault(r["worker"], {"tasks": 0, "peak_rss_mb": 0.0, "devices": [], "pids": []})
+        w = workers.setdefault(r["worker"], {"tasks": 0, "busy_s": 0.0, "peak_rss_mb": 0.0, "devices": [], "pids": []})
         w["tasks"] += 1
+        w["busy_s"] = round(w["busy_s"] + r["wall_s"], 3)
         w["peak_rss_mb"] = round(max(w["peak_rss_mb"], r["peak_rss_mb"]), 1)
         for key, value in (("devices", r.get("device")), ("pids", r["pid"])):
             if value is not None and value not in w[key]:
@@ -272,6 +275,8 @@ def _summary(plan: SurveyPlan, segments: list[dict], merges: list[dict], wall_s:
         "points_written": written,
         **counts,
         "wall_s": round(wall_s, 3),
+        "segments_s": round(sum(r["wall_s"] for r in segments), 3),  # summed over the workers (the tasks' own time)
+        "merges_s": round(sum(r["wall_s"] for r in merges), 3),
         "points_per_s": round(written / wall_s) if wall_s > 0 else None,
         "workers": dict(sorted(workers.items())),
         "tiles": tiles,

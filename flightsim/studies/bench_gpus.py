@@ -1,0 +1,162 @@
+"""`flightsim bench --sections gpus`: the seed paper's study and a survey to LAZ on one GPU and on every GPU of the
+machine, the same command side by side (Dask, a worker per GPU: ``--gpus``), on a machine with two or more GPUs.
+
+Each pair is checked to give the same outputs (the sweep's rows but their wall times; the survey's LAZ tiles byte
+for byte) before its wall times are compared. What limits the scaling is measured in the same runs: the workers'
+busy time (the sum of their tasks' own wall) against the command's, the survey's segments (tracing and LAS parts)
+against its merges (LAZ compression), and the disk's sequential write rate probed before the surveys.
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from flightsim.core.warp_runtime import resolve_device
+from flightsim.studies.bench_common import DISK_PROBE_BYTES, Sizes, gpu_name, run_measured
+
+GPUS_SURVEY_KM = 10.0  # 100 km², the survey of issue 30
+TIMING_COLUMNS = ("wall_s",)  # the sweep's columns that may differ between two runs of the same grid
+
+
+def gpu_scaling(device: str, s: Sizes) -> dict:
+    """The study and the survey on GPU 0 alone and on every GPU (a record saying why not, on fewer than two)."""
+    import warp as wp
+
+    count = 0 if resolve_device(device) == "cpu" else wp.get_cuda_device_count()
+    if count < 2:
+        return {"gpus": count, "skipped": "needs a machine with two or more GPUs"}
+    every = ",".join(map(str, range(count)))
+    per_gpu = max(1, (os.cpu_count() or 1) // count)  # the survey's workers per GPU: the host's cores shared out
+    with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
+        folder = Path(tmp)
+        from flightsim.studies.bench_scale import idle_disk_rate
+
+        _warm_up(folder / "warm", ["--gpus", every], s)
+        disk = idle_disk_rate(folder / "probe", DISK_PROBE_BYTES["cuda"])
+        study = [sweep_run(folder / f"sweep-{gpus}", ["--gpus", gpus], s.study_grid) for gpus in ("0", every)]
+        survey = [survey_run(folder / f"survey-{gpus}", ["--gpus", gpus], per_gpu * len(gpus.split(",")),
+                             GPUS_SURVEY_KM) for gpus in ("0", every)]
+    for pair in (study, survey):
+        if pair[0].pop("outputs") != pair[1].pop("outputs"):
+            raise RuntimeError(f"{pair[0]['command']} and {pair[1]['command']} gave different outputs")
+    return {"gpus": count, "gpu_name": gpu_name("cuda:0"), "cpu_count": os.cpu_count(), "disk_write_bytes_per_s": disk,
+            "study": study, "survey": survey, "study_speedup": study[0]["wall_s"] / study[1]["wall_s"],
+            "survey_speedup": survey[0]["wall_s"] / survey[1]["wall_s"],
+            "survey_laz_of_disk": survey[1]["laz_bytes"] / survey[1]["wall_s"] / disk}
+
+
+def _warm_up(folder: Path, flags: list[str], s: Sizes) -> None:
+    """A small sweep and survey with ``flags`` first, untimed: the kernels the timed runs load are in Warp's
+    cache."""
+    sweep_run(folder / "sweep", flags, (["500"], ["3"], s.study_grid[2][:2]))
+    survey_run(folder / "survey", flags, None, 1.0)
+    shutil.rmtree(folder)
+
+
+def sweep_run(out: Path, flags: list[str], grid: tuple[list[str], list[str], list[str]]) -> dict:
+    """``flightsim sweep`` of ``grid`` (altitudes, arrays, spacings) with ``flags`` (where it runs: ``--gpus 0``,
+    ``--workers 2``, …; any other): wall, the workers' busy share, and its rows to compare (``outputs``)."""
+    altitudes, arrays, spacings = grid
+    command = [sys.executable, "-m", "flightsim", "sweep", "--scene", "calibration", *flags,
+               "--altitudes", ",".join(altitudes), "--arrays", ",".join(arrays), "--spacings-mrad", ",".join(spacings),
+               "--out", str(out)]
+    wall = _run(command)
+    rows = sweep_rows(out / "sweep.csv")
+    busy = sum(float(r["wall_s"]) for r in csv.DictReader(io.StringIO((out / "sweep.csv").read_text())))
+    workers = _workers(flags)
+    return {"command": _shown(command), "workers": workers, "wall_s": wall, "rows": len(rows), "busy_s": busy,
+            "busy_share": busy / (wall * workers), "outputs": rows}
+
+
+def survey_run(out: Path, flags: list[str], workers: int | None, km: float) -> dict:
+    """``flightsim survey`` of ``km`` × ``km`` to LAZ with ``flags`` (as :func:`sweep_run`'s) and ``workers``
+    workers (None: as ``flags`` say): wall, where the workers' time went, the bytes written, and a digest of every tile to
+    compare (``outputs``; the tiles themselves are removed)."""
+    command = [sys.executable, "-m", "flightsim", "survey", "--size-km", f"{km:g}", "--set", "output.laz=true",
+               *flags, *(["--workers", str(workers)] if workers else []), "--out", str(out)]
+    wall = _run(command)
+    summary = json.loads((out / "survey.json").read_text())
+    digests = tile_digests(out)
+    laz = sum(f.stat().st_size for f in out.rglob("*.laz"))
+    shutil.rmtree(out)
+    busy = [w["busy_s"] for w in summary["workers"].values()]
+    return {"command": _shown(command), "workers": len(busy), "wall_s": wall, "survey_wall_s": summary["wall_s"],
+            "tasks": summary["tasks"], "merges": summary["merges"], "points_written": summary["points_written"],
+            "laz_bytes": laz, "points_per_s": summary["points_written"] / wall, "segments_s": summary["segments_s"],
+            "merges_s": summary["merges_s"], "busy_share": sum(busy) / (summary["wall_s"] * len(busy)),
+            "busiest_s": max(busy), "outputs": digests}
+
+
+def _workers(flags: list[str]) -> int:
+    """The workers a command with ``flags`` runs on: ``--workers N``, else one per GPU of ``--gpus``, else 1 (serial)."""
+    if "--workers" in flags:
+        return int(flags[flags.index("--workers") + 1])
+    if "--gpus" in flags:
+        return len(flags[flags.index("--gpus") + 1].split(","))
+    return 1
+
+
+def _run(command: list[str]) -> float:
+    """The wall time [s] of ``command`` in a fresh process; RuntimeError with its stderr if it fails."""
+    wall, code, _peak, process = run_measured(command, stderr=subprocess.PIPE)
+    if code != 0:
+        raise RuntimeError(f"{_shown(command)} failed: {process.stderr.read().decode()[-3000:]}")
+    return wall
+
+
+def _shown(command: list[str]) -> str:
+    """The command as a user types it (``flightsim ...``)."""
+    return "flightsim " + " ".join(command[3:])
+
+
+def sweep_rows(path: Path) -> list[dict]:
+    """The rows of a sweep.csv without their timing columns: what two runs of one grid must share."""
+    return [{k: v for k, v in row.items() if k not in TIMING_COLUMNS}
+            for row in csv.DictReader(io.StringIO(Path(path).read_text()))]
+
+
+def tile_digests(out: Path) -> dict[str, str]:
+    """SHA-256 of every LAS/LAZ tile under ``out`` (by path relative to it), hashed in parallel threads."""
+    files = sorted(p for p in Path(out).rglob("*") if p.suffix in (".las", ".laz") and not p.name.startswith("."))
+
+    def digest(path: Path) -> str:
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            while block := fh.read(1 << 24):
+                h.update(block)
+        return h.hexdigest()
+
+    with ThreadPoolExecutor(min(16, os.cpu_count() or 1)) as pool:
+        return dict(zip((p.relative_to(out).as_posix() for p in files), pool.map(digest, files)))
+
+
+def markdown(r: dict) -> list[str]:
+    """bench.md's lines for the section (none where it was not measured, or skipped)."""
+    x = r.get("gpus")
+    if not x or "skipped" in x:
+        return []
+    rows = x["study"][0]["rows"]
+    lines = [f"### Several GPUs: one against {x['gpus']} ({x['gpu_name']} ×{x['gpus']}, {x['cpu_count']} CPU cores; "
+             f"disk writes {x['disk_write_bytes_per_s'] / 1e6:.0f} MB/s)", "",
+             "| run | command | workers | wall [s] | speed-up | workers busy | notes |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for label, pair, speedup in (("study", x["study"], x["study_speedup"]), ("survey", x["survey"], x["survey_speedup"])):
+        for k, e in enumerate(pair):
+            note = (f"{e['rows']} rows" if label == "study" else
+                    f"{e['points_written']:.3g} points, {e['laz_bytes'] / 1e9:.2f} GB LAZ, {e['points_per_s']:.3g} "
+                    f"points/s; segments {e['segments_s']:.0f} s, merges {e['merges_s']:.0f} s of worker time")
+            lines.append(f"| {label} | `{e['command']}` | {e['workers']} | {e['wall_s']:.1f} | "
+                         f"{'1' if k == 0 else f'{speedup:.2f}×'} | {e['busy_share']:.0%} | {note} |")
+    return lines + ["", f"Same outputs in each pair (the sweep's {rows} rows but their wall times; every LAZ "
+                        "tile byte for byte). Wall: the whole command in a fresh process, cluster start included. "
+                        "Workers busy: the sum of the workers' task times ÷ (wall × workers). Survey LAZ rate "
+                        f"on every GPU ÷ the disk's: {x['survey_laz_of_disk']:.2f}.", ""]
