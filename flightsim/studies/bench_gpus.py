@@ -1,10 +1,12 @@
-"""`flightsim bench --sections gpus`: the seed paper's study and a survey to LAZ on one GPU and on every GPU of the
+"""`flightsim bench --sections gpus`: the seed paper's study and a 100 km² survey on one GPU and on every GPU of the
 machine, the same command side by side (Dask, a worker per GPU: ``--gpus``), on a machine with two or more GPUs.
 
-Each pair is checked to give the same outputs (the sweep's rows but their wall times; the survey's LAZ tiles byte
-for byte) before its wall times are compared. What limits the scaling is measured in the same runs: the workers'
-busy time (the sum of their tasks' own wall) against the command's, the survey's segments (tracing and LAS parts)
-against its merges (LAZ compression), and the disk's sequential write rate probed before the surveys.
+Four pairs: the study as the paper flies it (10 s per configuration) and flying 6× longer (the GPUs' share of the
+wall grows); the survey to LAZ and to LAS. Each pair's outputs are compared (the sweep's rows but their wall times;
+every tile byte for byte) and what differs is recorded with the wall times; the study also runs twice on GPU 0, to
+tell what differs between two runs alike. What limits the scaling is measured in the same runs: the workers' busy
+time (the sum of their tasks' own wall) against the command's, the survey's segments (tracing and LAS parts) against
+its merges (LAZ compression or LAS copying), and the disk's sequential write rate probed before the surveys.
 """
 from __future__ import annotations
 
@@ -24,11 +26,13 @@ from flightsim.core.warp_runtime import resolve_device
 from flightsim.studies.bench_common import DISK_PROBE_BYTES, Sizes, gpu_name, run_measured
 
 GPUS_SURVEY_KM = 10.0  # 100 km², the survey of issue 30
+LONG_STUDY_S = "60"  # seconds flown per configuration in the study's longer variant (the default is 10)
 TIMING_COLUMNS = ("wall_s",)  # the sweep's columns that may differ between two runs of the same grid
 
 
 def gpu_scaling(device: str, s: Sizes) -> dict:
-    """The study and the survey on GPU 0 alone and on every GPU (a record saying why not, on fewer than two)."""
+    """Each pair (the study as the paper flies it and flying 6× longer; the survey to LAZ and to LAS) on GPU 0 alone
+    and on every GPU, and the study twice on GPU 0; a record saying why not, on fewer than two GPUs."""
     import warp as wp
 
     count = 0 if resolve_device(device) == "cpu" else wp.get_cuda_device_count()
@@ -36,32 +40,45 @@ def gpu_scaling(device: str, s: Sizes) -> dict:
         return {"gpus": count, "skipped": "needs a machine with two or more GPUs"}
     every = ",".join(map(str, range(count)))
     per_gpu = max(1, (os.cpu_count() or 1) // count)  # the survey's workers per GPU: the host's cores shared out
+    runs = {"study": lambda out, gpus: sweep_run(out, ["--gpus", gpus], s.study_grid),
+            f"study, {LONG_STUDY_S} s per configuration":
+                lambda out, gpus: sweep_run(out, ["--gpus", gpus, "--duration", LONG_STUDY_S], s.study_grid),
+            "survey to LAZ": lambda out, gpus: survey_run(out, ["--gpus", gpus], _per(per_gpu, gpus), GPUS_SURVEY_KM),
+            "survey to LAS": lambda out, gpus: survey_run(out, ["--gpus", gpus], _per(per_gpu, gpus), GPUS_SURVEY_KM,
+                                                          laz=False)}
     with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
         folder = Path(tmp)
         from flightsim.studies.bench_scale import idle_disk_rate
 
         _warm_up(folder / "warm", ["--gpus", every], s)
         disk = idle_disk_rate(folder / "probe", DISK_PROBE_BYTES["cuda"])
-        study = [sweep_run(folder / f"sweep-{k}-{gpus}", ["--gpus", gpus], s.study_grid)
-                 for k, gpus in enumerate(("0", every, "0"))]  # GPU 0 twice: what differs between two runs alike
-        survey = [survey_run(folder / f"survey-{gpus}", ["--gpus", gpus], per_gpu * len(gpus.split(",")),
-                             GPUS_SURVEY_KM) for gpus in ("0", every)]
-    repeat = study.pop()
-    return {"gpus": count, "study_differences": row_differences(study[0]["outputs"], study[1].pop("outputs")),
-            "study_repeat_differences": row_differences(study[0].pop("outputs"), repeat["outputs"]),
-            "study_repeat_wall_s": repeat["wall_s"],
-            "survey_tiles_differing": tiles_differing(survey[0].pop("outputs"), survey[1].pop("outputs")),
-            "gpu_name": gpu_name("cuda:0"), "cpu_count": os.cpu_count(), "disk_write_bytes_per_s": disk,
-            "study": study, "survey": survey, "study_speedup": study[0]["wall_s"] / study[1]["wall_s"],
-            "survey_speedup": survey[0]["wall_s"] / survey[1]["wall_s"],
-            "survey_laz_of_disk": survey[1]["laz_bytes"] / survey[1]["wall_s"] / disk}
+        pairs = {name: [run(folder / f"{k}-{gpus}", gpus) for gpus in ("0", every)] for k, (name, run) in
+                 enumerate(runs.items())}
+        repeat = runs["study"](folder / "repeat", "0")  # GPU 0 again: what differs between two runs alike
+    first = pairs["study"][0]["outputs"]
+    return {"gpus": count, "gpu_name": gpu_name("cuda:0"), "cpu_count": os.cpu_count(), "disk_write_bytes_per_s": disk,
+            "study_repeat": {"wall_s": repeat["wall_s"], "differences": compare(first, repeat["outputs"])},
+            "pairs": {name: _pair(runs) for name, runs in pairs.items()}}
+
+
+def _per(per_gpu: int, gpus: str) -> int:
+    """The workers of a survey on ``gpus``: ``per_gpu`` each."""
+    return per_gpu * len(gpus.split(","))
+
+
+def _pair(runs: list[dict]) -> dict:
+    """A pair's record: its two runs (their outputs compared, then dropped), the speed-up and the LAZ/LAS rate of the
+    faster against the disk's (surveys)."""
+    differences = compare(runs[0].pop("outputs"), runs[1].pop("outputs"))
+    return {"runs": runs, "speedup": runs[0]["wall_s"] / runs[1]["wall_s"], "differences": differences}
 
 
 def _warm_up(folder: Path, flags: list[str], s: Sizes) -> None:
     """A small sweep and survey with ``flags`` first, untimed: the kernels the timed runs load are in Warp's
     cache."""
     sweep_run(folder / "sweep", flags, (["500"], ["3"], s.study_grid[2][:2]))
-    survey_run(folder / "survey", flags, None, 1.0)
+    for laz in (True, False):
+        survey_run(folder / f"survey-{laz}", flags, None, 1.0, laz)
     shutil.rmtree(folder)
 
 
@@ -80,27 +97,28 @@ def sweep_run(out: Path, flags: list[str], grid: tuple[list[str], list[str], lis
             "busy_share": busy / (wall * workers), "outputs": rows}
 
 
-def survey_run(out: Path, flags: list[str], workers: int | None, km: float) -> dict:
-    """``flightsim survey`` of ``km`` × ``km`` to LAZ with ``flags`` (as :func:`sweep_run`'s) and ``workers``
-    workers (None: as ``flags`` say): wall, where the workers' time went, the bytes written, and a digest of every tile to
-    compare (``outputs``; the tiles themselves are removed)."""
-    command = [sys.executable, "-m", "flightsim", "survey", "--size-km", f"{km:g}", "--set", "output.laz=true",
+def survey_run(out: Path, flags: list[str], workers: int | None, km: float, laz: bool = True) -> dict:
+    """``flightsim survey`` of ``km`` × ``km`` to LAZ (else LAS) with ``flags`` (as :func:`sweep_run`'s) and
+    ``workers`` workers (None: as ``flags`` say): wall, where the workers' time went, the bytes written, and a digest
+    of every tile to compare (``outputs``; the tiles themselves are removed)."""
+    command = [sys.executable, "-m", "flightsim", "survey", "--size-km", f"{km:g}", "--set",
+               f"output.laz={str(laz).lower()}",
                *flags, *(["--workers", str(workers)] if workers else []), "--out", str(out)]
     wall = _run(command)
     summary = json.loads((out / "survey.json").read_text())
     digests = tile_digests(out)
-    laz = sum(f.stat().st_size for f in out.rglob("*.laz"))
+    written = sum(f.stat().st_size for f in out.rglob("*.la[sz]"))
     shutil.rmtree(out)
     busy = [w["busy_s"] for w in summary["workers"].values()]
     return {"command": _shown(command), "workers": len(busy), "wall_s": wall, "survey_wall_s": summary["wall_s"],
             "tasks": summary["tasks"], "merges": summary["merges"], "points_written": summary["points_written"],
-            "laz_bytes": laz, "points_per_s": summary["points_written"] / wall, "segments_s": summary["segments_s"],
+            "bytes": written, "points_per_s": summary["points_written"] / wall, "segments_s": summary["segments_s"],
             "merges_s": summary["merges_s"], "busy_share": sum(busy) / (summary["wall_s"] * len(busy)),
             "busiest_s": max(busy), "outputs": digests}
 
 
 def _workers(flags: list[str]) -> int:
-    """The workers a command with ``flags`` runs on: ``--workers N``, else one per GPU of ``--gpus``, else 1 (serial)."""
+    """The workers a command with ``flags`` runs on: ``--workers N``, else one per GPU of ``--gpus``, else 1."""
     if "--workers" in flags:
         return int(flags[flags.index("--workers") + 1])
     if "--gpus" in flags:
@@ -136,6 +154,13 @@ def row_differences(rows: list[dict], others: list[dict]) -> dict:
             except (TypeError, ValueError):
                 column.setdefault("first", [a, b])
     return found
+
+
+def compare(outputs, others) -> dict:
+    """Where two runs' outputs differ: sweep rows (:func:`row_differences`) or tile digests (the tiles that differ)."""
+    if isinstance(outputs, dict):
+        return {"tiles": len(outputs), "tiles_differing": tiles_differing(outputs, others)}
+    return row_differences(outputs, others)
 
 
 def tiles_differing(digests: dict[str, str], others: dict[str, str]) -> list[str]:
@@ -174,19 +199,38 @@ def markdown(r: dict) -> list[str]:
     x = r.get("gpus")
     if not x or "skipped" in x:
         return []
-    rows = x["study"][0]["rows"]
+    disk = x["disk_write_bytes_per_s"]
     lines = [f"### Several GPUs: one against {x['gpus']} ({x['gpu_name']} ×{x['gpus']}, {x['cpu_count']} CPU cores; "
-             f"disk writes {x['disk_write_bytes_per_s'] / 1e6:.0f} MB/s)", "",
-             "| run | command | workers | wall [s] | speed-up | workers busy | notes |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
-    for label, pair, speedup in (("study", x["study"], x["study_speedup"]), ("survey", x["survey"], x["survey_speedup"])):
-        for k, e in enumerate(pair):
-            note = (f"{e['rows']} rows" if label == "study" else
-                    f"{e['points_written']:.3g} points, {e['laz_bytes'] / 1e9:.2f} GB LAZ, {e['points_per_s']:.3g} "
-                    f"points/s; segments {e['segments_s']:.0f} s, merges {e['merges_s']:.0f} s of worker time")
-            lines.append(f"| {label} | `{e['command']}` | {e['workers']} | {e['wall_s']:.1f} | "
-                         f"{'1' if k == 0 else f'{speedup:.2f}×'} | {e['busy_share']:.0%} | {note} |")
-    return lines + ["", f"Same outputs in each pair (the sweep's {rows} rows but their wall times; every LAZ "
-                        "tile byte for byte). Wall: the whole command in a fresh process, cluster start included. "
-                        "Workers busy: the sum of the workers' task times ÷ (wall × workers). Survey LAZ rate "
-                        f"on every GPU ÷ the disk's: {x['survey_laz_of_disk']:.2f}.", ""]
+             f"disk writes {disk / 1e6:.0f} MB/s)", "",
+             "| run | command | workers | wall [s] | speed-up | workers busy | outputs against GPU 0's | notes |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for name, pair in x["pairs"].items():
+        speedup, found = f"{pair['speedup']:.2f}×", _differences(pair["differences"])
+        for k, e in enumerate(pair["runs"]):
+            lines.append(f"| {name} | `{e['command']}` | {e['workers']} | {e['wall_s']:.1f} | "
+                         f"{speedup if k else '1'} | {e['busy_share']:.0%} | {found if k else '–'} | "
+                         f"{_notes(e, disk)} |")
+    repeat = x["study_repeat"]
+    return lines + ["", f"The study again on GPU 0: {repeat['wall_s']:.1f} s, outputs against the first run: "
+                        f"{_differences(repeat['differences'])}. Wall: the whole command in a fresh process, cluster "
+                        "start included. Workers busy: the sum of the workers' task times ÷ (wall × workers). "
+                        "Surveys: the host's cores shared out, the same number of workers per GPU.", ""]
+
+
+def _differences(found: dict) -> str:
+    """A comparison's outcome in words."""
+    if "tiles" in found:
+        return f"{len(found['tiles_differing'])} of {found['tiles']} tiles differ" if found["tiles_differing"] else \
+            f"all {found['tiles']} tiles byte for byte"
+    if not found["columns"]:
+        return f"all {found['rows'][0]} rows alike"
+    return "; ".join(f"{name} in {c['rows']} rows, by ≤ {c['max_abs']:.1e}" for name, c in found["columns"].items())
+
+
+def _notes(e: dict, disk: float) -> str:
+    """A run's own numbers: rows, or points, bytes and where the workers' time went."""
+    if "rows" in e:
+        return f"{e['rows']} rows"
+    return (f"{e['points_written']:.3g} points, {e['bytes'] / 1e9:.2f} GB ({e['bytes'] / e['wall_s'] / disk:.3f} of "
+            f"the disk's rate), {e['points_per_s']:.3g} points/s; worker time: segments {e['segments_s']:.0f} s, "
+            f"merges {e['merges_s']:.0f} s")
