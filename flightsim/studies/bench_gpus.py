@@ -169,8 +169,8 @@ def tiles_differing(digests: dict[str, str], others: dict[str, str]) -> list[str
 
 
 def _shown(command: list[str]) -> str:
-    """The command as a user types it (``flightsim ...``)."""
-    return "flightsim " + " ".join(command[3:])
+    """The command as a user types it (``flightsim ...``), its output folder left out."""
+    return "flightsim " + " ".join(command[3:command.index("--out")])
 
 
 def sweep_rows(path: Path) -> list[dict]:
@@ -207,7 +207,7 @@ def markdown(r: dict) -> list[str]:
     for name, pair in x["pairs"].items():
         speedup, found = f"{pair['speedup']:.2f}×", _differences(pair["differences"])
         for k, e in enumerate(pair["runs"]):
-            lines.append(f"| {name} | `{e['command']}` | {e['workers']} | {e['wall_s']:.1f} | "
+            lines.append(f"| {name} | `{e['command'].split(' --out ')[0]}` | {e['workers']} | {e['wall_s']:.1f} | "
                          f"{speedup if k else '1'} | {e['busy_share']:.0%} | {found if k else '–'} | "
                          f"{_notes(e, disk)} |")
     repeat = x["study_repeat"]
