@@ -133,3 +133,19 @@ def test_sweep_command_sweeps_any_setting_and_plots(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "flightsim", "sweep", "--arrays", "2,65", "--out", str(tmp_path / "x")],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "fan.array" in bad.stderr and not (tmp_path / "x").exists()
+
+
+def test_a_grids_configurations_are_made_once_and_again_when_the_grid_changes(monkeypatch):
+    made = []
+    validate_once = sweep_module.validate
+    monkeypatch.setattr(sweep_module, "validate", lambda cfg: made.append(1) or validate_once(cfg))
+    grid = SweepGrid(RunConfig(), [("flight.altitude_m", [500.0, 1000.0]), ("fan.array", [2, 3])])
+    first = grid.configurations()
+    again = grid.configurations()
+    assert len(made) == 4 and [c for _, c in again] == [c for _, c in first]  # the command line asks four times
+    assert [(labels["altitude_m"], labels["array"]) for labels, _ in first] == [(500.0, 2), (500.0, 3), (1000.0, 2),
+                                                                                 (1000.0, 3)]
+    set_value(grid.base, "run.seed", 7)  # the base changed: made again from it
+    assert [c.run.seed for _, c in grid.configurations()] == [7] * 4 and len(made) == 8
+    grid.axes.append(("run.seed", [1, 2]))  # so did the axes
+    assert len(grid.configurations()) == 8 and len(made) == 16
