@@ -83,3 +83,14 @@ def test_the_table_shows_each_pair_with_its_speed_up_and_what_differed():
     assert "6.00 GB (0.050 of the disk's rate)" in text  # 6e9 B / 60 s / 2e9 B/s
     assert "6.00 GB (0.100 of the disk's rate)" in text
     assert "rms_m in 3 rows, by ≤ 4.2e-12" in text and "disk writes 2000 MB/s" in text
+
+
+def test_a_configurations_wall_counts_once_though_it_has_a_row_per_model(tmp_path):
+    path = tmp_path / "sweep.csv"
+    path.write_text("altitude_m,array,spacing_mrad,model,rms_m,points,returns,planes,edge_buffer_m,wall_s\n"
+                    "500.0,2,2.314,exact,1e-07,3922,4004,30,0.237,0.5\n"
+                    "500.0,2,2.314,nominal,0.032,3922,4004,30,0.237,0.5\n"
+                    "500.0,3,2.314,exact,2e-07,5000,5100,31,0.398,0.25\n"
+                    "500.0,3,2.314,nominal,0.041,5000,5100,31,0.398,0.25\n"
+                    "1000.0,3,2.314,nominal,0.08,4000,4100,31,0.79,0.125\n")
+    assert bench_gpus.configurations_wall_s(path) == 0.875

@@ -64,3 +64,38 @@ def test_a_point_that_is_not_a_number_is_the_cap_away(device):
                       device=device)
     wp.launch(_distances, 2, inputs=[grid, a, b, points, 1.0], outputs=[listed, every], device=device)
     assert listed.numpy().tolist() == [1.0, 1.0]
+
+
+def test_a_grid_built_for_a_wider_cap_gives_the_same_distances(device):
+    """A sweep's SceneMeshes serves a cap from a kept grid built for up to twice it: the returns it sends to the
+    query are more, their distances (the query is given the run's own cap) the same."""
+    scene = calibration_scene(300.0, np.array([409000.0, 3393000.0, 450.0]), DEFAULT_CRS)
+    meshes = SceneMeshes(scene, device)
+    wide = meshes.edge_grid(1.9)
+    cap = 1.0
+    assert meshes.edge_grid(cap) is wide
+    a, b = meshes.boundary
+    lower, upper = (np.asarray(v, dtype=np.float64) for v in scene.bounds())
+    points = _points(np.random.default_rng(11), a.numpy(), b.numpy(), cap, lower, upper)
+    listed, every = (wp.empty(len(points), dtype=wp.float32, device=device) for _ in range(2))
+    wp.launch(_distances, len(points), inputs=[wide, a, b, wp.array(points, dtype=wp.vec3f, device=device), cap],
+              outputs=[listed, every], device=device)
+    assert 0.3 < np.mean(every.numpy() < np.float32(cap)) < 0.9
+    assert np.array_equal(listed.numpy(), every.numpy())
+
+
+def test_a_sweeps_caps_share_a_few_grids(monkeypatch):
+    scene = calibration_scene(300.0, np.array([409000.0, 3393000.0, 450.0]), DEFAULT_CRS)
+    meshes = SceneMeshes(scene, "cpu")
+    built = []
+    build = meshes._build_edge_grid
+    monkeypatch.setattr(meshes, "_build_edge_grid", lambda cap: built.append(cap) or build(cap))
+    first = meshes.edge_grid(0.3)  # a run's one cap: its own grid
+    assert built == [0.3] and meshes.edge_grid(0.25) is first and meshes.edge_grid(0.15) is first
+    meshes.edge_grid(0.31)  # above every kept grid: the power of two at or above it
+    assert meshes.edge_grid(0.45) is meshes._grids[0.5]  # within half of that grid: shared
+    meshes.edge_grid(0.14)  # below half of 0.3: a grid of its own
+    assert built == [0.3, 0.5, 0.25]
+    for k in range(10):  # at most 8 kept, the least recently used dropped first
+        meshes.edge_grid(2.0 ** (k + 1))
+    assert len(meshes._grids) == 8 and 0.3 not in meshes._grids and 2.0 ** 10 in meshes._grids

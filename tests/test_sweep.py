@@ -149,3 +149,15 @@ def test_a_grids_configurations_are_made_once_and_again_when_the_grid_changes(mo
     assert [c.run.seed for _, c in grid.configurations()] == [7] * 4 and len(made) == 8
     grid.axes.append(("run.seed", [1, 2]))  # so did the axes
     assert len(grid.configurations()) == 8 and len(made) == 16
+
+
+def test_sweep_cost_times_the_studys_configurations_and_can_keep_a_grid_per_cap(monkeypatch, capsys):
+    from flightsim.engine import meshes
+    from flightsim.studies import sweep_cost
+
+    monkeypatch.setattr(meshes, "EDGE_GRID_SPAN", meshes.EDGE_GRID_SPAN)  # restored after the test
+    assert sweep_cost.main(["--device", "cpu", "--configs", "2", "--duration", "0.01", "--separate-edge-grids"]) == 0
+    assert meshes.EDGE_GRID_SPAN == 1.0
+    line = capsys.readouterr().out.splitlines()[0]
+    assert line.startswith("cpu: ") and line.endswith("ms per configuration (2 configurations, a grid per edge cap)")
+    assert 0.0 < float(line.split()[1]) < 5000.0

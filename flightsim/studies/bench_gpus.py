@@ -91,7 +91,7 @@ def sweep_run(out: Path, flags: list[str], grid: tuple[list[str], list[str], lis
                "--out", str(out)]
     wall = _run(command)
     rows = sweep_rows(out / "sweep.csv")
-    busy = sum(float(r["wall_s"]) for r in csv.DictReader(io.StringIO((out / "sweep.csv").read_text())))
+    busy = configurations_wall_s(out / "sweep.csv")
     workers = _workers(flags)
     return {"command": _shown(command), "workers": workers, "wall_s": wall, "rows": len(rows), "busy_s": busy,
             "busy_share": busy / (wall * workers), "outputs": rows}
@@ -171,6 +171,16 @@ def tiles_differing(digests: dict[str, str], others: dict[str, str]) -> list[str
 def _shown(command: list[str]) -> str:
     """The command as a user types it (``flightsim ...``), its output folder left out."""
     return "flightsim " + " ".join(command[3:command.index("--out")])
+
+
+def configurations_wall_s(path: Path) -> float:
+    """The sum of a sweep.csv's configurations' own wall times [s]: each configuration once, though it has a row per
+    model, each with the configuration's wall."""
+    from flightsim.studies.sweep import ROW_CORE  # the columns a configuration's rows differ in
+
+    walls = {tuple(v for k, v in row.items() if k not in ROW_CORE): float(row["wall_s"])
+             for row in csv.DictReader(io.StringIO(Path(path).read_text()))}
+    return sum(walls.values())
 
 
 def sweep_rows(path: Path) -> list[dict]:
