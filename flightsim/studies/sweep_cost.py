@@ -15,12 +15,12 @@ import io
 import pstats
 import time
 
-from flightsim.cli import build_grid, make_parser
 from flightsim.engine import meshes
-from flightsim.studies.sweep import SceneCache, run_configuration
+from flightsim.engine.config import RunConfig, set_value, validate
+from flightsim.studies.sweep import AXIS_KEYS, SceneCache, SweepGrid, run_configuration
 
-GRID = ["--altitudes", "500,1000,1500,2000,2500,3000,3500,4000,4500,5000", "--arrays", "2,3,4,5,6",
-        "--spacings-mrad", "2.314,4.628,6.942,9.256,11.570"]
+GRID = {"altitude_m": [500.0 * k for k in range(1, 11)], "array": [2, 3, 4, 5, 6],
+        "spacing_mrad": [2.314, 4.628, 6.942, 9.256, 11.570]}  # the study's (`flightsim paper`)
 WARM = 5  # configurations run first, untimed
 
 
@@ -28,10 +28,11 @@ def per_configuration_s(device: str, configs: int, duration_s: float | None = No
                         profile: bool = False) -> tuple[float, str]:
     """(mean wall per configuration [s], cProfile's report or "") over ``configs`` configurations of the grid, each
     flying ``duration_s`` (None: the study's own)."""
-    flight = ["--duration", str(duration_s)] if duration_s else []
-    args = make_parser().parse_args(["sweep", "--scene", "calibration", "--device", device, *flight, *GRID,
-                                     "--out", "-"])
-    grid = build_grid(args).configurations()
+    base = RunConfig()
+    for key, value in {"scene.name": "calibration", "run.device": device, "flight.duration_s": duration_s}.items():
+        if value is not None:
+            set_value(base, key, value)
+    grid = SweepGrid(validate(base), [(AXIS_KEYS[column], values) for column, values in GRID.items()]).configurations()
     scenes = SceneCache(cfg for _, cfg in grid)
     for labels, cfg in grid[:WARM]:
         run_configuration(labels, cfg, scenes)
