@@ -121,3 +121,21 @@ def test_level_plane_has_no_azimuth_and_steep_plane_pitch():
     wall = fit_points(np.array([[0, 0, 0.0], [0, 1, 0.0], [0, 0, 1.0], [0, 1, 1.0]]))  # the plane x = 0
     assert wall.pitch_deg == pytest.approx(90.0, abs=1e-9)
     assert wall.azimuth_deg % 180.0 == pytest.approx(90.0, abs=1e-9)  # faces east or west
+
+
+def test_the_batched_fits_are_each_planes_own_fit_bit_for_bit():
+    """PlaneMoments.fits decomposes every plane's covariance in one batched call: the numbers of fit(p), one plane
+    at a time, to the last bit (a sweep's rows and the pins rest on them); planes under min_points left out."""
+    rng = np.random.default_rng(5)
+    slopes = rng.uniform(0.0, 1.5, 40)
+    clouds = [points_on_plane(plane_normal(s, a), int(k), 30.0, rng, sig) for s, a, sig, k in
+              zip(slopes, rng.uniform(0, 360, 40), rng.uniform(0.0, 0.1, 40), rng.integers(1, 400, 40))]
+    moments = PlaneMoments(np.array([c[0] for c in clouds]) + rng.normal(0.0, 5.0, (40, 3)))
+    moments.add(np.concatenate(clouds), np.repeat(np.arange(40), [len(c) for c in clouds]))
+    batched = moments.fits(min_points=5)
+    expected = [moments.fit(p) for p in range(40) if len(clouds[p]) >= 5]
+    assert len(batched) == len(expected) < 40
+    for a, b in zip(batched, expected):
+        assert (a.plane_id, a.n, a.rms_m) == (b.plane_id, b.n, b.rms_m)
+        assert np.array_equal(a.normal, b.normal) and np.array_equal(a.centroid, b.centroid)
+    assert PlaneMoments(np.zeros((2, 3))).fits() == []

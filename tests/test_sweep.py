@@ -161,3 +161,31 @@ def test_sweep_cost_times_the_studys_configurations_and_can_keep_a_grid_per_cap(
     line = capsys.readouterr().out.splitlines()[0]
     assert line.startswith("cpu: ") and line.endswith("ms per configuration (2 configurations, a grid per edge cap)")
     assert 0.0 < float(line.split()[1]) < 5000.0
+
+
+def test_the_risley_fans_angles_are_traced_once_per_fan_and_are_the_traces(monkeypatch):
+    """The edge buffer's distortion and the cone's off-axis angle come from the float64 exit fan over a turn; a
+    sweep's configurations that share a fan (array, spacing, prism) share its trace."""
+    import math
+
+    from flightsim.engine.instrument import Instrument
+    from flightsim.instrument import risley, risley_model
+
+    traced = []
+    trace = risley_model.trace_fan
+    monkeypatch.setattr(risley_model, "trace_fan", lambda *a, **k: traced.append(a[1]) or trace(*a, **k))
+    risley.turn_angles.cache_clear()
+    grid = SweepGrid(RunConfig(), [("flight.altitude_m", [500.0, 2000.0]), ("fan.array", [3, 5])])
+    buffers = {(labels["altitude_m"], labels["array"]): edge_buffer_m(cfg) for labels, cfg in grid.configurations()}
+    assert sorted(traced) == [3, 5]  # two fans, each traced once (360 angles) for four configurations
+    cfg = grid.configurations()[3][1]
+    deflector = Instrument(cfg).deflector
+    s = deflector.s
+    fan = trace(np.linspace(0.0, 2.0 * np.pi, 360, endpoint=False), 5, deflector.emitter.spacing_rad,
+                s.refractive_index, math.radians(s.apex_angle_deg), s.thickness_mm * 1e-3, precision="float64")
+    angle = np.arctan2(np.linalg.norm(np.cross(fan.directions, fan.nominal), axis=-1),
+                       np.sum(fan.directions * fan.nominal, axis=-1))
+    slant = 2000.0 / math.cos(math.radians(s.cone_half_angle_deg))
+    divergence = Instrument(cfg).emitter.divergence_mrad
+    assert buffers[(2000.0, 5)] == slant * (0.5 * divergence * 1e-3 + float(angle[fan.ok].max()))
+    assert buffers[(2000.0, 5)] / buffers[(500.0, 5)] == pytest.approx(4.0, rel=1e-12)

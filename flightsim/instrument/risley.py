@@ -3,6 +3,7 @@ turning at the scan rate (SPEC §4), the prism-angle encoder's errors on the tru
 georeferencing believes in (``believed_*``; 0 = the true value)."""
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -82,6 +83,24 @@ class RisleySettings(Settings):
         return s
 
 
+@functools.lru_cache(maxsize=256)
+def turn_angles(beams: int, spacing_rad: float, refractive_index: float, apex_deg: float, thickness_mm: float,
+                samples: int) -> tuple[float, float]:
+    """(largest angle of an exiting sub-beam from the prism axis, largest angle between a sub-beam's true and
+    rigid-array exit directions) over ``samples`` prism angles of a turn [rad], of a ``beams``×``beams`` fan of
+    ``spacing_rad`` through the prism (traced in float64). Kept for a sweep's configurations, which share few fans
+    (the paper's study: 25 in 250)."""
+    phi = np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False)
+    fan = risley_model.trace_fan(phi, beams, spacing_rad, refractive_index, math.radians(apex_deg),
+                                 thickness_mm * 1e-3, precision="float64", device=FAN_DEVICE)
+    if not fan.ok.any():
+        return 0.0, 0.0
+    off_axis = np.arctan2(np.hypot(fan.directions[..., 0], fan.directions[..., 1]), fan.directions[..., 2])
+    cross = np.linalg.norm(np.cross(fan.directions, fan.nominal), axis=-1)
+    distortion = np.arctan2(cross, np.sum(fan.directions * fan.nominal, axis=-1))
+    return float(off_axis[fan.ok].max()), float(distortion[fan.ok].max())
+
+
 def _prism(n_glass: float, apex_deg: float, thickness_mm: float, encoder_arcsec: float = 0.0,
            encoder_noise_arcsec: float = 0.0):
     prism = wedge.Prism()
@@ -140,16 +159,17 @@ class RisleyDeflector:
 
     def max_off_axis_rad(self, samples: int = 72) -> float:
         """Largest angle between any exiting sub-beam and the prism axis over a prism turn [rad] (traced)."""
-        fan = self._fan(np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False))
-        angle = np.arctan2(np.hypot(fan.directions[..., 0], fan.directions[..., 1]), fan.directions[..., 2])
-        return float(angle[fan.ok].max()) if fan.ok.any() else 0.0
+        return self._turn_angles(samples)[0]
 
     def max_distortion_rad(self, samples: int = 360) -> float:
         """Largest angle between a sub-beam's true and rigid-array exit directions over a turn [rad]."""
-        fan = self._fan(np.linspace(0.0, 2.0 * np.pi, samples, endpoint=False))
-        cross = np.linalg.norm(np.cross(fan.directions, fan.nominal), axis=-1)
-        angle = np.arctan2(cross, np.sum(fan.directions * fan.nominal, axis=-1))
-        return float(angle[fan.ok].max()) if fan.ok.any() else 0.0
+        return self._turn_angles(samples)[1]
+
+    def _turn_angles(self, samples: int) -> tuple[float, float]:
+        """:func:`turn_angles` of this deflector's fan and prism."""
+        s = self.s
+        return turn_angles(self.emitter.n, self.emitter.spacing_rad, s.refractive_index, s.apex_angle_deg,
+                           s.thickness_mm, samples)
 
     def edge_buffer_m(self, altitude_m: float, divergence_mrad: float) -> float:
         """The automatic edge buffer [m]: the footprint and the rigid-array distortion at the slant range of the

@@ -73,8 +73,20 @@ class PlaneMoments:
         self.add_sums(other.count, other.first, other.second)
 
     def fits(self, min_points: int = 3) -> list[PlaneFit]:
-        """A plane fit for every plane with at least ``min_points`` points."""
-        return [self.fit(int(p)) for p in np.flatnonzero(self.count >= min_points)]
+        """A plane fit for every plane with at least ``min_points`` points: :meth:`fit`'s, every plane's
+        eigen-decomposition in one batched call (LAPACK's, matrix by matrix: the same numbers)."""
+        keep = np.flatnonzero(self.count >= min_points)
+        if keep.size == 0:
+            return []
+        n = self.count[keep]
+        mean = self.first[keep] / n[:, None]
+        covariance = self.second[keep] / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
+        values, vectors = np.linalg.eigh(covariance)
+        normals = vectors[:, :, 0] * np.where(vectors[:, 2, 0] >= 0, 1.0, -1.0)[:, None]
+        rms = np.sqrt(np.maximum(values[:, 0], 0.0))
+        centroids = self.references[keep] + mean
+        return [PlaneFit(int(p), int(k), centroids[i].copy(), normals[i].copy(), float(rms[i]))
+                for i, (p, k) in enumerate(zip(keep, n))]
 
     def rms_all(self, min_points: int = 3) -> np.ndarray:
         """(P,) plane-fit RMS of every plane at once [m] (the least eigenvalue of each centred
