@@ -36,18 +36,24 @@ def _points(rng, a: np.ndarray, b: np.ndarray, cap: float, lower: np.ndarray, up
     return np.concatenate([near, spread, beyond]).astype(np.float32)
 
 
+def _listed_and_every(meshes: SceneMeshes, grid: edges.EdgeGrid, cap: float, seed: int):
+    """(the query's distance over the listed segments, the minimum over every segment) of :func:`_points`."""
+    a, b = meshes.boundary
+    lower, upper = (np.asarray(v, dtype=np.float64) for v in meshes.scene.bounds())
+    points = _points(np.random.default_rng(seed), a.numpy(), b.numpy(), cap, lower, upper)
+    d = meshes.device
+    listed, every = (wp.empty(len(points), dtype=wp.float32, device=d) for _ in range(2))
+    wp.launch(_distances, len(points), inputs=[grid, a, b, wp.array(points, dtype=wp.vec3f, device=d), cap],
+              outputs=[listed, every], device=d)
+    return listed.numpy(), every.numpy()
+
+
 @pytest.mark.parametrize("cap", [0.4, 1.2, 6.0])
 def test_listed_distances_are_the_minimum_over_every_segment(device, cap):
     scene = calibration_scene(300.0, np.array([409000.0, 3393000.0, 450.0]), DEFAULT_CRS)
     meshes = SceneMeshes(scene, device)
     grid = meshes.edge_grid(cap)
-    a, b = meshes.boundary
-    lower, upper = (np.asarray(v, dtype=np.float64) for v in scene.bounds())
-    points = _points(np.random.default_rng(7), a.numpy(), b.numpy(), cap, lower, upper)
-    listed, every = (wp.empty(len(points), dtype=wp.float32, device=device) for _ in range(2))
-    wp.launch(_distances, len(points), inputs=[grid, a, b, wp.array(points, dtype=wp.vec3f, device=device), cap],
-              outputs=[listed, every], device=device)
-    listed, every = listed.numpy(), every.numpy()
+    listed, every = _listed_and_every(meshes, grid, cap, 7)
     assert 0.3 < np.mean(every < np.float32(cap)) < 0.9  # both sides of the cap
     assert np.array_equal(listed, every)
     counts = np.diff(grid.offsets.numpy())
@@ -74,14 +80,9 @@ def test_a_grid_built_for_a_wider_cap_gives_the_same_distances(device):
     wide = meshes.edge_grid(1.9)
     cap = 1.0
     assert meshes.edge_grid(cap) is wide
-    a, b = meshes.boundary
-    lower, upper = (np.asarray(v, dtype=np.float64) for v in scene.bounds())
-    points = _points(np.random.default_rng(11), a.numpy(), b.numpy(), cap, lower, upper)
-    listed, every = (wp.empty(len(points), dtype=wp.float32, device=device) for _ in range(2))
-    wp.launch(_distances, len(points), inputs=[wide, a, b, wp.array(points, dtype=wp.vec3f, device=device), cap],
-              outputs=[listed, every], device=device)
-    assert 0.3 < np.mean(every.numpy() < np.float32(cap)) < 0.9
-    assert np.array_equal(listed.numpy(), every.numpy())
+    listed, every = _listed_and_every(meshes, wide, cap, 11)
+    assert 0.3 < np.mean(every < np.float32(cap)) < 0.9
+    assert np.array_equal(listed, every)
 
 
 def test_a_sweeps_caps_share_a_few_grids(monkeypatch):
