@@ -159,11 +159,12 @@ def cmd_compile(args: argparse.Namespace) -> int:
         args.instrument = name
         configs.append(build_config(args))
     from flightsim.engine.run import compile_kernels
+    from flightsim.studies.sweep import compile_configuration
 
     if args.cuda_arch and any(cfg.run.device != "cpu" for cfg in configs):
         raise InputError("--cuda-arch", args.cuda_arch, "a compile on the CPU (--device cpu)")
     started = time.perf_counter()
-    modules = compile_kernels(configs)
+    modules = sum(map(compile_configuration, configs)) if args.sweep else compile_kernels(configs)
     import warp as wp
 
     if args.cuda_arch:
@@ -196,14 +197,15 @@ def _ship(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         env = dict(os.environ, WARP_CACHE_PATH=tmp, FLIGHTSIM_PREBUILT="0")
-        for name, scene in PREBUILT_RUNS:
+        for name, scene, readout in PREBUILT_RUNS:
             command = [sys.executable, "-m", "flightsim", "compile", "--device", "cpu", "--instrument", name,
-                       *(["--scene", scene] if scene else []), *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
+                       *(["--scene", scene] if scene else []), *(["--sweep"] if readout == "statistics" else []),
+                       *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
             subprocess.run(command, env=env, check=True, capture_output=True)
         (cache,) = [p for p in Path(tmp).iterdir() if p.is_dir()]  # Warp's version folder
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
-    print(f"{modules} prebuilt kernel modules of every built-in instrument, and three over the forest (CPU and "
+    print(f"{modules} prebuilt kernel modules of every built-in instrument, three over the forest and a sweep (CPU and "
           f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
@@ -358,6 +360,8 @@ def _add_run_commands(sub) -> None:
     comp.add_argument("--cuda-arch", type=int, action="append", metavar="N",
                       help="also build the CPU run's kernels for CUDA sm_N into the kernel cache, without a GPU (a "
                            "cache to copy to a GPU machine; repeatable)")
+    comp.add_argument("--sweep", action="store_true", help="the kernels a sweep (statistics mode: `flightsim sweep`, "
+                                                           "`flightsim paper`) of the same flags would launch instead")
     comp.add_argument("--ship", action="store_true", help="with --all: remake flightsim's prebuilt kernels (CPU and "
                                                           "sm_90, on any machine) rather than fill the kernel cache")
     comp.set_defaults(func=cmd_compile)

@@ -37,9 +37,18 @@ from flightsim.core.warp_runtime import compile_ahead
 from flightsim.engine.run import compile_kernels
 from flightsim.scenes.build import scene_part
 
-args = make_parser().parse_args(["compile", "--device", "cpu", "--instrument", *sys.argv[1:]])
-cfg = build_config(args)
-compile_kernels([cfg])
+readout, flags = sys.argv[1], sys.argv[2:]
+if readout == "statistics":  # a sweep as `flightsim sweep` runs it: the first configuration of a small grid, flown
+    from flightsim.cli import build_grid
+    from flightsim.studies.sweep import SceneCache, run_configuration
+
+    args = make_parser().parse_args(["sweep", "--device", "cpu", "--duration", "0.05", "--altitudes", "500,1000",
+                                     "--instrument", *flags, "--out", "-"])
+    (labels, cfg), *others = build_grid(args).configurations()
+    run_configuration(labels, cfg, SceneCache([cfg, *(c for _, c in others)]))
+else:
+    cfg = build_config(make_parser().parse_args(["compile", "--device", "cpu", "--instrument", *flags]))
+    compile_kernels([cfg])
 gpu_only = scene_part(cfg.scene).build_kernels("cuda")  # what the scene builds with on a GPU (a forest's voxels)
 compile_ahead("cpu", gpu_only)
 loaded = prebuilt.loaded_on_cpu()
@@ -48,15 +57,17 @@ print(json.dumps({"loaded": len(loaded), "gpu_only": len(gpu_only), "missing": p
 """
 
 
-@pytest.mark.parametrize("instrument, scene", PREBUILT_RUNS, ids=[f"{n}-{s or 'own'}" for n, s in PREBUILT_RUNS])
-def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument, scene):
+@pytest.mark.parametrize("instrument, scene, readout", PREBUILT_RUNS,
+                         ids=[f"{n}-{s or 'own'}{'-sweep' if r == 'statistics' else ''}" for n, s, r in PREBUILT_RUNS])
+def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument, scene, readout):
     """A run of the instrument (over its own scene, or the procedural forest) in a process of its own (as `flightsim
-    simulate` runs it) finds every module it loads prebuilt, for the CPU and for sm_90 (a forest's also the voxel
-    kernel a GPU run builds its scene with), and compiles nothing. A kernel changed without remaking the prebuilt
-    set fails here: run ``flightsim compile --all --ship``."""
+    simulate` runs it; the statistics readout as `flightsim sweep` flies a configuration) finds every module it loads
+    prebuilt, for the CPU and for sm_90 (a forest's also the voxel kernel a GPU run builds its scene with), and
+    compiles nothing. A kernel changed without remaking the prebuilt set fails here: run ``flightsim compile --all
+    --ship``."""
     env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "kernels"), FLIGHTSIM_CACHE=str(tmp_path / "scenes"),
                FLIGHTSIM_PREBUILT="1")
-    args = [instrument] + (["--scene", scene] if scene else [])
+    args = [readout, instrument] + (["--scene", scene] if scene else [])
     done = subprocess.run([sys.executable, "-c", CHECK, *args], env=env, capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-3000:]
     found = json.loads(done.stdout.strip().splitlines()[-1])

@@ -141,19 +141,37 @@ class SceneCache:
         return self.built[key]
 
 
-def run_configuration(labels: dict, cfg: RunConfig, scenes: SceneCache) -> dict:
-    """Simulate one configuration in statistics mode; return its sweep and plane rows."""
+def configuration_tracer(cfg: RunConfig, scenes: SceneCache):
+    """The tracer of one configuration in statistics mode, over its scene from ``scenes``, with the automatic edge
+    buffer (:func:`flightsim.engine.world.edge_buffer_m`)."""
     from flightsim.engine.world import flight_trajectories
-    from flightsim.scoring.planes import pooled_rms
-    from flightsim.engine.readouts.statistics import run_statistics
     from flightsim.engine.tracer import Tracer
     from flightsim.core.warp_runtime import resolve_device
 
+    scene, meshes = scenes.get(cfg, resolve_device(cfg.run.device))
+    return Tracer(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=edge_buffer_m(cfg), meshes=meshes)
+
+
+def compile_configuration(cfg: RunConfig) -> int:
+    """Compile into Warp's kernel cache (or load from it) every kernel a sweep configuration of ``cfg`` launches,
+    without flying it (``flightsim compile --sweep``); returns the modules."""
+    from flightsim.core.warp_runtime import compile_ahead
+    from flightsim.engine.readouts.statistics import Statistics
+
+    tracer = configuration_tracer(cfg, SceneCache([cfg]))
+    kernels = tracer.kernels_needed(Statistics())
+    compile_ahead(tracer.device, kernels)
+    return len({id(k.module) for k in kernels})
+
+
+def run_configuration(labels: dict, cfg: RunConfig, scenes: SceneCache) -> dict:
+    """Simulate one configuration in statistics mode; return its sweep and plane rows."""
+    from flightsim.scoring.planes import pooled_rms
+    from flightsim.engine.readouts.statistics import run_statistics
+
     started = time.perf_counter()
-    device = resolve_device(cfg.run.device)
-    scene, meshes = scenes.get(cfg, device)
-    buffer = edge_buffer_m(cfg)
-    simulator = Tracer(cfg, scene, flight_trajectories(cfg, scene), edge_buffer_m=buffer, meshes=meshes)
+    simulator = configuration_tracer(cfg, scenes)
+    scene, buffer = simulator.scene, simulator.edge_buffer_m
     moments, counts = run_statistics(simulator)
     wall = time.perf_counter() - started
     rows, planes = [], []
