@@ -189,3 +189,17 @@ def test_the_risley_fans_angles_are_traced_once_per_fan_and_are_the_traces(monke
     divergence = Instrument(cfg).emitter.divergence_mrad
     assert buffers[(2000.0, 5)] == slant * (0.5 * divergence * 1e-3 + float(angle[fan.ok].max()))
     assert buffers[(2000.0, 5)] / buffers[(500.0, 5)] == pytest.approx(4.0, rel=1e-12)
+
+
+def test_a_sweep_hashes_each_configuration_once(tmp_path, monkeypatch):
+    hashed = []
+    key = sweep_module.config_key
+    monkeypatch.setattr(sweep_module, "config_key", lambda cfg: hashed.append(1) or key(cfg))
+    base = RunConfig()
+    set_value(base, "scene.name", "plane")
+    set_value(base, "flight.duration_s", 0.05)
+    grid = SweepGrid(validate(base), [("fan.array", [2, 3])])
+    path = run_sweep(grid, tmp_path / "sweep")
+    assert len(hashed) == 2 and len(list(csv.DictReader(open(path)))) == 4
+    assert sorted(p.stem for p in (tmp_path / "sweep" / "rows").glob("*.json")) == sorted(
+        key(cfg) for _, cfg in grid.configurations())

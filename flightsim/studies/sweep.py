@@ -236,9 +236,15 @@ class SweepDirectory:
             raise InputError("--out", str(self.path), f"a directory that can be created ({exc.strerror})") from None
         write_atomic(self.path / "sweep.json", description)
         self._results: dict[Path, dict] = {}  # finished rows read or recorded by this process
+        self._files: dict[int, tuple[RunConfig, Path]] = {}  # row_file's, by config object
 
     def row_file(self, cfg: RunConfig) -> Path:
-        return self.path / "rows" / f"{config_key(cfg)}.json"
+        """The file of a configuration's rows, named by :func:`config_key` (a hash of its TOML: ~1 ms, asked for five
+        times a configuration, so kept per config object; the sweep's configs are not changed once made)."""
+        made = self._files.get(id(cfg))
+        if made is None or made[0] is not cfg:
+            made = self._files[id(cfg)] = (cfg, self.path / "rows" / f"{config_key(cfg)}.json")
+        return made[1]
 
     def done(self, cfg: RunConfig) -> bool:
         return self.row_file(cfg).is_file()
