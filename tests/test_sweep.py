@@ -203,3 +203,18 @@ def test_a_sweep_hashes_each_configuration_once(tmp_path, monkeypatch):
     assert len(hashed) == 2 and len(list(csv.DictReader(open(path)))) == 4
     assert sorted(p.stem for p in (tmp_path / "sweep" / "rows").glob("*.json")) == sorted(
         key(cfg) for _, cfg in grid.configurations())
+
+
+def test_planes_csv_is_written_once_at_the_end_and_sweep_csv_as_rows_come(tmp_path, monkeypatch):
+    written = []
+    write = sweep_module.write_atomic
+    monkeypatch.setattr(sweep_module, "write_atomic", lambda path, text: written.append(path.name) or write(path, text))
+    monkeypatch.setattr(sweep_module, "TABLES_INTERVAL_S", 0.0)  # the tables after every configuration
+    base = RunConfig()
+    set_value(base, "scene.name", "plane")
+    set_value(base, "flight.duration_s", 0.05)
+    grid = SweepGrid(validate(base), [("fan.array", [2, 3, 4])])
+    run_sweep(grid, tmp_path / "sweep")
+    assert written.count("sweep.csv") == 4 and written.count("planes.csv") == 1  # three as rows came, one at the end
+    planes = list(csv.DictReader(open(tmp_path / "sweep" / "planes.csv")))
+    assert {r["array"] for r in planes} == {"2", "3", "4"} and {r["model"] for r in planes} == {"exact", "nominal"}
