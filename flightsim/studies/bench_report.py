@@ -251,8 +251,8 @@ def _study(r: dict) -> list[str]:
     s = r["study"]
     return ["### The seed paper's study over the calibration field", "",
             f"{s['configurations']} configurations × both models ({s['rows']} rows) in **{s['wall_s']:.1f} s** "
-            f"in a fresh process from an empty kernel cache (seeded with the prebuilt kernels, whatever they lack "
-            f"compiled in the run): `flightsim {s['command']}`.", ""]
+            f"in a fresh process from an empty kernel cache (into which flightsim copies its prebuilt kernels where "
+            f"the measured version has them; the rest compiled in the run): `flightsim {s['command']}`.", ""]
 
 
 def _las(r: dict) -> list[str]:
