@@ -64,8 +64,9 @@ class SweepGrid:
     def configurations(self) -> list[tuple[dict, RunConfig]]:
         """Every (axis values, validated config) of the grid, the first axis varying slowest (made and checked once:
         a grid of 250 configurations takes ~0.3 s; the list is the caller's, its configs shared)."""
-        if self._made is None or self._made[0] != self._identity():
-            self._made = (self._identity(), self._make())
+        identity = self._identity()
+        if self._made is None or self._made[0] != identity:
+            self._made = (identity, self._make())
         return list(self._made[1])
 
     def _identity(self) -> str:

@@ -17,10 +17,10 @@ import time
 
 from flightsim.engine import meshes
 from flightsim.engine.config import RunConfig, set_value, validate
+from flightsim.studies.bench_common import sizes
 from flightsim.studies.sweep import AXIS_KEYS, SceneCache, SweepGrid, run_configuration
 
-GRID = {"altitude_m": [500.0 * k for k in range(1, 11)], "array": [2, 3, 4, 5, 6],
-        "spacing_mrad": [2.314, 4.628, 6.942, 9.256, 11.570]}  # the study's (`flightsim paper`)
+GRID = dict(zip(AXIS_KEYS, sizes("cuda", quick=False).study_grid))  # the study's, as `flightsim bench` sweeps it
 WARM = 5  # configurations run first, untimed
 
 
