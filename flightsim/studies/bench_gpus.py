@@ -46,19 +46,18 @@ def gpu_scaling(device: str, s: Sizes) -> dict:
             "survey to LAZ": lambda out, gpus: survey_run(out, ["--gpus", gpus], _per(per_gpu, gpus), GPUS_SURVEY_KM),
             "survey to LAS": lambda out, gpus: survey_run(out, ["--gpus", gpus], _per(per_gpu, gpus), GPUS_SURVEY_KM,
                                                           laz=False)}
+    from flightsim.studies.bench_scale import idle_disk_rate
+
     with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
         folder = Path(tmp)
-        from flightsim.studies.bench_scale import idle_disk_rate
-
         _warm_up(folder / "warm", ["--gpus", every], s)
         disk = idle_disk_rate(folder / "probe", DISK_PROBE_BYTES["cuda"])
         pairs = {name: [run(folder / f"{k}-{gpus}", gpus) for gpus in ("0", every)] for k, (name, run) in
                  enumerate(runs.items())}
         repeat = runs["study"](folder / "repeat", "0")  # GPU 0 again: what differs between two runs alike
-    first = pairs["study"][0]["outputs"]
+    study_repeat = {"wall_s": repeat["wall_s"], "differences": compare(pairs["study"][0]["outputs"], repeat["outputs"])}
     return {"gpus": count, "gpu_name": gpu_name("cuda:0"), "cpu_count": os.cpu_count(), "disk_write_bytes_per_s": disk,
-            "study_repeat": {"wall_s": repeat["wall_s"], "differences": compare(first, repeat["outputs"])},
-            "pairs": {name: _pair(runs) for name, runs in pairs.items()}}
+            "study_repeat": study_repeat, "pairs": {name: _pair(runs) for name, runs in pairs.items()}}
 
 
 def _per(per_gpu: int, gpus: str) -> int:
@@ -67,8 +66,7 @@ def _per(per_gpu: int, gpus: str) -> int:
 
 
 def _pair(runs: list[dict]) -> dict:
-    """A pair's record: its two runs (their outputs compared, then dropped), the speed-up and the LAZ/LAS rate of the
-    faster against the disk's (surveys)."""
+    """A pair's record: its two runs (their outputs compared, then dropped) and the speed-up."""
     differences = compare(runs[0].pop("outputs"), runs[1].pop("outputs"))
     return {"runs": runs, "speedup": runs[0]["wall_s"] / runs[1]["wall_s"], "differences": differences}
 
