@@ -57,3 +57,27 @@ def test_a_command_that_ends_at_once_waits_for_the_driver_start(monkeypatch):
     with pytest.raises(SystemExit) as ended:
         entry.main(["simulate", "--device", "cuda:1", "--no-such-flag"])
     assert ended.value.code == 2 and started == [1]  # the process would exit only now
+
+
+UNFLOWN_KERNELS = ("kernels.canopy", "kernels.canopy_returns", "kernels.canopy_photons", "kernels.photon",
+                   "kernels.photon_frame", "kernels.photon_grid", "kernels.waveform", "kernels.waveform_fft",
+                   "kernels.fsm", "kernels.galvo", "kernels.panoramic", "kernels.fixed", "kernels.wedges")
+
+
+def test_a_risley_run_loads_no_other_parts_kernels(tmp_path):
+    """The default run (Risley, points to LAS) in a fresh process: the kernels modules of the parts it does not fly
+    (canopy, photons, waveforms, other deflectors) are never imported (flightsim/core/lazy.py), while the ones it
+    flies are."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    script = ("import json, sys\nfrom flightsim.entry import main\n"
+              f"code = main(['simulate', '--device', 'cpu', '--duration', '0.02', '--out', {str(tmp_path)!r}])\n"
+              "print(json.dumps([code, sorted(m for m in sys.modules if m.startswith('kernels.'))]))\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ, check=True)
+    code, loaded = json.loads(done.stdout.strip().splitlines()[-1])
+    assert code == 0
+    assert {"kernels.trace", "kernels.wedge", "kernels.las_records"} <= set(loaded)
+    assert not set(loaded) & set(UNFLOWN_KERNELS), sorted(set(loaded) & set(UNFLOWN_KERNELS))

@@ -11,11 +11,14 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.constants import MODELS
+from flightsim.core.lazy import lazy_module
 from flightsim.core.registry import register
 from flightsim.core.warp_runtime import host_array, to_host
 from flightsim.engine.chunks import POINT_SLOTS_PER_CHUNK, Segment
-from kernels import canopy_returns, compaction, trace
+from kernels import compaction, trace
 from kernels.looks import LOOKS
+
+canopy_returns = lazy_module("kernels.canopy_returns")  # a run over a canopy only
 
 
 @dataclass
