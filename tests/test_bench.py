@@ -158,3 +158,19 @@ def test_the_benchmarks_children_read_and_write_their_bytecode(monkeypatch):
         assert seen == ["False", folder] and os.path.isdir(folder)
     assert not os.path.exists(folder)
     assert os.environ["PYTHONDONTWRITEBYTECODE"] == "1" and os.environ["PYTHONPYCACHEPREFIX"] == "/elsewhere"
+
+
+def test_the_build_once_row_takes_each_ways_best_of_rounds_in_turn(monkeypatch):
+    """The sweep row of the skip section: shared scene and rebuilt scenes alternate, and each way's wall is its best
+    round (a single timing each charged the first way with the process's first-use costs)."""
+    from flightsim.studies import bench_savings
+
+    calls = []
+    monkeypatch.setattr(bench_savings, "run_statistics", lambda sim: calls.append(sim.meshes))
+    clock = iter([0.0, 9.0, 10.0, 12.0, 20.0, 21.0, 30.0, 35.0])  # shared 9, rebuilt 2, shared 1, rebuilt 5
+    monkeypatch.setattr(bench_savings.time, "perf_counter", lambda: next(clock))
+    row = bench_savings._build_once_saving(workload("cpu", 3, 2e4), rounds=2)
+    rounds = [calls[k:k + 5] for k in range(0, 20, 5)]  # shared, rebuilt, shared, rebuilt: one BVH or five
+    assert [len({id(m) for m in r}) for r in rounds] == [1, 5, 1, 5]
+    assert (row["variant_s"], row["baseline_s"]) == (1.0, 2.0)
+    assert row["saving"] == pytest.approx(0.5)
