@@ -1,5 +1,10 @@
 """The command line's start (flightsim/entry.py): the CUDA device a command line names is started on a thread
 while the modules import, and it is the context Warp then uses."""
+import json
+import os
+import subprocess
+import sys
+
 import pytest
 
 from flightsim.entry import cuda_ordinal, start_cuda
@@ -68,11 +73,6 @@ def test_a_risley_run_loads_no_other_parts_kernels(tmp_path):
     """The default run (Risley, points to LAS) in a fresh process: the kernels modules of the parts it does not fly
     (canopy, photons, waveforms, other deflectors) are never imported (flightsim/core/lazy.py), while the ones it
     flies are."""
-    import json
-    import os
-    import subprocess
-    import sys
-
     script = ("import json, sys\nfrom flightsim.entry import main\n"
               f"code = main(['simulate', '--device', 'cpu', '--duration', '0.02', '--out', {str(tmp_path)!r}])\n"
               "print(json.dumps([code, sorted(m for m in sys.modules if m.startswith('kernels.'))]))\n")
