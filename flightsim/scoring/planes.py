@@ -78,9 +78,7 @@ class PlaneMoments:
         keep = np.flatnonzero(self.count >= min_points)
         if keep.size == 0:
             return []
-        n = self.count[keep]
-        mean = self.first[keep] / n[:, None]
-        covariance = self.second[keep] / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
+        n, mean, covariance = self._centred(keep)
         values, vectors = np.linalg.eigh(covariance)
         normals = vectors[:, :, 0] * np.where(vectors[:, 2, 0] >= 0, 1.0, -1.0)[:, None]
         rms = np.sqrt(np.maximum(values[:, 0], 0.0))
@@ -93,20 +91,22 @@ class PlaneMoments:
         covariance, batched); NaN for planes with fewer than ``min_points`` points."""
         rms = np.full(len(self.count), np.nan)
         keep = np.flatnonzero(self.count >= max(min_points, 3))
-        n = self.count[keep].astype(np.float64)
-        mean = self.first[keep] / n[:, None]
-        covariance = self.second[keep] / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
-        rms[keep] = np.sqrt(np.maximum(np.linalg.eigvalsh(covariance)[:, 0], 0.0))
+        rms[keep] = np.sqrt(np.maximum(np.linalg.eigvalsh(self._centred(keep)[2])[:, 0], 0.0))
         return rms
 
     def fit(self, plane_id: int) -> PlaneFit:
         """Fit one plane from its sums."""
-        n = int(self.count[plane_id])
-        mean = self.first[plane_id] / n
-        covariance = self.second[plane_id] / n - np.outer(mean, mean)
+        n, mean, covariance = (a[0] for a in self._centred(np.array([plane_id])))
         values, vectors = np.linalg.eigh(covariance)
         normal = vectors[:, 0] * (1.0 if vectors[2, 0] >= 0 else -1.0)
-        return PlaneFit(plane_id, n, self.references[plane_id] + mean, normal, float(np.sqrt(max(values[0], 0.0))))
+        return PlaneFit(plane_id, int(n), self.references[plane_id] + mean, normal,
+                        float(np.sqrt(max(values[0], 0.0))))
+
+    def _centred(self, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(count (k,), mean offset from the reference (k, 3) [m], centred covariance (k, 3, 3) [m²]) of ``planes``."""
+        n = self.count[planes]
+        mean = self.first[planes] / n[:, None]
+        return n, mean, self.second[planes] / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
 
 
 def pooled_rms(fits: list[PlaneFit]) -> float:
