@@ -44,7 +44,20 @@ def init_warp() -> None:
     wp.config.log_level = wp.LOG_WARNING
     with _native_stderr_without(NO_DRIVER):
         wp.init()
+    _name_cpu_objects()
     seed_kernel_cache()
+
+
+def _name_cpu_objects() -> None:
+    """Have Warp work out, once and on this thread, the LLVM version and target its CPU objects' file names carry.
+    It does so on first use and keeps the answer, but its native call for the version is not safe to make from
+    several threads at once (it can return an empty string): a module first loaded by parallel loads
+    (:func:`compile_ahead`) could then be looked up without the name's target hash, miss its cached or prebuilt
+    object and be compiled again."""
+    from warp._src import context
+
+    context._get_cpu_toolchain_version()
+    context._get_cpu_target_triple()
 
 
 def resolve_device(name: str) -> str:
@@ -65,7 +78,9 @@ def compile_ahead(device: str, kernels) -> None:
     """Compile (or load from Warp's kernel cache) the modules of ``kernels`` on ``device`` at once, one thread per
     module up to the machine's cores, before their first launch would compile them one at a time. Modules
     already loaded are skipped; Warp compiles a module's code generation under its own lock and the
-    compilers (NVRTC, clang) in parallel."""
+    compilers (NVRTC, clang) in parallel. Warp is started first (:func:`init_warp`: the kernel cache seeded, the CPU
+    objects' names worked out on this thread)."""
+    init_warp()
     context = wp.get_device(device).context
     modules = [m for m in {id(k.module): k.module for k in kernels}.values()
                if not any(ctx == context for ctx, _ in m.execs)]  # a loaded module costs nothing more
