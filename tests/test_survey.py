@@ -183,3 +183,71 @@ def test_survey_command_on_two_workers_reports_points_per_second_and_memory(tmp_
 def test_bad_survey_input_names_the_field(settings, spec, field):
     with pytest.raises(InputError, match=field):
         plan_survey(small_config(**settings), spec)
+
+
+
+def _header(offsets=(408500.0, 3392500.0, 0.0), statistics: bool = False):
+    """A LAS 1.4 header of point format 6 with a plane_id extra dimension, 1 mm scales; without ``statistics``
+    its descriptor claims no minimum and maximum (as the tiles' do: flightsim.outputs.las_format)."""
+    import laspy
+
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales, header.offsets = np.array([0.001] * 3), np.array(offsets)
+    header.add_extra_dims([laspy.ExtraBytesParams("plane_id", np.int32)])
+    if not statistics:
+        header.vlrs.get("ExtraBytesVlr")[0].extra_bytes_structs[0].options = 0
+    return header
+
+
+def _part(path: Path, header, rng, n: int, returns: int) -> np.ndarray:
+    """A LAS part of ``n`` random points (return numbers 1 … ``returns``) written by laspy; its point records."""
+    import laspy
+
+    points = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    points.X = rng.integers(-10**6, 10**6, n)
+    points.Y = rng.integers(-10**6, 10**6, n)
+    points.Z = rng.integers(-10**4, 10**4, n)
+    points.return_number = rng.integers(1, returns + 1, n)
+    points.number_of_returns = np.full(n, returns)
+    points.gps_time = rng.uniform(0.0, 100.0, n)
+    points["plane_id"] = rng.integers(0, 50, n)
+    with laspy.open(path, mode="w", header=header) as writer:
+        writer.write_points(points)
+    return points.array
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_merged_tiles_are_the_bytes_laspy_writes_for_the_parts_points(tmp_path, compress):
+    """The merge copies the parts' records after a header for them all (LAS) or compresses them (LAZ): the file is
+    what laspy's writer makes of all the parts' points in order, and its header's counts and bounds are theirs."""
+    import laspy
+
+    header = _header()
+    rng = np.random.default_rng(7)
+    parts = [tmp_path / f"part{i}.las" for i in range(4)]
+    records = [_part(p, header, rng, n, r) for p, n, r in zip(parts, (5000, 0, 1234, 777), (1, 1, 3, 2))]
+    expected = tmp_path / ("expected.laz" if compress else "expected.las")
+    with laspy.open(expected, mode="w", header=header, do_compress=compress) as writer:
+        for part in parts:
+            writer.write_points(laspy.read(part).points)
+    target = tmp_path / "tile" / expected.name
+    assert survey.merge_tile(parts, target, compress) == 7011
+    merged = laspy.read(target)
+    assert np.array_equal(merged.points.array, np.concatenate(records))
+    xyz = np.stack([merged.x, merged.y, merged.z], axis=1)
+    assert np.array_equal(merged.header.mins, xyz.min(axis=0)) and np.array_equal(merged.header.maxs, xyz.max(axis=0))
+    assert list(merged.header.number_of_points_by_return[:3]) == list(np.bincount(merged.return_number)[1:4])
+    if not compress:  # a LAZ file's chunk table may differ between lazrs's writers; its points are checked above
+        assert target.read_bytes() == expected.read_bytes()
+    assert [p.name for p in target.parent.iterdir()] == [target.name]  # no temporary left
+
+
+@pytest.mark.parametrize("second", [{"offsets": (408501.0, 3392500.0, 0.0)}, {"statistics": True}])
+def test_parts_whose_headers_cannot_be_joined_are_not_concatenated(tmp_path, second):
+    rng = np.random.default_rng(1)
+    parts = [tmp_path / "a.las", tmp_path / "b.las"]
+    _part(parts[0], _header(), rng, 10, 1)
+    _part(parts[1], _header(**second), rng, 10, 1)
+    with pytest.raises(RuntimeError, match="b.las: not the header of"):
+        survey.merge_tile(parts, tmp_path / "t.las", False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.las", "b.las"]

@@ -25,6 +25,7 @@ import os
 import shutil
 import time
 import uuid
+from copy import deepcopy
 from pathlib import Path
 from typing import Callable
 
@@ -128,29 +129,91 @@ def merge_task(out: str, model: str, tile: str, compress: bool, *results: dict) 
 def merge_tile(parts: list[Path], target: Path, compress: bool) -> int:
     """Write the points of ``parts`` (LAS tiles of one tile key, same header) in order into
     ``target``, through a temporary name of its own; return the number of points."""
-    import laspy
-
     target.parent.mkdir(parents=True, exist_ok=True)
     temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
-    with laspy.open(parts[0]) as first:
-        header = first.header
     try:
-        with open(temporary, "wb") as fh:
-            backend = laspy.LazBackend.Lazrs if compress else None
-            with laspy.open(fh, mode="w", header=header, do_compress=compress, laz_backend=backend,
-                            closefd=False) as writer:
-                for part in parts:
-                    with laspy.open(part) as reader:
-                        for points in reader.chunk_iterator(MERGE_CHUNK_POINTS):
-                            writer.write_points(points)
-                points = writer.header.point_count
-            fh.flush()
+        with open(temporary, "wb", buffering=0) as fh:
+            points = (_compress_parts if compress else _concatenate_parts)(parts, fh)
             os.fsync(fh.fileno())
         os.replace(temporary, target)
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
     return points
+
+
+def _compress_parts(parts: list[Path], fh) -> int:
+    """The parts' points, decoded and compressed by laspy (lazrs) into ``fh``; the number of points."""
+    import laspy
+
+    with laspy.open(parts[0]) as first:
+        header = first.header
+    with laspy.open(fh, mode="w", header=header, do_compress=True, laz_backend=laspy.LazBackend.Lazrs,
+                    closefd=False) as writer:
+        for part in parts:
+            with laspy.open(part) as reader:
+                for points in reader.chunk_iterator(MERGE_CHUNK_POINTS):
+                    writer.write_points(points)
+        return writer.header.point_count
+
+
+def _concatenate_parts(parts: list[Path], fh) -> int:
+    """The parts' point records copied byte for byte into ``fh`` after one header for them all (the bytes laspy's
+    writer makes from the same points: the first part's header with the parts' counts summed and their bounds
+    joined); the number of points."""
+    import laspy
+
+    headers = []
+    for part in parts:
+        with laspy.open(part) as reader:
+            headers.append(reader.header)
+    header = _joined_header(headers, parts)
+    header.write_to(fh)
+    for part, h in zip(parts, headers):
+        with open(part, "rb", buffering=0) as src:
+            _copy_range(src.fileno(), fh.fileno(), h.offset_to_point_data, h.point_count * h.point_format.size)
+    return header.point_count
+
+
+def _joined_header(headers: list, parts: list[Path]):
+    """The first header with the point counts of all of ``headers`` summed and their bounds joined (zeros
+    without points, as laspy writes them); raises where a part's header differs from the first's in more than
+    those, or keeps statistics per extra dimension (the tiles' claim none: outputs.las_format)."""
+    import numpy as np
+
+    first = headers[0]
+    for part, h in zip(parts, headers):
+        if (h.point_format != first.point_format or h.evlrs or not np.array_equal(h.scales, first.scales)
+                or not np.array_equal(h.offsets, first.offsets) or _extra_statistics(h)):
+            raise RuntimeError(f"{part}: not the header of {parts[0]} (point format, scales, offsets), or one with "
+                               f"statistics of its extra dimensions")
+    header = deepcopy(first)
+    filled = [h for h in headers if h.point_count > 0]
+    header.point_count = sum(h.point_count for h in headers)
+    header.number_of_points_by_return = np.sum([h.number_of_points_by_return for h in headers], axis=0,
+                                               dtype=np.uint64)
+    header.mins = np.min([h.mins for h in filled], axis=0) if filled else np.zeros(3)
+    header.maxs = np.max([h.maxs for h in filled], axis=0) if filled else np.zeros(3)
+    return header
+
+
+def _extra_statistics(header) -> bool:
+    """Whether an extra dimension of ``header`` claims a minimum or maximum."""
+    return any(d.min_is_relevant() or d.max_is_relevant()
+               for vlr in header.vlrs.get("ExtraBytesVlr") for d in vlr.extra_bytes_structs)
+
+
+def _copy_range(src: int, dst: int, offset: int, count: int) -> None:
+    """Append ``count`` bytes of file descriptor ``src`` from ``offset`` to ``dst`` (in the kernel where it can)."""
+    end = offset + count
+    while offset < end:
+        try:
+            copied = os.copy_file_range(src, dst, end - offset, offset)
+        except (AttributeError, OSError):  # no copy_file_range here, or not between these two files
+            copied = os.write(dst, os.pread(src, min(end - offset, 1 << 24), offset))
+        if copied == 0:
+            raise RuntimeError(f"a part ended {end - offset} bytes before its point records")
+        offset += copied
 
 
 # ---------------------------------------------------------------------------------------------
