@@ -247,7 +247,7 @@ def cmd_survey(args: argparse.Namespace) -> int:
         set_value(cfg, key, value)
     cfg = validate(cfg)
     from flightsim.core.progress import ProgressBar
-    from flightsim.studies.survey import run_survey
+    from flightsim.studies.survey import parts_folder, run_survey
     from flightsim.studies.survey_plan import SurveySpec, plan_survey
 
     spec = SurveySpec(size_km=args.size_km, tile_m=args.tile_m, sidelap=args.sidelap, lines=args.lines,
@@ -256,9 +256,11 @@ def cmd_survey(args: argparse.Namespace) -> int:
     print(f"survey: {plan.grid.side_m / 1000:g} km × {plan.grid.side_m / 1000:g} km in {plan.grid.n ** 2} tiles, "
           f"{plan.cfg.flight.lines} lines {plan.cfg.flight.line_spacing_m:.1f} m apart, {len(plan.tasks)} tasks, "
           f"{plan.pulses * cfg.fan.array ** 2:,} beams", file=sys.stderr)
+    parts = Path(args.parts) if args.parts else None
+    parts_folder(Path(args.out), parts)  # a bad --parts stops the command before a cluster starts
     with _cluster(args, len(plan.tasks)) as client:
         summary = run_survey(cfg, spec, Path(args.out), client=client, overwrite=args.overwrite,
-                             progress=ProgressBar("survey"))
+                             progress=ProgressBar("survey"), parts=parts)
     memory = ", ".join(f"{name} {w['peak_rss_mb']:.0f} MiB" for name, w in summary["workers"].items())
     print(f"{summary['points_written']:,} points {summary['points']} in {summary['wall_s']:.1f} s "
           f"({summary['points_per_s']:,} points/s); peak RSS per worker: {memory}; written to {args.out}")
@@ -385,6 +387,9 @@ def _add_run_commands(sub) -> None:
     survey.add_argument("--segment-m", type=float, default=1000.0,
                         help="along-track length of a task [m] (default 1000)")
     survey.add_argument("--out", required=True, help="output directory: <model>/<tile>.las, run.toml, survey.json")
+    survey.add_argument("--parts", help="an existing folder, reached by every worker, for the tasks' part files "
+                                        "(default: under --out); on one machine a RAM disk such as /dev/shm writes "
+                                        "each point to the disk once instead of twice")
     survey.add_argument("--overwrite", action="store_true", help="replace the survey in a non-empty --out")
     _add_cluster_flags(survey)
     survey.set_defaults(func=cmd_survey)

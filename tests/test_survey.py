@@ -111,7 +111,7 @@ def die_once(marker: str, how: str, name: str, *args):
     from flightsim.studies import survey  # on a worker: the module as it is, not as the test patched it
 
     if how == "rename":
-        _out, model, tile, _compress, *results = args
+        _out, _parts, model, tile, _compress, *results = args
         writes = any(tile in r["tiles"].get(model, {}) for r in results)
     if (how == "write" or writes) and claim(marker):
         if how == "write":
@@ -155,10 +155,14 @@ def test_a_survey_on_a_cluster_whose_workers_die_mid_write_gives_the_same_bytes(
 
 def test_survey_command_on_two_workers_reports_points_per_second_and_memory(tmp_path):
     out = tmp_path / "survey"
+    ram = tmp_path / "ram"  # the parts' folder, as a RAM disk would be given
+    ram.mkdir()
     args = [sys.executable, "-m", "flightsim", "survey", "--size-km", "0.8", "--tile-m", "400", "--altitude", "300",
-            "--models", "nominal", "--set", "risley.prf_hz=500", "--workers", "2", "--out", str(out)]
+            "--models", "nominal", "--set", "risley.prf_hz=500", "--workers", "2", "--out", str(out),
+            "--parts", str(ram)]
     done = subprocess.run(args, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
+    assert list(ram.iterdir()) == [] and not (out / ".parts").exists()
     summary = json.loads((out / "survey.json").read_text())
     points = sum(len(read_points(p)[0]) for p in (out / "nominal").glob("*.las"))
     assert summary["points"] == {"nominal": points} and summary["points_written"] == points > 0
@@ -171,6 +175,38 @@ def test_survey_command_on_two_workers_reports_points_per_second_and_memory(tmp_
     assert summary["segments_s"] > 0 and summary["merges_s"] > 0
     again = subprocess.run(args, capture_output=True, text=True)  # a finished survey is not replaced
     assert again.returncode == 2 and "--overwrite" in again.stderr
+
+
+def test_parts_kept_in_another_folder_give_the_same_tiles(serial, tmp_path):
+    out, summary = serial
+    ram = tmp_path / "ram"
+    ram.mkdir()
+    seen = []
+    segment_task = survey.segment_task
+
+    def spy(cfg, grid, task, parts):
+        seen.append(Path(parts))
+        return segment_task(cfg, grid, task, parts)
+
+    survey.segment_task = spy
+    try:
+        elsewhere = run_survey(small_config(), SPEC, tmp_path / "out", parts=ram)
+    finally:
+        survey.segment_task = segment_task
+    assert tiles(tmp_path / "out") == tiles(out) and elsewhere["tiles"] == summary["tiles"]
+    assert set(seen) == {survey.parts_folder(tmp_path / "out", ram)} and seen[0].parent == ram
+    assert list(ram.iterdir()) == [] and not (tmp_path / "out" / ".parts").exists()
+    assert survey.parts_folder(tmp_path / "other", ram) != seen[0]  # two surveys sharing the folder never meet
+
+
+def test_a_parts_folder_that_does_not_exist_stops_the_survey_command(tmp_path):
+    args = [sys.executable, "-m", "flightsim", "survey", "--size-km", "0.8", "--tile-m", "400", "--workers", "2",
+            "--out", str(tmp_path / "out"), "--parts", str(tmp_path / "missing")]
+    done = subprocess.run(args, capture_output=True, text=True)
+    assert done.returncode == 2 and not (tmp_path / "out").exists()
+    missing = tmp_path / "missing"
+    assert done.stderr.strip().splitlines()[-1] == (f"flightsim: error: invalid --parts = '{missing}': expected an "
+                                                    "existing directory that every worker can write to")
 
 
 @pytest.mark.parametrize("settings, spec, field", [

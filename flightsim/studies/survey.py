@@ -9,8 +9,9 @@ Each line is cut along track into segments of ``segment_m``. One task simulates 
 pulses only (``Tracer(pulse_limits=...)``, so every pulse belongs to exactly one task), over a
 scene assembled from just the tiles its beams can reach (the reach radius h·tan(θ_max + tilt + 1°)
 plus the scene margin around its ground track, the local origin being the tile under the middle
-of the segment). It writes its points per LAS tile into part files in a directory of its own,
-renamed into place when complete. One merge task per (model, LAS tile) then concatenates that
+of the segment). It writes its points per LAS tile into part files in a directory of its own (under
+the survey's parts folder: ``out/.parts``, or a folder of its own under a ``parts`` folder such as a
+RAM disk), renamed into place when complete. One merge task per (model, LAS tile) then concatenates that
 tile's parts in task order (line, then segment) into the final tile, atomically, and deletes the
 parts. The tiles are byte-identical whether the tasks run in this process or on any number of
 Dask workers, and whether or not a worker died on the way (a task or merge run twice writes the
@@ -20,6 +21,7 @@ The plan (tile grid, lines, tasks and merges) is made by :mod:`flightsim.studies
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -40,7 +42,7 @@ from flightsim.engine.readouts.points import Points
 from flightsim.engine.tracer import Tracer
 from flightsim.studies.survey_plan import SegmentTask, SurveyPlan, SurveySpec, TileGrid, plan_survey
 
-PARTS = ".parts"  # per-task part files, under the output directory
+PARTS = ".parts"  # per-task part files, under the output directory unless run_survey is given a parts folder
 SURVEY_FILES = ("run.toml", "survey.toml", "survey.json", PARTS)
 MERGE_CHUNK_POINTS = 500_000  # points read and written at a time when merging parts
 
@@ -49,15 +51,15 @@ MERGE_CHUNK_POINTS = 500_000  # points read and written at a time when merging p
 # the tasks
 
 
-def segment_task(cfg: RunConfig, grid: TileGrid, task: SegmentTask, out: str) -> dict:
-    """Simulate one segment into ``out/.parts/<task>/<model>/<tile>.las``; return what it wrote.
+def segment_task(cfg: RunConfig, grid: TileGrid, task: SegmentTask, parts: str) -> dict:
+    """Simulate one segment into ``parts/<task>/<model>/<tile>.las``; return what it wrote.
 
     Idempotent: a task finished by an earlier attempt is not run again; an attempt writes into a
     directory of its own and renames it into place, so attempts never share a file.
     """
     from flightsim.engine.distributed import worker_device, worker_stats
 
-    parts = Path(out) / PARTS
+    parts = Path(parts)
     final = parts / task.name
     cfg = worker_device(cfg)
     if not (final / "task.json").is_file():
@@ -96,8 +98,8 @@ def _simulate_segment(cfg: RunConfig, grid: TileGrid, task: SegmentTask, directo
                                                        "tir_dropped", "misses")}}
 
 
-def merge_task(out: str, model: str, tile: str, compress: bool, *results: dict) -> dict:
-    """Concatenate a LAS tile's parts, in task order, into ``out/<model>/<tile>``; delete the parts.
+def merge_task(out: str, parts: str, model: str, tile: str, compress: bool, *results: dict) -> dict:
+    """Concatenate a LAS tile's parts (under ``parts``), in task order, into ``out/<model>/<tile>``; delete them.
 
     ``results`` are the results of the tasks that could write into the tile. Idempotent: a tile
     already merged (its parts partly deleted) is only counted.
@@ -109,16 +111,16 @@ def merge_task(out: str, model: str, tile: str, compress: bool, *results: dict) 
     expected = sum(r["tiles"][model][tile] for r in mine)
     if not mine:
         return {"model": model, "tile": None, "points": 0, "wall_s": 0.0, **worker_stats()}
-    parts = [Path(out) / PARTS / r["name"] / model / tile for r in mine]
+    files = [Path(parts) / r["name"] / model / tile for r in mine]
     target = Path(out) / model / (tile[:-4] + (".laz" if compress else ".las"))
-    if target.is_file() and not all(p.is_file() for p in parts):
+    if target.is_file() and not all(p.is_file() for p in files):
         import laspy
 
         with laspy.open(target) as reader:
             points = reader.header.point_count
     else:
-        points = merge_tile(parts, target, compress)
-        for part in parts:
+        points = merge_tile(files, target, compress)
+        for part in files:
             part.unlink(missing_ok=True)
     if points != expected:
         raise RuntimeError(f"{target}: {points} points merged, the tasks wrote {expected}")
@@ -243,25 +245,39 @@ def prepare_survey_output(directory: Path, texts: dict[str, str], overwrite: boo
     directory.mkdir(parents=True, exist_ok=True)
 
 
+def parts_folder(out: Path, parts: Path | None) -> Path:
+    """Where a survey into ``out`` keeps its part files: ``out/.parts``, or under ``parts`` (an existing folder that
+    every worker reaches) a folder named after ``out``'s absolute path, so surveys sharing ``parts`` never meet."""
+    if parts is None:
+        return out / PARTS
+    if not Path(parts).is_dir():
+        raise InputError("--parts", str(parts), "an existing directory that every worker can write to")
+    digest = hashlib.sha256(str(out.resolve()).encode()).hexdigest()[:16]
+    return Path(parts) / f"flightsim-parts-{digest}"
+
+
 def run_survey(cfg: RunConfig, spec: SurveySpec, out: Path, client=None, overwrite: bool = False,
-               progress: Callable[[int, int], None] | None = None) -> dict:
-    """Run a survey into ``out`` (in this process, or on a Dask ``client``); write and return survey.json."""
+               progress: Callable[[int, int], None] | None = None, parts: Path | None = None) -> dict:
+    """Run a survey into ``out`` (in this process, or on a Dask ``client``), its part files under ``parts`` (None:
+    in ``out``; a RAM disk keeps them off the disk, which then takes each point once); write and return survey.json."""
     from flightsim.core.warp_runtime import resolve_device
 
     plan = plan_survey(cfg, spec)
     resolve_device(plan.cfg.run.device)
     out = Path(out)
+    folder = parts_folder(out, parts)
     texts = {"run.toml": to_toml(plan.cfg), "survey.toml": plan.spec.to_toml()}
     prepare_survey_output(out, texts, overwrite)
+    shutil.rmtree(folder, ignore_errors=True)  # an unfinished survey's parts: its tasks are run again
     for name, text in texts.items():
         write_atomic(out / name, text)
     started = time.perf_counter()
     if client is None:
-        segments, merges = _run_here(plan, str(out), progress)
+        segments, merges = _run_here(plan, str(out), str(folder), progress)
     else:
-        segments, merges = _run_on(client, plan, str(out), progress)
+        segments, merges = _run_on(client, plan, str(out), str(folder), progress)
     wall = time.perf_counter() - started
-    shutil.rmtree(out / PARTS, ignore_errors=True)  # what attempts that died left behind
+    shutil.rmtree(folder, ignore_errors=True)  # what attempts that died left behind
     for model in plan.cfg.output.models:
         for leftover in (out / model).glob(".*.part"):
             leftover.unlink()
@@ -270,7 +286,7 @@ def run_survey(cfg: RunConfig, spec: SurveySpec, out: Path, client=None, overwri
     return summary
 
 
-def _run_here(plan: SurveyPlan, out: str, progress) -> tuple[list[dict], list[dict]]:
+def _run_here(plan: SurveyPlan, out: str, parts: str, progress) -> tuple[list[dict], list[dict]]:
     """Every task in order in this process, each merge as soon as the last task it needs is done."""
     waiting: dict[str, list[tuple[str, str, list[str]]]] = {}
     for (model, tile), names in plan.merges.items():
@@ -278,23 +294,23 @@ def _run_here(plan: SurveyPlan, out: str, progress) -> tuple[list[dict], list[di
     total = len(plan.tasks) + len(plan.merges)
     segments, merges = {}, []
     for task in plan.tasks:
-        segments[task.name] = segment_task(plan.cfg, plan.grid, task, out)
+        segments[task.name] = segment_task(plan.cfg, plan.grid, task, parts)
         for model, tile, names in waiting.get(task.name, []):
-            merges.append(merge_task(out, model, tile, plan.cfg.output.laz, *(segments[n] for n in names)))
+            merges.append(merge_task(out, parts, model, tile, plan.cfg.output.laz, *(segments[n] for n in names)))
         if progress:
             progress(len(segments) + len(merges), total)
     return list(segments.values()), merges
 
 
-def _run_on(client, plan: SurveyPlan, out: str, progress) -> tuple[list[dict], list[dict]]:
+def _run_on(client, plan: SurveyPlan, out: str, parts: str, progress) -> tuple[list[dict], list[dict]]:
     """The same tasks and merges on a Dask cluster; each merge runs once the tasks it needs are done
     (merges go before waiting tasks, so parts are consumed as soon as they are complete)."""
     from flightsim.engine.distributed import run_futures
 
     token = uuid.uuid4().hex[:8]
-    tasks = {task.name: client.submit(segment_task, plan.cfg, plan.grid, task, out,
+    tasks = {task.name: client.submit(segment_task, plan.cfg, plan.grid, task, parts,
                                       key=f"segment-{token}-{task.name}") for task in plan.tasks}
-    merges = [client.submit(merge_task, out, model, tile, plan.cfg.output.laz, *(tasks[n] for n in names),
+    merges = [client.submit(merge_task, out, parts, model, tile, plan.cfg.output.laz, *(tasks[n] for n in names),
                             key=f"merge-{token}-{model}-{tile}", priority=1)
               for (model, tile), names in plan.merges.items()]
     kinds = {f.key: kind for kind, futures in (("segment", tasks.values()), ("merge", merges)) for f in futures}
