@@ -6,6 +6,7 @@ import json
 import math
 import os
 import platform
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -257,10 +258,13 @@ def cmd_survey(args: argparse.Namespace) -> int:
           f"{plan.cfg.flight.lines} lines {plan.cfg.flight.line_spacing_m:.1f} m apart, {len(plan.tasks)} tasks, "
           f"{plan.pulses * cfg.fan.array ** 2:,} beams", file=sys.stderr)
     parts = Path(args.parts) if args.parts else None
-    parts_folder(Path(args.out), parts)  # a bad --parts stops the command before a cluster starts
-    with _cluster(args, len(plan.tasks)) as client:
-        summary = run_survey(cfg, spec, Path(args.out), client=client, overwrite=args.overwrite,
-                             progress=ProgressBar("survey"), parts=parts)
+    folder = parts_folder(Path(args.out), parts)  # a bad --parts stops the command before a cluster starts
+    try:
+        with _cluster(args, len(plan.tasks)) as client:
+            summary = run_survey(cfg, spec, Path(args.out), client=client, overwrite=args.overwrite,
+                                 progress=ProgressBar("survey"), parts=parts)
+    finally:  # once the workers are gone: nothing of a failed survey stays behind, on a RAM disk above all
+        shutil.rmtree(folder, ignore_errors=True)
     memory = ", ".join(f"{name} {w['peak_rss_mb']:.0f} MiB" for name, w in summary["workers"].items())
     print(f"{summary['points_written']:,} points {summary['points']} in {summary['wall_s']:.1f} s "
           f"({summary['points_per_s']:,} points/s); peak RSS per worker: {memory}; written to {args.out}")

@@ -199,6 +199,25 @@ def test_parts_kept_in_another_folder_give_the_same_tiles(serial, tmp_path):
     assert survey.parts_folder(tmp_path / "other", ram) != seen[0]  # two surveys sharing the folder never meet
 
 
+def test_a_failed_survey_leaves_no_parts_behind(tmp_path, monkeypatch):
+    """A task that fails after others wrote their parts: the error reaches the caller, the parts' folder is gone."""
+    ram = tmp_path / "ram"
+    ram.mkdir()
+    segment_task, done = survey.segment_task, []
+
+    def fail_third(cfg, grid, task, parts):
+        if len(done) == 2:
+            raise RuntimeError("the third task failed")
+        done.append(segment_task(cfg, grid, task, parts))
+        return done[-1]
+
+    monkeypatch.setattr(survey, "segment_task", fail_third)
+    with pytest.raises(RuntimeError, match="the third task failed"):
+        run_survey(small_config(), SPEC, tmp_path / "out", parts=ram)
+    assert len(done) == 2 and sum(len(r["tiles"].get("exact", {})) for r in done) > 0
+    assert list(ram.iterdir()) == []
+
+
 def test_a_parts_folder_that_does_not_exist_stops_the_survey_command(tmp_path):
     args = [sys.executable, "-m", "flightsim", "survey", "--size-km", "0.8", "--tile-m", "400", "--workers", "2",
             "--out", str(tmp_path / "out"), "--parts", str(tmp_path / "missing")]

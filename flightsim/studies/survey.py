@@ -272,12 +272,14 @@ def run_survey(cfg: RunConfig, spec: SurveySpec, out: Path, client=None, overwri
     for name, text in texts.items():
         write_atomic(out / name, text)
     started = time.perf_counter()
-    if client is None:
-        segments, merges = _run_here(plan, str(out), str(folder), progress)
-    else:
-        segments, merges = _run_on(client, plan, str(out), str(folder), progress)
+    try:
+        if client is None:
+            segments, merges = _run_here(plan, str(out), str(folder), progress)
+        else:
+            segments, merges = _run_on(client, plan, str(out), str(folder), progress)
+    finally:  # what attempts that died left behind, and a failed survey's parts (not reused: a rerun redoes them)
+        shutil.rmtree(folder, ignore_errors=True)
     wall = time.perf_counter() - started
-    shutil.rmtree(folder, ignore_errors=True)  # what attempts that died left behind
     for model in plan.cfg.output.models:
         for leftover in (out / model).glob(".*.part"):
             leftover.unlink()
