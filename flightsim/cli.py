@@ -263,8 +263,11 @@ def cmd_survey(args: argparse.Namespace) -> int:
         with _cluster(args, len(plan.tasks)) as client:
             summary = run_survey(cfg, spec, Path(args.out), client=client, overwrite=args.overwrite,
                                  progress=ProgressBar("survey"), parts=parts)
-    finally:  # once the workers are gone: nothing of a failed survey stays behind, on a RAM disk above all
+    except InputError:
+        raise  # refused before a task ran (such as a --out in use): the parts' folder is not this command's
+    except BaseException:  # the workers are gone now: what their last tasks wrote does not stay on a RAM disk
         shutil.rmtree(folder, ignore_errors=True)
+        raise
     memory = ", ".join(f"{name} {w['peak_rss_mb']:.0f} MiB" for name, w in summary["workers"].items())
     print(f"{summary['points_written']:,} points {summary['points']} in {summary['wall_s']:.1f} s "
           f"({summary['points_per_s']:,} points/s); peak RSS per worker: {memory}; written to {args.out}")

@@ -218,6 +218,32 @@ def test_a_failed_survey_leaves_no_parts_behind(tmp_path, monkeypatch):
     assert list(ram.iterdir()) == []
 
 
+@pytest.mark.parametrize("error, removed", [(RuntimeError("a worker failed"), True),
+                                            (InputError("--out", "DIR", "an empty or new directory"), False)])
+def test_the_survey_command_removes_the_parts_of_a_failed_survey_not_of_a_refused_one(tmp_path, monkeypatch, error,
+                                                                                      removed):
+    """A survey that fails leaves nothing under --parts once its workers are gone; a command refused before any task
+    ran (its --out in use, maybe by a survey running into it) leaves that folder alone."""
+    from flightsim import cli
+
+    ram, out = tmp_path / "ram", tmp_path / "out"
+    ram.mkdir()
+    folder = survey.parts_folder(out, ram)
+
+    def fails(*args, **kwargs):
+        (folder / "task").mkdir(parents=True)  # what a last task wrote
+        raise error
+
+    monkeypatch.setattr(survey, "run_survey", fails)
+    argv = ["survey", "--size-km", "0.8", "--tile-m", "400", "--out", str(out), "--parts", str(ram)]
+    if removed:
+        with pytest.raises(RuntimeError, match="a worker failed"):
+            cli.main(argv)
+    else:
+        assert cli.main(argv) == 2
+    assert folder.exists() is not removed
+
+
 def test_a_parts_folder_that_does_not_exist_stops_the_survey_command(tmp_path):
     args = [sys.executable, "-m", "flightsim", "survey", "--size-km", "0.8", "--tile-m", "400", "--workers", "2",
             "--out", str(tmp_path / "out"), "--parts", str(tmp_path / "missing")]

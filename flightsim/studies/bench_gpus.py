@@ -3,11 +3,12 @@ machine, the same command side by side (Dask, a worker per GPU: ``--gpus``), on 
 
 Four pairs: the study as the paper flies it (10 s per configuration) and flying 6× longer (the GPUs' share of the
 wall grows); the survey to LAZ and to LAS (its part files on the RAM disk /dev/shm where there is one, ``--parts``:
-with them on the disk too, the disk is what a LAS survey waits for, whatever the GPUs). Each pair's outputs are compared (the sweep's rows but their wall times;
-every tile byte for byte) and what differs is recorded with the wall times; the study also runs twice on GPU 0, to
-tell what differs between two runs alike. What limits the scaling is measured in the same runs: the workers' busy
-time (the sum of their tasks' own wall) against the command's, the survey's segments (tracing and LAS parts) against
-its merges (LAZ compression or LAS copying), and the disk's sequential write rate probed before the surveys.
+with them on the disk too, the disk is what a LAS survey waits for, whatever the GPUs). Each pair's outputs are
+compared (the sweep's rows but their wall times; every tile byte for byte) and what differs is recorded with the
+wall times; the study also runs twice on GPU 0, to tell what differs between two runs alike. What limits the
+scaling is measured in the same runs: the workers' busy time (the sum of their tasks' own wall) against the
+command's, the survey's segments (tracing and LAS parts) against its merges (LAZ compression or LAS copying), and the
+disk's sequential write rate probed before the surveys.
 """
 from __future__ import annotations
 
