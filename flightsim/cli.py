@@ -395,8 +395,8 @@ def _add_run_commands(sub) -> None:
                         help="along-track length of a task [m] (default 1000)")
     survey.add_argument("--out", required=True, help="output directory: <model>/<tile>.las, run.toml, survey.json")
     survey.add_argument("--parts", help="an existing folder, reached by every worker, for the tasks' part files "
-                                        "(default: under --out); on one machine a RAM disk such as /dev/shm writes "
-                                        "each point to the disk once instead of twice")
+                                        "(default: under --out); on one machine a RAM disk such as /dev/shm keeps "
+                                        "them off the disk altogether")
     survey.add_argument("--overwrite", action="store_true", help="replace the survey in a non-empty --out")
     _add_cluster_flags(survey)
     survey.set_defaults(func=cmd_survey)

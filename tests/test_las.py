@@ -428,6 +428,27 @@ def test_each_write_is_handed_to_the_disk_write_back(tmp_path, monkeypatch):
     assert asked[2][1] == 700 * record
     assert len(first.points) == 3800
 
+@pytest.mark.parametrize("compress", [False, True])
+def test_transient_tiles_are_the_same_bytes_left_to_the_page_cache(tmp_path, monkeypatch, compress):
+    """durable=False (a survey's part files): no write-back asked for, no file or folder synced; the same bytes."""
+    calls: list[str] = []
+    for name in ("fsync", "fdatasync", "posix_fadvise"):
+        if hasattr(las_tiles.os, name):
+            monkeypatch.setattr(las_tiles.os, name, lambda *args, name=name: calls.append(name))
+    batch = random_batch(3000, seed=5)
+    pieces = [batch.select(slice(s, s + 700)) for s in range(0, 3000, 700)]
+    options = dict(compress=compress, processes=0, max_open_tiles=2)
+    write_tiles(tmp_path / "transient", pieces, durable=False, **options)
+    assert calls == []
+    write_tiles(tmp_path / "durable", pieces, **options)
+    synced = {"fsync", "fdatasync"} if compress else {"fsync", "posix_fadvise"} if las_tiles.FADVISE else {"fsync"}
+    assert set(calls) == synced  # what a durable tile set asks for (the spies can see them)
+    names = sorted(p.name for p in (tmp_path / "durable").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "transient").iterdir()) and len(names) == 4
+    for name in names:
+        assert (tmp_path / "durable" / name).read_bytes() == (tmp_path / "transient" / name).read_bytes()
+
+
 def test_bounded_open_tiles_give_the_same_bytes(tmp_path):
     batch = random_batch(4000, seed=3)
     pieces = [batch.select(slice(s, s + 137)) for s in range(0, 4000, 137)]

@@ -59,14 +59,14 @@ class LasOutputSettings(Settings):
 
 
 def tile_writers(directory: Path, output, scene: Scene, start_gps_time: float,
-                 edge_distance: bool) -> dict[str, TileWriter]:
+                 edge_distance: bool, durable: bool = True) -> dict[str, TileWriter]:
     """One tile writer per georeferencing model of ``output`` (the [output] settings), ``directory/<model>/``; the
-    tiles are dated by the GPS week of ``start_gps_time`` [s]."""
+    tiles are dated by the GPS week of ``start_gps_time`` [s]; ``durable``: as :class:`TileWriter`'s."""
     extras = ("position_error",) * output.position_error + ("edge_distance",) * edge_distance
     date = gps_week_date(start_gps_time)
     return {model: TileWriter(Path(directory) / model, scene.crs, tile_size_m=output.tile_size_m,
                               compress=output.laz, extras=extras, creation_date=date,
-                              software=f"flightsim {__version__}")
+                              software=f"flightsim {__version__}", durable=durable)
             for model in output.models}
 
 
@@ -102,13 +102,14 @@ class DeviceLasOutput:
     settings = LasOutputSettings
 
     def __init__(self, directory: Path, output, simulator, edge_distance: bool, start_gps_time: float,
-                 plane_ids: np.ndarray | None = None):
+                 plane_ids: np.ndarray | None = None, durable: bool = True):
         """output: the [output] settings; start_gps_time: the flight's [s] (dates the tiles); plane_ids: the plane
-        id written for each triangle (default: the scene's own)."""
+        id written for each triangle (default: the scene's own); durable: False for tiles read once and deleted
+        (:class:`TileWriter`)."""
         scene = simulator.scene
         self.device = simulator.device
         self.models = simulator.models
-        self.writers = tile_writers(directory, output, scene, start_gps_time, edge_distance)
+        self.writers = tile_writers(directory, output, scene, start_gps_time, edge_distance, durable)
         self.kernel = kl.pack_kernel(output.position_error, edge_distance, scene.canopy is not None)
         self.tables = _tables(output.tile_size_m, simulator, scene, plane_ids)
         self._none = wp.zeros(1, dtype=wp.int32, device=self.device)

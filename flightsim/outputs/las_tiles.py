@@ -76,6 +76,9 @@ class TileWriter:
             records held back in batches of :data:`LAZ_BATCH_POINTS`), or in the calling thread as each write
             arrives (each worker process does: the processes are the parallelism, and a compressor's threads
             in every one of them would only contend for the same cores). The bytes are the same.
+        durable: have the disk take every tile's bytes as they are written and before its rename (write-back
+            started per write, fsync of each file and of the folder); False for transient tiles, read once and
+            deleted (a survey's part files), which then stay in the page cache. The bytes are the same.
     """
 
     def __init__(
@@ -91,6 +94,7 @@ class TileWriter:
         max_open_tiles: int = 64,
         processes: int | None = None,
         parallel_compression: bool = True,
+        durable: bool = True,
     ) -> None:
         self._tile_mm = _tile_size_mm(tile_size_m)
         if not isinstance(max_open_tiles, int) or max_open_tiles < 1:
@@ -102,6 +106,7 @@ class TileWriter:
         self._directory.mkdir(parents=True, exist_ok=True)
         self._compress = bool(compress)
         self._parallel = bool(parallel_compression)
+        self._durable = bool(durable)
         unknown = set(extras) - set(OPTIONAL_DIMS)
         if unknown:
             raise InputError("extras", sorted(unknown), f"names among {', '.join(OPTIONAL_DIMS)}")
@@ -118,7 +123,7 @@ class TileWriter:
             self._workers = LazWorkers(processes, dict(
                 directory=str(self._directory), crs=crs, tile_size_m=tile_size_m, compress=True, extras=tuple(extras),
                 creation_date=creation_date, software=software, max_open_tiles=max_open_tiles, processes=0,
-                parallel_compression=False))
+                parallel_compression=False, durable=durable))
 
     @functools.cached_property
     def _template(self) -> laspy.LasHeader:
@@ -220,7 +225,8 @@ class TileWriter:
             self._finish_files()
             for key in sorted(self._counts):
                 os.replace(self._temp_path(key), self._directory / self.tile_name(key))
-            _fsync_directory(self._directory)
+            if self._durable:
+                _fsync_directory(self._directory)
         except BaseException:
             self.abort()
             raise
@@ -273,14 +279,14 @@ class TileWriter:
             _, oldest = self._open.popitem(last=False)
             oldest.close()
         if key in self._counts:
-            tile = _TileFile.reopen(self._temp_path(key), self._compress, self._parallel)
+            tile = _TileFile.reopen(self._temp_path(key), self._compress, self._parallel, self._durable)
         else:
             header = copy.deepcopy(self._template)
             header.offsets = np.array(
                 [key[0] * self._tile_mm / _MM_PER_M, key[1] * self._tile_mm / _MM_PER_M, 0.0]
             )
             self._counts[key] = 0  # registered first, so that abort() removes a half-made file
-            tile = _TileFile.create(self._temp_path(key), header, self._compress, self._parallel)
+            tile = _TileFile.create(self._temp_path(key), header, self._compress, self._parallel, self._durable)
         self._open[key] = tile
         return tile
 
@@ -322,19 +328,22 @@ class _TileFile:
     over every core holds records back until :data:`LAZ_BATCH_POINTS`; one compressed in its writer's thread
     compresses each write as it comes (the bytes are the same either way: the compressor cuts chunks by
     point count). Compressed bytes are synced to disk as they are written, so that a run's output reaches
-    the disk while it traces rather than in the final fsyncs of its tiles."""
+    the disk while it traces rather than in the final fsyncs of its tiles (``durable``; a transient tile is
+    left to the page cache)."""
 
-    def __init__(self, file, sink: laspy.LasWriter | LasAppender, compress: bool, parallel: bool) -> None:
+    def __init__(self, file, sink: laspy.LasWriter | LasAppender, compress: bool, parallel: bool,
+                 durable: bool) -> None:
         self._file = file
         self._sink = sink
         self._compress = compress
+        self._durable = durable
         self._batch = LAZ_BATCH_POINTS if compress and parallel else 0
         self._held: list[laspy.PackedPointRecord] = []
         self.held_points = 0
         self._written = file.tell()  # where the bytes not yet handed to the disk's write-back start
 
     @classmethod
-    def create(cls, path: Path, header: laspy.LasHeader, compress: bool, parallel: bool) -> _TileFile:
+    def create(cls, path: Path, header: laspy.LasHeader, compress: bool, parallel: bool, durable: bool) -> _TileFile:
         import laspy
         file = open(path, "w+b")
         try:
@@ -344,10 +353,10 @@ class _TileFile:
         except BaseException:
             file.close()
             raise
-        return cls(file, sink, compress, parallel)
+        return cls(file, sink, compress, parallel, durable)
 
     @classmethod
-    def reopen(cls, path: Path, compress: bool, parallel: bool) -> _TileFile:
+    def reopen(cls, path: Path, compress: bool, parallel: bool, durable: bool) -> _TileFile:
         from laspy.lasappender import LasAppender
         file = open(path, "r+b")
         try:  # always lazrs's parallel appender: its sequential one (lazrs 0.8) fails on reopening a tile
@@ -355,7 +364,7 @@ class _TileFile:
         except BaseException:
             file.close()
             raise
-        return cls(file, sink, compress, parallel)
+        return cls(file, sink, compress, parallel, durable)
 
     def write(self, record: laspy.PackedPointRecord, lowest, highest) -> None:
         """Append records whose stored X, Y, Z range over [lowest, highest] (ints, mm).
@@ -374,7 +383,7 @@ class _TileFile:
             self._append(record)
             if self._compress:
                 self._sync()
-            else:
+            elif self._durable:
                 self._start_writeback()
         header = self._sink.header
         header.maxs = np.maximum(header.maxs, np.asarray(highest, dtype=np.int64) * header.scales + header.offsets)
@@ -393,9 +402,10 @@ class _TileFile:
             self._sync()
 
     def _sync(self) -> None:
-        """Wait until the disk has every byte written so far."""
+        """Wait until the disk has every byte written so far (a durable tile's)."""
         self._file.flush()
-        os.fdatasync(self._file.fileno())
+        if self._durable:
+            os.fdatasync(self._file.fileno())
 
     def _start_writeback(self) -> None:
         """Have the kernel start writing the bytes written since the last call to disk, without waiting for them
@@ -420,7 +430,8 @@ class _TileFile:
             self.flush()
             self._sink.close()
             self._file.flush()
-            os.fsync(self._file.fileno())
+            if self._durable:
+                os.fsync(self._file.fileno())
         finally:
             self._file.close()
 

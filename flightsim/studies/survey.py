@@ -83,7 +83,8 @@ def _simulate_segment(cfg: RunConfig, grid: TileGrid, task: SegmentTask, directo
                           pulse_limits={task.line.line_id: task.pulses})
     parts = copy_config(cfg)
     parts.output.laz = False  # parts are plain LAS; the merge writes the final format
-    las = DeviceLasOutput(directory, parts.output, simulator, False, cfg.flight.start_gps_time, plane_ids=global_plane)
+    las = DeviceLasOutput(directory, parts.output, simulator, False, cfg.flight.start_gps_time, plane_ids=global_plane,
+                          durable=False)  # parts are read once by their merge, then deleted: the page cache keeps them
     try:
         counts = simulator.run(Points(on_device=True), las)
         tiles = las.close()
