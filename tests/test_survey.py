@@ -177,7 +177,7 @@ def test_survey_command_on_two_workers_reports_points_per_second_and_memory(tmp_
     assert again.returncode == 2 and "--overwrite" in again.stderr
 
 
-def test_parts_kept_in_another_folder_give_the_same_tiles(serial, tmp_path):
+def test_parts_kept_in_another_folder_give_the_same_tiles(serial, tmp_path, monkeypatch):
     out, summary = serial
     ram = tmp_path / "ram"
     ram.mkdir()
@@ -188,11 +188,8 @@ def test_parts_kept_in_another_folder_give_the_same_tiles(serial, tmp_path):
         seen.append(Path(parts))
         return segment_task(cfg, grid, task, parts)
 
-    survey.segment_task = spy
-    try:
-        elsewhere = run_survey(small_config(), SPEC, tmp_path / "out", parts=ram)
-    finally:
-        survey.segment_task = segment_task
+    monkeypatch.setattr(survey, "segment_task", spy)
+    elsewhere = run_survey(small_config(), SPEC, tmp_path / "out", parts=ram)
     assert tiles(tmp_path / "out") == tiles(out) and elsewhere["tiles"] == summary["tiles"]
     assert set(seen) == {survey.parts_folder(tmp_path / "out", ram)} and seen[0].parent == ram
     assert list(ram.iterdir()) == [] and not (tmp_path / "out" / ".parts").exists()
