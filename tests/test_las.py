@@ -15,6 +15,7 @@ import pyproj
 import pytest
 
 from copcjs import read_with_copcjs
+from flightsim.core import atomic
 from flightsim.core.errors import InputError
 from flightsim.outputs.las_format import gps_week_date
 from flightsim.outputs.las_points import PointBatch, read_points
@@ -406,7 +407,7 @@ def test_points_stream_to_disk_before_close(tmp_path):
     writer.close()
 
 
-@pytest.mark.skipif(not las_tiles.FADVISE, reason="no posix_fadvise on this system")
+@pytest.mark.skipif(not atomic.FADVISE, reason="no posix_fadvise on this system")
 def test_each_write_is_handed_to_the_disk_write_back(tmp_path, monkeypatch):
     """Every LAS write asks the kernel to start writing exactly the bytes it added (one range after another,
     from the end of the header to the end of the points, a reopened tile's from its old end), so a run's
@@ -441,7 +442,7 @@ def test_transient_tiles_are_the_same_bytes_left_to_the_page_cache(tmp_path, mon
     write_tiles(tmp_path / "transient", pieces, durable=False, **options)
     assert calls == []
     write_tiles(tmp_path / "durable", pieces, **options)
-    synced = {"fsync", "fdatasync"} if compress else {"fsync", "posix_fadvise"} if las_tiles.FADVISE else {"fsync"}
+    synced = {"fsync", "fdatasync"} if compress else {"fsync", "posix_fadvise"} if atomic.FADVISE else {"fsync"}
     assert set(calls) == synced  # what a durable tile set asks for (the spies can see them)
     names = sorted(p.name for p in (tmp_path / "durable").iterdir())
     assert names == sorted(p.name for p in (tmp_path / "transient").iterdir()) and len(names) == 4

@@ -196,6 +196,40 @@ def test_parts_kept_in_another_folder_give_the_same_tiles(serial, tmp_path, monk
     assert survey.parts_folder(tmp_path / "other", ram) != seen[0]  # two surveys sharing the folder never meet
 
 
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="names a synced descriptor through /proc")
+def test_merges_start_their_tiles_write_back_and_the_survey_syncs_each_tile_once_before_survey_json(
+        serial, tmp_path, monkeypatch):
+    """A merge does not wait for the disk: it starts its tile's write-back; run_survey then syncs every tile (and the
+    tiles' folders) once, all before survey.json is written; the same tiles as the serial fixture's."""
+    events: list[tuple[str, str]] = []
+    fsync, fadvise = os.fsync, getattr(os, "posix_fadvise", None)
+
+    def spy(kind, call):
+        def record(fd, *args):
+            events.append((kind, os.readlink(f"/proc/self/fd/{fd}")))
+            return call(fd, *args)
+        return record
+
+    monkeypatch.setattr(os, "fsync", spy("sync", fsync))
+    if fadvise is not None:
+        monkeypatch.setattr(os, "posix_fadvise", spy("write-back", fadvise))
+    out, cfg = tmp_path / "out", small_config()
+    run_survey(cfg, SPEC, out)
+    final = sorted(str(p) for p in out.glob("*/*.las"))
+    assert tiles(out) == tiles(serial[0]) and len(final) >= 4
+    synced = [path for kind, path in events if kind == "sync"]
+    assert sorted(path for path in synced if path in final) == final  # each tile once
+    folders = {str(out / model) for model in cfg.output.models}
+    merging = [path for path in synced if str(Path(path).parent) in folders and path.endswith(".part")]
+    assert merging == []  # no merge waited for the disk
+    json_at = synced.index(str(out / ".survey.json.part"))
+    assert all(synced.index(path) < json_at for path in final)
+    assert folders <= set(synced[:json_at])  # the renames too
+    if fadvise is not None:
+        started = {path for kind, path in events if kind == "write-back"}
+        assert len([path for path in started if ".las." in path and path.endswith(".part")]) == len(final)
+
+
 def test_a_failed_survey_leaves_no_parts_behind(tmp_path, monkeypatch):
     """A task that fails after others wrote their parts: the error reaches the caller, the parts' folder is gone."""
     ram = tmp_path / "ram"

@@ -3,8 +3,12 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+
+FADVISE = hasattr(os, "posix_fadvise")
+"""Whether this system can be asked to start writing a file's pages back early (not on macOS or Windows)."""
 
 
 def temporary_name(path: Path) -> Path:
@@ -45,3 +49,39 @@ def replaced_atomically(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def start_writeback(fd: int, offset: int = 0, length: int = 0) -> None:
+    """Have the kernel start writing a file range's dirty pages to disk (length 0: to the end), without waiting for
+    them: POSIX_FADV_DONTNEED starts their write-back on Linux (a no-op where the call does not exist)."""
+    if FADVISE:
+        os.posix_fadvise(fd, offset, length, os.POSIX_FADV_DONTNEED)
+
+
+def fsync_directory(directory: Path) -> None:
+    """Make the renames in ``directory`` durable (skipped where a folder cannot be opened)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def fsync_all(files: Iterable[Path], threads: int = 16) -> None:
+    """Wait until the disk has every byte of ``files`` and their folders' entries, the files' syncs run ``threads``
+    at a time (a journalling file system commits concurrent syncs together)."""
+    files = list(files)
+
+    def sync(path: Path) -> None:
+        with open(path, "rb") as fh:
+            os.fsync(fh.fileno())
+
+    with ThreadPoolExecutor(max(1, min(threads, len(files)))) as pool:
+        list(pool.map(sync, files))
+    for folder in sorted({path.parent for path in files}):
+        fsync_directory(folder)

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pyproj
 
+from flightsim.core.atomic import fsync_directory, start_writeback
 from flightsim.core.version import __version__
 from flightsim.core.errors import InputError
 from flightsim.core.lazy import PARSING
@@ -226,7 +227,7 @@ class TileWriter:
             for key in sorted(self._counts):
                 os.replace(self._temp_path(key), self._directory / self.tile_name(key))
             if self._durable:
-                _fsync_directory(self._directory)
+                fsync_directory(self._directory)
         except BaseException:
             self.abort()
             raise
@@ -309,10 +310,6 @@ worker then running lazrs's parallel compressor on held batches; compressing seq
 the whole command now takes 57 s (``results/bench.md``, Survey). On 2 cores the workers gave nothing back
 (the cores are all busy either way) for their start-up and memory (~90 MB each, plus the 64 MB ring each
 shares with this process)."""
-
-
-FADVISE = hasattr(os, "posix_fadvise")
-"""Whether this system can be asked to start writing a file's pages back early (not on macOS or Windows)."""
 
 
 def _laz_backend(compress: bool, parallel: bool) -> laspy.LazBackend | None:
@@ -413,8 +410,8 @@ class _TileFile:
         output then reaches the disk while it traces, rather than all in the fsyncs that finish its tiles."""
         self._file.flush()
         end = self._file.tell()
-        if FADVISE and end > self._written:
-            os.posix_fadvise(self._file.fileno(), self._written, end - self._written, os.POSIX_FADV_DONTNEED)
+        if end > self._written:
+            start_writeback(self._file.fileno(), self._written, end - self._written)
         self._written = end
 
     def _append(self, record: laspy.PackedPointRecord) -> None:
@@ -447,17 +444,3 @@ def _tile_groups(ix: np.ndarray, iy: np.ndarray):
     starts = np.flatnonzero(np.r_[True, (ix[1:] != ix[:-1]) | (iy[1:] != iy[:-1])])
     for start, stop in zip(starts, np.r_[starts[1:], len(order)]):
         yield (int(ix[start]), int(iy[start])), order[start:stop]
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Make the renames in ``directory`` durable (skipped where a folder cannot be opened)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)

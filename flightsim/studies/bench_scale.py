@@ -21,7 +21,7 @@ from flightsim.engine.readouts.points import Points
 from flightsim.engine.readouts.statistics import run_statistics
 from flightsim.engine.tracer import Tracer
 from flightsim.engine.world import build_scene, flight_trajectories
-from flightsim.outputs.las_tiles import FADVISE
+from flightsim.core.atomic import start_writeback
 from flightsim.studies.bench_common import (DISK_PROBE_BYTES, REDUCE_KNOBS, REDUCE_TRIANGLES, SCALE_TRIANGLES,
                                             SURVEY_CELL_M, SURVEY_KM, bare_raycast, kernel_times, simulator, Sizes,
                                             run_measured, timed_statistics, workload)
@@ -125,8 +125,7 @@ def disk_write_rate(path: Path, size: int, block: int = 16 << 20) -> float:
         for k in range(blocks):
             fh.write(data)
             fh.flush()
-            if FADVISE:
-                os.posix_fadvise(fh.fileno(), k * block, block, os.POSIX_FADV_DONTNEED)
+            start_writeback(fh.fileno(), k * block, block)
         os.fsync(fh.fileno())
     wall = time.perf_counter() - started
     path.unlink()

@@ -37,7 +37,7 @@ from flightsim.engine.config import RunConfig, copy_config
 from flightsim.engine.config_io import to_toml
 from flightsim.core.errors import InputError
 from flightsim.outputs.device_las import DeviceLasOutput
-from flightsim.core.atomic import write_atomic
+from flightsim.core.atomic import fsync_all, start_writeback, write_atomic
 from flightsim.engine.readouts.points import Points
 from flightsim.engine.tracer import Tracer
 from flightsim.studies.survey_plan import SegmentTask, SurveyPlan, SurveySpec, TileGrid, plan_survey
@@ -131,13 +131,14 @@ def merge_task(out: str, parts: str, model: str, tile: str, compress: bool, *res
 
 def merge_tile(parts: list[Path], target: Path, compress: bool) -> int:
     """Write the points of ``parts`` (LAS tiles of one tile key, same header) in order into
-    ``target``, through a temporary name of its own; return the number of points."""
+    ``target``, through a temporary name of its own; return the number of points. The tile's write-back is
+    started, not waited for: run_survey syncs every tile once, before survey.json says the survey is done."""
     target.parent.mkdir(parents=True, exist_ok=True)
     temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
     try:
         with open(temporary, "wb", buffering=0) as fh:
             points = (_compress_parts if compress else _concatenate_parts)(parts, fh)
-            os.fsync(fh.fileno())
+            start_writeback(fh.fileno())
         os.replace(temporary, target)
     except BaseException:
         temporary.unlink(missing_ok=True)
@@ -280,10 +281,11 @@ def run_survey(cfg: RunConfig, spec: SurveySpec, out: Path, client=None, overwri
             segments, merges = _run_on(client, plan, str(out), str(folder), progress)
     finally:  # what attempts that died left behind, and a failed survey's parts (not reused: a rerun redoes them)
         shutil.rmtree(folder, ignore_errors=True)
-    wall = time.perf_counter() - started
     for model in plan.cfg.output.models:
         for leftover in (out / model).glob(".*.part"):
             leftover.unlink()
+    fsync_all(out / r["model"] / r["tile"] for r in merges if r["tile"])  # before survey.json: every tile on the disk
+    wall = time.perf_counter() - started
     summary = _summary(plan, segments, merges, wall)
     write_atomic(out / "survey.json", json.dumps(summary, indent=2) + "\n")
     return summary
