@@ -147,12 +147,13 @@ def merge_tile(parts: list[Path], target: Path, compress: bool) -> int:
 
 
 def _compress_parts(parts: list[Path], fh) -> int:
-    """The parts' points, decoded and compressed by laspy (lazrs) into ``fh``; the number of points."""
+    """The parts' points, decoded and compressed by laspy into ``fh``, their chunks on every core (lazrs's parallel
+    compressor writes the sequential one's bytes: each chunk is compressed on its own); the number of points."""
     import laspy
 
     with laspy.open(parts[0]) as first:
         header = first.header
-    with laspy.open(fh, mode="w", header=header, do_compress=True, laz_backend=laspy.LazBackend.Lazrs,
+    with laspy.open(fh, mode="w", header=header, do_compress=True, laz_backend=laspy.LazBackend.LazrsParallel,
                     closefd=False) as writer:
         for part in parts:
             with laspy.open(part) as reader:
