@@ -18,7 +18,9 @@ BEAMbbbb/geolocation/latitude_bin0, longitude_bin0, latitude_lastbin, longitude_
 BEAMbbbb/ranging/range_halfpower_m, range_centroid_m, range_peak_m, fwhm_s, rms_width_s, n_components,
                  component_range_m, component_amplitude_w, component_sigma_s (MAX_COMPONENTS columns,
                  NaN-padded): half-power leading edge, centroid, peak and Gaussian decomposition
-                 (flightsim.instrument.waveform_model)
+                 (flightsim.instrument.waveform_model), each over the whole window as the patent defines
+                 them: with receiver noise the centroid and RMS width take every sample's noise (the
+                 RMS width NaN where the second moment comes out negative); l2a.h5 has noise-aware metrics
 BEAMbbbb/truth/nadir_range_m    float64  the beam's central ray to the scene [m]
 BEAMbbbb/truth/mean_height_m    float64  footprint-weighted mean height (world H) [m]
 BEAMbbbb/truth/received_in_window  float64  share of the received energy inside the window
