@@ -90,11 +90,13 @@ def smooth_echoes(echo: wp.array2d(dtype=wp.float64), group: wp.array(dtype=wp.i
 
 
 @wp.func
-def _crossing(echo: wp.array2d(dtype=wp.float64), w: int, t0: wp.float64, dt: wp.float64, j: int,
+def _crossing(echo: wp.array2d(dtype=wp.float64), w: int, mean: wp.float64, t0: wp.float64, dt: wp.float64, j: int,
               level: wp.float64) -> wp.float64:
-    """Time where the echo crosses ``level`` between samples j and j + 1, linearly interpolated [s]."""
+    """Time where the echo less ``mean`` crosses ``level`` between samples j and j + 1, linearly interpolated [s]."""
     tj = _time(t0, dt, j)
-    return tj + (level - echo[j, w]) / (echo[j + 1, w] - echo[j, w]) * (_time(t0, dt, j + 1) - tj)
+    a = echo[j, w] - mean
+    b = echo[j + 1, w] - mean
+    return tj + (level - a) / (b - a) * (_time(t0, dt, j + 1) - tj)
 
 
 @wp.func
@@ -112,12 +114,16 @@ def _add(sum: wp.vec2d, v: wp.float64) -> wp.vec2d:
 
 @wp.kernel
 def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.float64), dt: wp.float64,
-                  out: wp.array2d(dtype=wp.float64)):
-    """Half-power, centroid and peak times, FWHM and RMS width of each waveform, and its maximum.
+                  noise: wp.array2d(dtype=wp.float64), out: wp.array2d(dtype=wp.float64)):
+    """Half-power, centroid and peak times, FWHM and RMS width of each waveform less its noise mean, and its maximum:
+    ``waveform_model.measure`` (the centroid and RMS width over the samples from the first to the last above the
+    noise floor; every measure NaN where none is).
 
     # In:
     echo  (N, W) received power [W]
     t0    (W,) time of each waveform's sample 0 [s]; dt: sample interval [s] (sample j at t0 + dt·j)
+    noise (2, W) each waveform's noise mean [W] and the floor above it [W] (0 and −∞: a noise-free waveform, measured
+          whole)
     # Out:
     out   (7, W) half-power time [s], centroid time [s], peak time [s], FWHM [s], RMS width [s], maximum [W], and
           1 where the echo starts or ends above half its maximum (the host's measures then index out of the window)
@@ -125,48 +131,62 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     w = wp.tid()
     n = echo.shape[0]
     start = t0[w]
+    mean = noise[0, w]
+    floor = noise[1, w]
     top = echo[0, w]
     arg = int(0)
-    for j in range(1, n):
+    lo = int(-1)
+    hi = int(-1)
+    for j in range(n):
         if echo[j, w] > top:
             top = echo[j, w]
             arg = j
-    level = wp.float64(0.5) * top
+        if echo[j, w] - mean > floor:
+            if lo < 0:
+                lo = j
+            hi = j
+    out[5, w] = top
+    if lo < 0:  # nothing above the noise
+        for k in range(5):
+            out[k, w] = wp.float64(wp.nan)
+        out[6, w] = wp.float64(0.0)
+        return
+    level = wp.float64(0.5) * (top - mean)
     first = int(-1)
     last = int(-1)
     energy = wp.vec2d()
     moment = wp.vec2d()
     for j in range(n):
-        e = echo[j, w]
+        e = echo[j, w] - mean
         if e >= level:
             if first < 0:
                 first = j
             last = j
-        energy = _add(energy, e)
-        moment = _add(moment, _time(start, dt, j) * e)
+        if j >= lo and j <= hi:
+            energy = _add(energy, e)
+            moment = _add(moment, _time(start, dt, j) * e)
     total = energy[0] + energy[1]
     centroid = (moment[0] + moment[1]) / total
     spread = wp.vec2d()
-    for j in range(n):
+    for j in range(lo, hi + 1):
         d = _time(start, dt, j) - centroid
-        spread = _add(spread, d * d * echo[j, w])
+        spread = _add(spread, d * d * (echo[j, w] - mean))
     edge = int(0)
     if first == 0 or last == n - 1:  # the echo starts or ends above half its maximum: the host's crossing reads
         edge = 1  # index −1 (the last sample) or n (IndexError); left to the host, the crossings read inside here
         first = 1
         last = n - 2
-    half = _crossing(echo, w, start, dt, first - 1, level)
+    half = _crossing(echo, w, mean, start, dt, first - 1, level)
     j = wp.clamp(arg, 1, n - 2)
-    y0 = echo[j - 1, w]
-    y1 = echo[j, w]
-    y2 = echo[j + 1, w]
+    y0 = echo[j - 1, w] - mean
+    y1 = echo[j, w] - mean
+    y2 = echo[j + 1, w] - mean
     tj = _time(start, dt, j)
     out[0, w] = half
     out[1, w] = centroid
     out[2, w] = tj + wp.float64(0.5) * (y0 - y2) / (y0 - wp.float64(2.0) * y1 + y2) * (_time(start, dt, j + 1) - tj)
-    out[3, w] = _crossing(echo, w, start, dt, last, level) - half
+    out[3, w] = _crossing(echo, w, mean, start, dt, last, level) - half
     out[4, w] = wp.sqrt((spread[0] + spread[1]) / total)
-    out[5, w] = top
     out[6, w] = wp.float64(edge)
 
 

@@ -150,6 +150,8 @@ def test_more_peaks_than_the_device_fits_are_decomposed_by_the_host(device):
 
 
 CASES = {"gedi plane": (["simulate", "--instrument", "gedi", "--set", "flight.duration_s=0.03"], GEDI),
+         "gedi plane, noisy": (["simulate", "--instrument", "gedi", "--set", "flight.duration_s=0.03", "--set",
+                                "waveform.thermal_noise_w=2e-9"], GEDI),
          "change1 slope": (["waveform", "--scene", "slope", "--set", "fixed.prf_hz=20", "--set", "flight.duration_s=0.2"],
                            model.WaveformSystem())}
 
@@ -243,3 +245,24 @@ def test_an_echo_above_half_its_maximum_at_an_end_is_measured_as_on_the_host(dev
         model.measure(GEDI, times, starts_high[::-1].copy())
     with pytest.raises(IndexError):
         process(GEDI, times[:1], starts_high[None, ::-1].copy(), device)
+
+
+def test_noisy_waveforms_are_measured_above_their_noise_floor_as_on_the_host(device):
+    """With each waveform's noise (mean, floor): the device's measures are the host's (waveform_model.measure) within
+    the module's tolerances, all finite where an echo stands above the floor, all NaN in both where none does."""
+    _, system, t0, echo = study.synthetic("s", GEDI, 30, 1000, 21)
+    echo = np.vstack([echo + 0.2, 0.2 + np.random.default_rng(4).normal(0.0, 0.01, (1, 1000))])  # a background
+    t0 = np.append(t0, t0[0])
+    mean, floor = model.window_noise(echo)
+    floor[-1] = 1.0  # the last: noise alone, its floor out of reach
+    b = process(system, t0, echo, device, noise=(mean, floor))
+    times = t0[:, None] + system.sample_interval_s * np.arange(1000)[None, :]
+    host = [model.measure(system, times[w], echo[w], (mean[w], floor[w])) for w in range(len(echo))]
+    for name in ("half_power_s", "centroid_s", "peak_s", "fwhm_s", "rms_width_s"):
+        want = np.array([getattr(m, name) for m in host])
+        assert np.isnan(want[-1]) and np.isnan(b.measures[name][-1]) and np.isfinite(want[:-1]).all(), name
+        if name == "rms_width_s":
+            np.testing.assert_allclose(b.measures[name][:-1], want[:-1], rtol=RMS_REL)
+        else:
+            assert np.all(np.abs(b.measures[name][:-1] - want[:-1]) <= TIME_ULPS * np.spacing(times[:-1, -1])), name
+    assert b.count[-1] == 0 and np.isnan(b.time_s[-1]).all()  # no components in noise alone

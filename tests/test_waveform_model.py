@@ -216,3 +216,60 @@ def test_bad_surface_or_binning_names_its_field(make, field):
     with pytest.raises(InputError) as err:
         make()
     assert err.value.field == field
+
+
+def _noisy_gaussian(seed: int, background: float = 0.05, noise: float = 0.01, sd: float = 6.37, n: int = 3000):
+    """A unit Gaussian echo (σ ``sd`` samples of 1 ns, centred at sample 1234.3) on a background, with white
+    Gaussian noise of ``noise`` of its peak: (times [s], waveform [W], centre [s], σ [s])."""
+    rng = np.random.default_rng(seed)
+    i = np.arange(n, dtype=np.float64)
+    times = 2.8e-3 + 1e-9 * i
+    echo = np.exp(-0.5 * ((i - 1234.3) / sd) ** 2) + background + rng.normal(0.0, noise, n)
+    return times, echo, times[0] + 1234.3e-9, sd * 1e-9
+
+
+def test_window_noise_is_the_ends_mean_and_sigma_and_a_floor_noise_crosses_in_one_window_of_a_hundred():
+    rows = np.stack([_noisy_gaussian(seed)[1] for seed in range(400)])
+    mean, floor = wm.window_noise(rows)
+    ends = np.concatenate([rows[:, :64], rows[:, -64:]], axis=1)
+    np.testing.assert_allclose(mean, ends.mean(axis=1), rtol=1e-15)
+    k = 4.504062242  # Φ⁻¹(1 − 0.01/3000): ½·erfc(k/√2) = 3.3333e-6, solved by bisection in float64
+    np.testing.assert_allclose(floor, k * ends.std(axis=1, ddof=1), rtol=1e-9)
+    assert abs(mean.mean() - 0.05) < 0.01 * 4 / math.sqrt(128 * 400)  # the background, within 4 standard errors
+    noise_only = rows[:, 2000:] - mean[:, None]  # 1000 samples far from the echo
+    assert np.mean((noise_only > floor[:, None]).any(axis=1)) < 0.02  # 1000/3000 of 1 %, with room
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_noisy_echos_measures_are_its_own_above_the_noise_floor(seed):
+    """Over the whole 3000-sample window the background and the noise outweigh the echo (its centroid is pulled
+    metres away, its second moment may come out negative); above the floor, the centroid is the echo's centre and
+    the RMS width that of a Gaussian truncated where it meets the floor: σ·√(1 − 2aφ(a)/(2Φ(a) − 1)),
+    a = √(2 ln(peak / floor))."""
+    from scipy.stats import norm
+
+    times, echo, centre, sd = _noisy_gaussian(seed)
+    noise = wm.window_noise(echo[None, :])
+    mean, floor = float(noise[0][0]), float(noise[1][0])
+    m = wm.measure(SYSTEM, times, echo, (mean, floor))
+    assert abs(m.centroid_s - centre) < 0.04 * sd  # the noise's share of the centroid: ~0.005 σ rms
+    assert abs(m.peak_s - centre) < 0.1 * sd
+    a = math.sqrt(2.0 * math.log(1.0 / floor))
+    truncated = sd * math.sqrt(1.0 - 2.0 * a * norm.pdf(a) / (2.0 * norm.cdf(a) - 1.0))
+    assert m.rms_width_s == pytest.approx(truncated, rel=0.03)
+    assert m.fwhm_s == pytest.approx(wm.FWHM_PER_SIGMA * sd, rel=0.03)
+    whole = wm.measure(SYSTEM, times, echo)
+    assert abs(whole.centroid_s - centre) > 10 * sd  # what the whole window gives
+    assert math.isnan(whole.rms_width_s) or whole.rms_width_s > 10 * sd
+
+
+def test_windows_of_noise_alone_have_no_measures():
+    """Noise and background without an echo: in all but about one window of a hundred no sample is above the floor,
+    and every measure is NaN (not the noise's centroid)."""
+    rng = np.random.default_rng(3)
+    times = 1e-9 * np.arange(3000)
+    rows = 0.05 + rng.normal(0.0, 0.01, (200, 3000))
+    mean, floor = wm.window_noise(rows)
+    empty = [all(math.isnan(getattr(m, f.name)) for f in dataclasses.fields(m))
+             for m in (wm.measure(SYSTEM, times, row, (mu, fl)) for row, mu, fl in zip(rows, mean, floor))]
+    assert sum(empty) >= 190  # 198 expected (σ 1.4): 190 is over 5 standard deviations below

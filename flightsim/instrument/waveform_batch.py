@@ -82,19 +82,21 @@ def smoothing_taps(sigma_s: float, steps: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def process(system: model.WaveformSystem, t0_s: np.ndarray, echo_w: np.ndarray, device: str,
-            min_prominence: float = 0.05) -> Batch:
+            min_prominence: float = 0.05, noise: tuple[np.ndarray, np.ndarray] | None = None) -> Batch:
     """Measures and Gaussian components of the waveforms ``echo_w`` (W, N) [W], row w's sample j at
     t0_s[w] + Δt·j [s] (Δt = ``system.sample_interval_s``), computed on ``device``; in launches of at most
-    BATCH_SAMPLES samples."""
+    BATCH_SAMPLES samples. ``noise``: each waveform's noise (mean, floor) [W] (``waveform_model.window_noise``), or
+    None for noise-free waveforms (``waveform_model.measure``)."""
     echo_w = np.asarray(echo_w)
     t0_s = np.asarray(t0_s, dtype=np.float64)
+    noise = np.array([(0.0, -np.inf)] * len(echo_w)).T if noise is None else np.array(noise, dtype=np.float64)
     per = max(1, BATCH_SAMPLES["cpu" if str(device).startswith("cpu") else "cuda"] // max(echo_w.shape[1], 1))
-    parts = [_launch(system, t0_s[lo:lo + per], echo_w[lo:lo + per], device, min_prominence)
+    parts = [_launch(system, t0_s[lo:lo + per], echo_w[lo:lo + per], noise[:, lo:lo + per], device, min_prominence)
              for lo in range(0, len(echo_w), per)]
-    return _host_fallback(system, t0_s, echo_w, _joined(parts), min_prominence)
+    return _host_fallback(system, t0_s, echo_w, noise, _joined(parts), min_prominence)
 
 
-def _launch(system, t0_s, echo_w, device, min_prominence) -> dict[str, np.ndarray]:
+def _launch(system, t0_s, echo_w, noise, device, min_prominence) -> dict[str, np.ndarray]:
     """One launch of each kernel over W waveforms: their raw outputs on the host."""
     dt, sigma = system.sample_interval_s, model.pulse_sigma_s(system)
     n_wave, n = echo_w.shape
@@ -110,7 +112,8 @@ def _launch(system, t0_s, echo_w, device, min_prominence) -> dict[str, np.ndarra
     wp.launch(km.smooth_echoes, dim=(n, n_wave), inputs=[echo, arr(group, wp.int32), arr(radius, wp.int32),
                                                         arr(taps)], outputs=[smooth], device=device)
     out = wp.empty((7, n_wave), dtype=wp.float64, device=device)
-    wp.launch(km.echo_measures, dim=n_wave, inputs=[echo, t0, wp.float64(dt)], outputs=[out], device=device)
+    wp.launch(km.echo_measures, dim=n_wave, inputs=[echo, t0, wp.float64(dt), arr(noise)], outputs=[out],
+              device=device)
     p = 3 * MAX_PEAKS
     count = wp.zeros(n_wave, dtype=wp.int32, device=device)
     peaks = wp.zeros((MAX_PEAKS, n_wave), dtype=wp.int32, device=device)
@@ -178,7 +181,7 @@ def _joined(parts: list[dict]) -> dict[str, np.ndarray]:
     return {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
 
 
-def _host_fallback(system, t0_s, echo_w, raw, min_prominence) -> Batch:
+def _host_fallback(system, t0_s, echo_w, noise, raw, min_prominence) -> Batch:
     """The Batch of the kernels' outputs, components sorted by time; rows the device did not fit (the module's
     docstring) decomposed by the host instead."""
     sigma, n = model.pulse_sigma_s(system), len(t0_s)
@@ -199,7 +202,8 @@ def _host_fallback(system, t0_s, echo_w, raw, min_prominence) -> Batch:
         count[w] = len(parts)
     measures = {name: raw["out"][:, i].copy() for i, name in enumerate(MEASURES)}
     for w in np.flatnonzero(raw["out"][:, 6] != 0.0):  # an echo above half its maximum at an end: the host's
-        m = model.measure(system, t0_s[w] + offsets, echo_w[w].astype(np.float64))  # measures (IndexError, there)
+        m = model.measure(system, t0_s[w] + offsets, echo_w[w].astype(np.float64),  # measures (IndexError, there)
+                          tuple(noise[:, w]))
         for name in MEASURES:
             measures[name][w] = getattr(m, name)
     peaks = np.where(np.arange(MAX_PEAKS)[None, :] < raw["count"][:, None], raw["peaks"], -1)

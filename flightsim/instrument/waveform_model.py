@@ -347,11 +347,42 @@ class EchoMeasures:
     peak_range_m: float
 
 
-def measure(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray) -> EchoMeasures:
-    """Half-power, centroid and peak times, FWHM and RMS width of ``echo``, and their ranges."""
-    half, centroid, peak = (f(times_s, echo) for f in (half_power_time_s, centroid_time_s, peak_time_s))
+NOISE_END_SAMPLES = 64  # samples at each end of a window that its noise is taken from (as l2a.h5's default)
+NOISE_FALSE_ECHO = 0.01  # share of noise-only windows in which Gaussian noise would still cross the floor somewhere
+
+
+def window_noise(echo_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, floor) [W] of each row's receiver noise: the mean and standard deviation σ (ddof 1) of its first and
+    last NOISE_END_SAMPLES samples pooled (at most a quarter of the window each), and the floor k·σ above the mean
+    that Gaussian noise alone exceeds somewhere in an N-sample window in NOISE_FALSE_ECHO of windows
+    (k = Φ⁻¹(1 − NOISE_FALSE_ECHO / N): 4.5 for N = 3000)."""
+    from scipy.special import ndtri
+
+    rows = np.asarray(echo_rows, dtype=np.float64)
+    n = rows.shape[1]
+    ends = max(2, min(NOISE_END_SAMPLES, n // 4))
+    pooled = np.concatenate([rows[:, :ends], rows[:, -ends:]], axis=1)
+    return pooled.mean(axis=1), float(ndtri(1.0 - NOISE_FALSE_ECHO / n)) * pooled.std(axis=1, ddof=1)
+
+
+def measure(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray,
+            noise: tuple[float, float] | None = None) -> EchoMeasures:
+    """Half-power, centroid and peak times, FWHM and RMS width of ``echo``, and their ranges.
+
+    ``noise``: (mean, floor) [W] of the receiver's noise (:func:`window_noise`), or None for a noise-free echo. The
+    mean is taken off every sample, and the centroid and RMS width are the moments of the samples from the first to
+    the last above the floor (over the whole window, a noisy echo's moments are the noise's); where no sample is
+    above it, every measure is NaN."""
+    mean, floor = (0.0, -np.inf) if noise is None else noise
+    echo = echo - mean
+    above = np.flatnonzero(echo > floor)
+    if above.size == 0:
+        return EchoMeasures(*[math.nan] * 8)
+    extent = slice(above[0], above[-1] + 1)
+    half, peak = half_power_time_s(times_s, echo), peak_time_s(times_s, echo)
+    centroid = centroid_time_s(times_s[extent], echo[extent])
     centre = 0.5 * system.pulse_fwhm_s
-    return EchoMeasures(half, centroid, peak, fwhm_s(times_s, echo), rms_width_s(times_s, echo),
+    return EchoMeasures(half, centroid, peak, fwhm_s(times_s, echo), rms_width_s(times_s[extent], echo[extent]),
                         0.5 * C * half, 0.5 * C * (centroid - centre), 0.5 * C * (peak - centre))
 
 
@@ -374,7 +405,8 @@ def decompose(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray,
               min_prominence: float = 0.05) -> tuple[GaussianComponent, ...]:
     """Gaussian decomposition: k = the local maxima of the echo smoothed by the pulse's σ (a matched
     filter) standing out by ``min_prominence`` of its maximum; then k Gaussians fitted by least squares
-    (scipy ``curve_fit``), started at those maxima. Components in time order."""
+    (scipy ``curve_fit``), started at those maxima. Components in time order; none where no maximum stands out
+    (a window of noise alone)."""
     from scipy.ndimage import gaussian_filter1d
     from scipy.optimize import curve_fit
     from scipy.signal import find_peaks, peak_widths
@@ -382,6 +414,8 @@ def decompose(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray,
     sigma, dt = pulse_sigma_s(system), times_s[1] - times_s[0]
     smooth = gaussian_filter1d(echo, sigma / dt)
     peaks, _ = find_peaks(smooth, prominence=min_prominence * smooth.max())
+    if peaks.size == 0:
+        return ()
     widths = peak_widths(smooth, peaks, rel_height=0.5)[0] * dt / FWHM_PER_SIGMA
     scale = echo.max()
     x = (times_s - times_s[0]) / sigma  # fit in units of σ and of the maximum: well conditioned

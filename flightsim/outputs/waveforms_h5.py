@@ -18,9 +18,9 @@ BEAMbbbb/geolocation/latitude_bin0, longitude_bin0, latitude_lastbin, longitude_
 BEAMbbbb/ranging/range_halfpower_m, range_centroid_m, range_peak_m, fwhm_s, rms_width_s, n_components,
                  component_range_m, component_amplitude_w, component_sigma_s (MAX_COMPONENTS columns,
                  NaN-padded): half-power leading edge, centroid, peak and Gaussian decomposition
-                 (flightsim.instrument.waveform_model), each over the whole window as the patent defines
-                 them: with receiver noise the centroid and RMS width take every sample's noise (the
-                 RMS width NaN where the second moment comes out negative); l2a.h5 has noise-aware metrics
+                 (flightsim.instrument.waveform_model); with the receiver's noise, of each waveform less
+                 its noise mean (taken from its ends, as l2a.h5's), the centroid and RMS width over the
+                 samples from the first to the last above the noise floor (waveform_model.window_noise)
 BEAMbbbb/truth/nadir_range_m    float64  the beam's central ray to the scene [m]
 BEAMbbbb/truth/mean_height_m    float64  footprint-weighted mean height (world H) [m]
 BEAMbbbb/truth/received_in_window  float64  share of the received energy inside the window
@@ -135,7 +135,8 @@ class WaveformWriter:
         s, n = self.system, len(rows)
         samples = chunk.power_w.shape[1]
         t0 = chunk.window_start_s[rows]
-        ranging, comp = (self._ranging_host if self.device is None else self._ranging_device)(chunk, rows, t0)
+        noise = None if chunk.clean_w is None else model.window_noise(chunk.power_w[rows])  # the receiver's
+        ranging, comp = (self._ranging_host if self.device is None else self._ranging_device)(chunk, rows, t0, noise)
         self._keep_returns(chunk, rows, comp[:, 0])
         received = chunk.received[rows]
         columns = {
@@ -154,12 +155,14 @@ class WaveformWriter:
         columns.update(self._geolocation(chunk, rows, t0, samples))
         return {name: np.asarray(v) for name, v in columns.items()}
 
-    def _ranging_host(self, chunk, rows: np.ndarray, t0: np.ndarray) -> tuple[dict, np.ndarray]:
+    def _ranging_host(self, chunk, rows: np.ndarray, t0: np.ndarray, noise) -> tuple[dict, np.ndarray]:
         """The ranging/ measures of each shot and its components (n, 3, MAX_COMPONENTS: range [m], amplitude [W],
-        σ [s], NaN-padded) by the float64 reference model, one waveform at a time."""
+        σ [s], NaN-padded) by the float64 reference model, one waveform at a time; ``noise``: the shots' receiver
+        noise (mean, floor) [W], or None."""
         s = self.system
         times = t0[:, None] + s.sample_interval_s * np.arange(chunk.power_w.shape[1])[None, :]
-        measures = [model.measure(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
+        measures = [model.measure(s, times[i], chunk.power_w[r].astype(np.float64),
+                                  None if noise is None else (noise[0][i], noise[1][i])) for i, r in enumerate(rows)]
         parts = [model.decompose(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
         comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
         for i, gs in enumerate(parts):
@@ -171,13 +174,13 @@ class WaveformWriter:
                 "ranging/fwhm_s": [m.fwhm_s for m in measures], "ranging/rms_width_s": [m.rms_width_s for m in measures],
                 "ranging/n_components": np.array([len(p) for p in parts], np.int32)}, comp
 
-    def _ranging_device(self, chunk, rows: np.ndarray, t0: np.ndarray) -> tuple[dict, np.ndarray]:
+    def _ranging_device(self, chunk, rows: np.ndarray, t0: np.ndarray, noise) -> tuple[dict, np.ndarray]:
         """:meth:`_ranging_host`'s columns computed for all the rows at once on ``self.device``
         (:func:`flightsim.instrument.waveform_batch.process`)."""
         from flightsim.instrument.waveform_batch import process
 
         s = self.system
-        b = process(s, t0, chunk.power_w[rows], self.device)
+        b = process(s, t0, chunk.power_w[rows], self.device, noise=noise)
         ranges = b.ranges_m(s)
         k = min(MAX_COMPONENTS, b.time_s.shape[1])
         comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
