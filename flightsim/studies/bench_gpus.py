@@ -2,8 +2,8 @@
 machine, the same command side by side (Dask, a worker per GPU: ``--gpus``), on a machine with two or more GPUs.
 
 Four pairs: the study as the paper flies it (10 s per configuration) and flying 6× longer (the GPUs' share of the
-wall grows); the survey to LAZ and to LAS (its part files on the RAM disk /dev/shm where there is one, ``--parts``:
-with them on the disk too, the disk is what a LAS survey waits for, whatever the GPUs). Each pair's outputs are
+wall grows); the survey to LAZ and to LAS, as a user runs them (the part files under ``--out``, transient: the page
+cache keeps them; ``--parts /dev/shm`` gained 0-4 s more at c8290e2, ``results/scaling.md``). Each pair's outputs are
 compared (the sweep's rows but their wall times; every tile byte for byte) and what differs is recorded with the
 wall times; the study also runs twice on GPU 0, to tell what differs between two runs alike. What limits the
 scaling is measured in the same runs: the workers' busy time (the sum of their tasks' own wall) against the
@@ -29,7 +29,6 @@ from flightsim.studies.bench_common import DISK_PROBE_BYTES, Sizes, gpu_name, ru
 
 GPUS_SURVEY_KM = 10.0  # 100 km², the survey of issue 30
 LONG_STUDY_S = "60"  # seconds flown per configuration in the study's longer variant (the default is 10)
-RAM_DISK = Path("/dev/shm")  # the LAS survey's --parts where it is a folder (Linux's shared-memory tmpfs)
 TIMING_COLUMNS = ("wall_s",)  # the sweep's columns that may differ between two runs of the same grid
 
 
@@ -43,13 +42,12 @@ def gpu_scaling(device: str, s: Sizes) -> dict:
         return {"gpus": count, "skipped": "needs a machine with two or more GPUs"}
     every = ",".join(map(str, range(count)))
     per_gpu = max(1, (os.cpu_count() or 1) // count)  # the survey's workers per GPU: the host's cores shared out
-    ram_parts = ["--parts", str(RAM_DISK)] if RAM_DISK.is_dir() else []
     runs = {"study": lambda out, gpus: sweep_run(out, ["--gpus", gpus], s.study_grid),
             f"study, {LONG_STUDY_S} s per configuration":
                 lambda out, gpus: sweep_run(out, ["--gpus", gpus, "--duration", LONG_STUDY_S], s.study_grid),
             "survey to LAZ": lambda out, gpus: survey_run(out, ["--gpus", gpus], _per(per_gpu, gpus), GPUS_SURVEY_KM),
-            "survey to LAS": lambda out, gpus: survey_run(out, ["--gpus", gpus, *ram_parts], _per(per_gpu, gpus),
-                                                          GPUS_SURVEY_KM, laz=False)}
+            "survey to LAS": lambda out, gpus: survey_run(out, ["--gpus", gpus], _per(per_gpu, gpus), GPUS_SURVEY_KM,
+                                                          laz=False)}
     from flightsim.studies.bench_scale import idle_disk_rate
 
     with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
