@@ -89,7 +89,8 @@ def process(system: model.WaveformSystem, t0_s: np.ndarray, echo_w: np.ndarray, 
     None for noise-free waveforms (``waveform_model.measure``)."""
     echo_w = np.asarray(echo_w)
     t0_s = np.asarray(t0_s, dtype=np.float64)
-    noise = np.array([(0.0, -np.inf)] * len(echo_w)).T if noise is None else np.array(noise, dtype=np.float64)
+    noise = (np.stack([np.zeros(len(echo_w)), np.full(len(echo_w), -np.inf)]) if noise is None
+             else np.array(noise, dtype=np.float64))
     per = max(1, BATCH_SAMPLES["cpu" if str(device).startswith("cpu") else "cuda"] // max(echo_w.shape[1], 1))
     parts = [_launch(system, t0_s[lo:lo + per], echo_w[lo:lo + per], noise[:, lo:lo + per], device, min_prominence)
              for lo in range(0, len(echo_w), per)]

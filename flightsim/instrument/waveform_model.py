@@ -360,9 +360,15 @@ def window_noise(echo_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     rows = np.asarray(echo_rows, dtype=np.float64)
     n = rows.shape[1]
-    ends = max(2, min(NOISE_END_SAMPLES, n // 4))
-    pooled = np.concatenate([rows[:, :ends], rows[:, -ends:]], axis=1)
-    return pooled.mean(axis=1), float(ndtri(1.0 - NOISE_FALSE_ECHO / n)) * pooled.std(axis=1, ddof=1)
+    mean, sigma = end_noise(rows, max(2, min(NOISE_END_SAMPLES, n // 4)))
+    return mean, float(ndtri(1.0 - NOISE_FALSE_ECHO / n)) * sigma
+
+
+def end_noise(rows: np.ndarray, samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, σ) of each row's first and last ``samples`` samples pooled (σ with ddof 1): a window's noise where its
+    echo is away from both ends (rows (S, N) float64, N ≥ 2·samples)."""
+    ends = np.concatenate([rows[:, :samples], rows[:, -samples:]], axis=1)
+    return ends.mean(axis=1), ends.std(axis=1, ddof=1)
 
 
 def measure(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray,

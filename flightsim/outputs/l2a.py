@@ -57,6 +57,7 @@ from scipy.special import ndtri
 
 from flightsim.core.errors import InputError, positive
 from flightsim.core.settings import Settings, check_settings, setting
+from flightsim.instrument.waveform_model import end_noise
 
 C = 299_792_458.0  # speed of light [m/s]
 FILL = -9999.0  # elevations, positions and rh of a shot without a signal
@@ -216,8 +217,7 @@ def _prepare(rx, dt_s, pulse_sigma_s, noise, s: L2ASettings) -> tuple[_Shots, fl
         k = s.noise_samples
         if w.shape[1] < 2 * k + 1:
             raise InputError("rx", f"shape {w.shape}", f"N > 2·l2a.noise_samples = {2 * k} samples, or give noise")
-        ends = np.concatenate([w[:, :k], w[:, -k:]], axis=1)
-        mean, sigma = ends.mean(axis=1), ends.std(axis=1, ddof=1)
+        mean, sigma = end_noise(w, k)
     else:
         if not isinstance(noise, (tuple, list)) or len(noise) != 2:
             raise InputError("noise", noise, "(mean, σ): numbers or (S,) arrays")
