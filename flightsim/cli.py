@@ -261,7 +261,7 @@ def cmd_survey(args: argparse.Namespace) -> int:
     folder = parts_folder(Path(args.out), parts)  # a bad --parts stops the command before a cluster starts
     try:
         with _cluster(args, len(plan.tasks)) as client:
-            summary = run_survey(cfg, spec, Path(args.out), client=client, overwrite=args.overwrite,
+            summary = run_survey(plan, Path(args.out), client=client, overwrite=args.overwrite,
                                  progress=ProgressBar("survey"), parts=parts)
     except InputError:
         raise  # refused before a task ran (such as a --out in use): the parts' folder is not this command's

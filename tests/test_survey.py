@@ -38,7 +38,7 @@ def small_config(**settings) -> RunConfig:
 @pytest.fixture(scope="module")
 def serial(tmp_path_factory):
     out = tmp_path_factory.mktemp("serial")
-    return out, run_survey(small_config(), SPEC, out)
+    return out, run_survey(plan_survey(small_config(), SPEC), out)
 
 
 def tiles(out: Path) -> dict[str, bytes]:
@@ -140,7 +140,7 @@ def test_a_survey_on_a_cluster_whose_workers_die_mid_write_gives_the_same_bytes(
     for name, how in (("segment_task", "write"), ("merge_task", "rename")):
         monkeypatch.setattr(survey, name, functools.partial(die_once, str(killed[how]), how, name))
     with distributed.open_client(workers=2) as client:
-        dask_summary = run_survey(small_config(), SPEC, tmp_path / "dask", client=client)
+        dask_summary = run_survey(plan_survey(small_config(), SPEC), tmp_path / "dask", client=client)
         client.wait_for_workers(2)
         alive = set(client.run(os.getpid).values())
     dead = {int(marker.read_text()) for marker in killed.values()}
@@ -189,7 +189,7 @@ def test_parts_kept_in_another_folder_give_the_same_tiles(serial, tmp_path, monk
         return segment_task(cfg, grid, task, parts)
 
     monkeypatch.setattr(survey, "segment_task", spy)
-    elsewhere = run_survey(small_config(), SPEC, tmp_path / "out", parts=ram)
+    elsewhere = run_survey(plan_survey(small_config(), SPEC), tmp_path / "out", parts=ram)
     assert tiles(tmp_path / "out") == tiles(out) and elsewhere["tiles"] == summary["tiles"]
     assert set(seen) == {survey.parts_folder(tmp_path / "out", ram)} and seen[0].parent == ram
     assert list(ram.iterdir()) == [] and not (tmp_path / "out" / ".parts").exists()
@@ -214,7 +214,7 @@ def test_merges_start_their_tiles_write_back_and_the_survey_syncs_each_tile_once
     if fadvise is not None:
         monkeypatch.setattr(os, "posix_fadvise", spy("write-back", fadvise))
     out, cfg = tmp_path / "out", small_config()
-    run_survey(cfg, SPEC, out)
+    run_survey(plan_survey(cfg, SPEC), out)
     final = sorted(str(p) for p in out.glob("*/*.las"))
     assert tiles(out) == tiles(serial[0]) and len(final) >= 4
     synced = [path for kind, path in events if kind == "sync"]
@@ -244,7 +244,7 @@ def test_a_failed_survey_leaves_no_parts_behind(tmp_path, monkeypatch):
 
     monkeypatch.setattr(survey, "segment_task", fail_third)
     with pytest.raises(RuntimeError, match="the third task failed"):
-        run_survey(small_config(), SPEC, tmp_path / "out", parts=ram)
+        run_survey(plan_survey(small_config(), SPEC), tmp_path / "out", parts=ram)
     assert len(done) == 2 and sum(len(r["tiles"].get("exact", {})) for r in done) > 0
     assert list(ram.iterdir()) == []
 

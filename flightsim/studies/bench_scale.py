@@ -242,7 +242,7 @@ def survey_area(device: str, s: Sizes) -> dict:
     models to LAZ. Wall clock, points, bytes and peak memory of the whole command."""
     from flightsim.engine.config_io import to_toml
     from flightsim.scenes import testdem
-    from flightsim.studies.survey import SurveySpec, plan_survey
+    from flightsim.studies.survey_plan import SurveySpec, plan_survey
 
     kind = "cpu" if resolve_device(device) == "cpu" else "cuda"
     km = SURVEY_KM[kind]

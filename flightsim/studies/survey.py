@@ -40,7 +40,7 @@ from flightsim.outputs.device_las import DeviceLasOutput
 from flightsim.core.atomic import fsync_all, start_writeback, write_atomic
 from flightsim.engine.readouts.points import Points
 from flightsim.engine.tracer import Tracer
-from flightsim.studies.survey_plan import SegmentTask, SurveyPlan, SurveySpec, TileGrid, plan_survey
+from flightsim.studies.survey_plan import SegmentTask, SurveyPlan, TileGrid
 
 PARTS = ".parts"  # per-task part files, under the output directory unless run_survey is given a parts folder
 SURVEY_FILES = ("run.toml", "survey.toml", "survey.json", PARTS)
@@ -259,13 +259,13 @@ def parts_folder(out: Path, parts: Path | None) -> Path:
     return Path(parts) / f"flightsim-parts-{digest}"
 
 
-def run_survey(cfg: RunConfig, spec: SurveySpec, out: Path, client=None, overwrite: bool = False,
+def run_survey(plan: SurveyPlan, out: Path, client=None, overwrite: bool = False,
                progress: Callable[[int, int], None] | None = None, parts: Path | None = None) -> dict:
-    """Run a survey into ``out`` (in this process, or on a Dask ``client``), its part files under ``parts`` (None:
-    in ``out``; a RAM disk keeps them off the disk, which then takes each point once); write and return survey.json."""
+    """Run a survey planned by :func:`~flightsim.studies.survey_plan.plan_survey` into ``out`` (in this process, or
+    on a Dask ``client``), its part files under ``parts`` (None: in ``out``; a RAM disk keeps them off the disk, which
+    then takes each point once); write and return survey.json."""
     from flightsim.core.warp_runtime import resolve_device
 
-    plan = plan_survey(cfg, spec)
     resolve_device(plan.cfg.run.device)
     out = Path(out)
     folder = parts_folder(out, parts)
