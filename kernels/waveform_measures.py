@@ -34,11 +34,12 @@ STATUS_SKIPPED = wp.constant(-1)  # no peak, more than MAX_PEAKS, or a start amp
 
 
 @wp.kernel
-def echo_columns(rows: wp.array2d(dtype=Any), columns: wp.array2d(dtype=wp.float64)):
-    """The waveforms as they come, one per row (W, N) of float32 or float64 [W], as the float64 columns (N, W) the
-    kernels read."""
+def echo_columns(rows: wp.array2d(dtype=Any), mean: wp.array(dtype=wp.float64),
+                 columns: wp.array2d(dtype=wp.float64)):
+    """The waveforms as they come, one per row (W, N) of float32 or float64 [W], less each one's noise ``mean`` (W,)
+    [W] (0 for a noise-free waveform), as the float64 columns (N, W) the kernels read."""
     j, w = wp.tid()
-    columns[j, w] = wp.float64(rows[w, j])
+    columns[j, w] = wp.float64(rows[w, j]) - mean[w]
 
 
 @wp.func
@@ -90,12 +91,12 @@ def smooth_echoes(echo: wp.array2d(dtype=wp.float64), group: wp.array(dtype=wp.i
 
 
 @wp.func
-def _crossing(echo: wp.array2d(dtype=wp.float64), w: int, mean: wp.float64, t0: wp.float64, dt: wp.float64, j: int,
+def _crossing(echo: wp.array2d(dtype=wp.float64), w: int, t0: wp.float64, dt: wp.float64, j: int,
               level: wp.float64) -> wp.float64:
-    """Time where the echo less ``mean`` crosses ``level`` between samples j and j + 1, linearly interpolated [s]."""
+    """Time where the echo crosses ``level`` between samples j and j + 1, linearly interpolated [s]."""
     tj = _time(t0, dt, j)
-    a = echo[j, w] - mean
-    b = echo[j + 1, w] - mean
+    a = echo[j, w]
+    b = echo[j + 1, w]
     return tj + (level - a) / (b - a) * (_time(t0, dt, j + 1) - tj)
 
 
@@ -114,16 +115,15 @@ def _add(sum: wp.vec2d, v: wp.float64) -> wp.vec2d:
 
 @wp.kernel
 def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.float64), dt: wp.float64,
-                  noise: wp.array2d(dtype=wp.float64), out: wp.array2d(dtype=wp.float64)):
-    """Half-power, centroid and peak times, FWHM and RMS width of each waveform less its noise mean, and its maximum:
+                  floor: wp.array(dtype=wp.float64), out: wp.array2d(dtype=wp.float64)):
+    """Half-power, centroid and peak times, FWHM and RMS width of each waveform, and its maximum:
     ``waveform_model.measure`` (the centroid and RMS width over the samples from the first to the last above the
     noise floor; every measure NaN where none is).
 
     # In:
-    echo  (N, W) received power [W]
+    echo  (N, W) received power less each waveform's noise mean [W] (:func:`echo_columns`)
     t0    (W,) time of each waveform's sample 0 [s]; dt: sample interval [s] (sample j at t0 + dt·j)
-    noise (2, W) each waveform's noise mean [W] and the floor above it [W] (0 and −∞: a noise-free waveform, measured
-          whole)
+    floor (W,) each waveform's noise floor above its mean [W] (−∞: a noise-free waveform, measured whole)
     # Out:
     out   (7, W) half-power time [s], centroid time [s], peak time [s], FWHM [s], RMS width [s], maximum [W], and
           1 where the echo starts or ends above half its maximum (the host's measures then index out of the window)
@@ -131,8 +131,7 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     w = wp.tid()
     n = echo.shape[0]
     start = t0[w]
-    mean = noise[0, w]
-    floor = noise[1, w]
+    above = floor[w]
     top = echo[0, w]
     arg = int(0)
     lo = int(-1)
@@ -141,7 +140,7 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
         if echo[j, w] > top:
             top = echo[j, w]
             arg = j
-        if echo[j, w] - mean > floor:
+        if echo[j, w] > above:
             if lo < 0:
                 lo = j
             hi = j
@@ -151,13 +150,13 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
             out[k, w] = wp.float64(wp.nan)
         out[6, w] = wp.float64(0.0)
         return
-    level = wp.float64(0.5) * (top - mean)
+    level = wp.float64(0.5) * top
     first = int(-1)
     last = int(-1)
     energy = wp.vec2d()
     moment = wp.vec2d()
     for j in range(n):
-        e = echo[j, w] - mean
+        e = echo[j, w]
         if e >= level:
             if first < 0:
                 first = j
@@ -170,22 +169,22 @@ def echo_measures(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.floa
     spread = wp.vec2d()
     for j in range(lo, hi + 1):
         d = _time(start, dt, j) - centroid
-        spread = _add(spread, d * d * (echo[j, w] - mean))
+        spread = _add(spread, d * d * echo[j, w])
     edge = int(0)
     if first == 0 or last == n - 1:  # the echo starts or ends above half its maximum: the host's crossing reads
         edge = 1  # index −1 (the last sample) or n (IndexError); left to the host, the crossings read inside here
         first = 1
         last = n - 2
-    half = _crossing(echo, w, mean, start, dt, first - 1, level)
+    half = _crossing(echo, w, start, dt, first - 1, level)
     j = wp.clamp(arg, 1, n - 2)
-    y0 = echo[j - 1, w] - mean
-    y1 = echo[j, w] - mean
-    y2 = echo[j + 1, w] - mean
+    y0 = echo[j - 1, w]
+    y1 = echo[j, w]
+    y2 = echo[j + 1, w]
     tj = _time(start, dt, j)
     out[0, w] = half
     out[1, w] = centroid
     out[2, w] = tj + wp.float64(0.5) * (y0 - y2) / (y0 - wp.float64(2.0) * y1 + y2) * (_time(start, dt, j + 1) - tj)
-    out[3, w] = _crossing(echo, w, mean, start, dt, last, level) - half
+    out[3, w] = _crossing(echo, w, start, dt, last, level) - half
     out[4, w] = wp.sqrt((spread[0] + spread[1]) / total)
     out[6, w] = wp.float64(edge)
 
@@ -274,14 +273,16 @@ def chunk_extremes(smooth: wp.array2d(dtype=wp.float64), extremes: wp.array3d(dt
 
 @wp.kernel
 def chunk_peaks(smooth: wp.array2d(dtype=wp.float64), extremes: wp.array3d(dtype=wp.float64),
-                min_prominence: wp.float64, kept: wp.array2d(dtype=wp.int32), found: wp.array3d(dtype=wp.int32),
-                prominences: wp.array3d(dtype=wp.float64)):
-    """The peaks of each chunk of PEAK_CHUNK samples of each smoothed waveform that stand out by ``min_prominence`` of
-    its maximum: scipy.signal.find_peaks' local maxima (a plateau's midpoint, rounded down; a plateau belongs to the
-    chunk where it starts) and their prominences over the whole waveform (peak_prominences).
+                min_prominence: wp.float64, height: wp.array(dtype=wp.float64), kept: wp.array2d(dtype=wp.int32),
+                found: wp.array3d(dtype=wp.int32), prominences: wp.array3d(dtype=wp.float64)):
+    """The peaks of each chunk of PEAK_CHUNK samples of each smoothed waveform at least ``height`` high that stand out
+    by ``min_prominence`` of its maximum: scipy.signal.find_peaks' local maxima (a plateau's midpoint, rounded down; a
+    plateau belongs to the chunk where it starts; its ``height`` and ``prominence`` conditions) and their prominences
+    over the whole waveform (peak_prominences).
 
     # In:
     smooth          (N, W) the smoothed waveforms [W]; extremes (2, chunks, W) chunk_extremes' output
+    height          (W,) the least height of a peak [W] (−∞: any)
     # Out:
     kept            (chunks, W) the chunk's peaks standing out enough (only the first MAX_PEAKS are stored)
     found           (3·MAX_PEAKS, chunks, W) per peak in time order: its sample, left and right base
@@ -301,6 +302,8 @@ def chunk_peaks(smooth: wp.array2d(dtype=wp.float64), extremes: wp.array3d(dtype
             ahead = _plateau_end(smooth, w, i)
             if smooth[ahead, w] < smooth[i, w]:
                 peak = (i + ahead - 1) // 2
+                if smooth[peak, w] < height[w]:
+                    continue
                 prominence = smooth[peak, w] - bottom  # a bound: a maximum below it cannot stand out enough
                 left = peak
                 right = peak
@@ -317,7 +320,7 @@ def chunk_peaks(smooth: wp.array2d(dtype=wp.float64), extremes: wp.array3d(dtype
 
 
 @wp.kernel
-def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype=wp.float64),
+def find_echo_peaks(start: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype=wp.float64),
                     t0: wp.array(dtype=wp.float64), dt: wp.float64, step: wp.array(dtype=wp.float64),
                     sigma: wp.float64, maximum: wp.array2d(dtype=wp.float64), kept: wp.array2d(dtype=wp.int32),
                     found: wp.array3d(dtype=wp.int32), prominences: wp.array3d(dtype=wp.float64),
@@ -326,7 +329,8 @@ def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype
     """Each waveform's peaks (chunk_peaks' over its chunks in order) and their start parameters.
 
     # In:
-    echo, smooth    (N, W) the waveforms and the smoothed waveforms [W]
+    start, smooth   (N, W) the waveforms the start amplitudes are read from (the echo, or the smoothed echo under
+                    noise) and the smoothed waveforms [W]
     t0              (W,) time of sample 0 [s]; dt: sample interval [s]
     step            (W,) t_1 − t_0 of each waveform as the host forms it [s]
     sigma           σ of the pulse [s]
@@ -350,7 +354,7 @@ def find_echo_peaks(echo: wp.array2d(dtype=wp.float64), smooth: wp.array2d(dtype
                                  found[3 * q + 2, chunk, w]) * step[w] / FWHM_PER_SIGMA
                 spread = wp.sqrt(wp.max(width_s * width_s - sigma * sigma, wp.float64(0.0)))
                 peaks[k, w] = peak
-                params[3 * k, w] = echo[peak, w] / scale
+                params[3 * k, w] = start[peak, w] / scale
                 params[3 * k + 1, w] = (_time(t0[w], dt, peak) - t0[w]) / sigma
                 params[3 * k + 2, w] = wp.max(spread, wp.float64(0.5) * sigma) / sigma
         total = total + in_chunk

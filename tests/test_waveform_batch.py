@@ -69,6 +69,7 @@ def test_peaks_are_find_peaks_with_plateaus_and_widths_are_peak_widths(device, w
     smooth = _columns(x, device)
     echo_peaks(smooth, smooth, wp.array(t0, dtype=wp.float64, device=device), dt,
                wp.array(steps, dtype=wp.float64, device=device), sigma, 0.05,
+               wp.array(np.full(n_wave, -np.inf), dtype=wp.float64, device=device),
                wp.array(maximum, dtype=wp.float64, device=device), count, peaks, params)
     count, peaks, params = count.numpy(), peaks.numpy().T, params.numpy().T
     plateaus = 0
@@ -149,6 +150,29 @@ def test_more_peaks_than_the_device_fits_are_decomposed_by_the_host(device):
     np.testing.assert_array_equal(b.amplitude_w[0], [g.amplitude_w for g in host])
 
 
+def test_noisy_waveforms_are_decomposed_less_their_noise_mean_as_on_the_host(device):
+    """Under receiver noise (mean, floor) the device decomposes each waveform less its noise mean, counting only the
+    smoothed maxima above the floor scaled to the smoothing and starting each fit from the smoothed height, as
+    ``decompose`` does: the same peaks, fits equivalent by the module's measure, and no component in noise alone."""
+    _, system, t0, echo = study.synthetic("s", GEDI, 30, 1000, 22)
+    rng = np.random.default_rng(6)
+    echo = np.vstack([echo + 0.2, 0.2 + rng.normal(0.0, 0.01, (3, 1000))])  # a background; three of noise alone
+    t0 = np.append(t0, t0[:3])
+    mean, floor = model.window_noise(echo)
+    b = process(system, t0, echo, device, noise=(mean, floor))
+    times = t0[:, None] + system.sample_interval_s * np.arange(1000)[None, :]
+    for w in range(len(echo)):
+        host = model.decompose(system, times[w], echo[w], noise=(mean[w], floor[w]))
+        assert b.count[w] == len(host), w
+        if host:
+            device_parts = np.column_stack([b.time_s[w, :len(host)], b.amplitude_w[w, :len(host)],
+                                            b.sigma_s[w, :len(host)]])
+            ratio, q, _ = study.agreement(system, times[w], echo[w] - mean[w],
+                                          [(g.time_s, g.amplitude_w, g.sigma_s) for g in host], device_parts)
+            assert ratio <= 1.0 + study.SSR_SLACK and q <= 1.0, (w, ratio, q)
+    assert b.count[:30].min() >= 1 and not b.count[30:].any()
+
+
 CASES = {"gedi plane": (["simulate", "--instrument", "gedi", "--set", "flight.duration_s=0.03"], GEDI),
          "gedi plane, noisy": (["simulate", "--instrument", "gedi", "--set", "flight.duration_s=0.03", "--set",
                                 "waveform.thermal_noise_w=2e-9"], GEDI),
@@ -182,7 +206,7 @@ def test_waveforms_h5_with_device_processing_is_the_hosts(tmp_path, device, case
         assert np.all(np.abs(g[f"ranging/{n}"][()] - d[f"ranging/{n}"][()]) <= 2 * TIME_ULPS * ulp), n
     np.testing.assert_allclose(d["ranging/fwhm_s"][()], g["ranging/fwhm_s"][()], rtol=1e-9)
     np.testing.assert_allclose(d["ranging/rms_width_s"][()], g["ranging/rms_width_s"][()], rtol=RMS_REL)
-    _assert_components(system, g, d)
+    _assert_components(system, g, d, noisy="noisy" in case)
 
 
 def _assert_same_run(a: np.ndarray, b: np.ndarray, device: str, name: str) -> None:
@@ -199,10 +223,13 @@ def _assert_same_run(a: np.ndarray, b: np.ndarray, device: str, name: str) -> No
                                    err_msg=name)
 
 
-def _assert_components(system, g, d) -> None:
-    """The file's components against each other by the fit's own measure (study.agreement), shot by shot."""
+def _assert_components(system, g, d, noisy: bool) -> None:
+    """The file's components against each other by the fit's own measure (study.agreement), shot by shot; under
+    receiver noise against the waveforms less their noise mean, which the Gaussians were fitted to."""
     n = int(g["rx_sample_count"][0])
     rx, t0 = g["rxwaveform"][()].reshape(-1, n).astype(np.float64), g["rx_window_start_s"][()]
+    if noisy:
+        rx = rx - model.window_noise(rx)[0][:, None]
     centre = 0.5 * system.pulse_fwhm_s
     for w in range(len(t0)):
         k = int(g["ranging/n_components"][w])

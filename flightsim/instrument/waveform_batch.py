@@ -6,7 +6,8 @@ The steps are the host functions', in the same float64 operations where the orde
 - the smoothing is scipy.ndimage.gaussian_filter1d's (σ/Δt samples, truncate 4, ``reflect``): its taps are formed
   here by scipy's own formula, per distinct Δt = t_1 − t_0 of the chunk, and added in its C loop's order;
 - the peaks are scipy.signal.find_peaks' (local maxima, plateaus to their midpoint) with prominence ≥ 5 % of the
-  smoothed maximum, their widths peak_widths' at rel_height 0.5, and the start parameters and bounds decompose's;
+  smoothed maximum (and, under receiver noise, at least the noise floor times the smoothing's gain high), their
+  widths peak_widths' at rel_height 0.5, and the start parameters and bounds decompose's;
 - the fit is a bounded Levenberg–Marquardt (kernels/waveform_fit.py) where decompose calls curve_fit (scipy's
   trust-region-reflective): both minimise the same sum of squares from the same start within the same bounds.
   The device's ends at float64 rounding, scipy's at a 1e-8 relative change of the cost, so their parameters differ
@@ -89,37 +90,44 @@ def process(system: model.WaveformSystem, t0_s: np.ndarray, echo_w: np.ndarray, 
     None for noise-free waveforms (``waveform_model.measure``)."""
     echo_w = np.asarray(echo_w)
     t0_s = np.asarray(t0_s, dtype=np.float64)
-    noise = (np.stack([np.zeros(len(echo_w)), np.full(len(echo_w), -np.inf)]) if noise is None
-             else np.array(noise, dtype=np.float64))
+    if noise is not None:
+        noise = np.array(noise, dtype=np.float64)
     per = max(1, BATCH_SAMPLES["cpu" if str(device).startswith("cpu") else "cuda"] // max(echo_w.shape[1], 1))
-    parts = [_launch(system, t0_s[lo:lo + per], echo_w[lo:lo + per], noise[:, lo:lo + per], device, min_prominence)
-             for lo in range(0, len(echo_w), per)]
+    parts = [_launch(system, t0_s[lo:lo + per], echo_w[lo:lo + per], None if noise is None else noise[:, lo:lo + per],
+                     device, min_prominence) for lo in range(0, len(echo_w), per)]
     return _host_fallback(system, t0_s, echo_w, noise, _joined(parts), min_prominence)
 
 
 def _launch(system, t0_s, echo_w, noise, device, min_prominence) -> dict[str, np.ndarray]:
-    """One launch of each kernel over W waveforms: their raw outputs on the host."""
+    """One launch of each kernel over W waveforms: their raw outputs on the host. ``noise``: (2, W) mean and floor
+    [W], or None (noise-free: mean 0, floor −∞, no height for a peak to reach, fits started from the echo)."""
     dt, sigma = system.sample_interval_s, model.pulse_sigma_s(system)
     n_wave, n = echo_w.shape
     steps = (t0_s + dt) - t0_s  # t_1 − t_0 as the host forms the time base
+    if noise is None:
+        mean, floor, height = np.zeros(n_wave), np.full(n_wave, -np.inf), np.full(n_wave, -np.inf)
+    else:  # the heights decompose asks of a smoothed maximum, formed as it forms them
+        mean, floor = noise
+        height = np.array([f * model.smoothing_gain(sigma / step) for f, step in zip(floor, steps)])
     group, radius, taps = smoothing_taps(sigma, steps)
     arr = lambda a, dtype=wp.float64: wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)  # noqa: E731
     t0, step = arr(t0_s), arr(steps)
     rows = echo_w if echo_w.dtype in (np.float32, np.float64) else echo_w.astype(np.float64)
     echo = wp.empty((n, n_wave), dtype=wp.float64, device=device)  # transposed on the device, not the host
     wp.launch(km.echo_columns, dim=(n, n_wave), inputs=[arr(rows, wp.float32 if rows.dtype == np.float32 else
-                                                            wp.float64)], outputs=[echo], device=device)
+                                                            wp.float64), arr(mean)], outputs=[echo], device=device)
     smooth = wp.empty((n, n_wave), dtype=wp.float64, device=device)
     wp.launch(km.smooth_echoes, dim=(n, n_wave), inputs=[echo, arr(group, wp.int32), arr(radius, wp.int32),
                                                         arr(taps)], outputs=[smooth], device=device)
     out = wp.empty((7, n_wave), dtype=wp.float64, device=device)
-    wp.launch(km.echo_measures, dim=n_wave, inputs=[echo, t0, wp.float64(dt), arr(noise)], outputs=[out],
+    wp.launch(km.echo_measures, dim=n_wave, inputs=[echo, t0, wp.float64(dt), arr(floor)], outputs=[out],
               device=device)
     p = 3 * MAX_PEAKS
     count = wp.zeros(n_wave, dtype=wp.int32, device=device)
     peaks = wp.zeros((MAX_PEAKS, n_wave), dtype=wp.int32, device=device)
     params = wp.zeros((p, n_wave), dtype=wp.float64, device=device)
-    echo_peaks(echo, smooth, t0, dt, step, sigma, min_prominence, out, count, peaks, params)
+    echo_peaks(echo if noise is None else smooth, smooth, t0, dt, step, sigma, min_prominence, arr(height), out, count,
+               peaks, params)
     del smooth
     ssr = wp.zeros(n_wave, dtype=wp.float64, device=device)
     status = wp.zeros((2, n_wave), dtype=wp.int32, device=device)
@@ -128,11 +136,13 @@ def _launch(system, t0_s, echo_w, noise, device, min_prominence) -> dict[str, np
             "ssr": ssr.numpy(), "status": status.numpy().T, "t0": t0_s}
 
 
-def echo_peaks(echo: wp.array, smooth: wp.array, t0: wp.array, dt: float, step: wp.array, sigma: float,
-               min_prominence: float, out: wp.array, count: wp.array, peaks: wp.array, params: wp.array) -> None:
-    """The peaks of the smoothed waveforms ``smooth`` (N, W) standing out by ``min_prominence`` of their maximum, and
-    their start parameters, into ``count``, ``peaks`` and ``params`` (kernels/waveform_measures.py: a thread per
-    PEAK_CHUNK samples of a waveform finds its chunk's peaks, a thread per waveform keeps the first MAX_PEAKS)."""
+def echo_peaks(start: wp.array, smooth: wp.array, t0: wp.array, dt: float, step: wp.array, sigma: float,
+               min_prominence: float, height: wp.array, out: wp.array, count: wp.array, peaks: wp.array,
+               params: wp.array) -> None:
+    """The peaks of the smoothed waveforms ``smooth`` (N, W) at least ``height`` (W,) [W] high and standing out by
+    ``min_prominence`` of their maximum, and their start parameters (amplitudes from ``start`` (N, W) at the peaks),
+    into ``count``, ``peaks`` and ``params`` (kernels/waveform_measures.py: a thread per PEAK_CHUNK samples of a
+    waveform finds its chunk's peaks, a thread per waveform keeps the first MAX_PEAKS)."""
     n, n_wave = smooth.shape
     device, chunks = smooth.device, -(-n // km.PEAK_CHUNK)
     extremes = wp.empty((2, chunks, n_wave), dtype=wp.float64, device=device)
@@ -140,9 +150,9 @@ def echo_peaks(echo: wp.array, smooth: wp.array, t0: wp.array, dt: float, step: 
     kept = wp.empty((chunks, n_wave), dtype=wp.int32, device=device)
     found = wp.empty((3 * MAX_PEAKS, chunks, n_wave), dtype=wp.int32, device=device)
     prominences = wp.empty((MAX_PEAKS, chunks, n_wave), dtype=wp.float64, device=device)
-    wp.launch(km.chunk_peaks, (chunks, n_wave), inputs=[smooth, extremes, wp.float64(min_prominence)],
+    wp.launch(km.chunk_peaks, (chunks, n_wave), inputs=[smooth, extremes, wp.float64(min_prominence), height],
               outputs=[kept, found, prominences], device=device)
-    wp.launch(km.find_echo_peaks, n_wave, inputs=[echo, smooth, t0, wp.float64(dt), step, wp.float64(sigma), out,
+    wp.launch(km.find_echo_peaks, n_wave, inputs=[start, smooth, t0, wp.float64(dt), step, wp.float64(sigma), out,
                                                   kept, found, prominences], outputs=[count, peaks, params],
               device=device)
 
@@ -198,13 +208,14 @@ def _host_fallback(system, t0_s, echo_w, noise, raw, min_prominence) -> Batch:
     offsets = system.sample_interval_s * np.arange(echo_w.shape[1])  # the writer's time base, row by row
     count = raw["count"].astype(np.int64)
     for w in np.flatnonzero(~fitted):
-        parts = model.decompose(system, t0_s[w] + offsets, echo_w[w].astype(np.float64), min_prominence)
+        parts = model.decompose(system, t0_s[w] + offsets, echo_w[w].astype(np.float64), min_prominence,
+                                None if noise is None else tuple(noise[:, w]))
         comp[:, w, :len(parts)] = np.array([(g.time_s, g.amplitude_w, g.sigma_s) for g in parts]).T
         count[w] = len(parts)
     measures = {name: raw["out"][:, i].copy() for i, name in enumerate(MEASURES)}
     for w in np.flatnonzero(raw["out"][:, 6] != 0.0):  # an echo above half its maximum at an end: the host's
         m = model.measure(system, t0_s[w] + offsets, echo_w[w].astype(np.float64),  # measures (IndexError, there)
-                          tuple(noise[:, w]))
+                          None if noise is None else tuple(noise[:, w]))
         for name in MEASURES:
             measures[name][w] = getattr(m, name)
     peaks = np.where(np.arange(MAX_PEAKS)[None, :] < raw["count"][:, None], raw["peaks"], -1)

@@ -407,25 +407,35 @@ def _gaussians(x: np.ndarray, *p: float) -> np.ndarray:
     return np.sum(a * np.exp(-0.5 * ((x[None, :] - mu) / s) ** 2), axis=0)
 
 
-def decompose(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray,
-              min_prominence: float = 0.05) -> tuple[GaussianComponent, ...]:
+def decompose(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray, min_prominence: float = 0.05,
+              noise: tuple[float, float] | None = None) -> tuple[GaussianComponent, ...]:
     """Gaussian decomposition: k = the local maxima of the echo smoothed by the pulse's σ (a matched
     filter) standing out by ``min_prominence`` of its maximum; then k Gaussians fitted by least squares
     (scipy ``curve_fit``), started at those maxima. Components in time order; none where no maximum stands out
-    (a window of noise alone)."""
+    (a window of noise alone).
+
+    ``noise``: (mean, floor) [W] of the receiver's noise (:func:`window_noise`), or None for a noise-free echo. The
+    mean is taken off every sample (the Gaussians have no offset: a background left in is fitted into them), a
+    maximum counts only where the smoothed echo stands above the floor scaled to the smoothing
+    (:func:`smoothing_gain`: noise alone crosses it no more often than it crosses the floor), and each fit starts
+    from the smoothed echo's height at its maximum (a noisy sample there can be below zero, outside a ≥ 0)."""
     from scipy.ndimage import gaussian_filter1d
     from scipy.optimize import curve_fit
     from scipy.signal import find_peaks, peak_widths
 
+    mean, floor = (0.0, -np.inf) if noise is None else noise
+    echo = echo - mean
     sigma, dt = pulse_sigma_s(system), times_s[1] - times_s[0]
     smooth = gaussian_filter1d(echo, sigma / dt)
-    peaks, _ = find_peaks(smooth, prominence=min_prominence * smooth.max())
+    height = None if noise is None else floor * smoothing_gain(sigma / dt)
+    peaks, _ = find_peaks(smooth, height=height, prominence=min_prominence * smooth.max())
     if peaks.size == 0:
         return ()
     widths = peak_widths(smooth, peaks, rel_height=0.5)[0] * dt / FWHM_PER_SIGMA
     scale = echo.max()
+    start = echo if noise is None else smooth
     x = (times_s - times_s[0]) / sigma  # fit in units of σ and of the maximum: well conditioned
-    p0 = np.ravel([[echo[j] / scale, x[j], max(math.sqrt(max(w * w - sigma * sigma, 0.0)), 0.5 * sigma) / sigma]
+    p0 = np.ravel([[start[j] / scale, x[j], max(math.sqrt(max(w * w - sigma * sigma, 0.0)), 0.5 * sigma) / sigma]
                    for j, w in zip(peaks, widths)])
     lower = np.tile([0.0, x[0], dt / sigma], peaks.size)
     upper = np.tile([np.inf, x[-1], x[-1] - x[0]], peaks.size)
@@ -433,6 +443,14 @@ def decompose(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray,
     parts = [GaussianComponent(float(times_s[0] + mu * sigma), float(a * scale), float(s * sigma))
              for a, mu, s in p.reshape(-1, 3)]
     return tuple(sorted(parts, key=lambda g: g.time_s))
+
+
+def smoothing_gain(sd: float) -> float:
+    """The standard deviation of white noise of unit σ after gaussian_filter1d(·, ``sd`` samples) (scipy's kernel,
+    truncated at 4 sd): the root of its weights' sum of squares."""
+    radius = int(4.0 * sd + 0.5)
+    phi = np.exp(-0.5 / (sd * sd) * np.arange(-radius, radius + 1) ** 2)
+    return float(np.sqrt(np.sum((phi / phi.sum()) ** 2)))
 
 
 # --- truth and the patent's figures -----------------------------------------------------------

@@ -20,7 +20,8 @@ BEAMbbbb/ranging/range_halfpower_m, range_centroid_m, range_peak_m, fwhm_s, rms_
                  NaN-padded): half-power leading edge, centroid, peak and Gaussian decomposition
                  (flightsim.instrument.waveform_model); with the receiver's noise, of each waveform less
                  its noise mean (taken from its ends, as l2a.h5's), the centroid and RMS width over the
-                 samples from the first to the last above the noise floor (waveform_model.window_noise)
+                 samples from the first to the last above the noise floor (waveform_model.window_noise),
+                 the components from the smoothed maxima above that floor (scaled to the smoothing)
 BEAMbbbb/truth/nadir_range_m    float64  the beam's central ray to the scene [m]
 BEAMbbbb/truth/mean_height_m    float64  footprint-weighted mean height (world H) [m]
 BEAMbbbb/truth/received_in_window  float64  share of the received energy inside the window
@@ -163,7 +164,8 @@ class WaveformWriter:
         times = t0[:, None] + s.sample_interval_s * np.arange(chunk.power_w.shape[1])[None, :]
         measures = [model.measure(s, times[i], chunk.power_w[r].astype(np.float64),
                                   None if noise is None else (noise[0][i], noise[1][i])) for i, r in enumerate(rows)]
-        parts = [model.decompose(s, times[i], chunk.power_w[r].astype(np.float64)) for i, r in enumerate(rows)]
+        parts = [model.decompose(s, times[i], chunk.power_w[r].astype(np.float64),
+                                 noise=None if noise is None else (noise[0][i], noise[1][i])) for i, r in enumerate(rows)]
         comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
         for i, gs in enumerate(parts):
             for j, g in enumerate(gs[:MAX_COMPONENTS]):
