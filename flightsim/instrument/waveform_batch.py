@@ -70,12 +70,10 @@ def smoothing_taps(sigma_s: float, steps: np.ndarray) -> tuple[np.ndarray, np.nd
     unique, group = np.unique(steps, return_inverse=True)
     radii, rows = [], []
     for step in unique:
-        sd = float(sigma_s / step)
-        radius = int(4.0 * sd + 0.5)
-        x = np.arange(-radius, radius + 1)
-        phi = np.exp(-0.5 / (sd * sd) * x ** 2)
+        weights = model.smoothing_weights(float(sigma_s / step))
+        radius = len(weights) // 2
         radii.append(radius)
-        rows.append((phi / phi.sum())[radius:])
+        rows.append(weights[radius:])
     taps = np.zeros((len(rows), max(radii) + 1))
     for g, row in enumerate(rows):
         taps[g, :len(row)] = row
@@ -108,7 +106,8 @@ def _launch(system, t0_s, echo_w, noise, device, min_prominence) -> dict[str, np
         mean, floor, height = np.zeros(n_wave), np.full(n_wave, -np.inf), np.full(n_wave, -np.inf)
     else:  # the heights decompose asks of a smoothed maximum, formed as it forms them
         mean, floor = noise
-        height = np.array([f * model.smoothing_gain(sigma / step) for f, step in zip(floor, steps)])
+        unique, group = np.unique(steps, return_inverse=True)  # a gain per distinct Δt, not per waveform
+        height = floor * np.array([model.smoothing_gain(sigma / step) for step in unique])[group]
     group, radius, taps = smoothing_taps(sigma, steps)
     arr = lambda a, dtype=wp.float64: wp.array(np.ascontiguousarray(a), dtype=dtype, device=device)  # noqa: E731
     t0, step = arr(t0_s), arr(steps)

@@ -445,12 +445,18 @@ def decompose(system: WaveformSystem, times_s: np.ndarray, echo: np.ndarray, min
     return tuple(sorted(parts, key=lambda g: g.time_s))
 
 
-def smoothing_gain(sd: float) -> float:
-    """The standard deviation of white noise of unit σ after gaussian_filter1d(·, ``sd`` samples) (scipy's kernel,
-    truncated at 4 sd): the root of its weights' sum of squares."""
+def smoothing_weights(sd: float) -> np.ndarray:
+    """The 2R + 1 weights of gaussian_filter1d(·, ``sd`` samples), by scipy's formula (``_gaussian_kernel1d``,
+    truncated at R = int(4·sd + 0.5))."""
     radius = int(4.0 * sd + 0.5)
     phi = np.exp(-0.5 / (sd * sd) * np.arange(-radius, radius + 1) ** 2)
-    return float(np.sqrt(np.sum((phi / phi.sum()) ** 2)))
+    return phi / phi.sum()
+
+
+def smoothing_gain(sd: float) -> float:
+    """The standard deviation of white noise of unit σ after gaussian_filter1d(·, ``sd`` samples): the root of its
+    weights' sum of squares."""
+    return float(np.sqrt(np.sum(smoothing_weights(sd) ** 2)))
 
 
 # --- truth and the patent's figures -----------------------------------------------------------

@@ -162,10 +162,10 @@ class WaveformWriter:
         noise (mean, floor) [W], or None."""
         s = self.system
         times = t0[:, None] + s.sample_interval_s * np.arange(chunk.power_w.shape[1])[None, :]
-        measures = [model.measure(s, times[i], chunk.power_w[r].astype(np.float64),
-                                  None if noise is None else (noise[0][i], noise[1][i])) for i, r in enumerate(rows)]
-        parts = [model.decompose(s, times[i], chunk.power_w[r].astype(np.float64),
-                                 noise=None if noise is None else (noise[0][i], noise[1][i])) for i, r in enumerate(rows)]
+        per_row = [None] * len(rows) if noise is None else list(zip(*noise))  # each row's (mean, floor), or None
+        echoes = [chunk.power_w[r].astype(np.float64) for r in rows]
+        measures = [model.measure(s, times[i], echo, per_row[i]) for i, echo in enumerate(echoes)]
+        parts = [model.decompose(s, times[i], echo, noise=per_row[i]) for i, echo in enumerate(echoes)]
         comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
         for i, gs in enumerate(parts):
             for j, g in enumerate(gs[:MAX_COMPONENTS]):
