@@ -41,6 +41,7 @@ PDRF 6, the scene's CRS), placed on its beam at the component's range c(t − τ
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,40 @@ from flightsim.outputs.h5_product import H5Product
 from flightsim.outputs.l2a import L2ASettings, l2a_metrics, truth_rh
 
 MAX_COMPONENTS = 4
+FLUSH_BYTES = 32 << 20  # waveforms [B] the writer gathers from line parts before it processes and writes them
+
+
+@dataclass
+class Shots:
+    """Line parts of waveforms (:class:`~flightsim.engine.readouts.waveforms.WaveformChunk`) joined: their rows
+    one after another, each with its line's ``line_id`` and ``start_time`` [s] and ``part``, the index of the part
+    it came from; the other fields are the parts' (same names, units and row shapes)."""
+
+    line_id: np.ndarray
+    start_time: np.ndarray
+    part: np.ndarray
+    pulse: np.ndarray
+    beam: np.ndarray
+    window_start_s: np.ndarray
+    power_w: np.ndarray
+    received: np.ndarray
+    start: np.ndarray
+    direction: np.ndarray
+    clean_w: np.ndarray | None
+
+    def __len__(self) -> int:
+        return len(self.pulse)
+
+    @classmethod
+    def join(cls, parts: list) -> "Shots":
+        sizes = [len(p) for p in parts]
+        per_row = lambda values: np.repeat(np.asarray(values), sizes)  # noqa: E731
+        joined = {name: np.concatenate([getattr(p, name) for p in parts])
+                  for name in ("pulse", "beam", "window_start_s", "power_w", "received", "start", "direction")}
+        clean = None if parts[0].clean_w is None else np.concatenate([p.clean_w for p in parts])
+        return cls(per_row([p.line_id for p in parts]).astype(np.int64),
+                   per_row([p.start_time for p in parts]).astype(np.float64), per_row(np.arange(len(parts))),
+                   clean_w=clean, **joined)
 
 
 class L2AProduct:
@@ -116,34 +151,54 @@ class WaveformWriter:
         self.directory = directory
         self.returns: list[np.ndarray] = []
         self.return_times: list[np.ndarray] = []
+        self.pending: list = []  # line parts taken and not yet written
+        self.pending_bytes = 0
 
     def __call__(self, chunk) -> None:
-        for beam in np.unique(chunk.beam):
-            rows = np.flatnonzero(chunk.beam == beam)
-            columns = self._columns(chunk, rows)
-            self._append(f"BEAM{int(beam):04d}", columns, chunk.power_w[rows].ravel())
+        """Take a flight line's part of a chunk (:class:`~flightsim.engine.readouts.waveforms.WaveformChunk`); the
+        parts are processed and written together once they hold FLUSH_BYTES of waveforms (a run of the shots
+        platform hands over one shot per line), and at :meth:`flush`."""
+        self.pending.append(chunk)
+        self.pending_bytes += chunk.power_w.nbytes
+        if self.pending_bytes >= FLUSH_BYTES:
+            self.flush()
+
+    def flush(self) -> None:
+        """Process and write the parts taken so far: each beam's shots of all of them at once, in the order they
+        came; returns.las gets their components part by part, beam by beam, as each part alone would give them."""
+        if not self.pending:
+            return
+        shots = Shots.join(self.pending)
+        self.pending, self.pending_bytes = [], 0
+        ranges = np.full((len(shots), MAX_COMPONENTS), np.nan)
+        for beam in np.unique(shots.beam):
+            rows = np.flatnonzero(shots.beam == beam)
+            columns = self._columns(shots, rows)
+            ranges[rows] = columns["ranging/component_range_m"]
+            self._append(f"BEAM{int(beam):04d}", columns, shots.power_w[rows].ravel())
             self.shots += len(rows)
             if self.l2a is not None:
-                clean = chunk.power_w if chunk.clean_w is None else chunk.clean_w
-                self.l2a.add(int(beam), columns, chunk.power_w[rows], clean[rows], self._ground(chunk, rows, columns))
+                clean = shots.power_w if shots.clean_w is None else shots.clean_w
+                self.l2a.add(int(beam), columns, shots.power_w[rows], clean[rows], self._ground(shots, rows, columns))
+        self._keep_returns(shots, np.lexsort((shots.beam, shots.part)), ranges)
 
-    def _ground(self, chunk, rows: np.ndarray, columns: dict[str, np.ndarray]) -> np.ndarray:
+    def _ground(self, shots, rows: np.ndarray, columns: dict[str, np.ndarray]) -> np.ndarray:
         """World elevation where each shot's central ray meets the scene (its nadir range along the beam) [m]."""
-        local = chunk.start[rows] + columns["truth/nadir_range_m"][:, None] * chunk.direction[rows]
+        local = shots.start[rows] + columns["truth/nadir_range_m"][:, None] * shots.direction[rows]
         return local[:, 2] + self.scene.origin[2]
 
-    def _columns(self, chunk, rows: np.ndarray) -> dict[str, np.ndarray]:
+    def _columns(self, shots, rows: np.ndarray) -> dict[str, np.ndarray]:
         s, n = self.system, len(rows)
-        samples = chunk.power_w.shape[1]
-        t0 = chunk.window_start_s[rows]
-        noise = None if chunk.clean_w is None else model.window_noise(chunk.power_w[rows])  # the receiver's
-        ranging, comp = (self._ranging_host if self.device is None else self._ranging_device)(chunk, rows, t0, noise)
-        self._keep_returns(chunk, rows, comp[:, 0])
-        received = chunk.received[rows]
+        samples = shots.power_w.shape[1]
+        t0 = shots.window_start_s[rows]
+        noise = None if shots.clean_w is None else model.window_noise(shots.power_w[rows])  # the receiver's
+        ranging, comp = (self._ranging_host if self.device is None else self._ranging_device)(shots, rows, t0, noise)
+        received = shots.received[rows]
+        line = shots.line_id[rows]
         columns = {
-            "shot_number": (np.uint64(chunk.line_id) << np.uint64(32)) + chunk.pulse[rows].astype(np.uint64),
-            "line_id": np.full(n, chunk.line_id, np.int32), "pulse": chunk.pulse[rows],
-            "delta_time": chunk.start_time + chunk.pulse[rows] / self.prf_hz,
+            "shot_number": (line.astype(np.uint64) << np.uint64(32)) + shots.pulse[rows].astype(np.uint64),
+            "line_id": line.astype(np.int32), "pulse": shots.pulse[rows],
+            "delta_time": shots.start_time[rows] + shots.pulse[rows] / self.prf_hz,
             "rx_window_start_s": t0, "rx_sample_count": np.full(n, samples, np.uint32),
             "tx_window_start_s": np.full(n, self.tx_start), "tx_sample_count": np.full(n, len(self.tx), np.uint32),
             **ranging, "ranging/component_range_m": comp[:, 0], "ranging/component_amplitude_w": comp[:, 1],
@@ -153,17 +208,17 @@ class WaveformWriter:
                                    + self.scene.origin[2],
             "truth/received_in_window": received[:, 0] / np.maximum(received[:, 0] + received[:, 1], 1e-300),
         }
-        columns.update(self._geolocation(chunk, rows, t0, samples))
+        columns.update(self._geolocation(shots, rows, t0, samples))
         return {name: np.asarray(v) for name, v in columns.items()}
 
-    def _ranging_host(self, chunk, rows: np.ndarray, t0: np.ndarray, noise) -> tuple[dict, np.ndarray]:
+    def _ranging_host(self, shots, rows: np.ndarray, t0: np.ndarray, noise) -> tuple[dict, np.ndarray]:
         """The ranging/ measures of each shot and its components (n, 3, MAX_COMPONENTS: range [m], amplitude [W],
         σ [s], NaN-padded) by the float64 reference model, one waveform at a time; ``noise``: the shots' receiver
         noise (mean, floor) [W], or None."""
         s = self.system
-        times = t0[:, None] + s.sample_interval_s * np.arange(chunk.power_w.shape[1])[None, :]
+        times = t0[:, None] + s.sample_interval_s * np.arange(shots.power_w.shape[1])[None, :]
         per_row = [None] * len(rows) if noise is None else list(zip(*noise))  # each row's (mean, floor), or None
-        echoes = [chunk.power_w[r].astype(np.float64) for r in rows]
+        echoes = [shots.power_w[r].astype(np.float64) for r in rows]
         measures = [model.measure(s, times[i], echo, per_row[i]) for i, echo in enumerate(echoes)]
         parts = [model.decompose(s, times[i], echo, noise=per_row[i]) for i, echo in enumerate(echoes)]
         comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
@@ -176,13 +231,13 @@ class WaveformWriter:
                 "ranging/fwhm_s": [m.fwhm_s for m in measures], "ranging/rms_width_s": [m.rms_width_s for m in measures],
                 "ranging/n_components": np.array([len(p) for p in parts], np.int32)}, comp
 
-    def _ranging_device(self, chunk, rows: np.ndarray, t0: np.ndarray, noise) -> tuple[dict, np.ndarray]:
+    def _ranging_device(self, shots, rows: np.ndarray, t0: np.ndarray, noise) -> tuple[dict, np.ndarray]:
         """:meth:`_ranging_host`'s columns computed for all the rows at once on ``self.device``
         (:func:`flightsim.instrument.waveform_batch.process`)."""
         from flightsim.instrument.waveform_batch import process
 
         s = self.system
-        b = process(s, t0, chunk.power_w[rows], self.device, noise=noise)
+        b = process(s, t0, shots.power_w[rows], self.device, noise=noise)
         ranges = b.ranges_m(s)
         k = min(MAX_COMPONENTS, b.time_s.shape[1])
         comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
@@ -193,20 +248,22 @@ class WaveformWriter:
                 "ranging/fwhm_s": b.measures["fwhm_s"], "ranging/rms_width_s": b.measures["rms_width_s"],
                 "ranging/n_components": b.count.astype(np.int32)}, comp
 
-    def _keep_returns(self, chunk, rows: np.ndarray, ranges: np.ndarray) -> None:
-        """Each component (range [m] per row and column, NaN-padded) as a world point with its shot's time."""
-        shot, column = np.nonzero(np.isfinite(ranges))
+    def _keep_returns(self, shots: Shots, order: np.ndarray, ranges: np.ndarray) -> None:
+        """Each component (range [m] per shot and column, NaN-padded) as a world point with its shot's time, the
+        shots taken in ``order``."""
+        shot, column = np.nonzero(np.isfinite(ranges[order]))
+        shot = order[shot]
         r = ranges[shot, column]
-        local = chunk.start[rows][shot] + r[:, None] * chunk.direction[rows][shot]
+        local = shots.start[shot] + r[:, None] * shots.direction[shot]
         self.returns.append(self.scene.local_to_world(local))
-        self.return_times.append(chunk.start_time + chunk.pulse[rows][shot] / self.prf_hz)
+        self.return_times.append(shots.start_time[shot] + shots.pulse[shot] / self.prf_hz)
 
-    def _geolocation(self, chunk, rows, t0, samples) -> dict[str, np.ndarray]:
+    def _geolocation(self, shots, rows, t0, samples) -> dict[str, np.ndarray]:
         s = self.system
         out = {}
         for tag, t in (("bin0", t0), ("lastbin", t0 + (samples - 1) * s.sample_interval_s)):
             r = 0.5 * model.C * (t - 0.5 * s.pulse_fwhm_s)
-            world = self.scene.local_to_world(chunk.start[rows] + r[:, None] * chunk.direction[rows])
+            world = self.scene.local_to_world(shots.start[rows] + r[:, None] * shots.direction[rows])
             out.update({f"geolocation/{a}_{tag}": world[:, k] for k, a in enumerate("xyz")})
             if self.to_geodetic is not None:
                 lon, lat = self.to_geodetic.transform(world[:, 0], world[:, 1])
@@ -229,6 +286,7 @@ class WaveformWriter:
         the caller's to close: :meth:`L2AProduct.close`.)"""
         from flightsim.outputs.grid_products import write_points_las
 
+        self.flush()
         names = [self.product.close()]
         if self.returns and sum(len(r) for r in self.returns):
             write_points_las(self.directory / "returns.las", np.concatenate(self.returns), self.scene.crs,

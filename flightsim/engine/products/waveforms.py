@@ -33,6 +33,12 @@ class WaveformProduct:
         if self.cloud and cfg.flight.platform == "shots":
             check_cloud_footprints(cfg, scene)
 
+    @staticmethod
+    def reads_cloud_leaves(cfg) -> bool:
+        """Whether a run over a point cloud reads the leaf area its points imply: not when it sums the points
+        by the GEDI method (``waveform.cloud_method = "gedi"``)."""
+        return cfg.waveform.cloud_method != "gedi"
+
     def open(self, tracer, directory: Path, cfg_text: str) -> None:
         from flightsim.instrument.waveform import system
         from flightsim.outputs.waveforms_h5 import L2AProduct, WaveformWriter
@@ -71,6 +77,7 @@ class WaveformProduct:
         self.writer(chunk)
 
     def close(self, counts) -> dict:
+        self.writer.flush()
         out = {"reflectance": reflectance_source(self.cfg, self.scene, self.cfg.waveform.reflectance)}
         if self.scene.cloud is not None:
             out["cloud_method"] = self.cfg.waveform.cloud_method
