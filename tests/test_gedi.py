@@ -167,13 +167,24 @@ def _footprints(tmp_path, rows: list[tuple[float, ...]], header: str = "x,y,delt
 CENTRES = [(409017.5, 3393017.5, 1.0e8), (409012.0, 3393021.0, 1.0e8 + 0.5), (409023.0, 3393013.0, 1.0e8 + 1.0)]
 
 
-def test_footprints_over_a_point_cloud_are_the_gedi_method_at_those_centres(tmp_path):
+@pytest.fixture
+def canopies_made(monkeypatch) -> list:
+    """The leaf areas made from a point cloud (``pointcloud.cloud_canopy``'s calls) during the test."""
+    from flightsim.scenes import pointcloud
+
+    made, original = [], pointcloud.cloud_canopy
+    monkeypatch.setattr(pointcloud, "cloud_canopy", lambda *a, **k: made.append(original(*a, **k)) or made[-1])
+    return made
+
+
+def test_footprints_over_a_point_cloud_are_the_gedi_method_at_those_centres(tmp_path, canopies_made):
     from flightsim.instrument.cloud_waveform_model import CloudBeam, model_waveforms
     from flightsim.scenes.pointcloud import read_point_cloud
 
     csv, out = _footprints(tmp_path, CENTRES), tmp_path / "cloud"
     assert main(["waveform", "--instrument", "gedi", "--scene", str(CLOUD), "--footprints", str(csv),
                  "--out", str(out)]) == 0
+    assert canopies_made == []  # the points are summed: no leaf area is made from them
     g = _beam(out / "waveforms.h5")
     n = int(g["rx_sample_count"][0])
     rx = g["rxwaveform"][:].reshape(-1, n).astype(np.float64)
@@ -195,10 +206,11 @@ def test_footprints_over_a_point_cloud_are_the_gedi_method_at_those_centres(tmp_
     assert list(_beam(out / "l2a.h5")["quality_flag"][:]) == [1, 1, 1]
 
 
-def test_footprints_over_a_point_cloud_can_be_ray_traced_instead(tmp_path):
+def test_footprints_over_a_point_cloud_can_be_ray_traced_instead(tmp_path, canopies_made):
     csv, out = _footprints(tmp_path, CENTRES[:1]), tmp_path / "rays"
     assert main(["waveform", "--instrument", "gedi", "--scene", str(CLOUD), "--footprints", str(csv),
                  "--set", "waveform.cloud_method=rays", "--out", str(out)]) == 0
+    assert len(canopies_made) == 1 and canopies_made[0].lad.max() > 0.0  # the rays cross the cloud's leaves
     summary = (out / "summary.json").read_text()
     assert '"cloud_method": "rays"' in summary and '"subray_returns": 3200' in summary
 

@@ -12,7 +12,7 @@ from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.core.errors import InputError
 from flightsim.engine import world as plan
 from flightsim.platforms.lines import MAX_CLIMB_MPS
-from flightsim.scenes import cache, forest_scene, mesh_obj, mesh_ply, meshio
+from flightsim.scenes import cache, forest_scene, height_grid, mesh_obj, mesh_ply, meshio
 from flightsim.scenes import mesh as scene_mesh
 from flightsim.scenes.height_grid import HeightGrid
 from flightsim.scenes.mesh_planes import COPLANAR_ANGLE_DEG, COPLANAR_OFFSET_M
@@ -270,6 +270,32 @@ def test_ground_height_is_the_surface_under_each_point():
     assert np.allclose(height[~in_hole], 0.3 * px[~in_hole] - 0.2 * py[~in_hole] + 5.0, atol=1e-9)
     assert np.all(np.isnan(height[in_hole]))
     assert np.isnan(grid.ground_height(-1.0, 5.0)) and np.isnan(grid.ground_height(5.0, 61.0))
+
+
+@pytest.mark.parametrize("block", [1, 7, 1 << 40])
+def test_ground_height_in_blocks_is_the_surface_under_each_point(block, monkeypatch):
+    """The points tested a few listings at a time (one point a block at 1, points off the mesh among them) read
+    the same surface as in one block: the crowded "mixed" mesh against each point's highest triangle under it,
+    found by a loop over every triangle in float64."""
+    vertices, triangles = grid_cases()["mixed"]
+    grid = HeightGrid.build(vertices, triangles)
+    rng = np.random.default_rng(4)
+    px, py = rng.uniform(-5.0, 65.0, 400), rng.uniform(-5.0, 65.0, 400)  # the terrain spans 0-58 m
+    monkeypatch.setattr(height_grid, "LISTINGS_PER_BLOCK", block)
+    height = grid.ground_height(px, py)
+    corners = vertices[triangles]
+    for x, y, got in zip(px, py, height):
+        best = -np.inf
+        for (x0, y0, z0), (x1, y1, z1), (x2, y2, z2) in corners:
+            det = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)
+            if det == 0.0:
+                continue
+            w1 = ((x - x0) * (y2 - y0) - (y - y0) * (x2 - x0)) / det
+            w2 = ((x1 - x0) * (y - y0) - (y1 - y0) * (x - x0)) / det
+            if min(w1, w2) >= -1e-12 and w1 + w2 <= 1.0 + 1e-12:
+                best = max(best, z0 + w1 * (z1 - z0) + w2 * (z2 - z0))
+        assert (np.isnan(got) and best == -np.inf) or got == pytest.approx(best, abs=1e-9)
+    assert np.isnan(height).any() and np.isfinite(height).sum() > 200
 
 
 # --------------------------------------------------------------------------------------------

@@ -129,7 +129,8 @@ def open_run(cfg: RunConfig, directory: Path, marks: list[float], claim: Callabl
     ``directory`` ready) and the product opened in ``directory`` with run.toml written."""
     from flightsim.engine.tracer import Tracer
 
-    scene = build_scene(cfg)  # Warp is loaded only for a scene that passed its checks
+    leaves = getattr(product_class(cfg), "reads_cloud_leaves", lambda _: True)(cfg)
+    scene = build_scene(cfg, cloud_leaves=leaves)  # Warp is loaded only for a scene that passed its checks
     compile_setup(cfg, scene)
     product = product_class(cfg)(cfg, scene)
     marks.append(time.perf_counter())

@@ -35,14 +35,15 @@ def scene_half_extent(cfg) -> float:
     return required_half_extent(cfg.flight.altitude_m, math.radians(angle), reach, cfg.scene.margin_m)
 
 
-def build_scene(cfg, half_extent_m: float | None = None) -> Scene:
+def build_scene(cfg, half_extent_m: float | None = None, cloud_leaves: bool = True) -> Scene:
     """The scene named by ``cfg.scene``; built-in scenes get ground of ``half_extent_m`` (default: just enough
-    for this config's flight, :func:`scene_half_extent`)."""
+    for this config's flight, :func:`scene_half_extent`); ``cloud_leaves``: see
+    :func:`flightsim.scenes.build.build_scene`."""
     from flightsim.scenes.build import scene_part
 
     sized = getattr(scene_part(cfg.scene), "sized", False)
     half = (scene_half_extent(cfg) if half_extent_m is None else half_extent_m) if sized else 0.0
-    return build_scene_of(cfg.scene, half, cfg.run.seed, cfg.run.scene_cache, cfg.run.device)
+    return build_scene_of(cfg.scene, half, cfg.run.seed, cfg.run.scene_cache, cfg.run.device, cloud_leaves)
 
 
 def planning_kernels(cfg, scene: Scene) -> list:

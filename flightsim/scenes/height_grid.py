@@ -27,6 +27,9 @@ MAX_CELLS_PER_SIDE = 2048
 MAX_LISTED_PER_TRIANGLE = 16.0
 """The cell size grows until the triangles are listed at most this many times each, on average."""
 
+LISTINGS_PER_BLOCK = 1 << 20
+"""(point, listed triangle) pairs :meth:`HeightGrid.ground_height` tests at a time."""
+
 
 @dataclass(frozen=True)
 class HeightGrid:
@@ -93,7 +96,8 @@ class HeightGrid:
     def ground_height(self, x, y) -> np.ndarray:
         """Highest surface z [m] straight under each point (x, y) [m] (any matching shapes); NaN where
         no triangle lies under the point (outside the scene, a hole). Walls (vertical triangles) are
-        not ground."""
+        not ground. The points go in blocks of at most LISTINGS_PER_BLOCK (point, listed triangle) pairs
+        (~0.1 kB of temporaries each: an ALS tile of 1e7 points over a 1 m ground grid lists ~1.2e8)."""
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         px, py = x.reshape(-1), y.reshape(-1)
         rows, cols = self.shape
@@ -102,13 +106,26 @@ class HeightGrid:
         inside = (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
         cell = np.where(inside, row * cols + col, 0).astype(np.int64)
         count = np.where(inside, self.start[cell + 1] - self.start[cell], 0)
+        listed = np.cumsum(count)
+        best = np.full(len(px), -np.inf)
+        first = 0
+        while first < len(px):
+            done = listed[first - 1] if first else 0
+            last = max(int(np.searchsorted(listed, done + LISTINGS_PER_BLOCK, side="right")), first + 1)
+            block = slice(first, last)
+            best[block] = self._highest_under(px[block], py[block], cell[block], count[block])
+            first = last
+        return np.where(np.isfinite(best), best, np.nan).reshape(x.shape)
+
+    def _highest_under(self, px: np.ndarray, py: np.ndarray, cell: np.ndarray, count: np.ndarray) -> np.ndarray:
+        """Highest z [m] of the triangles listed in each point's cell that lie under it; −inf where none."""
         point = np.repeat(np.arange(len(px)), count)
         k = np.arange(len(point)) - np.repeat(np.cumsum(count) - count, count)
         c = self.vertices[self.triangles[self.members[self.start[cell[point]] + k]]]
         height, under = _height_under(c, px[point], py[point])
         best = np.full(len(px), -np.inf)
         np.maximum.at(best, point[under], height[under])
-        return np.where(np.isfinite(best), best, np.nan).reshape(x.shape)
+        return best
 
     def _cells(self, xmin: float, ymin: float, xmax: float, ymax: float) -> tuple[slice, slice] | None:
         """(row, column) slices of the cells that meet the closed rectangle, None if none."""

@@ -269,7 +269,8 @@ class CloudScene(ScenePart):
         origin = s.origin if tuple(s.origin) != tuple(DEFAULT_ORIGIN) else None
         cloud = read_point_cloud(s.name, crs, origin, s.cloud_ground, s.cloud_cell_m)
         scene = ground_scene(cloud, Path(s.name).stem, s.cloud_cell_m, s.cloud_dem)
-        scene.canopy = cloud_canopy(cloud, scene, s.cloud_voxel_m, s.rho_canopy)
+        if self.cloud_leaves:
+            scene.canopy = cloud_canopy(cloud, scene, s.cloud_voxel_m, s.rho_canopy)
         return scene
 
 

@@ -44,13 +44,15 @@ class ScenePart:
     the scene cache may keep a file kind's Scene (it keeps the mesh, labels and height grid, not a canopy or
     point cloud); ``use_cache``: whether ``build`` may keep what it computes in the scene cache (``run.scene_cache``,
     set by :func:`flightsim.scenes.build.build_scene`); ``device``: the run's Warp device, on which ``build`` may
-    compute (``run.device``, set there too)."""
+    compute (``run.device``, set there too); ``cloud_leaves``: whether the run reads the leaf area a point cloud
+    implies (set there too: not when it sums the cloud's points instead)."""
 
     sized = False
     suffixes: tuple[str, ...] = ()
     cacheable = True  # a file kind whose Scene the scene cache can hold (its mesh and labels only)
     use_cache = False
     device = "cpu"
+    cloud_leaves = True
 
     def __init__(self, scene):
         self.s = scene
