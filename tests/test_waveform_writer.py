@@ -8,6 +8,7 @@ import h5py
 import numpy as np
 import pytest
 
+from flightsim.core import process_map
 from flightsim.engine.readouts.waveforms import WaveformChunk
 from flightsim.instrument import waveform_model as model
 from flightsim.outputs import h5_product, waveforms_h5
@@ -126,3 +127,20 @@ def test_the_components_are_the_reference_models_either_way(tmp_path, monkeypatc
             assert f[f"BEAM{beam:04d}/ranging/n_components"][k] == len(gs) > 0
             want = [0.5 * model.C * (g.time_s - 0.5 * SYSTEM.pulse_fwhm_s) for g in gs]
             assert np.array_equal(f[f"BEAM{beam:04d}/ranging/component_range_m"][k, :len(gs)], want)
+
+
+def test_the_fits_on_worker_processes_write_the_same_file(tmp_path, monkeypatch):
+    """A writer whose batches reach PARALLEL_ROWS spreads the host ranging over worker processes: the same
+    waveforms.h5 as one process, and the workers stopped once it is closed."""
+    parts = _parts(seed=11)
+    alone = _write(tmp_path / "alone", parts, one_at_a_time=False)
+    assert alone.workers is None  # 10 shots: below PARALLEL_ROWS
+    monkeypatch.setattr(waveforms_h5, "PARALLEL_ROWS", 2)
+    monkeypatch.setattr(waveforms_h5, "usable_cores", lambda: 2)
+    monkeypatch.setattr(process_map, "MIN_ROWS_PER_CHUNK", 1)
+    spread = _write(tmp_path / "spread", parts, one_at_a_time=False)
+    assert spread.workers is not None and len(spread.workers.processes) == 2
+    assert all(p.poll() is not None for p in spread.workers.processes)
+    a, b = _datasets(tmp_path / "alone" / "waveforms.h5"), _datasets(tmp_path / "spread" / "waveforms.h5")
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)

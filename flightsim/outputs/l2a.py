@@ -56,6 +56,7 @@ from scipy.optimize import least_squares
 from scipy.special import ndtri
 
 from flightsim.core.errors import InputError, positive
+from flightsim.core.process_map import ProcessMap, map_rows, row_chunks
 from flightsim.core.settings import Settings, check_settings, setting
 from flightsim.instrument.waveform_model import end_noise
 
@@ -105,7 +106,7 @@ class _Shots:
 
 def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin0, longitude_bin0,
                 latitude_lastbin, longitude_lastbin, pulse_sigma_s: float, noise: tuple | None = None,
-                settings: L2ASettings | None = None) -> dict[str, np.ndarray]:
+                settings: L2ASettings | None = None, workers: ProcessMap | None = None) -> dict[str, np.ndarray]:
     """GEDI L2A metrics of S waveforms of N samples (the module docstring gives the algorithm).
 
     Args:
@@ -116,6 +117,8 @@ def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin
         pulse_sigma_s: σ of the transmitted pulse [s], > 0.
         noise: (mean, σ) of the noise, each a number or (S,) [rx units]; None: from the waveforms' ends.
         settings: :class:`L2ASettings` (GEDI a1 by default).
+        workers: worker processes (:class:`~flightsim.core.process_map.ProcessMap`) to spread the Gaussian fits
+            over (the same results); None: this process.
 
     Returns: GEDI L2A names, (S,) arrays unless stated: ``rh`` (S, 101) [m], ``elev_lowestmode``,
     ``elev_highestreturn`` [m], ``lat_lowestmode``, ``lon_lowestmode``, ``lat_highestreturn``,
@@ -133,7 +136,7 @@ def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin
     shot, loc = _modes(shots.smooth, front, start, end)
     count = np.bincount(shot, minlength=len(shots.y))
     found &= count > 0
-    ground = _lowest_modes(shots, shot, loc, start, end, front, found, s.max_modes)
+    ground = _lowest_modes(shots, shot, loc, start, end, front, found, s.max_modes, workers)
     out = _positions(geo, shots.y.shape[1], ground, start, found)
     out["rh"] = _rh(shots.y, _elevations(geo, shots.y.shape[1]), start, end, out["elev_lowestmode"], found)
     out["num_detectedmodes"] = np.where(found, np.minimum(count, 255), 0).astype(np.uint8)
@@ -273,22 +276,33 @@ def _modes(sm, front, start, end) -> tuple[np.ndarray, np.ndarray]:
     return shot, i + np.clip(offset, -0.5, 0.5)
 
 
-def _lowest_modes(shots: _Shots, shot, loc, start, end, front, found, max_modes: int) -> np.ndarray:
-    """Fractional sample of each waveform's lowest mode after the Gaussian fit (NaN where no signal)."""
+def _lowest_modes(shots: _Shots, shot, loc, start, end, front, found, max_modes: int,
+                  workers: ProcessMap | None = None) -> np.ndarray:
+    """Fractional sample of each waveform's lowest mode after the Gaussian fit (NaN where no signal); the fits
+    spread over ``workers`` when given."""
     ground = np.full(len(shots.y), np.nan)
     bounds = np.searchsorted(shot, np.arange(len(shots.y) + 1))
-    for k in np.flatnonzero(found):
-        modes = loc[bounds[k]:bounds[k + 1]]
-        ground[k] = _fit_lowest(shots, k, modes, start[k], end[k], front[k], max_modes)
+    rows = np.flatnonzero(found)
+    chunks = [(shots.y[r], shots.smooth[r], shots.pulse, shots.kernel, [loc[bounds[k]:bounds[k + 1]] for k in r],
+               start[r], end[r], front[r], max_modes) for r in (rows[c] for c in row_chunks(len(rows), workers))]
+    if len(rows):
+        ground[rows] = np.concatenate(map_rows(_fit_rows, chunks, workers))
     return ground
 
 
-def _fit_lowest(shots: _Shots, k: int, modes: np.ndarray, start: float, end: float, front: float,
-                max_modes: int) -> float:
-    """The lowest detectable component of a Gaussian fit to shot k started from its modes [samples]."""
-    y, pulse = shots.y[k], shots.pulse
+def _fit_rows(y, smooth, pulse: float, kernel: float, modes: list, start, end, front, max_modes: int) -> np.ndarray:
+    """:func:`_fit_lowest` of each row of ``y`` (S, N) and ``smooth`` with its ``modes``, ``start``, ``end`` and
+    ``front`` (a module-level function: a worker process runs it on a chunk of rows)."""
+    return np.array([_fit_lowest(y[i], smooth[i], pulse, kernel, modes[i], start[i], end[i], front[i], max_modes)
+                     for i in range(len(y))], dtype=np.float64)
+
+
+def _fit_lowest(y: np.ndarray, smooth: np.ndarray, pulse: float, kernel: float, modes: np.ndarray, start: float,
+                end: float, front: float, max_modes: int) -> float:
+    """The lowest detectable component of a Gaussian fit to a waveform ``y`` (smoothed: ``smooth``; the pulse's
+    and the smoothing's σ ``pulse``, ``kernel`` [samples]) started from its modes [samples]."""
     if len(modes) > max_modes:  # the strongest, and always the lowest
-        strongest = np.argsort(shots.smooth[k, np.rint(modes[:-1]).astype(int)])[::-1][:max_modes - 1]
+        strongest = np.argsort(smooth[np.rint(modes[:-1]).astype(int)])[::-1][:max_modes - 1]
         modes = np.append(np.sort(modes[strongest]), modes[-1])
     a = int(max(0, math.floor(start - _FIT_PAD * pulse)))
     b = int(min(len(y), math.ceil(end + _FIT_PAD * pulse) + 1))
@@ -299,7 +313,7 @@ def _fit_lowest(shots: _Shots, k: int, modes: np.ndarray, start: float, end: flo
     fit = least_squares(_residual, np.clip(p0, lower, upper), jac=_jacobian, bounds=(lower, upper),
                         args=(x, target), x_scale="jac")
     amp, centre, width = np.split(fit.x, 3)
-    seen = amp * width / np.hypot(width, shots.kernel) > front  # its peak in the smoothed waveform
+    seen = amp * width / np.hypot(width, kernel) > front  # its peak in the smoothed waveform
     return float(centre[seen].max()) if seen.any() else float(modes[-1])
 
 

@@ -47,12 +47,25 @@ from pathlib import Path
 import numpy as np
 import pyproj
 
+from flightsim.core.process_map import ProcessMap, map_rows, row_chunks, usable_cores
 from flightsim.instrument import waveform_model as model
 from flightsim.outputs.h5_product import H5Product
 from flightsim.outputs.l2a import L2ASettings, l2a_metrics, truth_rh
 
 MAX_COMPONENTS = 4
 FLUSH_BYTES = 32 << 20  # waveforms [B] the writer gathers from line parts before it processes and writes them
+PARALLEL_ROWS = 512  # a beam's shots in one batch from which the per-shot fits go to worker processes
+MAX_WORKERS = 32  # the most worker processes a writer starts
+
+
+def _reference_ranging(system: model.WaveformSystem, times: np.ndarray, echoes: np.ndarray, noise) -> tuple[list, list]:
+    """(measures, components) of each waveform ``echoes`` (S, N) [W] at ``times`` (S, N) [s] by the float64
+    reference model; ``noise``: ((S,) means, (S,) floors) [W] or None (a module-level function: a worker process
+    runs it on a chunk of shots)."""
+    per_row = [None] * len(echoes) if noise is None else list(zip(*noise))
+    rows = [echo.astype(np.float64) for echo in echoes]
+    return ([model.measure(system, times[i], echo, per_row[i]) for i, echo in enumerate(rows)],
+            [model.decompose(system, times[i], echo, noise=per_row[i]) for i, echo in enumerate(rows)])
 
 
 @dataclass
@@ -105,12 +118,14 @@ class L2AProduct:
         self.truth: dict[int, list[dict]] = {}
 
     def add(self, beam: int, columns: dict[str, np.ndarray], rx: np.ndarray, clean: np.ndarray,
-            ground: np.ndarray) -> None:
+            ground: np.ndarray, workers: ProcessMap | None = None) -> None:
         """One beam's shots: their waveforms ``rx`` after the receiver and ``clean`` before it (S, N) [W],
-        ``columns`` as waveforms.h5 has them, ``ground`` (S,) the true ground elevation [m]."""
+        ``columns`` as waveforms.h5 has them, ``ground`` (S,) the true ground elevation [m]; the fits spread over
+        ``workers`` when given."""
         geo = {f"{q}_{tag}": columns[f"geolocation/{name}_{tag}"] for tag in ("bin0", "lastbin")
                for q, name in (("elevation", "z"), ("latitude", "latitude"), ("longitude", "longitude"))}
-        metrics = l2a_metrics(rx, self.dt, pulse_sigma_s=self.pulse_sigma, settings=self.settings, **geo)
+        metrics = l2a_metrics(rx, self.dt, pulse_sigma_s=self.pulse_sigma, settings=self.settings, workers=workers,
+                              **geo)
         metrics.update(shot_number=columns["shot_number"], delta_time=columns["delta_time"])
         self.beams.setdefault(beam, []).append(metrics)
         rh = truth_rh(np.asarray(clean, dtype=np.float64) * self.dt, geo["elevation_bin0"], geo["elevation_lastbin"],
@@ -152,6 +167,7 @@ class WaveformWriter:
         self.returns: list[np.ndarray] = []
         self.return_times: list[np.ndarray] = []
         self.pending: list = []  # line parts taken and not yet written
+        self.workers: ProcessMap | None = None
         self.pending_bytes = 0
 
     def __call__(self, chunk) -> None:
@@ -179,7 +195,8 @@ class WaveformWriter:
             self.shots += len(rows)
             if self.l2a is not None:
                 clean = shots.power_w if shots.clean_w is None else shots.clean_w
-                self.l2a.add(int(beam), columns, shots.power_w[rows], clean[rows], self._ground(shots, rows, columns))
+                self.l2a.add(int(beam), columns, shots.power_w[rows], clean[rows], self._ground(shots, rows, columns),
+                             self._workers(len(rows)))
         self._keep_returns(shots, np.lexsort((shots.beam, shots.part)), ranges)
 
     def _ground(self, shots, rows: np.ndarray, columns: dict[str, np.ndarray]) -> np.ndarray:
@@ -213,14 +230,15 @@ class WaveformWriter:
 
     def _ranging_host(self, shots, rows: np.ndarray, t0: np.ndarray, noise) -> tuple[dict, np.ndarray]:
         """The ranging/ measures of each shot and its components (n, 3, MAX_COMPONENTS: range [m], amplitude [W],
-        σ [s], NaN-padded) by the float64 reference model, one waveform at a time; ``noise``: the shots' receiver
-        noise (mean, floor) [W], or None."""
-        s = self.system
+        σ [s], NaN-padded) by the float64 reference model, one waveform at a time (over the writer's worker
+        processes when it has them); ``noise``: the shots' receiver noise (mean, floor) [W], or None."""
+        s, workers = self.system, self._workers(len(rows))
         times = t0[:, None] + s.sample_interval_s * np.arange(shots.power_w.shape[1])[None, :]
-        per_row = [None] * len(rows) if noise is None else list(zip(*noise))  # each row's (mean, floor), or None
-        echoes = [shots.power_w[r].astype(np.float64) for r in rows]
-        measures = [model.measure(s, times[i], echo, per_row[i]) for i, echo in enumerate(echoes)]
-        parts = [model.decompose(s, times[i], echo, noise=per_row[i]) for i, echo in enumerate(echoes)]
+        chunks = [(s, times[c], shots.power_w[rows[c]], None if noise is None else (noise[0][c], noise[1][c]))
+                  for c in row_chunks(len(rows), workers)]
+        results = map_rows(_reference_ranging, chunks, workers)
+        measures = [m for chunk_measures, _ in results for m in chunk_measures]
+        parts = [p for _, chunk_parts in results for p in chunk_parts]
         comp = np.full((len(rows), 3, MAX_COMPONENTS), np.nan)
         for i, gs in enumerate(parts):
             for j, g in enumerate(gs[:MAX_COMPONENTS]):
@@ -247,6 +265,14 @@ class WaveformWriter:
                 "ranging/range_centroid_m": ranges["centroid_range_m"], "ranging/range_peak_m": ranges["peak_range_m"],
                 "ranging/fwhm_s": b.measures["fwhm_s"], "ranging/rms_width_s": b.measures["rms_width_s"],
                 "ranging/n_components": b.count.astype(np.int32)}, comp
+
+    def _workers(self, rows: int) -> ProcessMap | None:
+        """The writer's worker processes for per-shot fits, started when a batch first has PARALLEL_ROWS rows and
+        this process may run on more than one core; None before and on one core."""
+        cores = usable_cores()
+        if self.workers is None and rows >= PARALLEL_ROWS and cores > 1:
+            self.workers = ProcessMap(min(cores, MAX_WORKERS))
+        return self.workers
 
     def _keep_returns(self, shots: Shots, order: np.ndarray, ranges: np.ndarray) -> None:
         """Each component (range [m] per shot and column, NaN-padded) as a world point with its shot's time, the
@@ -287,6 +313,7 @@ class WaveformWriter:
         from flightsim.outputs.grid_products import write_points_las
 
         self.flush()
+        self._stop_workers()
         names = [self.product.close()]
         if self.returns and sum(len(r) for r in self.returns):
             write_points_las(self.directory / "returns.las", np.concatenate(self.returns), self.scene.crs,
@@ -295,4 +322,9 @@ class WaveformWriter:
         return names
 
     def abort(self) -> None:
+        self._stop_workers()
         self.product.abort()
+
+    def _stop_workers(self) -> None:
+        if self.workers is not None:
+            self.workers.stop()

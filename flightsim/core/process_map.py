@@ -1,0 +1,150 @@
+"""A module-level function mapped over chunks of work in worker interpreters: a product's per-shot SciPy fits
+(waveforms.h5's host ranging, l2a.h5's lowest modes) on every core instead of one.
+
+A worker is a fresh interpreter (``sys.executable -c``, fork-free: this process may hold a CUDA context and
+threads) that imports the function's module by name, and not the parent's ``__main__`` (multiprocessing's spawn
+would re-run a script's top level); it takes the parent's ``sys.path`` and environment, so it runs the same
+NumPy and SciPy with the same dispatch, and a chunk's results are bit for bit those of the parent. Arguments and
+results travel pickled over a socket (:class:`multiprocessing.connection.Connection`); each worker gets its next
+chunk as it returns one, and :meth:`ProcessMap.map` gives the results in the chunks' order.
+
+An exception in a worker is raised again by :meth:`ProcessMap.map` with the worker's traceback as a note, and
+stops every worker (a map cut short leaves chunks in flight); :meth:`ProcessMap.stop` (also on garbage
+collection and at interpreter exit) ends them.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import socket
+import subprocess
+import sys
+import traceback
+import weakref
+from multiprocessing.connection import Connection, wait
+from typing import Callable
+
+MIN_ROWS_PER_CHUNK = 64  # the fewest rows a chunk of a map over rows holds
+CHUNKS_PER_WORKER = 4  # a map over rows cuts them into about this many chunks per worker (the fits' times vary)
+
+_ENTRY = ("import json, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "  # the parent stops its workers
+          "sys.path[:] = json.loads(sys.argv[2]); "
+          "from flightsim.core.process_map import serve; serve(int(sys.argv[1]))")
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity, as a batch scheduler sets it)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def row_chunks(rows: int, workers: "ProcessMap | None") -> list[slice]:
+    """``rows`` rows cut for :func:`map_rows`: one chunk without workers, else about CHUNKS_PER_WORKER per worker
+    of at least MIN_ROWS_PER_CHUNK rows."""
+    if workers is None:
+        return [slice(0, rows)]
+    size = max(MIN_ROWS_PER_CHUNK, -(-rows // (CHUNKS_PER_WORKER * len(workers.processes))))
+    return [slice(first, min(first + size, rows)) for first in range(0, rows, size)]
+
+
+def map_rows(function: Callable, chunks: list[tuple], workers: "ProcessMap | None") -> list:
+    """``[function(*chunk) for chunk in chunks]``, in this process without workers."""
+    return [function(*chunk) for chunk in chunks] if workers is None else workers.map(function, chunks)
+
+
+class ProcessMap:
+    """``count`` worker interpreters (>= 1) that run module-level functions on pickled arguments."""
+
+    def __init__(self, count: int):
+        self.processes: list[subprocess.Popen] = []
+        self.connections: list[Connection] = []
+        self._stop = weakref.finalize(self, _stop, self.processes, self.connections)
+        try:
+            for _ in range(count):
+                self._start()
+        except BaseException:
+            self.stop()
+            raise
+
+    def _start(self) -> None:
+        parent, child = socket.socketpair()
+        with child:
+            try:
+                process = subprocess.Popen([sys.executable, "-c", _ENTRY, str(child.fileno()), json.dumps(sys.path)],
+                                           pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL)
+            except BaseException:
+                parent.close()
+                raise
+        self.processes.append(process)
+        self.connections.append(Connection(parent.detach()))
+
+    def map(self, function: Callable, chunks: list[tuple]) -> list:
+        """``[function(*chunk) for chunk in chunks]``, the chunks spread over the workers."""
+        task = (function.__module__, function.__qualname__)
+        results: list = [None] * len(chunks)
+        waiting = iter(enumerate(chunks))
+        busy: dict[Connection, int] = {}
+
+        def give(conn: Connection) -> None:
+            index, chunk = next(waiting, (None, None))
+            if index is not None:
+                conn.send((*task, chunk))
+                busy[conn] = index
+
+        for conn in self.connections:
+            give(conn)
+        while busy:
+            for conn in wait(list(busy)):
+                index = busy.pop(conn)
+                results[index] = self._answer(conn)
+                give(conn)
+        return results
+
+    def _answer(self, conn: Connection):
+        worker = self.connections.index(conn)
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            message = None
+        if message is not None and message[0] == "ok":
+            return message[1]
+        process = self.processes[worker]
+        self.stop()
+        if message is None:
+            raise RuntimeError(f"worker {worker} (pid {process.pid}) ended with exit status {process.returncode}")
+        error = message[1]
+        error.add_note(f"raised in worker {worker} (pid {process.pid}):\n{message[2].rstrip()}")
+        raise error
+
+    def stop(self) -> None:
+        """End every worker (idempotent)."""
+        self._stop()
+
+
+def _stop(processes: list[subprocess.Popen], connections: list[Connection]) -> None:
+    for conn in connections:
+        conn.close()
+    for process in processes:
+        try:
+            process.wait(timeout=5.0)  # a worker ends when its connection closes
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+def serve(fd: int) -> None:
+    """A worker's loop: run each (module, name, arguments) received on the connection ``fd`` and send back
+    ("ok", result) or ("error", exception, traceback), until the connection closes."""
+    conn = Connection(fd)
+    while True:
+        try:
+            module, name, args = conn.recv()
+        except EOFError:
+            return
+        try:
+            function = importlib.import_module(module)
+            for part in name.split("."):
+                function = getattr(function, part)
+            conn.send(("ok", function(*args)))
+        except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises it
+            conn.send(("error", exc, traceback.format_exc()))

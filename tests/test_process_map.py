@@ -1,0 +1,82 @@
+"""Worker interpreters that run a module-level function over chunks (flightsim/core/process_map.py): results in
+the chunks' order and bit for bit the parent's, a worker's exception raised again with its traceback, a worker's
+death reported, and the per-shot fits of l2a.h5 and waveforms.h5 spread over workers giving the same numbers."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from flightsim.core.process_map import MIN_ROWS_PER_CHUNK, ProcessMap, map_rows, row_chunks
+from flightsim.outputs.l2a import l2a_metrics
+
+
+def square_sum(values: np.ndarray, offset: float) -> float:
+    return float(np.sum(np.sqrt(values) ** 3) + offset)
+
+
+def refuse(value: int) -> int:
+    raise ValueError(f"no {value}")
+
+
+def leave(value: int) -> int:
+    os._exit(3)
+
+
+@pytest.fixture(scope="module")
+def workers():
+    pool = ProcessMap(2)
+    yield pool
+    pool.stop()
+
+
+def test_results_come_in_the_chunks_order_bit_for_bit(workers):
+    rng = np.random.default_rng(2)
+    chunks = [(rng.uniform(0.0, 9.0, int(n)), float(k)) for k, n in enumerate(rng.integers(1, 5000, 23))]
+    assert workers.map(square_sum, chunks) == [square_sum(*chunk) for chunk in chunks]
+    assert map_rows(square_sum, chunks, None) == [square_sum(*chunk) for chunk in chunks]
+    assert workers.map(square_sum, []) == []
+
+
+def test_rows_are_cut_into_chunks_of_at_least_the_least_size(workers):
+    assert row_chunks(1000, None) == [slice(0, 1000)]
+    cuts = row_chunks(1000, workers)  # two workers: four chunks each
+    assert cuts[0] == slice(0, 125) and cuts[-1].stop == 1000 and len(cuts) == 8
+    assert all(a.stop == b.start for a, b in zip(cuts, cuts[1:]))
+    assert row_chunks(100, workers) == [slice(0, MIN_ROWS_PER_CHUNK), slice(MIN_ROWS_PER_CHUNK, 100)]
+    assert row_chunks(0, workers) == []
+
+
+def test_a_workers_exception_is_raised_with_its_traceback_and_stops_the_workers():
+    pool = ProcessMap(2)
+    with pytest.raises(ValueError, match="no 7") as caught:
+        pool.map(refuse, [(7,)])
+    assert any("raised in worker" in note and "refuse" in note for note in caught.value.__notes__)
+    assert all(p.poll() is not None for p in pool.processes)  # stopped
+    pool.stop()  # again: nothing left to do
+
+
+def test_a_worker_that_dies_is_named():
+    pool = ProcessMap(1)
+    with pytest.raises(RuntimeError, match=r"worker 0 \(pid \d+\) ended with exit status 3"):
+        pool.map(leave, [(1,)])
+
+
+def test_l2a_fits_over_workers_are_the_fits_in_this_process(workers):
+    """Noisy two-mode waveforms (test_l2a's GEDI-like shapes): every metric the same bit for bit."""
+    dt, n, pulse = 0.5e-9, 1000, 6e-9
+    i = np.arange(n, dtype=np.float64)
+    rng = np.random.default_rng(9)
+    shots = 300
+    centre = rng.uniform(600.0, 800.0, shots)[:, None]
+    rx = (np.exp(-0.5 * ((i - centre) / 12.0) ** 2) + 0.4 * np.exp(-0.5 * ((i - centre + 280.0) / 24.0) ** 2)
+          + rng.normal(0.0, 0.005, (shots, n)))
+    z0 = np.full(shots, 100.0)
+    args = (rx, dt, z0, z0 - (n - 1) * 0.075, np.full(shots, 10.0), np.full(shots, 20.0), np.full(shots, 10.001),
+            np.full(shots, 20.002), pulse)
+    alone, spread = l2a_metrics(*args), l2a_metrics(*args, workers=workers)
+    assert sorted(alone) == sorted(spread)
+    for name in alone:
+        np.testing.assert_array_equal(alone[name], spread[name], err_msg=name)
+    assert np.isfinite(alone["elev_lowestmode"]).all() and (alone["num_detectedmodes"] >= 2).mean() > 0.9
