@@ -37,3 +37,33 @@ def test_culling_is_conservative_for_a_banked_and_boresighted_sensor(tmp_path):
     full = simulate_to_directory(pad_config(tmp_path, False, **settings), tmp_path / "full")
     assert culled["pulses_culled"] > 0
     assert culled["points"] == full["points"] and np.isclose(culled["rms_m"]["nominal"], full["rms_m"]["nominal"])
+
+
+def test_every_lines_windows_planned_together_are_each_line_planned_alone():
+    """Lines of 2-40 samples at random attitudes passing near, over and far from a 200 m square scene: the windows
+    of all of them worked out at once (as a run plans them) are those of each line alone, line by line; some lines
+    are culled whole and some in part."""
+    from flightsim.engine.coverage import pulse_windows
+    from trajectories import PulseTiming, Trajectory, rotation
+
+    rng = np.random.default_rng(12)
+    lines, positions = [], []
+    for k in range(400):
+        n = int(rng.integers(2, 40))
+        t = 1.0e8 + 7.0 * k + np.cumsum(rng.uniform(0.01, 0.3, n))
+        start, heading = rng.uniform(-900.0, 900.0, 2), rng.uniform(-np.pi, np.pi)
+        along = np.cumsum(rng.uniform(5.0, 40.0, n))
+        xyz = np.column_stack([start[0] + along * np.sin(heading), start[1] + along * np.cos(heading),
+                               rng.uniform(300.0, 600.0, n)])
+        attitude = np.column_stack([rng.normal(0.0, 0.2, n), rng.normal(0.0, 0.2, n), np.full(n, heading)])
+        lines.append(Trajectory(t, xyz, attitude, line_id=k))
+        positions.append(xyz)
+    bounds = (np.array([-100.0, -100.0, 0.0]), np.array([100.0, 100.0, 20.0]))
+    timing = PulseTiming(prf_hz=50.0)
+    boresight = rotation.normalize(np.array([0.01, -0.02, 0.003, 1.0]))
+    together = pulse_windows(lines, positions, bounds, timing, 0.05, boresight)
+    alone = [pulse_windows([line], [xyz], bounds, timing, 0.05, boresight)[0] for line, xyz in zip(lines, positions)]
+    assert together == alone
+    counts = [timing.pulse_count(line.start_time, line.end_time) for line in lines]
+    whole = sum(w == [(0, c)] for w, c in zip(together, counts))
+    assert sum(w == [] for w in together) > 50 and whole > 5 and len(lines) - whole - sum(w == [] for w in together) > 5

@@ -13,17 +13,19 @@ import math
 import numpy as np
 
 from trajectories import PulseTiming, Trajectory, rotation
+from trajectories.attitude import quaternion_from_matrix, rotation_body_to_enu
 
 MARGIN_RAD = math.radians(1.0)  # added to the fan's largest exit angle
 NO_CULLING_RAD = math.radians(80.0)  # cones wider than this reach everywhere: keep every pulse
 
 
-def _reach(trajectory: Trajectory, local_position: np.ndarray, boresight: np.ndarray, cone: float,
+def _reach(quat: np.ndarray, local_position: np.ndarray, boresight: np.ndarray, cone: float,
            floor_z: float) -> np.ndarray:
     """Horizontal reach of each sample's beam cone [m]; inf where the cone is too wide to bound.
 
-    boresight: (4,) quaternion (x, y, z, w) of the sensor frame in the body frame."""
-    sensor = rotation.multiply(rotation.normalize(trajectory.quaternions()), boresight)
+    quat: (n, 4) quaternions (x, y, z, w) of the body frame (either sign); boresight: (4,) quaternion of the sensor
+    frame in the body frame."""
+    sensor = rotation.multiply(rotation.normalize(quat), boresight)
     axis = rotation.rotate(sensor, [0.0, 0.0, 1.0])
     tilt = np.arccos(np.clip(-axis[:, 2], -1.0, 1.0))
     half_angle = tilt + cone
@@ -43,23 +45,36 @@ def miss_distance(trajectory: Trajectory, local_position: np.ndarray, bounds: tu
                   cone_rad: float, boresight: np.ndarray) -> float:
     """How far the beams' reach stays from the scene's bounding rectangle over a trajectory's samples [m]: the
     least gap less reach (without the culling margin); ≤ 0 where they can reach it."""
-    reach = _reach(trajectory, local_position, boresight, cone_rad, bounds[0][2])
+    reach = _reach(trajectory.quaternions(), local_position, boresight, cone_rad, bounds[0][2])
     return float(np.min(_gap(local_position, bounds) - reach))
 
 
-def pulse_windows(trajectory: Trajectory, local_position: np.ndarray, bounds: tuple[np.ndarray, np.ndarray],
-                  timing: PulseTiming, cone_rad: float, boresight: np.ndarray) -> list[tuple[int, int]]:
-    """Ranges [k0, k1) of pulse indices (from the trajectory's first pulse) that can reach the scene.
+def pulse_windows(trajectories: list[Trajectory], local_positions: list[np.ndarray],
+                  bounds: tuple[np.ndarray, np.ndarray], timing: PulseTiming, cone_rad: float,
+                  boresight: np.ndarray) -> list[list[tuple[int, int]]]:
+    """For each trajectory, the ranges [k0, k1) of pulse indices (from its first pulse) that can reach the scene.
 
-    local_position: (n, 3) trajectory positions in the scene's local frame [m]; bounds: the
-    scene's local (lo, hi) corners; cone_rad: the fan's largest off-axis angle [rad]; boresight: (4,) quaternion
-    (x, y, z, w) of the sensor frame in the body frame.
+    local_positions: each trajectory's (n, 3) positions in the scene's local frame [m]; bounds: the scene's local
+    (lo, hi) corners; cone_rad: the fan's largest off-axis angle [rad]; boresight: (4,) quaternion (x, y, z, w) of
+    the sensor frame in the body frame. The samples of all trajectories are worked out together (a shots run flies
+    a two-sample line per footprint); each sample's reach is its own line's to the bit (a quaternion's sign does
+    not change it).
     """
-    reach = _reach(trajectory, local_position, boresight, cone_rad + MARGIN_RAD, bounds[0][2])
-    gap = _gap(local_position, bounds)  # horizontal distance to the scene's rectangle [m]
-    step = np.linalg.norm(np.diff(local_position[:, :2], axis=0), axis=1)
-    # a segment may come closer than its ends by up to half its length
-    near = np.minimum(gap[:-1] - reach[:-1], gap[1:] - reach[1:]) - 0.5 * step <= 0.0
+    sizes = np.array([len(p) for p in local_positions])
+    position = np.concatenate(local_positions)
+    attitude = np.concatenate([t.attitude for t in trajectories])
+    quat = quaternion_from_matrix(rotation_body_to_enu(attitude[:, 0], attitude[:, 1], attitude[:, 2]))
+    reach = _reach(quat, position, boresight, cone_rad + MARGIN_RAD, bounds[0][2])
+    beyond = _gap(position, bounds) - reach  # horizontal distance from the reach to the scene's rectangle [m]
+    step = np.linalg.norm(np.diff(position[:, :2], axis=0), axis=1)
+    # a segment may come closer than its ends by up to half its length (segments across two lines left out below)
+    near = np.minimum(beyond[:-1], beyond[1:]) - 0.5 * step <= 0.0
+    ends = np.cumsum(sizes)
+    return [_windows(t, near[end - size:end - 1], timing) for t, size, end in zip(trajectories, sizes, ends)]
+
+
+def _windows(trajectory: Trajectory, near: np.ndarray, timing: PulseTiming) -> list[tuple[int, int]]:
+    """Pulse index ranges [k0, k1) of a trajectory's segments ``near`` the scene, those that meet merged."""
     n_pulses = timing.pulse_count(trajectory.start_time, trajectory.end_time)
     rel = trajectory.gps_time - trajectory.start_time
     windows: list[tuple[int, int]] = []

@@ -284,20 +284,25 @@ class Tracer:
 
     def windows(self, trajectory: Trajectory) -> list[tuple[int, int]]:
         """Pulse index ranges [k0, k1) of a trajectory to launch: within the line's pulse limits, and
-        (with culling on) only those whose beams can reach the scene. Worked out once per line."""
-        if trajectory.line_id not in self._windows:
-            self._windows[trajectory.line_id] = self._plan_windows(trajectory)
+        (with culling on) only those whose beams can reach the scene. Worked out once, for every line at once."""
+        if not self._windows:
+            self._windows = self._plan_windows(self.trajectories)
         return self._windows[trajectory.line_id]
 
-    def _plan_windows(self, trajectory: Trajectory) -> list[tuple[int, int]]:
-        lo, hi = self.pulse_limits.get(trajectory.line_id, (0, self.pulse_count(trajectory)))
-        hi = min(hi, self.pulse_count(trajectory))
+    def _plan_windows(self, trajectories: list[Trajectory]) -> dict[int, list[tuple[int, int]]]:
+        if not trajectories:
+            return {}
         if not self.cfg.run.cull:
-            windows = [(0, hi)]
+            reaching = [[(0, self.pulse_count(t))] for t in trajectories]
         else:
-            windows = pulse_windows(trajectory, self.scene.world_to_local(trajectory.position), self.scene.bounds(),
-                                    self.timing, self.cone_rad, self.boresight_quat)
-        return [(max(k0, lo), min(k1, hi)) for k0, k1 in windows if min(k1, hi) > max(k0, lo)]
+            reaching = pulse_windows(trajectories, [self.scene.world_to_local(t.position) for t in trajectories],
+                                     self.scene.bounds(), self.timing, self.cone_rad, self.boresight_quat)
+        planned = {}
+        for trajectory, windows in zip(trajectories, reaching):
+            lo, hi = self.pulse_limits.get(trajectory.line_id, (0, self.pulse_count(trajectory)))
+            hi = min(hi, self.pulse_count(trajectory))
+            planned[trajectory.line_id] = [(max(k0, lo), min(k1, hi)) for k0, k1 in windows if min(k1, hi) > max(k0, lo)]
+        return planned
 
     @property
     def cone_rad(self) -> float:
