@@ -653,3 +653,24 @@ def test_pulse_timing_validation(kwargs, field):
     with pytest.raises(TrajectoryError) as info:
         PulseTiming(**kwargs)
     assert info.value.field == field
+
+
+def test_quaternions_primed_together_are_each_trajectorys_own_bit_for_bit():
+    """prime_quaternions over trajectories at random attitudes (headings across ±180°, so the signs flip within
+    some lines): the quaternions each trajectory works out alone, to the bit, sign continuity per line."""
+    from trajectories import prime_quaternions
+
+    rng = np.random.default_rng(3)
+    lines = []
+    for k in range(300):
+        n = int(rng.integers(2, 30))
+        attitude = np.column_stack([rng.normal(0.0, 0.4, n), rng.normal(0.0, 0.4, n), rng.uniform(-4.0, 4.0, n)])
+        lines.append((1.0e8 + np.cumsum(rng.uniform(0.01, 1.0, n)), rng.normal(0.0, 100.0, (n, 3)), attitude, k))
+    primed, alone = [Trajectory(*line) for line in lines], [Trajectory(*line) for line in lines]
+    prime_quaternions(primed)
+    assert all("_quaternions" in t.__dict__ for t in primed) and not any("_quaternions" in t.__dict__ for t in alone)
+    flips = 0
+    for a, b in zip(primed, alone):
+        assert np.array_equal(a.quaternions(), b.quaternions())
+        flips += int(np.any(np.einsum("ij,ij->i", a.quaternions()[1:], a.quaternions()[:-1]) < 0.0))
+    assert flips == 0 and sum(np.any(np.diff(np.sign(t.quaternions()[:, 3])) != 0) for t in alone) > 10

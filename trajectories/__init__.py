@@ -9,7 +9,7 @@ _HOMES = {
     "euler_from_rotation": "attitude", "make_continuous": "attitude", "quaternion_from_matrix": "attitude",
     "rotation_body_to_enu": "attitude", "TrajectoryError": "errors", "FlightLine": "lines",
     "climb_limited": "lines", "plan_parallel_lines": "lines", "PulseTiming": "timing", "COLUMNS": "trajectory",
-    "Trajectory": "trajectory",
+    "Trajectory": "trajectory", "prime_quaternions": "trajectory",
 }
 __all__ = sorted(_HOMES)
 

@@ -13,7 +13,7 @@ import warp as wp
 
 from flightsim.scenes.scene import Scene
 from kernels import frames
-from trajectories import PulseTiming, Trajectory
+from trajectories import PulseTiming, Trajectory, prime_quaternions
 
 SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 24}  # automatic chunk size, in beam slots
 POINT_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 22}  # readouts that bring every return to the host
@@ -35,6 +35,7 @@ def line_table(trajectories: list[Trajectory], scene: Scene, timing: PulseTiming
     Times are relative to each line's first pulse; the noise seed of a line mixes the run's seed
     and the line id, so noise is keyed by (seed, line, pulse, beam).
     """
+    prime_quaternions(trajectories)
     counts = np.array([len(t.gps_time) for t in trajectories], dtype=np.int32)
     lines = frames.Lines()
     lines.times = wp.array(np.concatenate([t.gps_time - t.start_time for t in trajectories]), dtype=wp.float64,

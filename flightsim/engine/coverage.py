@@ -12,8 +12,7 @@ import math
 
 import numpy as np
 
-from trajectories import PulseTiming, Trajectory, rotation
-from trajectories.attitude import quaternion_from_matrix, rotation_body_to_enu
+from trajectories import PulseTiming, Trajectory, prime_quaternions, rotation
 
 MARGIN_RAD = math.radians(1.0)  # added to the fan's largest exit angle
 NO_CULLING_RAD = math.radians(80.0)  # cones wider than this reach everywhere: keep every pulse
@@ -23,7 +22,7 @@ def _reach(quat: np.ndarray, local_position: np.ndarray, boresight: np.ndarray, 
            floor_z: float) -> np.ndarray:
     """Horizontal reach of each sample's beam cone [m]; inf where the cone is too wide to bound.
 
-    quat: (n, 4) quaternions (x, y, z, w) of the body frame (either sign); boresight: (4,) quaternion of the sensor
+    quat: (n, 4) quaternions (x, y, z, w) of the body frame; boresight: (4,) quaternion of the sensor
     frame in the body frame."""
     sensor = rotation.multiply(rotation.normalize(quat), boresight)
     axis = rotation.rotate(sensor, [0.0, 0.0, 1.0])
@@ -57,13 +56,12 @@ def pulse_windows(trajectories: list[Trajectory], local_positions: list[np.ndarr
     local_positions: each trajectory's (n, 3) positions in the scene's local frame [m]; bounds: the scene's local
     (lo, hi) corners; cone_rad: the fan's largest off-axis angle [rad]; boresight: (4,) quaternion (x, y, z, w) of
     the sensor frame in the body frame. The samples of all trajectories are worked out together (a shots run flies
-    a two-sample line per footprint); each sample's reach is its own line's to the bit (a quaternion's sign does
-    not change it).
+    a two-sample line per footprint, their quaternions too: :func:`trajectories.trajectory.prime_quaternions`).
     """
     sizes = np.array([len(p) for p in local_positions])
     position = np.concatenate(local_positions)
-    attitude = np.concatenate([t.attitude for t in trajectories])
-    quat = quaternion_from_matrix(rotation_body_to_enu(attitude[:, 0], attitude[:, 1], attitude[:, 2]))
+    prime_quaternions(trajectories)
+    quat = np.concatenate([t.quaternions() for t in trajectories])
     reach = _reach(quat, position, boresight, cone_rad + MARGIN_RAD, bounds[0][2])
     beyond = _gap(position, bounds) - reach  # horizontal distance from the reach to the scene's rectangle [m]
     step = np.linalg.norm(np.diff(position[:, :2], axis=0), axis=1)
