@@ -663,6 +663,17 @@ def test_macarthur_horn_follows_the_ground_and_its_rules():
     canopy2 = lad_from_points(xyz, is_ground, lambda x, y: ground[np.floor(x).astype(int), np.floor(y).astype(int)],
                               [0.0, 0.0, 0.0], [1.0, 1.0, dz], (2, 2, 12), min_height_m=0.0)
     assert np.array_equal(canopy.lad, canopy2.lad)
+    # ... and with each point's ground height given, some points second returns (left out) and some off the grid
+    numbers = rng.integers(1, 3, len(xyz))
+    off = np.vstack([xyz, [[5.0, 0.5, 3.0], [-1.0, 0.5, 3.0]]])
+    numbers, flags = np.r_[numbers, 1, 1], np.r_[is_ground, False, False]
+    column = np.clip(np.floor(off[:, :2]).astype(int), 0, 1)
+    per_point = np.r_[ground[column[:-2, 0], column[:-2, 1]], np.nan, np.nan]  # NaN: off the grid, never read
+    by_point = lad_from_points(off, flags, per_point, [0.0, 0.0, 0.0], [1.0, 1.0, dz], (2, 2, 12), min_height_m=0.0,
+                               return_number=numbers)
+    by_grid = lad_from_points(off, flags, ground, [0.0, 0.0, 0.0], [1.0, 1.0, dz], (2, 2, 12), min_height_m=0.0,
+                              return_number=numbers)
+    assert np.array_equal(by_point.lad, by_grid.lad) and not np.array_equal(by_point.lad, canopy.lad)
     # P_gap = 0: a layer that stopped all n pulses reaching it takes half a pulse through: ln(2n) / (G dz)
     n = 100
     pts = np.column_stack([np.full(n, 0.5), np.full(n, 0.5), np.full(n, 3.5)])
@@ -687,3 +698,5 @@ def test_macarthur_horn_bad_input():
         lad_from_points(np.zeros((3, 3)), np.zeros(3, bool), 0.0, [0, 0, 0], [1, 0, 1])
     with pytest.raises(InputError, match="ground_height"):
         lad_from_points(np.zeros((3, 3)), np.zeros(3, bool), np.zeros((4, 4)), [0, 0, 0], [1, 1, 1], (2, 2, 2))
+    with pytest.raises(InputError, match=r"ground_height.*\(4,\) heights, one per point"):
+        lad_from_points(np.zeros((4, 3)), np.zeros(4, bool), np.zeros(3), [0, 0, 0], [1, 1, 1], (2, 2, 2))

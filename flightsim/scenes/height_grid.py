@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -121,11 +122,16 @@ class HeightGrid:
         """Highest z [m] of the triangles listed in each point's cell that lie under it; −inf where none."""
         point = np.repeat(np.arange(len(px)), count)
         k = np.arange(len(point)) - np.repeat(np.cumsum(count) - count, count)
-        c = self.vertices[self.triangles[self.members[self.start[cell[point]] + k]]]
-        height, under = _height_under(c, px[point], py[point])
+        terms = self._terms[self.members[self.start[cell[point]] + k]].T
+        height, under = _height_at(terms, px[point], py[point])
         best = np.full(len(px), -np.inf)
         np.maximum.at(best, point[under], height[under])
         return best
+
+    @cached_property
+    def _terms(self) -> np.ndarray:
+        """(T, 11) :func:`_triangle_terms` of every triangle, worked out once."""
+        return _triangle_terms(self.vertices[self.triangles]).T.copy()
 
     def _cells(self, xmin: float, ymin: float, xmax: float, ymax: float) -> tuple[slice, slice] | None:
         """(row, column) slices of the cells that meet the closed rectangle, None if none."""
@@ -282,17 +288,30 @@ def _listing(c_lo: np.ndarray, r_lo: np.ndarray, n_cols: np.ndarray, listed: np.
 def _height_under(corners: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """z [m] of each triangle (m, 3, 3) at (x, y) (m,), and whether the point lies in the triangle's
     (non-degenerate) xy projection, edges included."""
+    return _height_at(_triangle_terms(corners), x, y)
+
+
+def _triangle_terms(corners: np.ndarray) -> np.ndarray:
+    """(11, m) of triangles (m, 3, 3): the first corner x0, y0, z0, the xy edges to the others (ex1, ey1, ex2, ey2),
+    the determinant of the edges (1 for a degenerate xy projection), z1 − z0, z2 − z0, and 1.0 where degenerate."""
     x0, y0, z0 = corners[:, 0, 0], corners[:, 0, 1], corners[:, 0, 2]
     ex1, ey1 = corners[:, 1, 0] - x0, corners[:, 1, 1] - y0
     ex2, ey2 = corners[:, 2, 0] - x0, corners[:, 2, 1] - y0
     det = ex1 * ey2 - ey1 * ex2
     flat = np.abs(det) <= 1e-12 * (ex1 * ex1 + ey1 * ey1 + ex2 * ex2 + ey2 * ey2)
-    det = np.where(flat, 1.0, det)
+    return np.stack([x0, y0, z0, ex1, ey1, ex2, ey2, np.where(flat, 1.0, det), corners[:, 1, 2] - z0,
+                     corners[:, 2, 2] - z0, flat.astype(np.float64)])
+
+
+def _height_at(terms: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """z [m] of each triangle (its :func:`_triangle_terms`, (11, m)) at (x, y) (m,), and whether the point lies in
+    the triangle's (non-degenerate) xy projection, edges included."""
+    x0, y0, z0, ex1, ey1, ex2, ey2, det, dz1, dz2, flat = terms
     px, py = x - x0, y - y0
     w1 = (px * ey2 - py * ex2) / det
     w2 = (ex1 * py - ey1 * px) / det
-    under = ~flat & (w1 >= -1e-12) & (w2 >= -1e-12) & (w1 + w2 <= 1.0 + 1e-12)
-    return z0 + w1 * (corners[:, 1, 2] - z0) + w2 * (corners[:, 2, 2] - z0), under
+    under = (flat == 0.0) & (w1 >= -1e-12) & (w2 >= -1e-12) & (w1 + w2 <= 1.0 + 1e-12)
+    return z0 + w1 * dz1 + w2 * dz2, under
 
 
 def highest_over(corners: np.ndarray, tops: np.ndarray, xmin: float, ymin: float, xmax: float,

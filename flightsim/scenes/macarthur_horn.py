@@ -70,8 +70,8 @@ def lad_from_points(
     Args:
         xyz_local: (N, 3) float64 local coordinates [m] of the points (one per pulse: first returns).
         is_ground: (N,) bool, True for ground returns.
-        ground_height: the local ground height [m]: a callable ``f(x, y) -> z`` on arrays, a number, or an
-            (nx, ny) grid of each voxel column's ground height.
+        ground_height: the local ground height [m]: a callable ``f(x, y) -> z`` on arrays, a number, an
+            (nx, ny) grid of each voxel column's ground height, or an (N,) array of each point's.
         lower: (3,) local corner [m] of the voxel grid.
         cell: (3,) voxel edge lengths [m].
         dims: (nx, ny, nz) voxels per axis; None: from ``lower`` to the voxel of the farthest point on each axis.
@@ -82,7 +82,9 @@ def lad_from_points(
         max_lad: the most u of any voxel [m²/m³]; None: only the half-pulse rule bounds it.
         leaf_angles, leaf_reflectance, leaf_transmittance: passed on to the :class:`VoxelCanopy`.
     """
-    xyz, ground = _points(xyz_local, is_ground, return_number)
+    xyz, ground, used = _points(xyz_local, is_ground, return_number)
+    if np.ndim(ground_height) == 1:  # each point's: those of the points used
+        ground_height = _per_point(ground_height, len(used))[used]
     lower, cell, (nx, ny, nz) = _grid(lower, cell, dims, xyz)
     if not (math.isfinite(min_height_m) and min_height_m >= 0.0):
         raise InputError("min_height_m", min_height_m, "a finite height ≥ 0 m")
@@ -95,7 +97,8 @@ def lad_from_points(
     col = np.floor((xyz[:, :2] - lower[:2]) / cell[:2])
     inside = (col[:, 0] >= 0) & (col[:, 0] < nx) & (col[:, 1] >= 0) & (col[:, 1] < ny)
     xyz, ground, col = xyz[inside], ground[inside], col[inside].astype(np.int64)
-    floor_z = _ground_heights(ground_height, xyz, col, (nx, ny))
+    floor_z = _ground_heights(ground_height[inside] if np.ndim(ground_height) == 1 else ground_height, xyz, col,
+                              (nx, ny))
     reached_ground = ground | (xyz[:, 2] < floor_z + min_height_m)
     # Layer of each point: −1 below every layer (ground, or under the grid), nz above every layer.
     layer = np.clip(np.floor((xyz[:, 2] - lower[2]) / cell[2]), -1, nz).astype(np.int64)
@@ -120,8 +123,9 @@ def _invert(counts: np.ndarray, g_dz: float, unknown_lad: float, max_lad: float 
     return lad
 
 
-def _points(xyz_local, is_ground, return_number) -> tuple[np.ndarray, np.ndarray]:
-    """The checked (N, 3) coordinates and (N,) ground flags, first returns only where return numbers are given."""
+def _points(xyz_local, is_ground, return_number) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The checked (N, 3) coordinates and (N,) ground flags, first returns only where return numbers are given,
+    and which of the given points they are (bool mask)."""
     xyz = np.asarray(xyz_local, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise InputError("xyz_local", f"an array of shape {xyz.shape}", "(N, 3) local point coordinates [m]")
@@ -130,13 +134,22 @@ def _points(xyz_local, is_ground, return_number) -> tuple[np.ndarray, np.ndarray
     ground = np.asarray(is_ground, dtype=bool)
     if ground.shape != (len(xyz),):
         raise InputError("is_ground", f"an array of shape {ground.shape}", f"({len(xyz)},) flags, one per point")
+    used = np.ones(len(xyz), dtype=bool)
     if return_number is not None:
         numbers = np.asarray(return_number)
         if numbers.shape != (len(xyz),):
             raise InputError("return_number", f"an array of shape {numbers.shape}", f"({len(xyz)},) return numbers")
-        first = numbers == 1
-        xyz, ground = xyz[first], ground[first]
-    return xyz, ground
+        used = numbers == 1
+        xyz, ground = xyz[used], ground[used]
+    return xyz, ground, used
+
+
+def _per_point(heights, n: int) -> np.ndarray:
+    """Checked (n,) float64 ground heights of the points [m]."""
+    heights = np.asarray(heights, dtype=np.float64)
+    if heights.shape != (n,):
+        raise InputError("ground_height", f"an array of shape {heights.shape}", f"({n},) heights, one per point")
+    return heights
 
 
 def _grid(lower, cell, dims, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
@@ -164,7 +177,8 @@ def sampling_sigma(lad, pulses, g: float, dz: float) -> np.ndarray:
 
 
 def _ground_heights(ground_height, xyz: np.ndarray, col: np.ndarray, columns: tuple[int, int]) -> np.ndarray:
-    """The ground height [m] under each point, from a callable, a number or an (nx, ny) grid of columns."""
+    """The ground height [m] under each point, from a callable, a number, an (nx, ny) grid of columns or each
+    point's own."""
     if callable(ground_height):
         z = np.asarray(ground_height(xyz[:, 0], xyz[:, 1]), dtype=np.float64)
         z = np.broadcast_to(z, (len(xyz),))
@@ -172,11 +186,14 @@ def _ground_heights(ground_height, xyz: np.ndarray, col: np.ndarray, columns: tu
         grid = np.asarray(ground_height, dtype=np.float64)
         if grid.ndim == 0:
             z = np.full(len(xyz), float(grid))
+        elif grid.shape == (len(xyz),):  # each point's (of the points used)
+            z = grid
         elif grid.shape == columns:
             z = grid[col[:, 0], col[:, 1]]
         else:
             raise InputError("ground_height", f"an array of shape {grid.shape}",
-                             f"a callable f(x, y), a number or an {columns} grid of column ground heights [m]")
+                             f"a callable f(x, y), a number, an {columns} grid of column ground heights or one "
+                             "per point [m]")
     if not np.all(np.isfinite(z)):
         raise InputError("ground_height", "non-finite heights", "finite ground heights [m] under every point")
     return z

@@ -281,18 +281,14 @@ def cloud_canopy(cloud: PointCloud, ground: Scene, voxel_m, leaf_reflectance: fl
     from flightsim.scenes.macarthur_horn import lad_from_points
 
     low, high = cloud.bounds()
-    grid = ground.height_grid
+    z = ground.height_grid.ground_height(cloud.xyz[:, 0], cloud.xyz[:, 1])  # under each point, NaN off the mesh
     top = float(high[2])
-    floor = float(np.nanmin(grid.ground_height(cloud.xyz[:, 0], cloud.xyz[:, 1])))
+    floor = float(np.nanmin(z))
     if not top > floor:
         return None
     cell = np.array([voxel_m[0], voxel_m[0], voxel_m[1]], dtype=np.float64)
     lower = np.array([low[0], low[1], floor])
     dims = np.maximum(np.ceil((np.array([high[0], high[1], top]) - lower) / cell).astype(int), 1)
-
-    def ground_height(x, y):
-        z = grid.ground_height(x, y)
-        return np.where(np.isnan(z), floor, z)
-
+    ground_height = np.where(np.isnan(z), floor, z)
     return lad_from_points(cloud.xyz, cloud.ground, ground_height, lower, cell, tuple(dims),
                            return_number=cloud.return_number, leaf_reflectance=leaf_reflectance)
