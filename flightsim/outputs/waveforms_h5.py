@@ -91,11 +91,14 @@ class Shots:
 
     @classmethod
     def join(cls, parts: list) -> "Shots":
+        """The parts' rows one after another (a single part's arrays as they are, not copied)."""
         sizes = [len(p) for p in parts]
         per_row = lambda values: np.repeat(np.asarray(values), sizes)  # noqa: E731
-        joined = {name: np.concatenate([getattr(p, name) for p in parts])
-                  for name in ("pulse", "beam", "window_start_s", "power_w", "received", "start", "direction")}
-        clean = None if parts[0].clean_w is None else np.concatenate([p.clean_w for p in parts])
+        rows = lambda name: (getattr(parts[0], name) if len(parts) == 1  # noqa: E731
+                             else np.concatenate([getattr(p, name) for p in parts]))
+        joined = {name: rows(name) for name in ("pulse", "beam", "window_start_s", "power_w", "received", "start",
+                                                 "direction")}
+        clean = None if parts[0].clean_w is None else rows("clean_w")
         return cls(per_row([p.line_id for p in parts]).astype(np.int64),
                    per_row([p.start_time for p in parts]).astype(np.float64), per_row(np.arange(len(parts))),
                    clean_w=clean, **joined)
