@@ -207,3 +207,36 @@ def test_a_cloud_scene_carries_the_leaf_area_its_first_returns_imply():
     occupied = np.zeros(leafy.shape, bool)
     occupied[index[:, 0], index[:, 1]] = True
     assert leafy.any() and not (leafy & ~occupied).any()
+
+
+def _cloud_of(xy):
+    from flightsim.scenes.pointcloud import PointCloud
+
+    n = len(xy)
+    ones = np.ones(n, dtype=np.uint8)
+    return PointCloud(np.column_stack([xy, np.zeros(n)]), np.full(n, 2), ones, ones, pyproj.CRS("EPSG:32648"),
+                      np.zeros(3))
+
+
+@pytest.mark.parametrize("grid_cells", [None, 16])  # 16: the occupancy grid too large, the tree of every point
+def test_centres_beyond_reach_are_those_whose_nearest_point_is_at_least_reach_away(monkeypatch, grid_cells):
+    from flightsim.scenes import pointcloud
+
+    if grid_cells is not None:
+        monkeypatch.setattr(pointcloud, "GRID_CELLS", grid_cells)
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(0.0, 200.0, (20_000, 2))
+    xy = xy[np.hypot(xy[:, 0] - 120.0, xy[:, 1] - 70.0) > 40.0]  # a hole of radius 40 m
+    reach = 16.5
+    centres = np.concatenate([rng.uniform(-30.0, 230.0, (3000, 2)),  # inside, in the hole, beyond the edges
+                              [[120.0, 70.0], [-10.0, 50.0], [500.0, 500.0]]])
+    # centres on the reach itself: a point exactly reach away (east of it) and one a hair closer
+    ring = xy[:50] + np.array([[-reach, 0.0]] * 25 + [[-reach + 1e-9, 0.0]] * 25)
+    alone = ring[np.array([np.hypot(*(xy - c).T).min() for c in ring]) >= reach - 1e-9]
+    centres = np.concatenate([centres, alone])
+    nearest = np.array([np.hypot(*(xy - c).T).min() for c in centres])  # float64 brute force
+    expected = np.flatnonzero(nearest >= reach)
+    found = pointcloud.centres_beyond(_cloud_of(xy), centres, reach)
+    assert np.array_equal(found, expected)
+    assert 50 < len(expected) < len(centres) - 1000  # both kinds plenty
+    assert {3000, 3002} <= set(expected) and 3001 not in expected  # the hole's middle and far away; 10 m west is near

@@ -2,8 +2,8 @@
 simulator's method as the float64 model states it (:mod:`flightsim.instrument.cloud_waveform_model`).
 
 :func:`prepare_cloud` sorts the points into a horizontal grid of cells (σ_f / 2 by default) on the host,
-once (NumPy's argsort of the cell ids: ~1 s for 1e7 points), with each point's weight, and moves them to the
-device; :func:`cloud_waveforms` launches one block per footprint, in chunks that keep the outputs on the
+once (the cell ids' stable order in 16-bit radix passes, :func:`~flightsim.core.radix.stable_order`), with each
+point's weight, and moves them to the device; :func:`cloud_waveforms` launches one block per footprint, in chunks that keep the outputs on the
 device within ~200 MB, and copies each chunk's waveforms back.
 
 The histogram has ``sub`` = ⌈4 Δr / σ_r⌉ bins per sample (a bin ≤ σ_r / 4: the split between bins widens a
@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.errors import InputError
+from flightsim.core.radix import stable_order
 from flightsim.core.warp_runtime import copy_into, resolve_device
 from flightsim.instrument.cloud_waveform_model import C, COVER_SIGMAS, CloudBeam, check_request, point_weights
 from flightsim.scenes.pointcloud import PointCloud
@@ -63,7 +64,7 @@ def prepare_cloud(cloud: PointCloud, rho_ground: float = 0.4, rho_canopy: float 
     ix = np.minimum(((cloud.xyz[:, 0] - lo[0]) / cell_m).astype(np.int64), nx - 1)
     iy = np.minimum(((cloud.xyz[:, 1] - lo[1]) / cell_m).astype(np.int64), ny - 1)
     cell = iy * nx + ix
-    order = np.argsort(cell, kind="stable")
+    order = stable_order(cell)
     packed = np.empty((len(cloud), 4), dtype=np.float32)
     packed[:, :3] = cloud.xyz[order]
     packed[:, 3] = np.where(cloud.ground[order], -weights[order], weights[order])

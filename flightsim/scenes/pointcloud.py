@@ -42,6 +42,7 @@ CLASS_GROUND = 2
 CLASS_UNCLASSIFIED = 1
 NOISE_CLASSES = (7, 18)  # ASPRS low noise, high noise: dropped
 CHUNK_POINTS = 2_000_000
+GRID_CELLS = 1 << 27  # the most cells of centres_beyond's occupancy grid (128 MiB of flags)
 GROUND_MODES = ("classified", "lowest")
 _CLASSIFY_HINT = ("a cloud with ground points (class 2): classify it first, e.g. PDAL's filters.smrf (pdal translate "
                   "in.laz out.laz smrf) or LAStools' lasground (lasground -i in.laz -o out.laz), or set "
@@ -91,6 +92,64 @@ class PointCloud:
         """Lower and upper corners (3,) of the local bounding box [m] (column by column, as Scene.bounds)."""
         columns = self.xyz.T
         return np.array([c.min() for c in columns]), np.array([c.max() for c in columns])
+
+
+def centres_beyond(cloud: PointCloud, centres_xy: np.ndarray, reach_m: float) -> np.ndarray:
+    """Indices (ascending) of the horizontal ``centres_xy`` (F, 2) local [m] with no point of ``cloud`` closer than
+    ``reach_m`` [m] in x, y (a KD-tree's nearest distance ≥ reach, without building one over every point).
+
+    A centre whose cell of a grid of side reach/2 holds a point has one within 0.71 reach; the others are looked up
+    in a KD-tree of the points of the 3 × 3 cells of side 1.001 reach around them, which hold every point closer
+    than reach (a grid too fine for memory, > GRID_CELLS cells, takes the tree of every point instead)."""
+    centres = np.asarray(centres_xy, dtype=np.float64).reshape(-1, 2)
+    xy = cloud.xyz[:, :2]
+    lo, hi = (corner[:2] for corner in cloud.bounds())
+    fine = _cell_keys(xy, lo, reach_m / 2.0, np.floor((hi - lo) / (reach_m / 2.0)) + 1.0)
+    if fine is None:
+        return _beyond(xy, centres, reach_m)
+    keys, shape = fine
+    occupied = np.zeros(shape[0] * shape[1], dtype=bool)
+    occupied[keys] = True
+    own = _cell_keys(centres, lo, reach_m / 2.0, np.array(shape), outside=True)[0]
+    unsure = np.flatnonzero((own < 0) | ~occupied[np.maximum(own, 0)])
+    if unsure.size == 0:
+        return unsure
+    side = 1.001 * reach_m
+    points, shape = _cell_keys(xy, lo, side, np.floor((hi - lo) / side) + 1.0)
+    wanted = np.zeros(shape[0] * shape[1], dtype=bool)
+    column, row = (np.floor((centres[unsure, a] - lo[a]) / side).astype(np.int64) for a in (0, 1))
+    for dc in (-1, 0, 1):
+        for dr in (-1, 0, 1):
+            c, r = column + dc, row + dr
+            inside = (c >= 0) & (c < shape[0]) & (r >= 0) & (r < shape[1])
+            wanted[r[inside] * shape[0] + c[inside]] = True
+    return unsure[_beyond(xy[wanted[points]], centres[unsure], reach_m)]
+
+
+def _cell_keys(xy: np.ndarray, lo: np.ndarray, side: float, top: np.ndarray, outside: bool = False):
+    """(keys, (columns, rows)): the row-major cell of each position in a grid of ``side`` [m] from ``lo`` with
+    ``top`` (columns, rows) cells (−1 for a position outside it: tested only when ``outside`` may hold any); None
+    when the grid would pass GRID_CELLS."""
+    if top[0] * top[1] > GRID_CELLS:
+        return None
+    shape = (int(top[0]), int(top[1]))
+    index = np.floor((xy - lo) / side)
+    keys = index[:, 1] * shape[0] + index[:, 0]
+    if outside:
+        inside = (index[:, 0] >= 0) & (index[:, 0] < shape[0]) & (index[:, 1] >= 0) & (index[:, 1] < shape[1])
+        keys = np.where(inside, keys, -1.0)
+    return keys.astype(np.int64), shape
+
+
+def _beyond(xy: np.ndarray, centres: np.ndarray, reach_m: float) -> np.ndarray:
+    """Indices of ``centres`` whose nearest point of ``xy`` is ≥ ``reach_m`` away (all of them when ``xy`` is empty)."""
+    from scipy.spatial import cKDTree
+
+    if len(xy) == 0:
+        return np.arange(len(centres))
+    # a tree split at midpoints builds in half the time of a balanced one (2.2 against 4.8 s for 1e7 points)
+    distance, _ = cKDTree(xy, balanced_tree=False, compact_nodes=False).query(centres)
+    return np.flatnonzero(distance >= reach_m)
 
 
 def read_point_cloud(path, crs=None, origin=None, ground: str = "classified", cell_m: float = 1.0,

@@ -102,22 +102,18 @@ def check_cloud_footprints(cfg, scene) -> None:
     """Footprints given to the shots platform over a point cloud: InputError naming the first with no ALS point
     within COVER_SIGMAS σ_f of its (nadir) axis, the rule by which the GEDI method calls a footprint outside the
     cloud (:func:`flightsim.engine.cloud_waveforms.cloud_waveforms`), before anything is written."""
-    from scipy.spatial import cKDTree
-
     from flightsim.instrument.cloud_waveform_model import COVER_SIGMAS
     from flightsim.platforms.shots import FIELD, read_footprints
+    from flightsim.scenes.pointcloud import centres_beyond
 
     shots = read_footprints(cfg.flight.footprints)
     reach = COVER_SIGMAS * cfg.detector_part(cfg.waveform).footprint_sigma_m(cfg.flight.altitude_m)
     local = scene.world_to_local(np.column_stack([shots.x, shots.y, np.zeros(len(shots))]))
-    # the nearest point's distance is exact either way; a tree split at midpoints builds in half the time of a
-    # balanced one (4.8 against 2.2 s for 1e7 points)
-    tree = cKDTree(scene.cloud.xyz[:, :2], balanced_tree=False, compact_nodes=False)
-    distance, _ = tree.query(local[:, :2])
-    far = np.flatnonzero(distance >= reach)
+    far = centres_beyond(scene.cloud, local[:, :2], reach)
     if far.size:
+        nearest = np.hypot(*(scene.cloud.xyz[:, :2] - local[far[0], :2]).T).min()
         lo, hi = (scene.local_to_world(corner) for corner in scene.cloud.bounds())
         raise InputError(FIELD, shots.name(int(far[0])),
                          f"footprints with ALS points within {COVER_SIGMAS:g} σ_f = {reach:.2f} m of their centre "
-                         f"(this one's nearest is {distance[far[0]]:.2f} m away: it lies outside the cloud, which "
+                         f"(this one's nearest is {nearest:.2f} m away: it lies outside the cloud, which "
                          f"spans x {lo[0]:.1f} … {hi[0]:.1f}, y {lo[1]:.1f} … {hi[1]:.1f} m)")
