@@ -151,3 +151,24 @@ def test_requests_out_of_range_are_refused():
         cloud_waveforms(cloud, [[0.0, 0.0]], 10.0, 0.0, DT, 6000)
     with pytest.raises(ValueError, match="weights"):
         cloud_waveforms(cloud, [[0.0, 0.0]], 10.0, 0.0, DT, 50, prepared=prepare_cloud(cloud, normalise=True))
+
+
+def test_the_prepared_cloud_lists_each_cells_points_in_file_order():
+    """prepare_cloud's grid against a loop over the cells: every point once, in its cell of side cell_m from the
+    lowest x, y (the last column and row take the highest edge), in the order the cloud holds them, its weight
+    negative for a ground point."""
+    cloud = synthetic_forest(30_000, seed=4)
+    prepared = prepare_cloud(cloud, rho_ground=0.3, rho_canopy=0.6, cell_m=3.7)
+    grid, points = prepared.grid, prepared.grid.points.numpy()
+    start = grid.cell_start.numpy()
+    lo, hi = cloud.xyz.min(axis=0), cloud.xyz.max(axis=0)
+    nx, ny = int((hi[0] - lo[0]) // 3.7) + 1, int((hi[1] - lo[1]) // 3.7) + 1
+    assert (grid.nx, grid.ny, len(start)) == (nx, ny, nx * ny + 1) and start[-1] == len(cloud) > 1000
+    column = np.minimum(np.floor((cloud.xyz[:, 0] - lo[0]) / 3.7), nx - 1)
+    row = np.minimum(np.floor((cloud.xyz[:, 1] - lo[1]) / 3.7), ny - 1)
+    weight = np.where(cloud.classification == 2, -0.3, 0.6).astype(np.float32)
+    for cell in range(nx * ny):
+        mine = np.flatnonzero((row * nx + column) == cell)  # ascending: the cloud's order
+        found = points[start[cell]:start[cell + 1]]
+        assert np.array_equal(found[:, :3], cloud.xyz[mine].astype(np.float32)), cell
+        assert np.array_equal(found[:, 3], weight[mine]), cell
