@@ -240,3 +240,14 @@ def test_centres_beyond_reach_are_those_whose_nearest_point_is_at_least_reach_aw
     assert np.array_equal(found, expected)
     assert 50 < len(expected) < len(centres) - 1000  # both kinds plenty
     assert {3000, 3002} <= set(expected) and 3001 not in expected  # the hole's middle and far away; 10 m west is near
+
+
+def test_a_clouds_bounds_are_its_points_extremes_and_follow_new_points():
+    rng = np.random.default_rng(2)
+    cloud = _cloud_of(rng.uniform(-50.0, 80.0, (1000, 2)))
+    lo, hi = cloud.bounds()
+    assert np.array_equal(lo, cloud.xyz.min(axis=0)) and np.array_equal(hi, cloud.xyz.max(axis=0))
+    lo[:] = 1e9  # a caller's copy: the cloud's bounds stay
+    assert np.array_equal(cloud.bounds()[0], cloud.xyz.min(axis=0))
+    cloud.xyz = cloud.xyz[:10] + 1000.0  # points replaced: bounds of the new ones
+    assert np.array_equal(cloud.bounds()[1], cloud.xyz.max(axis=0))

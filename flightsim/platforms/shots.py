@@ -140,12 +140,10 @@ class ShotsPlatform:
         times = np.where(np.isnan(shots.delta_time), f.start_gps_time + np.arange(len(shots)) * f.shot_interval_s,
                          shots.delta_time)
         heights = ground + f.altitude_m + scene.origin[2]
-        out = []
-        for i in range(len(shots)):
-            t = np.array([times[i], np.nextafter(times[i], np.inf)])
-            position = np.tile([shots.x[i], shots.y[i], heights[i]], (2, 1))
-            out.append(Trajectory(t, position, np.zeros((2, 3)), i))
-        return out
+        t = np.column_stack([times, np.nextafter(times, np.inf)])  # each line's two samples
+        position = np.repeat(np.column_stack([shots.x, shots.y, heights])[:, None, :], 2, axis=1)
+        level = np.zeros((2, 3))
+        return [Trajectory(t[i], position[i], level, i) for i in range(len(shots))]
 
 
 def _surface_under(scene: Scene, shots: Footprints, local: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ Reading (:func:`read_point_cloud`):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +68,7 @@ class PointCloud:
     number_of_returns: np.ndarray
     crs: pyproj.CRS
     origin: np.ndarray
+    _bounds: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float64)
@@ -89,9 +90,13 @@ class PointCloud:
         return self.classification == CLASS_GROUND
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper corners (3,) of the local bounding box [m] (column by column, as Scene.bounds)."""
-        columns = self.xyz.T
-        return np.array([c.min() for c in columns]), np.array([c.max() for c in columns])
+        """Lower and upper corners (3,) of the local bounding box [m] (column by column, as Scene.bounds); worked out
+        once for the points held (0.15 s a 1e7 points; the scene, the ground grid, the footprints' check and the
+        device grid each ask), copies handed out."""
+        if self._bounds is None or self._bounds[0] is not self.xyz:
+            columns = self.xyz.T
+            self._bounds = (self.xyz, np.array([c.min() for c in columns]), np.array([c.max() for c in columns]))
+        return self._bounds[1].copy(), self._bounds[2].copy()
 
 
 def centres_beyond(cloud: PointCloud, centres_xy: np.ndarray, reach_m: float) -> np.ndarray:
