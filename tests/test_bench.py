@@ -174,3 +174,29 @@ def test_the_build_once_row_takes_each_ways_best_of_rounds_in_turn(monkeypatch):
     assert [len({id(m) for m in r}) for r in rounds] == [1, 5, 1, 5]
     assert (row["variant_s"], row["baseline_s"]) == (1.0, 2.0)
     assert row["saving"] == pytest.approx(0.5)
+
+
+def test_gedi_shots_are_timed_end_to_end_over_a_cloud_written_as_las(tmp_path, monkeypatch):
+    import laspy
+
+    from flightsim.studies import bench_shots
+    from flightsim.studies.bench_report import _forest_shots
+
+    from flightsim.instrument.cloud_waveform_model import synthetic_forest
+
+    cloud, shots, written = bench_shots.write_shots(tmp_path / "c", 60_000, 7)
+    assert written == len(synthetic_forest(60_000, seed=1).xyz)
+    with laspy.open(cloud) as reader:  # a LAS 1.4 file a user's reader takes, with its CRS
+        assert (reader.header.point_count, str(reader.header.version)) == (written, "1.4")
+        assert reader.header.parse_crs().to_epsg() == 32648
+        xy = reader.read().xyz[:, :2]
+    centres = np.loadtxt(shots, delimiter=",", skiprows=1)
+    assert centres.shape == (7, 3) and np.all(np.diff(centres[:, 2]) > 0)
+    assert np.all(centres[:, :2] >= xy.min(axis=0) + 30.0) and np.all(centres[:, :2] <= xy.max(axis=0) - 30.0)
+    monkeypatch.setattr(bench_shots, "WARM_POINTS", 60_000)
+    r = bench_shots.cloud_shots("cpu", 60_000, 7)
+    assert r["waveforms"] == r["footprints"] == 7 and r["points"] == written
+    assert 0.0 < sum(r["stages_s"].values()) < r["wall_s"] and r["footprints_per_s"] == pytest.approx(7 / r["wall_s"])
+    assert 50.0 < r["peak_rss_mib"] < 4096.0
+    text = "\n".join(_forest_shots(r))
+    assert f"7 footprints over {written:,} points" in text and "stages [s]: scene " in text

@@ -1,5 +1,6 @@
 """`flightsim bench` section forest: large-footprint waveforms from a point cloud against the same method in
-vectorised NumPy (the stand-in for today's CPU tools), the leaf voxel walk, the procedural forest scene's build (its
+vectorised NumPy (the stand-in for today's CPU tools), GEDI shots over a point cloud end to end
+(:mod:`flightsim.studies.bench_shots`), the leaf voxel walk, the procedural forest scene's build (its
 voxels computed, and from the scene cache), and discrete ALS through a voxel forest against the same flight over its
 bare ground. Every ratio is measured in one run."""
 from __future__ import annotations
@@ -20,6 +21,7 @@ from flightsim.engine.world import build_scene, flight_trajectories
 from flightsim.instrument.cloud_waveform_model import CloudBeam, model_waveforms, synthetic_forest
 from flightsim.scenes import forest_voxels
 from flightsim.studies.bench_common import Sizes
+from flightsim.studies.bench_shots import cloud_shots
 from kernels import canopy as kc
 
 GEDI_SAMPLES, GEDI_DT_S = 1000, 1.0e-9  # a GEDI-like window: 1000 samples of 1 ns (150 m)
@@ -27,12 +29,14 @@ NUMPY_FOOTPRINTS = 100  # footprints the float64 NumPy model makes per measureme
 
 
 def forest(device: str, s: Sizes) -> dict:
-    """The three measurements of the section."""
+    """The section's measurements."""
     cuda = resolve_device(device) != "cpu"
     points = (1e6 if s.quick else 1e7) if cuda else (2e5 if s.quick else 1e6)
     footprints = (2e4 if s.quick else 1e5) if cuda else (500 if s.quick else 2000)
     size_m = 300.0 if s.quick else 1000.0
+    shots = ((1e6, 2000) if s.quick else (1e7, 20000)) if cuda else ((2e5, 200) if s.quick else (1e6, 2000))
     return {"cloud": cloud_rate(device, int(points), int(footprints)),
+            "shots": cloud_shots(device, *map(int, shots)),
             "voxels": walk_rate(device, 10 ** 5 if s.quick or not cuda else 10 ** 7),
             "scene": scene_build(size_m, device),
             "als": als_ratio(device, 2e5 if s.quick else (5e7 if cuda else 2e6), size_m)}

@@ -182,6 +182,7 @@ def _forest(r: dict) -> list[str]:
             f"{c['min_correlation']:.6f} |", "",
             f"Device: end to end (the waveforms copied to the host), the cloud sorted once beforehand in "
             f"{c['prepare_s']:.2f} s; NumPy: {c['numpy_footprints']} footprints, its KD-tree built in the call.", "",
+            *_forest_shots(r["forest"].get("shots")),
             f"Leaf voxel walk: {v['rays']:,} rays through a {'×'.join(map(str, v['grid']))} grid, {v['steps']:,} "
             f"steps in {v['wall_s']:.4f} s: {_fmt(v['steps_per_s'])} steps/s.", "", *_forest_scene(r["forest"]),
             "| discrete ALS, points readout on the device | beams | returns | wall [s] | beams/s |",
@@ -189,6 +190,18 @@ def _forest(r: dict) -> list[str]:
             *[f"| {name} ({a['forest_size_m']:g} m square) | {x['beams']:,} | {x['returns']:,} | {x['wall_s']:.3f} | "
               f"{_fmt(x['beams_per_s'])} |" for name, x in (("forest, LAI 3", a["forest"]), ("bare ground", a["bare"]))],
             "", f"Forest ÷ bare ground: {a['ratio']:.2f}.", ""]
+
+
+def _forest_shots(x: dict | None) -> list[str]:
+    """GEDI shots over a point cloud end to end, where the section measured them."""
+    if x is None:
+        return []
+    stages = ", ".join(f"{name} {seconds:.2f}" for name, seconds in x["stages_s"].items())
+    return [f"GEDI shots end to end (`flightsim waveform --instrument gedi --scene CLOUD.las --footprints SHOTS.csv "
+            f"--set waveform.processing=device` in a fresh process, after one over a small cloud; "
+            f"`flightsim/studies/bench_shots.py`): {x['footprints']:,} footprints over {x['points']:,} points in "
+            f"{x['wall_s']:.1f} s ({_fmt(x['footprints_per_s'])} footprints/s), peak {x['peak_rss_mib']:.0f} MiB; "
+            f"stages [s]: {stages}.", ""]
 
 
 def _forest_scene(f: dict) -> list[str]:
