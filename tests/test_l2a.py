@@ -241,3 +241,23 @@ def test_l2a_h5_refuses_nan_and_a_fractional_shot_number(tmp_path):
     with pytest.raises(InputError, match=r"invalid beams\[1\].shot_number"):
         write_l2a(tmp_path / "l2a.h5", {1: beam})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_fits_gaussians_and_their_jacobian_whatever_order_they_are_asked_in():
+    """The lowest-mode fit's model (two Gaussians at 300 samples) against float64 sums written out, and its Jacobian
+    against central differences, asked at new parameters, again at the same, and back (the kept terms never stale)."""
+    from flightsim.outputs.l2a import _Gaussians
+
+    x = np.arange(100.0, 400.0)
+    target = np.linspace(0.0, 1.0, len(x))
+    model = _Gaussians(x)
+    first, second = np.array([2.0, 0.5, 180.0, 260.0, 6.0, 11.0]), np.array([1.5, 0.7, 175.0, 270.0, 5.0, 13.0])
+    for p in (first, second, second, first):
+        a, c, w = p[:2, None], p[2:4, None], p[4:, None]
+        expected = (a * np.exp(-0.5 * ((x - c) / w) ** 2)).sum(axis=0) - target
+        assert np.allclose(model.residual(p, target), expected, rtol=0.0, atol=1e-14)
+        jacobian, h = model.jacobian(p, target), 1e-6
+        for k in range(6):
+            step = np.eye(6)[k] * h
+            numeric = (_Gaussians(x).residual(p + step, target) - _Gaussians(x).residual(p - step, target)) / (2 * h)
+            assert np.allclose(jacobian[:, k], numeric, rtol=0.0, atol=1e-7), k

@@ -310,28 +310,37 @@ def _fit_lowest(y: np.ndarray, smooth: np.ndarray, pulse: float, kernel: float, 
     p0 = np.concatenate([np.maximum(y[np.rint(modes).astype(int)], front), modes, np.full(m, pulse)])
     lower = np.concatenate([np.zeros(m), np.full(m, float(a)), np.full(m, _MIN_WIDTH * pulse)])
     upper = np.concatenate([np.full(m, np.inf), np.full(m, float(b - 1)), np.full(m, float(b - a))])
-    fit = least_squares(_residual, np.clip(p0, lower, upper), jac=_jacobian, bounds=(lower, upper),
-                        args=(x, target), x_scale="jac")
+    model = _Gaussians(x)
+    fit = least_squares(model.residual, np.clip(p0, lower, upper), jac=model.jacobian, bounds=(lower, upper),
+                        args=(target,), x_scale="jac")
     amp, centre, width = np.split(fit.x, 3)
     seen = amp * width / np.hypot(width, kernel) > front  # its peak in the smoothed waveform
     return float(centre[seen].max()) if seen.any() else float(modes[-1])
 
 
-def _gaussians(p: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, ...]:
-    amp, centre, width = np.split(p, 3)
-    u = (x[None, :] - centre[:, None]) / width[:, None]
-    e = np.exp(-0.5 * u * u)
-    return amp[:, None], width[:, None], u, e
+class _Gaussians:
+    """A sum of Gaussians a_k exp(−u²/2), u = (x − c_k)/w_k, at samples ``x``, for the fit: the residual and its
+    Jacobian at parameters p = (a, c, w). The fit asks for the Jacobian at the parameters of its last residual:
+    the Gaussians of that p are kept and used again (the same values as worked out anew)."""
 
+    def __init__(self, x: np.ndarray):
+        self.x, self._p, self._terms = x, None, None
 
-def _residual(p: np.ndarray, x: np.ndarray, target: np.ndarray) -> np.ndarray:
-    amp, _, _, e = _gaussians(p, x)
-    return (amp * e).sum(axis=0) - target
+    def _at(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        if self._p is None or not np.array_equal(p, self._p):
+            m = len(p) // 3
+            amp, centre, width = p[:m], p[m:2 * m], p[2 * m:]
+            u = (self.x[None, :] - centre[:, None]) / width[:, None]
+            self._p, self._terms = p.copy(), (amp[:, None], width[:, None], u, np.exp(-0.5 * u * u))
+        return self._terms
 
+    def residual(self, p: np.ndarray, target: np.ndarray) -> np.ndarray:
+        amp, _, _, e = self._at(p)
+        return (amp * e).sum(axis=0) - target
 
-def _jacobian(p: np.ndarray, x: np.ndarray, target: np.ndarray) -> np.ndarray:
-    amp, width, u, e = _gaussians(p, x)
-    return np.concatenate([e, amp * e * u / width, amp * e * u * u / width], axis=0).T
+    def jacobian(self, p: np.ndarray, target: np.ndarray) -> np.ndarray:
+        amp, width, u, e = self._at(p)
+        return np.concatenate([e, amp * e * u / width, amp * e * u * u / width], axis=0).T
 
 
 # --- positions, rh, sensitivity --------------------------------------------------------------------
