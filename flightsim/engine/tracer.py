@@ -99,6 +99,7 @@ class Tracer:
         self.scan = self._scan()
         self._cone_rad: float | None = None
         self._windows: dict[int, list[tuple[int, int]]] = {}
+        self._pulse_counts: dict[int, int] = {}  # pulses of each line (line_id), worked out once
         self._kept: dict[str, Any] = {}
         self.segment_table: frames.Segments | None = None  # the device segment table of the chunk being traced
 
@@ -198,7 +199,13 @@ class Tracer:
         return sum(k1 - k0 for t in self.trajectories for k0, k1 in self.windows(t))
 
     def pulse_count(self, trajectory: Trajectory) -> int:
-        return self.timing.pulse_count(trajectory.start_time, trajectory.end_time)
+        """Pulses fired along ``trajectory``, one of this tracer's lines (worked out once a line: a run of the shots
+        platform asks for each of its many two-sample lines several times)."""
+        count = self._pulse_counts.get(trajectory.line_id)
+        if count is None:
+            count = self._pulse_counts[trajectory.line_id] = self.timing.pulse_count(trajectory.start_time,
+                                                                                   trajectory.end_time)
+        return count
 
     def sum_replicas(self, groups: int | None = None) -> int:
         """Copies of the per-group sums (``groups`` of them, the scene's planes by default) of the statistics
