@@ -80,3 +80,21 @@ def test_l2a_fits_over_workers_are_the_fits_in_this_process(workers):
     for name in alone:
         np.testing.assert_array_equal(alone[name], spread[name], err_msg=name)
     assert np.isfinite(alone["elev_lowestmode"]).all() and (alone["num_detectedmodes"] >= 2).mean() > 0.9
+
+
+def test_maps_asked_for_from_two_threads_at_once_each_get_their_results(workers):
+    import threading
+
+    rng = np.random.default_rng(5)
+    asks = [[(rng.uniform(0.0, 9.0, 3000), float(k + 100 * t)) for k in range(9)] for t in range(2)]
+    got = [None, None]
+
+    def ask(t):
+        got[t] = workers.map(square_sum, asks[t])
+
+    threads = [threading.Thread(target=ask, args=(t,)) for t in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60.0)
+    assert got == [[square_sum(*chunk) for chunk in chunks] for chunks in asks]

@@ -144,3 +144,76 @@ def test_the_fits_on_worker_processes_write_the_same_file(tmp_path, monkeypatch)
     a, b = _datasets(tmp_path / "alone" / "waveforms.h5"), _datasets(tmp_path / "spread" / "waveforms.h5")
     for name in a:
         np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
+def _l2a_batch(seed: int) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(columns, rx, ground) of one beam's batch for L2AProduct.add: _parts' waveforms of one line, nadir, bin0 at
+    100 m and one sample 0.15 m lower each."""
+    rx = _parts(seed)[1].power_w.astype(np.float64)
+    s = len(rx)
+    columns = {"geolocation/z_bin0": np.full(s, 100.0), "geolocation/z_lastbin": np.full(s, 100.0 - 0.15 * (SAMPLES - 1)),
+               "shot_number": np.arange(s, dtype=np.uint64) + np.uint64(seed << 8),
+               "delta_time": 1.0e8 + np.arange(s) + seed}
+    for tag in ("bin0", "lastbin"):
+        columns[f"geolocation/latitude_{tag}"], columns[f"geolocation/longitude_{tag}"] = np.full(s, 30.7), np.full(s, 104.1)
+    return columns, rx, np.full(s, 75.0)
+
+
+def _l2a_product(path):
+    return waveforms_h5.L2AProduct(path, SYSTEM.sample_interval_s, 6.4e-9, 5.5, {}, {})
+
+
+def test_l2a_batches_are_worked_out_on_a_thread_while_the_writer_goes_on(tmp_path, monkeypatch):
+    """add returns while its batch's metrics are still being worked out (on the product's thread); close waits for
+    them, and l2a.h5 holds every batch in the order they came, each l2a_metrics of its waveforms."""
+    import threading
+
+    from flightsim.outputs.l2a import L2ASettings, l2a_metrics
+
+    started, release, threads = threading.Event(), threading.Event(), []
+
+    def held(*args, **kwargs):
+        threads.append(threading.current_thread().name)
+        started.set()
+        assert release.wait(30.0)
+        return l2a_metrics(*args, **kwargs)
+
+    monkeypatch.setattr(waveforms_h5, "l2a_metrics", held)
+    product, batches = _l2a_product(tmp_path / "l2a.h5"), [_l2a_batch(5), _l2a_batch(8)]
+    product.add(0, batches[0][0], batches[0][1], batches[0][1], batches[0][2])
+    assert started.wait(30.0) and not release.is_set()  # add has returned; its metrics are waiting, elsewhere
+    release.set()
+    product.add(0, batches[1][0], batches[1][1], batches[1][1], batches[1][2])
+    name, counts = product.close()
+    assert name == "l2a.h5" and counts["shots"] == 5 + 5 and len(threads) == 2
+    assert all(t.startswith("l2a") for t in threads) and threading.current_thread().name not in threads
+    with h5py.File(tmp_path / "l2a.h5") as f:
+        for k, (columns, rx, _) in enumerate(batches):
+            want = l2a_metrics(rx, SYSTEM.sample_interval_s, pulse_sigma_s=6.4e-9,
+                               settings=L2ASettings(footprint_sigma_m=5.5),
+                               **{f"{q}_{tag}": columns[f"geolocation/{n}_{tag}"] for tag in ("bin0", "lastbin")
+                                  for q, n in (("elevation", "z"), ("latitude", "latitude"), ("longitude", "longitude"))})
+            rows = slice(5 * k, 5 * k + 5)
+            assert np.array_equal(f["BEAM0000/shot_number"][rows], columns["shot_number"])
+            for field in ("elev_lowestmode", "rh", "quality_flag", "sensitivity"):  # in the file's types
+                stored = f[f"BEAM0000/{field}"]
+                assert np.array_equal(stored[rows], want[field].astype(stored.dtype), equal_nan=True), field
+
+
+def test_an_l2a_batchs_error_is_raised_by_the_next_add_or_close_and_abort_drops_it(tmp_path, monkeypatch):
+    def refuse(*args, **kwargs):
+        raise ValueError("no metrics")
+
+    monkeypatch.setattr(waveforms_h5, "l2a_metrics", refuse)
+    batch = _l2a_batch(5)
+    product = _l2a_product(tmp_path / "a.h5")
+    product.add(0, batch[0], batch[1], batch[1], batch[2])
+    with pytest.raises(ValueError, match="no metrics"):
+        product.add(1, batch[0], batch[1], batch[1], batch[2])
+    product.abort()  # the second batch's error too: dropped
+    assert product._thread is None and not (tmp_path / "a.h5").exists()
+    product = _l2a_product(tmp_path / "b.h5")
+    product.add(0, batch[0], batch[1], batch[1], batch[2])
+    with pytest.raises(ValueError, match="no metrics"):
+        product.close()
+    assert product._thread is None and not (tmp_path / "b.h5").exists()

@@ -20,6 +20,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import traceback
 import weakref
 from multiprocessing.connection import Connection, wait
@@ -58,6 +59,7 @@ class ProcessMap:
     def __init__(self, count: int):
         self.processes: list[subprocess.Popen] = []
         self.connections: list[Connection] = []
+        self._lock = threading.Lock()  # one map at a time (a writer's thread and the writer may both map)
         self._stop = weakref.finalize(self, _stop, self.processes, self.connections)
         try:
             for _ in range(count):
@@ -79,7 +81,12 @@ class ProcessMap:
         self.connections.append(Connection(parent.detach()))
 
     def map(self, function: Callable, chunks: list[tuple]) -> list:
-        """``[function(*chunk) for chunk in chunks]``, the chunks spread over the workers."""
+        """``[function(*chunk) for chunk in chunks]``, the chunks spread over the workers (a map asked for from
+        another thread meanwhile waits for this one)."""
+        with self._lock:
+            return self._map(function, chunks)
+
+    def _map(self, function: Callable, chunks: list[tuple]) -> list:
         task = (function.__module__, function.__qualname__)
         results: list = [None] * len(chunks)
         waiting = iter(enumerate(chunks))

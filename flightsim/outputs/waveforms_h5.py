@@ -32,7 +32,8 @@ attributes are the beam's (``pulse_sigma_s``, ``footprint_sigma_m``, and where t
 
 With an :class:`L2AProduct` the writer hands it every beam's waveforms as it writes them: their GEDI L2A metrics
 (:func:`flightsim.outputs.l2a.l2a_metrics`) go into ``l2a.h5`` beside (:func:`flightsim.outputs.l2a_h5.write_l2a`),
-with the truth: ``elev_ground``, the elevation where the beam's central ray meets the scene (truth/nadir_range_m
+worked out on a thread of the product's own while the writer goes on with the next batch (one batch at a time), with
+the truth: ``elev_ground``, the elevation where the beam's central ray meets the scene (truth/nadir_range_m
 along the beam), and ``rh``, :func:`flightsim.outputs.l2a.truth_rh` of the waveform before the receiver's noise and
 digitiser.
 
@@ -41,6 +42,8 @@ PDRF 6, the scene's CRS), placed on its beam at the component's range c(t − τ
 """
 from __future__ import annotations
 
+import contextlib
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,12 +122,28 @@ class L2AProduct:
         self.beam_attrs, self.attrs = beam_attrs, attrs
         self.beams: dict[int, list[dict]] = {}
         self.truth: dict[int, list[dict]] = {}
+        self._thread: ThreadPoolExecutor | None = None
+        self._running: Future | None = None
 
     def add(self, beam: int, columns: dict[str, np.ndarray], rx: np.ndarray, clean: np.ndarray,
             ground: np.ndarray, workers: ProcessMap | None = None) -> None:
         """One beam's shots: their waveforms ``rx`` after the receiver and ``clean`` before it (S, N) [W],
-        ``columns`` as waveforms.h5 has them, ``ground`` (S,) the true ground elevation [m]; the fits spread over
-        ``workers`` when given."""
+        ``columns`` as waveforms.h5 has them, ``ground`` (S,) the true ground elevation [m] (none of them changed
+        afterwards); the fits spread over ``workers`` when given. Their metrics are worked out on the product's
+        thread while the caller goes on, once the batch before is done (its error raised here)."""
+        self.settle()
+        if self._thread is None:
+            self._thread = ThreadPoolExecutor(1, thread_name_prefix="l2a")
+        self._running = self._thread.submit(self._metrics, beam, columns, rx, clean, ground, workers)
+
+    def settle(self) -> None:
+        """Wait for the batch being worked out; raise its error."""
+        running, self._running = self._running, None
+        if running is not None:
+            running.result()
+
+    def _metrics(self, beam: int, columns: dict[str, np.ndarray], rx: np.ndarray, clean: np.ndarray,
+                 ground: np.ndarray, workers: ProcessMap | None) -> None:
         geo = {f"{q}_{tag}": columns[f"geolocation/{name}_{tag}"] for tag in ("bin0", "lastbin")
                for q, name in (("elevation", "z"), ("latitude", "latitude"), ("longitude", "longitude"))}
         metrics = l2a_metrics(rx, self.dt, pulse_sigma_s=self.pulse_sigma, settings=self.settings, workers=workers,
@@ -135,10 +154,26 @@ class L2AProduct:
                       ground)
         self.truth.setdefault(beam, []).append({"elev_ground": ground, "rh": rh})
 
+    def abort(self) -> None:
+        """Wait for the batch being worked out (its error dropped: the run is failing already) and end the thread."""
+        with contextlib.suppress(Exception):
+            self.settle()
+        self._end_thread()
+
+    def _end_thread(self) -> None:
+        if self._thread is not None:
+            self._thread.shutdown()
+            self._thread = None
+
     def close(self) -> tuple[str, dict[str, int]]:
-        """Write l2a.h5; (its name, {"shots": shots, "quality_flag": shots flagged 1})."""
+        """Write l2a.h5 once the last batch is worked out; (its name, {"shots": shots, "quality_flag": shots
+        flagged 1})."""
         from flightsim.outputs.l2a_h5 import write_l2a
 
+        try:
+            self.settle()
+        finally:
+            self._end_thread()
         beams = {b: {**_joined(parts), **self.beam_attrs} for b, parts in self.beams.items()}
         truth = {b: _joined(parts) for b, parts in self.truth.items()}
         write_l2a(self.path, beams, truth, self.attrs)
@@ -316,6 +351,8 @@ class WaveformWriter:
         from flightsim.outputs.grid_products import write_points_las
 
         self.flush()
+        if self.l2a is not None:  # its last batch done on the workers before they stop
+            self.l2a.settle()
         self._stop_workers()
         names = [self.product.close()]
         if self.returns and sum(len(r) for r in self.returns):
@@ -325,6 +362,8 @@ class WaveformWriter:
         return names
 
     def abort(self) -> None:
+        if self.l2a is not None:  # its batch finishes on the workers before they stop
+            self.l2a.abort()
         self._stop_workers()
         self.product.abort()
 
