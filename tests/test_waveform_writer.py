@@ -151,11 +151,13 @@ def _l2a_batch(seed: int) -> tuple[dict, np.ndarray, np.ndarray]:
     100 m and one sample 0.15 m lower each."""
     rx = _parts(seed)[1].power_w.astype(np.float64)
     s = len(rx)
-    columns = {"geolocation/z_bin0": np.full(s, 100.0), "geolocation/z_lastbin": np.full(s, 100.0 - 0.15 * (SAMPLES - 1)),
+    columns = {"geolocation/z_bin0": np.full(s, 100.0),
+               "geolocation/z_lastbin": np.full(s, 100.0 - 0.15 * (SAMPLES - 1)),
                "shot_number": np.arange(s, dtype=np.uint64) + np.uint64(seed << 8),
                "delta_time": 1.0e8 + np.arange(s) + seed}
     for tag in ("bin0", "lastbin"):
-        columns[f"geolocation/latitude_{tag}"], columns[f"geolocation/longitude_{tag}"] = np.full(s, 30.7), np.full(s, 104.1)
+        columns[f"geolocation/latitude_{tag}"] = np.full(s, 30.7)
+        columns[f"geolocation/longitude_{tag}"] = np.full(s, 104.1)
     return columns, rx, np.full(s, 75.0)
 
 
@@ -189,10 +191,10 @@ def test_l2a_batches_are_worked_out_on_a_thread_while_the_writer_goes_on(tmp_pat
     assert all(t.startswith("l2a") for t in threads) and threading.current_thread().name not in threads
     with h5py.File(tmp_path / "l2a.h5") as f:
         for k, (columns, rx, _) in enumerate(batches):
+            geo = {f"{q}_{tag}": columns[f"geolocation/{n}_{tag}"] for tag in ("bin0", "lastbin")
+                   for q, n in (("elevation", "z"), ("latitude", "latitude"), ("longitude", "longitude"))}
             want = l2a_metrics(rx, SYSTEM.sample_interval_s, pulse_sigma_s=6.4e-9,
-                               settings=L2ASettings(footprint_sigma_m=5.5),
-                               **{f"{q}_{tag}": columns[f"geolocation/{n}_{tag}"] for tag in ("bin0", "lastbin")
-                                  for q, n in (("elevation", "z"), ("latitude", "latitude"), ("longitude", "longitude"))})
+                               settings=L2ASettings(footprint_sigma_m=5.5), **geo)
             rows = slice(5 * k, 5 * k + 5)
             assert np.array_equal(f["BEAM0000/shot_number"][rows], columns["shot_number"])
             for field in ("elev_lowestmode", "rh", "quality_flag", "sensitivity"):  # in the file's types

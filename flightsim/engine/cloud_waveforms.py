@@ -3,8 +3,8 @@ simulator's method as the float64 model states it (:mod:`flightsim.instrument.cl
 
 :func:`prepare_cloud` sorts the points into a horizontal grid of cells (σ_f / 2 by default) on the host,
 once (the cell ids' stable order in 16-bit radix passes, :func:`~flightsim.core.radix.stable_order`), with each
-point's weight, and moves them to the device; :func:`cloud_waveforms` launches one block per footprint, in chunks that keep the outputs on the
-device within ~200 MB, and copies each chunk's waveforms back.
+point's weight, and moves them to the device; :func:`cloud_waveforms` launches one block per footprint, in chunks
+that keep the outputs on the device within ~200 MB, and copies each chunk's waveforms back.
 
 The histogram has ``sub`` = ⌈4 Δr / σ_r⌉ bins per sample (a bin ≤ σ_r / 4: the split between bins widens a
 pulse by at most 1/64 of its variance) and ⌈PULSE_SIGMAS σ_r / bin⌉ bins of margin on each side of the window,

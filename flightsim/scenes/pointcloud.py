@@ -147,7 +147,8 @@ def _cell_keys(xy: np.ndarray, lo: np.ndarray, side: float, top: np.ndarray, out
 
 
 def _beyond(xy: np.ndarray, centres: np.ndarray, reach_m: float) -> np.ndarray:
-    """Indices of ``centres`` whose nearest point of ``xy`` is ≥ ``reach_m`` away (all of them when ``xy`` is empty)."""
+    """Indices of ``centres`` whose nearest point of ``xy`` is ≥ ``reach_m`` away (all of them when ``xy`` is
+    empty)."""
     from scipy.spatial import cKDTree
 
     if len(xy) == 0:

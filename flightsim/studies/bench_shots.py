@@ -30,8 +30,9 @@ def cloud_shots(device: str, points: int, footprints: int) -> dict:
 
 
 def write_shots(stem: Path, points: int, footprints: int, seed: int = 3) -> tuple[Path, Path, int]:
-    """(``stem``.las, ``stem``.csv, the points written): a synthetic forest of about ``points`` in world coordinates (LAS 1.4, point format 6,
-    1 mm scale, the cloud's CRS) and ``footprints`` centres (x, y, delta_time) uniform over its box less EDGE_M."""
+    """(``stem``.las, ``stem``.csv, the points written): a synthetic forest of about ``points`` in world coordinates
+    (LAS 1.4, point format 6, 1 mm scale, the cloud's CRS) and ``footprints`` centres (x, y, delta_time) uniform
+    over its box less EDGE_M."""
     import laspy
 
     cloud = synthetic_forest(points, seed=1)
