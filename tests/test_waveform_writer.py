@@ -219,3 +219,24 @@ def test_an_l2a_batchs_error_is_raised_by_the_next_add_or_close_and_abort_drops_
     with pytest.raises(ValueError, match="no metrics"):
         product.close()
     assert product._thread is None and not (tmp_path / "b.h5").exists()
+
+
+def test_an_abort_cut_short_while_waiting_for_the_l2a_batch_still_removes_the_files_part(tmp_path, monkeypatch):
+    """A second ^C while abort waits for the running L2A batch: the workers still stop and waveforms.h5's temporary
+    file still goes."""
+    l2a = _l2a_product(tmp_path / "l2a.h5")
+    writer = WaveformWriter(tmp_path, "", SYSTEM, PRF_HZ, _scene(), (np.ones(30), -1.5e-8), {}, l2a=l2a)
+    writer(_parts()[0])
+    writer.flush()
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(l2a, "abort", interrupted)
+    stopped = []
+    monkeypatch.setattr(writer, "_stop_workers", lambda: stopped.append(True))
+    assert writer.product.part.exists()
+    with pytest.raises(KeyboardInterrupt):
+        writer.abort()
+    assert stopped == [True] and not writer.product.part.exists() and not (tmp_path / "waveforms.h5").exists()
+    l2a.settle()  # the batch itself finished on its thread

@@ -362,10 +362,12 @@ class WaveformWriter:
         return names
 
     def abort(self) -> None:
-        if self.l2a is not None:  # its batch finishes on the workers before they stop
-            self.l2a.abort()
-        self._stop_workers()
-        self.product.abort()
+        try:
+            if self.l2a is not None:  # its batch finishes on the workers before they stop (a second ^C: at once)
+                self.l2a.abort()
+        finally:
+            self._stop_workers()
+            self.product.abort()
 
     def _stop_workers(self) -> None:
         if self.workers is not None:
