@@ -22,8 +22,10 @@ between ``elevation_bin0`` and ``elevation_lastbin``, and so are latitude and lo
 4. **Modes**: the maxima of the smoothed waveform (its derivative crossing zero from + to −) between signal
    start and end and above the front threshold; ``num_detectedmodes`` counts them.
 5. **Gaussian decomposition**: the waveform minus m over the signal (± 3 pulse σ) fitted by a sum of one
-   Gaussian per mode (``scipy.optimize.least_squares``, analytic Jacobian; amplitudes ≥ 0, widths ≥ half the
-   pulse σ), started from the modes. The **lowest mode** (the ground) is the lowest fitted component whose
+   Gaussian per mode (SciPy's bounded Trust Region Reflective least squares with ``x_scale="jac"``, analytic
+   Jacobian; amplitudes ≥ 0, widths ≥ half the pulse σ), started from the modes; the waveforms with as many modes
+   are fitted together (:mod:`flightsim.core.trf_batch`: each the fit ``scipy.optimize.least_squares`` makes of
+   it alone, to the fit's tolerances). The **lowest mode** (the ground) is the lowest fitted component whose
    smoothed peak would clear the front threshold; ``elev_lowestmode``, ``lat_lowestmode``, ``lon_lowestmode``
    are at its centre. GEDI a1 takes the lowest mode's location from the smoothed waveform's zero crossing; the
    fit removes the pull of a nearby canopy mode and of the smoothing.
@@ -52,12 +54,12 @@ from typing import ClassVar
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
-from scipy.optimize import least_squares
 from scipy.special import ndtri
 
 from flightsim.core.errors import InputError, positive
 from flightsim.core.process_map import ProcessMap, map_rows, row_chunks
 from flightsim.core.settings import Settings, check_settings, setting
+from flightsim.core.trf_batch import least_squares_batch
 from flightsim.instrument.waveform_model import end_noise
 
 C = 299_792_458.0  # speed of light [m/s]
@@ -66,6 +68,7 @@ RH_LEVELS = 101  # rh0 … rh100
 _BIN_M, _WINDOW_M = 0.15, 30.0  # the sensitivity's false-alarm window: 30 m of 0.15 m bins (GEDI simulator)
 _FIT_PAD = 3.0  # the fit window reaches this many pulse σ beyond signal start and end
 _MIN_WIDTH = 0.5  # least fitted width [pulse σ]
+_SLAB_VALUES = 1 << 22  # the batched fit takes waveforms in slabs of about this many Jacobian values
 
 
 @dataclass
@@ -138,7 +141,8 @@ def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin
     found &= count > 0
     ground = _lowest_modes(shots, shot, loc, start, end, front, found, s.max_modes, workers)
     out = _positions(geo, shots.y.shape[1], ground, start, found)
-    out["rh"] = _rh(shots.y, _elevations(geo, shots.y.shape[1]), start, end, out["elev_lowestmode"], found)
+    out["rh"] = _rh(shots.y, geo["elevation_bin0"], geo["elevation_lastbin"], start, end, out["elev_lowestmode"],
+                    found)
     out["num_detectedmodes"] = np.where(found, np.minimum(count, 255), 0).astype(np.uint8)
     energy = shots.y.sum(axis=1)
     out["sensitivity"] = _sensitivity(energy, shots.sigma, shots.pulse, dt, s)
@@ -168,7 +172,7 @@ def truth_rh(profile, elevation_bin0, elevation_lastbin, ground_elevation) -> np
     found = lit.any(axis=1)
     start = np.argmax(lit, axis=1).astype(np.float64)
     end = (p.shape[1] - 1 - np.argmax(lit[:, ::-1], axis=1)).astype(np.float64)
-    return _rh(p, _elevations(geo, p.shape[1]), start, end, geo["ground_elevation"], found)
+    return _rh(p, geo["elevation_bin0"], geo["elevation_lastbin"], start, end, geo["ground_elevation"], found)
 
 
 # --- input -----------------------------------------------------------------------------------------
@@ -291,65 +295,90 @@ def _lowest_modes(shots: _Shots, shot, loc, start, end, front, found, max_modes:
 
 
 def _fit_rows(y, smooth, pulse: float, kernel: float, modes: list, start, end, front, max_modes: int) -> np.ndarray:
-    """:func:`_fit_lowest` of each row of ``y`` (S, N) and ``smooth`` with its ``modes``, ``start``, ``end`` and
-    ``front`` (a module-level function: a worker process runs it on a chunk of rows)."""
-    return np.array([_fit_lowest(y[i], smooth[i], pulse, kernel, modes[i], start[i], end[i], front[i], max_modes)
-                     for i in range(len(y))], dtype=np.float64)
+    """The lowest detectable component of a Gaussian fit to each row of ``y`` (S, N) (smoothed: ``smooth``; the
+    pulse's and the smoothing's σ ``pulse``, ``kernel`` [samples]) started from its ``modes`` [samples], fitted
+    over its ``start`` … ``end`` ± _FIT_PAD pulse σ; the rows with as many modes solved together (a module-level
+    function: a worker process runs it on a chunk of rows)."""
+    modes = [_strongest(smooth[i], m, max_modes) for i, m in enumerate(modes)]
+    first = np.maximum(0.0, np.floor(start - _FIT_PAD * pulse)).astype(np.int64)
+    stop = np.minimum(y.shape[1], np.ceil(end + _FIT_PAD * pulse).astype(np.int64) + 1)
+    count = np.array([len(m) for m in modes])
+    ground = np.empty(len(y))
+    for m in np.unique(count):
+        rows = np.flatnonzero(count == m)
+        for part in np.array_split(rows, -(-len(rows) * (stop - first)[rows].max() * 3 * m // _SLAB_VALUES)):
+            centres = np.array([modes[i] for i in part])
+            ground[part] = _fit_lowest(y[part], first[part], stop[part], centres, pulse, kernel, front[part])
+    return ground
 
 
-def _fit_lowest(y: np.ndarray, smooth: np.ndarray, pulse: float, kernel: float, modes: np.ndarray, start: float,
-                end: float, front: float, max_modes: int) -> float:
-    """The lowest detectable component of a Gaussian fit to a waveform ``y`` (smoothed: ``smooth``; the pulse's
-    and the smoothing's σ ``pulse``, ``kernel`` [samples]) started from its modes [samples]."""
-    if len(modes) > max_modes:  # the strongest, and always the lowest
-        strongest = np.argsort(smooth[np.rint(modes[:-1]).astype(int)])[::-1][:max_modes - 1]
-        modes = np.append(np.sort(modes[strongest]), modes[-1])
-    a = int(max(0, math.floor(start - _FIT_PAD * pulse)))
-    b = int(min(len(y), math.ceil(end + _FIT_PAD * pulse) + 1))
-    x, target, m = np.arange(a, b, dtype=np.float64), y[a:b], len(modes)
-    p0 = np.concatenate([np.maximum(y[np.rint(modes).astype(int)], front), modes, np.full(m, pulse)])
-    lower = np.concatenate([np.zeros(m), np.full(m, float(a)), np.full(m, _MIN_WIDTH * pulse)])
-    upper = np.concatenate([np.full(m, np.inf), np.full(m, float(b - 1)), np.full(m, float(b - a))])
-    model = _Gaussians(x)
-    fit = least_squares(model.residual, np.clip(p0, lower, upper), jac=model.jacobian, bounds=(lower, upper),
-                        args=(target,), x_scale="jac")
-    amp, centre, width = np.split(fit.x, 3)
-    seen = amp * width / np.hypot(width, kernel) > front  # its peak in the smoothed waveform
-    return float(centre[seen].max()) if seen.any() else float(modes[-1])
+def _strongest(smooth: np.ndarray, modes: np.ndarray, max_modes: int) -> np.ndarray:
+    """At most ``max_modes`` of a waveform's modes: the strongest in the smoothed waveform, and always the lowest."""
+    if len(modes) <= max_modes:
+        return modes
+    strongest = np.argsort(smooth[np.rint(modes[:-1]).astype(int)])[::-1][:max_modes - 1]
+    return np.append(np.sort(modes[strongest]), modes[-1])
+
+
+def _fit_lowest(y: np.ndarray, first: np.ndarray, stop: np.ndarray, modes: np.ndarray, pulse: float, kernel: float,
+                front: np.ndarray) -> np.ndarray:
+    """(G,) lowest detectable fitted centre [samples] of G waveforms ``y`` (G, N) with m ``modes`` each (G, m),
+    fitted over samples ``first`` … ``stop`` − 1; the lowest mode where no component would be detected."""
+    g, m = modes.shape
+    window = stop - first
+    samples = first[:, None] + np.arange(window.max())
+    inside = samples < stop[:, None]
+    target = np.where(inside, np.take_along_axis(y, np.minimum(samples, y.shape[1] - 1), axis=1), 0.0)
+    peak = np.take_along_axis(y, np.rint(modes).astype(np.int64), axis=1)
+    p0 = np.concatenate([np.maximum(peak, front[:, None]), modes, np.full((g, m), pulse)], axis=1)
+    lower = np.concatenate([np.zeros((g, m)), np.repeat(first[:, None], m, axis=1),
+                            np.full((g, m), _MIN_WIDTH * pulse)], axis=1).astype(np.float64)
+    upper = np.concatenate([np.full((g, m), np.inf), np.repeat(stop[:, None] - 1, m, axis=1),
+                            np.repeat(window[:, None], m, axis=1)], axis=1).astype(np.float64)
+    fit = least_squares_batch(_Gaussians(samples.astype(np.float64), inside, target), np.clip(p0, lower, upper),
+                              lower, upper, window)
+    amp, centre, width = fit[:, :m], fit[:, m:2 * m], fit[:, 2 * m:]
+    seen = amp * width / np.hypot(width, kernel) > front[:, None]  # its peak in the smoothed waveform
+    return np.where(seen.any(axis=1), np.max(np.where(seen, centre, -np.inf), axis=1), modes[:, -1])
 
 
 class _Gaussians:
-    """A sum of Gaussians a_k exp(−u²/2), u = (x − c_k)/w_k, at samples ``x``, for the fit: the residual and its
-    Jacobian at parameters p = (a, c, w). The fit asks for the Jacobian at the parameters of its last residual:
-    the Gaussians of that p are kept and used again (the same values as worked out anew)."""
+    """Sums of m Gaussians a_k exp(−u²/2), u = (x − c_k)/w_k, at each waveform's samples ``x`` (G, L) (``inside``
+    its window) minus its ``target`` (zero beyond the window), for the batched fit: residuals and their transposed
+    Jacobian at parameters p = (a, c, w) (k, 3m) of the waveforms ``rows``, zero beyond each window. The Gaussians
+    of the last residuals are kept for a Jacobian asked at their points (the same values as worked out anew)."""
 
-    def __init__(self, x: np.ndarray):
-        self.x, self._p, self._terms = x, None, None
+    def __init__(self, x: np.ndarray, inside: np.ndarray, target: np.ndarray):
+        self.x, self.inside, self.target = x, inside, target
+        self._rows, self._p, self._terms = None, None, None
 
-    def _at(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
-        if self._p is None or not np.array_equal(p, self._p):
-            m = len(p) // 3
-            amp, centre, width = p[:m], p[m:2 * m], p[2 * m:]
-            u = (self.x[None, :] - centre[:, None]) / width[:, None]
-            self._p, self._terms = p.copy(), (amp[:, None], width[:, None], u, np.exp(-0.5 * u * u))
-        return self._terms
+    def _at(self, p: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+        m = p.shape[1] // 3
+        amp, centre, width = p[:, :m, None], p[:, m:2 * m, None], p[:, 2 * m:, None]
+        if self._rows is not None:
+            kept = np.searchsorted(self._rows, rows)
+            if kept.max(initial=0) < len(self._rows) and np.array_equal(self._rows[kept], rows) \
+                    and np.array_equal(self._p[kept], p):
+                return amp, width, self._terms[0][kept], self._terms[1][kept]
+        u = (self.x[rows][:, None, :] - centre) / width
+        return amp, width, u, np.exp(-0.5 * u * u) * self.inside[rows][:, None, :]
 
-    def residual(self, p: np.ndarray, target: np.ndarray) -> np.ndarray:
-        amp, _, _, e = self._at(p)
-        return (amp * e).sum(axis=0) - target
+    def residual(self, p: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        amp, _, u, e = self._at(p, rows)
+        self._rows, self._p, self._terms = rows.copy(), p.copy(), (u, e)
+        return (amp * e).sum(axis=1) - self.target[rows]
 
-    def jacobian(self, p: np.ndarray, target: np.ndarray) -> np.ndarray:
-        amp, width, u, e = self._at(p)
-        return np.concatenate([e, amp * e * u / width, amp * e * u * u / width], axis=0).T
+    def jacobian(self, p: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        amp, width, u, e = self._at(p, rows)
+        m = amp.shape[1]
+        out = np.empty((len(rows), 3 * m, u.shape[2]))
+        out[:, :m] = e
+        by_centre = np.multiply(amp * e, u / width, out=out[:, m:2 * m])  # a e u / w
+        np.multiply(by_centre, u, out=out[:, 2 * m:])  # a e u² / w
+        return out
 
 
 # --- positions, rh, sensitivity --------------------------------------------------------------------
-
-
-def _elevations(geo: dict, n: int) -> np.ndarray:
-    """(S, N) elevation of every sample [m], linear from bin0 to the last bin."""
-    return geo["elevation_bin0"][:, None] + np.outer(
-        geo["elevation_lastbin"] - geo["elevation_bin0"], np.arange(n) / (n - 1))
 
 
 def _at(geo: dict, n: int, name: str, sample: np.ndarray) -> np.ndarray:
@@ -369,36 +398,46 @@ def _positions(geo: dict, n: int, ground: np.ndarray, start: np.ndarray, found: 
     return {name: np.where(found, value, FILL) for name, value in out.items()}
 
 
-def _rh(y, elevation, start, end, ground, found) -> np.ndarray:
+def _rh(y, elevation_bin0, elevation_lastbin, start, end, ground, found) -> np.ndarray:
     """(S, 101) heights [m] above ``ground`` where the energy of y between ``end`` and ``start`` (fractional
-    samples), accumulated upwards in trapezoids between samples, reaches 0 … 100 %; FILL where not found."""
+    samples), accumulated upwards in trapezoids between samples, reaches 0 … 100 %; FILL where not found. The
+    sums run over the samples that hold every found window (the same sums: the rest adds zeros)."""
     s, n = y.shape
-    index = np.arange(n)[None, :]
+    if not found.any():
+        return np.full((s, RH_LEVELS), FILL)
+    first = int(np.ceil(start[found]).min())
+    last = max(int(np.floor(end[found]).max()), first + 1)
+    first = min(first, last - 1)
+    index = np.arange(first, last + 1)[None, :]
     inside = (index >= np.ceil(start)[:, None]) & (index <= np.floor(end)[:, None])
     pair = inside[:, :-1] & inside[:, 1:]
-    step = np.where(pair, 0.5 * (y[:, :-1] + y[:, 1:]), 0.0)
-    upward = np.cumsum(step[:, ::-1], axis=1)  # column r: the energy from the bottom up to sample N-2-r
+    window = y[:, first:last + 1]
+    step = np.where(pair, 0.5 * (window[:, :-1] + window[:, 1:]), 0.0)
+    upward = np.cumsum(step[:, ::-1], axis=1)  # column r: the energy from the bottom up to sample last-1-r
     total = upward[:, -1]
     found = found & (total > 0.0)
     share = np.clip(np.maximum.accumulate(upward / np.where(found, total, 1.0)[:, None], axis=1), 0.0, 1.0)
-    share = np.concatenate([np.zeros((s, 1)), share], axis=1)  # column r: sample N-1-r
+    share = np.concatenate([np.zeros((s, 1)), share], axis=1)  # column r: sample last-r
+    width = share.shape[1]
     levels = np.arange(1, RH_LEVELS - 1) / (RH_LEVELS - 1)
     offset = 2.0 * np.arange(s)[:, None]
     r = np.searchsorted((share + offset).ravel(), (levels[None, :] + offset).ravel()).reshape(s, -1)
-    r = np.clip(r - np.arange(s)[:, None] * n, 1, n - 1)
+    r = np.clip(r - np.arange(s)[:, None] * width, 1, width - 1)
     lo, hi = np.take_along_axis(share, r - 1, axis=1), np.take_along_axis(share, r, axis=1)
     frac = np.where(hi > lo, (levels[None, :] - lo) / np.where(hi > lo, hi - lo, 1.0), 0.0)
-    sample = (n - 1) - (r - 1 + np.clip(frac, 0.0, 1.0))
+    sample = (n - 1) - (r + (n - 1 - last) - 1 + np.clip(frac, 0.0, 1.0))
     edges = np.column_stack([np.where(found, end, 0.0), sample, np.where(found, start, 0.0)])
-    heights = _interp_rows(elevation, edges) - ground[:, None]
+    heights = _elevation_at(elevation_bin0, elevation_lastbin, n, edges) - ground[:, None]
     return np.where(found[:, None], heights, FILL)
 
 
-def _interp_rows(values: np.ndarray, sample: np.ndarray) -> np.ndarray:
-    """Each row of ``values`` linearly interpolated at that row's fractional samples."""
-    i = np.clip(np.floor(sample).astype(np.int64), 0, values.shape[1] - 2)
+def _elevation_at(bin0: np.ndarray, lastbin: np.ndarray, n: int, sample: np.ndarray) -> np.ndarray:
+    """(S, k) elevations [m] at fractional samples (S, k), linear between the samples' elevations, which are
+    linear from ``bin0`` to ``lastbin`` over the n samples."""
+    i = np.clip(np.floor(sample).astype(np.int64), 0, n - 2)
     t = sample - i
-    return (1.0 - t) * np.take_along_axis(values, i, axis=1) + t * np.take_along_axis(values, i + 1, axis=1)
+    rise = (lastbin - bin0)[:, None]
+    return (1.0 - t) * (bin0[:, None] + rise * (i / (n - 1))) + t * (bin0[:, None] + rise * ((i + 1) / (n - 1)))
 
 
 def _sensitivity(energy, sigma, pulse: float, dt: float, s: L2ASettings) -> np.ndarray:
