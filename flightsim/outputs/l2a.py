@@ -68,7 +68,7 @@ RH_LEVELS = 101  # rh0 … rh100
 _BIN_M, _WINDOW_M = 0.15, 30.0  # the sensitivity's false-alarm window: 30 m of 0.15 m bins (GEDI simulator)
 _FIT_PAD = 3.0  # the fit window reaches this many pulse σ beyond signal start and end
 _MIN_WIDTH = 0.5  # least fitted width [pulse σ]
-_SLAB_VALUES = 1 << 22  # the batched fit takes waveforms in slabs of about this many Jacobian values
+_SLAB_VALUES = 1 << 19  # the batched fit takes waveforms in slabs of about this many Jacobian values
 
 
 @dataclass
