@@ -17,6 +17,7 @@ from flightsim.cli import main
 from flightsim.instrument import waveform_model as model
 from flightsim.instrument.waveform_batch import MAX_PEAKS, echo_peaks, process, smoothing_taps
 from flightsim.studies import waveform_processing as study
+from kernels import waveform_fit as kf
 from kernels import waveform_measures as km
 
 TIME_ULPS = 8  # measures' times [s]: within 8 units in the last place of the echo's time (operation order, FMA)
@@ -148,6 +149,38 @@ def test_more_peaks_than_the_device_fits_are_decomposed_by_the_host(device):
     assert b.status[0] == km.STATUS_SKIPPED and b.count[0] == MAX_PEAKS + 2 == len(host)
     np.testing.assert_array_equal(b.time_s[0], [g.time_s for g in host])
     np.testing.assert_array_equal(b.amplitude_w[0], [g.amplitude_w for g in host])
+
+
+def test_a_batch_in_parts_on_the_cpus_threads_is_the_batch_in_one_part(monkeypatch):
+    """On the CPU a batch is cut into parts launched from several threads (waveform_batch.CPU_THREADS): 60 GEDI-like
+    waveforms of one to five Gaussians (parts with the few-Gaussians fit and parts with MAX_PEAKS'), some under
+    noise, in four parts of 15 on four threads (at most CPU_THREADS and the usable cores), are every measure,
+    component and status of the batch in one part."""
+    import flightsim.instrument.waveform_batch as wb
+
+    _, system, t0, echo = study.synthetic("s", GEDI, 60, 1000, 31)
+    rng = np.random.default_rng(9)
+    samples = np.arange(1000)[None, None, :]
+    centres = np.array([100.0, 250.0, 400.0, 550.0, 700.0, 850.0])[None, :, None] + rng.uniform(-20, 20, (5, 6, 1))
+    widths = model.pulse_sigma_s(GEDI) / 1e-9 * rng.uniform(1.0, 1.8, (5, 6, 1))
+    echo[20:25] = np.sum(rng.uniform(0.3, 1.0, (5, 6, 1)) * np.exp(-0.5 * ((samples - centres) / widths) ** 2), axis=1)
+    echo = echo + np.where(np.arange(60)[:, None] % 3 == 0, rng.normal(0.0, 0.002, echo.shape), 0.0)
+    mean, floor = model.window_noise(echo)
+    monkeypatch.setattr(wb, "usable_cores", lambda: 1)
+    whole = process(system, t0, echo, "cpu", noise=(mean, floor))
+    monkeypatch.setattr(wb, "usable_cores", lambda: 7)
+    monkeypatch.setattr(wb, "CPU_THREADS", 4)
+    monkeypatch.setattr(wb, "CPU_PART", 8)
+    launched = []
+    launch = wb._launch
+    monkeypatch.setattr(wb, "_launch", lambda *a: launched.append(len(a[1])) or launch(*a))
+    parts = process(system, t0, echo, "cpu", noise=(mean, floor))
+    assert launched == [15] * 4
+    assert whole.count.max() > kf.FEW_GAUSSIANS >= whole.count.min() > 0  # both sizes of the fit's sums
+    for name in ("time_s", "amplitude_w", "sigma_s", "count", "ssr", "status", "steps", "peaks"):
+        np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name), err_msg=name)
+    for name, value in whole.measures.items():
+        np.testing.assert_array_equal(parts.measures[name], value, err_msg=name)
 
 
 def test_noisy_waveforms_are_decomposed_less_their_noise_mean_as_on_the_host(device):

@@ -19,14 +19,21 @@ A waveform with more than MAX_PEAKS peaks, or none, or a peak on a negative samp
 bound a ≥ 0, which curve_fit refuses) is not fitted on the device: its components are the host's (``decompose``), so
 the result is the host's there too (a ValueError for the last two, as on the host). So are the measures of an echo
 that starts or ends above half its maximum (where the host's indexing leaves the window).
+
+On the CPU a batch's parts are launched from up to CPU_THREADS threads at once: Warp runs a CPU launch on the
+thread that makes it, with Python's lock released, so the parts use as many cores; every waveform is worked out by
+the same operations whatever part it falls in (``tests/test_waveform_batch.py``).
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
+from flightsim.core.process_map import usable_cores
+from flightsim.core.warp_runtime import compile_ahead
 from flightsim.instrument import waveform_model as model
 from kernels import waveform_fit as kf
 from kernels import waveform_measures as km
@@ -36,6 +43,8 @@ BATCH_SAMPLES = {"cpu": 1 << 24, "cuda": 1 << 26}  # samples per launch (W·N): 
 # take 8 bytes each (128 MiB each on the CPU, 512 MiB on a GPU: 2048 change1 waveforms, 67,108 GEDI ones)
 MEASURES = ("half_power_s", "centroid_s", "peak_s", "fwhm_s", "rms_width_s")
 FIT_ROUNDS = 8  # rounds of the fit launched between two reads of whether any fit goes on
+CPU_THREADS = 16  # the most threads that launch a batch's parts at once on the CPU
+CPU_PART = 64  # the fewest waveforms in a part when the CPU's threads share a batch
 
 
 @dataclass(frozen=True)
@@ -90,10 +99,35 @@ def process(system: model.WaveformSystem, t0_s: np.ndarray, echo_w: np.ndarray, 
     t0_s = np.asarray(t0_s, dtype=np.float64)
     if noise is not None:
         noise = np.array(noise, dtype=np.float64)
-    per = max(1, BATCH_SAMPLES["cpu" if str(device).startswith("cpu") else "cuda"] // max(echo_w.shape[1], 1))
-    parts = [_launch(system, t0_s[lo:lo + per], echo_w[lo:lo + per], None if noise is None else noise[:, lo:lo + per],
-                     device, min_prominence) for lo in range(0, len(echo_w), per)]
+    cpu = str(device).startswith("cpu")
+    per = max(1, BATCH_SAMPLES["cpu" if cpu else "cuda"] // max(echo_w.shape[1], 1))
+    threads = min(CPU_THREADS, usable_cores()) if cpu else 1
+    if threads > 1:
+        per = min(per, max(CPU_PART, -(-len(echo_w) // threads)))
+
+    def part(lo: int) -> dict[str, np.ndarray]:
+        return _launch(system, t0_s[lo:lo + per], echo_w[lo:lo + per], None if noise is None else noise[:, lo:lo + per],
+                       device, min_prominence)
+
+    parts = _map_parts(part, range(0, len(echo_w), per), threads, device)
     return _host_fallback(system, t0_s, echo_w, noise, _joined(parts), min_prominence)
+
+
+def kernels() -> list:
+    """The kernels :func:`process` launches."""
+    return [km.echo_columns, km.smooth_echoes, km.echo_measures, km.chunk_extremes, km.chunk_peaks,
+            km.find_echo_peaks, kf.start_fits, kf.advance_fits, kf.evaluate_kernel(kf.FEW_GAUSSIANS),
+            kf.evaluate_kernel(MAX_PEAKS)]
+
+
+def _map_parts(part, starts: range, threads: int, device: str) -> list[dict[str, np.ndarray]]:
+    """``part(lo)`` of each start, in order: from up to ``threads`` threads (their modules loaded first, so no
+    thread compiles), or in this one."""
+    if threads <= 1 or len(starts) <= 1:
+        return [part(lo) for lo in starts]
+    compile_ahead(device, kernels())
+    with ThreadPoolExecutor(min(threads, len(starts)), thread_name_prefix="waveform-parts") as pool:
+        return list(pool.map(part, starts))
 
 
 def _launch(system, t0_s, echo_w, noise, device, min_prominence) -> dict[str, np.ndarray]:
