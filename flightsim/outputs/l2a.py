@@ -283,32 +283,36 @@ def _modes(sm, front, start, end) -> tuple[np.ndarray, np.ndarray]:
 def _lowest_modes(shots: _Shots, shot, loc, start, end, front, found, max_modes: int,
                   workers: ProcessMap | None = None) -> np.ndarray:
     """Fractional sample of each waveform's lowest mode after the Gaussian fit (NaN where no signal); the fits
-    spread over ``workers`` when given."""
+    spread over ``workers`` when given, each sent only its fit window and modes."""
     ground = np.full(len(shots.y), np.nan)
-    bounds = np.searchsorted(shot, np.arange(len(shots.y) + 1))
     rows = np.flatnonzero(found)
-    chunks = [(shots.y[r], shots.smooth[r], shots.pulse, shots.kernel, [loc[bounds[k]:bounds[k + 1]] for k in r],
-               start[r], end[r], front[r], max_modes) for r in (rows[c] for c in row_chunks(len(rows), workers))]
-    if len(rows):
-        ground[rows] = np.concatenate(map_rows(_fit_rows, chunks, workers))
+    if not len(rows):
+        return ground
+    bounds = np.searchsorted(shot, np.arange(len(shots.y) + 1))
+    modes = [_strongest(shots.smooth[k], loc[bounds[k]:bounds[k + 1]], max_modes) for k in rows]
+    first = np.maximum(0.0, np.floor(start[rows] - _FIT_PAD * shots.pulse)).astype(np.int64)
+    stop = np.minimum(shots.y.shape[1], np.ceil(end[rows] + _FIT_PAD * shots.pulse).astype(np.int64) + 1)
+    samples = first[:, None] + np.arange((stop - first).max())
+    inside = samples < stop[:, None]
+    windows = np.where(inside, shots.y[rows[:, None], np.minimum(samples, shots.y.shape[1] - 1)], 0.0)
+    chunks = [(windows[c, :(stop[c] - first[c]).max()], first[c], stop[c], modes[c], shots.pulse, shots.kernel,
+               front[rows[c]]) for c in row_chunks(len(rows), workers)]
+    ground[rows] = np.concatenate(map_rows(_fit_rows, chunks, workers))
     return ground
 
 
-def _fit_rows(y, smooth, pulse: float, kernel: float, modes: list, start, end, front, max_modes: int) -> np.ndarray:
-    """The lowest detectable component of a Gaussian fit to each row of ``y`` (S, N) (smoothed: ``smooth``; the
-    pulse's and the smoothing's σ ``pulse``, ``kernel`` [samples]) started from its ``modes`` [samples], fitted
-    over its ``start`` … ``end`` ± _FIT_PAD pulse σ; the rows with as many modes solved together (a module-level
-    function: a worker process runs it on a chunk of rows)."""
-    modes = [_strongest(smooth[i], m, max_modes) for i, m in enumerate(modes)]
-    first = np.maximum(0.0, np.floor(start - _FIT_PAD * pulse)).astype(np.int64)
-    stop = np.minimum(y.shape[1], np.ceil(end + _FIT_PAD * pulse).astype(np.int64) + 1)
+def _fit_rows(windows, first, stop, modes: list, pulse: float, kernel: float, front) -> np.ndarray:
+    """The lowest detectable component of a Gaussian fit to each waveform's samples ``first`` … ``stop`` − 1
+    (``windows``: those samples, zero beyond; the pulse's and the smoothing's σ ``pulse``, ``kernel`` [samples])
+    started from its ``modes`` [samples]; the rows with as many modes solved together (a module-level function: a
+    worker process runs it on a chunk of rows)."""
     count = np.array([len(m) for m in modes])
-    ground = np.empty(len(y))
+    ground = np.empty(len(windows))
     for m in np.unique(count):
         rows = np.flatnonzero(count == m)
         for part in np.array_split(rows, -(-len(rows) * (stop - first)[rows].max() * 3 * m // _SLAB_VALUES)):
             centres = np.array([modes[i] for i in part])
-            ground[part] = _fit_lowest(y[part], first[part], stop[part], centres, pulse, kernel, front[part])
+            ground[part] = _fit_lowest(windows[part], first[part], stop[part], centres, pulse, kernel, front[part])
     return ground
 
 
@@ -320,16 +324,17 @@ def _strongest(smooth: np.ndarray, modes: np.ndarray, max_modes: int) -> np.ndar
     return np.append(np.sort(modes[strongest]), modes[-1])
 
 
-def _fit_lowest(y: np.ndarray, first: np.ndarray, stop: np.ndarray, modes: np.ndarray, pulse: float, kernel: float,
-                front: np.ndarray) -> np.ndarray:
-    """(G,) lowest detectable fitted centre [samples] of G waveforms ``y`` (G, N) with m ``modes`` each (G, m),
-    fitted over samples ``first`` … ``stop`` − 1; the lowest mode where no component would be detected."""
+def _fit_lowest(windows: np.ndarray, first: np.ndarray, stop: np.ndarray, modes: np.ndarray, pulse: float,
+                kernel: float, front: np.ndarray) -> np.ndarray:
+    """(G,) lowest detectable fitted centre [samples] of G waveforms with m ``modes`` each (G, m), fitted over their
+    samples ``first`` … ``stop`` − 1 (``windows``: those samples, zero beyond); the lowest mode where no component
+    would be detected."""
     g, m = modes.shape
     window = stop - first
-    samples = first[:, None] + np.arange(window.max())
+    target = windows[:, :window.max()]
+    samples = first[:, None] + np.arange(target.shape[1])
     inside = samples < stop[:, None]
-    target = np.where(inside, np.take_along_axis(y, np.minimum(samples, y.shape[1] - 1), axis=1), 0.0)
-    peak = np.take_along_axis(y, np.rint(modes).astype(np.int64), axis=1)
+    peak = np.take_along_axis(windows, np.rint(modes).astype(np.int64) - first[:, None], axis=1)
     p0 = np.concatenate([np.maximum(peak, front[:, None]), modes, np.full((g, m), pulse)], axis=1)
     lower = np.concatenate([np.zeros((g, m)), np.repeat(first[:, None], m, axis=1),
                             np.full((g, m), _MIN_WIDTH * pulse)], axis=1).astype(np.float64)
