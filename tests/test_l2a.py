@@ -304,6 +304,23 @@ def test_the_fits_gaussians_and_their_jacobian_whatever_order_they_are_asked_in(
             assert (jacobian[:, k][~inside[jacobian_rows]] == 0.0).all()
 
 
+@pytest.mark.parametrize("scale", [1e-30, 1e-12, 1e12, 1e30])
+def test_waveforms_in_any_units_give_the_same_metrics(scale):
+    """Stress: 50 noisy two-mode waveforms multiplied by 1e-30 … 1e30 (any power unit): finite metrics, the same mode
+    counts and flags, the lowest modes and rh within 1e-3 m of the unscaled waveforms' (the thresholds scale with
+    the noise; the fit's stopping tests are relative to the cost and to ‖x‖, which its amplitudes join: a step
+    below 1e-8·‖x‖ stops it, 1e-4 m here at most)."""
+    rng = np.random.default_rng(3)
+    rx = _wave(GROUND, CANOPY)[None, :] * rng.uniform(0.5, 2.0, (50, 1)) + rng.normal(0.0, 0.01, (50, N))
+    base, out = _run(rx), _run(rx * scale)
+    assert all(np.isfinite(v).all() for v in out.values())
+    for name in ("num_detectedmodes", "quality_flag"):
+        np.testing.assert_array_equal(out[name], base[name])
+    np.testing.assert_allclose(out["elev_lowestmode"], base["elev_lowestmode"], rtol=0.0, atol=1e-3)
+    np.testing.assert_allclose(out["rh"], base["rh"], rtol=0.0, atol=1e-3)
+    np.testing.assert_allclose(out["energy_total"], base["energy_total"] * scale, rtol=1e-12)
+
+
 def test_the_lowest_modes_equal_scipys_fit_of_each_waveform():
     """The batched fit against SciPy's least_squares run on each waveform alone (the fit's window, start and
     bounds as the module docstring gives them): 200 noisy waveforms of one, two and three modes, ground and
