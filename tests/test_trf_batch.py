@@ -149,3 +149,48 @@ def test_no_problems_and_starts_on_their_bounds():
     x0[:, 0], x0[:, 2] = 0.0, 40.0  # amplitude on its lower bound, width on its upper
     np.testing.assert_allclose(least_squares_batch(model, x0, lower, upper, counts), _scipy(model, x0, lower, upper),
                                rtol=0.0, atol=1e-7)
+
+
+class Logs:
+    """r(x) = ln x − t, NaN below zero: the first Gauss-Newton step from 50·eᵗ lands below zero."""
+
+    def __init__(self, t: np.ndarray):
+        self.t = t
+
+    def residual(self, p, rows):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.log(p) - self.t[rows, None]
+
+    def jacobian(self, p, rows):
+        return (1.0 / p)[:, :, None]
+
+
+def test_a_step_to_non_finite_residuals_shrinks_the_radius_as_scipys():
+    """Residuals NaN beyond a point the steps reach (ln x below zero): SciPy's trust region shrinks to a quarter of
+    the step and tries again. Each problem's trial points are SciPy's, one for one (to 1e-9), ending at x = eᵗ."""
+    t = np.linspace(0.0, 2.0, 9)
+    x0 = 50.0 * np.exp(t)[:, None]
+    lower, upper = np.full_like(x0, -1e6), np.full_like(x0, 1e6)
+    model = Logs(t)
+    trials = [[] for _ in t]
+    residual = model.residual
+
+    def recorded(p, rows):
+        for row, x in zip(rows, p[:, 0]):
+            trials[row].append(x)
+        return residual(p, rows)
+
+    model.residual = recorded
+    got = least_squares_batch(model, x0, lower, upper, np.ones(9, dtype=np.int64))
+    for i in range(9):
+        expected = []
+
+        def one(x, i=i):
+            expected.append(x[0])
+            return residual(x[None], np.array([i]))[0]
+
+        least_squares(one, x0[i], jac=lambda x: np.array([[1.0 / x[0]]]), bounds=(lower[i], upper[i]), x_scale="jac")
+        assert min(expected) < 0.0  # the case: trial points where the residuals are NaN
+        assert len(trials[i]) == len(expected), (i, len(trials[i]), len(expected))
+        np.testing.assert_allclose(trials[i], expected, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got[:, 0], np.exp(t), rtol=1e-8)
