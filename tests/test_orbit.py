@@ -152,3 +152,56 @@ def test_bad_orbit_input_exits_2_naming_the_field(tmp_path, capsys, args, field)
             "instrument.max_range_m=600000", "--duration", "0.01"]
     assert main(base + args + ["--out", str(tmp_path / "o")]) == 2
     assert field in capsys.readouterr().err
+
+
+_ROTATIONS = """
+import sys
+import numpy as np
+from astropy.utils import iers
+from flightsim.platforms.orbit import gcrs_to_itrs
+if sys.argv[2] == "cached":  # the table must come from the cache entry: astropy parsing it fails
+    iers.IERS_Auto.read = classmethod(lambda cls, *a, **k: (_ for _ in ()).throw(AssertionError("parsed")))
+np.save(sys.argv[1], gcrs_to_itrs(3.5e8 + np.linspace(0.0, 600.0, 7)))
+"""
+
+
+def test_the_earth_orientation_table_from_the_cache_gives_the_same_rotations(tmp_path):
+    """The IERS table astropy parses (0.4-0.6 s a process) is stored in the scene cache by the first run and read by
+    the next: in fresh processes, the rotations from the stored table are those from the parsed one bit for bit;
+    an entry cut short is ignored, parsed afresh and written again."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "FLIGHTSIM_CACHE": str(tmp_path / "cache")}
+
+    def rotations(name: str, mode: str) -> np.ndarray:
+        subprocess.run([sys.executable, "-c", _ROTATIONS, str(tmp_path / name), mode], env=env, check=True,
+                       capture_output=True)
+        return np.load(tmp_path / name)
+
+    parsed = rotations("parsed.npy", "any")
+    (entry,) = (tmp_path / "cache").glob("iers-*.h5")
+    np.testing.assert_array_equal(rotations("cached.npy", "cached"), parsed)
+    entry.write_bytes(entry.read_bytes()[:4096])
+    np.testing.assert_array_equal(rotations("again.npy", "any"), parsed)
+    assert entry.stat().st_size > 4096  # written again whole
+    np.testing.assert_array_equal(rotations("cached2.npy", "cached"), parsed)
+
+
+def test_a_run_without_the_scene_cache_leaves_the_earth_orientation_table_to_astropy(tmp_path, monkeypatch):
+    """``run.scene_cache = false`` (USE_CACHE, set by the run around its trajectories): no entry read or written;
+    with it, the first call writes one."""
+    from astropy.utils import iers
+
+    from flightsim.platforms.earth_orientation import USE_CACHE, use_cached_table
+
+    monkeypatch.setattr(iers.IERS_Auto, "iers_table", None)
+    token = USE_CACHE.set(False)
+    try:
+        use_cached_table(tmp_path)
+    finally:
+        USE_CACHE.reset(token)
+    assert iers.IERS_Auto.iers_table is None and not list(tmp_path.iterdir())
+    use_cached_table(tmp_path)
+    assert iers.IERS_Auto.iers_table is not None and len(list(tmp_path.glob("iers-*.h5"))) == 1

@@ -77,8 +77,8 @@ class RunSettings(Settings):
                                 "copies", range=(0, 4096))
     max_registers: int = setting(0, "registers per thread of the CUDA trace kernels; 0 = automatic", "registers",
                                  range=(0, 255))
-    scene_cache: bool = setting(True, "keep scenes read from files, and procedural forests' voxels, in "
-                                "$FLIGHTSIM_CACHE (~/.cache/flightsim/scenes)")
+    scene_cache: bool = setting(True, "keep scenes read from files, procedural forests' voxels and an Earth "
+                                "orbit's IERS table in $FLIGHTSIM_CACHE (~/.cache/flightsim/scenes)")
 
     def check(self, context) -> None:
         d = self.device

@@ -7,6 +7,7 @@ import math
 from flightsim.core import registry
 from flightsim.core.errors import InputError
 from flightsim.engine.instrument import Instrument
+from flightsim.platforms.earth_orientation import USE_CACHE
 from flightsim.scenes.build import build_scene as build_scene_of
 from flightsim.scenes.scene import Scene, required_half_extent
 from trajectories import Trajectory, TrajectoryError
@@ -61,10 +62,13 @@ def flight_trajectories(cfg, scene: Scene) -> list[Trajectory]:
     flying = platform(cfg)
     if not getattr(flying, "rotating", False):  # clearance and terrain following read the height grid
         scene.build_height_grid(cfg.run.device)
+    caching = USE_CACHE.set(cfg.run.scene_cache)  # an orbit's Earth orientation table, as the scene
     try:
         return flying.trajectories(scene)
     except TrajectoryError as exc:
         raise InputError(exc.field, exc.value, exc.allowed) from None
+    finally:
+        USE_CACHE.reset(caching)
 
 
 def edge_buffer_m(cfg) -> float:

@@ -188,14 +188,18 @@ def _check_perigee(body: Body, perigee_m: float, inclination: float, perigee: fl
 
 def gcrs_to_itrs(gps_time) -> np.ndarray:
     """(n, 3, 3) rotations R_GCRS→ITRS at adjusted GPS times [s], from astropy (bundled IERS tables, no
-    download): the columns are the ITRS images of the GCRS axes."""
+    download; their parsed table kept in the scene cache: :mod:`flightsim.platforms.earth_orientation`): the
+    columns are the ITRS images of the GCRS axes."""
     from astropy import units
     from astropy.coordinates import GCRS, ITRS, CartesianRepresentation
     from astropy.time import Time
     from astropy.utils import data, iers
 
+    from flightsim.platforms.earth_orientation import use_cached_table
+
     with iers.conf.set_temp("auto_download", False), iers.conf.set_temp("iers_degraded_accuracy", "warn"), \
             data.conf.set_temp("allow_internet", False):
+        use_cached_table()
         time = Time(np.asarray(gps_time, dtype=np.float64) + ADJUSTED_GPS_OFFSET_S, format="gps")
         axes = np.eye(3)[:, :, None] * np.ones(time.shape)  # (component, axis, epoch)
         gcrs = GCRS(CartesianRepresentation(axes * units.m), obstime=time)
