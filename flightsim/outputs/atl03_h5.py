@@ -168,12 +168,13 @@ class Atl03Writer:
 def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> None:
     """Each background frame's first shot time and its shots that detected a photon (a shot's photons are all in one
     chunk)."""
-    shots, first = np.unique(pulse, return_index=True)
-    for f, n in zip(*np.unique(frame[first], return_counts=True)):
-        track.frame_shots[int(f)] = track.frame_shots.get(int(f), 0) + int(n)
-        if int(f) not in track.frame_time:
-            p = int(pulse[frame == f][0]) // FRAME_SHOTS * FRAME_SHOTS
-            track.frame_time[int(f)] = float(adjusted_to_delta_time(start_time + p / prf_hz))
+    _, first = np.unique(pulse, return_index=True)  # a photon of each shot
+    frames, some = np.unique(frame, return_index=True)  # each frame, and its first photon
+    shots = np.bincount(np.searchsorted(frames, frame[first]), minlength=len(frames))
+    for f, n, p in zip(frames.tolist(), shots.tolist(), (pulse[some] // FRAME_SHOTS * FRAME_SHOTS).tolist()):
+        track.frame_shots[f] = track.frame_shots.get(f, 0) + n
+        if f not in track.frame_time:
+            track.frame_time[f] = float(adjusted_to_delta_time(start_time + p / prf_hz))
 
 
 def _keep_reference(track: _Track, segment: np.ndarray, offset: np.ndarray, row0: int, lat, lon, t) -> None:
