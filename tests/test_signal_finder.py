@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import h5py
 import numpy as np
+import pytest
 
+from flightsim.core.process_map import ProcessMap
 from flightsim.engine.config import set_value, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.engine.run import simulate_to_directory
@@ -67,16 +69,28 @@ def test_a_surface_drawn_here_is_found_where_it_is():
     assert (truth[conf == HIGH]).mean() >= 0.95 and (conf[truth] >= LOW).mean() >= 0.95
 
 
-def test_classifying_block_by_block_equals_classifying_at_once():
+@pytest.mark.parametrize("processes", [0, 2])
+def test_classifying_block_by_block_equals_classifying_at_once(processes):
+    """Blocks of 1000 photons read with their neighbours, in this process or two blocks at a time on two worker
+    processes: every confidence the same as the whole pass classified at once."""
     rng = np.random.default_rng(7)
     pulse = np.repeat(np.arange(4000), rng.poisson(5.0, 4000))
     along, h = pulse * 0.7, np.where(rng.random(pulse.size) < 0.2, 50.0 + rng.normal(0, 0.1, pulse.size),
                                      rng.uniform(0.0, 300.0, pulse.size))
     finder = SignalFinder()
     out = np.full(pulse.size, -1, dtype=np.int8)
+    written = []
 
     def write(lo, values):
         out[lo:lo + len(values)] = values
+        written.append(lo)
 
-    finder.classify_stream(pulse.size, lambda lo, hi: (along[lo:hi], h[lo:hi], pulse[lo:hi]), write, block=1000)
+    workers = ProcessMap(processes) if processes else None
+    try:
+        finder.classify_stream(pulse.size, lambda lo, hi: (along[lo:hi], h[lo:hi], pulse[lo:hi]), write, block=1000,
+                               workers=workers)
+    finally:
+        if workers is not None:
+            workers.stop()
+    assert written == list(range(0, pulse.size, 1000))
     assert np.array_equal(out, finder.classify(along, h, pulse))

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flightsim.core.process_map import ProcessMap, usable_cores
 from flightsim.outputs.atl03_granule import Granule, adjusted_to_delta_time, write_granule
 from flightsim.outputs.h5_product import H5Product
 from flightsim.platforms.orbit import local_to_geodetic
@@ -53,6 +54,9 @@ SEGMENT_M = 20.0  # ATL03's geolocation segment along track [m]
 FRAME_SHOTS = 50  # ATL03's background rate: every 50 shots (200 Hz at 10 kHz)
 SURFACE_TYPES = 5  # land, ocean, sea ice, land ice, inland water
 LIGHT_SPEED = 299_792_458.0  # [m/s]
+FINDER_BLOCK = 1 << 20  # photons the signal finder classifies at a time (its memory)
+FINDER_PARALLEL = 1 << 20  # a granule's photons from which its signal finder runs on worker processes
+MAX_FINDER_WORKERS = 32  # the most worker processes the signal finder starts
 
 
 @dataclass
@@ -134,18 +138,23 @@ class Atl03Writer:
 
     def close(self) -> str:
         f = self.product.file
-        for name, track in self.tracks.items():
-            conf = self._confidence(f[f"{name}/heights"])
-            _segments(f.require_group(f"{name}/geolocation"), track)
-            _zero_corrections(f.require_group(f"{name}/geophys_corr"), f[f"{name}/geolocation/delta_time"][:])
-            _background(f.require_group(f"{name}/bckgrd_atlas"), track, conf, self.granule.gate_s)
+        workers = _finder_workers(sum(f[f"{name}/heights/h_ph"].shape[0] for name in self.tracks))
+        try:
+            for name, track in self.tracks.items():
+                conf = self._confidence(f[f"{name}/heights"], workers)
+                _segments(f.require_group(f"{name}/geolocation"), track)
+                _zero_corrections(f.require_group(f"{name}/geophys_corr"), f[f"{name}/geolocation/delta_time"][:])
+                _background(f.require_group(f"{name}/bckgrd_atlas"), track, conf, self.granule.gate_s)
+        finally:
+            if workers is not None:
+                workers.stop()
         write_granule(f, self.granule, sorted(self.tracks))
         return self.product.close()
 
     @staticmethod
-    def _confidence(heights) -> np.ndarray:
+    def _confidence(heights, workers: ProcessMap | None = None) -> np.ndarray:
         """signal_conf_ph of one beam's heights group, by the signal finder over its photons (every surface type's
-        column the same); returns the first column."""
+        column the same; in blocks over ``workers`` when given); returns the first column."""
         n = heights["h_ph"].shape[0]
         conf = heights.create_dataset("signal_conf_ph", shape=(n, SURFACE_TYPES), dtype=np.int8,
                                       chunks=(min(max(n, 1), 1 << 16), SURFACE_TYPES))
@@ -158,11 +167,20 @@ class Atl03Writer:
             conf[lo:lo + len(values)] = np.repeat(values[:, None], SURFACE_TYPES, axis=1)
             first[lo:lo + len(values)] = values
 
-        SignalFinder().classify_stream(n, read, write)
+        block = FINDER_BLOCK if workers is None else min(FINDER_BLOCK, max(FINDER_BLOCK >> 4,
+                                                                          -(-n // len(workers.processes))))
+        SignalFinder().classify_stream(n, read, write, block, workers)
         return first
 
     def abort(self) -> None:
         self.product.abort()
+
+
+def _finder_workers(photons: int) -> ProcessMap | None:
+    """Worker processes for the signal finder of a granule of ``photons`` photons: from FINDER_PARALLEL photons on a
+    machine with more than one usable core (the finder is a Python loop over 20 m segments), else None."""
+    cores = usable_cores()
+    return ProcessMap(min(cores, MAX_FINDER_WORKERS)) if photons >= FINDER_PARALLEL and cores > 1 else None
 
 
 def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> None:

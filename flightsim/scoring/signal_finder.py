@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import poisson
 
+from flightsim.core.process_map import ProcessMap, map_rows
+
 NOISE, BUFFER, LOW, MEDIUM, HIGH = 0, 1, 2, 3, 4
 
 
@@ -82,23 +84,38 @@ class SignalFinder:
         return conf.astype(np.int8)
 
     def classify_stream(self, n: int, read: Callable[[int, int], tuple], write: Callable[[int, np.ndarray], None],
-                        block: int = 1 << 20) -> None:
+                        block: int = 1 << 20, workers: ProcessMap | None = None) -> None:
         """Classify ``n`` photons stored in along-track order block by block (memory ∝ ``block``): ``read(lo,
         hi)`` gives (along, h, pulse) of rows [lo, hi), ``write(lo, conf)`` stores rows from lo. Each block is
-        read with enough rows on both sides to hold its segments' background neighbours."""
+        read with enough rows on both sides to hold its segments' background neighbours. ``workers``: worker
+        processes (:class:`~flightsim.core.process_map.ProcessMap`) that classify as many blocks at a time (the
+        same values); None: this process, a block at a time."""
+        spans = [(start, min(n, start + block)) for start in range(0, n, block)]
+        at_once = len(workers.processes) if workers is not None else 1
+        for first in range(0, len(spans), at_once):
+            group = spans[first:first + at_once]
+            parts = [(self, *self._padded(n, read, start, end, block)) for start, end in group]
+            for (start, _), conf in zip(group, map_rows(_classify_part, parts, workers)):
+                write(start, conf)
+
+    def _padded(self, n: int, read: Callable[[int, int], tuple], start: int, end: int, block: int) -> tuple:
+        """(along, h, pulse, first, past) of rows [start, end) read with enough rows on both sides (rows
+        [first, past) of the arrays are the block's)."""
         margin = (self.background_segments + 1) * self.segment_m
-        for start in range(0, n, block):
-            end = min(n, start + block)
-            pad = block // 8
-            while True:
-                lo, hi = max(0, start - pad), min(n, end + pad)
-                along, h, pulse = read(lo, hi)
-                enough = ((lo == 0 or along[start - lo] - along[0] > margin)
-                          and (hi == n or along[-1] - along[end - lo - 1] > margin))
-                if enough:
-                    break
-                pad *= 2
-            write(start, self.classify(along, h, pulse)[start - lo:end - lo])
+        pad = max(block // 8, 1)
+        while True:
+            lo, hi = max(0, start - pad), min(n, end + pad)
+            along, h, pulse = read(lo, hi)
+            if ((lo == 0 or along[start - lo] - along[0] > margin)
+                    and (hi == n or along[-1] - along[end - lo - 1] > margin)):
+                return along, h, pulse, start - lo, end - lo
+            pad *= 2
+
+
+def _classify_part(finder: SignalFinder, along, h, pulse, first: int, past: int) -> np.ndarray:
+    """``finder``'s confidence of rows [first, past) of the photons (a module-level function: a worker process runs
+    it on a block)."""
+    return finder.classify(along, h, pulse)[first:past]
 
 
 def _count(ordered: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
