@@ -67,23 +67,29 @@ def test_three_beams_across_track_give_three_ground_tracks(tmp_path):
         assert distance == pytest.approx(500e3 * np.tan(6.6e-3), rel=2e-3)  # 3.30 km on the ground
 
 
-def test_the_signal_finder_on_worker_processes_gives_the_same_confidence(tmp_path, monkeypatch):
-    """A granule past FINDER_PARALLEL photons is classified in blocks over worker processes (here forced for a
-    0.2 s pass of six beams, two workers): signal_conf_ph and the background rates the same as in this process."""
+def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(tmp_path, monkeypatch):
+    """A granule past FINDER_PARALLEL photons is classified in blocks over worker processes, and past
+    ATL08_PARALLEL its ATL08 beams are worked out a beam a worker (both forced here for a 0.2 s pass of six beams,
+    two workers): signal_conf_ph, the background rates and every atl08.h5 dataset the same as in this process."""
+    import flightsim.engine.products.photons as photons
     import flightsim.outputs.atl03_h5 as atl03_h5
 
     cfg = preset_config("atlas")
     for key, value in {"flight.duration_s": 0.2, "photon.gate_m": [499850.0, 500150.0]}.items():
         set_value(cfg, key, value)
     started = []
-    workers = atl03_h5._finder_workers
-    monkeypatch.setattr(atl03_h5, "usable_cores", lambda: 2)
+    finder_workers, atl08_workers = atl03_h5._finder_workers, photons._atl08_workers
+    for module in (atl03_h5, photons):
+        monkeypatch.setattr(module, "usable_cores", lambda: 2)
     for name, parallel in (("serial", 1 << 40), ("workers", 1)):
         monkeypatch.setattr(atl03_h5, "FINDER_PARALLEL", parallel)
+        monkeypatch.setattr(photons, "ATL08_PARALLEL", parallel)
         monkeypatch.setattr(atl03_h5, "_finder_workers",
-                            lambda photons: started.append(workers(photons)) or started[-1])
+                            lambda n: started.append(finder_workers(n)) or started[-1])
+        monkeypatch.setattr(photons, "_atl08_workers", lambda n, beams: started.append(atl08_workers(n, beams))
+                            or started[-1])
         simulate_to_directory(validate(cfg), tmp_path / name)
-    assert started[0] is None and len(started[1].processes) == 2
+    assert started[:2] == [None, None] and [len(w.processes) for w in started[2:]] == [2, 2]
     with h5py.File(tmp_path / "serial" / "atl03.h5") as a, h5py.File(tmp_path / "workers" / "atl03.h5") as b:
         beams = [k for k in a if k.startswith("gt")]
         assert len(beams) == 6
@@ -91,3 +97,9 @@ def test_the_signal_finder_on_worker_processes_gives_the_same_confidence(tmp_pat
             for name in ("heights/signal_conf_ph", "bckgrd_atlas/bckgrd_rate"):
                 np.testing.assert_array_equal(a[f"{beam}/{name}"][:], b[f"{beam}/{name}"][:], err_msg=name)
         assert (a[f"{beams[0]}/heights/signal_conf_ph"][:, 0] >= 3).any()  # the case: signal found
+    with h5py.File(tmp_path / "serial" / "atl08.h5") as a, h5py.File(tmp_path / "workers" / "atl08.h5") as b:
+        names = []
+        a.visititems(lambda name, item: names.append(name) if isinstance(item, h5py.Dataset) else None)
+        assert len(names) > 100
+        for name in names:
+            np.testing.assert_array_equal(a[name][()], b[name][()], err_msg=name)

@@ -5,11 +5,14 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from flightsim.core.process_map import ProcessMap, map_rows, usable_cores
 from flightsim.core.registry import register
 from flightsim.engine.readouts.photons import Photons
 from flightsim.outputs.photon_las import FOLDER
 
 ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
+ATL08_PARALLEL = 1 << 20  # a granule's photons from which ATL08's beams are worked out on worker processes
+MAX_ATL08_WORKERS = 16  # the most worker processes ATL08 starts (one a beam)
 ATL08_INPUTS = {"along_track_m": "x_atc", "h_ph": "h_ph", "lat": "lat_ph", "lon": "lon_ph",
                 "signal_conf_ph": "signal_conf_ph", "delta_time": "delta_time"}  # atl08_segments' argument: atl03 name
 
@@ -100,17 +103,38 @@ def atl08_from_atl03(directory: Path, cfg_text: str) -> str | None:
     no photon."""
     import h5py
 
-    from flightsim.outputs.atl08 import atl08_segments
+    from flightsim.outputs.atl08 import atl08_beam
     from flightsim.outputs.atl08_h5 import write_atl08
 
-    beams = {}
     with h5py.File(directory / "atl03.h5") as f:
-        for track in ground_tracks(f):
-            heights = f[f"{track}/heights"]
-            columns = {arg: heights[name][:] for arg, name in ATL08_INPUTS.items()}
-            if columns["signal_conf_ph"].ndim == 2:  # ATL03's (n, 5): ATL08 reads the land surface type's column
-                columns["signal_conf_ph"] = columns["signal_conf_ph"][:, 0]
-            beams[track] = atl08_segments(**columns, segment_m=ATL08_SEGMENT_M)
+        tracks = ground_tracks(f)
+        photons = sum(f[f"{track}/heights/h_ph"].shape[0] for track in tracks)
+        workers = _atl08_workers(photons, len(tracks))
+        beams, at_once = {}, len(workers.processes) if workers is not None else 1  # beams read and worked at once
+        try:
+            for first in range(0, len(tracks), at_once):
+                group = tracks[first:first + at_once]
+                done = map_rows(atl08_beam, [(_atl08_columns(f[f"{track}/heights"]), ATL08_SEGMENT_M)
+                                             for track in group], workers)
+                beams.update(zip(group, done))
+        finally:
+            if workers is not None:
+                workers.stop()
     if not beams:
         return None
     return write_atl08(directory / "atl08.h5", beams, {"config_toml": cfg_text}).name
+
+
+def _atl08_columns(heights) -> dict:
+    """The columns of one beam's heights group that ATL08 reads, by atl08_segments' argument names."""
+    columns = {arg: heights[name][:] for arg, name in ATL08_INPUTS.items()}
+    if columns["signal_conf_ph"].ndim == 2:  # ATL03's (n, 5): ATL08 reads the land surface type's column
+        columns["signal_conf_ph"] = columns["signal_conf_ph"][:, 0]
+    return columns
+
+
+def _atl08_workers(photons: int, beams: int) -> ProcessMap | None:
+    """Worker processes that work out ATL08 a beam each: from ATL08_PARALLEL photons and two beams on a machine
+    with more than one usable core, else None."""
+    count = min(usable_cores(), beams, MAX_ATL08_WORKERS)
+    return ProcessMap(count) if photons >= ATL08_PARALLEL and count > 1 else None
