@@ -69,8 +69,9 @@ def least_squares_batch(model: BatchModel, x0: np.ndarray, lower: np.ndarray, up
                    v=np.zeros((len(x), n, n)), uf=np.zeros_like(x))
     done = _start(state, rows, f, jac, g, gtol, 100 * n)
     while True:
-        out[state.rows[done]] = state.x[done]
-        state = state.take(~done)
+        if done.any():  # the finished leave the batch (a round in which none did copies nothing)
+            out[state.rows[done]] = state.x[done]
+            state = state.take(~done)
         if not len(state.rows):
             return out
         done = _trial(state, model, ftol, xtol, gtol, 100 * n)
