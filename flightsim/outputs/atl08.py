@@ -155,12 +155,6 @@ def atl08_segments(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time, se
     return {"land_segments": _segments(x, h, la, lo, t, cls, ph_h, band, seg_m, s), "signal_photons": photons}
 
 
-def atl08_beam(columns: dict, segment_m: float) -> dict:
-    """:func:`atl08_segments` of one beam's ``columns`` (its arguments by name; a module-level function: a worker
-    process runs it on a beam)."""
-    return atl08_segments(**columns, segment_m=segment_m)
-
-
 # --- input -----------------------------------------------------------------------------------------
 
 

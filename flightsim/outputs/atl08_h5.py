@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from flightsim.core.errors import InputError
-from flightsim.outputs.atl08 import FILL, PHOTON_COLUMNS, SEGMENT_COLUMNS
+from flightsim.outputs.atl08 import FILL, PHOTON_COLUMNS, SEGMENT_COLUMNS, atl08_segments
 from flightsim.outputs.h5_product import H5Product
 
 LAYOUT = {  # column: (group below gtx, dtype, units)
@@ -55,6 +55,8 @@ PHOTON_LAYOUT = {
     "classed_pc_flag": (np.int8, "1"), "classed_pc_indx": (np.int32, "1"), "ph_segment_id": (np.int32, "1"),
     "ph_h": (np.float32, "meters"), "d_flag": (np.int8, "1"), "delta_time": (np.float64, "seconds"),
 }
+ATL03_INPUTS = {"along_track_m": "x_atc", "h_ph": "h_ph", "lat": "lat_ph", "lon": "lon_ph",
+                "signal_conf_ph": "signal_conf_ph", "delta_time": "delta_time"}  # atl08_segments' argument: atl03 name
 _FILLED = ("h_te_mean", "h_te_median", "h_canopy", "h_mean_canopy", "canopy_openness", "ph_h")
 _BEAM = re.compile(r"gt[1-9][0-9]*[lr]?")
 
@@ -85,6 +87,20 @@ def write_atl08(path: str | os.PathLike, beams: dict, attrs: dict | None = None)
         raise
     product.close()
     return Path(path)
+
+
+def atl08_of_track(atl03_path: str | os.PathLike, track: str, segment_m: float) -> dict:
+    """:func:`flightsim.outputs.atl08.atl08_segments` (default settings) of one ground track of a finished atl03.h5,
+    its photons read here (only the columns ATL08 needs: along-track distance ``x_atc``, height, latitude,
+    longitude, the land column of the signal confidence, time): a worker process reads its own track."""
+    import h5py
+
+    with h5py.File(atl03_path, "r") as f:
+        heights = f[f"{track}/heights"]
+        columns = {arg: heights[name][:] for arg, name in ATL03_INPUTS.items()}
+    if columns["signal_conf_ph"].ndim == 2:  # ATL03's (n, 5): ATL08 reads the land surface type's column
+        columns["signal_conf_ph"] = columns["signal_conf_ph"][:, 0]
+    return atl08_segments(**columns, segment_m=segment_m)
 
 
 def _track(name) -> str:

@@ -3,6 +3,8 @@ grown row by row as chunks arrive, renamed into place when complete or removed o
 from __future__ import annotations
 
 import os
+import zlib
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import h5py
@@ -13,6 +15,8 @@ from flightsim.core.atomic import temporary_name
 
 ROWS_PER_CHUNK = 1 << 16  # largest HDF5 chunk of a 1-D dataset [rows]
 MIN_ROWS_PER_CHUNK = 1 << 10  # smallest: a one-shot product stays small (a chunk is stored whole)
+GZIP_LEVEL = 4  # h5py's gzip level, which the datasets are made with
+PARALLEL_CHUNKS = 4  # a compressed 1-D append of this many chunks or more is compressed on threads
 
 
 class H5Product:
@@ -39,7 +43,10 @@ class H5Product:
             n = g[name].shape[0]
             before = n if before is None else before
             g[name].resize((n + len(values),) + values.shape[1:])
-            g[name][n:] = values
+            if _deflated_by_hand(g[name], values):
+                _write_deflated(g[name], n, values)
+            else:
+                g[name][n:] = values
         return before or 0
 
     def close(self) -> str:
@@ -51,3 +58,35 @@ class H5Product:
     def abort(self) -> None:
         self.file.close()
         self.part.unlink(missing_ok=True)
+
+
+def _deflated_by_hand(dataset: h5py.Dataset, values: np.ndarray) -> bool:
+    """Whether appending ``values`` to ``dataset`` is worth compressing on threads: a 1-D dataset with exactly the
+    shuffle and gzip filters, PARALLEL_CHUNKS chunks of rows or more."""
+    return (values.ndim == 1 and dataset.compression == "gzip" and dataset.shuffle and not dataset.fletcher32
+            and dataset.scaleoffset is None and len(values) >= PARALLEL_CHUNKS * dataset.chunks[0])
+
+
+def _write_deflated(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
+    """``dataset[n:n + len(values)] = values`` for a 1-D dataset with HDF5's shuffle and gzip filters: the rows up to
+    the first chunk boundary through HDF5, every chunk from there shuffled and deflated on threads (zlib lets go of
+    Python's lock, h5py holds it through HDF5's own filters) and stored as it is (a last partial chunk padded with
+    the fill value 0, as HDF5 stores one). The values read back are the same either way."""
+    rows, values = dataset.chunks[0], values.astype(dataset.dtype, copy=False)
+    first = min(-(-n // rows) * rows, n + len(values))
+    if first > n:
+        dataset[n:first] = values[:first - n]
+    rest = values[first - n:]
+    starts = range(0, len(rest), rows)
+    with ThreadPoolExecutor(min(16, os.cpu_count() or 1), thread_name_prefix="deflate") as pool:
+        deflated = pool.map(lambda start: _deflated(rest[start:start + rows], rows), starts)
+        for start, chunk in zip(starts, deflated):
+            dataset.id.write_direct_chunk((first + start,), chunk)
+
+
+def _deflated(values: np.ndarray, rows: int) -> bytes:
+    """One chunk of ``rows`` rows (``values`` then zeros) as HDF5's shuffle and gzip filters store it."""
+    chunk = np.zeros(rows, dtype=values.dtype)
+    chunk[:len(values)] = values
+    shuffled = np.ascontiguousarray(chunk.view(np.uint8).reshape(rows, chunk.itemsize).T)  # byte k of every row
+    return zlib.compress(shuffled.tobytes(), GZIP_LEVEL)

@@ -157,13 +157,14 @@ class TileWriter:
             raise ValueError("z is out of the int32 range of a 1 mm LAS coordinate (|z| < 2147 km)")
         ix = np.floor_divide(xq, self._tile_mm)
         iy = np.floor_divide(yq, self._tile_mm)
-        for key, index in _tile_groups(ix, iy):
-            record = self._record(batch.select(index))
-            record["X"] = xq[index] - key[0] * self._tile_mm
-            record["Y"] = yq[index] - key[1] * self._tile_mm
-            record["Z"] = zq[index]
-            xyz = np.column_stack([record["X"], record["Y"], record["Z"]])
-            self.write_records(key, record.array, xyz.min(axis=0), xyz.max(axis=0))
+        order, starts = _tile_order(ix, iy)
+        ix, iy = ix[order], iy[order]
+        record = self._record(batch.select(order))  # every tile's records at once, tile after tile
+        xyz = np.column_stack([xq[order] - ix * self._tile_mm, yq[order] - iy * self._tile_mm, zq[order]])
+        record["X"], record["Y"], record["Z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        lowest, highest = np.minimum.reduceat(xyz, starts), np.maximum.reduceat(xyz, starts)
+        for k, (start, stop) in enumerate(zip(starts, np.r_[starts[1:], len(order)])):
+            self.write_records((int(ix[start]), int(iy[start])), record.array[start:stop], lowest[k], highest[k])
 
     def write_records(self, key: tuple[int, int], records: np.ndarray, lowest, highest) -> None:
         """Append finished point records to tile ``key`` (tile indices).
@@ -437,10 +438,9 @@ class _TileFile:
         self._file.close()
 
 
-def _tile_groups(ix: np.ndarray, iy: np.ndarray):
-    """(tile key, indices of its points in input order) for each tile index pair present."""
+def _tile_order(ix: np.ndarray, iy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points' order tile after tile (by tile index pair; input order kept within a tile) and where each tile's
+    points start in it."""
     order = np.lexsort((iy, ix))  # stable: input order is kept within a tile
     ix, iy = ix[order], iy[order]
-    starts = np.flatnonzero(np.r_[True, (ix[1:] != ix[:-1]) | (iy[1:] != iy[:-1])])
-    for start, stop in zip(starts, np.r_[starts[1:], len(order)]):
-        yield (int(ix[start]), int(iy[start])), order[start:stop]
+    return order, np.flatnonzero(np.r_[True, (ix[1:] != ix[:-1]) | (iy[1:] != iy[:-1])])

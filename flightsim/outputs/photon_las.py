@@ -30,6 +30,7 @@ import pyproj
 
 from flightsim.core.errors import InputError
 from flightsim.core.registry import register
+from flightsim.core.transform import transform
 from flightsim.core.settings import Settings, setting
 from flightsim.outputs.las_format import gps_week_date
 from flightsim.outputs.las_points import PointBatch
@@ -77,7 +78,7 @@ def photon_world(body: str | None, scene, local: np.ndarray, crs: pyproj.CRS) ->
     if body != "earth" and crs == scene.crs:
         return scene.local_to_world(local)
     lat, lon, h = local_to_geodetic(body, scene, local)
-    x, y = pyproj.Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)
+    x, y = transform("EPSG:4326", crs, lon, lat)
     return np.column_stack([x, y, h])
 
 

@@ -39,6 +39,7 @@ import pyproj
 from flightsim.core.errors import InputError
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
+from flightsim.core.transform import transform
 from flightsim.platforms.flight import check_clearance
 from flightsim.platforms.rotating_body import attitude_angles
 from flightsim.scenes.scene import Scene
@@ -326,16 +327,14 @@ def local_to_geodetic(body_name: str | None, scene: Scene,
     local = np.asarray(local, dtype=np.float64).reshape(-1, 3)
     if body_name is None:
         world = scene.local_to_world(local)
-        lon, lat = pyproj.Transformer.from_crs(scene.crs, "EPSG:4326", always_xy=True).transform(world[:, 0],
-                                                                                                  world[:, 1])
-        return np.asarray(lat), np.asarray(lon), world[:, 2]
+        lon, lat = transform(scene.crs, "EPSG:4326", world[:, 0], world[:, 1])
+        return lat, lon, world[:, 2]
     body = BODIES[body_name]
     lat0, lon0 = scene_geodetic(body, scene)
     fixed = geodetic_to_body_fixed(body, lat0, lon0, scene.origin[2]) + local @ enu_rotation(lat0, lon0)
     if body.name == "earth":
-        to_geodetic = pyproj.Transformer.from_crs("EPSG:4978", "EPSG:4979", always_xy=True)
-        lon, lat, h = to_geodetic.transform(fixed[:, 0], fixed[:, 1], fixed[:, 2])
-        return np.asarray(lat), np.asarray(lon), np.asarray(h)
+        lon, lat, h = transform("EPSG:4978", "EPSG:4979", fixed[:, 0], fixed[:, 1], fixed[:, 2])
+        return lat, lon, h
     r = np.linalg.norm(fixed, axis=1)
     return (np.degrees(np.arcsin(fixed[:, 2] / r)), np.degrees(np.arctan2(fixed[:, 1], fixed[:, 0])),
             r - body.radius_m)

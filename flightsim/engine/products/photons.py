@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from flightsim.core.background import Background
 from flightsim.core.process_map import ProcessMap, map_rows, usable_cores
 from flightsim.core.registry import register
 from flightsim.engine.readouts.photons import Photons
@@ -13,8 +14,6 @@ from flightsim.outputs.photon_las import FOLDER
 ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
 ATL08_PARALLEL = 1 << 20  # a granule's photons from which ATL08's beams are worked out on worker processes
 MAX_ATL08_WORKERS = 16  # the most worker processes ATL08 starts (one a beam)
-ATL08_INPUTS = {"along_track_m": "x_atc", "h_ph": "h_ph", "lat": "lat_ph", "lon": "lon_ph",
-                "signal_conf_ph": "signal_conf_ph", "delta_time": "delta_time"}  # atl08_segments' argument: atl03 name
 
 
 def reflectance_source(cfg, scene, value: float) -> float | str:
@@ -44,31 +43,40 @@ class PhotonProduct:
         cfg, scene, prf = self.cfg, self.scene, tracer.timing.prf_hz
         self.directory, self.cfg_text = directory, cfg_text
         shutil.rmtree(directory / FOLDER, ignore_errors=True)  # tiles of a run being redone
-        self.h5 = PhotonWriter(directory, cfg_text, prf, scene.origin, scene.crs.to_wkt())
+        h5 = PhotonWriter(directory, cfg_text, prf, scene.origin, scene.crs.to_wkt())
         body = cfg.flight.body if cfg.flight.platform == "orbit" else None
-        self.las = PhotonLas(directory, cfg.output, scene, tracer.timing, tracer.instrument.emitter.beam_columns, body,
-                             cfg.flight.start_gps_time)
-        self.writers = [self.h5, self.las] + ([Atl03Writer(directory, body, cfg_text, prf, scene,
-                                                           atl03_granule(cfg, tracer.instrument.emitter))] if body else [])
+        las = PhotonLas(directory, cfg.output, scene, tracer.timing, tracer.instrument.emitter.beam_columns, body,
+                        cfg.flight.start_gps_time)
+        atl03 = [Atl03Writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter))
+                 ] if body else []
+        self.h5, self.las, *self.atl03 = (Background(writer, name) for writer, name in
+                                          zip([h5, las, *atl03], ("photons-h5", "photon-las", "atl03")))
         self.atl08 = body is not None and cfg.output.atl08
 
     def readout(self) -> Photons:
         return Photons()
 
+    @property
+    def writers(self) -> list[Background]:
+        return [self.h5, self.las, *self.atl03]
+
     def __call__(self, chunk) -> None:
+        """Hand the chunk to every writer: each converts and writes it on a thread of its own."""
         for writer in self.writers:
             writer(chunk)
 
     def close(self, counts) -> dict:
-        names = [writer.close() for writer in self.writers]
+        """Close the files; the LAS tiles are written on while atl03.h5's signal finder and atl08.h5 work."""
+        names = {self.h5: self.h5.close(), **{writer: writer.close() for writer in self.atl03}}
         atl08 = atl08_from_atl03(self.directory, self.cfg_text) if self.atl08 else None
-        names += [atl08] if atl08 is not None else []
+        names[self.las] = self.las.close()
+        files = [names[writer] for writer in self.writers] + ([atl08] if atl08 is not None else [])
         return {"reflectance": reflectance_source(self.cfg, self.scene, self.cfg.photon.reflectance),
-                "photons": self.h5.count, "signal_photons": self.h5.signal, "photon_tiles": self.las.tiles,
-                "files": names}
+                "photons": self.h5.writer.count, "signal_photons": self.h5.writer.signal,
+                "photon_tiles": self.las.writer.tiles, "files": files}
 
     def empty(self, counts) -> bool:
-        return self.h5.count == 0
+        return self.h5.writer.count == 0
 
     def abort(self) -> None:
         for writer in self.writers:
@@ -95,42 +103,27 @@ def ground_tracks(f) -> list[str]:
 
 
 def atl08_from_atl03(directory: Path, cfg_text: str) -> str | None:
-    """Write ``directory/atl08.h5`` from the finished ``atl03.h5`` beside it: each beam's photons read back (only
-    the columns ATL08 needs: along-track distance ``x_atc``, height, latitude, longitude, the land column of the
-    signal confidence, time), classified
-    and cut into 100 m land segments (:func:`flightsim.outputs.atl08.atl08_segments`, default settings). Over bare
-    ground the segments have terrain heights and fill values for the canopy. Its name, or None when atl03.h5 holds
-    no photon."""
+    """Write ``directory/atl08.h5`` from the finished ``atl03.h5`` beside it: each beam's photons classified and cut
+    into 100 m land segments (:func:`flightsim.outputs.atl08_h5.atl08_of_track`, default settings), a beam per
+    worker process where there are many photons. Over bare ground the segments have terrain heights and fill values
+    for the canopy. Its name, or None when atl03.h5 holds no photon."""
     import h5py
 
-    from flightsim.outputs.atl08 import atl08_beam
-    from flightsim.outputs.atl08_h5 import write_atl08
+    from flightsim.outputs.atl08_h5 import atl08_of_track, write_atl08
 
-    with h5py.File(directory / "atl03.h5") as f:
+    atl03 = directory / "atl03.h5"
+    with h5py.File(atl03) as f:
         tracks = ground_tracks(f)
         photons = sum(f[f"{track}/heights/h_ph"].shape[0] for track in tracks)
-        workers = _atl08_workers(photons, len(tracks))
-        beams, at_once = {}, len(workers.processes) if workers is not None else 1  # beams read and worked at once
-        try:
-            for first in range(0, len(tracks), at_once):
-                group = tracks[first:first + at_once]
-                done = map_rows(atl08_beam, [(_atl08_columns(f[f"{track}/heights"]), ATL08_SEGMENT_M)
-                                             for track in group], workers)
-                beams.update(zip(group, done))
-        finally:
-            if workers is not None:
-                workers.stop()
-    if not beams:
+    if not tracks:
         return None
-    return write_atl08(directory / "atl08.h5", beams, {"config_toml": cfg_text}).name
-
-
-def _atl08_columns(heights) -> dict:
-    """The columns of one beam's heights group that ATL08 reads, by atl08_segments' argument names."""
-    columns = {arg: heights[name][:] for arg, name in ATL08_INPUTS.items()}
-    if columns["signal_conf_ph"].ndim == 2:  # ATL03's (n, 5): ATL08 reads the land surface type's column
-        columns["signal_conf_ph"] = columns["signal_conf_ph"][:, 0]
-    return columns
+    workers = _atl08_workers(photons, len(tracks))
+    try:
+        beams = map_rows(atl08_of_track, [(str(atl03), track, ATL08_SEGMENT_M) for track in tracks], workers)
+    finally:
+        if workers is not None:
+            workers.stop()
+    return write_atl08(directory / "atl08.h5", dict(zip(tracks, beams)), {"config_toml": cfg_text}).name
 
 
 def _atl08_workers(photons: int, beams: int) -> ProcessMap | None:

@@ -1,0 +1,68 @@
+"""Background: a writer's chunks written on its own thread, in order; its error raised in the caller; close and
+abort only once the chunks handed over have ended."""
+import threading
+import time
+
+import pytest
+
+from flightsim.core.background import Background
+
+
+class _Writer:
+    def __init__(self, fail_at=None, pause=0.0):
+        self.seen, self.threads, self.closed, self.aborted = [], set(), False, False
+        self.fail_at, self.pause = fail_at, pause
+
+    def __call__(self, chunk):
+        time.sleep(self.pause)
+        if chunk == self.fail_at:
+            raise ValueError(f"chunk {chunk}")
+        self.seen.append(chunk)
+        self.threads.add(threading.get_ident())
+
+    def close(self):
+        self.closed = True
+        return list(self.seen)
+
+    def abort(self):
+        self.aborted = True
+
+
+def test_chunks_are_written_in_order_on_another_thread():
+    writer = _Writer(pause=0.002)
+    background = Background(writer, "test")
+    for k in range(20):
+        background(k)
+    assert background.close() == list(range(20))
+    assert writer.closed and threading.get_ident() not in writer.threads and len(writer.threads) == 1
+
+
+def test_the_caller_waits_when_the_writer_holds_enough_chunks():
+    writer = _Writer(pause=0.05)
+    background = Background(writer, "test", held=2)
+    start = time.perf_counter()
+    for k in range(4):
+        background(k)
+    assert time.perf_counter() - start >= 0.09  # the third and fourth chunks waited for the first two
+    background.close()
+
+
+def test_the_writers_error_reaches_the_caller_and_abort_waits():
+    writer = _Writer(fail_at=1)
+    background = Background(writer, "test", held=1)
+    background(0)
+    background(1)
+    with pytest.raises(ValueError, match="chunk 1"):
+        background(2)  # waits for chunk 1, which failed
+    background.abort()
+    assert writer.aborted and not writer.closed and writer.seen == [0]
+
+
+def test_close_raises_the_last_chunks_error():
+    writer = _Writer(fail_at=3)
+    background = Background(writer, "test")
+    for k in range(4):
+        background(k)
+    with pytest.raises(ValueError, match="chunk 3"):
+        background.close()
+    assert not writer.closed

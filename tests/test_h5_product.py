@@ -1,0 +1,68 @@
+"""H5Product's appends: a compressed 1-D column deflated on threads and stored chunk by chunk reads back as HDF5's
+own filters would have stored it, with the filters declared, whatever the rows before it."""
+import zlib
+
+import h5py
+import numpy as np
+import pytest
+
+from flightsim.outputs import h5_product
+from flightsim.outputs.h5_product import H5Product
+
+ROWS = h5_product.ROWS_PER_CHUNK
+
+
+def _appends(rng) -> list[np.ndarray]:
+    """Appends to one column: a first one of 1.5 chunks (HDF5's filters), then ones that start mid-chunk and at a
+    boundary, long enough for the threads, one of them float32 into the float64 column, one tiny."""
+    return [rng.normal(size=ROWS * 3 // 2), rng.normal(size=ROWS * 5 + 17), rng.normal(size=ROWS * 4 - 17 + ROWS),
+            rng.normal(size=ROWS * 6).astype(np.float32), rng.normal(size=3)]
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.int8, np.int32])
+def test_compressed_appends_read_back_as_written(tmp_path, dtype, monkeypatch):
+    rng = np.random.default_rng(7)
+    parts = [(p * 40).clip(-100, 100).astype(dtype) if np.dtype(dtype).kind == "i" else p for p in _appends(rng)]
+    by_hand = []
+    original = h5_product._write_deflated
+    monkeypatch.setattr(h5_product, "_write_deflated", lambda d, n, v: by_hand.append(n) or original(d, n, v))
+    product = H5Product(tmp_path / "a.h5")
+    for part in parts:
+        product.append("g", {"x": part}, compress=True)
+    product.close()
+    assert by_hand == [ROWS * 3 // 2, ROWS * 13 // 2 + 17, ROWS * 23 // 2]  # the three long appends, by hand
+    with h5py.File(tmp_path / "a.h5") as f:
+        x = f["g/x"]
+        assert (x.compression, x.shuffle, x.chunks) == ("gzip", True, (ROWS,))
+        expected = np.concatenate([p.astype(x.dtype) for p in parts])
+        assert x.dtype == np.dtype(dtype) and x.shape == expected.shape
+        np.testing.assert_array_equal(x[:], expected)
+        np.testing.assert_array_equal(x[ROWS * 7 - 5:ROWS * 7 + 5], expected[ROWS * 7 - 5:ROWS * 7 + 5])
+
+
+def test_hand_deflated_chunks_match_hdf5s_filters(tmp_path):
+    """Every chunk stored by hand decompresses to the bytes HDF5's own shuffle and gzip filters stored."""
+    values = np.random.default_rng(3).normal(size=ROWS * 4 + 100)
+    product = H5Product(tmp_path / "b.h5")
+    product.append("g", {"x": values}, compress=True)
+    product.close()
+    with h5py.File(tmp_path / "c.h5", "w") as f:
+        f.create_dataset("x", data=values, chunks=(ROWS,), maxshape=(None,), compression="gzip", shuffle=True)
+    with h5py.File(tmp_path / "b.h5") as ours, h5py.File(tmp_path / "c.h5") as hdf5:
+        for k in range(5):
+            mask_ours, chunk_ours = ours["g/x"].id.read_direct_chunk((k * ROWS,))
+            mask_hdf5, chunk_hdf5 = hdf5["x"].id.read_direct_chunk((k * ROWS,))
+            assert mask_ours == mask_hdf5 == 0
+            assert zlib.decompress(chunk_ours) == zlib.decompress(chunk_hdf5)
+
+
+def test_uncompressed_and_two_dimensional_appends_take_hdf5s_path(tmp_path, monkeypatch):
+    monkeypatch.setattr(h5_product, "_write_deflated", lambda *a: pytest.fail("written by hand"))
+    product = H5Product(tmp_path / "d.h5")
+    rows = np.arange(ROWS * 8 * 2, dtype=np.float32).reshape(-1, 2)
+    product.append("g", {"plain": np.arange(ROWS * 8), "wide": rows}, compress=False)
+    product.append("h", {"wide": rows}, compress=True)
+    product.close()
+    with h5py.File(tmp_path / "d.h5") as f:
+        np.testing.assert_array_equal(f["h/wide"][:], rows)
+        np.testing.assert_array_equal(f["g/plain"][:], np.arange(ROWS * 8))

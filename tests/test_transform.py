@@ -1,0 +1,39 @@
+"""pyproj transforms of many points on threads: the values of one call, part boundaries included."""
+import os
+
+import numpy as np
+import pyproj
+import pytest
+
+from flightsim.core import transform as tr
+
+
+@pytest.mark.parametrize("source, target, dims", [("EPSG:4978", "EPSG:4979", 3), ("EPSG:4326", "EPSG:32611", 2)])
+def test_threads_give_the_values_of_one_transform(monkeypatch, source, target, dims):
+    monkeypatch.setattr(tr, "PART_POINTS", 1000)
+    rng = np.random.default_rng(5)
+    n = 10_007  # parts of unequal length
+    if source == "EPSG:4978":
+        lat, lon = np.radians(rng.uniform(-80, 80, n)), np.radians(rng.uniform(-180, 180, n))
+        r = 6.371e6 + rng.uniform(-500, 9000, n)
+        points = (r * np.cos(lat) * np.cos(lon), r * np.cos(lat) * np.sin(lon), r * np.sin(lat))
+    else:
+        points = (rng.uniform(-118.5, -116.5, n), rng.uniform(30, 40, n))
+    expected = pyproj.Transformer.from_crs(source, target, always_xy=True).transform(*points)
+    used = []
+    original = tr._transform
+    monkeypatch.setattr(tr, "_transform", lambda s, t, part: used.append(len(part[0])) or original(s, t, part))
+    got = tr.transform(source, target, *points)
+    assert len(used) == min(tr.MAX_THREADS, os.cpu_count(), n // 1000) > 1 and sum(used) == n
+    assert len(got) == dims
+    for a, b in zip(got, expected):
+        assert a.dtype == np.float64 and a.shape == (n,)
+        np.testing.assert_array_equal(a, b)
+
+
+def test_few_points_take_one_call(monkeypatch):
+    used = []
+    original = tr._transform
+    monkeypatch.setattr(tr, "_transform", lambda s, t, part: used.append(len(part[0])) or original(s, t, part))
+    x, y = tr.transform("EPSG:4326", "EPSG:32611", np.array([-117.0]), np.array([33.0]))
+    assert used == [1] and x.shape == (1,) and 400_000 < x[0] < 600_000
