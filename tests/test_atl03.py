@@ -68,28 +68,33 @@ def test_three_beams_across_track_give_three_ground_tracks(tmp_path):
 
 
 def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(tmp_path, monkeypatch):
-    """A granule past FINDER_PARALLEL photons is classified in blocks over worker processes, and past
-    ATL08_PARALLEL its ATL08 beams are worked out a beam a worker (both forced here for a 0.2 s pass of six beams,
-    two workers): signal_conf_ph, the background rates and every atl08.h5 dataset the same as in this process."""
+    """Past PARALLEL_PHOTONS photons a run starts worker processes as it goes; at its close the signal finder
+    classifies the granule in blocks over them and ATL08's beams are worked out a beam a worker (forced here for a
+    0.2 s pass of six beams, two workers): signal_conf_ph, the background rates and every atl08.h5 dataset the same
+    as in this process."""
     import flightsim.engine.products.photons as photons
-    import flightsim.outputs.atl03_h5 as atl03_h5
 
     cfg = preset_config("atlas")
     for key, value in {"flight.duration_s": 0.2, "photon.gate_m": [499850.0, 500150.0]}.items():
         set_value(cfg, key, value)
-    started = []
-    finder_workers, atl08_workers = atl03_h5._finder_workers, photons._atl08_workers
-    for module in (atl03_h5, photons):
-        monkeypatch.setattr(module, "usable_cores", lambda: 2)
+    started, ran = [], []
+
+    class Counted(photons.ProcessMap):
+        def __init__(self, count, preload=()):
+            super().__init__(count, preload)
+            started.append((count, preload))
+
+        def map(self, function, chunks):
+            ran.append(function.__qualname__)
+            return super().map(function, chunks)
+
+    monkeypatch.setattr(photons, "ProcessMap", Counted)
+    monkeypatch.setattr(photons, "usable_cores", lambda: 2)
     for name, parallel in (("serial", 1 << 40), ("workers", 1)):
-        monkeypatch.setattr(atl03_h5, "FINDER_PARALLEL", parallel)
-        monkeypatch.setattr(photons, "ATL08_PARALLEL", parallel)
-        monkeypatch.setattr(atl03_h5, "_finder_workers",
-                            lambda n: started.append(finder_workers(n)) or started[-1])
-        monkeypatch.setattr(photons, "_atl08_workers", lambda n, beams: started.append(atl08_workers(n, beams))
-                            or started[-1])
+        monkeypatch.setattr(photons, "PARALLEL_PHOTONS", parallel)
         simulate_to_directory(validate(cfg), tmp_path / name)
-    assert started[:2] == [None, None] and [len(w.processes) for w in started[2:]] == [2, 2]
+    assert started == [(2, photons.PRELOAD)]
+    assert "_classify_part" in ran and ran[-1] == "atl08_of_track"
     with h5py.File(tmp_path / "serial" / "atl03.h5") as a, h5py.File(tmp_path / "workers" / "atl03.h5") as b:
         beams = [k for k in a if k.startswith("gt")]
         assert len(beams) == 6

@@ -98,3 +98,16 @@ def test_maps_asked_for_from_two_threads_at_once_each_get_their_results(workers)
     for thread in threads:
         thread.join(60.0)
     assert got == [[square_sum(*chunk) for chunk in chunks] for chunks in asks]
+
+
+def loaded(module: str) -> bool:
+    import sys
+    return module in sys.modules
+
+
+def test_preloaded_modules_are_imported_before_the_first_task():
+    workers = ProcessMap(1, preload=("colorsys", "no_such_module_anywhere"))  # a missing one is left alone
+    try:
+        assert workers.map(loaded, [("colorsys",), ("wave",)]) == [True, False]
+    finally:
+        workers.stop()

@@ -30,13 +30,13 @@ class Background:
         while self._pending:
             self._pending.popleft().result()
 
-    def close(self):
-        """The writer's ``close()`` once its chunks are written (its return value)."""
+    def close(self, *args):
+        """The writer's ``close(*args)`` once its chunks are written (its return value)."""
         try:
             self.settle()
         finally:
             self._thread.shutdown()
-        return self.writer.close()
+        return self.writer.close(*args)
 
     def abort(self) -> None:
         """The writer's ``abort()`` once the chunks being written have ended (their errors dropped: the run is

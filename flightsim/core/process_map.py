@@ -14,6 +14,7 @@ collection and at interpreter exit) ends them.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
@@ -31,7 +32,7 @@ CHUNKS_PER_WORKER = 4  # a map over rows cuts them into about this many chunks p
 
 _ENTRY = ("import json, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "  # the parent stops its workers
           "sys.path[:] = json.loads(sys.argv[2]); "
-          "from flightsim.core.process_map import serve; serve(int(sys.argv[1]))")
+          "from flightsim.core.process_map import serve; serve(int(sys.argv[1]), json.loads(sys.argv[3]))")
 
 
 def usable_cores() -> int:
@@ -54,25 +55,27 @@ def map_rows(function: Callable, chunks: list[tuple], workers: "ProcessMap | Non
 
 
 class ProcessMap:
-    """``count`` worker interpreters (>= 1) that run module-level functions on pickled arguments."""
+    """``count`` worker interpreters (>= 1) that run module-level functions on pickled arguments; each imports the
+    modules ``preload`` names as it starts (while the parent goes on), not at its first task."""
 
-    def __init__(self, count: int):
+    def __init__(self, count: int, preload: tuple[str, ...] = ()):
         self.processes: list[subprocess.Popen] = []
         self.connections: list[Connection] = []
         self._lock = threading.Lock()  # one map at a time (a writer's thread and the writer may both map)
         self._stop = weakref.finalize(self, _stop, self.processes, self.connections)
         try:
             for _ in range(count):
-                self._start()
+                self._start(preload)
         except BaseException:
             self.stop()
             raise
 
-    def _start(self) -> None:
+    def _start(self, preload: tuple[str, ...]) -> None:
         parent, child = socket.socketpair()
         with child:
             try:
-                process = subprocess.Popen([sys.executable, "-c", _ENTRY, str(child.fileno()), json.dumps(sys.path)],
+                process = subprocess.Popen([sys.executable, "-c", _ENTRY, str(child.fileno()), json.dumps(sys.path),
+                                            json.dumps(list(preload))],
                                            pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL)
             except BaseException:
                 parent.close()
@@ -139,9 +142,13 @@ def _stop(processes: list[subprocess.Popen], connections: list[Connection]) -> N
             process.wait()
 
 
-def serve(fd: int) -> None:
-    """A worker's loop: run each (module, name, arguments) received on the connection ``fd`` and send back
-    ("ok", result) or ("error", exception, traceback), until the connection closes."""
+def serve(fd: int, preload: list[str] = ()) -> None:
+    """A worker's loop: import the ``preload`` modules, then run each (module, name, arguments) received on the
+    connection ``fd`` and send back ("ok", result) or ("error", exception, traceback), until the connection closes
+    (a preload that fails to import is left to the task that needs it, which then reports the error)."""
+    for module in preload:
+        with contextlib.suppress(Exception):
+            importlib.import_module(module)
     conn = Connection(fd)
     while True:
         try:

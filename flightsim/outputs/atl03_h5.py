@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flightsim.core.process_map import ProcessMap, usable_cores
+from flightsim.core.process_map import ProcessMap
 from flightsim.outputs.atl03_granule import Granule, adjusted_to_delta_time, write_granule
 from flightsim.outputs.h5_product import H5Product
 from flightsim.platforms.orbit import local_to_geodetic
@@ -55,8 +55,6 @@ FRAME_SHOTS = 50  # ATL03's background rate: every 50 shots (200 Hz at 10 kHz)
 SURFACE_TYPES = 5  # land, ocean, sea ice, land ice, inland water
 LIGHT_SPEED = 299_792_458.0  # [m/s]
 FINDER_BLOCK = 1 << 20  # photons the signal finder classifies at a time (its memory)
-FINDER_PARALLEL = 1 << 20  # a granule's photons from which its signal finder runs on worker processes
-MAX_FINDER_WORKERS = 32  # the most worker processes the signal finder starts
 
 
 @dataclass
@@ -136,18 +134,15 @@ class Atl03Writer:
             "x_atc": np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1),
             "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows]})
 
-    def close(self) -> str:
+    def close(self, workers: ProcessMap | None = None) -> str:
+        """Classify the photons (the signal finder in blocks over ``workers`` when given), write the per-segment and
+        granule groups and rename the file into place; its name."""
         f = self.product.file
-        workers = _finder_workers(sum(f[f"{name}/heights/h_ph"].shape[0] for name in self.tracks))
-        try:
-            for name, track in self.tracks.items():
-                conf = self._confidence(f[f"{name}/heights"], workers)
-                _segments(f.require_group(f"{name}/geolocation"), track)
-                _zero_corrections(f.require_group(f"{name}/geophys_corr"), f[f"{name}/geolocation/delta_time"][:])
-                _background(f.require_group(f"{name}/bckgrd_atlas"), track, conf, self.granule.gate_s)
-        finally:
-            if workers is not None:
-                workers.stop()
+        for name, track in self.tracks.items():
+            conf = self._confidence(f[f"{name}/heights"], workers)
+            _segments(f.require_group(f"{name}/geolocation"), track)
+            _zero_corrections(f.require_group(f"{name}/geophys_corr"), f[f"{name}/geolocation/delta_time"][:])
+            _background(f.require_group(f"{name}/bckgrd_atlas"), track, conf, self.granule.gate_s)
         write_granule(f, self.granule, sorted(self.tracks))
         return self.product.close()
 
@@ -174,13 +169,6 @@ class Atl03Writer:
 
     def abort(self) -> None:
         self.product.abort()
-
-
-def _finder_workers(photons: int) -> ProcessMap | None:
-    """Worker processes for the signal finder of a granule of ``photons`` photons: from FINDER_PARALLEL photons on a
-    machine with more than one usable core (the finder is a Python loop over 20 m segments), else None."""
-    cores = usable_cores()
-    return ProcessMap(min(cores, MAX_FINDER_WORKERS)) if photons >= FINDER_PARALLEL and cores > 1 else None
 
 
 def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> None:

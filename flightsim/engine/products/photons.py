@@ -12,8 +12,9 @@ from flightsim.engine.readouts.photons import Photons
 from flightsim.outputs.photon_las import FOLDER
 
 ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
-ATL08_PARALLEL = 1 << 20  # a granule's photons from which ATL08's beams are worked out on worker processes
-MAX_ATL08_WORKERS = 16  # the most worker processes ATL08 starts (one a beam)
+PARALLEL_PHOTONS = 1 << 20  # photons from which atl03.h5's signal finder and atl08.h5 run on worker processes
+MAX_WORKERS = 32  # the most worker processes they start
+PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5")  # what the workers run, imported early
 
 
 def reflectance_source(cfg, scene, value: float) -> float | str:
@@ -52,6 +53,7 @@ class PhotonProduct:
         self.h5, self.las, *self.atl03 = (Background(writer, name) for writer, name in
                                           zip([h5, las, *atl03], ("photons-h5", "photon-las", "atl03")))
         self.atl08 = body is not None and cfg.output.atl08
+        self.photons, self.workers = 0, None
 
     def readout(self) -> Photons:
         return Photons()
@@ -64,11 +66,18 @@ class PhotonProduct:
         """Hand the chunk to every writer: each converts and writes it on a thread of its own."""
         for writer in self.writers:
             writer(chunk)
+        self.photons += len(chunk)
+        if self.atl03 and self.workers is None and self.photons >= PARALLEL_PHOTONS and usable_cores() > 1:
+            self.workers = ProcessMap(min(usable_cores(), MAX_WORKERS), PRELOAD)  # they start while the run goes on
 
     def close(self, counts) -> dict:
-        """Close the files; the LAS tiles are written on while atl03.h5's signal finder and atl08.h5 work."""
-        names = {self.h5: self.h5.close(), **{writer: writer.close() for writer in self.atl03}}
-        atl08 = atl08_from_atl03(self.directory, self.cfg_text) if self.atl08 else None
+        """Close the files; the LAS tiles are written on while atl03.h5's signal finder and atl08.h5 work (on the
+        worker processes once the run passed PARALLEL_PHOTONS photons)."""
+        try:
+            names = {self.h5: self.h5.close(), **{writer: writer.close(self.workers) for writer in self.atl03}}
+            atl08 = atl08_from_atl03(self.directory, self.cfg_text, self.workers) if self.atl08 else None
+        finally:
+            self._stop_workers()
         names[self.las] = self.las.close()
         files = [names[writer] for writer in self.writers] + ([atl08] if atl08 is not None else [])
         return {"reflectance": reflectance_source(self.cfg, self.scene, self.cfg.photon.reflectance),
@@ -79,8 +88,14 @@ class PhotonProduct:
         return self.h5.writer.count == 0
 
     def abort(self) -> None:
+        self._stop_workers()
         for writer in self.writers:
             writer.abort()
+
+    def _stop_workers(self) -> None:
+        if self.workers is not None:
+            self.workers.stop()
+            self.workers = None
 
 
 def atl03_granule(cfg, emitter):
@@ -102,11 +117,11 @@ def ground_tracks(f) -> list[str]:
     return sorted(name for name in f if name.startswith("gt") and "heights" in f[name])
 
 
-def atl08_from_atl03(directory: Path, cfg_text: str) -> str | None:
+def atl08_from_atl03(directory: Path, cfg_text: str, workers: ProcessMap | None = None) -> str | None:
     """Write ``directory/atl08.h5`` from the finished ``atl03.h5`` beside it: each beam's photons classified and cut
-    into 100 m land segments (:func:`flightsim.outputs.atl08_h5.atl08_of_track`, default settings), a beam per
-    worker process where there are many photons. Over bare ground the segments have terrain heights and fill values
-    for the canopy. Its name, or None when atl03.h5 holds no photon."""
+    into 100 m land segments (:func:`flightsim.outputs.atl08_h5.atl08_of_track`, default settings), a beam a worker
+    when ``workers`` are given. Over bare ground the segments have terrain heights and fill values for the canopy.
+    Its name, or None when atl03.h5 holds no photon."""
     import h5py
 
     from flightsim.outputs.atl08_h5 import atl08_of_track, write_atl08
@@ -114,20 +129,7 @@ def atl08_from_atl03(directory: Path, cfg_text: str) -> str | None:
     atl03 = directory / "atl03.h5"
     with h5py.File(atl03) as f:
         tracks = ground_tracks(f)
-        photons = sum(f[f"{track}/heights/h_ph"].shape[0] for track in tracks)
     if not tracks:
         return None
-    workers = _atl08_workers(photons, len(tracks))
-    try:
-        beams = map_rows(atl08_of_track, [(str(atl03), track, ATL08_SEGMENT_M) for track in tracks], workers)
-    finally:
-        if workers is not None:
-            workers.stop()
+    beams = map_rows(atl08_of_track, [(str(atl03), track, ATL08_SEGMENT_M) for track in tracks], workers)
     return write_atl08(directory / "atl08.h5", dict(zip(tracks, beams)), {"config_toml": cfg_text}).name
-
-
-def _atl08_workers(photons: int, beams: int) -> ProcessMap | None:
-    """Worker processes that work out ATL08 a beam each: from ATL08_PARALLEL photons and two beams on a machine
-    with more than one usable core, else None."""
-    count = min(usable_cores(), beams, MAX_ATL08_WORKERS)
-    return ProcessMap(count) if photons >= ATL08_PARALLEL and count > 1 else None
