@@ -66,3 +66,19 @@ def test_close_raises_the_last_chunks_error():
     with pytest.raises(ValueError, match="chunk 3"):
         background.close()
     assert not writer.closed
+
+
+def test_a_chunk_handed_over_after_another_writers_waits_for_it():
+    first, second = _Writer(pause=0.05), _Writer()
+    a, b = Background(first, "a"), Background(second, "b")
+    done_first = a(0)
+    b(0, after=done_first)
+    b.settle()
+    assert done_first.done() and second.seen == [0]
+    failing = Background(_Writer(fail_at=1), "c")
+    b(1, after=failing(1))  # the other writer's error stays its own
+    b.settle()
+    assert second.seen == [0, 1]
+    with pytest.raises(ValueError):
+        failing.close()
+    a.close(), b.close()

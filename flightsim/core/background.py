@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 HELD_CHUNKS = 2  # chunks a writer may have waiting or in hand before the caller waits for the oldest
 
@@ -20,10 +20,18 @@ class Background:
         self._thread = ThreadPoolExecutor(1, thread_name_prefix=name)
         self._pending: deque[Future] = deque()
 
-    def __call__(self, chunk) -> None:
+    def __call__(self, chunk, after: Future | None = None) -> Future:
+        """Hand ``chunk`` over (the writer starts on it once ``after``, when given, has ended: another writer's work
+        that should have the cores first); its future."""
         while len(self._pending) >= self._held:
             self._pending.popleft().result()
-        self._pending.append(self._thread.submit(self.writer, chunk))
+        self._pending.append(self._thread.submit(self._write, chunk, after))
+        return self._pending[-1]
+
+    def _write(self, chunk, after: Future | None) -> None:
+        if after is not None:
+            wait([after])
+        self.writer(chunk)
 
     def settle(self) -> None:
         """Wait until every chunk handed over is written; raise the first error."""

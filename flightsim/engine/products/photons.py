@@ -63,9 +63,12 @@ class PhotonProduct:
         return [self.h5, self.las, *self.atl03]
 
     def __call__(self, chunk) -> None:
-        """Hand the chunk to every writer: each converts and writes it on a thread of its own."""
-        for writer in self.writers:
-            writer(chunk)
+        """Hand the chunk to every writer: each converts and writes it on a thread of its own, the LAS tiles once
+        atl03.h5 has it (Python's lock is shared: atl03.h5 leads to the signal finder and atl08.h5, which the LAS
+        tiles can be written beside)."""
+        self.h5(chunk)
+        atl03 = [writer(chunk) for writer in self.atl03]
+        self.las(chunk, after=atl03[0] if atl03 else None)
         self.photons += len(chunk)
         if self.atl03 and self.workers is None and self.photons >= PARALLEL_PHOTONS and usable_cores() > 1:
             self.workers = ProcessMap(min(usable_cores(), MAX_WORKERS), PRELOAD)  # they start while the run goes on
