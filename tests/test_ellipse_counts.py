@@ -1,0 +1,50 @@
+"""ATL08's density filter counts, by a sorted grid (flightsim.outputs.atl08.ellipse_counts), against SciPy's KD-tree
+(`cKDTree.query_ball_point(r=1, return_length=True)`), the count the filter was written with: equal for every
+point, ties at distance exactly 1 and coordinates an ulp across a cell boundary included."""
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from flightsim.outputs import atl08
+from flightsim.outputs.atl08 import ellipse_counts
+
+
+def _kd(u, v) -> np.ndarray:
+    points = np.column_stack([u, v])
+    return cKDTree(points).query_ball_point(points, r=1.0, return_length=True)
+
+
+def test_clustered_photons_like_a_pass(monkeypatch):
+    """A noise cloud, a dense ground line and a canopy band; blocks of a few thousand pairs (every block boundary
+    inside a query's runs)."""
+    rng = np.random.default_rng(11)
+    n = 20_000
+    u = np.concatenate([rng.uniform(0, 40, n), rng.uniform(0, 40, n), rng.uniform(10, 20, n // 4)])
+    v = np.concatenate([rng.uniform(-300, 900, n), rng.normal(0.0, 0.2, n) + 0.05 * u[n:2 * n],
+                        rng.uniform(1, 12, n // 4)])
+    monkeypatch.setattr(atl08, "PAIRS_PER_BLOCK", 4096)
+    np.testing.assert_array_equal(ellipse_counts(u, v), _kd(u, v))
+
+
+@pytest.mark.parametrize("step", [0.5, 0.25, 1.0, 0.6])
+def test_lattices_with_pairs_at_distance_exactly_one(step):
+    """Points on a lattice: many pairs exactly 1 apart (and, for 0.6, sums of squares that round either way)."""
+    g = np.arange(-8, 9) * step
+    u, v = (a.ravel() for a in np.meshgrid(g, g + 1e3))
+    np.testing.assert_array_equal(ellipse_counts(u, v), _kd(u, v))
+
+
+def test_coordinates_an_ulp_across_a_cell_boundary():
+    """2 − 0.9999999999999999 rounds to 1: the pair is counted though its points' floors are two apart."""
+    below = np.nextafter(1.0, 0.0)
+    u = np.array([2.0, below, 0.0, np.nextafter(2.0, 3.0), 3.0 - 1e-12, -1.0, np.nextafter(-1.0, 0.0)])
+    v = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+    assert (u[0] - u[1]) ** 2 <= 1.0 and np.floor(u[0]) - np.floor(u[1]) == 2
+    np.testing.assert_array_equal(ellipse_counts(u, v), _kd(u, v))
+
+
+def test_nothing_one_point_and_far_apart_points():
+    assert ellipse_counts(np.zeros(0), np.zeros(0)).shape == (0,)
+    np.testing.assert_array_equal(ellipse_counts(np.array([5.0]), np.array([-7.0])), [1])
+    u, v = np.array([0.0, 1e6, 0.5, -3e5]), np.array([0.0, 0.0, 1e4, 2e4])
+    np.testing.assert_array_equal(ellipse_counts(u, v), [1, 1, 1, 1])
