@@ -12,7 +12,7 @@ from flightsim.engine.readouts.photons import Photons
 from flightsim.outputs.photon_las import FOLDER
 
 ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
-PARALLEL_PHOTONS = 1 << 20  # photons from which atl03.h5's signal finder and atl08.h5 run on worker processes
+PARALLEL_PHOTONS = 1 << 19  # photons from which atl03.h5's signal finder and atl08.h5 run on worker processes
 MAX_WORKERS = 32  # the most worker processes they start
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5")  # what the workers run, imported early
 
