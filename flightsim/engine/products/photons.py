@@ -63,25 +63,25 @@ class PhotonProduct:
         return [self.h5, self.las, *self.atl03]
 
     def __call__(self, chunk) -> None:
-        """Hand the chunk to every writer: each converts and writes it on a thread of its own, the LAS tiles once
-        atl03.h5 has it (Python's lock is shared: atl03.h5 leads to the signal finder and atl08.h5, which the LAS
-        tiles can be written beside)."""
-        self.h5(chunk)
-        atl03 = [writer(chunk) for writer in self.atl03]
-        self.las(chunk, after=atl03[0] if atl03 else None)
+        """Hand the chunk to every writer: each converts and writes it on a thread of its own, photons.h5 and the LAS
+        tiles once atl03.h5 has it (Python's lock is shared: atl03.h5 leads to the signal finder and atl08.h5, which
+        the others can be written beside)."""
+        first = self.atl03[0](chunk) if self.atl03 else None
+        self.h5(chunk, after=first)
+        self.las(chunk, after=first)
         self.photons += len(chunk)
         if self.atl03 and self.workers is None and self.photons >= PARALLEL_PHOTONS and usable_cores() > 1:
             self.workers = ProcessMap(min(usable_cores(), MAX_WORKERS), PRELOAD)  # they start while the run goes on
 
     def close(self, counts) -> dict:
-        """Close the files; the LAS tiles are written on while atl03.h5's signal finder and atl08.h5 work (on the
-        worker processes once the run passed PARALLEL_PHOTONS photons)."""
+        """Close the files: atl03.h5 (its signal finder) and atl08.h5 first (on the worker processes once the run
+        passed PARALLEL_PHOTONS photons), while photons.h5 and the LAS tiles are written on."""
         try:
-            names = {self.h5: self.h5.close(), **{writer: writer.close(self.workers) for writer in self.atl03}}
+            names = {writer: writer.close(self.workers) for writer in self.atl03}
             atl08 = atl08_from_atl03(self.directory, self.cfg_text, self.workers) if self.atl08 else None
         finally:
             self._stop_workers()
-        names[self.las] = self.las.close()
+        names.update({self.h5: self.h5.close(), self.las: self.las.close()})
         files = [names[writer] for writer in self.writers] + ([atl08] if atl08 is not None else [])
         return {"reflectance": reflectance_source(self.cfg, self.scene, self.cfg.photon.reflectance),
                 "photons": self.h5.writer.count, "signal_photons": self.h5.writer.signal,
