@@ -108,3 +108,32 @@ def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(
         assert len(names) > 100
         for name in names:
             np.testing.assert_array_equal(a[name][()], b[name][()], err_msg=name)
+
+
+@pytest.mark.parametrize("failing", ["las", "atl03"])
+def test_a_writer_failing_on_its_thread_leaves_no_file_and_stops_the_workers(tmp_path, monkeypatch, failing):
+    """The photon product's writers run on threads of their own: one that fails mid-run fails the run with its own
+    error, every product file is removed (none renamed into place, no temporary left) and the worker processes end."""
+    import flightsim.engine.products.photons as photons
+    from flightsim.outputs import atl03_h5, photon_las
+
+    cfg = preset_config("atlas")
+    for key, value in {"flight.duration_s": 0.05, "photon.gate_m": [499850.0, 500150.0]}.items():
+        set_value(cfg, key, value)
+    owner = photon_las.PhotonLas if failing == "las" else atl03_h5.Atl03Writer
+    monkeypatch.setattr(owner, "__call__", lambda self, chunk: (_ for _ in ()).throw(OSError(f"{failing} disk full")))
+    pools = []
+
+    class Kept(photons.ProcessMap):
+        def __init__(self, count, preload=()):
+            super().__init__(count, preload)
+            pools.append(self)
+
+    monkeypatch.setattr(photons, "ProcessMap", Kept)
+    monkeypatch.setattr(photons, "usable_cores", lambda: 2)
+    monkeypatch.setattr(photons, "PARALLEL_PHOTONS", 1)
+    with pytest.raises(OSError, match=f"{failing} disk full"):
+        simulate_to_directory(validate(cfg), tmp_path / "run")
+    left = sorted(p.name for p in (tmp_path / "run").rglob("*") if p.is_file())
+    assert [name for name in left if "h5" in name or name.endswith(".las") or ".part" in name] == []
+    assert len(pools) == 1 and all(process.poll() is not None for process in pools[0].processes)

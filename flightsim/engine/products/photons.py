@@ -53,7 +53,7 @@ class PhotonProduct:
         self.h5, self.las, *self.atl03 = (Background(writer, name) for writer, name in
                                           zip([h5, las, *atl03], ("photons-h5", "photon-las", "atl03")))
         self.atl08 = body is not None and cfg.output.atl08
-        self.photons, self.workers = 0, None
+        self.photons, self.workers, self.placed = 0, None, []
 
     def readout(self) -> Photons:
         return Photons()
@@ -77,11 +77,12 @@ class PhotonProduct:
         """Close the files: atl03.h5 (its signal finder) and atl08.h5 first (on the worker processes once the run
         passed PARALLEL_PHOTONS photons), while photons.h5 and the LAS tiles are written on."""
         try:
-            names = {writer: writer.close(self.workers) for writer in self.atl03}
+            names = {writer: self._placed(writer.close(self.workers)) for writer in self.atl03}
             atl08 = atl08_from_atl03(self.directory, self.cfg_text, self.workers) if self.atl08 else None
+            self._placed(atl08)
         finally:
             self._stop_workers()
-        names.update({self.h5: self.h5.close(), self.las: self.las.close()})
+        names.update({self.h5: self._placed(self.h5.close()), self.las: self.las.close()})
         files = [names[writer] for writer in self.writers] + ([atl08] if atl08 is not None else [])
         return {"reflectance": reflectance_source(self.cfg, self.scene, self.cfg.photon.reflectance),
                 "photons": self.h5.writer.count, "signal_photons": self.h5.writer.signal,
@@ -90,10 +91,20 @@ class PhotonProduct:
     def empty(self, counts) -> bool:
         return self.h5.writer.count == 0
 
+    def _placed(self, name: str | None) -> str | None:
+        """Note a file this close put in place (removed again should a later writer fail)."""
+        if name is not None:
+            self.placed.append(name)
+        return name
+
     def abort(self) -> None:
+        """Drop every file: the writers' unfinished ones, and those this close had already put in place (a writer
+        still at work failed after them)."""
         self._stop_workers()
         for writer in self.writers:
             writer.abort()
+        for name in self.placed:
+            (self.directory / name).unlink(missing_ok=True)
 
     def _stop_workers(self) -> None:
         if self.workers is not None:
