@@ -137,3 +137,32 @@ def test_a_writer_failing_on_its_thread_leaves_no_file_and_stops_the_workers(tmp
     left = sorted(p.name for p in (tmp_path / "run").rglob("*") if p.is_file())
     assert [name for name in left if "h5" in name or name.endswith(".las") or ".part" in name] == []
     assert len(pools) == 1 and all(process.poll() is not None for process in pools[0].processes)
+
+
+def test_reference_photons_over_chunks_are_the_nearest_to_the_centre_first_on_a_tie():
+    """Each segment's reference photon over several chunks (a segment across their boundary, offsets that tie within
+    and across chunks): the photon of least offset from the segment's centre, the earliest row on a tie, as a plain
+    loop over every photon finds it."""
+    from flightsim.outputs.atl03_h5 import _keep_reference, _references, _Track
+
+    rng = np.random.default_rng(4)
+    track, rows = _Track(), 0
+    every = []
+    for n in (50, 1, 80, 30):
+        segment = np.sort(rng.integers(3 + rows // 40, 8 + rows // 40, n))
+        offset = rng.integers(0, 4, n).astype(np.float64)  # many ties
+        lat, lon, t = rng.normal(size=(3, n))
+        _keep_reference(track, segment, offset, rows, lat, lon, t)
+        every += [(int(s), o, rows + i, la, lo, ti)
+                  for i, (s, o, la, lo, ti) in enumerate(zip(segment, offset, lat, lon, t))]
+        rows += n
+    ids = np.arange(1, 14)
+    have, row, lat, lon, t = _references(track, ids)
+    for k, s in enumerate(ids):
+        mine = [p for p in every if p[0] == s]
+        assert have[k] == bool(mine)
+        if mine:
+            best = min(mine, key=lambda p: (p[1], p[2]))
+            assert (row[k], lat[k], lon[k], t[k]) == best[2:]
+        else:
+            assert np.isnan([row[k], lat[k], lon[k], t[k]]).all()

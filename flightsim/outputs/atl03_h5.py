@@ -39,6 +39,8 @@ from per-photon indices kept in memory (4 bytes a photon).
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,7 +74,7 @@ class _Track:
     frames: list = field(default_factory=list)
     frame_time: dict = field(default_factory=dict)  # frame -> delta_time of its first shot
     frame_shots: dict = field(default_factory=dict)  # frame -> shots that detected a photon
-    reference: dict = field(default_factory=dict)  # segment -> (|dist − centre|, row, lat, lon, delta_time)
+    reference: list = field(default_factory=list)  # per chunk: its best photon of each segment (_keep_reference)
     rows: int = 0
 
 
@@ -88,17 +90,27 @@ class Atl03Writer:
         self.count = 0
 
     def __call__(self, chunk) -> None:
-        for beam in np.unique(chunk.pixel):
-            rows = np.flatnonzero(chunk.pixel == beam)
-            name = self.granule.track_name(int(beam))
-            track = self.tracks.setdefault(name, _Track())
-            along = self._footprint(name, track, chunk, rows)
-            self._heights(name, track, chunk, rows, along)
+        """Append the chunk's photons, each beam's worked out on a thread of its own (NumPy and PROJ let go of
+        Python's lock), then written in beam order."""
+        beams = [(self.granule.track_name(int(beam)), np.flatnonzero(chunk.pixel == beam))
+                 for beam in np.unique(chunk.pixel)]
+        for name, _ in beams:
+            self.tracks.setdefault(name, _Track())
+        with ThreadPoolExecutor(max(1, min(len(beams), os.cpu_count() or 1)), thread_name_prefix="atl03") as pool:
+            groups = list(pool.map(lambda beam: self._beam(self.tracks[beam[0]], chunk, beam[1]), beams))
+        for (name, _), (footprint, heights) in zip(beams, groups):
+            self.product.append(f"{name}/footprint", footprint)
+            self.product.append(f"{name}/heights", heights)
         self.count += len(chunk)
 
-    def _footprint(self, group: str, track: _Track, chunk, rows: np.ndarray) -> np.ndarray:
-        """Write the footprint centres of the chunk's shots of this beam; return each photon's shot's distance along
-        track from the line's first footprint [m]."""
+    def _beam(self, track: _Track, chunk, rows: np.ndarray) -> tuple[dict, dict]:
+        """The footprint and heights columns of one beam's photons ``rows`` of the chunk (its track's state kept)."""
+        footprint, along = self._footprint(track, chunk, rows)
+        return footprint, self._heights(track, chunk, rows, along)
+
+    def _footprint(self, track: _Track, chunk, rows: np.ndarray) -> tuple[dict, np.ndarray]:
+        """The footprint centres of the chunk's shots of this beam, and each photon's shot's distance along track
+        from the line's first footprint [m]."""
         pulses, first, inverse = np.unique(chunk.pulse[rows], return_index=True, return_inverse=True)
         i = rows[first]
         d = chunk.directions[i].astype(np.float64)
@@ -106,13 +118,13 @@ class Atl03Writer:
         start = chunk.points[i] - (chunk.time_of_flight_s[i] * (LIGHT_SPEED / 2.0))[:, None] * d  # the exit point
         centre = start + ((self.scene.ground_z - start[:, 2]) / d[:, 2])[:, None] * d
         lat, lon, h = local_to_geodetic(self.body, self.scene, centre)
-        self.product.append(f"{group}/footprint", {
-            "delta_time": adjusted_to_delta_time(chunk.start_time + pulses / self.prf_hz), "lat": lat, "lon": lon,
-            "h": h})
+        footprint = {"delta_time": adjusted_to_delta_time(chunk.start_time + pulses / self.prf_hz), "lat": lat,
+                     "lon": lon, "h": h}
         origin = track.first_footprint.setdefault(chunk.line_id, centre[0].copy())
-        return np.linalg.norm(centre[:, :2] - origin[:2], axis=1)[inverse]
+        return footprint, np.linalg.norm(centre[:, :2] - origin[:2], axis=1)[inverse]
 
-    def _heights(self, group: str, track: _Track, chunk, rows: np.ndarray, along: np.ndarray) -> None:
+    def _heights(self, track: _Track, chunk, rows: np.ndarray, along: np.ndarray) -> dict:
+        """The heights columns of one beam's photons (its segments, frames and reference photons kept)."""
         line = chunk.line_id
         lat, lon, h = local_to_geodetic(self.body, self.scene, chunk.points[rows])
         start = track.first_photon.setdefault(line, chunk.points[rows[0]].copy())
@@ -129,10 +141,9 @@ class Atl03Writer:
         track.segments.append(segment.astype(np.int32))
         track.frames.append(frame.astype(np.int32))
         track.rows += len(rows)
-        self.product.append(f"{group}/heights", {
-            "delta_time": t, "lat_ph": lat, "lon_ph": lon, "h_ph": h, "dist_ph_along": dist,
-            "x_atc": np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1),
-            "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows]})
+        return {"delta_time": t, "lat_ph": lat, "lon_ph": lon, "h_ph": h, "dist_ph_along": dist,
+                "x_atc": np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1),
+                "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows]}
 
     def close(self, workers: ProcessMap | None = None) -> str:
         """Classify the photons (the signal finder in blocks over ``workers`` when given), write the per-segment and
@@ -185,14 +196,30 @@ def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_tim
 
 def _keep_reference(track: _Track, segment: np.ndarray, offset: np.ndarray, row0: int, lat, lon, t) -> None:
     """Keep, for each segment of these photons, the photon whose shot is nearest the segment's centre (the first such
-    photon over every chunk so far)."""
+    photon of the chunk): (segment, |dist − centre|, row, lat, lon, delta_time) arrays; :func:`_references` picks
+    among the chunks'."""
     order = np.lexsort((offset, segment))
     seg = segment[order]
     firsts = order[np.r_[True, seg[1:] != seg[:-1]]]
-    for i in firsts:
-        key, best = int(segment[i]), track.reference.get(int(segment[i]))
-        if best is None or offset[i] < best[0]:
-            track.reference[key] = (float(offset[i]), row0 + int(i), float(lat[i]), float(lon[i]), float(t[i]))
+    track.reference.append((segment[firsts], offset[firsts], row0 + firsts, lat[firsts], lon[firsts], t[firsts]))
+
+
+def _references(track: _Track, ids: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per segment of ``ids`` (consecutive): whether it has a reference photon, and that photon's row, latitude,
+    longitude and time (NaN where none): the photon nearest the segment's centre over every chunk, the first chunk's
+    on a tie."""
+    have = np.zeros(len(ids), dtype=bool)
+    values = [np.full(len(ids), np.nan) for _ in range(4)]
+    if track.reference:
+        segment, offset, *found = (np.concatenate(column) for column in zip(*track.reference))
+        order = np.lexsort((offset, segment))  # stable: on a tie the earlier chunk's
+        seg = segment[order]
+        best = order[np.r_[True, seg[1:] != seg[:-1]]]
+        slot = segment[best] - ids[0]
+        have[slot] = True
+        for value, column in zip(values, found):
+            value[slot] = column[best]
+    return (have, *values)
 
 
 def _segments(g, track: _Track) -> None:
@@ -201,17 +228,14 @@ def _segments(g, track: _Track) -> None:
     ids = np.arange(int(segment.min()), int(segment.max()) + 1) if len(segment) else np.zeros(0, np.int64)
     count = np.bincount(segment - (ids[0] if len(ids) else 0), minlength=len(ids)).astype(np.int32)
     begin = np.where(count > 0, np.concatenate([[0], np.cumsum(count)[:-1]]) + 1, 0).astype(np.int64)
-    ref = [track.reference.get(int(s)) for s in ids]
-    have = np.array([r is not None for r in ref], dtype=bool)
-    pick = lambda k: np.array([r[k] if r is not None else np.nan for r in ref], dtype=np.float64)  # noqa: E731
-    index = np.where(have, pick(1) - (begin - 1) + 1, 0).astype(np.int32)
-    t = pick(4)
+    have, row, lat, lon, t = _references(track, ids)
+    index = np.where(have, row - (begin - 1) + 1, 0).astype(np.int32)
     if have.any() and not have.all():  # empty segments: the time interpolated between their neighbours
         t[~have] = np.interp(ids[~have], ids[have], t[have])
     bases = np.sort(np.array(list(track.segment_base.values()), dtype=np.int64))
     starts = bases[np.searchsorted(bases, ids, "right") - 1] if len(ids) else ids  # each line's first segment
     columns = {"delta_time": t, "segment_id": ids.astype(np.int32), "segment_ph_cnt": count, "ph_index_beg": begin,
-               "reference_photon_index": index, "reference_photon_lat": pick(2), "reference_photon_lon": pick(3),
+               "reference_photon_index": index, "reference_photon_lat": lat, "reference_photon_lon": lon,
                "segment_length": np.full(len(ids), SEGMENT_M), "segment_dist_x": (ids - starts) * SEGMENT_M}
     for name, values in columns.items():
         g.create_dataset(name, data=values)
