@@ -198,10 +198,15 @@ def _keep_reference(track: _Track, segment: np.ndarray, offset: np.ndarray, row0
     """Keep, for each segment of these photons, the photon whose shot is nearest the segment's centre (the first such
     photon of the chunk): (segment, |dist − centre|, row, lat, lon, delta_time) arrays; :func:`_references` picks
     among the chunks'."""
-    order = np.lexsort((offset, segment))
-    seg = segment[order]
-    firsts = order[np.r_[True, seg[1:] != seg[:-1]]]
+    firsts = _nearest(segment, offset)
     track.reference.append((segment[firsts], offset[firsts], row0 + firsts, lat[firsts], lon[firsts], t[firsts]))
+
+
+def _nearest(segment: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Per segment present, the index of its least offset (the first such on a tie)."""
+    order = np.lexsort((offset, segment))  # stable
+    seg = segment[order]
+    return order[np.r_[True, seg[1:] != seg[:-1]]]
 
 
 def _references(track: _Track, ids: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -212,9 +217,7 @@ def _references(track: _Track, ids: np.ndarray) -> tuple[np.ndarray, ...]:
     values = [np.full(len(ids), np.nan) for _ in range(4)]
     if track.reference:
         segment, offset, *found = (np.concatenate(column) for column in zip(*track.reference))
-        order = np.lexsort((offset, segment))  # stable: on a tie the earlier chunk's
-        seg = segment[order]
-        best = order[np.r_[True, seg[1:] != seg[:-1]]]
+        best = _nearest(segment, offset)  # the chunks in order: on a tie the earlier chunk's
         slot = segment[best] - ids[0]
         have[slot] = True
         for value, column in zip(values, found):
