@@ -66,3 +66,16 @@ def test_uncompressed_and_two_dimensional_appends_take_hdf5s_path(tmp_path, monk
     with h5py.File(tmp_path / "d.h5") as f:
         np.testing.assert_array_equal(f["h/wide"][:], rows)
         np.testing.assert_array_equal(f["g/plain"][:], np.arange(ROWS * 8))
+
+
+def test_a_dataset_with_another_fill_value_takes_hdf5s_path(tmp_path, monkeypatch):
+    """A chunk stored by hand pads with 0; a dataset whose fill value is not 0 is left to HDF5's filters."""
+    monkeypatch.setattr(h5_product, "_write_deflated", lambda *a: pytest.fail("written by hand"))
+    product = H5Product(tmp_path / "e.h5")
+    product.file.create_dataset("g/x", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(ROWS,),
+                                compression="gzip", shuffle=True, fillvalue=-9.0)
+    values = np.arange(ROWS * 5 + 3, dtype=np.float64)
+    product.append("g", {"x": values}, compress=True)
+    product.close()
+    with h5py.File(tmp_path / "e.h5") as f:
+        np.testing.assert_array_equal(f["g/x"][:], values)

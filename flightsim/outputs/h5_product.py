@@ -62,9 +62,10 @@ class H5Product:
 
 def _deflated_by_hand(dataset: h5py.Dataset, values: np.ndarray) -> bool:
     """Whether appending ``values`` to ``dataset`` is worth compressing on threads: a 1-D dataset with exactly the
-    shuffle and gzip filters, PARALLEL_CHUNKS chunks of rows or more."""
+    shuffle and gzip filters and the fill value 0, PARALLEL_CHUNKS chunks of rows or more."""
     return (values.ndim == 1 and dataset.compression == "gzip" and dataset.shuffle and not dataset.fletcher32
-            and dataset.scaleoffset is None and len(values) >= PARALLEL_CHUNKS * dataset.chunks[0])
+            and dataset.scaleoffset is None and not dataset.fillvalue
+            and len(values) >= PARALLEL_CHUNKS * dataset.chunks[0])
 
 
 def _write_deflated(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
