@@ -462,6 +462,33 @@ def test_bounded_open_tiles_give_the_same_bytes(tmp_path):
         assert (tmp_path / "many" / name).read_bytes() == (tmp_path / "one" / name).read_bytes()
 
 
+def test_a_batchs_records_made_a_few_tiles_at_a_time_give_the_same_bytes(tmp_path, monkeypatch):
+    """A batch's records are made in runs of whole tiles of at most RECORDS_AT_ONCE points (a larger tile alone):
+    a bound of a few points, tiles split across runs of every length, writes the bytes of one run for all."""
+    import flightsim.outputs.las_tiles as las_tiles
+
+    batch = random_batch(5000, seed=8)
+    write_tiles(tmp_path / "together", [batch])
+    monkeypatch.setattr(las_tiles, "RECORDS_AT_ONCE", 7)
+    runs = []
+    original = las_tiles._tile_runs
+    monkeypatch.setattr(las_tiles, "_tile_runs", lambda starts, n: runs.append(original(starts, n)) or runs[-1])
+    write_tiles(tmp_path / "runs", [batch])
+    assert len(runs[0]) == 4  # every tile (~1,250 points) in a run of its own
+    names = sorted(p.name for p in (tmp_path / "together").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "runs").iterdir()) and len(names) == 4
+    for name in names:
+        assert (tmp_path / "together" / name).read_bytes() == (tmp_path / "runs" / name).read_bytes()
+
+
+def test_tile_runs_hold_whole_tiles_within_the_bound(monkeypatch):
+    import flightsim.outputs.las_tiles as las_tiles
+
+    monkeypatch.setattr(las_tiles, "RECORDS_AT_ONCE", 10)
+    runs = las_tiles._tile_runs(np.array([0, 3, 9, 25, 27, 28]), 40)
+    assert [r.tolist() for r in runs] == [[0, 3, 9], [9, 25], [25, 27, 28], [28, 40]]
+
+
 def test_bounded_open_tiles_laz_keeps_every_point(tmp_path):
     batch = random_batch(4000, seed=4)
     pieces = [batch.select(slice(s, s + 250)) for s in range(0, 4000, 250)]

@@ -158,13 +158,16 @@ class TileWriter:
         ix = np.floor_divide(xq, self._tile_mm)
         iy = np.floor_divide(yq, self._tile_mm)
         order, starts = _tile_order(ix, iy)
-        ix, iy = ix[order], iy[order]
-        record = self._record(batch.select(order))  # every tile's records at once, tile after tile
-        xyz = np.column_stack([xq[order] - ix * self._tile_mm, yq[order] - iy * self._tile_mm, zq[order]])
-        record["X"], record["Y"], record["Z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-        lowest, highest = np.minimum.reduceat(xyz, starts), np.maximum.reduceat(xyz, starts)
-        for k, (start, stop) in enumerate(zip(starts, np.r_[starts[1:], len(order)])):
-            self.write_records((int(ix[start]), int(iy[start])), record.array[start:stop], lowest[k], highest[k])
+        for group in _tile_runs(starts, len(order)):  # several tiles' records made at once, tile after tile
+            rows = order[group[0]:group[-1]]
+            tx, ty = ix[rows], iy[rows]
+            record = self._record(batch.select(rows))
+            xyz = np.column_stack([xq[rows] - tx * self._tile_mm, yq[rows] - ty * self._tile_mm, zq[rows]])
+            record["X"], record["Y"], record["Z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            first = group[:-1] - group[0]
+            lowest, highest = np.minimum.reduceat(xyz, first), np.maximum.reduceat(xyz, first)
+            for k, (start, stop) in enumerate(zip(first, group[1:] - group[0])):
+                self.write_records((int(tx[start]), int(ty[start])), record.array[start:stop], lowest[k], highest[k])
 
     def write_records(self, key: tuple[int, int], records: np.ndarray, lowest, highest) -> None:
         """Append finished point records to tile ``key`` (tile indices).
@@ -436,6 +439,21 @@ class _TileFile:
     def discard(self) -> None:
         """Close the file without finishing it (its contents are to be deleted)."""
         self._file.close()
+
+
+RECORDS_AT_ONCE = 1 << 20  # points whose records a write makes at once (whole tiles, at least one)
+
+
+def _tile_runs(starts: np.ndarray, n: int) -> list[np.ndarray]:
+    """The tiles of :func:`_tile_order` in runs of whole tiles holding at most RECORDS_AT_ONCE points (a larger tile
+    alone): each run the positions in the order where its tiles start, and where its last one ends."""
+    bounds = np.r_[starts, n]
+    runs, first = [], 0
+    while first < len(starts):
+        last = max(int(np.searchsorted(bounds, bounds[first] + RECORDS_AT_ONCE, "right")) - 1, first + 1)
+        runs.append(bounds[first:last + 1])
+        first = last
+    return runs
 
 
 def _tile_order(ix: np.ndarray, iy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
