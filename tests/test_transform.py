@@ -1,11 +1,10 @@
 """pyproj transforms of many points on threads: the values of one call, part boundaries included."""
-import os
-
 import numpy as np
 import pyproj
 import pytest
 
 from flightsim.core import transform as tr
+from flightsim.core.process_map import usable_cores
 
 
 @pytest.mark.parametrize("source, target, dims", [("EPSG:4978", "EPSG:4979", 3), ("EPSG:4326", "EPSG:32611", 2)])
@@ -24,7 +23,7 @@ def test_threads_give_the_values_of_one_transform(monkeypatch, source, target, d
     original = tr._transform
     monkeypatch.setattr(tr, "_transform", lambda s, t, part: used.append(len(part[0])) or original(s, t, part))
     got = tr.transform(source, target, *points)
-    assert len(used) == min(tr.MAX_THREADS, os.cpu_count(), n // 1000) > 1 and sum(used) == n
+    assert len(used) == min(16, usable_cores(), n // 1000) > 1 and sum(used) == n
     assert len(got) == dims
     for a, b in zip(got, expected):
         assert a.dtype == np.float64 and a.shape == (n,)

@@ -35,6 +35,15 @@ _ENTRY = ("import json, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN
           "from flightsim.core.process_map import serve; serve(int(sys.argv[1]), json.loads(sys.argv[3]))")
 
 
+MAX_THREADS = 16  # the most threads a host step spreads its pieces of work over
+
+
+def thread_count(pieces: int) -> int:
+    """Threads for ``pieces`` independent pieces of host work: as many as the pieces, the usable cores and
+    MAX_THREADS allow, at least 1."""
+    return max(1, min(pieces, usable_cores(), MAX_THREADS))
+
+
 def usable_cores() -> int:
     """The cores this process may run on (its CPU affinity, as a batch scheduler sets it)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

@@ -3,14 +3,14 @@ cut into parts are transformed side by side on threads, each with a transformer 
 to be shared between threads). Each point is transformed by itself, so the values are those of one call."""
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pyproj
 
+from flightsim.core.process_map import thread_count
+
 PART_POINTS = 1 << 18  # the fewest points a thread transforms
-MAX_THREADS = 16
 
 
 def transform(source, target, *coordinates: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -18,7 +18,7 @@ def transform(source, target, *coordinates: np.ndarray) -> tuple[np.ndarray, ...
     over threads from 2 · PART_POINTS points."""
     coordinates = tuple(np.ascontiguousarray(c, dtype=np.float64) for c in coordinates)
     n = len(coordinates[0]) if coordinates else 0
-    threads = min(MAX_THREADS, os.cpu_count() or 1, n // PART_POINTS)
+    threads = thread_count(n // PART_POINTS)
     if threads < 2:
         return _transform(source, target, coordinates)
     bounds = np.linspace(0, n, threads + 1).astype(np.int64)

@@ -39,14 +39,13 @@ from per-photon indices kept in memory (4 bytes a photon).
 """
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from flightsim.core.process_map import ProcessMap
+from flightsim.core.process_map import ProcessMap, thread_count
 from flightsim.outputs.atl03_granule import Granule, adjusted_to_delta_time, write_granule
 from flightsim.outputs.h5_product import H5Product
 from flightsim.platforms.orbit import local_to_geodetic
@@ -96,7 +95,7 @@ class Atl03Writer:
                  for beam in np.unique(chunk.pixel)]
         for name, _ in beams:
             self.tracks.setdefault(name, _Track())
-        with ThreadPoolExecutor(max(1, min(len(beams), os.cpu_count() or 1)), thread_name_prefix="atl03") as pool:
+        with ThreadPoolExecutor(thread_count(len(beams)), thread_name_prefix="atl03") as pool:
             groups = list(pool.map(lambda beam: self._beam(self.tracks[beam[0]], chunk, beam[1]), beams))
         for (name, _), (footprint, heights) in zip(beams, groups):
             self.product.append(f"{name}/footprint", footprint)

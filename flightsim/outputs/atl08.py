@@ -56,7 +56,6 @@ the surface [m], FILL when no surface), ``ph_segment_id`` (its ATL03 20 m segmen
 from __future__ import annotations
 
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import ClassVar
@@ -65,6 +64,7 @@ import numpy as np
 from scipy.stats import poisson
 
 from flightsim.core.errors import InputError, positive
+from flightsim.core.process_map import thread_count
 from flightsim.core.settings import Settings, check_settings, setting
 from flightsim.outputs.atl08_ground import ground_surface, group_percentile, trend_of
 
@@ -223,7 +223,6 @@ def _neighbours(x, h, s: ATL08Settings) -> np.ndarray:
 CELL = 1.0 + 2.0 ** -20  # ellipse_counts' grid cell [half axes]: just over 1, so that two points whose distance
 # rounds to 1 or less are in neighbouring cells whatever the rounding of their coordinates
 PAIRS_PER_BLOCK = 1 << 18  # pairs of points ellipse_counts compares in one task (~40 bytes a pair, cache-sized)
-MAX_THREADS = 16
 
 
 def ellipse_counts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -255,8 +254,7 @@ def ellipse_counts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
             blocks.append((start, first[start:stop], length[start:stop]))
             start = stop
     counts = np.zeros(n, dtype=np.int64)
-    with ThreadPoolExecutor(max(1, min(MAX_THREADS, os.cpu_count() or 1, len(blocks))),
-                            thread_name_prefix="ellipses") as pool:
+    with ThreadPoolExecutor(thread_count(len(blocks)), thread_name_prefix="ellipses") as pool:
         for (start, _, _), found in zip(blocks, pool.map(lambda block: _inside(u, v, *block), blocks)):
             counts[start:start + len(found)] += found
     out = np.empty(n, dtype=np.int64)

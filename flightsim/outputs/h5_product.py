@@ -12,6 +12,7 @@ import numpy as np
 
 from flightsim.core.version import __version__
 from flightsim.core.atomic import temporary_name
+from flightsim.core.process_map import thread_count
 
 ROWS_PER_CHUNK = 1 << 16  # largest HDF5 chunk of a 1-D dataset [rows]
 MIN_ROWS_PER_CHUNK = 1 << 10  # smallest: a one-shot product stays small (a chunk is stored whole)
@@ -79,7 +80,7 @@ def _write_deflated(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
         dataset[n:first] = values[:first - n]
     rest = values[first - n:]
     starts = range(0, len(rest), rows)
-    with ThreadPoolExecutor(min(16, os.cpu_count() or 1), thread_name_prefix="deflate") as pool:
+    with ThreadPoolExecutor(thread_count(len(starts)), thread_name_prefix="deflate") as pool:
         deflated = pool.map(lambda start: _deflated(rest[start:start + rows], rows), starts)
         for start, chunk in zip(starts, deflated):
             dataset.id.write_direct_chunk((first + start,), chunk)
