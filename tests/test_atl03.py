@@ -166,3 +166,58 @@ def test_reference_photons_over_chunks_are_the_nearest_to_the_centre_first_on_a_
             assert (row[k], lat[k], lon[k], t[k]) == best[2:]
         else:
             assert np.isnan([row[k], lat[k], lon[k], t[k]]).all()
+
+
+def test_a_chunk_handed_on_in_parts_gives_the_same_products(tmp_path, monkeypatch):
+    """A chunk's photons brought to the host and handed to the writers in parts of whole pulses (HOST_PHOTONS; the
+    host memory of a long chunk bounded): every dataset of atl03.h5, atl08.h5 and photons.h5 and every LAS tile byte
+    the same as with the chunk in one piece (a 0.2 s pass of six beams, one chunk)."""
+    import flightsim.engine.readouts.photons as readout
+    from flightsim.engine.products.photons import PhotonProduct
+
+    cfg = preset_config("atlas")
+    for key, value in {"flight.duration_s": 0.2, "photon.gate_m": [499850.0, 500150.0]}.items():
+        set_value(cfg, key, value)
+    handed = []
+    monkeypatch.setattr(PhotonProduct, "__call__", lambda self, chunk, call=PhotonProduct.__call__: (
+        handed.append(len(chunk)), call(self, chunk))[1])
+    for name, most in (("whole", 1 << 40), ("parts", 3000)):
+        monkeypatch.setattr(readout, "HOST_PHOTONS", most)
+        handed.clear()
+        simulate_to_directory(validate(cfg), tmp_path / name)
+        counts = list(handed)
+    assert len(counts) > 10 and max(counts) <= 3000  # the case: many parts, none over the limit
+    for product in ("atl03.h5", "atl08.h5", "photons.h5"):
+        with h5py.File(tmp_path / "whole" / product) as a, h5py.File(tmp_path / "parts" / product) as b:
+            names = []
+            a.visititems(lambda name, item: names.append(name) if isinstance(item, h5py.Dataset) else None)
+            assert len(names) >= 10
+            for name in names:
+                np.testing.assert_array_equal(a[name][()], b[name][()], err_msg=f"{product} {name}")
+    tiles = sorted(p.relative_to(tmp_path / "whole") for p in (tmp_path / "whole").glob("photons/*"))
+    assert tiles and tiles == sorted(p.relative_to(tmp_path / "parts") for p in (tmp_path / "parts").glob("photons/*"))
+    for tile in tiles:
+        assert (tmp_path / "whole" / tile).read_bytes() == (tmp_path / "parts" / tile).read_bytes(), tile
+
+
+def test_pulse_parts_cover_the_rows_in_whole_pulses_of_at_most_the_limit():
+    """Against every row: the parts follow each other from 0 to the end, no pulse is split, and a part holds more
+    than the limit only as one pulse of more rows."""
+    from flightsim.engine.readouts.photons import pulse_parts
+
+    rng = np.random.default_rng(5)
+    for most in (1, 2, 7, 50, 10_000):
+        rows = rng.integers(1, 12, 400)
+        rows[100] = 40  # one pulse of 40 rows
+        pulse = np.repeat(np.arange(400) * 3, rows)
+        parts = pulse_parts(pulse, most)
+        assert parts[0][0] == 0 and parts[-1][1] == len(pulse)
+        assert all(hi == lo for (_, hi), (lo, _) in zip(parts, parts[1:]))
+        for lo, hi in parts:
+            assert hi > lo
+            assert hi - lo <= most or pulse[lo] == pulse[hi - 1]
+            assert lo == 0 or pulse[lo - 1] != pulse[lo]
+        if most == 7:  # rows of a pulse beyond the limit make a part of their own, others pack up to the limit
+            assert (300, 40) in [(pulse[lo], hi - lo) for lo, hi in parts]
+            assert sum(hi - lo for lo, hi in parts) / len(parts) > 3
+    assert pulse_parts(np.zeros(0, dtype=np.int64), 5) == []

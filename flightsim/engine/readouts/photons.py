@@ -22,6 +22,7 @@ photon = lazy_module("kernels.photon")
 photon_frame = lazy_module("kernels.photon_frame")
 
 FRAME_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 26}  # into a frame: a whole SPAD frame (44M beams) one chunk
+HOST_PHOTONS = 1 << 20  # photons brought to the host and handed on at a time (a chunk of more in parts)
 
 
 @dataclass
@@ -231,12 +232,30 @@ def beam_energy(emitter) -> np.ndarray:
     return np.ones(emitter.beams_per_pulse) if scale is None else np.asarray(scale(), dtype=np.float64)
 
 
-def _host_photons(tracer, segments: list[Segment], found: DevicePhotons) -> list[PhotonChunk]:
-    """Bring a chunk's detections (ordered by slot) to the host, split by flight line (arrays of the caller's own:
-    a consumer may keep them while later chunks reuse the device buffers)."""
+def _host_photons(tracer, segments: list[Segment], found: DevicePhotons):
+    """A chunk's detections (ordered by slot) on the host, split by flight line and then into parts of at most
+    HOST_PHOTONS photons of whole pulses (a pulse holding more is a part of its own), each part copied from the device
+    as it is asked for: while the consumer holds a few parts, the host holds no more of a long chunk (arrays of the
+    caller's own: a consumer may keep them while later chunks reuse the device buffers)."""
     slot = host_array(found.slot).astype(np.int64)
-    tof, kind = host_array(found.time_of_flight_s), host_array(found.signal)
-    points, directions = host_array(found.points), host_array(found.directions)
-    return [PhotonChunk(trajectory.line_id, trajectory.start_time, pulse, beam, tof[a:b], kind[a:b] > 0, kind[a:b],
-                        points[a:b], directions[a:b])
-            for trajectory, pulse, beam, a, b in tracer.by_line(segments, slot)]
+    for trajectory, pulse, beam, a, b in tracer.by_line(segments, slot):
+        for lo, hi in pulse_parts(pulse, HOST_PHOTONS):
+            rows = slice(int(a) + lo, int(a) + hi)  # Warp's slices take Python integers
+            tof, kind = host_array(found.time_of_flight_s[rows]), host_array(found.signal[rows])
+            yield PhotonChunk(trajectory.line_id, trajectory.start_time, pulse[lo:hi].copy(), beam[lo:hi].copy(), tof,
+                              kind > 0, kind, host_array(found.points[rows]), host_array(found.directions[rows]))
+
+
+def pulse_parts(pulse: np.ndarray, most: int) -> list[tuple[int, int]]:
+    """[lo, hi) parts of the ascending ``pulse`` indices covering them all, each of at most ``most`` rows and of
+    whole pulses (a pulse of more rows is a part of its own)."""
+    parts, lo = [], 0
+    while lo < len(pulse):
+        hi = len(pulse)
+        if lo + most < hi:
+            hi = int(np.searchsorted(pulse, pulse[lo + most], side="left"))
+            if hi == lo:  # one pulse of more than ``most`` rows
+                hi = int(np.searchsorted(pulse, pulse[lo], side="right"))
+        parts.append((lo, hi))
+        lo = hi
+    return parts
