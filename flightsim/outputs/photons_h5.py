@@ -28,11 +28,12 @@ FIELDS = {"line_id": np.int32, "pulse": np.int64, "pixel": np.int32, "delta_time
 
 
 class PhotonWriter:
-    """Appends PhotonChunks to ``directory/photons.h5``; ``close()`` renames it into place."""
+    """Appends PhotonChunks to ``directory/photons.h5``; ``close()`` renames it into place. The datasets are made at
+    the first photons, so that their HDF5 chunks fit the run (up to 2^16 rows: a reader of a large file reads a few
+    chunks per column rather than one per thousand photons); a run without photons gets them empty at close."""
 
     def __init__(self, directory: Path, cfg_text: str, prf_hz: float, origin: np.ndarray, crs_wkt: str):
         self.product = H5Product(directory / "photons.h5", config_toml=cfg_text, crs_wkt=crs_wkt)
-        self.product.append("photons", {name: np.zeros(0, dtype) for name, dtype in FIELDS.items()})
         self.prf_hz = prf_hz
         self.origin = np.asarray(origin, dtype=np.float64)
         self.count = 0
@@ -53,6 +54,8 @@ class PhotonWriter:
         self.signal += int(np.count_nonzero(chunk.signal))
 
     def close(self) -> str:
+        if self.count == 0:
+            self.product.append("photons", {name: np.zeros(0, dtype) for name, dtype in FIELDS.items()})
         return self.product.close()
 
     def abort(self) -> None:
