@@ -221,3 +221,35 @@ def test_pulse_parts_cover_the_rows_in_whole_pulses_of_at_most_the_limit():
             assert (300, 40) in [(pulse[lo], hi - lo) for lo, hi in parts]
             assert sum(hi - lo for lo, hi in parts) / len(parts) > 3
     assert pulse_parts(np.zeros(0, dtype=np.int64), 5) == []
+
+
+def test_photons_h5_and_the_tiles_get_each_part_behind_atl03_and_the_rest_at_close_at_once(tmp_path, monkeypatch):
+    """From orbit atl03.h5 has each part first; photons.h5 and the LAS tiles are handed part k once BEHIND more parts
+    came, waiting as their writers hold enough; at close they are handed the last BEHIND parts without waiting, so
+    that the signal finder starts as soon as atl03.h5 has its parts."""
+    import flightsim.engine.products.photons as product
+    import flightsim.engine.readouts.photons as readout
+
+    cfg = preset_config("atlas")
+    for key, value in {"flight.duration_s": 0.1, "photon.gate_m": [499850.0, 500150.0]}.items():
+        set_value(cfg, key, value)
+    calls, kept, call = [], [], product.Background.__call__
+
+    def record(self, chunk, after=None, wait=True):
+        kept.append(chunk)  # alive to the end: no two parts share an id
+        calls.append((self.writer.__class__.__name__, id(chunk), wait))
+        return call(self, chunk, after, wait)
+
+    monkeypatch.setattr(product.Background, "__call__", record)
+    monkeypatch.setattr(readout, "HOST_PHOTONS", 1500)
+    monkeypatch.setattr(product, "BEHIND", 3)
+    simulate_to_directory(validate(cfg), tmp_path / "run")
+    atl03 = [part for name, part, _ in calls if name == "Atl03Writer"]
+    assert len(atl03) > 8
+    for writer in ("PhotonWriter", "PhotonLas"):
+        handed = [(calls.index((writer, part, wait)), part, wait) for name, part, wait in calls if name == writer]
+        assert [part for _, part, _ in handed] == atl03  # every part, in order
+        for k, (at, part, wait) in enumerate(handed):
+            came = sum(1 for name, _, _ in calls[:at] if name == "Atl03Writer")
+            assert wait == (k < len(atl03) - 3)
+            assert came == (k + 4 if wait else len(atl03))  # part k once part k + BEHIND came; the rest at close

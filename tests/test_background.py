@@ -47,6 +47,16 @@ def test_the_caller_waits_when_the_writer_holds_enough_chunks():
     background.close()
 
 
+def test_without_wait_the_caller_goes_on_however_many_chunks_the_writer_holds():
+    writer = _Writer(pause=0.05)
+    background = Background(writer, "test", held=1)
+    start = time.perf_counter()
+    for k in range(4):
+        background(k, wait=False)
+    assert time.perf_counter() - start < 0.04  # none waited (held 1: with wait, three would have)
+    assert background.close() == list(range(4))
+
+
 def test_the_writers_error_reaches_the_caller_and_abort_waits():
     writer = _Writer(fail_at=1)
     background = Background(writer, "test", held=1)

@@ -20,10 +20,11 @@ class Background:
         self._thread = ThreadPoolExecutor(1, thread_name_prefix=name)
         self._pending: deque[Future] = deque()
 
-    def __call__(self, chunk, after: Future | None = None) -> Future:
+    def __call__(self, chunk, after: Future | None = None, wait: bool = True) -> Future:
         """Hand ``chunk`` over (the writer starts on it once ``after``, when given, has ended: another writer's work
-        that should have the cores first); its future."""
-        while len(self._pending) >= self._held:
+        that should have the cores first); its future. With ``wait`` the caller first waits while ``held`` chunks are
+        in hand; without, it goes on at once (the caller holds the chunk anyway)."""
+        while wait and len(self._pending) >= self._held:
             self._pending.popleft().result()
         self._pending.append(self._thread.submit(self._write, chunk, after))
         return self._pending[-1]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from collections import deque
 from pathlib import Path
 
 from flightsim.core.background import Background
@@ -14,6 +15,7 @@ from flightsim.outputs.photon_las import FOLDER
 ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
 PARALLEL_PHOTONS = 1 << 19  # photons from which atl03.h5's signal finder and atl08.h5 run on worker processes
 MAX_WORKERS = 32  # the most worker processes they start
+BEHIND = 8  # parts of the run photons.h5 and the LAS tiles are handed at most behind atl03.h5 (which has them first)
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5")  # what the workers run, imported early
 
 
@@ -54,6 +56,7 @@ class PhotonProduct:
                                           zip([h5, las, *atl03], ("photons-h5", "photon-las", "atl03")))
         self.atl08 = body is not None and cfg.output.atl08
         self.photons, self.workers, self.placed = 0, None, []
+        self.behind: deque = deque()  # (part, atl03.h5's future of it) not yet handed to photons.h5 and the tiles
 
     def readout(self) -> Photons:
         return Photons()
@@ -63,19 +66,29 @@ class PhotonProduct:
         return [self.h5, self.las, *self.atl03]
 
     def __call__(self, chunk) -> None:
-        """Hand the chunk to every writer: each converts and writes it on a thread of its own, photons.h5 and the LAS
-        tiles once atl03.h5 has it (Python's lock is shared: atl03.h5 leads to the signal finder and atl08.h5, which
-        the others can be written beside)."""
+        """Hand the chunk (a part of at most ``HOST_PHOTONS`` photons) to every writer: each converts and writes it on
+        a thread of its own. From orbit atl03.h5 has it first, photons.h5 and the LAS tiles get it once BEHIND more
+        parts came (or at close) and start on it when atl03.h5 has it: Python's lock is shared, and atl03.h5 leads to
+        the signal finder and atl08.h5, which the others are written beside; BEHIND bounds the parts held."""
         first = self.atl03[0](chunk) if self.atl03 else None
-        self.h5(chunk, after=first)
-        self.las(chunk, after=first)
+        self.behind.append((chunk, first))
+        self._hand_on(BEHIND if self.atl03 else 0)
         self.photons += len(chunk)
         if self.atl03 and self.workers is None and self.photons >= PARALLEL_PHOTONS and usable_cores() > 1:
             self.workers = ProcessMap(min(usable_cores(), MAX_WORKERS), PRELOAD)  # they start while the run goes on
 
+    def _hand_on(self, keep: int, wait: bool = True) -> None:
+        """Hand photons.h5 and the LAS tiles the parts waiting for them but the last ``keep``; without ``wait`` all at
+        once, however many they already hold (at close: the signal finder is not kept waiting for them)."""
+        while len(self.behind) > keep:
+            chunk, first = self.behind.popleft()
+            self.h5(chunk, after=first, wait=wait)
+            self.las(chunk, after=first, wait=wait)
+
     def close(self, counts) -> dict:
         """Close the files: atl03.h5 (its signal finder) and atl08.h5 first (on the worker processes once the run
         passed PARALLEL_PHOTONS photons), while photons.h5 and the LAS tiles are written on."""
+        self._hand_on(0, wait=False)
         try:
             names = {writer: self._placed(writer.close(self.workers)) for writer in self.atl03}
             atl08 = atl08_from_atl03(self.directory, self.cfg_text, self.workers) if self.atl08 else None
