@@ -704,3 +704,18 @@ def test_out_of_range_values_are_refused(tmp_path):
     with pytest.raises(ValueError, match="scan_angle"):
         writer.write(PointBatch(**{**vars(batch), "scan_angle_deg": np.array([0.0, 181.0, 0.0])}))
     writer.abort()
+
+
+@pytest.mark.parametrize("span", [(3, 5), (256, 256), (1, 1 << 16), (300, 300), (1 << 20, 2)])
+def test_tile_order_is_a_stable_sort_by_tile_either_way(span):
+    """Tiles within 2^16 places of their bounding box sorted as one 16-bit key, others by both indices: either way
+    the stable order of (ix, iy) with input order kept within a tile (np.lexsort), and where each tile starts."""
+    rng = np.random.default_rng(sum(span))
+    ix = rng.integers(-5, span[0] - 5, 20_000) * (1 if span[0] > 1 else 0) + 7
+    iy = rng.integers(0, span[1], 20_000) - 40_000
+    ix[:2], iy[:2] = (ix.min(), ix.min() + span[0] - 1), (iy.min(), iy.min() + span[1] - 1)  # the box's corners
+    order, starts = las_tiles._tile_order(ix, iy)
+    expected = np.lexsort((iy, ix))
+    np.testing.assert_array_equal(order, expected)
+    keys = list(zip(ix[expected].tolist(), iy[expected].tolist()))
+    assert starts.tolist() == [k for k in range(len(keys)) if k == 0 or keys[k] != keys[k - 1]]

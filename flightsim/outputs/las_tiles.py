@@ -161,13 +161,14 @@ class TileWriter:
         for group in _tile_runs(starts, len(order)):  # several tiles' records made at once, tile after tile
             rows = order[group[0]:group[-1]]
             tx, ty = ix[rows], iy[rows]
-            record = self._record(batch.select(rows))
-            xyz = np.column_stack([xq[rows] - tx * self._tile_mm, yq[rows] - ty * self._tile_mm, zq[rows]])
-            record["X"], record["Y"], record["Z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+            record = self._record(batch, rows)
+            record["X"], record["Y"], record["Z"] = xq[rows] - tx * self._tile_mm, yq[rows] - ty * self._tile_mm, zq[rows]
             first = group[:-1] - group[0]
-            lowest, highest = np.minimum.reduceat(xyz, first), np.maximum.reduceat(xyz, first)
+            lowest, highest = ([ufunc.reduceat(record[axis], first) for axis in "XYZ"]
+                               for ufunc in (np.minimum, np.maximum))
             for k, (start, stop) in enumerate(zip(first, group[1:] - group[0])):
-                self.write_records((int(tx[start]), int(ty[start])), record.array[start:stop], lowest[k], highest[k])
+                self.write_records((int(tx[start]), int(ty[start])), record[start:stop],
+                                   np.array([v[k] for v in lowest]), np.array([v[k] for v in highest]))
 
     def write_records(self, key: tuple[int, int], records: np.ndarray, lowest, highest) -> None:
         """Append finished point records to tile ``key`` (tile indices).
@@ -194,23 +195,19 @@ class TileWriter:
             self._workers.write(key, np.ascontiguousarray(records), lowest, highest)
         self._counts[key] += len(records)
 
-    def _record(self, points: PointBatch) -> laspy.PackedPointRecord:
-        """Format-6 records of ``points`` with every field but X, Y, Z filled in."""
-        angle = np.rint(points.scan_angle_deg.astype(np.float64) / SCAN_ANGLE_UNIT_DEG)
+    def _record(self, batch: PointBatch, rows: np.ndarray) -> np.ndarray:
+        """Format-6 records (the tiles' dtype) of the points ``rows`` of ``batch``, every field but X, Y, Z filled in,
+        written straight into the record array (one return of one: the return byte 0x11)."""
+        angle = np.rint(batch.scan_angle_deg[rows].astype(np.float64) / SCAN_ANGLE_UNIT_DEG)
         if not np.all(np.abs(angle) <= 30000):
             raise ValueError("scan_angle_deg must be finite and within [-180, 180] deg")
-        import laspy
-        record = laspy.PackedPointRecord.zeros(len(points), self._template.point_format)
-        ones = np.ones(len(points), dtype=np.uint8)
-        record["return_number"] = ones
-        record["number_of_returns"] = ones
-        record["scan_angle"] = angle.astype(np.int16)
-        record["intensity"] = points.intensity
-        record["classification"] = points.classification
-        record["point_source_id"] = points.point_source_id
-        record["gps_time"] = points.gps_time
+        record = np.zeros(len(rows), self._template.point_format.dtype())
+        record["bit_fields"] = ONE_RETURN
+        record["scan_angle"] = angle
+        for name in ("intensity", "classification", "point_source_id", "gps_time"):
+            record[name] = getattr(batch, name)[rows]
         for las_name, field, _, _ in self._extra_dims():
-            record[las_name] = getattr(points, field)
+            record[las_name] = getattr(batch, field)[rows]
         return record
 
     def _bound_held(self, record_bytes: int) -> None:
@@ -441,6 +438,7 @@ class _TileFile:
         self._file.close()
 
 
+ONE_RETURN = 0x11  # format 6's return byte: return number 1 (bits 0-3) of 1 return (bits 4-7)
 RECORDS_AT_ONCE = 1 << 20  # points whose records a write makes at once (whole tiles, at least one)
 
 
@@ -458,7 +456,15 @@ def _tile_runs(starts: np.ndarray, n: int) -> list[np.ndarray]:
 
 def _tile_order(ix: np.ndarray, iy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The points' order tile after tile (by tile index pair; input order kept within a tile) and where each tile's
-    points start in it."""
+    points start in it. Tiles within 2^16 of each other's places in their bounding box are sorted as one 16-bit key
+    (NumPy's stable sort of it is a radix sort), others by both indices."""
+    x0, y0 = ix.min(), iy.min()
+    width = int(iy.max() - y0) + 1
+    if (int(ix.max() - x0) + 1) * width <= 1 << 16:
+        key = ((ix - x0) * width + (iy - y0)).astype(np.uint16)
+        order = np.argsort(key, kind="stable")
+        key = key[order]
+        return order, np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     order = np.lexsort((iy, ix))  # stable: input order is kept within a tile
     ix, iy = ix[order], iy[order]
     return order, np.flatnonzero(np.r_[True, (ix[1:] != ix[:-1]) | (iy[1:] != iy[:-1])])
