@@ -162,13 +162,13 @@ class TileWriter:
             rows = order[group[0]:group[-1]]
             tx, ty = ix[rows], iy[rows]
             record = self._record(batch, rows)
-            record["X"], record["Y"], record["Z"] = xq[rows] - tx * self._tile_mm, yq[rows] - ty * self._tile_mm, zq[rows]
+            record["X"], record["Y"] = xq[rows] - tx * self._tile_mm, yq[rows] - ty * self._tile_mm
+            record["Z"] = zq[rows]
             first = group[:-1] - group[0]
-            lowest, highest = ([ufunc.reduceat(record[axis], first) for axis in "XYZ"]
+            lowest, highest = (np.column_stack([ufunc.reduceat(record[axis], first) for axis in "XYZ"])
                                for ufunc in (np.minimum, np.maximum))
             for k, (start, stop) in enumerate(zip(first, group[1:] - group[0])):
-                self.write_records((int(tx[start]), int(ty[start])), record[start:stop],
-                                   np.array([v[k] for v in lowest]), np.array([v[k] for v in highest]))
+                self.write_records((int(tx[start]), int(ty[start])), record[start:stop], lowest[k], highest[k])
 
     def write_records(self, key: tuple[int, int], records: np.ndarray, lowest, highest) -> None:
         """Append finished point records to tile ``key`` (tile indices).
@@ -203,7 +203,7 @@ class TileWriter:
             raise ValueError("scan_angle_deg must be finite and within [-180, 180] deg")
         record = np.zeros(len(rows), self._template.point_format.dtype())
         record["bit_fields"] = ONE_RETURN
-        record["scan_angle"] = angle
+        record["scan_angle"] = angle.astype(np.int16)
         for name in ("intensity", "classification", "point_source_id", "gps_time"):
             record[name] = getattr(batch, name)[rows]
         for las_name, field, _, _ in self._extra_dims():
@@ -456,8 +456,8 @@ def _tile_runs(starts: np.ndarray, n: int) -> list[np.ndarray]:
 
 def _tile_order(ix: np.ndarray, iy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The points' order tile after tile (by tile index pair; input order kept within a tile) and where each tile's
-    points start in it. Tiles within 2^16 of each other's places in their bounding box are sorted as one 16-bit key
-    (NumPy's stable sort of it is a radix sort), others by both indices."""
+    points start in it. When the tiles' bounding box holds at most 2^16 tiles, the index pair is sorted as one 16-bit
+    key (NumPy's stable sort of 16-bit keys is a radix sort), else by both indices."""
     x0, y0 = ix.min(), iy.min()
     width = int(iy.max() - y0) + 1
     if (int(ix.max() - x0) + 1) * width <= 1 << 16:
