@@ -92,3 +92,55 @@ def test_a_chunk_handed_over_after_another_writers_waits_for_it():
     with pytest.raises(ValueError):
         failing.close()
     a.close(), b.close()
+
+
+class _Staged(_Writer):
+    """A writer whose chunks are prepared apart from their writing (``writer(chunk)`` is ``take(prepare(chunk))``)."""
+
+    def __init__(self, fail_at=None, pause=0.0):
+        super().__init__(fail_at, pause)
+        self.lock, self.running, self.most, self.preparers = threading.Lock(), 0, 0, set()
+
+    def prepare(self, chunk):
+        with self.lock:
+            self.running += 1
+            self.most = max(self.most, self.running)
+            self.preparers.add(threading.get_ident())
+        time.sleep(self.pause * (1 + chunk % 3))  # later chunks may be prepared first
+        with self.lock:
+            self.running -= 1
+        if chunk == self.fail_at:
+            raise ValueError(f"chunk {chunk}")
+        return chunk
+
+    def take(self, prepared):
+        self.seen.append(prepared)
+        self.threads.add(threading.get_ident())
+
+    def __call__(self, chunk):
+        self.take(self.prepare(chunk))
+
+
+def test_a_staged_writers_chunks_are_prepared_side_by_side_and_taken_in_order_on_one_thread():
+    writer = _Staged(pause=0.01)
+    background = Background(writer, "test", threads=3)
+    for k in range(12):
+        background(k)
+    assert background.close() == list(range(12))
+    assert writer.most == 3 and len(writer.threads) == 1 and not writer.threads & writer.preparers
+    alone = _Staged(pause=0.01)
+    Background(alone, "test").close()  # one thread: the writer called whole
+    background = Background(alone, "test")
+    for k in range(4):
+        background(k)
+    assert background.close() == list(range(4)) and alone.most == 1 and alone.threads == alone.preparers
+
+
+def test_a_staged_writers_error_reaches_the_caller_and_abort_drops_the_rest():
+    writer = _Staged(fail_at=2, pause=0.01)
+    background = Background(writer, "test", threads=2)
+    with pytest.raises(ValueError, match="chunk 2"):
+        for k in range(40):
+            background(k)
+    background.abort()  # chunks 3 and 4 were handed over (held 2 + 2 − 1), none after: they may have been written
+    assert writer.aborted and not writer.closed and writer.seen[:2] == [0, 1] and set(writer.seen) <= {0, 1, 3, 4}

@@ -481,6 +481,26 @@ def test_a_batchs_records_made_a_few_tiles_at_a_time_give_the_same_bytes(tmp_pat
         assert (tmp_path / "together" / name).read_bytes() == (tmp_path / "runs" / name).read_bytes()
 
 
+def test_batches_packed_on_threads_and_written_in_order_give_the_same_bytes(tmp_path):
+    """``pack`` on several threads at once (the first of them making the tiles' format), ``write_packed`` in the
+    batches' order: the bytes of ``write`` batch after batch; packing touches no tile file."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pieces = [random_batch(700, seed=s) for s in range(12)]
+    write_tiles(tmp_path / "written", pieces)
+    with TileWriter(tmp_path / "packed", UTM48N, creation_date=CREATED) as writer:
+        with ThreadPoolExecutor(4) as pool:
+            packed = list(pool.map(writer.pack, pieces))
+        assert not any((tmp_path / "packed").iterdir())
+        assert all(isinstance(part, las_tiles.TileRecords) for parts in packed for part in parts)
+        for parts in packed:
+            writer.write_packed(parts)
+    names = sorted(p.name for p in (tmp_path / "written").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "packed").iterdir()) and len(names) == 4
+    for name in names:
+        assert (tmp_path / "written" / name).read_bytes() == (tmp_path / "packed" / name).read_bytes()
+
+
 def test_tile_runs_hold_whole_tiles_within_the_bound(monkeypatch):
     import flightsim.outputs.las_tiles as las_tiles
 

@@ -15,10 +15,11 @@ import copy
 import datetime
 import functools
 import os
+import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import pyproj
@@ -35,6 +36,15 @@ from flightsim.outputs.laz_workers import LazWorkers
 if TYPE_CHECKING:
     import laspy
     from laspy.lasappender import LasAppender
+
+
+class TileRecords(NamedTuple):
+    """Finished records of one tile, as :meth:`TileWriter.write_records` takes them."""
+
+    key: tuple[int, int]  # tile indices
+    records: np.ndarray  # the tile format's structured records, X and Y relative to the tile's corner [mm]
+    lowest: np.ndarray  # (3,) least stored X, Y, Z [mm]
+    highest: np.ndarray  # (3,) greatest stored X, Y, Z [mm]
 
 
 class TileWriter:
@@ -120,11 +130,18 @@ class TileWriter:
         self._counts: dict[tuple[int, int], int] = {}
         self._finished = False
         self._workers = None
+        self._template_lock = threading.Lock()
         if self._compress and processes:
             self._workers = LazWorkers(processes, dict(
                 directory=str(self._directory), crs=crs, tile_size_m=tile_size_m, compress=True, extras=tuple(extras),
                 creation_date=creation_date, software=software, max_open_tiles=max_open_tiles, processes=0,
                 parallel_compression=False, durable=durable))
+
+    @functools.cached_property
+    def _dtype(self) -> np.dtype:
+        """The tiles' record dtype (made once should threads packing batches ask at once)."""
+        with self._template_lock:
+            return self._template.point_format.dtype()
 
     @functools.cached_property
     def _template(self) -> laspy.LasHeader:
@@ -147,6 +164,21 @@ class TileWriter:
         """Append the points of ``batch`` to their tiles, in batch order within each tile."""
         if self._finished:
             raise RuntimeError("TileWriter is closed")
+        self.write_packed(self._packed(batch))
+
+    def pack(self, batch: PointBatch) -> list[TileRecords]:
+        """The finished records of ``batch``, tile by tile, for :meth:`write_packed` (``write(batch)`` is
+        ``write_packed(pack(batch))``). Reads only the writer's settings: batches may be packed on several threads at
+        once, and written in their order on one."""
+        return list(self._packed(batch))
+
+    def write_packed(self, packed: Iterable[TileRecords]) -> None:
+        """Append records packed by :meth:`pack` to their tiles."""
+        for key, records, lowest, highest in packed:
+            self.write_records(key, records, lowest, highest)
+
+    def _packed(self, batch: PointBatch) -> Iterator[TileRecords]:
+        """The records of ``batch`` tile after tile, made RECORDS_AT_ONCE points at a time."""
         missing = [field for _, field, _, _ in self._extra_dims() if getattr(batch, field) is None]
         if missing:
             raise ValueError(f"PointBatch fields written as LAS extra bytes are None: {missing}")
@@ -168,7 +200,7 @@ class TileWriter:
             lowest, highest = (np.column_stack([ufunc.reduceat(record[axis], first) for axis in "XYZ"])
                                for ufunc in (np.minimum, np.maximum))
             for k, (start, stop) in enumerate(zip(first, group[1:] - group[0])):
-                self.write_records((int(tx[start]), int(ty[start])), record[start:stop], lowest[k], highest[k])
+                yield TileRecords((int(tx[start]), int(ty[start])), record[start:stop], lowest[k], highest[k])
 
     def write_records(self, key: tuple[int, int], records: np.ndarray, lowest, highest) -> None:
         """Append finished point records to tile ``key`` (tile indices).
@@ -180,7 +212,7 @@ class TileWriter:
         """
         if self._finished:
             raise RuntimeError("TileWriter is closed")
-        dtype = self._template.point_format.dtype()
+        dtype = self._dtype
         records = np.asarray(records)
         if records.dtype != dtype:
             records = records.reshape(-1).view(np.uint8).view(dtype)
@@ -201,7 +233,7 @@ class TileWriter:
         angle = np.rint(batch.scan_angle_deg[rows].astype(np.float64) / SCAN_ANGLE_UNIT_DEG)
         if not np.all(np.abs(angle) <= 30000):
             raise ValueError("scan_angle_deg must be finite and within [-180, 180] deg")
-        record = np.zeros(len(rows), self._template.point_format.dtype())
+        record = np.zeros(len(rows), self._dtype)
         record["bit_fields"] = ONE_RETURN
         record["scan_angle"] = angle.astype(np.int16)
         for name in ("intensity", "classification", "point_source_id", "gps_time"):

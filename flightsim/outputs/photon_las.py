@@ -100,9 +100,13 @@ class PhotonLas:
         self.tiles: dict[str, int] = {}
 
     def __call__(self, chunk) -> None:
+        self.take(self.prepare(chunk))
+
+    def prepare(self, chunk) -> list:
+        """The tiles' records of a PhotonChunk (safe on several threads at once; :meth:`take` writes them)."""
         world = photon_world(self.body, self.scene, chunk.points, self.crs)
         d = chunk.directions.astype(np.float64)
-        self.writer.write(PointBatch(
+        return self.writer.pack(PointBatch(
             x=world[:, 0], y=world[:, 1], z=world[:, 2],
             gps_time=self.timing.pulse_times(chunk.start_time, chunk.pulse),
             point_source_id=np.full(len(chunk), chunk.line_id, dtype=np.uint16),
@@ -114,6 +118,10 @@ class PhotonLas:
             prism_angle_deg=np.degrees(self.timing.prism_angles(chunk.start_time, chunk.pulse)).astype(np.float32),
             range_m=(chunk.time_of_flight_s * C_HALF).astype(np.float32),
             plane_id=np.full(len(chunk), -1, dtype=np.int32)))
+
+    def take(self, packed: list) -> None:
+        """Write the records :meth:`prepare` made, in the order chunks came."""
+        self.writer.write_packed(packed)
 
     def close(self) -> str:
         self.tiles = self.writer.close()

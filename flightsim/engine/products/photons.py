@@ -7,7 +7,7 @@ from collections import deque
 from pathlib import Path
 
 from flightsim.core.background import Background
-from flightsim.core.process_map import ProcessMap, map_rows, usable_cores
+from flightsim.core.process_map import ProcessMap, map_rows, thread_count, usable_cores
 from flightsim.core.registry import register
 from flightsim.engine.readouts.photons import Photons
 from flightsim.outputs.photon_las import FOLDER
@@ -16,6 +16,7 @@ ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
 PARALLEL_PHOTONS = 1 << 19  # photons from which atl03.h5's signal finder and atl08.h5 run on worker processes
 MAX_WORKERS = 32  # the most worker processes they start
 BEHIND = 8  # parts of the run photons.h5 and the LAS tiles are handed at most behind atl03.h5 (which has them first)
+LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (the run's slowest writer without them)
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5")  # what the workers run, imported early
 
 
@@ -52,8 +53,8 @@ class PhotonProduct:
                         cfg.flight.start_gps_time)
         atl03 = [Atl03Writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter))
                  ] if body else []
-        self.h5, self.las, *self.atl03 = (Background(writer, name) for writer, name in
-                                          zip([h5, las, *atl03], ("photons-h5", "photon-las", "atl03")))
+        self.h5, self.las = Background(h5, "photons-h5"), Background(las, "photon-las", threads=thread_count(LAS_THREADS))
+        self.atl03 = [Background(writer, "atl03") for writer in atl03]
         self.atl08 = body is not None and cfg.output.atl08
         self.photons, self.workers, self.placed = 0, None, []
         self.behind: deque = deque()  # (part, atl03.h5's future of it) not yet handed to photons.h5 and the tiles
