@@ -40,7 +40,6 @@ if TYPE_CHECKING:
 
 class TileRecords(NamedTuple):
     """Finished records of one tile, as :meth:`TileWriter.write_records` takes them."""
-
     key: tuple[int, int]  # tile indices
     records: np.ndarray  # the tile format's structured records, X and Y relative to the tile's corner [mm]
     lowest: np.ndarray  # (3,) least stored X, Y, Z [mm]
@@ -167,9 +166,8 @@ class TileWriter:
         self.write_packed(self._packed(batch))
 
     def pack(self, batch: PointBatch) -> list[TileRecords]:
-        """The finished records of ``batch``, tile by tile, for :meth:`write_packed` (``write(batch)`` is
-        ``write_packed(pack(batch))``). Reads only the writer's settings: batches may be packed on several threads at
-        once, and written in their order on one."""
+        """The records of ``batch`` tile by tile: ``write(batch)`` is ``write_packed(pack(batch))``. Reads only the
+        writer's settings: batches may be packed on several threads at once, then written in their order on one."""
         return list(self._packed(batch))
 
     def write_packed(self, packed: Iterable[TileRecords]) -> None:
