@@ -170,10 +170,8 @@ def test_reference_photons_over_chunks_are_the_nearest_to_the_centre_first_on_a_
 
 def test_a_chunk_handed_on_in_parts_gives_the_same_products(tmp_path, monkeypatch):
     """A chunk's photons brought to the host and handed to the writers in parts of whole pulses (HOST_PHOTONS; the
-    host memory of a long chunk bounded), the LAS records of the parts made on two threads: every dataset of
-    atl03.h5, atl08.h5 and photons.h5 and every LAS tile byte the same as with the chunk in one piece on one thread
-    (a 0.2 s pass of six beams, one chunk)."""
-    import flightsim.engine.products.photons as product
+    host memory of a long chunk bounded): every dataset of atl03.h5, atl08.h5 and photons.h5 and every LAS tile byte
+    the same as with the chunk in one piece (a 0.2 s pass of six beams, one chunk)."""
     import flightsim.engine.readouts.photons as readout
     from flightsim.engine.products.photons import PhotonProduct
 
@@ -183,10 +181,8 @@ def test_a_chunk_handed_on_in_parts_gives_the_same_products(tmp_path, monkeypatc
     handed = []
     monkeypatch.setattr(PhotonProduct, "__call__", lambda self, chunk, call=PhotonProduct.__call__: (
         handed.append(len(chunk)), call(self, chunk))[1])
-    monkeypatch.setattr(product, "thread_count", lambda most: most)
-    for name, most, threads in (("whole", 1 << 40, 1), ("parts", 3000, 2)):
+    for name, most in (("whole", 1 << 40), ("parts", 3000)):
         monkeypatch.setattr(readout, "HOST_PHOTONS", most)
-        monkeypatch.setattr(product, "LAS_THREADS", threads)
         handed.clear()
         simulate_to_directory(validate(cfg), tmp_path / name)
         counts = list(handed)

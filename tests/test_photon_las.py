@@ -36,3 +36,34 @@ def test_photon_points_in_the_output_crs(tmp_path, crs):
     assert mid.sum() >= 2
     assert np.hypot(x[mid] - origin[0], y[mid] - origin[1]).max() < 8.0  # within the 12 m footprint
     assert np.median(z[c == 1]) == pytest.approx(cfg.scene.origin[2], abs=0.15)  # WGS84 height of the plane
+
+
+def test_the_tiles_of_a_run_off_orbit_are_the_same_made_on_threads(tmp_path, monkeypatch):
+    """Off orbit the LAS records of a run's parts are made on LAS_THREADS threads side by side and written in order:
+    every tile byte as on one thread (a SPAD run in parts of 2,000 photons)."""
+    import threading
+
+    import flightsim.engine.products.photons as product
+    import flightsim.engine.readouts.photons as readout
+    from flightsim.outputs.photon_las import PhotonLas
+
+    cfg = preset_config("spad")
+    set_value(cfg, "flight.duration_s", 0.002)
+    cfg = validate(cfg)
+    makers = []
+    monkeypatch.setattr(PhotonLas, "prepare", lambda self, chunk, make=PhotonLas.prepare: (
+        makers.append(threading.get_ident()), make(self, chunk))[1])
+    monkeypatch.setattr(readout, "HOST_PHOTONS", 2000)
+    monkeypatch.setattr(product, "thread_count", lambda most: most)
+    threads = {}
+    for name, count in (("one", 1), ("three", 3)):
+        monkeypatch.setattr(product, "LAS_THREADS", count)
+        makers.clear()
+        simulate_to_directory(cfg, tmp_path / name)
+        threads[name] = (len(makers), len(set(makers)))
+    assert threads["one"][0] > 10 and threads["one"][1] == 1 and threads["three"][1] > 1  # the case: many parts
+    tiles = sorted(p.name for p in (tmp_path / "one" / "photons").iterdir())
+    assert tiles and tiles == sorted(p.name for p in (tmp_path / "three" / "photons").iterdir())
+    for tile in tiles:
+        one, three = (tmp_path / name / "photons" / tile for name in ("one", "three"))
+        assert one.read_bytes() == three.read_bytes(), tile
