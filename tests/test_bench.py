@@ -200,3 +200,39 @@ def test_gedi_shots_are_timed_end_to_end_over_a_cloud_written_as_las(tmp_path, m
     assert 50.0 < r["peak_rss_mib"] < 4096.0
     text = "\n".join(_forest_shots(r))
     assert f"7 footprints over {written:,} points" in text and "stages [s]: scene " in text
+
+
+def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pulses(tmp_path, monkeypatch):
+    """The LAS writer's record of the photons section: the photons of a SPAD run read back from photons.h5 in parts of
+    whole pulses, each part's points, pulse times and truth those of photons.h5; every photon written on one thread
+    and on two; the report's line says so."""
+    import h5py
+
+    import flightsim.engine.readouts.photons as readout
+    import flightsim.studies.bench_photon_runs as section
+    from flightsim.api import load_config
+    from flightsim.engine.instrument import Instrument
+    from flightsim.engine.run import simulate_to_directory
+    from flightsim.engine.world import build_scene
+
+    cfg = load_config(instrument="spad", overrides={"flight.duration_s": 0.002})
+    summary = simulate_to_directory(cfg, tmp_path / "spad")
+    monkeypatch.setattr(readout, "HOST_PHOTONS", 5000)
+    scene, timing = build_scene(cfg), Instrument(cfg).deflector.timing()
+    parts = section._parts(tmp_path / "spad" / "photons.h5", scene.origin, timing.prf_hz)
+    with h5py.File(tmp_path / "spad" / "photons.h5") as f:
+        h5 = {name: f["photons"][name][:] for name in ("pulse", "delta_time", "signal", "x", "y", "z")}
+    assert len(parts) > 3 and sum(len(p) for p in parts) == summary["photons"] == len(h5["pulse"])
+    assert all(a.pulse[-1] != b.pulse[0] for a, b in zip(parts, parts[1:]))  # no pulse split
+    joined = {name: np.concatenate([getattr(p, name) for p in parts]) for name in ("pulse", "kind", "points")}
+    np.testing.assert_array_equal(joined["pulse"], h5["pulse"])
+    np.testing.assert_array_equal(joined["kind"], h5["signal"])
+    np.testing.assert_allclose(joined["points"] + scene.origin, np.column_stack([h5["x"], h5["y"], h5["z"]]),
+                               rtol=0, atol=1e-9)
+    times = np.concatenate([timing.pulse_times(p.start_time, p.pulse) for p in parts])
+    np.testing.assert_allclose(times, h5["delta_time"], rtol=0, atol=1e-9)
+    record = section.las_writer(tmp_path / "spad", threads=2)
+    assert record["photons"] == summary["photons"] and record["parts"] == len(parts) and record["threads"] == 2
+    assert record["one_thread_s"] > 0 and record["threads_s"] > 0
+    lines = section.markdown({"photons": {"runs": [], "las_writer": record}})
+    assert any(f"{record['photons']:.3g} photons ({len(parts)} parts)" in line for line in lines)

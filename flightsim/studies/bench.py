@@ -15,6 +15,7 @@ from flightsim.core.warp_runtime import resolve_device
 from flightsim.studies.bench_common import child_bytecode, git_commit, gpu_name, sizes
 from flightsim.studies.bench_forest import forest
 from flightsim.studies.bench_gpus import gpu_scaling
+from flightsim.studies.bench_photon_runs import photon_runs
 from flightsim.studies.bench_runs import galvo, spad_frame, stages, study, throughput, waveform_altimeter
 from flightsim.studies.bench_savings import pareto, skipping
 from flightsim.studies.bench_startup import startup
@@ -22,7 +23,7 @@ from flightsim.studies.bench_scale import las_output, reduce_knobs, scale, surve
 from flightsim.studies.waveform_processing import ranging_bench
 
 SECTIONS = ("throughput", "stages", "study", "las", "skip", "pareto", "galvo", "spad", "waveform", "scale",
-            "reduce", "survey", "forest", "startup", "ranging", "gpus")
+            "reduce", "survey", "forest", "startup", "ranging", "gpus", "photons")
 
 
 def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
@@ -37,7 +38,8 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
     runners = {"throughput": throughput, "stages": stages, "study": study, "las": las_output, "skip": skipping,
                "pareto": pareto, "galvo": galvo, "spad": spad_frame,
                "waveform": waveform_altimeter, "scale": scale, "reduce": reduce_knobs, "survey": survey_area,
-               "forest": forest, "startup": startup, "ranging": ranging_bench, "gpus": gpu_scaling}
+               "forest": forest, "startup": startup, "ranging": ranging_bench, "gpus": gpu_scaling,
+               "photons": photon_runs}
     with child_bytecode():  # the sections' commands start as an installed package's would
         for name in sections:  # written after each section, so an interrupted bench keeps what it measured
             started = time.perf_counter()

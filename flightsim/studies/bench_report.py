@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from flightsim.core.atomic import save_figure, write_atomic
-from flightsim.studies import bench_gpus
+from flightsim.studies import bench_gpus, bench_photon_runs
 
 TARGETS = {  # (returns/s, ratio) the issue sets per device kind
     "cuda": (1e9, 0.4),
@@ -60,7 +60,7 @@ def markdown(merged: dict) -> str:
                 f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
         lines += (_throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r)
                   + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r) + bench_gpus.markdown(r) + _forest(r)
-                  + _startup(r) + _ranging(r))
+                  + _startup(r) + _ranging(r) + bench_photon_runs.markdown(r))
     return "\n".join(lines) + "\n"
 
 

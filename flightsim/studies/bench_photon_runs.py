@@ -1,0 +1,120 @@
+"""`flightsim bench` section photons: the photon instruments' runs end to end, each `flightsim simulate` in a fresh
+process (the SPAD lidar's MODE-A frame, ATLAS's six beams; shorter on the CPU), with the wall, the peak memory, the
+stages and photons/s; and the photon LAS writer on the SPAD run's photons (read back from its photons.h5, in the
+run's parts of whole pulses) on one thread and on the threads a run off orbit gives it, in the same run."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flightsim.core.warp_runtime import resolve_device
+from flightsim.studies.bench_common import Sizes, run_measured
+
+RUNS = {"cuda": (("spad", 0.86), ("atlas", 10.0)), "cpu": (("spad", 0.086), ("atlas", 2.0))}
+"""(instrument preset, flight duration [s]) of each run: on the GPU the SPAD frame (43,000 pulses) and a 10 s ATLAS
+pass; on the CPU a tenth of the frame and a 2 s pass (--quick: a tenth of those)."""
+
+
+def photon_runs(device: str, s: Sizes) -> dict:
+    """The runs' records (each after an untimed short run of its instrument that fills the kernel cache) and the
+    LAS writer's record on the SPAD run's photons."""
+    device = resolve_device(device)
+    runs = RUNS["cpu" if device == "cpu" else "cuda"]
+    with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
+        records = []
+        for instrument, duration in runs:
+            duration = duration / 10 if s.quick else duration
+            _simulate(device, instrument, duration / 100, Path(tmp) / f"warm-{instrument}")
+            records.append(_simulate(device, instrument, duration, Path(tmp) / instrument))
+        writer = las_writer(Path(tmp) / "spad")
+    return {"runs": records, "las_writer": writer}
+
+
+def _simulate(device: str, instrument: str, duration: float, out: Path) -> dict:
+    """Wall, peak memory, photons and stages of `flightsim simulate --instrument ... --duration ...` into ``out``."""
+    command = [sys.executable, "-m", "flightsim", "simulate", "--instrument", instrument, "--duration",
+               f"{duration:g}", "--device", device, "--out", str(out)]
+    wall, code, peak_mib, _ = run_measured(command)
+    if code != 0:
+        raise RuntimeError(f"photon benchmark run failed: {' '.join(command)}")
+    summary = json.loads((out / "summary.json").read_text())
+    return {"instrument": instrument, "duration_s": duration, "device": device, "photons": summary["photons"],
+            "wall_s": wall, "photons_per_s": summary["photons"] / wall, "peak_rss_mib": peak_mib,
+            "stages_s": summary["stages_s"], "command": " ".join(["flightsim", *command[3:-2]])}
+
+
+def las_writer(run: Path, threads: int | None = None) -> dict:
+    """Photons/s of the photon LAS writer (``photons/`` of the run in ``run``, written again elsewhere) on one thread
+    and on ``threads`` (None: ``thread_count(LAS_THREADS)``, as a run off orbit has), the two in turn, best of two each
+    (the photons' beam directions taken as nadir: photons.h5 keeps none; the scan angle costs the same)."""
+    from flightsim.core.background import Background
+    from flightsim.core.process_map import thread_count
+    from flightsim.engine.config import validate
+    from flightsim.engine.config_io import load_toml, preset_config
+    from flightsim.engine.instrument import Instrument
+    from flightsim.engine.products.photons import LAS_THREADS
+    from flightsim.engine.world import build_scene
+    from flightsim.outputs.photon_las import PhotonLas
+
+    cfg = validate(load_toml(run / "run.toml", preset_config("spad")))
+    scene, instrument = build_scene(cfg), Instrument(cfg)
+    timing = instrument.deflector.timing()
+    parts = _parts(run / "photons.h5", scene.origin, timing.prf_hz)
+    photons, threads = sum(len(part) for part in parts), threads or thread_count(LAS_THREADS)
+    walls = {1: [], threads: []}
+    for _ in range(2):
+        for count in walls:
+            with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as out:
+                writer = Background(PhotonLas(Path(out), cfg.output, scene, timing, instrument.emitter.beam_columns,
+                                              None, cfg.flight.start_gps_time), "bench-las", threads=count)
+                started = time.perf_counter()
+                for part in parts:
+                    writer(part)
+                writer.close()
+                walls[count].append(time.perf_counter() - started)
+    one, many = min(walls[1]), min(walls[threads])
+    return {"photons": photons, "parts": len(parts), "threads": threads, "one_thread_s": one, "threads_s": many,
+            "one_thread_photons_per_s": photons / one, "threads_photons_per_s": photons / many, "speedup": one / many}
+
+
+def _parts(path: Path, origin, prf_hz: float) -> list:
+    """The photons of photons.h5 at ``path`` as PhotonChunks (local to the scene ``origin`` [m]) in the parts a run
+    hands its writers (HOST_PHOTONS photons of whole pulses)."""
+    import h5py
+
+    from flightsim.engine.readouts.photons import HOST_PHOTONS, PhotonChunk, pulse_parts
+
+    with h5py.File(path) as f:
+        c = {name: f["photons"][name][:] for name in ("line_id", "pulse", "pixel", "time_of_flight_s", "signal",
+                                                      "delta_time", "x", "y", "z")}
+    points = np.column_stack([c["x"], c["y"], c["z"]]) - np.asarray(origin, dtype=np.float64)
+    nadir = np.tile(np.float32([0.0, 0.0, -1.0]), (len(points), 1))
+    start = float(c["delta_time"][0]) - float(c["pulse"][0]) / prf_hz  # the line's pulse 0 [s]
+    return [PhotonChunk(int(c["line_id"][a]), start, c["pulse"][a:b], c["pixel"][a:b], c["time_of_flight_s"][a:b],
+                        c["signal"][a:b] > 0, c["signal"][a:b].astype(np.int8), points[a:b], nadir[a:b])
+            for a, b in pulse_parts(c["pulse"], HOST_PHOTONS)]
+
+
+def markdown(r: dict) -> list[str]:
+    """bench.md's lines of the section."""
+    if "photons" not in r:
+        return []
+    x = r["photons"]
+    lines = ["### Photon runs end to end (`flightsim simulate`, a fresh process each)", "",
+             "| command | photons | wall [s] | photons/s | peak RSS [MiB] | setup [s] | trace [s] | finish [s] |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines += [f"| `{run['command']}` | {run['photons']:.3g} | {run['wall_s']:.2f} | {run['photons_per_s']:.3g} | "
+              f"{run['peak_rss_mib']:.0f} | {run['stages_s']['setup']:.2f} | {run['stages_s']['trace']:.2f} | "
+              f"{run['stages_s']['finish']:.2f} |" for run in x["runs"]]
+    w = x["las_writer"]
+    parts = f"{w['parts']} part" + ("s" if w["parts"] != 1 else "")
+    return lines + ["", f"The photon LAS writer alone on the SPAD run's {w['photons']:.3g} photons ({parts}): "
+                        f"{w['one_thread_photons_per_s']:.3g} photons/s on one thread, "
+                        f"{w['threads_photons_per_s']:.3g} on {w['threads']} ({w['speedup']:.2f}×, best of two each "
+                        "in turn; the tiles as a run off orbit makes them).", ""]
