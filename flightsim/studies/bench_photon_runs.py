@@ -84,8 +84,8 @@ def las_writer(run: Path, threads: int | None = None) -> dict:
 
 
 def _parts(path: Path, origin, prf_hz: float) -> list:
-    """The photons of photons.h5 at ``path`` as PhotonChunks (local to the scene ``origin`` [m]) in the parts a run
-    hands its writers (HOST_PHOTONS photons of whole pulses)."""
+    """The photons of photons.h5 at ``path`` (a run of one flight line, as the SPAD frame is) as PhotonChunks (local to
+    the scene ``origin`` [m]) in the parts a run hands its writers (HOST_PHOTONS photons of whole pulses)."""
     import h5py
 
     from flightsim.engine.readouts.photons import HOST_PHOTONS, PhotonChunk, pulse_parts
