@@ -16,8 +16,7 @@ ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
 PARALLEL_PHOTONS = 1 << 19  # photons from which atl03.h5's signal finder and atl08.h5 run on worker processes
 MAX_WORKERS = 32  # the most worker processes they start
 BEHIND = 8  # parts of the run photons.h5 and the LAS tiles are handed at most behind atl03.h5 (which has them first)
-LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side, but from orbit (where the tiles' own
-# geodetic transform runs on threads and the signal finder and ATL08 want the cores)
+LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (off orbit; one from orbit)
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5")  # what the workers run, imported early
 
 
@@ -54,7 +53,8 @@ class PhotonProduct:
                         cfg.flight.start_gps_time)
         atl03 = [Atl03Writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter))
                  ] if body else []
-        las_threads = 1 if atl03 else thread_count(LAS_THREADS)  # from orbit PROJ has threads, the finder the cores
+        # from orbit the tiles' geodetic transform has PROJ's threads, and the signal finder and ATL08 want the cores
+        las_threads = 1 if atl03 else thread_count(LAS_THREADS)
         self.h5, self.las = Background(h5, "photons-h5"), Background(las, "photon-las", threads=las_threads)
         self.atl03 = [Background(writer, "atl03") for writer in atl03]
         self.atl08 = body is not None and cfg.output.atl08
