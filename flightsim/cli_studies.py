@@ -156,7 +156,7 @@ def _add_measurement_commands(sub) -> None:
     bench.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     bench.add_argument("--quick", action="store_true", help="small sizes (under a minute on a CPU)")
     bench.add_argument("--sections", help="comma-separated subset of throughput,stages,study,las,skip,pareto,galvo,"
-                       "spad,waveform,scale,reduce,survey,forest,startup,ranging")
+                       "spad,waveform,scale,reduce,survey,forest,startup,ranging,gpus,photons (default: all)")
     bench.add_argument("--out", required=True, help="directory for bench.json, bench.md, pareto.csv/png")
     bench.set_defaults(func=cmd_bench)
 

@@ -236,3 +236,14 @@ def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pu
     assert record["one_thread_s"] > 0 and record["threads_s"] > 0
     lines = section.markdown({"photons": {"runs": [], "las_writer": record}})
     assert any(f"{record['photons']:.3g} photons ({len(parts)} parts)" in line for line in lines)
+
+
+def test_the_bench_commands_help_names_every_section():
+    from flightsim.cli import make_parser
+    from flightsim.studies.bench import SECTIONS
+
+    parser = make_parser()
+    bench = parser._subparsers._group_actions[0].choices["bench"]
+    sections = next(a for a in bench._actions if a.dest == "sections").help
+    listed = sections.split("subset of ")[1].split(" ")[0].split(",")
+    assert listed == list(SECTIONS)
