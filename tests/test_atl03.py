@@ -169,10 +169,9 @@ def test_reference_photons_over_chunks_are_the_nearest_to_the_centre_first_on_a_
 
 
 def test_a_chunk_handed_on_in_parts_gives_the_same_products(tmp_path, monkeypatch):
-    """A chunk's photons brought to the host and handed to the writers in parts of whole pulses (HOST_PHOTONS; the
-    host memory of a long chunk bounded): every dataset of atl03.h5, atl08.h5 and photons.h5 and every LAS tile byte
-    the same as with the chunk in one piece (a 0.2 s pass of six beams, one chunk)."""
-    import flightsim.engine.readouts.photons as readout
+    """A chunk's photons brought to the host and handed to the writers in parts of whole pulses (run.host_photons;
+    the host memory of a long chunk bounded): every dataset of atl03.h5, atl08.h5 and photons.h5 and every LAS tile
+    byte the same as with the chunk in one piece (a 0.2 s pass of six beams, one chunk)."""
     from flightsim.engine.products.photons import PhotonProduct
 
     cfg = preset_config("atlas")
@@ -181,8 +180,8 @@ def test_a_chunk_handed_on_in_parts_gives_the_same_products(tmp_path, monkeypatc
     handed = []
     monkeypatch.setattr(PhotonProduct, "__call__", lambda self, chunk, call=PhotonProduct.__call__: (
         handed.append(len(chunk)), call(self, chunk))[1])
-    for name, most in (("whole", 1 << 40), ("parts", 3000)):
-        monkeypatch.setattr(readout, "HOST_PHOTONS", most)
+    for name, most in (("whole", 1 << 26), ("parts", 3000)):
+        set_value(cfg, "run.host_photons", most)
         handed.clear()
         simulate_to_directory(validate(cfg), tmp_path / name)
         counts = list(handed)
@@ -224,14 +223,14 @@ def test_pulse_parts_cover_the_rows_in_whole_pulses_of_at_most_the_limit():
 
 
 def test_photons_h5_and_the_tiles_get_each_part_behind_atl03_and_the_rest_at_close_at_once(tmp_path, monkeypatch):
-    """From orbit atl03.h5 has each part first; photons.h5 and the LAS tiles are handed part k once BEHIND more parts
-    came, waiting as their writers hold enough; at close they are handed the last BEHIND parts without waiting, so
-    that the signal finder starts as soon as atl03.h5 has its parts."""
+    """From orbit atl03.h5 has each part first; photons.h5 and the LAS tiles are handed part k once BEHIND_PHOTONS
+    more photons came (3 parts of run.host_photons here), waiting as their writers hold enough; at close they are
+    handed the last 3 parts without waiting, so that the signal finder starts as soon as atl03.h5 has its parts."""
     import flightsim.engine.products.photons as product
-    import flightsim.engine.readouts.photons as readout
 
     cfg = preset_config("atlas")
-    for key, value in {"flight.duration_s": 0.1, "photon.gate_m": [499850.0, 500150.0]}.items():
+    for key, value in {"flight.duration_s": 0.1, "photon.gate_m": [499850.0, 500150.0],
+                       "run.host_photons": 1500}.items():
         set_value(cfg, key, value)
     calls, kept, call = [], [], product.Background.__call__
 
@@ -241,8 +240,7 @@ def test_photons_h5_and_the_tiles_get_each_part_behind_atl03_and_the_rest_at_clo
         return call(self, chunk, after, wait)
 
     monkeypatch.setattr(product.Background, "__call__", record)
-    monkeypatch.setattr(readout, "HOST_PHOTONS", 1500)
-    monkeypatch.setattr(product, "BEHIND", 3)
+    monkeypatch.setattr(product, "BEHIND_PHOTONS", 4500)  # 3 parts of 1500
     simulate_to_directory(validate(cfg), tmp_path / "run")
     atl03 = [part for name, part, _ in calls if name == "Atl03Writer"]
     assert len(atl03) > 8
@@ -252,4 +250,4 @@ def test_photons_h5_and_the_tiles_get_each_part_behind_atl03_and_the_rest_at_clo
         for k, (at, part, wait) in enumerate(handed):
             came = sum(1 for name, _, _ in calls[:at] if name == "Atl03Writer")
             assert wait == (k < len(atl03) - 3)
-            assert came == (k + 4 if wait else len(atl03))  # part k once part k + BEHIND came; the rest at close
+            assert came == (k + 4 if wait else len(atl03))  # part k once part k + 3 came; the rest at close

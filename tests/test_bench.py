@@ -202,24 +202,22 @@ def test_gedi_shots_are_timed_end_to_end_over_a_cloud_written_as_las(tmp_path, m
     assert f"7 footprints over {written:,} points" in text and "stages [s]: scene " in text
 
 
-def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pulses(tmp_path, monkeypatch):
+def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pulses(tmp_path):
     """The LAS writer's record of the photons section: the photons of a SPAD run read back from photons.h5 in parts of
     whole pulses, each part's points, pulse times and truth those of photons.h5; every photon written on one thread
     and on two; the report's line says so."""
     import h5py
 
-    import flightsim.engine.readouts.photons as readout
     import flightsim.studies.bench_photon_runs as section
     from flightsim.api import load_config
     from flightsim.engine.instrument import Instrument
     from flightsim.engine.run import simulate_to_directory
     from flightsim.engine.world import build_scene
 
-    cfg = load_config(instrument="spad", overrides={"flight.duration_s": 0.002})
+    cfg = load_config(instrument="spad", overrides={"flight.duration_s": 0.002, "run.host_photons": 5000})
     summary = simulate_to_directory(cfg, tmp_path / "spad")
-    monkeypatch.setattr(readout, "HOST_PHOTONS", 5000)
     scene, timing = build_scene(cfg), Instrument(cfg).deflector.timing()
-    parts = section._parts(tmp_path / "spad" / "photons.h5", scene.origin, timing.prf_hz)
+    parts = section._parts(tmp_path / "spad" / "photons.h5", scene.origin, timing.prf_hz, cfg.run.host_photons)
     with h5py.File(tmp_path / "spad" / "photons.h5") as f:
         h5 = {name: f["photons"][name][:] for name in ("pulse", "delta_time", "signal", "x", "y", "z")}
     assert len(parts) > 3 and sum(len(p) for p in parts) == summary["photons"] == len(h5["pulse"])

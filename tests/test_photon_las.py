@@ -44,16 +44,15 @@ def test_the_tiles_of_a_run_off_orbit_are_the_same_made_on_threads(tmp_path, mon
     import threading
 
     import flightsim.engine.products.photons as product
-    import flightsim.engine.readouts.photons as readout
     from flightsim.outputs.photon_las import PhotonLas
 
     cfg = preset_config("spad")
     set_value(cfg, "flight.duration_s", 0.002)
+    set_value(cfg, "run.host_photons", 2000)
     cfg = validate(cfg)
     makers = []
     monkeypatch.setattr(PhotonLas, "prepare", lambda self, chunk, make=PhotonLas.prepare: (
         makers.append(threading.get_ident()), make(self, chunk))[1])
-    monkeypatch.setattr(readout, "HOST_PHOTONS", 2000)
     monkeypatch.setattr(product, "thread_count", lambda most: most)
     threads = {}
     for name, count in (("one", 1), ("three", 3)):

@@ -77,6 +77,9 @@ class RunSettings(Settings):
                                 "copies", range=(0, 4096))
     max_registers: int = setting(0, "registers per thread of the CUDA trace kernels; 0 = automatic", "registers",
                                  range=(0, 255))
+    host_photons: int = setting(1 << 20, "photon runs: detections brought to the host and handed to the products at a "
+                                "time (parts of whole pulses); larger parts keep more of the host's cores busy and "
+                                "hold more memory", "photons", range=(1 << 10, 1 << 26))
     scene_cache: bool = setting(True, "keep scenes read from files, procedural forests' voxels and an Earth "
                                 "orbit's IERS table in $FLIGHTSIM_CACHE (~/.cache/flightsim/scenes)")
 

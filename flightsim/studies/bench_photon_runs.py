@@ -65,7 +65,7 @@ def las_writer(run: Path, threads: int | None = None) -> dict:
     cfg = validate(load_toml(run / "run.toml", preset_config("spad")))
     scene, instrument = build_scene(cfg), Instrument(cfg)
     timing = instrument.deflector.timing()
-    parts = _parts(run / "photons.h5", scene.origin, timing.prf_hz)
+    parts = _parts(run / "photons.h5", scene.origin, timing.prf_hz, cfg.run.host_photons)
     photons, threads = sum(len(part) for part in parts), threads or thread_count(LAS_THREADS)
     walls = {1: [], threads: []}
     for _ in range(2):
@@ -83,12 +83,13 @@ def las_writer(run: Path, threads: int | None = None) -> dict:
             "one_thread_photons_per_s": photons / one, "threads_photons_per_s": photons / many, "speedup": one / many}
 
 
-def _parts(path: Path, origin, prf_hz: float) -> list:
+def _parts(path: Path, origin, prf_hz: float, most: int) -> list:
     """The photons of photons.h5 at ``path`` (a run of one flight line, as the SPAD frame is) as PhotonChunks (local to
-    the scene ``origin`` [m]) in the parts a run hands its writers (HOST_PHOTONS photons of whole pulses)."""
+    the scene ``origin`` [m]) in the parts the run hands its writers (whole pulses, at most ``most``: its
+    ``run.host_photons``)."""
     import h5py
 
-    from flightsim.engine.readouts.photons import HOST_PHOTONS, PhotonChunk, pulse_parts
+    from flightsim.engine.readouts.photons import PhotonChunk, pulse_parts
 
     with h5py.File(path) as f:
         c = {name: f["photons"][name][:] for name in ("line_id", "pulse", "pixel", "time_of_flight_s", "signal",
@@ -98,7 +99,7 @@ def _parts(path: Path, origin, prf_hz: float) -> list:
     start = float(c["delta_time"][0]) - float(c["pulse"][0]) / prf_hz  # the line's pulse 0 [s]
     return [PhotonChunk(int(c["line_id"][a]), start, c["pulse"][a:b], c["pixel"][a:b], c["time_of_flight_s"][a:b],
                         c["signal"][a:b] > 0, c["signal"][a:b].astype(np.int8), points[a:b], nadir[a:b])
-            for a, b in pulse_parts(c["pulse"], HOST_PHOTONS)]
+            for a, b in pulse_parts(c["pulse"], most)]
 
 
 def markdown(r: dict) -> list[str]:

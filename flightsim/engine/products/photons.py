@@ -15,7 +15,8 @@ from flightsim.outputs.photon_las import FOLDER
 ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
 PARALLEL_PHOTONS = 1 << 19  # photons from which atl03.h5's signal finder and atl08.h5 run on worker processes
 MAX_WORKERS = 32  # the most worker processes they start
-BEHIND = 8  # parts of the run photons.h5 and the LAS tiles are handed at most behind atl03.h5 (which has them first)
+BEHIND_PHOTONS = 8 << 20  # photons.h5 and the LAS tiles are handed a part once about this many photons came after
+# it (the parts of run.host_photons that make them up, at least one): atl03.h5 has them first
 LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (off orbit; one from orbit)
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5")  # what the workers run, imported early
 
@@ -60,6 +61,7 @@ class PhotonProduct:
         self.atl08 = body is not None and cfg.output.atl08
         self.photons, self.workers, self.placed = 0, None, []
         self.behind: deque = deque()  # (part, atl03.h5's future of it) not yet handed to photons.h5 and the tiles
+        self.behind_parts = max(1, BEHIND_PHOTONS // cfg.run.host_photons)
 
     def readout(self) -> Photons:
         return Photons()
@@ -69,13 +71,14 @@ class PhotonProduct:
         return [self.h5, self.las, *self.atl03]
 
     def __call__(self, chunk) -> None:
-        """Hand the chunk (a part of at most ``HOST_PHOTONS`` photons) to every writer: each converts and writes it on
-        a thread of its own. From orbit atl03.h5 has it first, photons.h5 and the LAS tiles get it once BEHIND more
-        parts came (or at close) and start on it when atl03.h5 has it: Python's lock is shared, and atl03.h5 leads to
-        the signal finder and atl08.h5, which the others are written beside; BEHIND bounds the parts held."""
+        """Hand the chunk (a part of at most ``run.host_photons`` photons) to every writer: each converts and writes it
+        on a thread of its own. From orbit atl03.h5 has it first, photons.h5 and the LAS tiles get it once
+        ``behind_parts`` more parts came (or at close) and start on it when atl03.h5 has it: Python's lock is shared,
+        and atl03.h5 leads to the signal finder and atl08.h5, which the others are written beside; ``behind_parts``
+        bounds the parts held."""
         first = self.atl03[0](chunk) if self.atl03 else None
         self.behind.append((chunk, first))
-        self._hand_on(BEHIND if self.atl03 else 0)
+        self._hand_on(self.behind_parts if self.atl03 else 0)
         self.photons += len(chunk)
         if self.atl03 and self.workers is None and self.photons >= PARALLEL_PHOTONS and usable_cores() > 1:
             self.workers = ProcessMap(min(usable_cores(), MAX_WORKERS), PRELOAD)  # they start while the run goes on

@@ -22,7 +22,6 @@ photon = lazy_module("kernels.photon")
 photon_frame = lazy_module("kernels.photon_frame")
 
 FRAME_SLOTS_PER_CHUNK = {"cpu": 1 << 18, "cuda": 1 << 26}  # into a frame: a whole SPAD frame (44M beams) one chunk
-HOST_PHOTONS = 1 << 20  # photons brought to the host and handed on at a time (a chunk of more in parts)
 
 
 @dataclass
@@ -234,12 +233,12 @@ def beam_energy(emitter) -> np.ndarray:
 
 def _host_photons(tracer, segments: list[Segment], found: DevicePhotons):
     """A chunk's detections (ordered by slot) on the host, split by flight line and then into parts of at most
-    HOST_PHOTONS photons of whole pulses (a pulse holding more is a part of its own), each part copied from the device
-    as it is asked for: while the consumer holds a few parts, the host holds no more of a long chunk (arrays of the
-    caller's own: a consumer may keep them while later chunks reuse the device buffers)."""
+    ``run.host_photons`` photons of whole pulses (a pulse holding more is a part of its own), each part copied from the
+    device as it is asked for: while the consumer holds a few parts, the host holds no more of a long chunk (arrays of
+    the caller's own: a consumer may keep them while later chunks reuse the device buffers)."""
     slot = host_array(found.slot).astype(np.int64)
     for trajectory, pulse, beam, a, b in tracer.by_line(segments, slot):
-        for lo, hi in pulse_parts(pulse, HOST_PHOTONS):
+        for lo, hi in pulse_parts(pulse, tracer.cfg.run.host_photons):
             rows = slice(int(a) + lo, int(a) + hi)  # Warp's slices take Python integers
             tof, kind = host_array(found.time_of_flight_s[rows]), host_array(found.signal[rows])
             yield PhotonChunk(trajectory.line_id, trajectory.start_time, pulse[lo:hi].copy(), beam[lo:hi].copy(), tof,
