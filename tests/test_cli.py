@@ -33,6 +33,8 @@ def error_lines(result) -> list[str]:
     (["--set", "sensor.colour=red"], "sensor.colour"),
     (["--set", "scene.crs=EPSG:4326"], "scene.crs"),
     (["--set", "risley.apex_angle_deg=45"], "risley.apex_angle_deg"),
+    (["--instrument", "spad", "--set", "run.host_photons=0"], "run.host_photons"),
+    (["--instrument", "atlas", "--set", "run.host_photons=1e9"], "run.host_photons"),
 ])
 def test_invalid_input_exits_2_with_one_line_naming_the_field(tmp_path, args, field):
     result = flightsim("simulate", *args, "--out", str(tmp_path / "out"))
