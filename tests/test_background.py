@@ -144,3 +144,53 @@ def test_a_staged_writers_error_reaches_the_caller_and_abort_drops_the_rest():
             background(k)
     background.abort()  # chunks 3 and 4 were handed over (held 2 + 2 − 1), none after: they may have been written
     assert writer.aborted and not writer.closed and writer.seen[:2] == [0, 1] and set(writer.seen) <= {0, 1, 3, 4}
+
+
+def _burn(seconds):
+    """Spend ``seconds`` of this thread's CPU time."""
+    start = time.thread_time()
+    while time.thread_time() - start < seconds:
+        pass
+
+
+class _Burner(_Writer):
+    """20 ms of CPU a chunk, 50 ms asleep to close."""
+
+    def __call__(self, chunk):
+        _burn(0.02)
+
+    def close(self):
+        time.sleep(0.05)
+
+
+def test_a_writers_time_is_kept_where_it_went():
+    """busy: the writer's calls (here at least their sleeps); cpu: its thread's CPU in them (a sleep spends almost
+    none, a burn its own); held_back: the caller's waits, none while the writer holds few enough; close: its close."""
+    writer = _Writer(pause=0.03)
+    background = Background(writer, "test", held=1)
+    for k in range(5):
+        background(k)
+    background.close()
+    t = background.timing()
+    assert t["busy"] >= 0.15 and t["cpu"] < 0.05 and t["held_back"] >= 0.09 and t["prepare"] == 0.0
+    roomy = Background(_Writer(pause=0.01), "test", held=10)
+    for k in range(5):
+        roomy(k)
+    roomy.settle()
+    assert roomy.timing()["held_back"] == 0.0 and roomy.timing()["busy"] >= 0.05
+    busy = Background(_Burner(), "test")
+    for k in range(3):
+        busy(k)
+    busy.close()
+    t = busy.timing()
+    assert t["cpu"] >= 0.06 and t["busy"] >= t["cpu"] - 0.002 and t["close"] >= 0.05
+
+
+def test_a_staged_writers_preparing_time_is_summed_over_its_threads():
+    writer = _Staged(pause=0.01)
+    background = Background(writer, "test", threads=3)
+    for k in range(6):
+        background(k)
+    background.close()
+    t = background.timing()
+    assert t["prepare"] >= 0.01 * sum(1 + k % 3 for k in range(6)) and t["busy"] < t["prepare"]

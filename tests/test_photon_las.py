@@ -58,8 +58,10 @@ def test_the_tiles_of_a_run_off_orbit_are_the_same_made_on_threads(tmp_path, mon
     for name, count in (("one", 1), ("three", 3)):
         monkeypatch.setattr(product, "LAS_THREADS", count)
         makers.clear()
-        simulate_to_directory(cfg, tmp_path / name)
+        writers = simulate_to_directory(cfg, tmp_path / name)["writers_s"]
         threads[name] = (len(makers), len(set(makers)))
+        assert set(writers) == {"photons.h5", "photons/"} and writers["photons/"]["busy"] > 0
+        assert (writers["photons/"]["prepare"] > 0) == (count > 1)  # the records made apart on several threads
     assert threads["one"][0] > 10 and threads["one"][1] == 1 and threads["three"][1] > 1  # the case: many parts
     tiles = sorted(p.name for p in (tmp_path / "one" / "photons").iterdir())
     assert tiles and tiles == sorted(p.name for p in (tmp_path / "three" / "photons").iterdir())

@@ -1,9 +1,12 @@
 """A chunk writer run on a thread of its own: the caller hands it each chunk and goes on (tracing the next chunk,
 or feeding the other writers of the same chunk) while the writer converts and writes this one; a writer whose
-conversion can run apart from its writing has its chunks converted on several threads at once."""
+conversion can run apart from its writing has its chunks converted on several threads at once. Each writer's time
+is kept (:meth:`Background.timing`): where a run's writers spend it, and how long they held the caller back."""
 from __future__ import annotations
 
 import contextlib
+import threading
+import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 
@@ -27,29 +30,62 @@ class Background:
         self._thread = ThreadPoolExecutor(1, thread_name_prefix=name)
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix=name + "-prepare") if staged else None
         self._pending: deque[Future] = deque()
+        self._times = {"busy": 0.0, "cpu": 0.0, "prepare": 0.0, "held_back": 0.0, "close": 0.0}
+        self._lock = threading.Lock()
 
     def __call__(self, chunk, after: Future | None = None, wait: bool = True) -> Future:
         """Hand ``chunk`` over (the writer starts on it once ``after``, when given, has ended: another writer's work
         that should have the cores first); its future. With ``wait`` the caller first waits while ``held`` chunks are
         in hand; without, it goes on at once (the caller holds the chunk anyway)."""
-        while wait and len(self._pending) >= self._held:
-            self._pending.popleft().result()
+        if wait and len(self._pending) >= self._held:
+            started = time.perf_counter()
+            while len(self._pending) >= self._held:
+                self._pending.popleft().result()
+            self._add("held_back", time.perf_counter() - started)
         if self._pool is None:
             self._pending.append(self._thread.submit(self._write, chunk, after))
         else:
             prepared = self._pool.submit(self._prepare, chunk, after)
-            self._pending.append(self._thread.submit(lambda: self.writer.take(prepared.result())))
+            self._pending.append(self._thread.submit(self._take, prepared))
         return self._pending[-1]
 
     def _write(self, chunk, after: Future | None) -> None:
         if after is not None:
             wait([after])
-        self.writer(chunk)
+        self._timed(self.writer, chunk)
+
+    def _take(self, prepared: Future) -> None:
+        self._timed(self.writer.take, prepared.result())
 
     def _prepare(self, chunk, after: Future | None):
         if after is not None:
             wait([after])
-        return self.writer.prepare(chunk)
+        started = time.perf_counter()
+        try:
+            return self.writer.prepare(chunk)
+        finally:
+            self._add("prepare", time.perf_counter() - started)
+
+    def _timed(self, work, item) -> None:
+        """``work(item)`` on the writer's thread, its wall and the thread's CPU time kept."""
+        started, cpu = time.perf_counter(), time.thread_time()
+        try:
+            work(item)
+        finally:
+            self._add("busy", time.perf_counter() - started)
+            self._add("cpu", time.thread_time() - cpu)
+
+    def _add(self, name: str, seconds: float) -> None:
+        with self._lock:
+            self._times[name] += seconds
+
+    def timing(self) -> dict[str, float]:
+        """[s] so far: ``busy``, the writer's calls on its own thread (``take`` for a staged writer) and ``cpu``, that
+        thread's CPU time in them (busy − cpu: waiting for Python's lock, the disk, or threads it started);
+        ``prepare``, a staged writer's ``prepare`` calls summed over its threads; ``held_back``, the caller's waits
+        for the writer to take a chunk; ``close``, the writer's ``close``."""
+        with self._lock:
+            return {name: round(value, 3) for name, value in self._times.items()}
 
     def settle(self) -> None:
         """Wait until every chunk handed over is written; raise the first error."""
@@ -62,7 +98,11 @@ class Background:
             self.settle()
         finally:
             self._shutdown()
-        return self.writer.close(*args)
+        started = time.perf_counter()
+        try:
+            return self.writer.close(*args)
+        finally:
+            self._add("close", time.perf_counter() - started)
 
     def abort(self) -> None:
         """The writer's ``abort()`` once the chunks being written have ended (their errors dropped: the run is

@@ -46,7 +46,8 @@ def _simulate(device: str, instrument: str, duration: float, out: Path) -> dict:
     summary = json.loads((out / "summary.json").read_text())
     return {"instrument": instrument, "duration_s": duration, "device": device, "photons": summary["photons"],
             "wall_s": wall, "photons_per_s": summary["photons"] / wall, "peak_rss_mib": peak_mib,
-            "stages_s": summary["stages_s"], "command": " ".join(["flightsim", *command[3:-2]])}
+            "stages_s": summary["stages_s"], "writers_s": summary["writers_s"],
+            "command": " ".join(["flightsim", *command[3:-2]])}
 
 
 def las_writer(run: Path, threads: int | None = None) -> dict:
@@ -113,9 +114,22 @@ def markdown(r: dict) -> list[str]:
     lines += [f"| `{run['command']}` | {run['photons']:.3g} | {run['wall_s']:.2f} | {run['photons_per_s']:.3g} | "
               f"{run['peak_rss_mib']:.0f} | {run['stages_s']['setup']:.2f} | {run['stages_s']['trace']:.2f} | "
               f"{run['stages_s']['finish']:.2f} |" for run in x["runs"]]
+    lines += _writer_lines(x["runs"])
     w = x["las_writer"]
     parts = f"{w['parts']} part" + ("s" if w["parts"] != 1 else "")
     return lines + ["", f"The photon LAS writer alone on the SPAD run's {w['photons']:.3g} photons ({parts}): "
                         f"{w['one_thread_photons_per_s']:.3g} photons/s on one thread, "
                         f"{w['threads_photons_per_s']:.3g} on {w['threads']} ({w['speedup']:.2f}×, best of two each "
                         "in turn; the tiles as a run off orbit makes them).", ""]
+
+
+def _writer_lines(runs: list[dict]) -> list[str]:
+    """Each run's writers (summary.json ``writers_s``), where the records have them."""
+    rows = [f"| {run['instrument']} | {name} | {t['busy']:.2f} | {t['cpu']:.2f} | {t['prepare']:.2f} | "
+            f"{t['held_back']:.2f} | {t['close']:.2f} |" for run in runs for name, t in run.get("writers_s", {}).items()]
+    if not rows:
+        return []
+    return ["", "Their writers (summary.json `writers_s`, each on a thread of its own): its calls' wall and that "
+            "thread's CPU time, a staged writer's preparing threads, the trace's waits for it, its close.", "",
+            "| run | file | busy [s] | CPU [s] | prepare [s] | held the trace back [s] | close [s] |",
+            "| --- | --- | --- | --- | --- | --- | --- |", *rows]

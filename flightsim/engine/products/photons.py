@@ -103,9 +103,11 @@ class PhotonProduct:
             self._stop_workers()
         names.update({self.h5: self._placed(self.h5.close()), self.las: self.las.close()})
         files = [names[writer] for writer in self.writers] + ([atl08] if atl08 is not None else [])
+        timing = {"photons.h5": self.h5, f"{FOLDER}/": self.las, **{"atl03.h5": writer for writer in self.atl03}}
         return {"reflectance": reflectance_source(self.cfg, self.scene, self.cfg.photon.reflectance),
                 "photons": self.h5.writer.count, "signal_photons": self.h5.writer.signal,
-                "photon_tiles": self.las.writer.tiles, "files": files}
+                "photon_tiles": self.las.writer.tiles, "files": files,
+                "writers_s": {name: writer.timing() for name, writer in timing.items()}}
 
     def empty(self, counts) -> bool:
         return self.h5.writer.count == 0
