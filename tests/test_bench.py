@@ -236,7 +236,8 @@ def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pu
     assert any(f"{record['photons']:.3g} photons ({len(parts)} parts)" in line for line in lines)
     assert not any("writers_s" in line for line in lines)  # records without the writers' times: no table
     run = {"instrument": "spad", "command": "flightsim simulate", "photons": summary["photons"], "wall_s": 1.0,
-           "photons_per_s": 1.0, "peak_rss_mib": 1.0, "stages_s": summary["stages_s"], "writers_s": summary["writers_s"]}
+           "photons_per_s": 1.0, "peak_rss_mib": 1.0, "stages_s": summary["stages_s"],
+           "writers_s": summary["writers_s"]}
     lines = section.markdown({"photons": {"runs": [run], "las_writer": record}})
     las = summary["writers_s"]["photons/"]
     assert f"| spad | photons/ | {las['busy']:.2f} | {las['cpu']:.2f} | {las['prepare']:.2f} |" in "\n".join(lines)

@@ -126,7 +126,8 @@ def markdown(r: dict) -> list[str]:
 def _writer_lines(runs: list[dict]) -> list[str]:
     """Each run's writers (summary.json ``writers_s``), where the records have them."""
     rows = [f"| {run['instrument']} | {name} | {t['busy']:.2f} | {t['cpu']:.2f} | {t['prepare']:.2f} | "
-            f"{t['held_back']:.2f} | {t['close']:.2f} |" for run in runs for name, t in run.get("writers_s", {}).items()]
+            f"{t['held_back']:.2f} | {t['close']:.2f} |"
+            for run in runs for name, t in run.get("writers_s", {}).items()]
     if not rows:
         return []
     return ["", "Their writers (summary.json `writers_s`, each on a thread of its own): its calls' wall and that "
