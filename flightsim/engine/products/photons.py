@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import time
 from collections import deque
 from pathlib import Path
 
@@ -97,17 +98,21 @@ class PhotonProduct:
         self._hand_on(0, wait=False)
         try:
             names = {writer: self._placed(writer.close(self.workers)) for writer in self.atl03}
+            started = time.perf_counter()
             atl08 = atl08_from_atl03(self.directory, self.cfg_text, self.workers) if self.atl08 else None
+            atl08_s = time.perf_counter() - started
             self._placed(atl08)
         finally:
             self._stop_workers()
         names.update({self.h5: self._placed(self.h5.close()), self.las: self.las.close()})
         files = [names[writer] for writer in self.writers] + ([atl08] if atl08 is not None else [])
         timing = {"photons.h5": self.h5, f"{FOLDER}/": self.las, **{"atl03.h5": writer for writer in self.atl03}}
+        writers_s = {name: writer.timing() for name, writer in timing.items()}
+        if atl08 is not None:  # made from the finished atl03.h5 at close: only a close
+            writers_s["atl08.h5"] = {**dict.fromkeys(writers_s["photons.h5"], 0.0), "close": round(atl08_s, 3)}
         return {"reflectance": reflectance_source(self.cfg, self.scene, self.cfg.photon.reflectance),
                 "photons": self.h5.writer.count, "signal_photons": self.h5.writer.signal,
-                "photon_tiles": self.las.writer.tiles, "files": files,
-                "writers_s": {name: writer.timing() for name, writer in timing.items()}}
+                "photon_tiles": self.las.writer.tiles, "files": files, "writers_s": writers_s}
 
     def empty(self, counts) -> bool:
         return self.h5.writer.count == 0
