@@ -86,6 +86,16 @@ def face_normal(m: MeshRefs, face: int):
 
 
 @wp.func
+def face_plane(m: MeshRefs, face: int, start: wp.vec3d):
+    """(n, n·(v0 − start)) of ``face`` (float64 vertices v0, v1, v2 [m]): n = (v1 − v0) × (v2 − v0) its normal [m²] and
+    the numerator [m³] of the distance n·(v0 − start) / n·d along any ray from ``start``: refine_hit's operations on
+    the same values (the deposit's pinned waveforms hold the two to the same bits)."""
+    v0 = m.vertices64[m.indices[3 * face]]
+    normal = wp.cross(m.vertices64[m.indices[3 * face + 1]] - v0, m.vertices64[m.indices[3 * face + 2]] - v0)
+    return normal, wp.dot(normal, v0 - start)
+
+
+@wp.func
 def cast64(m: MeshRefs, start: wp.vec3d, direction: wp.vec3d):
     """(face or −1, range [m], unit face normal) of a float64 ray: float32 cast, float64 range on the face."""
     face = face_of(m, start, direction)
@@ -180,6 +190,21 @@ def leaf_echo(c: Canopy, p: WaveformParams, start: wp.vec3d, direction: wp.vec3d
     return transmission, inside, outside, first, last
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return false;
+#else
+    return true;
+#endif
+""")
+def keeps_plane() -> bool:
+    """Whether the deposit keeps a triangle's plane across a thread's sub-rays: on the CPU (the deposit 1.25× over flat
+    ground, the same bits), not on a GPU, where the 15 values it carries cost the registers it saves (section 84 of
+    results/profile-experiments.md): there the plane is worked out for every sub-ray and the kept one is dead code
+    (ptxas: the registers, spills and stack of the deposit without it)."""
+    ...
+
+
 DEPOSIT_MAX_REGISTERS = 128  # on a GPU: two 256-thread blocks per SM; 137 uncapped (one block), measured fastest of
 # 64/96/128/uncapped on an H100 (results/profile-experiments.md, section 13)
 
@@ -217,6 +242,10 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
         start = starts[slot]
         d = directions[slot]
         u, v = beam_frame(d)
+        plane_face = int(-1)  # on the CPU the face whose plane the next three hold (a thread's sub-rays mostly share it)
+        normal = wp.vec3d()
+        top = wp.float64(0.0)
+        unit = wp.vec3d()
         for step in range(wp.min(offsets.shape[0], subrays - group * offsets.shape[0])):
             weight = weights[step, group]
             direction = subray_direction(d, u, v, offsets[step, group])
@@ -224,8 +253,12 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
             r = wp.float64(0.0)
             cos_incidence = wp.float64(0.0)
             if face >= 0:
-                r = refine_hit(m.vertices64, m.indices, face, start, direction)
-                cos_incidence = wp.abs(wp.dot(face_normal(m, face), direction))
+                if face != plane_face or not keeps_plane():  # refine_hit's and face_normal's per-face work
+                    normal, top = face_plane(m, face, start)
+                    unit = wp.normalize(normal)
+                    plane_face = face
+                r = top / wp.dot(normal, direction)
+                cos_incidence = wp.abs(wp.dot(unit, direction))
             transmission = wp.float64(1.0)
             if wp.static(canopy):
                 t_end = wp.where(face >= 0, r, wp.float64(m.max_range))
