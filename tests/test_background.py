@@ -163,34 +163,26 @@ class _Burner(_Writer):
         time.sleep(0.05)
 
 
+def _timing(writer, chunks: int, **options) -> dict:
+    """The Background's timing after ``chunks`` chunks handed over and the writer closed."""
+    background = Background(writer, "test", **options)
+    for k in range(chunks):
+        background(k)
+    background.close()
+    return background.timing()
+
+
 def test_a_writers_time_is_kept_where_it_went():
     """busy: the writer's calls (here at least their sleeps); cpu: its thread's CPU in them (a sleep spends almost
     none, a burn its own); held_back: the caller's waits, none while the writer holds few enough; close: its close."""
-    writer = _Writer(pause=0.03)
-    background = Background(writer, "test", held=1)
-    for k in range(5):
-        background(k)
-    background.close()
-    t = background.timing()
+    t = _timing(_Writer(pause=0.03), 5, held=1)
     assert t["busy"] >= 0.15 and t["cpu"] < 0.05 and t["held_back"] >= 0.09 and t["prepare"] == 0.0
-    roomy = Background(_Writer(pause=0.01), "test", held=10)
-    for k in range(5):
-        roomy(k)
-    roomy.settle()
-    assert roomy.timing()["held_back"] == 0.0 and roomy.timing()["busy"] >= 0.05
-    busy = Background(_Burner(), "test")
-    for k in range(3):
-        busy(k)
-    busy.close()
-    t = busy.timing()
+    t = _timing(_Writer(pause=0.01), 5, held=10)
+    assert t["held_back"] == 0.0 and t["busy"] >= 0.05
+    t = _timing(_Burner(), 3)
     assert t["cpu"] >= 0.06 and t["busy"] >= t["cpu"] - 0.002 and t["close"] >= 0.05
 
 
 def test_a_staged_writers_preparing_time_is_summed_over_its_threads():
-    writer = _Staged(pause=0.01)
-    background = Background(writer, "test", threads=3)
-    for k in range(6):
-        background(k)
-    background.close()
-    t = background.timing()
+    t = _timing(_Staged(pause=0.01), 6, threads=3)
     assert t["prepare"] >= 0.01 * sum(1 + k % 3 for k in range(6)) and t["busy"] < t["prepare"]
