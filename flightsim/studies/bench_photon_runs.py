@@ -1,7 +1,8 @@
 """`flightsim bench` section photons: the photon instruments' runs end to end, each `flightsim simulate` in a fresh
-process (the SPAD lidar's MODE-A frame, ATLAS's six beams; shorter on the CPU), with the wall, the peak memory, the
-stages and photons/s; and the photon LAS writer on the SPAD run's photons (read back from its photons.h5, in the
-run's parts of whole pulses) on one thread and on the threads a run off orbit gives it, in the same run."""
+process (the SPAD lidar's MODE-A frame, ATLAS's six beams in parts of the default size and of four times that; shorter
+on the CPU), with the wall, the peak memory, the stages, photons/s and the writers' times; and the photon LAS writer
+on the SPAD run's photons (read back from its photons.h5, in the run's parts of whole pulses) on one thread and on the
+threads a run off orbit gives it, in the same run."""
 from __future__ import annotations
 
 import json
@@ -16,9 +17,12 @@ import numpy as np
 from flightsim.core.warp_runtime import resolve_device
 from flightsim.studies.bench_common import Sizes, run_measured
 
-RUNS = {"cuda": (("spad", 0.86), ("atlas", 10.0)), "cpu": (("spad", 0.086), ("atlas", 2.0))}
-"""(instrument preset, flight duration [s]) of each run: on the GPU the SPAD frame (43,000 pulses) and a 10 s ATLAS
-pass; on the CPU a tenth of the frame and a 2 s pass (--quick: a tenth of those)."""
+LARGE_PARTS = {"run.host_photons": 1 << 22}  # a photon run's parts four times the default's
+RUNS = {"cuda": (("spad", 0.86, {}), ("atlas", 10.0, {}), ("atlas", 10.0, LARGE_PARTS)),
+        "cpu": (("spad", 0.086, {}), ("atlas", 2.0, {}), ("atlas", 2.0, LARGE_PARTS))}
+"""(instrument preset, flight duration [s], settings) of each run: on the GPU the SPAD frame (43,000 pulses) and a 10 s
+ATLAS pass, in parts of the default size and four times that (memory against wall); on the CPU a tenth of the frame
+and a 2 s pass (--quick: a tenth of those)."""
 
 
 def photon_runs(device: str, s: Sizes) -> dict:
@@ -28,24 +32,29 @@ def photon_runs(device: str, s: Sizes) -> dict:
     runs = RUNS["cpu" if device == "cpu" else "cuda"]
     with tempfile.TemporaryDirectory(dir=os.environ.get("FLIGHTSIM_BENCH_DIR")) as tmp:
         records = []
-        for instrument, duration in runs:
+        for k, (instrument, duration, settings) in enumerate(runs):
             duration = duration / 10 if s.quick else duration
-            _simulate(device, instrument, duration / 100, Path(tmp) / f"warm-{instrument}")
-            records.append(_simulate(device, instrument, duration, Path(tmp) / instrument))
-        writer = las_writer(Path(tmp) / "spad")
+            if instrument not in [run[0] for run in runs[:k]]:
+                _simulate(device, instrument, duration / 100, Path(tmp) / f"warm-{instrument}")
+            records.append(_simulate(device, instrument, duration, Path(tmp) / f"{k}-{instrument}", settings))
+        writer = las_writer(Path(tmp) / "0-spad")
     return {"runs": records, "las_writer": writer}
 
 
-def _simulate(device: str, instrument: str, duration: float, out: Path) -> dict:
-    """Wall, peak memory, photons and stages of `flightsim simulate --instrument ... --duration ...` into ``out``."""
+def _simulate(device: str, instrument: str, duration: float, out: Path, settings: dict | None = None) -> dict:
+    """Wall, peak memory, photons, stages and writers' times of `flightsim simulate --instrument ... --duration ...
+    [--set key=value ...]` into ``out``."""
+    sets = [arg for key, value in (settings or {}).items() for arg in ("--set", f"{key}={value}")]
     command = [sys.executable, "-m", "flightsim", "simulate", "--instrument", instrument, "--duration",
-               f"{duration:g}", "--device", device, "--out", str(out)]
+               f"{duration:g}", "--device", device, *sets, "--out", str(out)]
     wall, code, peak_mib, _ = run_measured(command)
     if code != 0:
         raise RuntimeError(f"photon benchmark run failed: {' '.join(command)}")
     summary = json.loads((out / "summary.json").read_text())
-    return {"instrument": instrument, "duration_s": duration, "device": device, "photons": summary["photons"],
-            "wall_s": wall, "photons_per_s": summary["photons"] / wall, "peak_rss_mib": peak_mib,
+    label = ", ".join([instrument, *(f"{key}={value}" for key, value in (settings or {}).items())])
+    return {"instrument": instrument, "label": label, "duration_s": duration, "device": device,
+            "photons": summary["photons"], "wall_s": wall, "photons_per_s": summary["photons"] / wall,
+            "peak_rss_mib": peak_mib,
             "stages_s": summary["stages_s"], "writers_s": summary["writers_s"],
             "command": " ".join(["flightsim", *command[3:-2]])}
 
@@ -125,7 +134,7 @@ def markdown(r: dict) -> list[str]:
 
 def _writer_lines(runs: list[dict]) -> list[str]:
     """Each run's writers (summary.json ``writers_s``), where the records have them."""
-    rows = [f"| {run['instrument']} | {name} | {t['busy']:.2f} | {t['cpu']:.2f} | {t['prepare']:.2f} | "
+    rows = [f"| {run.get('label', run['instrument'])} | {name} | {t['busy']:.2f} | {t['cpu']:.2f} | {t['prepare']:.2f} | "
             f"{t['held_back']:.2f} | {t['close']:.2f} |"
             for run in runs for name, t in run.get("writers_s", {}).items()]
     if not rows:
