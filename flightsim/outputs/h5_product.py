@@ -27,28 +27,37 @@ class H5Product:
         self.path, self.part = Path(path), temporary_name(Path(path))
         self.file = h5py.File(self.part, "w")
         self.file.attrs.update(flightsim=__version__, **attrs)
+        self.datasets: dict[str, tuple[h5py.Dataset, bool]] = {}  # "group/name": (dataset, deflated by hand)
 
     def append(self, group: str, columns: dict, compress: bool = False) -> int:
         """Append rows to the datasets ``group/name`` (created on first use from the values' dtype and row
-        shape; gzip with ``compress``); returns the rows the group held before."""
-        g = self.file.require_group(group)
+        shape; gzip with ``compress``); returns the rows the group held before. The datasets are kept open between
+        appends (h5py's lookups by name were half of a small append's time)."""
         before = None
         for name, values in columns.items():
             values = np.asarray(values)
-            if name not in g:
-                rows = min(ROWS_PER_CHUNK, max(MIN_ROWS_PER_CHUNK, len(values)))  # the first rows' count: a hint
-                chunks = (rows,) if values.ndim == 1 else True
-                g.create_dataset(name, shape=(0,) + values.shape[1:], maxshape=(None,) + values.shape[1:],
-                                 dtype=values.dtype, chunks=chunks,
-                                 **({"compression": "gzip", "shuffle": True} if compress else {}))
-            n = g[name].shape[0]
+            dataset, by_hand = self.datasets.get(f"{group}/{name}") or self._dataset(group, name, values, compress)
+            n = dataset.shape[0]
             before = n if before is None else before
-            g[name].resize((n + len(values),) + values.shape[1:])
-            if _deflated_by_hand(g[name], values):
-                _write_deflated(g[name], n, values)
+            dataset.resize((n + len(values),) + values.shape[1:])
+            if by_hand and len(values) >= PARALLEL_CHUNKS * dataset.chunks[0]:
+                _write_deflated(dataset, n, values)
             else:
-                g[name][n:] = values
+                dataset[n:] = values
         return before or 0
+
+    def _dataset(self, group: str, name: str, values: np.ndarray, compress: bool) -> tuple[h5py.Dataset, bool]:
+        """``group/name``, made from the first values' dtype and row shape where the file lacks it, and whether its
+        appends may be deflated on threads (:func:`_deflated_by_hand`); kept for the next appends."""
+        g = self.file.require_group(group)
+        if name not in g:
+            rows = min(ROWS_PER_CHUNK, max(MIN_ROWS_PER_CHUNK, len(values)))  # the first rows' count: a hint
+            chunks = (rows,) if values.ndim == 1 else True
+            g.create_dataset(name, shape=(0,) + values.shape[1:], maxshape=(None,) + values.shape[1:],
+                             dtype=values.dtype, chunks=chunks,
+                             **({"compression": "gzip", "shuffle": True} if compress else {}))
+        kept = self.datasets[f"{group}/{name}"] = (g[name], _deflated_by_hand(g[name]))
+        return kept
 
     def close(self) -> str:
         """Rename the finished file into place; its name."""
@@ -61,12 +70,11 @@ class H5Product:
         self.part.unlink(missing_ok=True)
 
 
-def _deflated_by_hand(dataset: h5py.Dataset, values: np.ndarray) -> bool:
-    """Whether appending ``values`` to ``dataset`` is worth compressing on threads: a 1-D dataset with exactly the
-    shuffle and gzip filters and the fill value 0, PARALLEL_CHUNKS chunks of rows or more."""
-    return (values.ndim == 1 and dataset.compression == "gzip" and dataset.shuffle and not dataset.fletcher32
-            and dataset.scaleoffset is None and not dataset.fillvalue
-            and len(values) >= PARALLEL_CHUNKS * dataset.chunks[0])
+def _deflated_by_hand(dataset: h5py.Dataset) -> bool:
+    """Whether appends to ``dataset`` may be compressed on threads (those of PARALLEL_CHUNKS chunks of rows or more
+    are): a 1-D dataset with exactly the shuffle and gzip filters and the fill value 0."""
+    return (dataset.ndim == 1 and dataset.compression == "gzip" and dataset.shuffle and not dataset.fletcher32
+            and dataset.scaleoffset is None and not dataset.fillvalue)
 
 
 def _write_deflated(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
