@@ -205,6 +205,25 @@ def keeps_plane() -> bool:
     ...
 
 
+@wp.func
+def no_plane():
+    """:func:`plane_hit`'s kept plane before a thread's first sub-ray: no face."""
+    return int(-1), wp.vec3d(), wp.float64(0.0), wp.vec3d()
+
+
+@wp.func
+def plane_hit(m: MeshRefs, face: int, start: wp.vec3d, direction: wp.vec3d, kept: int, normal: wp.vec3d,
+              top: wp.float64, unit: wp.vec3d):
+    """(range [m], cos of incidence, and the plane kept for the next sub-ray: its face, n, n·(v0 − start), unit n) of a
+    sub-ray from ``start`` along ``direction`` that hits ``face`` (≥ 0): refine_hit's range and face_normal's
+    incidence, the plane worked out afresh unless it is kept (:func:`keeps_plane`) for the face hit."""
+    if face != kept or not keeps_plane():
+        normal, top = face_plane(m, face, start)
+        unit = wp.normalize(normal)
+        kept = face
+    return top / wp.dot(normal, direction), wp.abs(wp.dot(unit, direction)), kept, normal, top, unit
+
+
 DEPOSIT_MAX_REGISTERS = 128  # on a GPU: two 256-thread blocks per SM; 137 uncapped (one block), measured fastest of
 # 64/96/128/uncapped on an H100 (results/profile-experiments.md, section 13)
 
@@ -242,23 +261,15 @@ def deposit_kernel(per_face: bool, canopy: bool = False, max_registers: int | No
         start = starts[slot]
         d = directions[slot]
         u, v = beam_frame(d)
-        plane_face = int(-1)  # on the CPU the face whose plane the next three hold (a thread's sub-rays mostly share it)
-        normal = wp.vec3d()
-        top = wp.float64(0.0)
-        unit = wp.vec3d()
+        kept, normal, top, unit = no_plane()  # (on the CPU) the plane of the face the last sub-ray hit
         for step in range(wp.min(offsets.shape[0], subrays - group * offsets.shape[0])):
             weight = weights[step, group]
             direction = subray_direction(d, u, v, offsets[step, group])
             face = face_of(m, start, direction)
-            r = wp.float64(0.0)
-            cos_incidence = wp.float64(0.0)
+            r, cos_incidence = wp.float64(0.0), wp.float64(0.0)
             if face >= 0:
-                if face != plane_face or not keeps_plane():  # refine_hit's and face_normal's per-face work
-                    normal, top = face_plane(m, face, start)
-                    unit = wp.normalize(normal)
-                    plane_face = face
-                r = top / wp.dot(normal, direction)
-                cos_incidence = wp.abs(wp.dot(unit, direction))
+                r, cos_incidence, kept, normal, top, unit = plane_hit(m, face, start, direction,
+                                                                      kept, normal, top, unit)
             transmission = wp.float64(1.0)
             if wp.static(canopy):
                 t_end = wp.where(face >= 0, r, wp.float64(m.max_range))
