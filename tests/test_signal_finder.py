@@ -11,7 +11,9 @@ from flightsim.engine.config import set_value, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.engine.run import simulate_to_directory
 from flightsim.instrument.pairs import SINGLE_BEAM
-from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder
+from scipy.stats import poisson
+
+from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, at_least
 
 
 def _pass(tmp_path, **settings) -> tuple[np.ndarray, np.ndarray]:
@@ -41,6 +43,36 @@ def test_weak_signal_keeps_its_precision(tmp_path):
     conf, kind = _pass(tmp_path, **{"photon.noise_hz": 3.0e6, "photon.reflectance": 0.02, "flight.duration_s": 0.2})
     assert (kind[conf == HIGH] > 0).mean() >= 0.90
     assert (conf[kind == 1] >= LOW).mean() >= 0.85
+
+
+def test_tail_probability_is_scipys_poisson_survival_bit_for_bit():
+    """``at_least(k, λ)`` = P(K ≥ k) = ``scipy.stats.poisson.sf(k - 1, λ)`` to the last bit: counts below the support
+    (k ≤ 0), λ = 0, small and large means, and the integer and float64 inputs the finder hands it."""
+    rng = np.random.default_rng(7)
+    k = np.concatenate([np.arange(-3, 90), rng.integers(-2, 400, 20_000)])
+    lam = np.concatenate([np.zeros(31), np.full(31, 1e-9), np.linspace(0.5, 300.0, 31), rng.random(20_000) * 200.0])
+    expected = poisson.sf(k - 1, lam)
+    assert np.array_equal(at_least(k, lam), expected)
+    assert np.array_equal(at_least(k.astype(np.float64), lam), expected)
+    assert at_least(np.array([0, 1]), np.array([0.0, 0.0])).tolist() == [1.0, 0.0]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_distinct_shots_of_every_window_of_segments(seed):
+    """The finder's shot counts (a segment's, and a pool's of segments lo … hi − 1) against ``np.unique`` of the
+    pulses there: pulses whose photons span two or three segments, empty segments, a pulse seen again later."""
+    rng = np.random.default_rng(seed)
+    pulse = np.sort(rng.integers(0, 300, 2_000))
+    segment = np.sort(np.clip(pulse // 7 + rng.integers(-1, 2, len(pulse)), 0, None))  # pulses across boundaries
+    segment[segment == 13] = 14  # an empty segment
+    pulse[-5:] = pulse[0]  # a shot's photon in its segment and again far later
+    came, bounds = _shots(segment, pulse)
+    m = int(segment[-1]) + 1
+    for lo in range(m):
+        for hi in range(lo + 1, min(m, lo + 6) + 1):
+            expected = len(np.unique(pulse[(segment >= lo) & (segment < hi)]))
+            assert np.count_nonzero(came[bounds[lo]:bounds[hi]] < lo) == expected, (lo, hi)
+        assert bounds[lo + 1] - bounds[lo] == len(np.unique(pulse[segment == lo]))
 
 
 def test_pure_noise_gets_no_high_confidence():
