@@ -105,7 +105,7 @@ class SignalFinder:
         """(along, h, pulse, first, past) of rows [start, end) read with enough rows on both sides (rows
         [first, past) of the arrays are the block's)."""
         margin = (self.background_segments + 1) * self.segment_m
-        pad = max(block // 8, 1)
+        pad = max(block // 64, 1)  # rows read on each side (~3 % of a block), doubled while short of the margin
         while True:
             lo, hi = max(0, start - pad), min(n, end + pad)
             along, h, pulse = read(lo, hi)
