@@ -43,6 +43,25 @@ def test_coordinates_an_ulp_across_a_cell_boundary():
     np.testing.assert_array_equal(ellipse_counts(u, v), _kd(u, v))
 
 
+def test_a_long_pass_keys_of_a_billion():
+    """Columns up to 8e5 and heights over 3,000 half axes (sort keys ~2.4e9, their ulp 5e-7): pairs exactly 1 apart in
+    height, in one column and across two, at the bottom and the top of the height range, and points just beyond."""
+    rng = np.random.default_rng(5)
+    base_u = rng.uniform(0.0, 8e5, 3_000)
+    base_v = np.where(rng.random(3_000) < 0.5, rng.uniform(-1500.0, -1490.0, 3_000), rng.uniform(1490.0, 1500.0, 3_000))
+    du = rng.choice([0.0, 0.3, 0.9999, np.nextafter(1.0, 0.0)], 3_000)
+    u = np.concatenate([base_u, base_u + du, base_u + du, base_u])
+    v = np.concatenate([base_v, base_v + 1.0, base_v - np.sqrt(1.0 - du * du), np.nextafter(base_v - 1.0, -2e3)])
+    edge = np.floor(rng.uniform(1.0, 8e5, 3_000)) * atl08.CELL  # pairs across a column edge, just under 1 in height
+    lift = np.where(rng.random(3_000) < 0.5, -1.0, 1.0) * (1.0 - 1e-12)
+    u = np.concatenate([u, edge - 1e-7, edge + 1e-7])
+    v = np.concatenate([v, base_v, base_v + lift])
+    counts = ellipse_counts(u, v)
+    np.testing.assert_array_equal(counts, _kd(u, v))
+    assert (counts[:3_000][du == 0.0] >= 3).all()  # itself and its partners exactly 1 above and 1 below
+    assert (counts[-6_000:] >= 2).all()  # each across the edge finds its partner
+
+
 def test_nothing_one_point_and_far_apart_points():
     assert ellipse_counts(np.zeros(0), np.zeros(0)).shape == (0,)
     np.testing.assert_array_equal(ellipse_counts(np.array([5.0]), np.array([-7.0])), [1])

@@ -220,58 +220,70 @@ def _neighbours(x, h, s: ATL08Settings) -> np.ndarray:
     return ellipse_counts(x / s.dragann_along_m, h / s.dragann_height_m) - 1
 
 
-CELL = 1.0 + 2.0 ** -20  # ellipse_counts' grid cell [half axes]: just over 1, so that two points whose distance
-# rounds to 1 or less are in neighbouring cells whatever the rounding of their coordinates
+CELL = 1.0 + 2.0 ** -20  # ellipse_counts' column width and search band [half axes]: just over 1, so that two points
+# whose distance rounds to 1 or less are in the same or neighbouring columns and within the band whatever the rounding
 PAIRS_PER_BLOCK = 1 << 18  # pairs of points ellipse_counts compares in one task (~40 bytes a pair, cache-sized)
 
 
 def ellipse_counts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """For each point (u, v) (scaled by the ellipse's half axes) the points, itself included, with
     (u − u')² + (v − v')² ≤ 1 in float64: the count ``scipy.spatial.cKDTree.query_ball_point(r=1,
-    return_length=True)`` gives, in a third of its time on one core. The points are sorted by cell of a grid of side
-    :data:`CELL`; a point's candidates are those of the 3 × 3 cells around its own, three runs of the sort (a column
-    of three cells is one run), each pair compared exactly, in blocks of about PAIRS_PER_BLOCK pairs on threads
-    (NumPy lets go of Python's lock in the blocks' array operations)."""
+    return_length=True)`` gives, in a quarter of its time on one core. The points are cut into columns of width
+    :data:`CELL` in u and sorted by column, then v (one float64 key, the columns apart by more than twice the band
+    searched); each pair is compared once, by its earlier point: against the later points of its own column within
+    the band (just over 1) above its v and the points of the next column within the band around its v (two runs of
+    the sort), in blocks of about PAIRS_PER_BLOCK pairs on threads (NumPy lets go of Python's lock in the blocks'
+    array operations); a pair found counts for both."""
     n = len(u)
     if not n:
         return np.zeros(0, dtype=np.int64)
-    column, row = np.floor(u / CELL).astype(np.int64), np.floor(v / CELL).astype(np.int64)
+    column = np.floor(u / CELL)
     column -= column.min()
-    row -= row.min() - 1  # rows from 1: a point's row − 1 and row + 1 stay within its column's keys
-    rows = int(row.max()) + 2
-    key = column * rows + row
-    order = np.argsort(key, kind="stable")
+    low = v.min()
+    span = float(v.max() - low) + 4.0 * CELL  # a column's key range and more than twice the band between columns
+    key = column * span + (v - low)
+    order = np.argsort(key)
     key, u, v = key[order], u[order], v[order]
+    band = CELL + 8.0 * float(np.spacing(key[-1]))  # a pair's key difference is its v difference within 5 ulps
     blocks = []
-    for shift in (-rows, 0, rows):  # the column to the left, the point's own, the one to the right
-        first = np.searchsorted(key, key + (shift - 1), "left")
-        length = np.searchsorted(key, key + (shift + 1), "right") - first
-        ends = np.cumsum(length)
-        start = 0
-        while start < n:
-            stop = min(max(int(np.searchsorted(ends, ends[start] - length[start] + PAIRS_PER_BLOCK, "right")),
-                           start + 1), n)
-            blocks.append((start, first[start:stop], length[start:stop]))
-            start = stop
-    counts = np.zeros(n, dtype=np.int64)
+    for first, past in ((np.arange(1, n + 1), np.searchsorted(key, key + band, "right")),  # its own column's later
+                        (np.searchsorted(key, key + (span - band), "left"),  # the next column's
+                         np.searchsorted(key, key + (span + band), "right"))):
+        blocks += _blocks(first, np.maximum(past - first, 0))
+    counts = np.ones(n, dtype=np.int64)  # each point itself
     with ThreadPoolExecutor(thread_count(len(blocks)), thread_name_prefix="ellipses") as pool:
-        for (start, _, _), found in zip(blocks, pool.map(lambda block: _inside(u, v, *block), blocks)):
-            counts[start:start + len(found)] += found
+        for (start, _, _), (queries, lo, found) in zip(blocks, pool.map(lambda block: _inside(u, v, *block), blocks)):
+            counts[start:start + len(queries)] += queries
+            counts[lo:lo + len(found)] += found
     out = np.empty(n, dtype=np.int64)
     out[order] = counts
     return out
 
 
-def _inside(u, v, start: int, first: np.ndarray, length: np.ndarray) -> np.ndarray:
+def _blocks(first: np.ndarray, length: np.ndarray) -> list[tuple]:
+    """(start, first, length) of consecutive queries holding about PAIRS_PER_BLOCK candidate pairs each (query k's
+    candidates: points first[k] … first[k] + length[k] − 1)."""
+    ends, blocks, start, n = np.cumsum(length), [], 0, len(first)
+    while start < n:
+        stop = min(max(int(np.searchsorted(ends, ends[start] - length[start] + PAIRS_PER_BLOCK, "right")), start + 1), n)
+        blocks.append((start, first[start:stop], length[start:stop]))
+        start = stop
+    return blocks
+
+
+def _inside(u, v, start: int, first: np.ndarray, length: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
     """For queries start, start + 1, … (sorted order): how many of the points first[k] … first[k] + length[k] − 1
-    are within distance 1 of query k."""
+    are within distance 1 of query k, and (lo, counts) how often each point lo, lo + 1, … was one of them."""
     total = int(length.sum())
     if not total:
-        return np.zeros(len(length), dtype=np.int64)
+        return np.zeros(len(length), dtype=np.int64), 0, np.zeros(0, dtype=np.int64)
     query = np.repeat(np.arange(start, start + len(length)), length)
     candidate = np.arange(total) - np.repeat(np.cumsum(length) - length - first, length)
     du, dv = u[query] - u[candidate], v[query] - v[candidate]
-    return np.bincount(query[du * du + dv * dv <= 1.0] - start, minlength=len(length))
+    near = du * du + dv * dv <= 1.0
+    query, candidate = query[near], candidate[near]
+    lo = int(candidate.min()) if len(candidate) else 0
+    return np.bincount(query - start, minlength=len(length)), lo, np.bincount(candidate - lo)
 
 
 def _background(window, x, h, s: ATL08Settings) -> np.ndarray:
