@@ -232,8 +232,8 @@ def ellipse_counts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     :data:`CELL` in u and sorted by column, then v (one float64 key, the columns apart by more than twice the band
     searched); each pair is compared once, by its earlier point: against the later points of its own column within
     the band (just over 1) above its v and the points of the next column within the band around its v (two runs of
-    the sort), in blocks of about PAIRS_PER_BLOCK pairs on threads (NumPy lets go of Python's lock in the blocks'
-    array operations); a pair found counts for both."""
+    the sort, found by searches on threads), in blocks of about PAIRS_PER_BLOCK pairs on threads (NumPy lets go of
+    Python's lock in its searches and the blocks' array operations); a pair found counts for both."""
     n = len(u)
     if not n:
         return np.zeros(0, dtype=np.int64)
@@ -245,11 +245,11 @@ def ellipse_counts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     order = np.argsort(key)
     key, u, v = key[order], u[order], v[order]
     band = CELL + 8.0 * float(np.spacing(key[-1]))  # a pair's key difference is its v difference within 5 ulps
-    blocks = []
-    for first, past in ((np.arange(1, n + 1), np.searchsorted(key, key + band, "right")),  # its own column's later
-                        (np.searchsorted(key, key + (span - band), "left"),  # the next column's
-                         np.searchsorted(key, key + (span + band), "right"))):
-        blocks += _blocks(first, np.maximum(past - first, 0))
+    searches = ((key + band, "right"), (key + (span - band), "left"), (key + (span + band), "right"))
+    with ThreadPoolExecutor(thread_count(len(searches)), thread_name_prefix="ellipses") as pool:
+        own_past, next_first, next_past = pool.map(lambda search: np.searchsorted(key, *search), searches)
+    own_first = np.arange(1, n + 1)  # its own column's later points, then the next column's
+    blocks = _blocks(own_first, np.maximum(own_past - own_first, 0)) + _blocks(next_first, next_past - next_first)
     counts = np.ones(n, dtype=np.int64)  # each point itself
     with ThreadPoolExecutor(thread_count(len(blocks)), thread_name_prefix="ellipses") as pool:
         for (start, _, _), (queries, lo, found) in zip(blocks, pool.map(lambda block: _inside(u, v, *block), blocks)):
