@@ -13,7 +13,7 @@ from flightsim.engine.run import simulate_to_directory
 from flightsim.instrument.pairs import SINGLE_BEAM
 from scipy.stats import poisson
 
-from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, at_least
+from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, at_least, by_segment_then_height
 
 
 def _pass(tmp_path, **settings) -> tuple[np.ndarray, np.ndarray]:
@@ -73,6 +73,62 @@ def test_distinct_shots_of_every_window_of_segments(seed):
             expected = len(np.unique(pulse[(segment >= lo) & (segment < hi)]))
             assert np.count_nonzero(came[bounds[lo]:bounds[hi]] < lo) == expected, (lo, hi)
         assert bounds[lo + 1] - bounds[lo] == len(np.unique(pulse[segment == lo]))
+
+
+@pytest.mark.parametrize("span", [40, (1 << 15) - 1, 1 << 15, 10 ** 6])
+def test_order_by_segment_then_height(span):
+    """The finder's order against ``np.lexsort``: the same (segment, height) sequence (equal heights may swap), for
+    segments spanning up to 2^15 − 1 (a radix sort of 16-bit keys) and beyond (``np.lexsort`` itself)."""
+    rng = np.random.default_rng(span)
+    segment = 7 + np.sort(rng.integers(0, span, 5_000))
+    segment[:3] = 7 + span - 1  # the span's far end first: not in order
+    h = np.round(rng.normal(0.0, 30.0, len(segment)), 1)  # equal heights too
+    order, expected = by_segment_then_height(segment, h), np.lexsort((h, segment))
+    assert np.array_equal(segment[order], segment[expected]) and np.array_equal(h[order], h[expected])
+    assert np.array_equal(np.sort(order), np.arange(len(h)))
+
+
+def _reference(finder: SignalFinder, along, h, pulse) -> np.ndarray:
+    """The ATBD's steps photon by photon, in plain float64 loops (the module docstring's definitions): ranges as closed
+    intervals around each height, shots as the distinct pulse ids."""
+    inner, outer, half = finder.window_m, finder.background_m / 2.0, finder.window_m / 2.0
+    segment = np.floor(along / finder.segment_m).astype(np.int64)
+    conf = np.zeros(len(h), dtype=np.int64)
+    for j in np.unique(segment):
+        mine = np.flatnonzero(segment == j)
+        pool = np.abs(segment - j) <= finder.background_segments
+        ph, band = h[pool], (h[pool].min(), h[pool].max())
+        for i in mine:
+            ring = np.count_nonzero((ph >= h[i] - outer) & (ph <= h[i] + outer)) - np.count_nonzero(
+                (ph >= h[i] - inner) & (ph <= h[i] + inner))
+            length = sum(max(min(b, band[1]) - max(a, band[0]), 0.0)
+                         for a, b in ((h[i] - outer, h[i] - inner), (h[i] + inner, h[i] + outer)))
+            beta = ring / max(length, finder.window_m) / len(set(pulse[pool].tolist()))
+            others = np.count_nonzero((h[mine] >= h[i] - half) & (h[mine] <= h[i] + half)) - 1
+            p = poisson.sf(others - 1, beta * len(set(pulse[mine].tolist())) * finder.window_m)
+            conf[i] = HIGH if p < finder.p_high else 3 if p < finder.p_medium else LOW if p < finder.p_low else 0
+        signal = h[mine][conf[mine] >= LOW]
+        for i in mine:
+            if conf[i] == 0 and len(signal) and np.abs(signal - h[i]).min() <= finder.window_m:
+                conf[i] = 1
+    return conf
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("finder", [SignalFinder(), SignalFinder(p_low=0.5, p_medium=0.2, p_high=0.05)],
+                         ids=["atbd", "loose"])
+def test_confidence_against_the_steps_photon_by_photon(seed, finder):
+    """``classify`` against :func:`_reference` on 3,000 photons: a surface in noise over 25 segments, pulses whose
+    photons span two segments, a gap of empty segments, noise heights on a grid of 0.25 m (ties exactly at the
+    windows' edges); with loose thresholds most noise photons' tails lie near one, so a count or a shot off by one
+    changes some confidence."""
+    rng = np.random.default_rng(seed)
+    pulse = np.sort(rng.integers(0, 600, 3_000))
+    along = pulse * 0.8 + rng.uniform(0.0, 0.5, len(pulse))
+    along[(along > 200.0) & (along < 245.0)] += 60.0  # empty segments between
+    h = np.where(rng.random(len(pulse)) < 0.3, 40.0 + rng.normal(0.0, 0.15, len(pulse)),
+                 np.round(rng.uniform(0.0, 120.0, len(pulse)) * 4.0) / 4.0)
+    assert np.array_equal(finder.classify(along, h, pulse), _reference(finder, along, h, pulse))
 
 
 def test_pure_noise_gets_no_high_confidence():

@@ -50,40 +50,54 @@ class SignalFinder:
         if not len(h):
             return np.zeros(0, dtype=np.int8)
         segment = np.floor(along / self.segment_m).astype(np.int64)
-        order = np.lexsort((h, segment))  # by segment, each segment's photons by height
+        order = by_segment_then_height(segment, h)
         ids, starts = np.unique(segment[order], return_index=True)
         bounds = np.append(starts, len(order))
         k = self.background_segments
-        pools = zip(np.searchsorted(ids, ids - k), np.searchsorted(ids, ids + k + 1))  # segments lo … hi − 1
-        came, shots = _shots(np.repeat(np.arange(len(ids)), np.diff(bounds)), pulse[order])
-        conf = np.zeros(len(h), dtype=np.int8)
-        for j, (lo, hi) in enumerate(pools):
-            rows = order[bounds[j]:bounds[j + 1]]
-            pooled = np.sort(h[order[bounds[lo]:bounds[hi]]], kind="stable")  # sorted runs merged
-            beta = self._background(h[rows], pooled, np.count_nonzero(came[shots[lo]:shots[hi]] < lo))
-            conf[rows] = self._segment(h[rows], beta * (shots[j + 1] - shots[j]))
-        return conf
-
-    def _background(self, h: np.ndarray, pooled: np.ndarray, shots: int) -> np.ndarray:
-        """β [photons per m of height per shot] at heights ``h`` from the sorted pooled heights: the ring
-        window_m < |Δh| ≤ background_m/2, its length clipped to the band [pooled min, pooled max]."""
+        pools = np.searchsorted(ids, ids - k), np.searchsorted(ids, ids + k + 1)  # segments lo … hi − 1
+        of = np.repeat(np.arange(len(ids)), np.diff(bounds))  # each photon's segment (sorted order)
+        came, shots = _shots(of, pulse[order])
+        hs = h[order]
+        ring, others, band = self._counts(hs, bounds, *pools)
+        pooled_shots = np.array([np.count_nonzero(came[shots[lo]:shots[hi]] < lo) for lo, hi in zip(*pools)])
         inner, outer = self.window_m, self.background_m / 2.0
-        ring = _count(pooled, h - outer, h + outer) - _count(pooled, h - inner, h + inner)
-        band = (pooled[0], pooled[-1])
-        length = _overlap(h - outer, h - inner, *band) + _overlap(h + inner, h + outer, *band)
-        return ring / np.maximum(length, self.window_m) / shots
-
-    def _segment(self, h: np.ndarray, beta_per_m: np.ndarray) -> np.ndarray:
-        """Confidence of one segment's photons given β·shots [photons per m of height in the segment]."""
-        half = self.window_m / 2.0
-        others = _count(np.sort(h), h - half, h + half) - 1
-        p = at_least(others, beta_per_m * self.window_m)
+        low, high = band[0][of], band[1][of]
+        length = _overlap(hs - outer, hs - inner, low, high) + _overlap(hs + inner, hs + outer, low, high)
+        beta = ring / np.maximum(length, self.window_m) / pooled_shots[of]  # per m of height per shot
+        p = at_least(others, beta * np.diff(shots)[of] * self.window_m)
         conf = np.select([p < self.p_high, p < self.p_medium, p < self.p_low], [HIGH, MEDIUM, LOW], NOISE)
-        signal = np.sort(h[conf >= LOW])
-        if len(signal):
-            i = np.clip(np.searchsorted(signal, h), 1, len(signal))
-            near = np.minimum(np.abs(h - signal[i - 1]), np.abs(signal[np.minimum(i, len(signal) - 1)] - h))
-            conf[(conf == NOISE) & (near <= self.window_m)] = BUFFER
+        out = np.empty(len(h), dtype=np.int8)
+        out[order] = self._buffered(conf, hs, bounds, of)
+        return out
+
+    def _counts(self, hs: np.ndarray, bounds: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple:
+        """Per photon (heights ``hs`` sorted by segment, then height; segment j's rows bounds[j] … bounds[j+1] − 1,
+        its pool segments lo[j] … hi[j] − 1): the pool's photons in its background ring, and its segment's other
+        photons within ±window_m/2; per segment the pool's band (least, greatest height). A segment at a time: its
+        searches stay among a few thousand heights in the cache."""
+        inner, outer, half = self.window_m, self.background_m / 2.0, self.window_m / 2.0
+        ring, others = np.empty(len(hs), dtype=np.int64), np.empty(len(hs), dtype=np.int64)
+        band = np.empty((2, len(lo)))
+        for j in range(len(lo)):
+            a, b = bounds[j], bounds[j + 1]
+            mine, pooled = hs[a:b], np.sort(hs[bounds[lo[j]]:bounds[hi[j]]], kind="stable")  # sorted runs merged
+            ring[a:b] = _count(pooled, mine - outer, mine + outer) - _count(pooled, mine - inner, mine + inner)
+            others[a:b] = _count(mine, mine - half, mine + half) - 1
+            band[:, j] = pooled[0], pooled[-1]
+        return ring, others, band
+
+    def _buffered(self, conf: np.ndarray, hs: np.ndarray, bounds: np.ndarray, of: np.ndarray) -> np.ndarray:
+        """``conf`` (sorted order) with the noise photons within ±window_m of a photon of confidence ≥ LOW of their
+        segment made BUFFER: the nearest such photon below and above in the sort, within the segment."""
+        place = np.arange(len(hs))
+        below = np.maximum.accumulate(np.where(conf >= LOW, place, -1))
+        above = np.minimum.accumulate(np.where(conf >= LOW, place, len(hs))[::-1])[::-1]
+        near = np.full(len(hs), np.inf)
+        ok = below >= bounds[of]
+        near[ok] = np.abs(hs[ok] - hs[below[ok]])
+        ok = above < bounds[of + 1]
+        near[ok] = np.minimum(near[ok], np.abs(hs[above[ok]] - hs[ok]))
+        conf[(conf == NOISE) & (near <= self.window_m)] = BUFFER
         return conf.astype(np.int8)
 
     def classify_stream(self, n: int, read: Callable[[int, int], tuple], write: Callable[[int, np.ndarray], None],
@@ -119,6 +133,17 @@ def _classify_part(finder: SignalFinder, along, h, pulse, first: int, past: int)
     """``finder``'s confidence of rows [first, past) of the photons (a module-level function: a worker process runs
     it on a block)."""
     return finder.classify(along, h, pulse)[first:past]
+
+
+def by_segment_then_height(segment: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """The photons' order by segment, then height (equal heights in any order): where the segments span fewer than
+    2^15, a sort by height and then a stable sort by segment of 16-bit keys (NumPy's radix sort; a third of
+    ``np.lexsort``'s time on a block of 2^20 photons), else ``np.lexsort``."""
+    relative = segment - segment.min()
+    if relative.max() >= 1 << 15:
+        return np.lexsort((h, segment))
+    by_height = np.argsort(h)
+    return by_height[np.argsort(relative[by_height].astype(np.int16), kind="stable")]
 
 
 def _shots(segment: np.ndarray, pulse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
