@@ -55,20 +55,27 @@ class SignalFinder:
         bounds = np.append(starts, len(order))
         k = self.background_segments
         pools = np.searchsorted(ids, ids - k), np.searchsorted(ids, ids + k + 1)  # segments lo … hi − 1
-        of = np.repeat(np.arange(len(ids)), np.diff(bounds))  # each photon's segment (sorted order)
+        of = np.repeat(np.arange(len(ids), dtype=np.int32), np.diff(bounds))  # each photon's segment (sorted order)
         came, shots = _shots(of, pulse[order])
         hs = h[order]
         ring, others, band = self._counts(hs, bounds, *pools)
-        pooled_shots = np.array([np.count_nonzero(came[shots[lo]:shots[hi]] < lo) for lo, hi in zip(*pools)])
-        inner, outer = self.window_m, self.background_m / 2.0
-        low, high = band[0][of], band[1][of]
-        length = _overlap(hs - outer, hs - inner, low, high) + _overlap(hs + inner, hs + outer, low, high)
-        beta = ring / np.maximum(length, self.window_m) / pooled_shots[of]  # per m of height per shot
-        p = at_least(others, beta * np.diff(shots)[of] * self.window_m)
-        conf = np.select([p < self.p_high, p < self.p_medium, p < self.p_low], [HIGH, MEDIUM, LOW], NOISE)
+        pooled = np.array([np.count_nonzero(came[shots[lo]:shots[hi]] < lo) for lo, hi in zip(*pools)])
+        p = at_least(others, self._expected(hs, of, ring, band, pooled, np.diff(shots)))
+        conf = np.select([p < self.p_high, p < self.p_medium, p < self.p_low], [np.int8(HIGH), np.int8(MEDIUM),
+                                                                                   np.int8(LOW)], np.int8(NOISE))
         out = np.empty(len(h), dtype=np.int8)
         out[order] = self._buffered(conf, hs, bounds, of)
         return out
+
+    def _expected(self, hs, of, ring, band, pooled_shots, shots) -> np.ndarray:
+        """The background count λ in each photon's ±window_m/2 (sorted order; ``of`` its segment): β [photons per m
+        of height per shot] from its ``ring`` count over the ring's length within its pool's ``band`` and the
+        pool's shots, times its segment's ``shots`` and window_m."""
+        inner, outer = self.window_m, self.background_m / 2.0
+        low, high = band[0][of], band[1][of]
+        length = _overlap(hs - outer, hs - inner, low, high) + _overlap(hs + inner, hs + outer, low, high)
+        beta = ring / np.maximum(length, self.window_m) / pooled_shots[of]
+        return beta * shots[of] * self.window_m
 
     def _counts(self, hs: np.ndarray, bounds: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple:
         """Per photon (heights ``hs`` sorted by segment, then height; segment j's rows bounds[j] … bounds[j+1] − 1,
@@ -76,7 +83,7 @@ class SignalFinder:
         photons within ±window_m/2; per segment the pool's band (least, greatest height). A segment at a time: its
         searches stay among a few thousand heights in the cache."""
         inner, outer, half = self.window_m, self.background_m / 2.0, self.window_m / 2.0
-        ring, others = np.empty(len(hs), dtype=np.int64), np.empty(len(hs), dtype=np.int64)
+        ring, others = np.empty(len(hs), dtype=np.int32), np.empty(len(hs), dtype=np.int32)
         band = np.empty((2, len(lo)))
         for j in range(len(lo)):
             a, b = bounds[j], bounds[j + 1]
@@ -89,7 +96,7 @@ class SignalFinder:
     def _buffered(self, conf: np.ndarray, hs: np.ndarray, bounds: np.ndarray, of: np.ndarray) -> np.ndarray:
         """``conf`` (sorted order) with the noise photons within ±window_m of a photon of confidence ≥ LOW of their
         segment made BUFFER: the nearest such photon below and above in the sort, within the segment."""
-        place = np.arange(len(hs))
+        place = np.arange(len(hs), dtype=np.int32)
         below = np.maximum.accumulate(np.where(conf >= LOW, place, -1))
         above = np.minimum.accumulate(np.where(conf >= LOW, place, len(hs))[::-1])[::-1]
         near = np.full(len(hs), np.inf)
