@@ -105,7 +105,7 @@ class SignalFinder:
         ok = above < bounds[of + 1]
         near[ok] = np.minimum(near[ok], np.abs(hs[above[ok]] - hs[ok]))
         conf[(conf == NOISE) & (near <= self.window_m)] = BUFFER
-        return conf.astype(np.int8)
+        return conf
 
     def classify_stream(self, n: int, read: Callable[[int, int], tuple], write: Callable[[int, np.ndarray], None],
                         block: int = 1 << 20, workers: ProcessMap | None = None) -> None:
@@ -154,10 +154,10 @@ def by_segment_then_height(segment: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 
 def _shots(segment: np.ndarray, pulse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct shots of segments 0 … m − 1 (``segment``, ascending, and ``pulse``, a photon each): the segment
-    in which each (segment, pulse) pair's pulse first came, the pairs in segment order (a pulse whose photons span
-    several segments is a pair in each), and where each segment's pairs start (m + 1 bounds). The distinct shots of
-    segments lo … hi − 1 are the pairs among theirs that first came at lo or later."""
+    """The distinct shots of segments 0 … m − 1 (``segment``, ascending, and ``pulse``, a photon each) as (segment,
+    pulse) pairs in segment order (a pulse whose photons span several segments is a pair in each): for each pair the
+    last earlier segment its pulse came in (−1: none), and where each segment's pairs start (m + 1 bounds). The
+    distinct shots of segments lo … hi − 1 are their pairs whose pulse came in no segment from lo on before."""
     by_pulse = np.lexsort((segment, pulse))
     s, p = segment[by_pulse], pulse[by_pulse]
     new = np.r_[True, (s[1:] != s[:-1]) | (p[1:] != p[:-1])]  # each distinct pair once
@@ -170,7 +170,7 @@ def _shots(segment: np.ndarray, pulse: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 def at_least(k: np.ndarray, lam: np.ndarray) -> np.ndarray:
     """P(K ≥ k) for K Poisson of mean ``lam``, elementwise: what ``scipy.stats.poisson.sf(k - 1, lam)`` gives, bit for
-    bit (its ``scipy.special.pdtrc``, 1 for k ≤ 0), without the ~90 µs its checks cost a call (a call a segment)."""
+    bit (its ``scipy.special.pdtrc``, 1 for k ≤ 0), without the ~90 µs its argument checks cost a call."""
     return np.where(k > 0, pdtrc(np.maximum(k - 1, 0), lam), 1.0)
 
 
