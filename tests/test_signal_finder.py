@@ -46,8 +46,8 @@ def test_weak_signal_keeps_its_precision(tmp_path):
 
 
 def test_tail_probability_is_scipys_poisson_survival_bit_for_bit():
-    """``at_least(k, λ)`` = P(K ≥ k) = ``scipy.stats.poisson.sf(k - 1, λ)`` to the last bit: counts below the support
-    (k ≤ 0), λ = 0, small and large means, and the integer and float64 inputs the finder hands it."""
+    """``at_least(k, λ)`` = P(K ≥ k) = ``scipy.stats.poisson.sf(k - 1, λ)`` to the last bit: counts below the
+    support (k ≤ 0), λ = 0, small and large means, and the integer and float64 inputs the finder hands it."""
     rng = np.random.default_rng(7)
     k = np.concatenate([np.arange(-3, 90), rng.integers(-2, 400, 20_000)])
     lam = np.concatenate([np.zeros(31), np.full(31, 1e-9), np.linspace(0.5, 300.0, 31), rng.random(20_000) * 200.0])

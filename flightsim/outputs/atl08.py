@@ -265,7 +265,8 @@ def _blocks(first: np.ndarray, length: np.ndarray) -> list[tuple]:
     candidates: points first[k] … first[k] + length[k] − 1)."""
     ends, blocks, start, n = np.cumsum(length), [], 0, len(first)
     while start < n:
-        stop = min(max(int(np.searchsorted(ends, ends[start] - length[start] + PAIRS_PER_BLOCK, "right")), start + 1), n)
+        stop = int(np.searchsorted(ends, ends[start] - length[start] + PAIRS_PER_BLOCK, "right"))
+        stop = min(max(stop, start + 1), n)
         blocks.append((start, first[start:stop], length[start:stop]))
         start = stop
     return blocks
