@@ -1,6 +1,7 @@
-"""ATL08's density filter counts, by a sorted grid (flightsim.outputs.atl08.ellipse_counts), against SciPy's KD-tree
-(`cKDTree.query_ball_point(r=1, return_length=True)`), the count the filter was written with: equal for every
-point, ties at distance exactly 1 and coordinates an ulp across a cell boundary included."""
+"""ATL08's density filter counts, by columns sorted by height (flightsim.outputs.atl08.ellipse_counts), against
+SciPy's KD-tree (`cKDTree.query_ball_point(r=1, return_length=True)`), the count the filter was written with: equal for
+every point, ties at distance exactly 1, coordinates an ulp across a column edge and a long pass's large keys
+included."""
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
