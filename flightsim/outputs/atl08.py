@@ -185,14 +185,18 @@ def _photons(along, h, lat, lon, conf, t) -> tuple[np.ndarray, ...]:
 # --- classification --------------------------------------------------------------------------------
 
 
-def _expected(x, h, s: ATL08Settings) -> np.ndarray:
+def _expected(window, x, h, s: ATL08Settings) -> np.ndarray:
     """Per photon: the mean count of background photons in its ellipse (the background of its along-track
-    window)."""
+    ``window``, :func:`_windows`)."""
     if not len(x):
         return np.zeros(0)
-    _, window = np.unique(np.floor(x / s.dragann_window_m), return_inverse=True)  # windows holding photons
     lam = _background(window, x, h, s) * math.pi * s.dragann_along_m * s.dragann_height_m
     return lam[window]
+
+
+def _windows(x, s: ATL08Settings) -> np.ndarray:
+    """Each photon's along-track window of dragann_window_m, numbered 0, 1, … over the windows holding photons."""
+    return np.unique(np.floor(x / s.dragann_window_m), return_inverse=True)[1].reshape(-1)
 
 
 def _limit(lam: np.ndarray, s: ATL08Settings) -> np.ndarray:
@@ -204,13 +208,14 @@ def _limit(lam: np.ndarray, s: ATL08Settings) -> np.ndarray:
 def _dense(x, h, conf, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray]:
     """Which photons the density filter finds dense (step 1: in heights above the trend of a first ground surface
     of the photons dense in their heights, or of ATL03 confidence), and each one's background count there."""
-    lam = _expected(x, h, s)
+    window = _windows(x, s)
+    lam = _expected(window, x, h, s)
     first = (_neighbours(x, h, s) > _limit(lam, s)) | (conf >= s.min_signal_conf)
     if not first.any():
         return first, lam
     centres, surface = ground_surface(x[first], h[first], s)
     above = h - np.interp(x, centres, trend_of(surface, np.ones(len(surface), dtype=bool), s))
-    lam = _expected(x, above, s)
+    lam = _expected(window, x, above, s)
     return _neighbours(x, above, s) > _limit(lam, s), lam
 
 
@@ -294,9 +299,9 @@ def _background(window, x, h, s: ATL08Settings) -> np.ndarray:
     low, high = _extremes(window, h, count)
     bins = np.maximum(np.ceil((high - low) / s.dragann_bin_m).astype(np.int64), 1)
     k = np.minimum(((h - low[window]) / s.dragann_bin_m).astype(np.int64), bins[window] - 1)
-    counts = np.full((count, int(bins.max())), np.nan)
-    counts[np.arange(bins.max())[None, :] < bins[:, None]] = 0.0
-    np.add.at(counts, (window, k), 1.0)
+    width = int(bins.max())
+    counts = np.bincount(window * width + k, minlength=count * width).reshape(count, width).astype(np.float64)
+    counts[np.arange(width)[None, :] >= bins[:, None]] = np.nan  # past a window's height span
     median = np.nanmedian(counts, axis=1)
     counts[counts > (median + 3.0 * np.sqrt(median + 1.0))[:, None]] = np.nan
     first, last = _extremes(window, x, count)
