@@ -209,6 +209,7 @@ def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pu
     import h5py
 
     import flightsim.studies.bench_photon_runs as section
+    import flightsim.studies.bench_photon_writers as writers
     from flightsim.api import load_config
     from flightsim.engine.instrument import Instrument
     from flightsim.engine.run import simulate_to_directory
@@ -217,7 +218,7 @@ def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pu
     cfg = load_config(instrument="spad", overrides={"flight.duration_s": 0.002, "run.host_photons": 5000})
     summary = simulate_to_directory(cfg, tmp_path / "spad")
     scene, timing = build_scene(cfg), Instrument(cfg).deflector.timing()
-    parts = section._parts(tmp_path / "spad" / "photons.h5", scene.origin, timing.prf_hz, cfg.run.host_photons)
+    parts = writers.run_parts(tmp_path / "spad" / "photons.h5", scene.origin, timing.prf_hz, cfg.run.host_photons)
     with h5py.File(tmp_path / "spad" / "photons.h5") as f:
         h5 = {name: f["photons"][name][:] for name in ("pulse", "delta_time", "signal", "x", "y", "z")}
     assert len(parts) > 3 and sum(len(p) for p in parts) == summary["photons"] == len(h5["pulse"])
@@ -229,7 +230,7 @@ def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pu
                                rtol=0, atol=1e-9)
     times = np.concatenate([timing.pulse_times(p.start_time, p.pulse) for p in parts])
     np.testing.assert_allclose(times, h5["delta_time"], rtol=0, atol=1e-9)
-    record = section.las_writer(tmp_path / "spad", threads=2)
+    record = writers.las_writer(tmp_path / "spad", threads=2)
     assert record["photons"] == summary["photons"] and record["parts"] == len(parts) and record["threads"] == 2
     assert record["one_thread_s"] > 0 and record["threads_s"] > 0
     lines = section.markdown({"photons": {"runs": [], "las_writer": record}})
@@ -241,6 +242,33 @@ def test_the_photon_section_writes_a_runs_photons_again_in_its_parts_of_whole_pu
     lines = section.markdown({"photons": {"runs": [run], "las_writer": record}})
     las = summary["writers_s"]["photons/"]
     assert f"| spad | photons/ | {las['busy']:.2f} | {las['cpu']:.2f} | {las['prepare']:.2f} |" in "\n".join(lines)
+
+
+def test_the_photon_section_times_each_atlas_product_alone_on_a_runs_photons(tmp_path):
+    """ATLAS's products alone: photons.h5, the tiles and atl03.h5 each handed every photon of a short pass (the run's
+    parts), ATL08 on the beam of most photons of the atl03.h5 written; the report has a row for each."""
+    import h5py
+
+    import flightsim.studies.bench_photon_writers as writers
+    from flightsim.api import load_config
+    from flightsim.engine.run import simulate_to_directory
+
+    cfg = load_config(instrument="atlas", overrides={"flight.duration_s": 0.05, "run.host_photons": 4000})
+    summary = simulate_to_directory(cfg, tmp_path / "atlas")
+    record = writers.atlas_products(tmp_path / "atlas")
+    with h5py.File(tmp_path / "atlas" / "atl03.h5") as f:
+        beams = {name: f[f"{name}/heights/h_ph"].shape[0] for name in f if name.startswith("gt")}
+    steps = {step["step"]: step for step in record["steps"]}
+    assert record["parts"] > 3 and list(steps)[:3] == ["photons.h5", "photons/ (one thread)", "atl03.h5"]
+    assert all(steps[name]["photons"] == summary["photons"] for name in list(steps)[:3])
+    beam = max(beams, key=beams.get)
+    assert steps[f"atl08.h5, beam {beam}"]["photons"] == beams[beam] and len(steps) == 4
+    assert all(step["calls_s"] >= 0.0 and step["close_s"] > 0.0 for step in record["steps"])
+    las = {"photons": 1, "parts": 1, "threads": 2, "one_thread_photons_per_s": 1.0, "threads_photons_per_s": 2.0,
+           "speedup": 2.0}
+    text = "\n".join(writers.writer_lines(las, record))
+    assert all(f"| {name} | {step['photons']:.3g} | {step['calls_s']:.2f} | {step['close_s']:.2f} |" in text
+               for name, step in steps.items())
 
 
 def test_the_bench_commands_help_names_every_section():
