@@ -69,9 +69,9 @@ def test_three_beams_across_track_give_three_ground_tracks(tmp_path):
 
 def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(tmp_path, monkeypatch):
     """Past PARALLEL_PHOTONS photons a run starts worker processes as it goes; at its close the signal finder
-    classifies the granule in blocks over them and ATL08's beams are worked out a beam a worker (forced here for a
-    0.2 s pass of six beams, two workers): signal_conf_ph, the background rates and every atl08.h5 dataset the same
-    as in this process."""
+    classifies the granule in blocks over them and ATL08's beams are worked out and written a beam a worker (forced
+    here for a 0.2 s pass of six beams, two workers): signal_conf_ph, the background rates and every atl08.h5 dataset
+    the same as in this process, and no beam's own file left."""
     import flightsim.engine.products.photons as photons
 
     cfg = preset_config("atlas")
@@ -94,7 +94,9 @@ def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(
         monkeypatch.setattr(photons, "PARALLEL_PHOTONS", parallel)
         simulate_to_directory(validate(cfg), tmp_path / name)
     assert started == [(2, photons.PRELOAD)]
-    assert "_classify_part" in ran and ran[-1] == "atl08_of_track"
+    assert "_classify_part" in ran and ran[-1] == "write_atl08_track"
+    for name in ("serial", "workers"):  # the beams' own atl08 files removed once joined
+        assert not [p.name for p in (tmp_path / name).iterdir() if p.name.startswith(".")]
     with h5py.File(tmp_path / "serial" / "atl03.h5") as a, h5py.File(tmp_path / "workers" / "atl03.h5") as b:
         beams = [k for k in a if k.startswith("gt")]
         assert len(beams) == 6

@@ -16,7 +16,7 @@ import pytest
 
 from flightsim.core.errors import InputError
 from flightsim.outputs.atl08 import FILL, ATL08Settings, atl08_segments
-from flightsim.outputs.atl08_h5 import write_atl08
+from flightsim.outputs.atl08_h5 import join_atl08, write_atl08
 from flightsim.scoring.signal_finder import SignalFinder
 
 C = 299_792_458.0
@@ -184,6 +184,34 @@ def test_atl08_h5_round_trips_with_atl08_paths_and_types(forest, tmp_path):
         assert g["land_segments/segment_id_beg"].dtype == np.int32
         assert g["land_segments/delta_time"].dtype == np.float64
     assert sorted(p.name for p in tmp_path.iterdir()) == ["atl08.h5"]
+
+
+def _layout(path) -> dict:
+    """Every group's and dataset's attributes, and each dataset's values, dtype, chunks, filters and fill value."""
+    out = {}
+    with h5py.File(path) as f:
+        def visit(name, obj):
+            out[name] = {k: np.asarray(v).tolist() for k, v in obj.attrs.items()}
+            if isinstance(obj, h5py.Dataset):
+                out[name].update(values=obj[()].tobytes(), dtype=obj.dtype.str, chunks=obj.chunks, maxshape=obj.maxshape,
+                                 gzip=(obj.compression, obj.compression_opts, obj.shuffle), fill=obj.fillvalue.item())
+        f.visititems(visit)
+        out["/"] = {k: v for k, v in f.attrs.items()}
+    return out
+
+
+def test_atl08_h5_joined_from_the_tracks_files_is_the_file_written_at_once(forest, tmp_path):
+    """join_atl08 of two tracks written to files of their own (as worker processes write them) against write_atl08
+    of both at once: the same groups, datasets, values, storage (chunks, gzip, shuffle, fill) and attributes; the
+    tracks' files are left for the caller."""
+    _, out = forest
+    other = {group: {k: v[::-1].copy() for k, v in columns.items()} for group, columns in out.items()}
+    at_once = write_atl08(tmp_path / "at_once.h5", {"gt1l": out, "gt2r": other}, {"config_toml": "a = 1"})
+    parts = {track: write_atl08(tmp_path / f"{track}.h5", {track: beam})
+             for track, beam in (("gt1l", out), ("gt2r", other))}
+    joined = join_atl08(tmp_path / "atl08.h5", parts, {"config_toml": "a = 1"})
+    assert _layout(joined) == _layout(at_once) and len(_layout(joined)) > 25
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["at_once.h5", "atl08.h5", "gt1l.h5", "gt2r.h5"]
 
 
 @pytest.mark.parametrize("beams, field", [

@@ -103,6 +103,30 @@ def atl08_of_track(atl03_path: str | os.PathLike, track: str, segment_m: float) 
     return atl08_segments(**columns, segment_m=segment_m)
 
 
+def write_atl08_track(path: str | os.PathLike, atl03_path: str | os.PathLike, track: str, segment_m: float) -> str:
+    """:func:`atl08_of_track` of one ground track written to a file of its own at ``path`` (its group as atl08.h5
+    holds it, compressed here: a worker process writes its own track); the path."""
+    return str(write_atl08(path, {track: atl08_of_track(atl03_path, track, segment_m)}))
+
+
+def join_atl08(path: str | os.PathLike, tracks: dict, attrs: dict | None = None) -> Path:
+    """Write ``atl08.h5`` from the tracks' own files (track → path of :func:`write_atl08_track`), each track's group
+    copied whole, its chunks as they were compressed; the same file :func:`write_atl08` makes of them all at once.
+    Returns its path."""
+    import h5py
+
+    product = H5Product(Path(path), **(attrs or {}))
+    try:
+        for track, part in tracks.items():
+            with h5py.File(part, "r") as f:
+                f.copy(f[track], product.file, name=track)
+    except BaseException:
+        product.abort()
+        raise
+    product.close()
+    return Path(path)
+
+
 def _track(name) -> str:
     if isinstance(name, (int, np.integer)) and not isinstance(name, bool) and name >= 0:
         return f"gt{int(name) + 1}"

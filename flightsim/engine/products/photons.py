@@ -7,6 +7,7 @@ import time
 from collections import deque
 from pathlib import Path
 
+from flightsim.core.atomic import temporary_name
 from flightsim.core.background import Background
 from flightsim.core.process_map import ProcessMap, map_rows, thread_count, usable_cores
 from flightsim.core.registry import register
@@ -159,17 +160,25 @@ def ground_tracks(f) -> list[str]:
 
 def atl08_from_atl03(directory: Path, cfg_text: str, workers: ProcessMap | None = None) -> str | None:
     """Write ``directory/atl08.h5`` from the finished ``atl03.h5`` beside it: each beam's photons classified and cut
-    into 100 m land segments (:func:`flightsim.outputs.atl08_h5.atl08_of_track`, default settings), a beam a worker
-    when ``workers`` are given. Over bare ground the segments have terrain heights and fill values for the canopy.
-    Its name, or None when atl03.h5 holds no photon."""
+    into 100 m land segments (:func:`flightsim.outputs.atl08_h5.atl08_of_track`, default settings) and written to a
+    file of its own, a beam a worker when ``workers`` are given, then the beams' groups copied into atl08.h5 as they
+    were compressed. Over bare ground the segments have terrain heights and fill values for the canopy. Its name, or
+    None when atl03.h5 holds no photon."""
     import h5py
 
-    from flightsim.outputs.atl08_h5 import atl08_of_track, write_atl08
+    from flightsim.outputs.atl08_h5 import join_atl08, write_atl08_track
 
     atl03 = directory / "atl03.h5"
     with h5py.File(atl03) as f:
         tracks = ground_tracks(f)
     if not tracks:
         return None
-    beams = map_rows(atl08_of_track, [(str(atl03), track, ATL08_SEGMENT_M) for track in tracks], workers)
-    return write_atl08(directory / "atl08.h5", dict(zip(tracks, beams)), {"config_toml": cfg_text}).name
+    parts = {track: temporary_name(directory / f"atl08.{track}.h5") for track in tracks}
+    try:
+        map_rows(write_atl08_track, [(str(part), str(atl03), track, ATL08_SEGMENT_M) for track, part in parts.items()],
+                 workers)
+        return join_atl08(directory / "atl08.h5", parts, {"config_toml": cfg_text}).name
+    finally:
+        for part in parts.values():
+            for name in (part, temporary_name(part)):  # a track's file, or one a failing worker left half-written
+                name.unlink(missing_ok=True)
