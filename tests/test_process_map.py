@@ -39,6 +39,33 @@ def test_results_come_in_the_chunks_order_bit_for_bit(workers):
     assert workers.map(square_sum, []) == []
 
 
+def test_chunks_made_as_the_workers_take_them(workers):
+    """A generator of chunks: each made when a worker frees to take it (at most one ahead of a worker's result here:
+    two workers, so two made before the first result is back), the results in order."""
+    rng = np.random.default_rng(4)
+    chunks = [(rng.uniform(0.0, 9.0, 3000), float(k)) for k in range(9)]
+    made, answered = [], []
+
+    def lazily():
+        for k, chunk in enumerate(chunks):
+            made.append((k, len(answered)))
+            yield chunk
+
+    class Counting(ProcessMap):  # notes each answer as it comes
+        def _answer(self, conn):
+            answered.append(True)
+            return super()._answer(conn)
+
+    pool = Counting(2)
+    try:
+        assert pool.map(square_sum, lazily()) == [square_sum(*chunk) for chunk in chunks]
+    finally:
+        pool.stop()
+    assert [k for k, _ in made] == list(range(9)) and [a for _, a in made[:2]] == [0, 0]
+    assert all(a >= k - 1 for k, a in made[2:])  # chunk k made once k − 1 answers came
+    assert map_rows(square_sum, iter(chunks), None) == [square_sum(*chunk) for chunk in chunks]
+
+
 def test_rows_are_cut_into_chunks_of_at_least_the_least_size(workers):
     assert row_chunks(1000, None) == [slice(0, 1000)]
     cuts = row_chunks(1000, workers)  # two workers: four chunks each

@@ -25,7 +25,7 @@ import threading
 import traceback
 import weakref
 from multiprocessing.connection import Connection, wait
-from typing import Callable
+from typing import Callable, Iterable
 
 MIN_ROWS_PER_CHUNK = 64  # the fewest rows a chunk of a map over rows holds
 CHUNKS_PER_WORKER = 4  # a map over rows cuts them into about this many chunks per worker (the fits' times vary)
@@ -58,8 +58,9 @@ def row_chunks(rows: int, workers: "ProcessMap | None") -> list[slice]:
     return [slice(first, min(first + size, rows)) for first in range(0, rows, size)]
 
 
-def map_rows(function: Callable, chunks: list[tuple], workers: "ProcessMap | None") -> list:
-    """``[function(*chunk) for chunk in chunks]``, in this process without workers."""
+def map_rows(function: Callable, chunks: Iterable[tuple], workers: "ProcessMap | None") -> list:
+    """``[function(*chunk) for chunk in chunks]``, in this process without workers (``chunks`` may be made as they
+    are taken: a generator)."""
     return [function(*chunk) for chunk in chunks] if workers is None else workers.map(function, chunks)
 
 
@@ -92,16 +93,16 @@ class ProcessMap:
         self.processes.append(process)
         self.connections.append(Connection(parent.detach()))
 
-    def map(self, function: Callable, chunks: list[tuple]) -> list:
-        """``[function(*chunk) for chunk in chunks]``, the chunks spread over the workers (a map asked for from
-        another thread meanwhile waits for this one)."""
+    def map(self, function: Callable, chunks: Iterable[tuple]) -> list:
+        """``[function(*chunk) for chunk in chunks]``, the chunks spread over the workers, each taken from ``chunks``
+        as a worker frees (a map asked for from another thread meanwhile waits for this one)."""
         with self._lock:
             return self._map(function, chunks)
 
-    def _map(self, function: Callable, chunks: list[tuple]) -> list:
+    def _map(self, function: Callable, chunks: Iterable[tuple]) -> list:
         task = (function.__module__, function.__qualname__)
-        results: list = [None] * len(chunks)
-        waiting = iter(enumerate(chunks))
+        results: dict[int, object] = {}
+        waiting = iter(enumerate(chunks))  # a chunk is made as a worker frees to take it
         busy: dict[Connection, int] = {}
 
         def give(conn: Connection) -> None:
@@ -117,7 +118,7 @@ class ProcessMap:
                 index = busy.pop(conn)
                 results[index] = self._answer(conn)
                 give(conn)
-        return results
+        return [results[index] for index in range(len(results))]
 
     def _answer(self, conn: Connection):
         worker = self.connections.index(conn)

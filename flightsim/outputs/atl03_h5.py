@@ -148,8 +148,9 @@ class Atl03Writer:
         """Classify the photons (the signal finder in blocks over ``workers`` when given), write the per-segment and
         granule groups and rename the file into place; its name."""
         f = self.product.file
-        for name, track in self.tracks.items():
-            conf = self._confidence(f[f"{name}/heights"], workers)
+        streams = [self._confidence(f[f"{name}/heights"], workers) for name in self.tracks]
+        SignalFinder().classify_streams([stream for stream, _ in streams], workers)  # the beams' blocks in one go
+        for (name, track), (_, conf) in zip(self.tracks.items(), streams):
             _segments(f.require_group(f"{name}/geolocation"), track)
             _zero_corrections(f.require_group(f"{name}/geophys_corr"), f[f"{name}/geolocation/delta_time"][:])
             _background(f.require_group(f"{name}/bckgrd_atlas"), track, conf, self.granule.gate_s)
@@ -157,9 +158,10 @@ class Atl03Writer:
         return self.product.close()
 
     @staticmethod
-    def _confidence(heights, workers: ProcessMap | None = None) -> np.ndarray:
-        """signal_conf_ph of one beam's heights group, by the signal finder over its photons (every surface type's
-        column the same; in blocks over ``workers`` when given); returns the first column."""
+    def _confidence(heights, workers: ProcessMap | None = None) -> tuple[tuple, np.ndarray]:
+        """signal_conf_ph of one beam's heights group, made: the signal finder's stream of its photons (blocks
+        sized to spread a beam over ``workers`` when given), and the first column, which the stream's writes fill
+        (every surface type's column the same)."""
         n = heights["h_ph"].shape[0]
         conf = heights.create_dataset("signal_conf_ph", shape=(n, SURFACE_TYPES), dtype=np.int8,
                                       chunks=(min(max(n, 1), 1 << 16), SURFACE_TYPES))
@@ -174,8 +176,7 @@ class Atl03Writer:
 
         block = FINDER_BLOCK if workers is None else min(FINDER_BLOCK, max(FINDER_BLOCK >> 4,
                                                                           -(-n // len(workers.processes))))
-        SignalFinder().classify_stream(n, read, write, block, workers)
-        return first
+        return (n, read, write, block), first
 
     def abort(self) -> None:
         self.product.abort()

@@ -112,15 +112,20 @@ class SignalFinder:
         """Classify ``n`` photons stored in along-track order block by block (memory ∝ ``block``): ``read(lo,
         hi)`` gives (along, h, pulse) of rows [lo, hi), ``write(lo, conf)`` stores rows from lo. Each block is
         read with enough rows on both sides to hold its segments' background neighbours. ``workers``: worker
-        processes (:class:`~flightsim.core.process_map.ProcessMap`) that classify as many blocks at a time (the
+        processes (:class:`~flightsim.core.process_map.ProcessMap`) that classify the blocks side by side (the
         same values); None: this process, a block at a time."""
-        spans = [(start, min(n, start + block)) for start in range(0, n, block)]
-        at_once = len(workers.processes) if workers is not None else 1
-        for first in range(0, len(spans), at_once):
-            group = spans[first:first + at_once]
-            parts = [(self, *self._padded(n, read, start, end, block)) for start, end in group]
-            for (start, _), conf in zip(group, map_rows(_classify_part, parts, workers)):
-                write(start, conf)
+        self.classify_streams([(n, read, write, block)], workers)
+
+    def classify_streams(self, streams: list[tuple], workers: ProcessMap | None = None) -> None:
+        """:meth:`classify_stream` of several streams (``(n, read, write, block)`` each, e.g. a granule's beams) at
+        once: the blocks of them all, in order, each read as a worker frees to take it (this process reads and sends
+        while the workers classify), their confidences written in order once every block is done (1 byte a
+        photon held)."""
+        spans = [(stream, start, min(stream[0], start + stream[3])) for stream in streams
+                 for start in range(0, stream[0], stream[3])]
+        blocks = ((self, *self._padded(n, read, start, end, block)) for (n, read, _, block), start, end in spans)
+        for ((_, _, write, _), start, _), conf in zip(spans, map_rows(_classify_part, blocks, workers)):
+            write(start, conf)
 
     def _padded(self, n: int, read: Callable[[int, int], tuple], start: int, end: int, block: int) -> tuple:
         """(along, h, pulse, first, past) of rows [start, end) read with enough rows on both sides (rows
