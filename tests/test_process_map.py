@@ -84,6 +84,22 @@ def test_a_workers_exception_is_raised_with_its_traceback_and_stops_the_workers(
     pool.stop()  # again: nothing left to do
 
 
+def test_a_chunk_that_cannot_be_made_stops_the_workers():
+    """A generator of chunks failing while workers hold earlier chunks: its error raised, and the workers stopped
+    (their answers would otherwise reach the next map)."""
+    def failing():
+        yield (np.ones(10), 0.0)
+        yield (np.ones(10), 1.0)
+        yield (np.ones(10), 2.0)
+        raise OSError("cannot read the block")
+
+    pool = ProcessMap(2)
+    with pytest.raises(OSError, match="cannot read the block"):
+        pool.map(square_sum, failing())
+    assert all(p.poll() is not None for p in pool.processes)
+    pool.stop()
+
+
 def test_a_worker_that_dies_is_named():
     pool = ProcessMap(1)
     with pytest.raises(RuntimeError, match=r"worker 0 \(pid \d+\) ended with exit status 3"):

@@ -106,7 +106,11 @@ class ProcessMap:
         busy: dict[Connection, int] = {}
 
         def give(conn: Connection) -> None:
-            index, chunk = next(waiting, (None, None))
+            try:
+                index, chunk = next(waiting, (None, None))
+            except BaseException:
+                self.stop()  # the answers the other workers still owe would reach the next map
+                raise
             if index is not None:
                 conn.send((*task, chunk))
                 busy[conn] = index
