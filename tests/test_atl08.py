@@ -193,8 +193,9 @@ def _layout(path) -> dict:
         def visit(name, obj):
             out[name] = {k: np.asarray(v).tolist() for k, v in obj.attrs.items()}
             if isinstance(obj, h5py.Dataset):
-                out[name].update(values=obj[()].tobytes(), dtype=obj.dtype.str, chunks=obj.chunks, maxshape=obj.maxshape,
-                                 gzip=(obj.compression, obj.compression_opts, obj.shuffle), fill=obj.fillvalue.item())
+                out[name].update(values=obj[()].tobytes(), dtype=obj.dtype.str, chunks=obj.chunks,
+                                 maxshape=obj.maxshape, gzip=(obj.compression, obj.compression_opts, obj.shuffle),
+                                 fill=obj.fillvalue.item())
         f.visititems(visit)
         out["/"] = {k: v for k, v in f.attrs.items()}
     return out
