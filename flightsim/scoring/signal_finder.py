@@ -51,8 +51,9 @@ class SignalFinder:
             return np.zeros(0, dtype=np.int8)
         segment = np.floor(along / self.segment_m).astype(np.int64)
         order = by_segment_then_height(segment, h)
-        ids, starts = np.unique(segment[order], return_index=True)
-        bounds = np.append(starts, len(order))
+        ordered = segment[order]
+        starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])  # each segment's first photon (sorted)
+        ids, bounds = ordered[starts], np.append(starts, len(order))
         k = self.background_segments
         pools = np.searchsorted(ids, ids - k), np.searchsorted(ids, ids + k + 1)  # segments lo … hi − 1
         of = np.repeat(np.arange(len(ids), dtype=np.int32), np.diff(bounds))  # each photon's segment (sorted order)
