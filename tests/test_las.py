@@ -7,6 +7,7 @@ LASzip through the ``laszip`` pip package, and copc.js under node) read the same
 from __future__ import annotations
 
 import datetime
+import os
 from pathlib import Path
 
 import laspy
@@ -428,6 +429,28 @@ def test_each_write_is_handed_to_the_disk_write_back(tmp_path, monkeypatch):
                             (start + 3500 * record, 300 * record)]
     assert asked[2][1] == 700 * record
     assert len(first.points) == 3800
+
+
+def test_durable_tiles_are_all_synced_at_close_before_any_rename(tmp_path, monkeypatch):
+    """A LAS tile closed to make room (more tiles than may be open) is not synced then: the writer's close syncs
+    every tile, then renames them, then syncs the folder, so no tile gets its final name before each is on disk."""
+    events: list[tuple[str, object]] = []
+    fsync, replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: (events.append(("sync", os.fstat(fd).st_ino)), fsync(fd))[1])
+    monkeypatch.setattr(os, "replace", lambda a, b: (events.append(("rename", Path(a).stat().st_ino)), replace(a, b))[1])
+    batch = random_batch(3000, seed=5)
+    writer = TileWriter(tmp_path, UTM48N, creation_date=CREATED, max_open_tiles=1, processes=0)
+    for s in range(0, 3000, 700):
+        writer.write(batch.select(slice(s, s + 700)))
+    assert events == []  # tiles were closed to make room, none synced
+    writer.close()
+    tiles = {p.stat().st_ino for p in tmp_path.glob("*.las")}
+    kinds = [kind for kind, _ in events]
+    first_rename = kinds.index("rename")
+    assert len(tiles) == 4 and {ino for kind, ino in events[:first_rename] if kind == "sync"} >= tiles
+    assert kinds[first_rename:] == ["rename"] * 4 + ["sync"]  # then the folder
+    assert events[-1][1] == tmp_path.stat().st_ino
+
 
 @pytest.mark.parametrize("compress", [False, True])
 def test_transient_tiles_are_the_same_bytes_left_to_the_page_cache(tmp_path, monkeypatch, compress):

@@ -6,8 +6,9 @@ streamed to one laspy writer per tile, so memory does not grow with the length o
 The format of every tile (LAS 1.4, point format 6, 1 mm, WKT1 CRS, extra bytes, fixed identity
 fields) is :mod:`.las_format`'s; the points come as :class:`.las_points.PointBatch`.
 
-A tile is written to ``.<name>.part`` in the output directory, fsync'ed, and renamed to its final
-name only by :meth:`TileWriter.close`; :meth:`TileWriter.abort` deletes the temporaries.
+A tile is written to ``.<name>.part`` in the output directory and renamed to its final name only by
+:meth:`TileWriter.close`, once every tile is fsync'ed (together, on threads); :meth:`TileWriter.abort` deletes
+the temporaries.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 import pyproj
 
-from flightsim.core.atomic import fsync_directory, start_writeback
+from flightsim.core.atomic import fsync_all, fsync_directory, start_writeback
 from flightsim.core.version import __version__
 from flightsim.core.errors import InputError
 from flightsim.core.lazy import PARSING
@@ -87,7 +88,7 @@ class TileWriter:
             arrives (each worker process does: the processes are the parallelism, and a compressor's threads
             in every one of them would only contend for the same cores). The bytes are the same.
         durable: have the disk take every tile's bytes as they are written and before its rename (write-back
-            started per write, fsync of each file and of the folder); False for transient tiles, read once and
+            started per write, every file fsync'ed at close, the syncs on threads, then the folder); False for transient tiles, read once and
             deleted (a survey's part files), which then stay in the page cache. The bytes are the same.
     """
 
@@ -250,11 +251,15 @@ class TileWriter:
             max(self._open.values(), key=lambda tile: tile.held_points).flush()
 
     def close(self) -> dict[str, int]:
-        """Finish every tile, rename it to its final name; returns {tile file name: point count}."""
+        """Finish every tile, rename it to its final name; returns {tile file name: point count}. A durable
+        writer's tiles are all on the disk before the first rename (their fsyncs together: one a tile as it closed
+        took ~1 ms each, a sixth of a 10 s ATLAS pass's tiles' time)."""
         if self._finished:
             raise RuntimeError("TileWriter is closed")
         try:
             self._finish_files()
+            if self._durable:
+                fsync_all(self._temp_path(key) for key in self._counts)
             for key in sorted(self._counts):
                 os.replace(self._temp_path(key), self._directory / self.tile_name(key))
             if self._durable:
@@ -453,13 +458,11 @@ class _TileFile:
             self._sink.points_appender.append_points(record)
 
     def close(self) -> None:
-        """Finish the file (held records, header, LAZ chunk table), flush it to disk and close it."""
+        """Finish the file (held records, header, LAZ chunk table) and close it (its writer's close syncs it)."""
         try:
             self.flush()
             self._sink.close()
             self._file.flush()
-            if self._durable:
-                os.fsync(self._file.fileno())
         finally:
             self._file.close()
 
