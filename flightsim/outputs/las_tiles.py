@@ -88,8 +88,9 @@ class TileWriter:
             arrives (each worker process does: the processes are the parallelism, and a compressor's threads
             in every one of them would only contend for the same cores). The bytes are the same.
         durable: have the disk take every tile's bytes as they are written and before its rename (write-back
-            started per write, every file fsync'ed at close, the syncs on threads, then the folder); False for transient tiles, read once and
-            deleted (a survey's part files), which then stay in the page cache. The bytes are the same.
+            started per write, every file fsync'ed at close, the syncs on threads, then the folder); False for
+            transient tiles, read once and deleted (a survey's part files), which then stay in the page cache. The
+            bytes are the same.
     """
 
     def __init__(
