@@ -6,9 +6,8 @@ streamed to one laspy writer per tile, so memory does not grow with the length o
 The format of every tile (LAS 1.4, point format 6, 1 mm, WKT1 CRS, extra bytes, fixed identity
 fields) is :mod:`.las_format`'s; the points come as :class:`.las_points.PointBatch`.
 
-A tile is written to ``.<name>.part`` in the output directory and renamed to its final name only by
-:meth:`TileWriter.close`, once every tile is fsync'ed (together, on threads); :meth:`TileWriter.abort` deletes
-the temporaries.
+A tile is written to ``.<name>.part`` in the output directory and renamed by :meth:`TileWriter.close` once every
+tile is fsync'ed (together, on threads); :meth:`TileWriter.abort` deletes the temporaries.
 """
 from __future__ import annotations
 
@@ -88,9 +87,8 @@ class TileWriter:
             arrives (each worker process does: the processes are the parallelism, and a compressor's threads
             in every one of them would only contend for the same cores). The bytes are the same.
         durable: have the disk take every tile's bytes as they are written and before its rename (write-back
-            started per write, every file fsync'ed at close, the syncs on threads, then the folder); False for
-            transient tiles, read once and deleted (a survey's part files), which then stay in the page cache. The
-            bytes are the same.
+            started per write, every file fsync'ed at close, then the folder); False for transient tiles, read once
+            and deleted (a survey's part files), which then stay in the page cache. The bytes are the same.
     """
 
     def __init__(
@@ -252,9 +250,7 @@ class TileWriter:
             max(self._open.values(), key=lambda tile: tile.held_points).flush()
 
     def close(self) -> dict[str, int]:
-        """Finish every tile, rename it to its final name; returns {tile file name: point count}. A durable
-        writer's tiles are all on the disk before the first rename (their fsyncs together: one a tile as it closed
-        took ~1 ms each, a sixth of a 10 s ATLAS pass's tiles' time)."""
+        """Finish every tile, sync them all together (a durable writer's), then rename each; {tile file: points}."""
         if self._finished:
             raise RuntimeError("TileWriter is closed")
         try:
