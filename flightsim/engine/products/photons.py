@@ -19,7 +19,9 @@ PARALLEL_PHOTONS = 1 << 19  # photons from which atl03.h5's signal finder and at
 MAX_WORKERS = 32  # the most worker processes they start
 BEHIND_PHOTONS = 8 << 20  # photons.h5 and the LAS tiles are handed a part once about this many photons came after
 # it (the parts of run.host_photons that make them up, at least one): atl03.h5 has them first
-LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (off orbit; one from orbit)
+LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (off orbit)
+ORBIT_LAS_THREADS = 2  # from orbit (the geodetic transform has PROJ's threads, the finder and ATL08 the cores): on one,
+# the tiles held the trace back ~6 s of a 30 s pass on a 16-core GPU host (results/profile-experiments.md section 87)
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5")  # what the workers run, imported early
 
 
@@ -56,8 +58,7 @@ class PhotonProduct:
                         cfg.flight.start_gps_time)
         atl03 = [Atl03Writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter))
                  ] if body else []
-        # from orbit the tiles' geodetic transform has PROJ's threads, and the signal finder and ATL08 want the cores
-        las_threads = 1 if atl03 else thread_count(LAS_THREADS)
+        las_threads = thread_count(ORBIT_LAS_THREADS if atl03 else LAS_THREADS)
         self.h5, self.las = Background(h5, "photons-h5"), Background(las, "photon-las", threads=las_threads)
         self.atl03 = [Background(writer, "atl03") for writer in atl03]
         self.atl08 = body is not None and cfg.output.atl08
