@@ -141,6 +141,22 @@ def test_a_writer_failing_on_its_thread_leaves_no_file_and_stops_the_workers(tmp
     assert len(pools) == 1 and all(process.poll() is not None for process in pools[0].processes)
 
 
+@pytest.mark.parametrize("in_order", [True, False])
+def test_nearest_is_each_segments_first_least_offset(in_order):
+    """_nearest, with segments in order (runs, no sort) and out of order (a sort): per segment, in segment order, the
+    index of its least offset, the first on a tie, as a plain loop finds it."""
+    from flightsim.outputs.atl03_h5 import _nearest
+
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 7, 500):
+        segment = rng.integers(0, max(n // 3, 1), n)
+        segment = np.sort(segment) if in_order else segment
+        offset = rng.integers(0, 3, n) / 2.0  # many ties
+        expected = [min((o, i) for i, (s, o) in enumerate(zip(segment, offset)) if s == k)[1]
+                    for k in sorted(set(segment.tolist()))]
+        assert _nearest(segment, offset).tolist() == expected
+
+
 def test_reference_photons_over_chunks_are_the_nearest_to_the_centre_first_on_a_tie():
     """Each segment's reference photon over several chunks (a segment across their boundary, offsets that tie within
     and across chunks): the photon of least offset from the segment's centre, the earliest row on a tie, as a plain

@@ -203,10 +203,16 @@ def _keep_reference(track: _Track, segment: np.ndarray, offset: np.ndarray, row0
 
 
 def _nearest(segment: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """Per segment present, the index of its least offset (the first such on a tie)."""
-    order = np.lexsort((offset, segment))  # stable
-    seg = segment[order]
-    return order[np.r_[True, seg[1:] != seg[:-1]]]
+    """Per segment present, the index of its least offset (the first such on a tie), in segment order. Segments
+    in order, as a beam's photons come along track, are taken as runs without a sort (a tenth of the time)."""
+    if not np.all(segment[1:] >= segment[:-1]):
+        order = np.lexsort((offset, segment))  # stable
+        seg = segment[order]
+        return order[np.r_[True, seg[1:] != seg[:-1]]]
+    starts = np.flatnonzero(np.r_[True, segment[1:] != segment[:-1]])
+    run = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(segment)]))
+    hits = np.flatnonzero(offset == np.minimum.reduceat(offset, starts)[run])  # each run's least, ties too
+    return hits[np.r_[True, run[hits][1:] != run[hits][:-1]]]
 
 
 def _references(track: _Track, ids: np.ndarray) -> tuple[np.ndarray, ...]:
