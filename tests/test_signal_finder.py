@@ -13,7 +13,7 @@ from flightsim.engine.run import simulate_to_directory
 from flightsim.instrument.pairs import SINGLE_BEAM
 from scipy.stats import poisson
 
-from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, at_least, by_segment_then_height
+from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, at_least
 
 
 def _pass(tmp_path, **settings) -> tuple[np.ndarray, np.ndarray]:
@@ -73,19 +73,6 @@ def test_distinct_shots_of_every_window_of_segments(seed):
             expected = len(np.unique(pulse[(segment >= lo) & (segment < hi)]))
             assert np.count_nonzero(came[bounds[lo]:bounds[hi]] < lo) == expected, (lo, hi)
         assert bounds[lo + 1] - bounds[lo] == len(np.unique(pulse[segment == lo]))
-
-
-@pytest.mark.parametrize("span", [40, (1 << 15) - 1, 1 << 15, 10 ** 6])
-def test_order_by_segment_then_height(span):
-    """The finder's order against ``np.lexsort``: the same (segment, height) sequence (equal heights may swap), for
-    segments spanning up to 2^15 − 1 (a radix sort of 16-bit keys) and beyond (``np.lexsort`` itself)."""
-    rng = np.random.default_rng(span)
-    segment = 7 + np.sort(rng.integers(0, span, 5_000))
-    segment[:3] = 7 + span - 1  # the span's far end first: not in order
-    h = np.round(rng.normal(0.0, 30.0, len(segment)), 1)  # equal heights too
-    order, expected = by_segment_then_height(segment, h), np.lexsort((h, segment))
-    assert np.array_equal(segment[order], segment[expected]) and np.array_equal(h[order], h[expected])
-    assert np.array_equal(np.sort(order), np.arange(len(h)))
 
 
 def _reference(finder: SignalFinder, along, h, pulse) -> np.ndarray:

@@ -35,6 +35,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import median_filter
 
+from flightsim.core.radix import by_key_then_value
+
 
 def ground_surface(x: np.ndarray, h: np.ndarray, s) -> tuple[np.ndarray, np.ndarray]:
     """Window centres [m along track] and the ground surface there [m] of the signal photons ``x``, ``h`` (m,
@@ -95,7 +97,7 @@ def window_floors(window: np.ndarray, h: np.ndarray, count: int, k: int, band: f
     floors, valid = np.zeros(count), np.zeros(count, dtype=bool)
     if len(h) < k:
         return floors, valid
-    order = np.lexsort((h, window))
+    order = by_key_then_value(window, h)
     hs, ws = h[order], window[order]
     start = np.arange(len(hs) - k + 1)
     seeds = start[(ws[start + k - 1] == ws[start]) & (hs[start + k - 1] - hs[start] <= band)]
@@ -156,7 +158,7 @@ def _smoothed(base: np.ndarray, offset: np.ndarray, valid: np.ndarray, size: int
 def group_percentile(group, values, q: float, count: int) -> tuple[np.ndarray, np.ndarray]:
     """The q-th percentile (linear, as numpy's default) of the values of each group 0 … count-1, and whether the
     group has any (0 where not)."""
-    order = np.lexsort((values, group))
+    order = by_key_then_value(group, values)
     v = values[order]
     size = np.bincount(group, minlength=count)
     valid = size > 0

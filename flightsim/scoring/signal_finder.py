@@ -28,6 +28,7 @@ import numpy as np
 from scipy.special import pdtrc
 
 from flightsim.core.process_map import ProcessMap, map_rows
+from flightsim.core.radix import by_key_then_value
 
 NOISE, BUFFER, LOW, MEDIUM, HIGH = 0, 1, 2, 3, 4
 
@@ -50,7 +51,7 @@ class SignalFinder:
         if not len(h):
             return np.zeros(0, dtype=np.int8)
         segment = np.floor(along / self.segment_m).astype(np.int64)
-        order = by_segment_then_height(segment, h)
+        order = by_key_then_value(segment, h)
         ordered = segment[order]
         starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])  # each segment's first photon (sorted)
         ids, bounds = ordered[starts], np.append(starts, len(order))
@@ -146,17 +147,6 @@ def _classify_part(finder: SignalFinder, along, h, pulse, first: int, past: int)
     """``finder``'s confidence of rows [first, past) of the photons (a module-level function: a worker process runs
     it on a block)."""
     return finder.classify(along, h, pulse)[first:past]
-
-
-def by_segment_then_height(segment: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """The photons' order by segment, then height (equal heights in any order): where the segments span fewer than
-    2^15, a sort by height and then a stable sort by segment of 16-bit keys (NumPy's radix sort; a third of
-    ``np.lexsort``'s time on a block of 2^20 photons), else ``np.lexsort``."""
-    relative = segment - segment.min()
-    if relative.max() >= 1 << 15:
-        return np.lexsort((h, segment))
-    by_height = np.argsort(h)
-    return by_height[np.argsort(relative[by_height].astype(np.int16), kind="stable")]
 
 
 def _shots(segment: np.ndarray, pulse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
