@@ -328,3 +328,19 @@ def test_a_lone_low_floor_does_not_pull_the_ground_down():
     np.testing.assert_array_equal(np.flatnonzero(~valid), [20, 30])  # lone floors, below and above
     ground = valid & ~raised(centres, floors, valid, s.relief_slope, s.object_height_m)
     np.testing.assert_array_equal(np.flatnonzero(~ground), [5, 6, 20, 30])
+
+
+def test_background_windows_are_numbered_as_np_unique_ranks_them():
+    """Each photon's density window: the rank of its window among the windows holding photons (np.unique's inverse),
+    with runs of empty windows between, photons on window edges and out of order."""
+    from flightsim.outputs.atl08 import _windows
+
+    s = ATL08Settings()
+    rng = np.random.default_rng(3)
+    w = s.dragann_window_m
+    x = np.concatenate([rng.uniform(0.0, 3 * w, 400), rng.uniform(40 * w, 41 * w, 50), w * np.arange(5.0, 9.0),
+                        [1e5 * w]])
+    rng.shuffle(x)
+    expected = np.unique(np.floor(x / w), return_inverse=True)[1].reshape(-1)
+    assert np.array_equal(_windows(x, s), expected) and expected.max() == 8  # 9 windows hold photons
+    assert len(_windows(np.zeros(0), s)) == 0

@@ -147,9 +147,9 @@ def atl08_segments(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time, se
     check_settings("atl08", s)
     x, h, la, lo, conf, t = _photons(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time)
     seg_m = positive("segment_m", segment_m, "m")
-    dense, lam = _dense(x, h, conf, s)
+    dense, window, lam = _dense(x, h, conf, s)
     signal = dense | (conf >= s.min_signal_conf)
-    cls, ph_h, band = _classify(x, h, signal, lam, s)
+    cls, ph_h, band = _classify(x, h, signal, window, lam, s)
     photons = {"classed_pc_flag": cls, "classed_pc_indx": np.arange(1, len(x) + 1, dtype=np.int32), "ph_h": ph_h,
                "ph_segment_id": (np.floor(x / ATL03_SEGMENT_M) + 1).astype(np.int32),
                "d_flag": dense.astype(np.int8), "delta_time": t}
@@ -186,17 +186,21 @@ def _photons(along, h, lat, lon, conf, t) -> tuple[np.ndarray, ...]:
 
 
 def _expected(window, x, h, s: ATL08Settings) -> np.ndarray:
-    """Per photon: the mean count of background photons in its ellipse (the background of its along-track
-    ``window``, :func:`_windows`)."""
+    """Per along-track window (:func:`_windows`, each photon's): the mean count of background photons in a photon's
+    ellipse there."""
     if not len(x):
         return np.zeros(0)
-    lam = _background(window, x, h, s) * math.pi * s.dragann_along_m * s.dragann_height_m
-    return lam[window]
+    return _background(window, x, h, s) * math.pi * s.dragann_along_m * s.dragann_height_m
 
 
 def _windows(x, s: ATL08Settings) -> np.ndarray:
-    """Each photon's along-track window of dragann_window_m, numbered 0, 1, … over the windows holding photons."""
-    return np.unique(np.floor(x / s.dragann_window_m), return_inverse=True)[1].reshape(-1)
+    """Each photon's along-track window of dragann_window_m, numbered 0, 1, … over the windows holding photons (the
+    ranks ``np.unique``'s inverse gives, from a count of the windows instead of a sort)."""
+    if not len(x):
+        return np.zeros(0, dtype=np.int64)
+    cell = np.floor(x / s.dragann_window_m)
+    cell = (cell - cell.min()).astype(np.int64)
+    return (np.cumsum(np.bincount(cell) > 0) - 1)[cell]
 
 
 def _limit(lam: np.ndarray, s: ATL08Settings) -> np.ndarray:
@@ -205,18 +209,19 @@ def _limit(lam: np.ndarray, s: ATL08Settings) -> np.ndarray:
     return poisson.isf(s.dragann_p, means)[index.reshape(-1)]
 
 
-def _dense(x, h, conf, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray]:
+def _dense(x, h, conf, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which photons the density filter finds dense (step 1: in heights above the trend of a first ground surface
-    of the photons dense in their heights, or of ATL03 confidence), and each one's background count there."""
+    of the photons dense in their heights, or of ATL03 confidence); each photon's window and each window's
+    background count in an ellipse there."""
     window = _windows(x, s)
     lam = _expected(window, x, h, s)
-    first = (_neighbours(x, h, s) > _limit(lam, s)) | (conf >= s.min_signal_conf)
+    first = (_neighbours(x, h, s) > _limit(lam, s)[window]) | (conf >= s.min_signal_conf)
     if not first.any():
-        return first, lam
+        return first, window, lam
     centres, surface = ground_surface(x[first], h[first], s)
     above = h - np.interp(x, centres, trend_of(surface, np.ones(len(surface), dtype=bool), s))
     lam = _expected(window, x, above, s)
-    return _neighbours(x, above, s) > _limit(lam, s), lam
+    return _neighbours(x, above, s) > _limit(lam, s)[window], window, lam
 
 
 def _neighbours(x, h, s: ATL08Settings) -> np.ndarray:
@@ -317,10 +322,10 @@ def _extremes(group, values, count: int) -> tuple[np.ndarray, np.ndarray]:
     return low, high
 
 
-def _classify(x, h, signal, lam, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _classify(x, h, signal, window, lam, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """classed_pc_flag (int8), height above the ground surface (FILL where no signal photon exists) and the
-    background photons per metre along track in the ground band around each photon; ``lam``: each photon's mean
-    background count in the density filter's ellipse."""
+    background photons per metre along track in the ground band around each photon; ``window``, ``lam``: each
+    photon's window and each window's mean background count in the density filter's ellipse."""
     cls = np.zeros(len(x), dtype=np.int8)
     if not signal.any():
         return cls, np.full(len(x), FILL), np.zeros(len(x))
@@ -330,10 +335,10 @@ def _classify(x, h, signal, lam, s: ATL08Settings) -> tuple[np.ndarray, np.ndarr
     cls[signal & (np.abs(rel) <= buffer)] = GROUND
     above = rel > buffer
     cls[signal & above & (rel <= s.max_canopy_m)] = CANOPY
-    sparse = _neighbours(x[above], rel[above], s) <= _limit(lam[above], s)  # above the ground only
+    sparse = _neighbours(x[above], rel[above], s) <= _limit(lam, s)[window[above]]  # above the ground only
     cls[np.flatnonzero(above)[sparse & (cls[above] == CANOPY)]] = NOISE
     _mark_top_of_canopy(x, rel, cls, s)
-    return cls, rel, lam * 2.0 * buffer / (math.pi * s.dragann_along_m * s.dragann_height_m)
+    return cls, rel, lam[window] * 2.0 * buffer / (math.pi * s.dragann_along_m * s.dragann_height_m)
 
 
 def _ground_buffer(rel: np.ndarray, s: ATL08Settings) -> float:
