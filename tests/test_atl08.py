@@ -344,3 +344,5 @@ def test_background_windows_are_numbered_as_np_unique_ranks_them():
     expected = np.unique(np.floor(x / w), return_inverse=True)[1].reshape(-1)
     assert np.array_equal(_windows(x, s), expected) and expected.max() == 8  # 9 windows hold photons
     assert len(_windows(np.zeros(0), s)) == 0
+    far = np.array([0.0, 3e15, 1.0, 7e14])  # windows far apart: ranked without counting the empty ones between
+    assert _windows(far, s).tolist() == [0, 2, 0, 1]

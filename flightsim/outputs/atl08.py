@@ -195,11 +195,15 @@ def _expected(window, x, h, s: ATL08Settings) -> np.ndarray:
 
 def _windows(x, s: ATL08Settings) -> np.ndarray:
     """Each photon's along-track window of dragann_window_m, numbered 0, 1, … over the windows holding photons (the
-    ranks ``np.unique``'s inverse gives, from a count of the windows instead of a sort)."""
+    ranks ``np.unique``'s inverse gives: from a count of the windows where they span few more than the photons, else
+    by ``np.unique``'s sort)."""
     if not len(x):
         return np.zeros(0, dtype=np.int64)
     cell = np.floor(x / s.dragann_window_m)
-    cell = (cell - cell.min()).astype(np.int64)
+    cell -= cell.min()
+    if cell.max() > 4 * len(x) + 1024:  # photons far apart: a count would be mostly empty windows
+        return np.unique(cell, return_inverse=True)[1].reshape(-1)
+    cell = cell.astype(np.int64)
     return (np.cumsum(np.bincount(cell) > 0) - 1)[cell]
 
 
