@@ -15,15 +15,13 @@ def _kd(u, v) -> np.ndarray:
     return cKDTree(points).query_ball_point(points, r=1.0, return_length=True)
 
 
-def test_clustered_photons_like_a_pass(monkeypatch):
-    """A noise cloud, a dense ground line and a canopy band; blocks of a few thousand pairs (every block boundary
-    inside a query's runs)."""
+def test_clustered_photons_like_a_pass():
+    """A noise cloud, a dense ground line and a canopy band."""
     rng = np.random.default_rng(11)
     n = 20_000
     u = np.concatenate([rng.uniform(0, 40, n), rng.uniform(0, 40, n), rng.uniform(10, 20, n // 4)])
     v = np.concatenate([rng.uniform(-300, 900, n), rng.normal(0.0, 0.2, n) + 0.05 * u[n:2 * n],
                         rng.uniform(1, 12, n // 4)])
-    monkeypatch.setattr(atl08, "PAIRS_PER_BLOCK", 4096)
     np.testing.assert_array_equal(ellipse_counts(u, v), _kd(u, v))
 
 

@@ -41,6 +41,17 @@ class PhotonProduct:
     files = ("photons.h5", FOLDER, "atl03.h5", "atl08.h5")
     tracer_options: dict = {}
 
+    @staticmethod
+    def setup_kernels(cfg) -> list:
+        """(kernel, device) of what atl08.h5 launches at close on the CPU (its density filter's counts,
+        :func:`flightsim.outputs.atl08.ellipse_counts`, on the workers), for :func:`flightsim.engine.run.compile_setup`:
+        compiled, or loaded from the kernel cache, once while the run is set up rather than by each worker."""
+        if cfg.flight.platform != "orbit" or not cfg.output.atl08:
+            return []
+        from kernels.ellipse import ellipse_pairs
+
+        return [(ellipse_pairs, "cpu")]
+
     def __init__(self, cfg, scene):
         self.cfg, self.scene = cfg, scene
 
