@@ -154,3 +154,24 @@ def test_preloaded_modules_are_imported_before_the_first_task():
         assert workers.map(loaded, [("colorsys",), ("wave",)]) == [True, False]
     finally:
         workers.stop()
+
+
+def test_preloaded_functions_are_called_before_the_first_task():
+    """``module:function`` entries are called once as the worker starts; a failing one is left alone."""
+    workers = ProcessMap(1, preload=("os:getpid", "wave:no_such_function", f"{mark_started.__module__}:mark_started"))
+    try:
+        assert workers.map(started_marks, [()]) == [1]
+        assert workers.map(loaded, [("wave",)]) == [True]  # imported, though its function was not there
+    finally:
+        workers.stop()
+
+
+MARKS: list[int] = []
+
+
+def mark_started() -> None:
+    MARKS.append(1)
+
+
+def started_marks() -> int:
+    return len(MARKS)

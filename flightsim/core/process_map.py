@@ -66,7 +66,8 @@ def map_rows(function: Callable, chunks: Iterable[tuple], workers: "ProcessMap |
 
 class ProcessMap:
     """``count`` worker interpreters (>= 1) that run module-level functions on pickled arguments; each imports the
-    modules ``preload`` names as it starts (while the parent goes on), not at its first task."""
+    modules ``preload`` names as it starts (while the parent goes on), not at its first task, and calls the functions
+    it names as ``module:function`` (no arguments: e.g. Warp's start)."""
 
     def __init__(self, count: int, preload: tuple[str, ...] = ()):
         self.processes: list[subprocess.Popen] = []
@@ -157,12 +158,16 @@ def _stop(processes: list[subprocess.Popen], connections: list[Connection]) -> N
 
 
 def serve(fd: int, preload: list[str] = ()) -> None:
-    """A worker's loop: import the ``preload`` modules, then run each (module, name, arguments) received on the
-    connection ``fd`` and send back ("ok", result) or ("error", exception, traceback), until the connection closes
-    (a preload that fails to import is left to the task that needs it, which then reports the error)."""
-    for module in preload:
+    """A worker's loop: import the ``preload`` modules (and call the ``module:function`` ones), then run each (module,
+    name, arguments) received on the connection ``fd`` and send back ("ok", result) or ("error", exception,
+    traceback), until the connection closes (a preload that fails is left to the task that needs it, which then
+    reports the error)."""
+    for entry in preload:
+        module, _, call = entry.partition(":")
         with contextlib.suppress(Exception):
-            importlib.import_module(module)
+            loaded = importlib.import_module(module)
+            if call:
+                getattr(loaded, call)()
     conn = Connection(fd)
     while True:
         try:

@@ -22,7 +22,8 @@ BEHIND_PHOTONS = 8 << 20  # photons.h5 and the LAS tiles are handed a part once 
 LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (off orbit)
 ORBIT_LAS_THREADS = 2  # from orbit (the geodetic transform has PROJ's threads, the finder and ATL08 the cores): on one,
 # the tiles held the trace back ~6 s of a 30 s pass on a 16-core GPU host (results/profile-experiments.md section 87)
-PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5")  # what the workers run, imported early
+PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5",  # what the workers run, imported early,
+           "flightsim.core.warp_runtime:init_warp")  # and Warp started for ATL08's density filter
 
 
 def reflectance_source(cfg, scene, value: float) -> float | str:
