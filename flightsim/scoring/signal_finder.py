@@ -25,10 +25,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 from scipy.special import pdtrc
 
 from flightsim.core.process_map import ProcessMap, map_rows
 from flightsim.core.radix import by_key_then_value
+from flightsim.core.warp_runtime import init_warp
+from kernels.signal_finder import segment_counts
 
 NOISE, BUFFER, LOW, MEDIUM, HIGH = 0, 1, 2, 3, 4
 
@@ -47,7 +50,7 @@ class SignalFinder:
 
     def classify(self, along_m, h_m, pulse) -> np.ndarray:
         """Confidence 0–4 (int8) of photons given by along-track distance [m], height [m] and pulse id."""
-        along, h, pulse = (np.asarray(a) for a in (along_m, h_m, pulse))
+        along, h, pulse = np.asarray(along_m), np.asarray(h_m, dtype=np.float64), np.asarray(pulse)
         if not len(h):
             return np.zeros(0, dtype=np.int8)
         segment = np.floor(along / self.segment_m).astype(np.int64)
@@ -82,18 +85,15 @@ class SignalFinder:
     def _counts(self, hs: np.ndarray, bounds: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple:
         """Per photon (heights ``hs`` sorted by segment, then height; segment j's rows bounds[j] … bounds[j+1] − 1,
         its pool segments lo[j] … hi[j] − 1): the pool's photons in its background ring, and its segment's other
-        photons within ±window_m/2; per segment the pool's band (least, greatest height). A segment at a time: its
-        searches stay among a few thousand heights in the cache."""
-        inner, outer, half = self.window_m, self.background_m / 2.0, self.window_m / 2.0
-        ring, others = np.empty(len(hs), dtype=np.int32), np.empty(len(hs), dtype=np.int32)
-        band = np.empty((2, len(lo)))
-        for j in range(len(lo)):
-            a, b = bounds[j], bounds[j + 1]
-            mine, pooled = hs[a:b], np.sort(hs[bounds[lo[j]]:bounds[hi[j]]], kind="stable")  # sorted runs merged
-            ring[a:b] = _count(pooled, mine - outer, mine + outer) - _count(pooled, mine - inner, mine + inner)
-            others[a:b] = _count(mine, mine - half, mine + half) - 1
-            band[:, j] = pooled[0], pooled[-1]
-        return ring, others, band
+        photons within ±window_m/2; per segment the pool's band (least, greatest height). A Warp kernel on the CPU
+        (:func:`kernels.signal_finder.segment_counts`), a thread a segment."""
+        init_warp()
+        ring, others = (wp.empty(len(hs), dtype=wp.int32, device="cpu") for _ in range(2))
+        band = wp.empty((2, len(lo)), dtype=wp.float64, device="cpu")
+        wp.launch(segment_counts, len(lo), inputs=[hs, *(a.astype(np.int32) for a in (bounds, lo, hi)), self.window_m,
+                                                   self.background_m / 2.0, self.window_m / 2.0],
+                  outputs=[ring, others, band], device="cpu")
+        return ring.numpy(), others.numpy(), band.numpy()
 
     def _buffered(self, conf: np.ndarray, hs: np.ndarray, bounds: np.ndarray, of: np.ndarray) -> np.ndarray:
         """``conf`` (sorted order) with the noise photons within ±window_m of a photon of confidence ≥ LOW of their

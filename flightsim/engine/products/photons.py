@@ -23,7 +23,7 @@ LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (
 ORBIT_LAS_THREADS = 2  # from orbit (the geodetic transform has PROJ's threads, the finder and ATL08 the cores): on one,
 # the tiles held the trace back ~6 s of a 30 s pass on a 16-core GPU host (results/profile-experiments.md section 87)
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5",  # what the workers run, imported early,
-           "flightsim.core.warp_runtime:init_warp")  # and Warp started for ATL08's density filter
+           "flightsim.core.warp_runtime:init_warp")  # and Warp started (the finder's and ATL08's CPU kernels)
 
 
 def reflectance_source(cfg, scene, value: float) -> float | str:
@@ -44,14 +44,16 @@ class PhotonProduct:
 
     @staticmethod
     def setup_kernels(cfg) -> list:
-        """(kernel, device) of what atl08.h5 launches at close on the CPU (its density filter's counts,
-        :func:`flightsim.outputs.atl08.ellipse_counts`, on the workers), for :func:`flightsim.engine.run.compile_setup`:
-        compiled, or loaded from the kernel cache, once while the run is set up rather than by each worker."""
-        if cfg.flight.platform != "orbit" or not cfg.output.atl08:
+        """(kernel, device) of what atl03.h5 and atl08.h5 launch at close on the CPU, on the workers (the signal
+        finder's counts, :mod:`kernels.signal_finder`, and ATL08's density filter's, :mod:`kernels.ellipse`), for
+        :func:`flightsim.engine.run.compile_setup`: compiled, or loaded from the kernel cache, once while the run is
+        set up rather than by each worker."""
+        if cfg.flight.platform != "orbit":
             return []
         from kernels.ellipse import ellipse_pairs
+        from kernels.signal_finder import segment_counts
 
-        return [(ellipse_pairs, "cpu")]
+        return [(segment_counts, "cpu")] + ([(ellipse_pairs, "cpu")] if cfg.output.atl08 else [])
 
     def __init__(self, cfg, scene):
         self.cfg, self.scene = cfg, scene
