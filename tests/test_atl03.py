@@ -157,6 +157,16 @@ def test_nearest_is_each_segments_first_least_offset(in_order):
         assert _nearest(segment, offset).tolist() == expected
 
 
+def test_horizontal_lengths_are_numpys_norm_bit_for_bit():
+    """x_atc's horizontal lengths against ``np.linalg.norm`` of the first two columns: the same float64 bits, at
+    offsets from millimetres to thousands of kilometres and of either sign."""
+    from flightsim.outputs.atl03_h5 import _horizontal
+
+    rng = np.random.default_rng(3)
+    offsets = rng.normal(0.0, 1.0, (100_000, 3)) * 10.0 ** rng.uniform(-3, 6.5, (100_000, 1))
+    assert np.array_equal(_horizontal(offsets), np.linalg.norm(offsets[:, :2], axis=1))
+
+
 def test_reference_photons_over_chunks_are_the_nearest_to_the_centre_first_on_a_tie():
     """Each segment's reference photon over several chunks (a segment across their boundary, offsets that tie within
     and across chunks): the photon of least offset from the segment's centre, the earliest row on a tie, as a plain

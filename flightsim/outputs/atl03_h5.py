@@ -120,13 +120,14 @@ class Atl03Writer:
         footprint = {"delta_time": adjusted_to_delta_time(chunk.start_time + pulses / self.prf_hz), "lat": lat,
                      "lon": lon, "h": h}
         origin = track.first_footprint.setdefault(chunk.line_id, centre[0].copy())
-        return footprint, np.linalg.norm(centre[:, :2] - origin[:2], axis=1)[inverse]
+        return footprint, _horizontal(centre - origin)[inverse]
 
     def _heights(self, track: _Track, chunk, rows: np.ndarray, along: np.ndarray) -> dict:
         """The heights columns of one beam's photons (its segments, frames and reference photons kept)."""
         line = chunk.line_id
-        lat, lon, h = local_to_geodetic(self.body, self.scene, chunk.points[rows])
-        start = track.first_photon.setdefault(line, chunk.points[rows[0]].copy())
+        points = chunk.points[rows]
+        lat, lon, h = local_to_geodetic(self.body, self.scene, points)
+        start = track.first_photon.setdefault(line, points[0].copy())
         base = track.segment_base.setdefault(line, track.next_segment)
         local = np.floor(along / SEGMENT_M).astype(np.int64)
         segment = base + local
@@ -141,7 +142,7 @@ class Atl03Writer:
         track.frames.append(frame.astype(np.int32))
         track.rows += len(rows)
         return {"delta_time": t, "lat_ph": lat, "lon_ph": lon, "h_ph": h, "dist_ph_along": dist,
-                "x_atc": np.linalg.norm(chunk.points[rows, :2] - start[:2], axis=1),
+                "x_atc": _horizontal(points - start),
                 "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows]}
 
     def close(self, workers: ProcessMap | None = None) -> str:
@@ -182,6 +183,13 @@ class Atl03Writer:
         self.product.abort()
 
 
+def _horizontal(offsets: np.ndarray) -> np.ndarray:
+    """The horizontal length of (n, 3) offsets [m]: ``np.linalg.norm(offsets[:, :2], axis=1)`` bit for bit (the same
+    squares added in the same order), without its reduction over a short axis (a quarter of the time)."""
+    x, y = offsets[:, 0], offsets[:, 1]
+    return np.sqrt(x * x + y * y)
+
+
 def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> None:
     """Each background frame's first shot time and its shots that detected a photon (a shot's photons are all in one
     chunk)."""
@@ -203,16 +211,18 @@ def _keep_reference(track: _Track, segment: np.ndarray, offset: np.ndarray, row0
 
 
 def _nearest(segment: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """Per segment present, the index of its least offset (the first such on a tie), in segment order. Segments
-    in order, as a beam's photons come along track, are taken as runs without a sort (a tenth of the time)."""
-    if not np.all(segment[1:] >= segment[:-1]):
-        order = np.lexsort((offset, segment))  # stable
-        seg = segment[order]
-        return order[np.r_[True, seg[1:] != seg[:-1]]]
+    """Per segment present, the index of its least offset (the first such on a tie), in segment order: each segment's
+    run of a stable sort by segment (none where they come in order; a beam's photons come along track, a shot near a
+    segment's edge now and then back in the one before, which NumPy's stable sort takes nearly as fast), its least
+    offset found in the run (a tenth of the time of a sort by segment, then offset)."""
+    order = None if np.all(segment[1:] >= segment[:-1]) else np.argsort(segment, kind="stable")
+    if order is not None:
+        segment, offset = segment[order], offset[order]
     starts = np.flatnonzero(np.r_[True, segment[1:] != segment[:-1]])
     run = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(segment)]))
     hits = np.flatnonzero(offset == np.minimum.reduceat(offset, starts)[run])  # each run's least, ties too
-    return hits[np.r_[True, run[hits][1:] != run[hits][:-1]]]
+    firsts = hits[np.r_[True, run[hits][1:] != run[hits][:-1]]]
+    return firsts if order is None else order[firsts]
 
 
 def _references(track: _Track, ids: np.ndarray) -> tuple[np.ndarray, ...]:
