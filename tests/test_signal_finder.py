@@ -169,3 +169,20 @@ def test_classifying_block_by_block_equals_classifying_at_once(processes):
             workers.stop()
     assert written == list(range(0, pulse.size, 1000))
     assert np.array_equal(out, finder.classify(along, h, pulse))
+
+
+def test_photons_without_a_position_are_noise_and_nobodys_neighbours():
+    """Non-finite heights or distances (a photon without a position): those photons 0, every other photon as if they
+    were not there (before, one NaN height in a pool made every confidence 0)."""
+    rng = np.random.default_rng(2)
+    pulse = np.sort(rng.integers(0, 3_000, 20_000))
+    along = pulse * 0.7 + rng.uniform(0.0, 0.3, len(pulse))
+    h = np.where(rng.random(len(pulse)) < 0.3, 40.0 + rng.normal(0.0, 0.2, len(pulse)),
+                 rng.uniform(0.0, 300.0, len(pulse)))
+    lost = rng.random(len(h)) < 0.05
+    h[lost & (rng.random(len(h)) < 0.7)] = np.nan
+    along[lost & np.isfinite(h)] = np.inf
+    conf = SignalFinder().classify(along, h, pulse)
+    assert (conf[lost] == 0).all()
+    assert np.array_equal(conf[~lost], SignalFinder().classify(along[~lost], h[~lost], pulse[~lost]))
+    assert np.count_nonzero(conf[~lost] >= LOW) > 1_000  # the surface is found

@@ -49,10 +49,16 @@ class SignalFinder:
     p_high: float = 2.87e-7  # 5 σ
 
     def classify(self, along_m, h_m, pulse) -> np.ndarray:
-        """Confidence 0–4 (int8) of photons given by along-track distance [m], height [m] and pulse id."""
+        """Confidence 0–4 (int8) of photons given by along-track distance [m], height [m] and pulse id; a photon
+        whose distance or height is not finite (no position) is noise and no other photon's neighbour."""
         along, h, pulse = np.asarray(along_m), np.asarray(h_m, dtype=np.float64), np.asarray(pulse)
         if not len(h):
             return np.zeros(0, dtype=np.int8)
+        placed = np.isfinite(along) & np.isfinite(h)
+        if not placed.all():
+            out = np.zeros(len(h), dtype=np.int8)
+            out[placed] = self.classify(along[placed], h[placed], pulse[placed])
+            return out
         segment = np.floor(along / self.segment_m).astype(np.int64)
         order = by_key_then_value(segment, h)
         ordered = segment[order]
