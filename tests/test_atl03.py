@@ -286,3 +286,39 @@ def test_photons_h5_and_the_tiles_get_each_part_behind_atl03_and_the_rest_at_clo
             came = sum(1 for name, _, _ in calls[:at] if name == "Atl03Writer")
             assert wait == (k < len(atl03) - 3)
             assert came == (k + 4 if wait else len(atl03))  # part k once part k + 3 came; the rest at close
+
+
+def test_each_parts_geodetic_transform_is_worked_out_once_for_atl03_and_the_tiles(tmp_path, monkeypatch):
+    """From orbit atl03.h5 and the LAS tiles both want every photon's latitude, longitude and height: one transform of
+    each part's photons serves both (and each footprint's its own), and the tiles' coordinates are still the photons'
+    UTM positions (pyproj from atl03.h5's latitude, longitude; heights its h_ph)."""
+    import laspy
+
+    from flightsim.outputs import atl03_h5, photon_las
+
+    calls = []
+    transform = photon_las.local_to_geodetic
+
+    def counted(body, scene, local):
+        calls.append(len(local))
+        return transform(body, scene, local)
+
+    monkeypatch.setattr(photon_las, "local_to_geodetic", counted)
+    monkeypatch.setattr(atl03_h5, "local_to_geodetic", counted)
+    cfg = preset_config("atlas")
+    for key, value in {**SINGLE_BEAM, "flight.duration_s": 0.1, "photon.gate_m": [499850.0, 500150.0],
+                       "run.host_photons": 1024}.items():
+        set_value(cfg, key, value)
+    summary = simulate_to_directory(validate(cfg), tmp_path / "g")
+    with h5py.File(tmp_path / "g" / "atl03.h5") as f:
+        lat, lon, h = (f[f"gt1/heights/{k}"][:] for k in ("lat_ph", "lon_ph", "h_ph"))
+        shots = f["gt1/footprint/lat"].shape[0]
+    photons = [n for n in calls if n != 0]
+    assert sum(photons) == summary["photons"] + shots and len(photons) >= 6  # each part's photons once, its shots
+    tiles = [laspy.read(p) for p in sorted((tmp_path / "g" / "photons").glob("*.la[sz]"))]
+    las_xyz = np.concatenate([np.column_stack([t.x, t.y, t.z]) for t in tiles])
+    crs = tiles[0].header.parse_crs()
+    x, y = pyproj.Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)
+    expected = np.column_stack([x, y, h])
+    order = lambda a: a[np.lexsort(np.round(a, 2).T[::-1])]  # noqa: E731 - the tiles hold the photons by tile
+    np.testing.assert_allclose(order(las_xyz), order(expected), atol=0.002)  # LAS's millimetre scale

@@ -48,6 +48,7 @@ import numpy as np
 from flightsim.core.process_map import ProcessMap, thread_count
 from flightsim.outputs.atl03_granule import Granule, adjusted_to_delta_time, write_granule
 from flightsim.outputs.h5_product import H5Product
+from flightsim.outputs.photon_las import photon_geodetic
 from flightsim.platforms.orbit import local_to_geodetic
 from flightsim.scoring.signal_finder import SignalFinder
 
@@ -95,6 +96,7 @@ class Atl03Writer:
                  for beam in np.unique(chunk.pixel)]
         for name, _ in beams:
             self.tracks.setdefault(name, _Track())
+        photon_geodetic(chunk, self.body, self.scene)  # for every beam at once (and later the LAS tiles)
         with ThreadPoolExecutor(thread_count(len(beams)), thread_name_prefix="atl03") as pool:
             groups = list(pool.map(lambda beam: self._beam(self.tracks[beam[0]], chunk, beam[1]), beams))
         for (name, _), (footprint, heights) in zip(beams, groups):
@@ -126,7 +128,7 @@ class Atl03Writer:
         """The heights columns of one beam's photons (its segments, frames and reference photons kept)."""
         line = chunk.line_id
         points = chunk.points[rows]
-        lat, lon, h = local_to_geodetic(self.body, self.scene, points)
+        lat, lon, h = (column[rows] for column in photon_geodetic(chunk, self.body, self.scene))
         start = track.first_photon.setdefault(line, points[0].copy())
         base = track.segment_base.setdefault(line, track.next_segment)
         local = np.floor(along / SEGMENT_M).astype(np.int64)

@@ -72,14 +72,23 @@ def output_crs(crs: str, scene) -> pyproj.CRS:
     return parse_crs(crs, field="output.crs") if crs else scene.crs
 
 
-def photon_world(body: str | None, scene, local: np.ndarray, crs: pyproj.CRS) -> np.ndarray:
-    """(n, 3) coordinates [m] of local points (n, 3) in ``crs``, from orbit around ``body`` (None: not from orbit;
+def photon_world(body: str | None, scene, chunk, crs: pyproj.CRS) -> np.ndarray:
+    """(n, 3) coordinates [m] in ``crs`` of a PhotonChunk's photons, from orbit around ``body`` (None: not from orbit;
     see the module docstring)."""
     if body != "earth" and crs == scene.crs:
-        return scene.local_to_world(local)
-    lat, lon, h = local_to_geodetic(body, scene, local)
+        return scene.local_to_world(chunk.points)
+    lat, lon, h = photon_geodetic(chunk, body, scene)
     x, y = transform("EPSG:4326", crs, lon, lat)
     return np.column_stack([x, y, h])
+
+
+def photon_geodetic(chunk, body: str | None, scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(latitude, longitude [deg], height [m]) of a PhotonChunk's photons (:func:`flightsim.platforms.orbit.
+    local_to_geodetic`), worked out once and kept in the chunk: from orbit atl03.h5 and the LAS tiles both want them
+    (each photon's values are those of a transform of it alone)."""
+    if chunk.geodetic is None:
+        chunk.geodetic = local_to_geodetic(body, scene, chunk.points)
+    return chunk.geodetic
 
 
 @register("output", "photons")
@@ -104,7 +113,7 @@ class PhotonLas:
 
     def prepare(self, chunk) -> list:
         """The tiles' records of a PhotonChunk (safe on several threads at once; :meth:`take` writes them)."""
-        world = photon_world(self.body, self.scene, chunk.points, self.crs)
+        world = photon_world(self.body, self.scene, chunk, self.crs)
         d = chunk.directions.astype(np.float64)
         return self.writer.pack(PointBatch(
             x=world[:, 0], y=world[:, 1], z=world[:, 2],

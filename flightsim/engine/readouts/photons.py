@@ -37,6 +37,8 @@ class PhotonChunk:
     kind: np.ndarray  # (m,) int8 truth: 0 background or dark count, 1 the surface's echo, 2 a retroreflector's, 3 leaves'
     points: np.ndarray  # (m, 3) float64 local [m]: the photon placed on its believed beam at c·t/2
     directions: np.ndarray  # (m, 3) float32 local unit direction of the photon's believed beam
+    geodetic: tuple | None = None  # from orbit: (latitude, longitude [deg], height [m]) of every photon, worked out
+    # once by the first writer that needs them (flightsim.outputs.photon_las.photon_geodetic)
 
     def __len__(self) -> int:
         return len(self.pulse)
