@@ -176,11 +176,6 @@ def at_least(k: np.ndarray, lam: np.ndarray) -> np.ndarray:
     return np.where(k > 0, pdtrc(np.maximum(k - 1, 0), lam), 1.0)
 
 
-def _count(ordered: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """How many of the sorted values lie in [lo, hi], for each pair."""
-    return np.searchsorted(ordered, hi, "right") - np.searchsorted(ordered, lo, "left")
-
-
 def _overlap(lo: np.ndarray, hi: np.ndarray, band_lo: float, band_hi: float) -> np.ndarray:
     """Length of [lo, hi] ∩ [band_lo, band_hi] [m]."""
     return np.clip(np.minimum(hi, band_hi) - np.maximum(lo, band_lo), 0.0, None)
