@@ -96,18 +96,19 @@ class Atl03Writer:
                  for beam in np.unique(chunk.pixel)]
         for name, _ in beams:
             self.tracks.setdefault(name, _Track())
-        photon_geodetic(chunk, self.body, self.scene)  # for every beam at once (and later the LAS tiles)
+        geodetic = photon_geodetic(chunk, self.body, self.scene)  # every beam's at once (and later the LAS tiles')
         with ThreadPoolExecutor(thread_count(len(beams)), thread_name_prefix="atl03") as pool:
-            groups = list(pool.map(lambda beam: self._beam(self.tracks[beam[0]], chunk, beam[1]), beams))
+            groups = list(pool.map(lambda beam: self._beam(self.tracks[beam[0]], chunk, beam[1], geodetic), beams))
         for (name, _), (footprint, heights) in zip(beams, groups):
             self.product.append(f"{name}/footprint", footprint)
             self.product.append(f"{name}/heights", heights)
         self.count += len(chunk)
 
-    def _beam(self, track: _Track, chunk, rows: np.ndarray) -> tuple[dict, dict]:
-        """The footprint and heights columns of one beam's photons ``rows`` of the chunk (its track's state kept)."""
+    def _beam(self, track: _Track, chunk, rows: np.ndarray, geodetic: tuple) -> tuple[dict, dict]:
+        """The footprint and heights columns of one beam's photons ``rows`` of the chunk (its track's state kept;
+        ``geodetic``: the chunk's latitude, longitude and height columns)."""
         footprint, along = self._footprint(track, chunk, rows)
-        return footprint, self._heights(track, chunk, rows, along)
+        return footprint, self._heights(track, chunk, rows, along, geodetic)
 
     def _footprint(self, track: _Track, chunk, rows: np.ndarray) -> tuple[dict, np.ndarray]:
         """The footprint centres of the chunk's shots of this beam, and each photon's shot's distance along track
@@ -124,11 +125,11 @@ class Atl03Writer:
         origin = track.first_footprint.setdefault(chunk.line_id, centre[0].copy())
         return footprint, _horizontal(centre - origin)[inverse]
 
-    def _heights(self, track: _Track, chunk, rows: np.ndarray, along: np.ndarray) -> dict:
+    def _heights(self, track: _Track, chunk, rows: np.ndarray, along: np.ndarray, geodetic: tuple) -> dict:
         """The heights columns of one beam's photons (its segments, frames and reference photons kept)."""
         line = chunk.line_id
         points = chunk.points[rows]
-        lat, lon, h = (column[rows] for column in photon_geodetic(chunk, self.body, self.scene))
+        lat, lon, h = (column[rows] for column in geodetic)
         start = track.first_photon.setdefault(line, points[0].copy())
         base = track.segment_base.setdefault(line, track.next_segment)
         local = np.floor(along / SEGMENT_M).astype(np.int64)
