@@ -122,8 +122,8 @@ def test_a_writer_failing_on_its_thread_leaves_no_file_and_stops_the_workers(tmp
     cfg = preset_config("atlas")
     for key, value in {"flight.duration_s": 0.05, "photon.gate_m": [499850.0, 500150.0]}.items():
         set_value(cfg, key, value)
-    owner, method = (photon_las.PhotonLas, "take") if failing == "las" else (atl03_h5.Atl03Writer, "__call__")
-    monkeypatch.setattr(owner, method, lambda self, chunk: (_ for _ in ()).throw(OSError(f"{failing} disk full")))
+    owner = photon_las.PhotonLas if failing == "las" else atl03_h5.Atl03Writer  # each appends in take
+    monkeypatch.setattr(owner, "take", lambda self, chunk: (_ for _ in ()).throw(OSError(f"{failing} disk full")))
     pools = []
 
     class Kept(photons.ProcessMap):

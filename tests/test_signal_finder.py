@@ -13,7 +13,7 @@ from flightsim.engine.run import simulate_to_directory
 from flightsim.instrument.pairs import SINGLE_BEAM
 from scipy.stats import poisson
 
-from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, at_least
+from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, along_spread, at_least
 
 
 def _pass(tmp_path, **settings) -> tuple[np.ndarray, np.ndarray]:
@@ -169,6 +169,42 @@ def test_classifying_block_by_block_equals_classifying_at_once(processes):
             workers.stop()
     assert written == list(range(0, pulse.size, 1000))
     assert np.array_equal(out, finder.classify(along, h, pulse))
+
+
+def test_blocks_of_a_slanted_beam_classify_as_the_whole_pass():
+    """Off nadir a shot's photons lie along track in the order of their heights (here up to ±75 m: a wide window at a
+    large angle), so a photon stored before a block's first row can lie far ahead of it: blocks read only a fixed
+    distance beyond their edge rows (before) classified 70 of these photons otherwise than the whole pass; read as far
+    as the stream's spread requires, every block as the whole pass."""
+    finder = SignalFinder()
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        pulse = np.repeat(np.arange(4000), rng.poisson(5.0, 4000))
+        h = np.where(rng.random(pulse.size) < 0.2, 50.0 + rng.normal(0, 0.1, pulse.size),
+                     rng.uniform(0.0, 300.0, pulse.size))
+        along = pulse * 0.7 + (h - 150.0) * 0.5
+        whole = finder.classify(along, h, pulse)
+        for block in (300, 1000, 1700):
+            out = np.full(pulse.size, -1, dtype=np.int8)
+            finder.classify_stream(pulse.size, lambda lo, hi: (along[lo:hi], h[lo:hi], pulse[lo:hi]),
+                                   lambda lo, values: out.__setitem__(slice(lo, lo + len(values)), values), block=block)
+            assert np.array_equal(out, whole), (seed, block)
+
+
+def test_along_spread_is_the_largest_inversion_over_parts():
+    """along_spread over parts in turn, the furthest distance carried: max over i < j of a[i] − a[j] of the whole
+    array (pairs by brute force, non-finite distances left out), 0 for a sorted one."""
+    rng = np.random.default_rng(4)
+    a = np.cumsum(rng.uniform(0.0, 1.0, 300)) + rng.normal(0.0, 5.0, 300)
+    a[rng.choice(300, 20, replace=False)] = np.nan
+    finite = a[np.isfinite(a)]
+    expected = max(0.0, max(finite[i] - finite[j] for i in range(len(finite)) for j in range(i + 1, len(finite))))
+    spread, furthest = 0.0, -np.inf
+    for part in np.array_split(a, 7):
+        found, furthest = along_spread(part, furthest)
+        spread = max(spread, found)
+    assert spread == expected and furthest == finite.max()
+    assert along_spread(np.sort(finite))[0] == 0.0 and along_spread(np.array([np.nan]))[0] == 0.0
 
 
 def test_photons_without_a_position_are_noise_and_nobodys_neighbours():

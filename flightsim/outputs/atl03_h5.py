@@ -50,7 +50,7 @@ from flightsim.outputs.atl03_granule import Granule, adjusted_to_delta_time, wri
 from flightsim.outputs.h5_product import H5Product
 from flightsim.outputs.photon_las import photon_geodetic
 from flightsim.platforms.orbit import local_to_geodetic
-from flightsim.scoring.signal_finder import SignalFinder
+from flightsim.scoring.signal_finder import SignalFinder, along_spread
 
 SEGMENT_M = 20.0  # ATL03's geolocation segment along track [m]
 FRAME_SHOTS = 50  # ATL03's background rate: every 50 shots (200 Hz at 10 kHz)
@@ -76,6 +76,8 @@ class _Track:
     frame_shots: dict = field(default_factory=dict)  # frame -> shots that detected a photon
     reference: list = field(default_factory=list)  # per chunk: its best photon of each segment (_keep_reference)
     rows: int = 0
+    spread: float = 0.0  # the most a photon's x_atc lies behind an earlier photon's [m] (the signal finder's blocks)
+    furthest: float = -np.inf  # the furthest x_atc so far [m]
 
 
 class Atl03Writer:
@@ -90,13 +92,24 @@ class Atl03Writer:
         self.count = 0
 
     def __call__(self, chunk) -> None:
-        """Append the chunk's photons, each beam's worked out on a thread of its own (NumPy and PROJ let go of
-        Python's lock), then written in beam order."""
+        """Append the chunk's photons: ``take(prepare(chunk))``."""
+        self.take(self.prepare(chunk))
+
+    def prepare(self, chunk):
+        """The chunk with its photons' geodetic columns worked out (every beam's at once, and later the LAS tiles'):
+        what an append needs that depends on no earlier chunk, so it may run for several chunks at once on threads
+        (:class:`~flightsim.core.background.Background`) while :meth:`take` appends an earlier one."""
+        photon_geodetic(chunk, self.body, self.scene)
+        return chunk
+
+    def take(self, chunk) -> None:
+        """Append a prepared chunk's photons (chunks in their order), each beam's worked out on a thread of its own
+        (NumPy and PROJ let go of Python's lock), then written in beam order."""
         beams = [(self.granule.track_name(int(beam)), np.flatnonzero(chunk.pixel == beam))
                  for beam in np.unique(chunk.pixel)]
         for name, _ in beams:
             self.tracks.setdefault(name, _Track())
-        geodetic = photon_geodetic(chunk, self.body, self.scene)  # every beam's at once (and later the LAS tiles')
+        geodetic = photon_geodetic(chunk, self.body, self.scene)  # prepared: kept in the chunk
         with ThreadPoolExecutor(thread_count(len(beams)), thread_name_prefix="atl03") as pool:
             groups = list(pool.map(lambda beam: self._beam(self.tracks[beam[0]], chunk, beam[1], geodetic), beams))
         for (name, _), (footprint, heights) in zip(beams, groups):
@@ -144,15 +157,17 @@ class Atl03Writer:
         track.segments.append(segment.astype(np.int32))
         track.frames.append(frame.astype(np.int32))
         track.rows += len(rows)
-        return {"delta_time": t, "lat_ph": lat, "lon_ph": lon, "h_ph": h, "dist_ph_along": dist,
-                "x_atc": _horizontal(points - start),
+        x_atc = _horizontal(points - start)
+        spread, track.furthest = along_spread(x_atc, track.furthest)
+        track.spread = max(track.spread, spread)
+        return {"delta_time": t, "lat_ph": lat, "lon_ph": lon, "h_ph": h, "dist_ph_along": dist, "x_atc": x_atc,
                 "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows]}
 
     def close(self, workers: ProcessMap | None = None) -> str:
         """Classify the photons (the signal finder in blocks over ``workers`` when given), write the per-segment and
         granule groups and rename the file into place; its name."""
         f = self.product.file
-        streams = [self._confidence(f[f"{name}/heights"], workers) for name in self.tracks]
+        streams = [self._confidence(f[f"{name}/heights"], track.spread, workers) for name, track in self.tracks.items()]
         SignalFinder().classify_streams([stream for stream, _ in streams], workers)  # the beams' blocks in one go
         for (name, track), (_, conf) in zip(self.tracks.items(), streams):
             _segments(f.require_group(f"{name}/geolocation"), track)
@@ -162,10 +177,10 @@ class Atl03Writer:
         return self.product.close()
 
     @staticmethod
-    def _confidence(heights, workers: ProcessMap | None = None) -> tuple[tuple, np.ndarray]:
+    def _confidence(heights, spread: float, workers: ProcessMap | None = None) -> tuple[tuple, np.ndarray]:
         """signal_conf_ph of one beam's heights group, made: the signal finder's stream of its photons (blocks
-        sized to spread a beam over ``workers`` when given), and the first column, which the stream's writes fill
-        (every surface type's column the same)."""
+        sized to spread a beam over ``workers`` when given; ``spread``: :func:`along_spread` of its x_atc [m]), and
+        the first column, which the stream's writes fill (every surface type's column the same)."""
         n = heights["h_ph"].shape[0]
         conf = heights.create_dataset("signal_conf_ph", shape=(n, SURFACE_TYPES), dtype=np.int8,
                                       chunks=(min(max(n, 1), 1 << 16), SURFACE_TYPES))
@@ -180,7 +195,7 @@ class Atl03Writer:
 
         block = FINDER_BLOCK if workers is None else min(FINDER_BLOCK, max(FINDER_BLOCK >> 4,
                                                                           -(-n // len(workers.processes))))
-        return (n, read, write, block), first
+        return (n, read, write, block, spread), first
 
     def abort(self) -> None:
         self.product.abort()

@@ -116,37 +116,86 @@ class SignalFinder:
         return conf
 
     def classify_stream(self, n: int, read: Callable[[int, int], tuple], write: Callable[[int, np.ndarray], None],
-                        block: int = 1 << 20, workers: ProcessMap | None = None) -> None:
+                        block: int = 1 << 20, workers: ProcessMap | None = None, spread_m: float | None = None) -> None:
         """Classify ``n`` photons stored in along-track order block by block (memory ∝ ``block``): ``read(lo,
         hi)`` gives (along, h, pulse) of rows [lo, hi), ``write(lo, conf)`` stores rows from lo. Each block is
-        read with enough rows on both sides to hold its segments' background neighbours. ``workers``: worker
-        processes (:class:`~flightsim.core.process_map.ProcessMap`) that classify the blocks side by side (the
-        same values); None: this process, a block at a time."""
-        self.classify_streams([(n, read, write, block)], workers)
+        read with enough rows on both sides to hold every photon of its segments' background pools, so that it
+        classifies as the whole stream would. ``spread_m``: how far a photon lies behind one stored before it at
+        most (:func:`along_spread`; None: found by reading the distances once). ``workers``: worker processes
+        (:class:`~flightsim.core.process_map.ProcessMap`) that classify the blocks side by side (the same values);
+        None: this process, a block at a time."""
+        if spread_m is None:
+            spread_m, furthest = 0.0, -np.inf
+            for lo in range(0, n, block):
+                spread, furthest = along_spread(read(lo, min(n, lo + block))[0], furthest)
+                spread_m = max(spread_m, spread)
+        self.classify_streams([(n, read, write, block, spread_m)], workers)
 
     def classify_streams(self, streams: list[tuple], workers: ProcessMap | None = None) -> None:
-        """:meth:`classify_stream` of several streams (``(n, read, write, block)`` each, e.g. a granule's beams) at
-        once: the blocks of them all, in order, each read as a worker frees to take it (this process reads and sends
-        while the workers classify), their confidences written in order once every block is done (1 byte a
+        """:meth:`classify_stream` of several streams (``(n, read, write, block, spread_m)`` each, e.g. a granule's
+        beams) at once: the blocks of them all, in order, each read as a worker frees to take it (this process reads
+        and sends while the workers classify), their confidences written in order once every block is done (1 byte a
         photon held)."""
         spans = [(stream, start, min(stream[0], start + stream[3])) for stream in streams
                  for start in range(0, stream[0], stream[3])]
-        blocks = ((self, *self._padded(n, read, start, end, block)) for (n, read, _, block), start, end in spans)
-        for ((_, _, write, _), start, _), conf in zip(spans, map_rows(_classify_part, blocks, workers)):
+        blocks = ((self, *self._padded(n, read, start, end, block, spread))
+                  for (n, read, _, block, spread), start, end in spans)
+        for ((_, _, write, _, _), start, _), conf in zip(spans, map_rows(_classify_part, blocks, workers)):
             write(start, conf)
 
-    def _padded(self, n: int, read: Callable[[int, int], tuple], start: int, end: int, block: int) -> tuple:
+    def reach_m(self, spread_m: float) -> float:
+        """How far along track [m] beyond a block's nearest and furthest photon the rows read must reach so that they
+        hold every photon of its background pools, when photons lie up to ``spread_m`` behind ones stored before
+        them: a photon is pooled with those of the segments within ``background_segments`` of its own, so none
+        further than (background_segments + 1) · segment_m from it; one segment more against rounding at a
+        segment's edge, and the spread, since a row past the last read may lie that much behind it."""
+        return (self.background_segments + 2) * self.segment_m + spread_m
+
+    def _padded(self, n: int, read: Callable[[int, int], tuple], start: int, end: int, block: int,
+                spread_m: float) -> tuple:
         """(along, h, pulse, first, past) of rows [start, end) read with enough rows on both sides (rows
-        [first, past) of the arrays are the block's)."""
-        margin = (self.background_segments + 1) * self.segment_m
-        pad = max(block // 64, 1)  # rows read on each side (~3 % of a block), doubled while short of the margin
+        [first, past) of the arrays are the block's): :func:`holds_pools`."""
+        reach = self.reach_m(spread_m)
+        pad = max(block // 64, 1)  # rows read on each side (~3 % of a block), doubled while short of the reach
         while True:
             lo, hi = max(0, start - pad), min(n, end + pad)
             along, h, pulse = read(lo, hi)
-            if ((lo == 0 or along[start - lo] - along[0] > margin)
-                    and (hi == n or along[-1] - along[end - lo - 1] > margin)):
+            if holds_pools(along, start - lo, end - lo, lo == 0, hi == n, reach):
                 return along, h, pulse, start - lo, end - lo
             pad *= 2
+
+
+def along_spread(along: np.ndarray, furthest: float = -np.inf) -> tuple[float, float]:
+    """(spread, furthest): the most a photon of ``along`` [m] (in stored order) lies behind one stored before it,
+    max over i < j of along[i] − along[j] (0 when none; over these photons and, before them, photons that reached
+    ``furthest``), and the furthest distance reached; photons without a finite distance left out. Off nadir, a
+    shot's photons at different heights lie at different distances along track (ATLAS's 2 km window: ~16 m)."""
+    finite = along[np.isfinite(along)]
+    if not finite.size:
+        return 0.0, furthest
+    reached = np.maximum(np.maximum.accumulate(finite), furthest)
+    return max(0.0, float((reached - finite).max())), float(reached[-1])
+
+
+def holds_pools(along: np.ndarray, first: int, past: int, at_start: bool, at_end: bool, reach_m: float) -> bool:
+    """Whether rows ``along`` [m] read around a block (rows [first, past)) hold every photon of the block's background
+    pools: at the stream's start (``at_start``) or with a read row more than ``reach_m`` (:meth:`SignalFinder.reach_m`)
+    before the block's nearest photon, and likewise at the end (``at_end``) or beyond its furthest. A photon
+    stored before that row lies at most the spread ahead of it, and one stored after the last row read at most the
+    spread behind it, so neither shares a pool with the block's. A block without a finite distance needs none (its
+    photons are noise)."""
+    inside = along[first:past]
+    inside = inside[np.isfinite(inside)]
+    if not inside.size:
+        return True
+    return ((at_start or _beyond(inside.min() - along[:first], reach_m))
+            and (at_end or _beyond(along[past:] - inside.max(), reach_m)))
+
+
+def _beyond(gaps: np.ndarray, reach_m: float) -> bool:
+    """Whether the largest finite of ``gaps`` [m] exceeds ``reach_m``."""
+    gaps = gaps[np.isfinite(gaps)]
+    return bool(gaps.size) and float(gaps.max()) > reach_m
 
 
 def _classify_part(finder: SignalFinder, along, h, pulse, first: int, past: int) -> np.ndarray:

@@ -22,6 +22,7 @@ BEHIND_PHOTONS = 8 << 20  # photons.h5 and the LAS tiles are handed a part once 
 LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (off orbit)
 ORBIT_LAS_THREADS = 2  # from orbit (the geodetic transform has PROJ's threads, the finder and ATL08 the cores): on one,
 # the tiles held the trace back ~6 s of a 30 s pass on a 16-core GPU host (results/profile-experiments.md section 87)
+ATL03_THREADS = 2  # the most chunks atl03.h5 prepares at once (their geodetic columns) while it appends another
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5",  # what the workers run, imported early,
            "flightsim.core.warp_runtime:init_warp")  # and Warp started (the finder's and ATL08's CPU kernels)
 
@@ -74,7 +75,7 @@ class PhotonProduct:
                  ] if body else []
         las_threads = thread_count(ORBIT_LAS_THREADS if atl03 else LAS_THREADS)
         self.h5, self.las = Background(h5, "photons-h5"), Background(las, "photon-las", threads=las_threads)
-        self.atl03 = [Background(writer, "atl03") for writer in atl03]
+        self.atl03 = [Background(writer, "atl03", threads=thread_count(ATL03_THREADS)) for writer in atl03]
         self.atl08 = body is not None and cfg.output.atl08
         self.photons, self.workers, self.placed = 0, None, []
         self.behind: deque = deque()  # (part, atl03.h5's future of it) not yet handed to photons.h5 and the tiles
