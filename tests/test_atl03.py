@@ -69,15 +69,27 @@ def test_three_beams_across_track_give_three_ground_tracks(tmp_path):
 
 def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(tmp_path, monkeypatch):
     """Past PARALLEL_PHOTONS photons a run starts worker processes as it goes; at its close the signal finder
-    classifies the granule in blocks over them and ATL08's beams are worked out and written a beam a worker (forced
-    here for a 0.2 s pass of six beams, two workers): signal_conf_ph, the background rates and every atl08.h5 dataset
-    the same as in this process, and no beam's own file left."""
+    classifies each beam's finished stretches on them while the run goes on and the rest in blocks at its close, and
+    ATL08's beams are worked out and written a beam a worker (forced here for a 0.2 s pass of six beams in parts of
+    4096 photons, blocks of 1000, two workers): signal_conf_ph, the background rates and every atl08.h5 dataset the
+    same as in this process, and no beam's own file left."""
     import flightsim.engine.products.photons as photons
+    from flightsim.scoring import finder_stream
 
     cfg = preset_config("atlas")
-    for key, value in {"flight.duration_s": 0.2, "photon.gate_m": [499850.0, 500150.0]}.items():
+    for key, value in {"flight.duration_s": 0.2, "photon.gate_m": [499850.0, 500150.0],
+                       "run.host_photons": 4096}.items():
         set_value(cfg, key, value)
-    started, ran = [], []
+    started, ran, streamed = [], [], []
+    finish = finder_stream.FinderStream.finish
+    monkeypatch.setattr(finder_stream, "STREAM_BLOCK", 1000)
+
+    def counted(self, streams):  # the blocks classified while the run went on
+        left = finish(self, streams)
+        streamed.append(sum(map(len, self.pieces.values())))
+        return left
+
+    monkeypatch.setattr(finder_stream.FinderStream, "finish", counted)
 
     class Counted(photons.ProcessMap):
         def __init__(self, count, preload=()):
@@ -94,7 +106,8 @@ def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(
         monkeypatch.setattr(photons, "PARALLEL_PHOTONS", parallel)
         simulate_to_directory(validate(cfg), tmp_path / name)
     assert started == [(2, photons.PRELOAD)]
-    assert "_classify_part" in ran and ran[-1] == "write_atl08_track"
+    assert streamed[0] == 0 and streamed[1] >= 6  # no workers, no blocks; with them each beam's while it came
+    assert "classify_part" in ran and ran[-1] == "write_atl08_track"
     for name in ("serial", "workers"):  # the beams' own atl08 files removed once joined
         assert not [p.name for p in (tmp_path / name).iterdir() if p.name.startswith(".")]
     with h5py.File(tmp_path / "serial" / "atl03.h5") as a, h5py.File(tmp_path / "workers" / "atl03.h5") as b:

@@ -50,6 +50,7 @@ from flightsim.outputs.atl03_granule import Granule, adjusted_to_delta_time, wri
 from flightsim.outputs.h5_product import H5Product
 from flightsim.outputs.photon_las import photon_geodetic
 from flightsim.platforms.orbit import local_to_geodetic
+from flightsim.scoring.finder_stream import FinderStream
 from flightsim.scoring.signal_finder import SignalFinder, along_spread
 
 SEGMENT_M = 20.0  # ATL03's geolocation segment along track [m]
@@ -83,13 +84,22 @@ class _Track:
 class Atl03Writer:
     """Appends PhotonChunks to ``directory/atl03.h5``; ``close()`` renames it into place."""
 
-    def __init__(self, directory: Path, body: str, cfg_text: str, prf_hz: float, scene, granule: Granule | None = None):
-        """body: the body orbited (earth, moon); granule: the run's beams and instrument for the metadata."""
+    def __init__(self, directory: Path, body: str, cfg_text: str, prf_hz: float, scene, granule: Granule | None = None,
+                 stream: bool = False):
+        """body: the body orbited (earth, moon); granule: the run's beams and instrument for the metadata; stream: hold
+        each beam's photons for the signal finder to classify while the run goes on, once :meth:`stream_to` gives
+        it workers (:class:`~flightsim.scoring.finder_stream.FinderStream`)."""
         self.product = H5Product(directory / "atl03.h5", config_toml=cfg_text)
         self.body, self.prf_hz, self.scene = body, prf_hz, scene
         self.granule = granule or Granule()
         self.tracks: dict[str, _Track] = {}
+        self.stream = FinderStream(SignalFinder()) if stream else None
         self.count = 0
+
+    def stream_to(self, workers: ProcessMap) -> None:
+        """Classify the beams' finished stretches on ``workers`` from the next chunk on (with ``stream``)."""
+        if self.stream is not None:
+            self.stream.start(workers)
 
     def __call__(self, chunk) -> None:
         """Append the chunk's photons: ``take(prepare(chunk))``."""
@@ -115,6 +125,9 @@ class Atl03Writer:
         for (name, _), (footprint, heights) in zip(beams, groups):
             self.product.append(f"{name}/footprint", footprint)
             self.product.append(f"{name}/heights", heights)
+            if self.stream is not None:
+                self.stream.add(name, heights["x_atc"], heights["h_ph"], heights["ph_id_pulse"],
+                                self.tracks[name].spread)
         self.count += len(chunk)
 
     def _beam(self, track: _Track, chunk, rows: np.ndarray, geodetic: tuple) -> tuple[dict, dict]:
@@ -168,7 +181,11 @@ class Atl03Writer:
         granule groups and rename the file into place; its name."""
         f = self.product.file
         streams = [self._confidence(f[f"{name}/heights"], track.spread, workers) for name, track in self.tracks.items()]
-        SignalFinder().classify_streams([stream for stream, _ in streams], workers)  # the beams' blocks in one go
+        beams = {name: stream for name, (stream, _) in zip(self.tracks, streams)}
+        if self.stream is None:
+            SignalFinder().classify_streams(list(beams.values()), workers)  # the beams' blocks in one go
+        else:  # what the stream left of them
+            SignalFinder().classify_spans(self.stream.finish(beams), workers)
         for (name, track), (_, conf) in zip(self.tracks.items(), streams):
             _segments(f.require_group(f"{name}/geolocation"), track)
             _zero_corrections(f.require_group(f"{name}/geophys_corr"), f[f"{name}/geolocation/delta_time"][:])
@@ -198,6 +215,8 @@ class Atl03Writer:
         return (n, read, write, block, spread), first
 
     def abort(self) -> None:
+        if self.stream is not None:
+            self.stream.stop()
         self.product.abort()
 
 

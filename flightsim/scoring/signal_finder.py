@@ -133,14 +133,16 @@ class SignalFinder:
 
     def classify_streams(self, streams: list[tuple], workers: ProcessMap | None = None) -> None:
         """:meth:`classify_stream` of several streams (``(n, read, write, block, spread_m)`` each, e.g. a granule's
-        beams) at once: the blocks of them all, in order, each read as a worker frees to take it (this process reads
-        and sends while the workers classify), their confidences written in order once every block is done (1 byte a
-        photon held)."""
-        spans = [(stream, start, min(stream[0], start + stream[3])) for stream in streams
-                 for start in range(0, stream[0], stream[3])]
+        beams) at once: :meth:`classify_spans` of their blocks."""
+        self.classify_spans([span for stream in streams for span in block_spans(stream, [(0, stream[0])])], workers)
+
+    def classify_spans(self, spans: list[tuple], workers: ProcessMap | None = None) -> None:
+        """Rows [start, end) of streams (``(stream, start, end)`` each), in order, each read as a worker frees to take
+        it (this process reads and sends while the workers classify), their confidences written in order once every
+        span is done (1 byte a photon held)."""
         blocks = ((self, *self._padded(n, read, start, end, block, spread))
                   for (n, read, _, block, spread), start, end in spans)
-        for ((_, _, write, _, _), start, _), conf in zip(spans, map_rows(_classify_part, blocks, workers)):
+        for ((_, _, write, _, _), start, _), conf in zip(spans, map_rows(classify_part, blocks, workers)):
             write(start, conf)
 
     def reach_m(self, spread_m: float) -> float:
@@ -154,15 +156,22 @@ class SignalFinder:
     def _padded(self, n: int, read: Callable[[int, int], tuple], start: int, end: int, block: int,
                 spread_m: float) -> tuple:
         """(along, h, pulse, first, past) of rows [start, end) read with enough rows on both sides (rows
-        [first, past) of the arrays are the block's): :func:`holds_pools`."""
+        [first, past) of the arrays are the block's): :func:`reached`."""
         reach = self.reach_m(spread_m)
         pad = max(block // 64, 1)  # rows read on each side (~3 % of a block), doubled while short of the reach
         while True:
             lo, hi = max(0, start - pad), min(n, end + pad)
             along, h, pulse = read(lo, hi)
-            if holds_pools(along, start - lo, end - lo, lo == 0, hi == n, reach):
+            if min(reached(along, start - lo, end - lo, lo == 0, hi == n)) > reach:
                 return along, h, pulse, start - lo, end - lo
             pad *= 2
+
+
+def block_spans(stream: tuple, ranges: list[tuple[int, int]]) -> list[tuple]:
+    """(stream, start, end) of the blocks of the stream's block size (``(n, read, write, block, spread_m)``) that
+    cover rows [a, b) of each of ``ranges``."""
+    block = stream[3]
+    return [(stream, start, min(b, start + block)) for a, b in ranges for start in range(a, b, block)]
 
 
 def along_spread(along: np.ndarray, furthest: float = -np.inf) -> tuple[float, float]:
@@ -177,28 +186,28 @@ def along_spread(along: np.ndarray, furthest: float = -np.inf) -> tuple[float, f
     return max(0.0, float((reached - finite).max())), float(reached[-1])
 
 
-def holds_pools(along: np.ndarray, first: int, past: int, at_start: bool, at_end: bool, reach_m: float) -> bool:
-    """Whether rows ``along`` [m] read around a block (rows [first, past)) hold every photon of the block's background
-    pools: at the stream's start (``at_start``) or with a read row more than ``reach_m`` (:meth:`SignalFinder.reach_m`)
-    before the block's nearest photon, and likewise at the end (``at_end``) or beyond its furthest. A photon
-    stored before that row lies at most the spread ahead of it, and one stored after the last row read at most the
-    spread behind it, so neither shares a pool with the block's. A block without a finite distance needs none (its
-    photons are noise)."""
+def reached(along: np.ndarray, first: int, past: int, at_start: bool, at_end: bool) -> tuple[float, float]:
+    """How far rows ``along`` [m] read around a block (rows [first, past)) reach before the block's nearest photon and
+    beyond its furthest (−inf where no row read there has a finite distance). The rows hold every photon of the
+    block's background pools when both exceed :meth:`SignalFinder.reach_m`: a photon stored before the first row
+    read lies at most the spread ahead of it, one stored after the last at most the spread behind it, so neither
+    shares a pool with the block's. inf at the stream's start (``at_start``) or end (``at_end``), and both for a
+    block without a finite distance (its photons are noise whatever is read)."""
     inside = along[first:past]
     inside = inside[np.isfinite(inside)]
     if not inside.size:
-        return True
-    return ((at_start or _beyond(inside.min() - along[:first], reach_m))
-            and (at_end or _beyond(along[past:] - inside.max(), reach_m)))
+        return np.inf, np.inf
+    return (np.inf if at_start else _largest(inside.min() - along[:first]),
+            np.inf if at_end else _largest(along[past:] - inside.max()))
 
 
-def _beyond(gaps: np.ndarray, reach_m: float) -> bool:
-    """Whether the largest finite of ``gaps`` [m] exceeds ``reach_m``."""
+def _largest(gaps: np.ndarray) -> float:
+    """The largest finite of ``gaps`` [m]; −inf for none."""
     gaps = gaps[np.isfinite(gaps)]
-    return bool(gaps.size) and float(gaps.max()) > reach_m
+    return float(gaps.max()) if gaps.size else -np.inf
 
 
-def _classify_part(finder: SignalFinder, along, h, pulse, first: int, past: int) -> np.ndarray:
+def classify_part(finder: SignalFinder, along, h, pulse, first: int, past: int) -> np.ndarray:
     """``finder``'s confidence of rows [first, past) of the photons (a module-level function: a worker process runs
     it on a block)."""
     return finder.classify(along, h, pulse)[first:past]

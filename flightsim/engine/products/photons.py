@@ -71,8 +71,8 @@ class PhotonProduct:
         body = cfg.flight.body if cfg.flight.platform == "orbit" else None
         las = PhotonLas(directory, cfg.output, scene, tracer.timing, tracer.instrument.emitter.beam_columns, body,
                         cfg.flight.start_gps_time)
-        atl03 = [Atl03Writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter))
-                 ] if body else []
+        atl03 = [Atl03Writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter),
+                             stream=usable_cores() > 1)] if body else []
         las_threads = thread_count(ORBIT_LAS_THREADS if atl03 else LAS_THREADS)
         self.h5, self.las = Background(h5, "photons-h5"), Background(las, "photon-las", threads=las_threads)
         self.atl03 = [Background(writer, "atl03", threads=thread_count(ATL03_THREADS)) for writer in atl03]
@@ -100,6 +100,8 @@ class PhotonProduct:
         self.photons += len(chunk)
         if self.atl03 and self.workers is None and self.photons >= PARALLEL_PHOTONS and usable_cores() > 1:
             self.workers = ProcessMap(min(usable_cores(), MAX_WORKERS), PRELOAD)  # they start while the run goes on
+            for writer in self.atl03:  # and classify the beams' finished stretches as it goes on
+                writer.writer.stream_to(self.workers)
 
     def _hand_on(self, keep: int, wait: bool = True) -> None:
         """Hand photons.h5 and the LAS tiles the parts waiting for them but the last ``keep``; without ``wait`` all at
