@@ -83,6 +83,7 @@ def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(
     started, ran, streamed = [], [], []
     finish = finder_stream.FinderStream.finish
     monkeypatch.setattr(finder_stream, "STREAM_BLOCK", 1000)
+    monkeypatch.setattr(finder_stream, "WAITING_PER_WORKER", 1000)  # none left to the close for the workers' start
 
     def counted(self, streams):  # the blocks classified while the run went on
         left = finish(self, streams)

@@ -29,16 +29,17 @@ def _stream_of(beam: tuple, out: np.ndarray) -> tuple:
             lambda lo, values: out.__setitem__(slice(lo, lo + len(values)), values), BLOCK, along_spread(along)[0])
 
 
-@pytest.mark.parametrize("late_slant", [0.1, 0.15])
-def test_a_stream_classifies_as_the_whole_beam(late_slant):
+@pytest.mark.parametrize("late_slant, most_waiting", [(0.1, 1000), (0.15, 1000), (0.1, 0)])
+def test_a_stream_classifies_as_the_whole_beam(late_slant, most_waiting):
     """Two beams appended in turn in 31 parts of random sizes each, the workers given after the first; blocks of
     1000 photons. A slant that grows in a beam's last quarter (0.1 → 0.15) widens its spread after blocks were read for
-    the narrower one: those blocks are classified again at the close. Every confidence as the whole beam's."""
+    the narrower one: those blocks are classified again at the close. With no block allowed to wait for the workers
+    (``most_waiting`` 0; 1000: all may) every block is left to the close. Every confidence as the whole beam's."""
     finder, rng = SignalFinder(), np.random.default_rng(3)
     beams = {"gt1": _beam(1, late_slant), "gt2": _beam(2, late_slant)}
     cuts = {name: np.r_[0, np.sort(rng.choice(np.arange(1, len(h)), 30, replace=False)), len(h)]
             for name, (_, h, _) in beams.items()}
-    stream, workers = FinderStream(finder, block=BLOCK), ProcessMap(2)
+    stream, workers = FinderStream(finder, block=BLOCK, most_waiting=most_waiting), ProcessMap(2)
     out = {name: np.full(len(h), -1, dtype=np.int8) for name, (_, h, _) in beams.items()}
     try:
         for k in range(31):  # the beams' parts in turn, as a run appends them
@@ -53,9 +54,13 @@ def test_a_stream_classifies_as_the_whole_beam(late_slant):
     finally:
         workers.stop()
     sent = sum(len(pieces) for pieces in stream.pieces.values())
-    kept = sum(piece.holds(finder.reach_m(streams[name][4])) for name in beams for piece in stream.pieces[name])
-    assert min(len(stream.pieces[name]) for name in beams) >= 10  # most of each beam classified while it came
-    assert (kept < sent) if late_slant > 0.1 else (kept == sent)  # blocks read short of the final spread: again
+    kept = sum(piece.holds(finder.reach_m(streams[name][4])) for name, pieces in stream.pieces.items()
+               for piece in pieces)
+    if most_waiting == 0:
+        assert sent == 0
+    else:
+        assert min(len(stream.pieces[name]) for name in beams) >= 10  # most of each beam classified while it came
+        assert (kept < sent) if late_slant > 0.1 else (kept == sent)  # blocks read short of the final spread: again
     assert sum(end - start for _, start, end in left) == sum(len(h) for _, h, _ in beams.values()) - kept * BLOCK
     for name, (along, h, pulse) in beams.items():
         assert np.array_equal(out[name], finder.classify(along, h, pulse)), name

@@ -263,6 +263,18 @@ def test_a_noisy_echos_measures_are_its_own_above_the_noise_floor(seed):
     assert math.isnan(whole.rms_width_s) or whole.rms_width_s > 10 * sd
 
 
+def test_rms_width_is_nan_without_a_warning_where_the_moment_is_negative():
+    """Samples that weigh negative (noise below its mean) can make Σ (t − t̄)² P / Σ P negative (weights −1, 3, −1
+    at −1, 0, 1: −2): its root NaN, as the device's measures give it, and no RuntimeWarning; a positive moment's root
+    as before (weights 1, 1 at ±1: 1)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert math.isnan(wm.rms_width_s(np.array([-1.0, 0.0, 1.0]), np.array([-1.0, 3.0, -1.0])))
+        assert wm.rms_width_s(np.array([-1.0, 1.0]), np.array([1.0, 1.0])) == 1.0
+
+
 def test_windows_of_noise_alone_have_no_measures():
     """Noise and background without an echo: in all but about one window of a hundred no sample is above the floor,
     and every measure is NaN (not the noise's centroid)."""

@@ -321,8 +321,11 @@ def centroid_time_s(times_s: np.ndarray, echo: np.ndarray) -> float:
 
 
 def rms_width_s(times_s: np.ndarray, echo: np.ndarray) -> float:
-    """√(Σ (t − t̄)² P / Σ P) [s]."""
-    return float(np.sqrt(np.sum((times_s - centroid_time_s(times_s, echo)) ** 2 * echo) / np.sum(echo)))
+    """√(Σ (t − t̄)² P / Σ P) [s]; NaN where that moment is not ≥ 0 (a noisy window's samples below its mean weigh
+    negative), as the device's measures make it."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        moment = float(np.sum((times_s - centroid_time_s(times_s, echo)) ** 2 * echo) / np.sum(echo))
+    return math.sqrt(moment) if moment >= 0.0 else math.nan
 
 
 def peak_time_s(times_s: np.ndarray, echo: np.ndarray) -> float:

@@ -17,6 +17,7 @@ from flightsim.core.process_map import ProcessMap, map_rows
 from flightsim.scoring.signal_finder import SignalFinder, block_spans, classify_part, reached
 
 STREAM_BLOCK = 1 << 18  # photons of a beam in a block classified while the run goes on
+WAITING_PER_WORKER = 2  # blocks handed over and not yet classified, per worker, beyond which blocks go to the close
 
 
 @dataclass
@@ -50,8 +51,12 @@ class FinderStream:
     appended with :meth:`add`: the photons are held from the first, and blocks made once :meth:`start` gave the
     workers (a thread of this process hands the blocks over as they are made); :meth:`finish` waits for them."""
 
-    def __init__(self, finder: SignalFinder, block: int | None = None):
+    def __init__(self, finder: SignalFinder, block: int | None = None, most_waiting: int | None = None):
+        """``most_waiting``: the most blocks handed over and not yet classified (None: WAITING_PER_WORKER per
+        worker); a block completed beyond them is left to the close (read back from the file there), so the photons
+        held stay bounded when the workers fall behind."""
         self.finder, self.block, self.workers = finder, block or STREAM_BLOCK, None
+        self.most_waiting, self._waiting, self._lock = most_waiting, 0, threading.Lock()
         self.beams: dict[str, _Beam] = {}
         self.pieces: dict[str, list[Piece]] = {}
         self._blocks: queue.SimpleQueue = queue.SimpleQueue()
@@ -62,6 +67,8 @@ class FinderStream:
         """Make blocks from the next :meth:`add` on, classified on ``workers``."""
         self._thread = threading.Thread(target=self._serve, args=(workers,), name="finder", daemon=True)
         self._thread.start()
+        if self.most_waiting is None:
+            self.most_waiting = WAITING_PER_WORKER * len(workers.processes)
         self.workers = workers
 
     def add(self, name: str, along: np.ndarray, h: np.ndarray, pulse: np.ndarray, spread_m: float) -> None:
@@ -75,11 +82,16 @@ class FinderStream:
         beam.rows += len(h)
         made = []
         while self.workers is not None and beam.rows - beam.sent >= self.block:
+            if self._waiting + len(made) >= self.most_waiting:  # the workers behind: this block left to the close
+                self._advance(beam, *self._held(beam))
+                continue
             block = self._block(beam, self.finder.reach_m(spread_m))
             if block is None:
                 break
             made.append((name, *block))
         if made:
+            with self._lock:
+                self._waiting += len(made)
             self._blocks.put(made)
 
     def finish(self, streams: dict[str, tuple]) -> list[tuple]:
@@ -111,8 +123,7 @@ class FinderStream:
     def _block(self, beam: _Beam, reach_m: float) -> tuple | None:
         """The next block's (start, along, h, pulse, first, past, near, far), read with rows around it that hold its
         pools (the rows held before it then dropped); None while the rows after it do not reach far enough yet."""
-        along, h, pulse = (np.concatenate(column) for column in zip(*beam.parts))
-        beam.parts = [(along, h, pulse)]
+        along, h, pulse = self._held(beam)
         start, end = beam.sent - beam.base, beam.sent - beam.base + self.block
         pad = max(self.block // 64, 1)
         while True:
@@ -127,9 +138,22 @@ class FinderStream:
                 return None
             pad *= 2
         block = (beam.sent, along[lo:hi], h[lo:hi], pulse[lo:hi], start - lo, end - lo, near, far)
+        self._advance(beam, along, h, pulse)
+        return block
+
+    @staticmethod
+    def _held(beam: _Beam) -> tuple[np.ndarray, ...]:
+        """The beam's photons held (rows base …), as one array a column."""
+        held = tuple(np.concatenate(column) for column in zip(*beam.parts))
+        beam.parts = [held]
+        return held
+
+    def _advance(self, beam: _Beam, along: np.ndarray, h: np.ndarray, pulse: np.ndarray) -> None:
+        """Go past the next block (``along``, ``h``, ``pulse``: the rows held), holding its rows on as the rows
+        before the block after it."""
+        start = beam.sent - beam.base
         beam.parts = [(along[start:], h[start:], pulse[start:])]
         beam.base, beam.sent = beam.sent, beam.sent + self.block
-        return block
 
     def _serve(self, workers: ProcessMap) -> None:
         """The thread's loop: the blocks handed over, classified on ``workers`` a batch at a time."""
@@ -141,6 +165,9 @@ class FinderStream:
             except BaseException as error:  # noqa: BLE001 - raised again by finish
                 self._error = error
                 continue
+            finally:
+                with self._lock:
+                    self._waiting -= len(made)
             for (name, start, *_, near, far), conf in zip(made, found):
                 self.pieces.setdefault(name, []).append(Piece(start, conf, near, far))
 
