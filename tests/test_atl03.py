@@ -171,6 +171,24 @@ def test_nearest_is_each_segments_first_least_offset(in_order):
         assert _nearest(segment, offset).tolist() == expected
 
 
+@pytest.mark.parametrize("in_order", [True, False])
+def test_distinct_shots_are_numpys_unique(in_order):
+    """_distinct, on values in order (runs, no sort) and out of order (NumPy's): the distinct values, each one's first
+    index and each value's place among them, as ``np.unique`` gives them (values, dtypes), for none, one and many."""
+    from flightsim.outputs.atl03_h5 import _distinct
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 9, 1000):
+        values = rng.integers(0, max(n // 4, 1), n).astype(np.int64)
+        values = np.sort(values) if in_order else values
+        for inverse in (False, True):
+            found = _distinct(values, inverse=inverse)
+            expected = np.unique(values, return_index=True, return_inverse=inverse)
+            assert len(found) == len(expected) == 2 + inverse
+            for a, b in zip(found, expected):
+                assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
 def test_horizontal_lengths_are_numpys_norm_bit_for_bit():
     """x_atc's horizontal lengths against ``np.linalg.norm`` of the first two columns: the same float64 bits, at
     offsets from millimetres to thousands of kilometres and of either sign."""

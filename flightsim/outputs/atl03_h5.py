@@ -133,13 +133,14 @@ class Atl03Writer:
     def _beam(self, track: _Track, chunk, rows: np.ndarray, geodetic: tuple) -> tuple[dict, dict]:
         """The footprint and heights columns of one beam's photons ``rows`` of the chunk (its track's state kept;
         ``geodetic``: the chunk's latitude, longitude and height columns)."""
-        footprint, along = self._footprint(track, chunk, rows)
-        return footprint, self._heights(track, chunk, rows, along, geodetic)
+        pulse = chunk.pulse[rows]
+        footprint, along = self._footprint(track, chunk, rows, pulse)
+        return footprint, self._heights(track, chunk, rows, pulse, along, geodetic)
 
-    def _footprint(self, track: _Track, chunk, rows: np.ndarray) -> tuple[dict, np.ndarray]:
-        """The footprint centres of the chunk's shots of this beam, and each photon's shot's distance along track
-        from the line's first footprint [m]."""
-        pulses, first, inverse = np.unique(chunk.pulse[rows], return_index=True, return_inverse=True)
+    def _footprint(self, track: _Track, chunk, rows: np.ndarray, pulse: np.ndarray) -> tuple[dict, np.ndarray]:
+        """The footprint centres of the chunk's shots of this beam (``pulse``: its photons' shots), and each photon's
+        shot's distance along track from the line's first footprint [m]."""
+        pulses, first, inverse = _distinct(pulse, inverse=True)
         i = rows[first]
         d = chunk.directions[i].astype(np.float64)
         d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -151,7 +152,8 @@ class Atl03Writer:
         origin = track.first_footprint.setdefault(chunk.line_id, centre[0].copy())
         return footprint, _horizontal(centre - origin)[inverse]
 
-    def _heights(self, track: _Track, chunk, rows: np.ndarray, along: np.ndarray, geodetic: tuple) -> dict:
+    def _heights(self, track: _Track, chunk, rows: np.ndarray, pulse: np.ndarray, along: np.ndarray,
+                 geodetic: tuple) -> dict:
         """The heights columns of one beam's photons (its segments, frames and reference photons kept)."""
         line = chunk.line_id
         points = chunk.points[rows]
@@ -161,10 +163,10 @@ class Atl03Writer:
         local = np.floor(along / SEGMENT_M).astype(np.int64)
         segment = base + local
         track.next_segment = max(track.next_segment, int(segment.max()) + 1)
-        frame = track.frame_base.setdefault(line, track.next_frame) + chunk.pulse[rows] // FRAME_SHOTS
+        frame = track.frame_base.setdefault(line, track.next_frame) + pulse // FRAME_SHOTS
         track.next_frame = max(track.next_frame, int(frame.max()) + 1)
-        t = adjusted_to_delta_time(chunk.start_time + chunk.pulse[rows] / self.prf_hz)
-        _count_frames(track, frame, chunk.pulse[rows], chunk.start_time, self.prf_hz)
+        t = adjusted_to_delta_time(chunk.start_time + pulse / self.prf_hz)
+        _count_frames(track, frame, pulse, chunk.start_time, self.prf_hz)
         dist = along - local * SEGMENT_M
         _keep_reference(track, segment, np.abs(dist - SEGMENT_M / 2.0), track.rows, lat, lon, t)
         track.segments.append(segment.astype(np.int32))
@@ -174,7 +176,7 @@ class Atl03Writer:
         spread, track.furthest = along_spread(x_atc, track.furthest)
         track.spread = max(track.spread, spread)
         return {"delta_time": t, "lat_ph": lat, "lon_ph": lon, "h_ph": h, "dist_ph_along": dist, "x_atc": x_atc,
-                "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": chunk.pulse[rows]}
+                "truth_kind": chunk.kind[rows].astype(np.int8), "ph_id_pulse": pulse}
 
     def close(self, workers: ProcessMap | None = None) -> str:
         """Classify the photons (the signal finder in blocks over ``workers`` when given), write the per-segment and
@@ -227,11 +229,21 @@ def _horizontal(offsets: np.ndarray) -> np.ndarray:
     return np.sqrt(x * x + y * y)
 
 
+def _distinct(values: np.ndarray, inverse: bool = False) -> tuple[np.ndarray, ...]:
+    """``np.unique(values, return_index=True, return_inverse=inverse)`` bit for bit: from the runs of equal values
+    where they never decrease (a beam's shots and frames come in order: no sort), else NumPy's."""
+    if len(values) and np.all(values[1:] >= values[:-1]):
+        new = np.r_[True, values[1:] != values[:-1]]
+        first = np.flatnonzero(new)
+        return (values[first], first) + ((np.cumsum(new) - 1,) if inverse else ())
+    return np.unique(values, return_index=True, return_inverse=inverse)
+
+
 def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> None:
     """Each background frame's first shot time and its shots that detected a photon (a shot's photons are all in one
     chunk)."""
-    _, first = np.unique(pulse, return_index=True)  # a photon of each shot
-    frames, some = np.unique(frame, return_index=True)  # each frame, and its first photon
+    _, first = _distinct(pulse)  # a photon of each shot
+    frames, some = _distinct(frame)  # each frame, and its first photon
     shots = np.bincount(np.searchsorted(frames, frame[first]), minlength=len(frames))
     for f, n, p in zip(frames.tolist(), shots.tolist(), (pulse[some] // FRAME_SHOTS * FRAME_SHOTS).tolist()):
         track.frame_shots[f] = track.frame_shots.get(f, 0) + n
