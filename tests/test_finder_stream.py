@@ -14,12 +14,16 @@ BLOCK = 1000
 
 def _beam(seed: int, late_slant: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(along [m], h [m], pulse) of 4000 shots: a surface at 50 m and noise over 300 m, each photon shifted along
-    track by its height above 150 m times a slant (an off-nadir beam): 0.1, ``late_slant`` from shot 3000."""
+    track by its height above 150 m times a slant (an off-nadir beam): 0.1, ``late_slant`` from shot 3000; one photon
+    in a hundred without a position (NaN distance and height: noise, nobody's neighbour)."""
     rng = np.random.default_rng(seed)
     pulse = np.repeat(np.arange(4000), rng.poisson(5.0, 4000))
     h = np.where(rng.random(pulse.size) < 0.2, 50.0 + rng.normal(0, 0.1, pulse.size),
                  rng.uniform(0.0, 300.0, pulse.size))
-    return pulse * 0.7 + (h - 150.0) * np.where(pulse < 3000, 0.1, late_slant), h, pulse
+    along = pulse * 0.7 + (h - 150.0) * np.where(pulse < 3000, 0.1, late_slant)
+    lost = rng.random(pulse.size) < 0.01
+    along[lost], h[lost] = np.nan, np.nan
+    return along, h, pulse
 
 
 def _stream_of(beam: tuple, out: np.ndarray) -> tuple:
