@@ -2,6 +2,8 @@
 a beam's photons come, the rest at the close, every confidence as the whole beam classified at once."""
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -78,3 +80,23 @@ def test_a_stream_without_workers_holds_the_photons_and_leaves_every_block_to_th
     left = stream.finish({"gt1": _stream_of((along, h, pulse), out)})
     assert [(start, end) for _, start, end in left] == [(a, min(a + BLOCK, len(h))) for a in range(0, len(h), BLOCK)]
     assert stream.pieces == {}
+
+
+def test_a_block_that_fails_on_the_workers_fails_the_close_and_the_stream_ends():
+    """A worker's error (here the map raising at once) is held by the stream's thread and raised by finish, the
+    thread ended (no hang); stop after it is harmless."""
+
+    class Failing:
+        processes = [None, None]
+
+        def map(self, function, chunks):
+            raise OSError("worker 1 ended with exit status -9")
+
+    along, h, pulse = _beam(5, 0.1)
+    stream = FinderStream(SignalFinder(), block=BLOCK)
+    stream.start(Failing())
+    stream.add("gt1", along, h, pulse, along_spread(along)[0])
+    with pytest.raises(OSError, match="exit status -9"):
+        stream.finish({"gt1": _stream_of((along, h, pulse), np.zeros(len(h), dtype=np.int8))})
+    assert not [thread for thread in threading.enumerate() if thread.name == "finder"]
+    stream.stop()
