@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flightsim.core.process_map import ProcessMap, map_rows
-from flightsim.scoring.signal_finder import SignalFinder, block_spans, classify_part, reached
+from flightsim.scoring.signal_finder import SignalFinder, block_spans, classify_part, padded_rows
 
 STREAM_BLOCK = 1 << 18  # photons of a beam in a block classified while the run goes on
 WAITING_PER_WORKER = 2  # blocks handed over and not yet classified, per worker, beyond which blocks go to the close
@@ -125,19 +125,14 @@ class FinderStream:
         pools (the rows held before it then dropped); None while the rows after it do not reach far enough yet."""
         along, h, pulse = self._held(beam)
         start, end = beam.sent - beam.base, beam.sent - beam.base + self.block
-        pad = max(self.block // 64, 1)
-        while True:
-            lo, hi = max(0, start - pad), min(len(h), end + pad)
-            near, far = reached(along[lo:hi], start - lo, end - lo, lo == 0 and beam.base == 0, False)
-            if min(near, far) > reach_m:
-                break
-            if lo == 0 and near <= reach_m:  # it needs rows before those held
-                beam.stopped, beam.parts = True, []
-                return None
-            if hi == len(h):  # too few photons after it yet
-                return None
-            pad *= 2
-        block = (beam.sent, along[lo:hi], h[lo:hi], pulse[lo:hi], start - lo, end - lo, near, far)
+        lo, _, rows, near, far = padded_rows(len(h), lambda a, b: (along[a:b], h[a:b], pulse[a:b]), start, end,
+                                             self.block, reach_m, from_start=beam.base == 0, to_end=False)
+        if near <= reach_m:  # it needs rows before those held
+            beam.stopped, beam.parts = True, []
+            return None
+        if far <= reach_m:  # too few photons after it yet
+            return None
+        block = (beam.sent, *rows, start - lo, end - lo, near, far)
         self._advance(beam, along, h, pulse)
         return block
 

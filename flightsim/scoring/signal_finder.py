@@ -157,14 +157,25 @@ class SignalFinder:
                 spread_m: float) -> tuple:
         """(along, h, pulse, first, past) of rows [start, end) read with enough rows on both sides (rows
         [first, past) of the arrays are the block's): :func:`reached`."""
-        reach = self.reach_m(spread_m)
-        pad = max(block // 64, 1)  # rows read on each side (~3 % of a block), doubled while short of the reach
-        while True:
-            lo, hi = max(0, start - pad), min(n, end + pad)
-            along, h, pulse = read(lo, hi)
-            if min(reached(along, start - lo, end - lo, lo == 0, hi == n)) > reach:
-                return along, h, pulse, start - lo, end - lo
-            pad *= 2
+        lo, _, (along, h, pulse), _, _ = padded_rows(n, read, start, end, block, self.reach_m(spread_m))
+        return along, h, pulse, start - lo, end - lo
+
+
+def padded_rows(n: int, read: Callable[[int, int], tuple], start: int, end: int, block: int, reach_m: float,
+                from_start: bool = True, to_end: bool = True) -> tuple:
+    """(lo, hi, read(lo, hi), near, far): rows [lo, hi) of a stream of ``n`` rows read around rows [start, end), with
+    pads from block/64 rows a side doubled while a side short of ``reach_m`` (:func:`reached`: ``near`` before the
+    block's photons, ``far`` beyond) can still grow. Rows 0 and n are the stream's start and end when ``from_start``
+    and ``to_end`` (a side reaching them needs no more); else rows held of a longer stream, where a side may stay
+    short."""
+    pad = max(block // 64, 1)  # ~3 % of a block
+    while True:
+        lo, hi = max(0, start - pad), min(n, end + pad)
+        rows = read(lo, hi)
+        near, far = reached(rows[0], start - lo, end - lo, lo == 0 and from_start, hi == n and to_end)
+        if not ((near <= reach_m and lo > 0) or (far <= reach_m and hi < n)):
+            return lo, hi, rows, near, far
+        pad *= 2
 
 
 def block_spans(stream: tuple, ranges: list[tuple[int, int]]) -> list[tuple]:
