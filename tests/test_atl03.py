@@ -228,6 +228,30 @@ def test_reference_photons_over_chunks_are_the_nearest_to_the_centre_first_on_a_
             assert np.isnan([row[k], lat[k], lon[k], t[k]]).all()
 
 
+def test_background_frames_over_chunks_count_each_shot_once_and_take_the_first_shots_time():
+    """The background frames of a track over several chunks (a frame across their boundary, a chunk's shots out of
+    order, a shot of many photons): each frame's shots that detected a photon, summed over the chunks, and the
+    delta_time of its first shot, against a plain loop over every photon."""
+    from flightsim.outputs.atl03_granule import adjusted_to_delta_time
+    from flightsim.outputs.atl03_h5 import FRAME_SHOTS, _count_frames, _frames, _Track
+
+    rng = np.random.default_rng(8)
+    track, start, prf = _Track(), 1.25e9 + 0.3, 10_000.0
+    shots: dict[int, set] = {}
+    for lo, hi, n in ((0, 120, 200), (120, 130, 1), (130, 260, 90), (260, 400, 300)):
+        pulse = rng.integers(lo, hi, n).astype(np.int64)
+        pulse = pulse if n == 90 else np.sort(pulse)  # one chunk's photons out of shot order
+        frame = 7 + pulse // FRAME_SHOTS
+        _count_frames(track, frame, pulse, start, prf)
+        for f, p in zip(frame.tolist(), pulse.tolist()):
+            shots.setdefault(f, set()).add(p)
+    ids, counts, times = _frames(track)
+    assert ids.tolist() == sorted(shots)
+    assert counts.tolist() == [len(shots[f]) for f in sorted(shots)]
+    assert times.tolist() == [float(adjusted_to_delta_time(start + (f - 7) * FRAME_SHOTS / prf)) for f in sorted(shots)]
+    assert [len(column) for column in _frames(_Track())] == [0, 0, 0]
+
+
 def test_a_chunk_handed_on_in_parts_gives_the_same_products(tmp_path, monkeypatch):
     """A chunk's photons brought to the host and handed to the writers in parts of whole pulses (run.host_photons;
     the host memory of a long chunk bounded): every dataset of atl03.h5, atl08.h5 and photons.h5 and every LAS tile

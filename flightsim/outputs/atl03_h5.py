@@ -73,8 +73,8 @@ class _Track:
     next_frame: int = 0
     segments: list = field(default_factory=list)
     frames: list = field(default_factory=list)
-    frame_time: dict = field(default_factory=dict)  # frame -> delta_time of its first shot
-    frame_shots: dict = field(default_factory=dict)  # frame -> shots that detected a photon
+    frame_counts: list = field(default_factory=list)  # per chunk: (frames, their shots that detected a photon,
+    # the delta_time of each frame's first shot) (_count_frames); _frames sums them
     reference: list = field(default_factory=list)  # per chunk: its best photon of each segment (_keep_reference)
     rows: int = 0
     spread: float = 0.0  # the most a photon's x_atc lies behind an earlier photon's [m] (the signal finder's blocks)
@@ -116,7 +116,7 @@ class Atl03Writer:
         """Append a prepared chunk's photons (chunks in their order), each beam's worked out on a thread of its own
         (NumPy and PROJ let go of Python's lock), then written in beam order."""
         beams = [(self.granule.track_name(int(beam)), np.flatnonzero(chunk.pixel == beam))
-                 for beam in np.unique(chunk.pixel)]
+                 for beam in np.flatnonzero(np.bincount(chunk.pixel))]
         for name, _ in beams:
             self.tracks.setdefault(name, _Track())
         geodetic = photon_geodetic(chunk, self.body, self.scene)  # prepared: kept in the chunk
@@ -240,15 +240,23 @@ def _distinct(values: np.ndarray, inverse: bool = False) -> tuple[np.ndarray, ..
 
 
 def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> None:
-    """Each background frame's first shot time and its shots that detected a photon (a shot's photons are all in one
-    chunk)."""
+    """Keep each background frame of these photons, its shots that detected a photon (a shot's photons are all in one
+    chunk) and its first shot's delta_time [s]."""
     _, first = _distinct(pulse)  # a photon of each shot
     frames, some = _distinct(frame)  # each frame, and its first photon
     shots = np.bincount(np.searchsorted(frames, frame[first]), minlength=len(frames))
-    for f, n, p in zip(frames.tolist(), shots.tolist(), (pulse[some] // FRAME_SHOTS * FRAME_SHOTS).tolist()):
-        track.frame_shots[f] = track.frame_shots.get(f, 0) + n
-        if f not in track.frame_time:
-            track.frame_time[f] = float(adjusted_to_delta_time(start_time + p / prf_hz))
+    track.frame_counts.append((frames, shots, adjusted_to_delta_time(
+        start_time + pulse[some] // FRAME_SHOTS * FRAME_SHOTS / prf_hz)))
+
+
+def _frames(track: _Track) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The track's background frames in order, their shots that detected a photon (summed over the chunks) and
+    their first shot's delta_time [s] (from the first chunk that has the frame)."""
+    if not track.frame_counts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    frames, shots, times = (np.concatenate(column) for column in zip(*track.frame_counts))
+    ids, first, inverse = np.unique(frames, return_index=True, return_inverse=True)
+    return ids, np.bincount(inverse, weights=shots, minlength=len(ids)), times[first]
 
 
 def _keep_reference(track: _Track, segment: np.ndarray, offset: np.ndarray, row0: int, lat, lon, t) -> None:
@@ -320,8 +328,7 @@ def _background(g, track: _Track, conf: np.ndarray, gate_s: float) -> None:
     """bckgrd_atlas: per 50-shot frame, the photons the signal finder calls noise per second of gate [Hz], over the
     frame's shots that detected anything."""
     frame = np.concatenate(track.frames) if track.frames else np.zeros(0, np.int32)
-    ids = np.array(sorted(track.frame_time), dtype=np.int64)
+    ids, shots, times = _frames(track)
     noise = np.bincount(np.searchsorted(ids, frame[conf == 0]), minlength=len(ids))
-    shots = np.array([track.frame_shots[int(k)] for k in ids], dtype=np.float64)
-    g.create_dataset("delta_time", data=np.array([track.frame_time[int(k)] for k in ids], dtype=np.float64))
+    g.create_dataset("delta_time", data=times)
     g.create_dataset("bckgrd_rate", data=(noise / np.maximum(shots, 1) / gate_s).astype(np.float32))
