@@ -233,7 +233,7 @@ def test_background_frames_over_chunks_count_each_shot_once_and_take_the_first_s
     order, a shot of many photons): each frame's shots that detected a photon, summed over the chunks, and the
     delta_time of its first shot, against a plain loop over every photon."""
     from flightsim.outputs.atl03_granule import adjusted_to_delta_time
-    from flightsim.outputs.atl03_h5 import FRAME_SHOTS, _count_frames, _frames, _Track
+    from flightsim.outputs.atl03_h5 import FRAME_SHOTS, _frame_counts, _frames, _Track
 
     rng = np.random.default_rng(8)
     track, start, prf = _Track(), 1.25e9 + 0.3, 10_000.0
@@ -241,8 +241,9 @@ def test_background_frames_over_chunks_count_each_shot_once_and_take_the_first_s
     for lo, hi, n in ((0, 120, 200), (120, 130, 1), (130, 260, 90), (260, 400, 300)):
         pulse = rng.integers(lo, hi, n).astype(np.int64)
         pulse = pulse if n == 90 else np.sort(pulse)  # one chunk's photons out of shot order
+        frames, shots_found, times = _frame_counts(pulse // FRAME_SHOTS, pulse, start, prf)
+        track.frame_counts.append((7 + frames, shots_found, times))  # the line's first frame numbered 7
         frame = 7 + pulse // FRAME_SHOTS
-        _count_frames(track, frame, pulse, start, prf)
         for f, p in zip(frame.tolist(), pulse.tolist()):
             shots.setdefault(f, set()).add(p)
     ids, counts, times = _frames(track)

@@ -74,11 +74,25 @@ class _Track:
     segments: list = field(default_factory=list)
     frames: list = field(default_factory=list)
     frame_counts: list = field(default_factory=list)  # per chunk: (frames, their shots that detected a photon,
-    # the delta_time of each frame's first shot) (_count_frames); _frames sums them
+    # the delta_time of each frame's first shot) (_frame_counts); _frames sums them
     reference: list = field(default_factory=list)  # per chunk: its best photon of each segment (_keep_reference)
     rows: int = 0
     spread: float = 0.0  # the most a photon's x_atc lies behind an earlier photon's [m] (the signal finder's blocks)
     furthest: float = -np.inf  # the furthest x_atc so far [m]
+
+
+@dataclass(frozen=True)
+class _BeamPart:
+    """One beam's photons of a chunk as :meth:`Atl03Writer.prepare` works them out (nothing from earlier chunks)."""
+
+    name: str  # its ground track
+    rows: np.ndarray  # the chunk's rows of the beam's photons
+    pulse: np.ndarray  # their shots (pulse index within the line)
+    inverse: np.ndarray  # each photon's shot among the footprints
+    centre: np.ndarray  # (shots, 3) local footprint centres [m]
+    footprint: dict  # the footprint group's columns
+    delta_time: np.ndarray  # each photon's shot's delta_time [s]
+    frames: tuple  # the background frames (numbered from the line's first), as _frame_counts gives them
 
 
 class Atl03Writer:
@@ -105,41 +119,38 @@ class Atl03Writer:
         """Append the chunk's photons: ``take(prepare(chunk))``."""
         self.take(self.prepare(chunk))
 
-    def prepare(self, chunk):
-        """The chunk with its photons' geodetic columns worked out (every beam's at once, and later the LAS tiles'):
-        what an append needs that depends on no earlier chunk, so it may run for several chunks at once on threads
+    def prepare(self, chunk) -> tuple:
+        """The chunk with what its appends need that depends on no earlier chunk: its photons' geodetic columns (every
+        beam's at once, and later the LAS tiles') and each beam's photons, shots, footprints and times
+        (:class:`_BeamPart`, a beam a thread); so it may run for several chunks at once on threads
         (:class:`~flightsim.core.background.Background`) while :meth:`take` appends an earlier one."""
         photon_geodetic(chunk, self.body, self.scene)
-        return chunk
-
-    def take(self, chunk) -> None:
-        """Append a prepared chunk's photons (chunks in their order), each beam's worked out on a thread of its own
-        (NumPy and PROJ let go of Python's lock), then written in beam order."""
         beams = [(self.granule.track_name(int(beam)), np.flatnonzero(chunk.pixel == beam))
                  for beam in np.flatnonzero(np.bincount(chunk.pixel))]
-        for name, _ in beams:
-            self.tracks.setdefault(name, _Track())
+        with ThreadPoolExecutor(thread_count(len(beams)), thread_name_prefix="atl03-prepare") as pool:
+            return chunk, list(pool.map(lambda beam: self._beam_part(chunk, *beam), beams))
+
+    def take(self, prepared: tuple) -> None:
+        """Append a prepared chunk's photons (chunks in their order), each beam's columns finished on a thread of its
+        own (NumPy lets go of Python's lock), then written in beam order."""
+        chunk, beams = prepared
+        for beam in beams:
+            self.tracks.setdefault(beam.name, _Track())
         geodetic = photon_geodetic(chunk, self.body, self.scene)  # prepared: kept in the chunk
         with ThreadPoolExecutor(thread_count(len(beams)), thread_name_prefix="atl03") as pool:
-            groups = list(pool.map(lambda beam: self._beam(self.tracks[beam[0]], chunk, beam[1], geodetic), beams))
-        for (name, _), (footprint, heights) in zip(beams, groups):
-            self.product.append(f"{name}/footprint", footprint)
-            self.product.append(f"{name}/heights", heights)
+            heights = list(pool.map(lambda beam: self._heights(self.tracks[beam.name], chunk, beam, geodetic), beams))
+        for beam, columns in zip(beams, heights):
+            self.product.append(f"{beam.name}/footprint", beam.footprint)
+            self.product.append(f"{beam.name}/heights", columns)
             if self.stream is not None:
-                self.stream.add(name, heights["x_atc"], heights["h_ph"], heights["ph_id_pulse"],
-                                self.tracks[name].spread)
+                self.stream.add(beam.name, columns["x_atc"], columns["h_ph"], columns["ph_id_pulse"],
+                                self.tracks[beam.name].spread)
         self.count += len(chunk)
 
-    def _beam(self, track: _Track, chunk, rows: np.ndarray, geodetic: tuple) -> tuple[dict, dict]:
-        """The footprint and heights columns of one beam's photons ``rows`` of the chunk (its track's state kept;
-        ``geodetic``: the chunk's latitude, longitude and height columns)."""
+    def _beam_part(self, chunk, name: str, rows: np.ndarray) -> _BeamPart:
+        """One beam's photons ``rows`` of the chunk, with the centres of their shots' footprints (the beam's believed
+        axis where it meets the scene's ground height), the footprint columns and each photon's delta_time."""
         pulse = chunk.pulse[rows]
-        footprint, along = self._footprint(track, chunk, rows, pulse)
-        return footprint, self._heights(track, chunk, rows, pulse, along, geodetic)
-
-    def _footprint(self, track: _Track, chunk, rows: np.ndarray, pulse: np.ndarray) -> tuple[dict, np.ndarray]:
-        """The footprint centres of the chunk's shots of this beam (``pulse``: its photons' shots), and each photon's
-        shot's distance along track from the line's first footprint [m]."""
         pulses, first, inverse = _distinct(pulse, inverse=True)
         i = rows[first]
         d = chunk.directions[i].astype(np.float64)
@@ -149,13 +160,16 @@ class Atl03Writer:
         lat, lon, h = local_to_geodetic(self.body, self.scene, centre)
         footprint = {"delta_time": adjusted_to_delta_time(chunk.start_time + pulses / self.prf_hz), "lat": lat,
                      "lon": lon, "h": h}
-        origin = track.first_footprint.setdefault(chunk.line_id, centre[0].copy())
-        return footprint, _horizontal(centre - origin)[inverse]
+        t = adjusted_to_delta_time(chunk.start_time + pulse / self.prf_hz)
+        frames = _frame_counts(pulse // FRAME_SHOTS, pulse, chunk.start_time, self.prf_hz)
+        return _BeamPart(name, rows, pulse, inverse, centre, footprint, t, frames)
 
-    def _heights(self, track: _Track, chunk, rows: np.ndarray, pulse: np.ndarray, along: np.ndarray,
-                 geodetic: tuple) -> dict:
-        """The heights columns of one beam's photons (its segments, frames and reference photons kept)."""
-        line = chunk.line_id
+    def _heights(self, track: _Track, chunk, beam: _BeamPart, geodetic: tuple) -> dict:
+        """The heights columns of one beam's photons (its line's first photon and footprint, segments, frames and
+        reference photons kept in its track)."""
+        line, rows, pulse, t = chunk.line_id, beam.rows, beam.pulse, beam.delta_time
+        origin = track.first_footprint.setdefault(line, beam.centre[0].copy())
+        along = _horizontal(beam.centre - origin)[beam.inverse]  # each photon's shot from the line's first footprint
         points = chunk.points[rows]
         lat, lon, h = (column[rows] for column in geodetic)
         start = track.first_photon.setdefault(line, points[0].copy())
@@ -163,10 +177,11 @@ class Atl03Writer:
         local = np.floor(along / SEGMENT_M).astype(np.int64)
         segment = base + local
         track.next_segment = max(track.next_segment, int(segment.max()) + 1)
-        frame = track.frame_base.setdefault(line, track.next_frame) + pulse // FRAME_SHOTS
+        frame_base = track.frame_base.setdefault(line, track.next_frame)
+        frame = frame_base + pulse // FRAME_SHOTS
         track.next_frame = max(track.next_frame, int(frame.max()) + 1)
-        t = adjusted_to_delta_time(chunk.start_time + pulse / self.prf_hz)
-        _count_frames(track, frame, pulse, chunk.start_time, self.prf_hz)
+        frames, shots, times = beam.frames
+        track.frame_counts.append((frame_base + frames, shots, times))
         dist = along - local * SEGMENT_M
         _keep_reference(track, segment, np.abs(dist - SEGMENT_M / 2.0), track.rows, lat, lon, t)
         track.segments.append(segment.astype(np.int32))
@@ -239,14 +254,13 @@ def _distinct(values: np.ndarray, inverse: bool = False) -> tuple[np.ndarray, ..
     return np.unique(values, return_index=True, return_inverse=inverse)
 
 
-def _count_frames(track: _Track, frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> None:
-    """Keep each background frame of these photons, its shots that detected a photon (a shot's photons are all in one
-    chunk) and its first shot's delta_time [s]."""
+def _frame_counts(frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> tuple:
+    """The background frames of these photons (a frame's first shot is its number · FRAME_SHOTS), each one's shots
+    that detected a photon (a shot's photons are all in one chunk) and its first shot's delta_time [s]."""
     _, first = _distinct(pulse)  # a photon of each shot
     frames, some = _distinct(frame)  # each frame, and its first photon
     shots = np.bincount(np.searchsorted(frames, frame[first]), minlength=len(frames))
-    track.frame_counts.append((frames, shots, adjusted_to_delta_time(
-        start_time + pulse[some] // FRAME_SHOTS * FRAME_SHOTS / prf_hz)))
+    return frames, shots, adjusted_to_delta_time(start_time + pulse[some] // FRAME_SHOTS * FRAME_SHOTS / prf_hz)
 
 
 def _frames(track: _Track) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
