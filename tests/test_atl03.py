@@ -190,13 +190,14 @@ def test_distinct_shots_are_numpys_unique(in_order):
 
 
 def test_horizontal_lengths_are_numpys_norm_bit_for_bit():
-    """x_atc's horizontal lengths against ``np.linalg.norm`` of the first two columns: the same float64 bits, at
-    offsets from millimetres to thousands of kilometres and of either sign."""
+    """x_atc's horizontal lengths against ``np.linalg.norm`` of the first two columns of the offsets from an origin:
+    the same float64 bits, at offsets from millimetres to thousands of kilometres and of either sign."""
     from flightsim.outputs.atl03_h5 import _horizontal
 
     rng = np.random.default_rng(3)
-    offsets = rng.normal(0.0, 1.0, (100_000, 3)) * 10.0 ** rng.uniform(-3, 6.5, (100_000, 1))
-    assert np.array_equal(_horizontal(offsets), np.linalg.norm(offsets[:, :2], axis=1))
+    points = rng.normal(0.0, 1.0, (100_000, 3)) * 10.0 ** rng.uniform(-3, 6.5, (100_000, 1))
+    for origin in (np.zeros(3), points[7], rng.normal(0.0, 3e5, 3)):
+        assert np.array_equal(_horizontal(points, origin), np.linalg.norm((points - origin)[:, :2], axis=1))
 
 
 def test_reference_photons_over_chunks_are_the_nearest_to_the_centre_first_on_a_tie():
