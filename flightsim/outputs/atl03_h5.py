@@ -268,7 +268,7 @@ def _frames(track: _Track) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The track's background frames in order, their shots that detected a photon (summed over the chunks) and
     their first shot's delta_time [s] (from the first chunk that has the frame)."""
     if not track.frame_counts:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
     frames, shots, times = (np.concatenate(column) for column in zip(*track.frame_counts))
     ids, first, inverse = np.unique(frames, return_index=True, return_inverse=True)
     return ids, np.bincount(inverse, weights=shots, minlength=len(ids)), times[first]
