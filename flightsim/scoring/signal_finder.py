@@ -29,7 +29,7 @@ import warp as wp
 from scipy.special import pdtrc
 
 from flightsim.core.process_map import ProcessMap, map_rows
-from flightsim.core.radix import by_key_then_value
+from flightsim.core.radix import by_key_then_value, stable_order
 from flightsim.core.warp_runtime import init_warp
 from kernels.signal_finder import segment_counts
 
@@ -229,13 +229,13 @@ def _shots(segment: np.ndarray, pulse: np.ndarray) -> tuple[np.ndarray, np.ndarr
     pulse) pairs in segment order (a pulse whose photons span several segments is a pair in each): for each pair the
     last earlier segment its pulse came in (−1: none), and where each segment's pairs start (m + 1 bounds). The
     distinct shots of segments lo … hi − 1 are their pairs whose pulse came in no segment from lo on before."""
-    by_pulse = np.lexsort((segment, pulse))
+    by_pulse = stable_order(pulse - pulse.min())  # the rows come in segment order: so by (pulse, segment)
     s, p = segment[by_pulse], pulse[by_pulse]
     new = np.r_[True, (s[1:] != s[:-1]) | (p[1:] != p[:-1])]  # each distinct pair once
     s, p = s[new], p[new]
     repeat = np.r_[False, p[1:] == p[:-1]]  # the pulse came in an earlier segment
     came = np.where(repeat, np.r_[0, s[:-1]], -1)  # that segment; −1 its first
-    in_order = np.argsort(s, kind="stable")
+    in_order = stable_order(s)
     return came[in_order], np.searchsorted(s[in_order], np.arange(int(segment[-1]) + 2))
 
 
