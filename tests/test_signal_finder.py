@@ -57,6 +57,23 @@ def test_tail_probability_is_scipys_poisson_survival_bit_for_bit():
     assert at_least(np.array([0, 1]), np.array([0.0, 0.0])).tolist() == [1.0, 0.0]
 
 
+def test_a_count_at_or_below_its_poisson_mean_has_a_tail_of_at_least_one_half():
+    """The finder computes P(K ≥ k) only for counts above their mean: at or below it the tail is ≥ 1/2 (a Poisson
+    median is at least λ − ln 2), against SciPy's survival function over means from 1e-3 to 1e4, at the integers just
+    below each mean where the tail is least; and the shortcut's values where it computes them."""
+    from flightsim.scoring.signal_finder import _tail_above_mean
+
+    lam = np.concatenate([np.geomspace(1e-3, 1e4, 20_000), np.arange(1, 200) + 1e-9, np.arange(1, 200) - 1e-9])
+    k = np.floor(lam)
+    assert (poisson.sf(k - 1, lam) >= 0.5).all()
+    rng = np.random.default_rng(2)
+    counts, means = rng.integers(0, 40, 5_000), rng.uniform(0.0, 30.0, 5_000)
+    tail = _tail_above_mean(counts, means)
+    above = counts > means
+    assert np.array_equal(tail[above], at_least(counts[above], means[above])) and (tail[~above] == 1.0).all()
+    assert 0 < above.sum() < len(above)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_distinct_shots_of_every_window_of_segments(seed):
     """The finder's shot counts (a segment's, and a pool's of segments lo … hi − 1) against ``np.unique`` of the
@@ -102,8 +119,8 @@ def _reference(finder: SignalFinder, along, h, pulse) -> np.ndarray:
 
 
 @pytest.mark.parametrize("seed", range(3))
-@pytest.mark.parametrize("finder", [SignalFinder(), SignalFinder(p_low=0.5, p_medium=0.2, p_high=0.05)],
-                         ids=["atbd", "loose"])
+@pytest.mark.parametrize("finder", [SignalFinder(), SignalFinder(p_low=0.5, p_medium=0.2, p_high=0.05),
+                                    SignalFinder(p_low=0.8, p_medium=0.5, p_high=0.2)], ids=["atbd", "loose", "looser"])
 def test_confidence_against_the_steps_photon_by_photon(seed, finder):
     """``classify`` against :func:`_reference` on 3,000 photons: a surface in noise over 25 segments, pulses whose
     photons span two segments, a gap of empty segments, noise heights on a grid of 0.25 m (ties exactly at the
