@@ -242,7 +242,7 @@ def test_background_frames_over_chunks_count_each_shot_once_and_take_the_first_s
     for lo, hi, n in ((0, 120, 200), (120, 130, 1), (130, 260, 90), (260, 400, 300)):
         pulse = rng.integers(lo, hi, n).astype(np.int64)
         pulse = pulse if n == 90 else np.sort(pulse)  # one chunk's photons out of shot order
-        frames, shots_found, times = _frame_counts(pulse // FRAME_SHOTS, pulse, start, prf)
+        frames, shots_found, times = _frame_counts(pulse, start, prf)
         track.frame_counts.append((7 + frames, shots_found, times))  # the line's first frame numbered 7
         frame = 7 + pulse // FRAME_SHOTS
         for f, p in zip(frame.tolist(), pulse.tolist()):

@@ -161,7 +161,7 @@ class Atl03Writer:
         footprint = {"delta_time": adjusted_to_delta_time(chunk.start_time + pulses / self.prf_hz), "lat": lat,
                      "lon": lon, "h": h}
         t = adjusted_to_delta_time(chunk.start_time + pulse / self.prf_hz)
-        frames = _frame_counts(pulse // FRAME_SHOTS, pulse, chunk.start_time, self.prf_hz)
+        frames = _frame_counts(pulse, chunk.start_time, self.prf_hz)
         return _BeamPart(name, rows, pulse, inverse, centre, footprint, t, frames)
 
     def _heights(self, track: _Track, chunk, beam: _BeamPart, geodetic: tuple) -> dict:
@@ -255,13 +255,14 @@ def _distinct(values: np.ndarray, inverse: bool = False) -> tuple[np.ndarray, ..
     return np.unique(values, return_index=True, return_inverse=inverse)
 
 
-def _frame_counts(frame: np.ndarray, pulse: np.ndarray, start_time: float, prf_hz: float) -> tuple:
-    """The background frames of these photons (a frame's first shot is its number · FRAME_SHOTS), each one's shots
+def _frame_counts(pulse: np.ndarray, start_time: float, prf_hz: float) -> tuple:
+    """The background frames of photons of shots ``pulse`` (frame f: shots f · FRAME_SHOTS …), each one's shots
     that detected a photon (a shot's photons are all in one chunk) and its first shot's delta_time [s]."""
+    frame = pulse // FRAME_SHOTS
     _, first = _distinct(pulse)  # a photon of each shot
-    frames, some = _distinct(frame)  # each frame, and its first photon
+    frames, _ = _distinct(frame)  # each frame
     shots = np.bincount(np.searchsorted(frames, frame[first]), minlength=len(frames))
-    return frames, shots, adjusted_to_delta_time(start_time + pulse[some] // FRAME_SHOTS * FRAME_SHOTS / prf_hz)
+    return frames, shots, adjusted_to_delta_time(start_time + frames * FRAME_SHOTS / prf_hz)
 
 
 def _frames(track: _Track) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
