@@ -13,7 +13,8 @@ from flightsim.engine.run import simulate_to_directory
 from flightsim.instrument.pairs import SINGLE_BEAM
 from scipy.stats import poisson
 
-from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, along_spread, at_least
+from flightsim.core.poisson import at_least
+from flightsim.scoring.signal_finder import HIGH, LOW, SignalFinder, _shots, along_spread
 
 
 def _pass(tmp_path, **settings) -> tuple[np.ndarray, np.ndarray]:
@@ -43,18 +44,6 @@ def test_weak_signal_keeps_its_precision(tmp_path):
     conf, kind = _pass(tmp_path, **{"photon.noise_hz": 3.0e6, "photon.reflectance": 0.02, "flight.duration_s": 0.2})
     assert (kind[conf == HIGH] > 0).mean() >= 0.90
     assert (conf[kind == 1] >= LOW).mean() >= 0.85
-
-
-def test_tail_probability_is_scipys_poisson_survival_bit_for_bit():
-    """``at_least(k, λ)`` = P(K ≥ k) = ``scipy.stats.poisson.sf(k - 1, λ)`` to the last bit: counts below the
-    support (k ≤ 0), λ = 0, small and large means, and the integer and float64 inputs the finder hands it."""
-    rng = np.random.default_rng(7)
-    k = np.concatenate([np.arange(-3, 90), rng.integers(-2, 400, 20_000)])
-    lam = np.concatenate([np.zeros(31), np.full(31, 1e-9), np.linspace(0.5, 300.0, 31), rng.random(20_000) * 200.0])
-    expected = poisson.sf(k - 1, lam)
-    assert np.array_equal(at_least(k, lam), expected)
-    assert np.array_equal(at_least(k.astype(np.float64), lam), expected)
-    assert at_least(np.array([0, 1]), np.array([0.0, 0.0])).tolist() == [1.0, 0.0]
 
 
 def test_a_count_at_or_below_its_poisson_mean_has_a_tail_of_at_least_one_half():

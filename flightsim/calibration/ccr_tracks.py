@@ -6,11 +6,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import poisson
 
 from flightsim.calibration.ccr_field import CcrField
 from flightsim.calibration.geolocation import Track, geolocate
 from flightsim.core.errors import InputError
+from flightsim.core.poisson import at_least
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ def _is_signal(n_run: int, run_shots: int, n_candidates: int, window_shots: int,
     """Whether n_run photons over run_shots shots are unlikely (< false_alarm) to be background, its
     rate per shot taken from the window's other candidates (at least one)."""
     rate = max(n_candidates - n_run, 1) / max(window_shots - run_shots, 1)
-    return bool(poisson.sf(n_run - 1, rate * run_shots) < false_alarm)
+    return bool(at_least(n_run, rate * run_shots) < false_alarm)
 
 
 def _candidates(track, shot, height, field, reach, height_tol_m, ground_window_m):

@@ -118,8 +118,9 @@ def first_photon_bias_s(n_signal: float, sigma_s: float) -> float:
     """Mean time of the first of the echo's photo-electrons minus the echo's centre [s] (negative: early),
     for a Gaussian echo of spread ``sigma_s`` with Poisson(``n_signal``) photo-electrons, given one was
     detected and the dead time outlasts the echo: the density is n φ(z) e^{−n Φ(z)} / (1 − e^{−n})."""
-    from scipy.stats import norm
+    from scipy.special import ndtr
 
     z = np.linspace(-10.0, 10.0, 200_001)
-    density = n_signal * norm.pdf(z) * np.exp(-n_signal * norm.cdf(z))
+    pdf = np.exp(-z**2 / 2.0) / np.sqrt(2.0 * np.pi)  # scipy.stats.norm.pdf's own expression
+    density = n_signal * pdf * np.exp(-n_signal * ndtr(z))
     return float(np.trapezoid(z * density, z) / np.trapezoid(density, z)) * sigma_s

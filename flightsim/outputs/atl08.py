@@ -62,9 +62,9 @@ from typing import ClassVar
 
 import numpy as np
 import warp as wp
-from scipy.stats import poisson
 
 from flightsim.core.errors import InputError, positive
+from flightsim.core.poisson import upper_quantile
 from flightsim.core.settings import Settings, check_settings, setting
 from flightsim.core.warp_runtime import init_warp
 from flightsim.outputs.atl08_ground import ground_surface, group_percentile, trend_of
@@ -212,7 +212,7 @@ def _windows(x, s: ATL08Settings) -> np.ndarray:
 def _limit(lam: np.ndarray, s: ATL08Settings) -> np.ndarray:
     """The counts a Poisson background of mean ``lam`` exceeds with the chance dragann_p (one per distinct mean)."""
     means, index = np.unique(lam, return_inverse=True)
-    return poisson.isf(s.dragann_p, means)[index.reshape(-1)]
+    return upper_quantile(s.dragann_p, means)[index.reshape(-1)]
 
 
 def _dense(x, h, conf, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -359,7 +359,7 @@ def _segments(x, h, lat, lon, t, cls, rel, band, seg_m: float, s: ATL08Settings)
     out["n_ca_photons"] = np.bincount(group[member & (cls == CANOPY)], minlength=m).astype(np.int32)
     out["n_toc_photons"] = np.bincount(group[member & (cls == TOP_OF_CANOPY)], minlength=m).astype(np.int32)
     noise = np.bincount(group[member], weights=band[member], minlength=m) / np.maximum(out["n_seg_ph"], 1) * seg_m
-    enough_te = (out["n_te_photons"] >= s.min_ground_photons) & (out["n_te_photons"] > poisson.isf(s.dragann_p, noise))
+    enough_te = (out["n_te_photons"] >= s.min_ground_photons) & (out["n_te_photons"] > upper_quantile(s.dragann_p, noise))
     enough_ca = out["n_ca_photons"] + out["n_toc_photons"] >= s.min_canopy_photons
     mean, _ = _group_moments(group[ground], h[ground], m)
     out["h_te_mean"] = np.where(enough_te, mean, FILL)

@@ -26,9 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
-from scipy.special import pdtrc
 
 from flightsim.core.process_map import ProcessMap, map_rows
+from flightsim.core.poisson import at_least
 from flightsim.core.radix import by_key_then_value, stable_order
 from flightsim.core.warp_runtime import init_warp
 from kernels.signal_finder import segment_counts
@@ -238,12 +238,6 @@ def _shots(segment: np.ndarray, pulse: np.ndarray) -> tuple[np.ndarray, np.ndarr
     came = np.where(repeat, np.r_[0, s[:-1]], -1)  # that segment; −1 its first
     in_order = stable_order(s)
     return came[in_order], np.searchsorted(s[in_order], np.arange(int(segment[-1]) + 2))
-
-
-def at_least(k: np.ndarray, lam: np.ndarray) -> np.ndarray:
-    """P(K ≥ k) for K Poisson of mean ``lam``, elementwise: what ``scipy.stats.poisson.sf(k - 1, lam)`` gives, bit for
-    bit (its ``scipy.special.pdtrc``, 1 for k ≤ 0), without the ~90 µs its argument checks cost a call."""
-    return np.where(k > 0, pdtrc(np.maximum(k - 1, 0), lam), 1.0)
 
 
 def _tail_above_mean(k: np.ndarray, lam: np.ndarray) -> np.ndarray:
