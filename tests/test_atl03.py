@@ -126,6 +126,34 @@ def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(
             np.testing.assert_array_equal(a[name][()], b[name][()], err_msg=name)
 
 
+@pytest.mark.parametrize("cores, pool", [(1, False), (2, False), (4, True)])
+def test_two_cores_start_the_worker_processes_later(tmp_path, monkeypatch, cores, pool):
+    """A run past PARALLEL_PHOTONS photons starts its workers on more than two cores; on two only past
+    TWO_CORES_LATER times as many (their start takes the cores the run itself uses), on one never: a 0.05 s pass
+    with PARALLEL_PHOTONS at a quarter of its photons."""
+    import flightsim.engine.products.photons as photons
+
+    cfg = preset_config("atlas")
+    for key, value in {"flight.duration_s": 0.05, "photon.gate_m": [499850.0, 500150.0], "run.host_photons": 4096,
+                       "output.atl08": False}.items():
+        set_value(cfg, key, value)
+    started = []
+
+    class Counted(photons.ProcessMap):
+        def __init__(self, count, preload=()):
+            started.append(count)
+            super().__init__(count, preload)
+
+    monkeypatch.setattr(photons, "ProcessMap", Counted)
+    monkeypatch.setattr(photons, "usable_cores", lambda: cores)
+    monkeypatch.setattr(photons, "PARALLEL_PHOTONS", 1 << 40)
+    total = simulate_to_directory(validate(cfg), tmp_path / "count")["photons"]
+    monkeypatch.setattr(photons, "PARALLEL_PHOTONS", total // 4)
+    assert photons.PARALLEL_PHOTONS > 1000 and photons.TWO_CORES_LATER * (total // 4) > total  # between the two
+    simulate_to_directory(validate(cfg), tmp_path / "run")
+    assert started == ([cores] if pool else [])
+
+
 @pytest.mark.parametrize("failing", ["las", "atl03"])
 def test_a_writer_failing_on_its_thread_leaves_no_file_and_stops_the_workers(tmp_path, monkeypatch, failing):
     """The photon product's writers run on threads of their own: one that fails mid-run fails the run with its own

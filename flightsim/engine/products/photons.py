@@ -16,6 +16,8 @@ from flightsim.outputs.photon_las import FOLDER
 
 ATL08_SEGMENT_M = 100.0  # ATL08's land segment [m]
 PARALLEL_PHOTONS = 1 << 19  # photons from which atl03.h5's signal finder and atl08.h5 run on worker processes
+TWO_CORES_LATER = 8  # on two cores the workers start at 8 × PARALLEL_PHOTONS: their start (imports, Warp) takes the
+# cores the run uses, and a 2 s pass took 7.0 s without them, 8.3-9.8 s with (results/profile-experiments.md 92)
 MAX_WORKERS = 32  # the most worker processes they start
 BEHIND_PHOTONS = 8 << 20  # photons.h5 and the LAS tiles are handed a part once about this many photons came after
 # it (the parts of run.host_photons that make them up, at least one): atl03.h5 has them first
@@ -25,6 +27,11 @@ ORBIT_LAS_THREADS = 2  # from orbit (the geodetic transform has PROJ's threads, 
 ATL03_THREADS = 2  # the most chunks atl03.h5 prepares at once (their geodetic columns) while it appends another
 PRELOAD = ("flightsim.scoring.signal_finder", "flightsim.outputs.atl08_h5",  # what the workers run, imported early,
            "flightsim.core.warp_runtime:init_warp")  # and Warp started (the finder's and ATL08's CPU kernels)
+
+
+def _pool_from(cores: int) -> int:
+    """The photons from which a run on ``cores`` (> 1) usable cores starts its worker processes."""
+    return PARALLEL_PHOTONS * (TWO_CORES_LATER if cores <= 2 else 1)
 
 
 def reflectance_source(cfg, scene, value: float) -> float | str:
@@ -98,7 +105,7 @@ class PhotonProduct:
         self.behind.append((chunk, first))
         self._hand_on(self.behind_parts if self.atl03 else 0)
         self.photons += len(chunk)
-        if self.atl03 and self.workers is None and self.photons >= PARALLEL_PHOTONS and usable_cores() > 1:
+        if self.atl03 and self.workers is None and usable_cores() > 1 and self.photons >= _pool_from(usable_cores()):
             self.workers = ProcessMap(min(usable_cores(), MAX_WORKERS), PRELOAD)  # they start while the run goes on
             for writer in self.atl03:  # and classify the beams' finished stretches as it goes on
                 writer.writer.stream_to(self.workers)
@@ -113,7 +120,7 @@ class PhotonProduct:
 
     def close(self, counts) -> dict:
         """Close the files: atl03.h5 (its signal finder) and atl08.h5 first (on the worker processes once the run
-        passed PARALLEL_PHOTONS photons), while photons.h5 and the LAS tiles are written on."""
+        passed _pool_from photons), while photons.h5 and the LAS tiles are written on."""
         self._hand_on(0, wait=False)
         try:
             names = {writer: self._placed(writer.close(self.workers)) for writer in self.atl03}
