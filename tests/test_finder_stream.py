@@ -89,7 +89,7 @@ def test_a_block_that_fails_on_the_workers_fails_the_close_and_the_stream_ends()
     class Failing:
         processes = [None, None]
 
-        def map(self, function, chunks):
+        def map(self, function, chunks, done=None):
             raise OSError("worker 1 ended with exit status -9")
 
     along, h, pulse = _beam(5, 0.1)

@@ -66,6 +66,17 @@ def test_chunks_made_as_the_workers_take_them(workers):
     assert map_rows(square_sum, iter(chunks), None) == [square_sum(*chunk) for chunk in chunks]
 
 
+def test_each_result_handed_to_done_as_it_comes_back(workers):
+    """With ``done``, each chunk's result goes to ``done(index, result)`` once, as its worker answers (a quick chunk
+    given after a slow one comes back first), bit for bit the parent's; the list returned holds None."""
+    rng = np.random.default_rng(5)
+    chunks = [(rng.uniform(0.0, 9.0, n), float(k)) for k, n in enumerate([3_000_000, 10, 10, 10, 10])]
+    got = []
+    assert workers.map(square_sum, chunks, lambda index, result: got.append((index, result))) == [None] * 5
+    assert sorted(got) == [(k, square_sum(*chunk)) for k, chunk in enumerate(chunks)]
+    assert got[-1][0] == 0  # the slow first chunk last
+
+
 def test_rows_are_cut_into_chunks_of_at_least_the_least_size(workers):
     assert row_chunks(1000, None) == [slice(0, 1000)]
     cuts = row_chunks(1000, workers)  # two workers: four chunks each

@@ -94,13 +94,14 @@ class ProcessMap:
         self.processes.append(process)
         self.connections.append(Connection(parent.detach()))
 
-    def map(self, function: Callable, chunks: Iterable[tuple]) -> list:
+    def map(self, function: Callable, chunks: Iterable[tuple], done: Callable[[int, object], None] | None = None) -> list:
         """``[function(*chunk) for chunk in chunks]``, the chunks spread over the workers, each taken from ``chunks``
-        as a worker frees (a map asked for from another thread meanwhile waits for this one)."""
+        as a worker frees (a map asked for from another thread meanwhile waits for this one); ``done(index, result)``
+        is called as each result comes back, in whatever order (then the list holds None: the results are not kept)."""
         with self._lock:
-            return self._map(function, chunks)
+            return self._map(function, chunks, done)
 
-    def _map(self, function: Callable, chunks: Iterable[tuple]) -> list:
+    def _map(self, function: Callable, chunks: Iterable[tuple], done: Callable[[int, object], None] | None) -> list:
         task = (function.__module__, function.__qualname__)
         results: dict[int, object] = {}
         waiting = iter(enumerate(chunks))  # a chunk is made as a worker frees to take it
@@ -122,6 +123,9 @@ class ProcessMap:
             for conn in wait(list(busy)):
                 index = busy.pop(conn)
                 results[index] = self._answer(conn)
+                if done is not None:
+                    done(index, results[index])
+                    results[index] = None
                 give(conn)
         return [results[index] for index in range(len(results))]
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flightsim.core.process_map import ProcessMap, map_rows
+from flightsim.core.process_map import ProcessMap
 from flightsim.scoring.signal_finder import SignalFinder, block_spans, classify_part, padded_rows
 
 STREAM_BLOCK = 1 << 18  # photons of a beam in a block classified while the run goes on
@@ -106,7 +106,8 @@ class FinderStream:
         spans = []
         for name, stream in streams.items():
             n, _, write, _, spread = stream
-            done = [piece for piece in self.pieces.get(name, []) if piece.holds(self.finder.reach_m(spread))]
+            done = sorted((piece for piece in self.pieces.get(name, []) if piece.holds(self.finder.reach_m(spread))),
+                          key=lambda piece: piece.start)  # they came back in any order
             for piece in done:
                 write(piece.start, piece.conf)
             spans += block_spans(stream, _left(n, done))
@@ -151,20 +152,28 @@ class FinderStream:
         beam.base, beam.sent = beam.sent, beam.sent + self.block
 
     def _serve(self, workers: ProcessMap) -> None:
-        """The thread's loop: the blocks handed over, classified on ``workers`` a batch at a time."""
-        while (made := self._blocks.get()) is not None:
-            if self._error is not None:
-                continue
-            try:
-                found = map_rows(classify_part, [(self.finder, *block[2:7]) for block in made], workers)
-            except BaseException as error:  # noqa: BLE001 - raised again by finish
-                self._error = error
-                continue
-            finally:
-                with self._lock:
-                    self._waiting -= len(made)
-            for (name, start, *_, near, far), conf in zip(made, found):
-                self.pieces.setdefault(name, []).append(Piece(start, conf, near, far))
+        """The thread's loop: one map over the blocks as they are handed over, each given to the first worker free
+        (every worker busy while blocks wait), its piece kept as it comes back."""
+        given: list[tuple] = []  # (beam, first row, near, far) of each block handed to the workers
+
+        def blocks():
+            while (made := self._blocks.get()) is not None:
+                for name, start, *rows, near, far in made:
+                    given.append((name, start, near, far))
+                    yield (self.finder, *rows)
+
+        def done(index: int, conf: np.ndarray) -> None:
+            name, start, near, far = given[index]
+            with self._lock:
+                self._waiting -= 1
+            self.pieces.setdefault(name, []).append(Piece(start, conf, near, far))
+
+        try:
+            workers.map(classify_part, blocks(), done)
+        except BaseException as error:  # noqa: BLE001 - raised again by finish
+            self._error = error
+            while self._blocks.get() is not None:  # the blocks still handed over, dropped
+                pass
 
 
 def _left(n: int, done: list[Piece]) -> list[tuple[int, int]]:
