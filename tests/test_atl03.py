@@ -97,9 +97,9 @@ def test_the_signal_finder_and_atl08_on_worker_processes_give_the_same_products(
             super().__init__(count, preload)
             started.append((count, preload))
 
-        def map(self, function, chunks):
+        def map(self, function, chunks, done=None):
             ran.append(function.__qualname__)
-            return super().map(function, chunks)
+            return super().map(function, chunks, done)
 
     monkeypatch.setattr(photons, "ProcessMap", Counted)
     monkeypatch.setattr(photons, "usable_cores", lambda: 2)
