@@ -315,7 +315,7 @@ class TileWriter:
         if key in self._counts:
             tile = _TileFile.reopen(self._temp_path(key), self._compress, self._parallel, self._durable)
         else:
-            header = copy.deepcopy(self._template)
+            header = copy.copy(self._template)  # the offsets its own: laspy's LasWriter deep-copies the rest
             header.offsets = np.array(
                 [key[0] * self._tile_mm / _MM_PER_M, key[1] * self._tile_mm / _MM_PER_M, 0.0]
             )
