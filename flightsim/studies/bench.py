@@ -40,12 +40,13 @@ def run_bench(device: str, quick: bool, out: Path, sections=SECTIONS) -> dict:
                "waveform": waveform_altimeter, "scale": scale, "reduce": reduce_knobs, "survey": survey_area,
                "forest": forest, "startup": startup, "ranging": ranging_bench, "gpus": gpu_scaling,
                "photons": photon_runs}
+    machine = results["gpu_name"] if kind == "cuda" else f"{results['cpu_count']} CPU cores"
     with child_bytecode():  # the sections' commands start as an installed package's would
         for name in sections:  # written after each section, so an interrupted bench keeps what it measured
             started = time.perf_counter()
             results[name] = runners[name](device, s)
             results.setdefault("section_wall_s", {})[name] = time.perf_counter() - started
-            results.setdefault("section_measured", {})[name] = f"{results['git_commit']} {results['date']}"
+            results.setdefault("section_measured", {})[name] = f"{results['git_commit']} {results['date']} on {machine}"
             merge_and_write(Path(out), kind, results)
     return results
 

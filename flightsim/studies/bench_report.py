@@ -53,10 +53,10 @@ def markdown(merged: dict) -> str:
              "(and `--device cuda` on a GPU machine). Ratios compare numbers measured in the same run.", ""]
     for kind in sorted(merged):
         r = merged[kind]
-        lines += [f"## {kind}: {r['gpu_name']} ({r['device']}, {r.get('cpu_count')} CPU cores, commit "
+        lines += [f"## {kind}: last run on {r['gpu_name']} ({r['device']}, {r.get('cpu_count')} CPU cores, commit "
                   f"{r['git_commit']}, {r['date']}{', quick' if r.get('quick') else ''})", ""]
         if r.get("section_measured"):
-            lines += ["Sections measured at (commit, date): " + ", ".join(
+            lines += ["Sections measured at (commit, date, and the GPU or cores where named): " + ", ".join(
                 f"{name} {when}" for name, when in r["section_measured"].items()) + ".", ""]
         lines += (_throughput(r, kind) + _stages(r) + _study(r) + _las(r) + _skip(r) + _pareto(r) + _galvo(r)
                   + _spad(r) + _waveform(r) + _scale(r) + _reduce(r) + _survey(r) + bench_gpus.markdown(r) + _forest(r)
