@@ -36,3 +36,28 @@ def test_few_points_take_one_call(monkeypatch):
     monkeypatch.setattr(tr, "_transform", lambda s, t, part: used.append(len(part[0])) or original(s, t, part))
     x, y = tr.transform("EPSG:4326", "EPSG:32611", np.array([-117.0]), np.array([33.0]))
     assert used == [1] and x.shape == (1,) and 400_000 < x[0] < 600_000
+
+
+def test_one_transformer_a_pair_of_crss_shared_by_threads_kept_for_the_process(monkeypatch):
+    """A pair of CRSs is made into a pyproj transformer once (the same pair given as strings or as pyproj CRSs), and
+    the parts of later transforms run on the same threads (a thread makes its PROJ object at its first use)."""
+    made = []
+    original = pyproj.Transformer.from_crs
+    monkeypatch.setattr(tr, "_TRANSFORMERS", {})
+    monkeypatch.setattr(pyproj.Transformer, "from_crs", staticmethod(lambda *a, **k: made.append(a) or original(*a, **k)))
+    first = tr.transformer("EPSG:4326", "EPSG:32611")
+    assert tr.transformer(pyproj.CRS.from_user_input("EPSG:4326"), "EPSG:32611") is first and len(made) == 1
+    assert tr.transformer("EPSG:32611", "EPSG:4326") is not first and len(made) == 2
+
+    import threading
+    monkeypatch.setattr(tr, "PART_POINTS", 1000)
+    threads, original_transform = [], tr._transform
+    monkeypatch.setattr(tr, "_transform", lambda s, t, part: threads.append(threading.get_ident())
+                        or original_transform(s, t, part))
+    lon, lat = np.linspace(-118.0, -117.0, 8000), np.linspace(30.0, 31.0, 8000)
+    calls = [tr.transform("EPSG:4326", "EPSG:32611", lon, lat) for _ in range(3)]
+    parts = len(threads) // 3
+    assert parts == min(16, usable_cores(), 8) and set(threads[parts:]) <= set(threads[:parts])
+    for got in calls[1:]:
+        assert all(np.array_equal(a, b) for a, b in zip(got, calls[0]))
+    assert len(made) == 2  # the pair made above served every part
