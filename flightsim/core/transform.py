@@ -6,7 +6,9 @@ A pair of CRSs gets one :func:`transformer` for the process: making one parses b
 under Python's lock (0.4 ms on the 2-core CPU, several ms on a GPU host, where an ATLAS pass made one for every beam
 and part, ~1.7 s of the lock in a 30 s pass), and pyproj (≥ 3.1) gives each thread that uses a transformer a PROJ
 object of its own, made at the thread's first use: the parts go to one pool of threads kept for the process, so
-that happens once a thread."""
+that happens once a thread. Every transform runs there, a single part too (the calling thread waits for it): a thread
+made for a moment (a pool a chunk) would make a PROJ object of its own (several ms of the lock on a GPU host) for a
+handful of points."""
 from __future__ import annotations
 
 import threading
@@ -35,17 +37,19 @@ def transformer(source, target) -> pyproj.Transformer:
 
 
 def transform(source, target, *coordinates: np.ndarray) -> tuple[np.ndarray, ...]:
-    """``transformer(source, target).transform(*coordinates)`` as float64 arrays, over threads from 2 · PART_POINTS
-    points."""
-    coordinates = tuple(np.ascontiguousarray(c, dtype=np.float64) for c in coordinates)
+    """``transformer(source, target).transform(*coordinates)`` as float64 arrays of the coordinates' (broadcast) shape,
+    on the kept threads: over several from 2 · PART_POINTS points."""
+    shaped = np.broadcast_arrays(*(np.asarray(c, dtype=np.float64) for c in coordinates))
+    coordinates = tuple(np.ascontiguousarray(c).reshape(-1) for c in shaped)
     n = len(coordinates[0]) if coordinates else 0
     threads = thread_count(n // PART_POINTS)
     if threads < 2:
-        return _transform(source, target, coordinates)
+        values = _pool().submit(_transform, source, target, coordinates).result()
+        return tuple(v.reshape(shaped[0].shape) for v in values)
     bounds = np.linspace(0, n, threads + 1).astype(np.int64)
     parts = [tuple(c[a:b] for c in coordinates) for a, b in zip(bounds[:-1], bounds[1:])]
     done = list(_pool().map(lambda part: _transform(source, target, part), parts))
-    return tuple(np.concatenate([part[k] for part in done]) for k in range(len(coordinates)))
+    return tuple(np.concatenate([part[k] for part in done]).reshape(shaped[0].shape) for k in range(len(coordinates)))
 
 
 def _transform(source, target, coordinates: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:

@@ -38,7 +38,7 @@ import numpy as np
 from flightsim.core.errors import InputError
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
-from flightsim.core.transform import transform, transformer
+from flightsim.core.transform import transform
 from flightsim.platforms.flight import check_clearance
 from flightsim.platforms.rotating_body import attitude_angles
 from flightsim.scenes.scene import Scene
@@ -91,8 +91,7 @@ def geodetic_to_body_fixed(body: Body, lat_deg, lon_deg, h_m) -> np.ndarray:
     """(…, 3) body-fixed Cartesian [m] of geodetic latitude, longitude [deg] and height [m] (WGS84 via
     pyproj for the Earth; the sphere for the Moon)."""
     if body.name == "earth":
-        to_ecef = transformer("EPSG:4979", "EPSG:4978")
-        return np.stack(to_ecef.transform(lon_deg, lat_deg, h_m), axis=-1)
+        return np.stack(transform("EPSG:4979", "EPSG:4978", lon_deg, lat_deg, h_m), axis=-1)
     lat, lon = np.radians(lat_deg), np.radians(lon_deg)
     r = body.radius_m + np.asarray(h_m, dtype=np.float64)
     return np.stack([r * np.cos(lat) * np.cos(lon), r * np.cos(lat) * np.sin(lon), r * np.sin(lat)], axis=-1)
@@ -302,8 +301,7 @@ def _nadir_frames(nadir: np.ndarray, along: np.ndarray) -> np.ndarray:
 def up_vectors(body: Body, p: np.ndarray) -> np.ndarray:
     """(n, 3) unit normals of the reference surface beneath body-fixed points ``p`` (n, 3) [m]."""
     if body.name == "earth":
-        to_geodetic = transformer("EPSG:4978", "EPSG:4979")
-        lon, lat, _ = (np.radians(a) for a in to_geodetic.transform(p[:, 0], p[:, 1], p[:, 2]))
+        lon, lat, _ = (np.radians(a) for a in transform("EPSG:4978", "EPSG:4979", p[:, 0], p[:, 1], p[:, 2]))
         return np.column_stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
     return p / np.linalg.norm(p, axis=1, keepdims=True)
 
@@ -313,8 +311,7 @@ def scene_geodetic(body: Body, scene: Scene) -> tuple[float, float]:
     the scene's local frame is taken at latitude, longitude 0, 0."""
     if body.name != "earth":
         return 0.0, 0.0
-    to_geodetic = transformer(scene.crs, "EPSG:4326")
-    lon, lat = to_geodetic.transform(scene.origin[0], scene.origin[1])
+    lon, lat = transform(scene.crs, "EPSG:4326", scene.origin[0], scene.origin[1])
     return float(lat), float(lon)
 
 
