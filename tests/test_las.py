@@ -485,6 +485,32 @@ def test_bounded_open_tiles_give_the_same_bytes(tmp_path):
         assert (tmp_path / "many" / name).read_bytes() == (tmp_path / "one" / name).read_bytes()
 
 
+@pytest.mark.parametrize("max_open", [64, 1])
+def test_uncompressed_tiles_are_the_bytes_of_laspys_own_writer(tmp_path, max_open):
+    """An uncompressed tile is written without a laspy writer per tile (the template's bytes with the tile's header
+    fields patched in): laspy's own LasWriter, given a tile's header and its points, writes the same bytes (bounds
+    and counts from its own pass over the points), tiles closed to make room and reopened (max_open 1) too; and a
+    tile closed without points is laspy's empty file of its header."""
+    from flightsim.outputs.las_plain_tile import PlainTile
+
+    batch = random_batch(3000, seed=11)
+    write_tiles(tmp_path / "tiles", [batch.select(slice(s, s + 700)) for s in range(0, 3000, 700)],
+                max_open_tiles=max_open)
+    paths = sorted((tmp_path / "tiles").iterdir())
+    assert len(paths) == 4
+    for path in paths:
+        tile = laspy.read(path)
+        with open(tmp_path / "laspy.las", "wb") as out, laspy.LasWriter(out, tile.header, closefd=False) as writer:
+            writer.write_points(tile.points)
+        assert (tmp_path / "laspy.las").read_bytes() == path.read_bytes(), path.name
+    header = laspy.read(paths[0]).header
+    with open(tmp_path / "empty.las", "wb") as out:
+        laspy.LasWriter(out, header, closefd=False).close()
+    empty = (tmp_path / "empty.las").read_bytes()
+    PlainTile.create(tmp_path / "ours.las", empty, header.scales, header.offsets, durable=False).close()
+    assert (tmp_path / "ours.las").read_bytes() == empty and header.offsets[0] != 0.0
+
+
 def test_a_batchs_records_made_a_few_tiles_at_a_time_give_the_same_bytes(tmp_path, monkeypatch):
     """A batch's records are made in runs of whole tiles of at most RECORDS_AT_ONCE points (a larger tile alone):
     a bound of a few points, tiles split across runs of every length, writes the bytes of one run for all."""

@@ -58,6 +58,17 @@ def start_writeback(fd: int, offset: int = 0, length: int = 0) -> None:
         os.posix_fadvise(fd, offset, length, os.POSIX_FADV_DONTNEED)
 
 
+def write_back_since(file, start: int) -> int:
+    """Flush ``file`` and have the kernel start writing its bytes from ``start`` to its position (:func:`start_writeback`),
+    without waiting for them: a run's output then reaches the disk while it goes on, rather than all in the syncs that
+    finish it. The position, where the next call starts."""
+    file.flush()
+    end = file.tell()
+    if end > start:
+        start_writeback(file.fileno(), start, end - start)
+    return end
+
+
 def fsync_directory(directory: Path) -> None:
     """Make the renames in ``directory`` durable (skipped where a folder cannot be opened)."""
     try:

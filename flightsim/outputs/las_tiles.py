@@ -24,12 +24,13 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 import pyproj
 
-from flightsim.core.atomic import fsync_all, fsync_directory, start_writeback
+from flightsim.core.atomic import fsync_all, fsync_directory
 from flightsim.core.version import __version__
 from flightsim.core.errors import InputError
 from flightsim.core.lazy import PARSING
 from flightsim.outputs.las_format import (_EXTRA_DIMS, _MM_PER_M, OPTIONAL_DIMS, SCAN_ANGLE_UNIT_DEG, _quantized_mm,
                                           _check_header_fields, _tile_header_template, _tile_size_mm, _validated_crs)
+from flightsim.outputs.las_plain_tile import PlainTile, header_bytes
 from flightsim.outputs.las_points import PointBatch
 from flightsim.outputs.laz_workers import LazWorkers
 
@@ -125,7 +126,7 @@ class TileWriter:
         _check_header_fields(creation_date, software)
         self._header_fields = (crs, creation_date, software)
         self._max_open = max_open_tiles
-        self._open: OrderedDict[tuple[int, int], _TileFile] = OrderedDict()
+        self._open: OrderedDict[tuple[int, int], _LazTile | PlainTile] = OrderedDict()
         self._counts: dict[tuple[int, int], int] = {}
         self._finished = False
         self._workers = None
@@ -149,6 +150,12 @@ class TileWriter:
         :data:`flightsim.core.lazy.PARSING`: laspy's import parses, as a kernels module's does)."""
         with PARSING:
             return _tile_header_template(*self._header_fields, self._dims)
+
+    @functools.cached_property
+    def _head(self) -> bytes:
+        """An uncompressed tile's header and VLRs as laspy writes them (:func:`.las_plain_tile.header_bytes`)."""
+        with self._template_lock:
+            return header_bytes(self._template)
 
     def __enter__(self) -> TileWriter:
         return self
@@ -217,8 +224,7 @@ class TileWriter:
         if len(records) == 0:
             return
         if self._workers is None:
-            import laspy
-            self._tile(key).write(laspy.PackedPointRecord(records, self._template.point_format), lowest, highest)
+            self._tile(key).write(records, lowest, highest)
             self._bound_held(dtype.itemsize)
         else:
             self._counts.setdefault(key, 0)  # registered first, so that abort() removes a half-made file
@@ -303,7 +309,7 @@ class TileWriter:
     def _extra_dims(self) -> tuple[tuple, ...]:
         return self._dims
 
-    def _tile(self, key: tuple[int, int]) -> _TileFile:
+    def _tile(self, key: tuple[int, int]) -> _LazTile | PlainTile:
         """The open file of tile ``key``, opening (or reopening) it within the open-file bound."""
         tile = self._open.get(key)
         if tile is not None:
@@ -312,15 +318,21 @@ class TileWriter:
         if len(self._open) >= self._max_open:
             _, oldest = self._open.popitem(last=False)
             oldest.close()
+        path = self._temp_path(key)
         if key in self._counts:
-            tile = _TileFile.reopen(self._temp_path(key), self._compress, self._parallel, self._durable)
+            if self._compress:
+                tile = _LazTile.reopen(path, self._parallel, self._durable)
+            else:
+                tile = PlainTile.reopen(path, self._durable)
         else:
-            header = copy.copy(self._template)  # the offsets its own: laspy's LasWriter deep-copies the rest
-            header.offsets = np.array(
-                [key[0] * self._tile_mm / _MM_PER_M, key[1] * self._tile_mm / _MM_PER_M, 0.0]
-            )
+            offsets = np.array([key[0] * self._tile_mm / _MM_PER_M, key[1] * self._tile_mm / _MM_PER_M, 0.0])
             self._counts[key] = 0  # registered first, so that abort() removes a half-made file
-            tile = _TileFile.create(self._temp_path(key), header, self._compress, self._parallel, self._durable)
+            if self._compress:
+                header = copy.copy(self._template)  # the offsets its own: laspy's LasWriter deep-copies the rest
+                header.offsets = offsets
+                tile = _LazTile.create(path, header, self._parallel, self._durable)
+            else:
+                tile = PlainTile.create(path, self._head, self._template.scales, offsets, self._durable)
         self._open[key] = tile
         return tile
 
@@ -345,89 +357,77 @@ the whole command now takes 57 s (``results/bench.md``, Survey). On 2 cores the 
 shares with this process)."""
 
 
-def _laz_backend(compress: bool, parallel: bool) -> laspy.LazBackend | None:
-    """lazrs's compressor over every core (parallel) or in the calling thread; None for LAS."""
-    if not compress:
-        return None
+def _laz_backend(parallel: bool) -> laspy.LazBackend:
+    """lazrs's compressor over every core (parallel) or in the calling thread."""
     import laspy
     return laspy.LazBackend.LazrsParallel if parallel else laspy.LazBackend.Lazrs
 
 
-class _TileFile:
-    """One tile's temporary file and the laspy writer (or appender) streaming into it. A LAZ tile compressed
-    over every core holds records back until :data:`LAZ_BATCH_POINTS`; one compressed in its writer's thread
-    compresses each write as it comes (the bytes are the same either way: the compressor cuts chunks by
-    point count). Compressed bytes are synced to disk as they are written, so that a run's output reaches
-    the disk while it traces rather than in the final fsyncs of its tiles (``durable``; a transient tile is
-    left to the page cache)."""
+class _LazTile:
+    """One LAZ tile's temporary file and the laspy writer (or appender) streaming into it (an uncompressed tile is a
+    :class:`~flightsim.outputs.las_plain_tile.PlainTile`). A tile compressed over every core holds records back until
+    :data:`LAZ_BATCH_POINTS`; one compressed in its writer's thread compresses each write as it comes (the bytes are
+    the same either way: the compressor cuts chunks by point count). Compressed bytes are synced to disk as they are
+    written, so that a run's output reaches the disk while it traces rather than in the final fsyncs of its tiles
+    (``durable``; a transient tile is left to the page cache)."""
 
-    def __init__(self, file, sink: laspy.LasWriter | LasAppender, compress: bool, parallel: bool,
-                 durable: bool) -> None:
+    def __init__(self, file, sink: laspy.LasWriter | LasAppender, parallel: bool, durable: bool) -> None:
         self._file = file
         self._sink = sink
-        self._compress = compress
         self._durable = durable
-        self._batch = LAZ_BATCH_POINTS if compress and parallel else 0
-        self._held: list[laspy.PackedPointRecord] = []
+        self._batch = LAZ_BATCH_POINTS if parallel else 0
+        self._held: list[np.ndarray] = []
         self.held_points = 0
-        self._written = file.tell()  # where the bytes not yet handed to the disk's write-back start
 
     @classmethod
-    def create(cls, path: Path, header: laspy.LasHeader, compress: bool, parallel: bool, durable: bool) -> _TileFile:
+    def create(cls, path: Path, header: laspy.LasHeader, parallel: bool, durable: bool) -> _LazTile:
         import laspy
         file = open(path, "w+b")
         try:
-            sink = laspy.LasWriter(
-                file, header, do_compress=compress, laz_backend=_laz_backend(compress, parallel), closefd=False
-            )
+            sink = laspy.LasWriter(file, header, do_compress=True, laz_backend=_laz_backend(parallel), closefd=False)
         except BaseException:
             file.close()
             raise
-        return cls(file, sink, compress, parallel, durable)
+        return cls(file, sink, parallel, durable)
 
     @classmethod
-    def reopen(cls, path: Path, compress: bool, parallel: bool, durable: bool) -> _TileFile:
+    def reopen(cls, path: Path, parallel: bool, durable: bool) -> _LazTile:
         from laspy.lasappender import LasAppender
         file = open(path, "r+b")
         try:  # always lazrs's parallel appender: its sequential one (lazrs 0.8) fails on reopening a tile
-            sink = LasAppender(file, laz_backend=_laz_backend(compress, True), closefd=False)
+            sink = LasAppender(file, laz_backend=_laz_backend(True), closefd=False)
         except BaseException:
             file.close()
             raise
-        return cls(file, sink, compress, parallel, durable)
+        return cls(file, sink, parallel, durable)
 
-    def write(self, record: laspy.PackedPointRecord, lowest, highest) -> None:
-        """Append records whose stored X, Y, Z range over [lowest, highest] (ints, mm).
+    def write(self, records: np.ndarray, lowest, highest) -> None:
+        """Append ``records`` (the tile format's structured array) whose stored X, Y, Z range over [lowest, highest]
+        (ints, mm).
 
         The header is grown here as laspy's ``LasHeader.grow`` does (bounds = stored integer · scale +
         offset, counts by return number; every record is return 1 of 1, and no extra-bytes statistics
         are kept), without laspy's passes over the records: the bounds come from the caller.
         """
-        import laspy
         if self._batch:
-            self._held.append(laspy.PackedPointRecord(record.array.copy(), record.point_format))
-            self.held_points += len(record)
+            self._held.append(records.copy())
+            self.held_points += len(records)
             if self.held_points >= self._batch:
                 self.flush()
         else:
-            self._append(record)
-            if self._compress:
-                self._sync()
-            elif self._durable:
-                self._start_writeback()
+            self._append(records)
+            self._sync()
         header = self._sink.header
         header.maxs = np.maximum(header.maxs, np.asarray(highest, dtype=np.int64) * header.scales + header.offsets)
         header.mins = np.minimum(header.mins, np.asarray(lowest, dtype=np.int64) * header.scales + header.offsets)
-        header.number_of_points_by_return[0] += len(record)
-        header.point_count += len(record)
+        header.number_of_points_by_return[0] += len(records)
+        header.point_count += len(records)
 
     def flush(self) -> None:
         """Compress and write the records held back, and wait until the disk has them: a run's compressed
         bytes reach the disk while it traces (batch by batch), not all in the final fsyncs of its tiles."""
         if self._held:
-            import laspy
-            format_ = self._held[0].point_format
-            self._append(laspy.PackedPointRecord(np.concatenate([r.array for r in self._held]), format_))
+            self._append(np.concatenate(self._held))
             self._held, self.held_points = [], 0
             self._sync()
 
@@ -437,18 +437,9 @@ class _TileFile:
         if self._durable:
             os.fdatasync(self._file.fileno())
 
-    def _start_writeback(self) -> None:
-        """Have the kernel start writing the bytes written since the last call to disk, without waiting for them
-        (POSIX_FADV_DONTNEED starts the write-back of a file range's dirty pages on Linux): a LAS run's
-        output then reaches the disk while it traces, rather than all in the fsyncs that finish its tiles."""
-        self._file.flush()
-        end = self._file.tell()
-        if end > self._written:
-            start_writeback(self._file.fileno(), self._written, end - self._written)
-        self._written = end
-
-    def _append(self, record: laspy.PackedPointRecord) -> None:
+    def _append(self, records: np.ndarray) -> None:
         import laspy
+        record = laspy.PackedPointRecord(records, self._sink.header.point_format)
         if isinstance(self._sink, laspy.LasWriter):
             self._sink.point_writer.write_points(record)
         else:
