@@ -224,7 +224,9 @@ class Atl03Writer:
             return heights["x_atc"][lo:hi], heights["h_ph"][lo:hi], heights["ph_id_pulse"][lo:hi]
 
         def write(lo: int, values: np.ndarray) -> None:
-            conf[lo:lo + len(values)] = np.repeat(values[:, None], SURFACE_TYPES, axis=1)
+            columns = np.empty((len(values), SURFACE_TYPES), dtype=np.int8)
+            columns[:] = values[:, None]  # a broadcast copy lets go of Python's lock (np.repeat holds it)
+            conf[lo:lo + len(values)] = columns
             first[lo:lo + len(values)] = values
 
         block = FINDER_BLOCK if workers is None else min(FINDER_BLOCK, max(FINDER_BLOCK >> 4,
