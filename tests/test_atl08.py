@@ -124,6 +124,34 @@ def test_input_order_does_not_matter(forest):
     np.testing.assert_allclose(shuffled["land_segments"]["h_canopy"], out["land_segments"]["h_canopy"])
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_threads_give_the_same_products(forest, threads):
+    """The density filter's counts shared out over threads (its sort and walk in bands of columns): every photon and
+    segment column the same as on one thread."""
+    p, out = forest
+    shared = _run(p, threads=threads)
+    for group in ("signal_photons", "land_segments"):
+        for name, values in out[group].items():
+            np.testing.assert_array_equal(shared[group][name], values, err_msg=f"{group}/{name}")
+
+
+def test_atl08_threads_shared_out_by_photons(monkeypatch):
+    """Tracks side by side share the cores by their photons (a strong beam four times a weak one's threads), one
+    after another each takes every core (at most MAX_THREADS); never fewer than one."""
+    from flightsim.engine.products import photons as product
+
+    tracks = {"gt1l": 4_000_000, "gt1r": 1_000_000, "gt2l": 4_000_000, "gt2r": 1_000_000, "gt3l": 4_000_000,
+              "gt3r": 1_000_000}
+    monkeypatch.setattr(product, "usable_cores", lambda: 16)
+    assert product.atl08_threads(tracks, True) == {"gt1l": 4, "gt1r": 1, "gt2l": 4, "gt2r": 1, "gt3l": 4, "gt3r": 1}
+    assert set(product.atl08_threads(tracks, False).values()) == {16}
+    monkeypatch.setattr(product, "usable_cores", lambda: 64)
+    assert set(product.atl08_threads(tracks, False).values()) == {product.MAX_THREADS}
+    monkeypatch.setattr(product, "usable_cores", lambda: 2)
+    assert set(product.atl08_threads(tracks, True).values()) == {1}
+    assert product.atl08_threads({"gt1l": 0}, True) == {"gt1l": 1}
+
+
 def test_no_photons_and_no_signal_give_no_segments():
     empty = atl08_segments([], [], [], [], np.zeros(0, int), [])
     assert all(len(v) == 0 for v in empty["land_segments"].values())

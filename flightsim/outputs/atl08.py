@@ -57,6 +57,7 @@ the surface [m], FILL when no surface), ``ph_segment_id`` (its ATL03 20 m segmen
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -127,7 +128,7 @@ class ATL08Settings(Settings):
 
 
 def atl08_segments(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time, segment_m: float = 100.0,
-                   settings: ATL08Settings | None = None) -> dict[str, np.ndarray]:
+                   settings: ATL08Settings | None = None, threads: int = 1) -> dict[str, np.ndarray]:
     """ATL08-like classification and segments of one beam's photons (the module docstring gives the method).
 
     Args:
@@ -138,6 +139,7 @@ def atl08_segments(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time, se
         delta_time: (n,) time of each photon's shot [s].
         segment_m: along-track length of a segment [m], > 0 (ATL08: 100 m).
         settings: :class:`ATL08Settings`.
+        threads: threads the density filter's counts may use (:func:`ellipse_counts`; the same values on any).
 
     Returns: ``{"land_segments": {...}, "signal_photons": {...}}`` as ATL08 groups them: the
     :data:`SEGMENT_COLUMNS`, (m,) arrays, one per reported segment in along-track order (heights float64 with
@@ -149,9 +151,9 @@ def atl08_segments(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time, se
     check_settings("atl08", s)
     x, h, la, lo, conf, t = _photons(along_track_m, h_ph, lat, lon, signal_conf_ph, delta_time)
     seg_m = positive("segment_m", segment_m, "m")
-    dense, window, lam = _dense(x, h, conf, s)
+    dense, window, lam = _dense(x, h, conf, s, threads)
     signal = dense | (conf >= s.min_signal_conf)
-    cls, ph_h, band = _classify(x, h, signal, window, lam, s)
+    cls, ph_h, band = _classify(x, h, signal, window, lam, s, threads)
     photons = {"classed_pc_flag": cls, "classed_pc_indx": np.arange(1, len(x) + 1, dtype=np.int32), "ph_h": ph_h,
                "ph_segment_id": (np.floor(x / ATL03_SEGMENT_M) + 1).astype(np.int32),
                "d_flag": dense.astype(np.int8), "delta_time": t}
@@ -215,32 +217,32 @@ def _limit(lam: np.ndarray, s: ATL08Settings) -> np.ndarray:
     return upper_quantile(s.dragann_p, means)[index.reshape(-1)]
 
 
-def _dense(x, h, conf, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _dense(x, h, conf, s: ATL08Settings, threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which photons the density filter finds dense (step 1: in heights above the trend of a first ground surface
     of the photons dense in their heights, or of ATL03 confidence); each photon's window and each window's
     background count in an ellipse there."""
     window = _windows(x, s)
     lam = _expected(window, x, h, s)
-    first = (_neighbours(x, h, s) > _limit(lam, s)[window]) | (conf >= s.min_signal_conf)
+    first = (_neighbours(x, h, s, threads) > _limit(lam, s)[window]) | (conf >= s.min_signal_conf)
     if not first.any():
         return first, window, lam
     centres, surface = ground_surface(x[first], h[first], s)
     above = h - np.interp(x, centres, trend_of(surface, np.ones(len(surface), dtype=bool), s))
     lam = _expected(window, x, above, s)
-    return _neighbours(x, above, s) > _limit(lam, s)[window], window, lam
+    return _neighbours(x, above, s, threads) > _limit(lam, s)[window], window, lam
 
 
-def _neighbours(x, h, s: ATL08Settings) -> np.ndarray:
+def _neighbours(x, h, s: ATL08Settings, threads: int) -> np.ndarray:
     """How many other of the photons lie in each one's ellipse: (Δx/a)² + (Δh/b)² ≤ 1 for the half axes a, b
-    (:func:`ellipse_counts`)."""
-    return ellipse_counts(x / s.dragann_along_m, h / s.dragann_height_m) - 1
+    (:func:`ellipse_counts` on ``threads``)."""
+    return ellipse_counts(x / s.dragann_along_m, h / s.dragann_height_m, threads) - 1
 
 
 CELL = 1.0 + 2.0 ** -20  # ellipse_counts' column width and search band [half axes]: just over 1, so that two points
 # whose distance rounds to 1 or less are in the same or neighbouring columns and within the band whatever the rounding
 
 
-def ellipse_counts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+def ellipse_counts(u: np.ndarray, v: np.ndarray, threads: int = 1) -> np.ndarray:
     """For each point (u, v) (scaled by the ellipse's half axes) the points, itself included, with
     (u − u')² + (v − v')² ≤ 1 in float64: the count ``scipy.spatial.cKDTree.query_ball_point(r=1,
     return_length=True)`` gives, in a twentieth of its time on one core (an ATLAS beam). The points are cut into
@@ -248,7 +250,8 @@ def ellipse_counts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     twice the band searched); a Warp kernel on the CPU (:func:`kernels.ellipse.ellipse_pairs`) walks the columns,
     comparing each pair once, by its earlier point: against the later points of its own column within the band (just
     over 1) above its v and the points of the next column within the band around its v; a pair found counts for
-    both."""
+    both. On ``threads`` > 1 threads (Warp's CPU kernels and NumPy's sorts let go of Python's lock) the sort and the
+    walk are shared out (:func:`_key_order`, :func:`_walked`): the same counts, whatever order ties take."""
     n = len(u)
     if not n:
         return np.zeros(0, dtype=np.int64)
@@ -257,17 +260,49 @@ def ellipse_counts(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     low = v.min()
     span = float(v.max() - low) + 4.0 * CELL  # a column's key range and more than twice the band between columns
     key = column * span + (v - low)
-    order = np.argsort(key)
+    order = _key_order(key, column, threads)
     key, column = key[order], column[order]
     band = CELL + 8.0 * float(np.spacing(key[-1]))  # a pair's key difference is its v difference within 5 ulps
     starts = np.flatnonzero(np.r_[True, column[1:] != column[:-1], True]).astype(np.int32)  # the columns' runs
-    init_warp()
-    counts = wp.ones(n, dtype=wp.int32, device="cpu")  # each point itself
-    wp.launch(ellipse_pairs, len(starts) - 1, inputs=[key, u[order], v[order], starts, span, band], outputs=[counts],
-              device="cpu")
     out = np.empty(n, dtype=np.int64)
-    out[order] = counts.numpy()
+    out[order] = _walked(key, u[order], v[order], starts, span, band, threads)
     return out
+
+
+def _key_order(key: np.ndarray, column: np.ndarray, threads: int) -> np.ndarray:
+    """An order sorting ``key``: NumPy's argsort, or on ``threads`` > 1 the points cut into as many bands of whole
+    columns (every key of a band below the next band's: a column's keys span less than ``span``), each band sorted
+    on a thread of its own."""
+    if threads < 2:
+        return np.argsort(key)
+    band = np.minimum(column * (threads / (column.max() + 1.0)), threads - 1).astype(np.uint8)
+    grouped = np.argsort(band, kind="stable")
+    edges = np.searchsorted(band[grouped], np.arange(threads + 1))
+    bands = [grouped[a:b] for a, b in zip(edges[:-1], edges[1:])]
+    with ThreadPoolExecutor(threads, thread_name_prefix="atl08") as pool:
+        return np.concatenate(list(pool.map(lambda part: part[np.argsort(key[part])], bands)))
+
+
+def _walked(key, u, v, starts: np.ndarray, span: float, band: float, threads: int) -> np.ndarray:
+    """Each sorted point's count (itself included) by :func:`kernels.ellipse.ellipse_pairs`, its column runs
+    ``starts`` cut into up to ``threads`` ranges walked side by side, each adding into counts of its own (a range's
+    last column adds to the next range's first), then summed."""
+    init_warp()
+    runs = len(starts) - 1
+    cuts = np.linspace(0, runs, max(1, min(threads, runs)) + 1).astype(np.int64)
+    points = [wp.array(a, dtype=wp.float64, device="cpu") for a in (key, u, v)]
+
+    def walk(k: int) -> np.ndarray:
+        counts = (wp.ones if k == 0 else wp.zeros)(len(key), dtype=wp.int32, device="cpu")  # each point itself once
+        wp.launch(ellipse_pairs, int(cuts[k + 1] - cuts[k]), inputs=[*points, starts[cuts[k]:cuts[k + 1] + 1], span,
+                                                                     band], outputs=[counts], device="cpu")
+        return counts.numpy()
+
+    if len(cuts) == 2:
+        return walk(0)
+    wp.load_module(ellipse_pairs.module, device="cpu")  # loaded once, before the threads launch it
+    with ThreadPoolExecutor(len(cuts) - 1, thread_name_prefix="atl08") as pool:
+        return sum(pool.map(walk, range(len(cuts) - 1)))
 
 
 def _background(window, x, h, s: ATL08Settings) -> np.ndarray:
@@ -295,7 +330,7 @@ def _extremes(group, values, count: int) -> tuple[np.ndarray, np.ndarray]:
     return low, high
 
 
-def _classify(x, h, signal, window, lam, s: ATL08Settings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _classify(x, h, signal, window, lam, s: ATL08Settings, threads: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """classed_pc_flag (int8), height above the ground surface (FILL where no signal photon exists) and the
     background photons per metre along track in the ground band around each photon; ``window``, ``lam``: each
     photon's window and each window's mean background count in the density filter's ellipse."""
@@ -308,7 +343,7 @@ def _classify(x, h, signal, window, lam, s: ATL08Settings) -> tuple[np.ndarray, 
     cls[signal & (np.abs(rel) <= buffer)] = GROUND
     above = rel > buffer
     cls[signal & above & (rel <= s.max_canopy_m)] = CANOPY
-    sparse = _neighbours(x[above], rel[above], s) <= _limit(lam, s)[window[above]]  # above the ground only
+    sparse = _neighbours(x[above], rel[above], s, threads) <= _limit(lam, s)[window[above]]  # above the ground only
     cls[np.flatnonzero(above)[sparse & (cls[above] == CANOPY)]] = NOISE
     _mark_top_of_canopy(x, rel, cls, s)
     return cls, rel, lam[window] * 2.0 * buffer / (math.pi * s.dragann_along_m * s.dragann_height_m)

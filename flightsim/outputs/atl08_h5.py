@@ -89,10 +89,10 @@ def write_atl08(path: str | os.PathLike, beams: dict, attrs: dict | None = None)
     return Path(path)
 
 
-def atl08_of_track(atl03_path: str | os.PathLike, track: str, segment_m: float) -> dict:
-    """:func:`flightsim.outputs.atl08.atl08_segments` (default settings) of one ground track of a finished atl03.h5,
-    its photons read here (only the columns ATL08 needs: along-track distance ``x_atc``, height, latitude,
-    longitude, the land column of the signal confidence, time): a worker process reads its own track."""
+def atl08_of_track(atl03_path: str | os.PathLike, track: str, segment_m: float, threads: int = 1) -> dict:
+    """:func:`flightsim.outputs.atl08.atl08_segments` (default settings, on ``threads``) of one ground track of a
+    finished atl03.h5, its photons read here (only the columns ATL08 needs: along-track distance ``x_atc``, height,
+    latitude, longitude, the land column of the signal confidence, time): a worker process reads its own track."""
     import h5py
 
     with h5py.File(atl03_path, "r") as f:
@@ -100,13 +100,14 @@ def atl08_of_track(atl03_path: str | os.PathLike, track: str, segment_m: float) 
         columns = {arg: heights[name][:] for arg, name in ATL03_INPUTS.items()}
     if columns["signal_conf_ph"].ndim == 2:  # ATL03's (n, 5): ATL08 reads the land surface type's column
         columns["signal_conf_ph"] = columns["signal_conf_ph"][:, 0]
-    return atl08_segments(**columns, segment_m=segment_m)
+    return atl08_segments(**columns, segment_m=segment_m, threads=threads)
 
 
-def write_atl08_track(path: str | os.PathLike, atl03_path: str | os.PathLike, track: str, segment_m: float) -> str:
+def write_atl08_track(path: str | os.PathLike, atl03_path: str | os.PathLike, track: str, segment_m: float,
+                      threads: int = 1) -> str:
     """:func:`atl08_of_track` of one ground track written to a file of its own at ``path`` (its group as atl08.h5
     holds it, compressed here: a worker process writes its own track); the path."""
-    return str(write_atl08(path, {track: atl08_of_track(atl03_path, track, segment_m)}))
+    return str(write_atl08(path, {track: atl08_of_track(atl03_path, track, segment_m, threads)}))
 
 
 def join_atl08(path: str | os.PathLike, tracks: dict, attrs: dict | None = None) -> Path:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from flightsim.core.atomic import temporary_name
 from flightsim.core.background import Background
-from flightsim.core.process_map import ProcessMap, map_rows, thread_count, usable_cores
+from flightsim.core.process_map import MAX_THREADS, ProcessMap, map_rows, thread_count, usable_cores
 from flightsim.core.registry import register
 from flightsim.engine.readouts.photons import Photons
 from flightsim.outputs.photon_las import FOLDER
@@ -183,6 +183,16 @@ def ground_tracks(f) -> list[str]:
     return sorted(name for name in f if name.startswith("gt") and "heights" in f[name])
 
 
+def atl08_threads(photons: dict[str, int], side_by_side: bool) -> dict[str, int]:
+    """Threads for each track's ATL08 (track → its photons): the usable cores shared out by photons where the tracks
+    run side by side (a strong beam, four times a weak one's photons, takes four times its threads), every core
+    for each where they run one after another; at least one, at most MAX_THREADS."""
+    cores = usable_cores()
+    total = max(sum(photons.values()), 1)
+    return {track: max(1, min(MAX_THREADS, cores * n // total if side_by_side else cores))
+            for track, n in photons.items()}
+
+
 def atl08_from_atl03(directory: Path, cfg_text: str, workers: ProcessMap | None = None) -> str | None:
     """Write ``directory/atl08.h5`` from the finished ``atl03.h5`` beside it: each beam's photons classified and cut
     into 100 m land segments (:func:`flightsim.outputs.atl08_h5.atl08_of_track`, default settings) and written to a
@@ -195,13 +205,14 @@ def atl08_from_atl03(directory: Path, cfg_text: str, workers: ProcessMap | None 
 
     atl03 = directory / "atl03.h5"
     with h5py.File(atl03) as f:
-        tracks = ground_tracks(f)
-    if not tracks:
+        photons = {track: f[f"{track}/heights/h_ph"].shape[0] for track in ground_tracks(f)}
+    if not photons:
         return None
-    parts = {track: temporary_name(directory / f"atl08.{track}.h5") for track in tracks}
+    parts = {track: temporary_name(directory / f"atl08.{track}.h5") for track in photons}
+    threads = atl08_threads(photons, workers is not None)
     try:
-        map_rows(write_atl08_track, [(str(part), str(atl03), track, ATL08_SEGMENT_M) for track, part in parts.items()],
-                 workers)
+        map_rows(write_atl08_track, [(str(part), str(atl03), track, ATL08_SEGMENT_M, threads[track])
+                                     for track, part in parts.items()], workers)
         return join_atl08(directory / "atl08.h5", parts, {"config_toml": cfg_text}).name
     finally:
         for part in parts.values():
