@@ -1,7 +1,9 @@
 """LAS 1.4 point tiles: streamed, deterministic, atomic output of simulated returns (SPEC §8).
 
 Points are cut into square tiles named by their lower-left corner (``409000_3392500.las``) and
-streamed to one laspy writer per tile, so memory does not grow with the length of a run.
+streamed to their tile's file as they come, so memory does not grow with the length of a run: an uncompressed
+tile's records straight after the header bytes laspy's writer makes (:mod:`.las_plain_tile`), a LAZ tile's through a
+laspy writer of its own.
 
 The format of every tile (LAS 1.4, point format 6, 1 mm, WKT1 CRS, extra bytes, fixed identity
 fields) is :mod:`.las_format`'s; the points come as :class:`.las_points.PointBatch`.
