@@ -24,6 +24,16 @@ def leave(value: int) -> int:
     os._exit(3)
 
 
+def doubled_in_place(arrays: dict) -> dict:
+    """Each array doubled in place (they must arrive writable), with its layout."""
+    for value in arrays.values():
+        if value.dtype.names:
+            value["X"] *= 2
+        else:
+            value *= 2
+    return {name: (value, value.flags.c_contiguous, value.flags.f_contiguous) for name, value in arrays.items()}
+
+
 @pytest.fixture(scope="module")
 def workers():
     pool = ProcessMap(2)
@@ -37,6 +47,39 @@ def test_results_come_in_the_chunks_order_bit_for_bit(workers):
     assert workers.map(square_sum, chunks) == [square_sum(*chunk) for chunk in chunks]
     assert map_rows(square_sum, chunks, None) == [square_sum(*chunk) for chunk in chunks]
     assert workers.map(square_sum, []) == []
+
+
+def test_arrays_travel_beside_the_pickle_and_arrive_writable_as_they_were(workers):
+    """A message's arrays go after its pickle as they are (pickle protocol 5's buffers): the pickle holds none of their
+    bytes; they arrive equal, writable, in their layout (C, Fortran, an empty one, a strided view, records), both ways."""
+    import socket
+    from multiprocessing.connection import Connection
+
+    from flightsim.core.process_map import receive, send
+
+    rng = np.random.default_rng(4)
+    records = np.zeros(5, dtype=[("X", "<i4"), ("gps_time", "<f8"), ("bits", "u1")])
+    records["X"], records["gps_time"] = np.arange(5), rng.uniform(size=5)
+    arrays = {"c": rng.uniform(size=(300, 7)), "f": np.asfortranarray(rng.integers(0, 99, (40, 3))),
+              "empty": np.zeros((0, 3), np.float32), "strided": rng.uniform(size=900)[::3], "records": records}
+    left, right = (Connection(end.detach()) for end in socket.socketpair())
+    sizes = []
+    original = left.send_bytes
+    left.send_bytes = lambda data: sizes.append(memoryview(data).nbytes) or original(data)
+    send(left, ("m", "f", arrays))
+    got = receive(right)[2]
+    # the pickle holds the strided view's copy (not contiguous: pickled in it), the rest comes after it
+    assert sizes[0] < arrays["strided"].nbytes + 1_000 and len(sizes) == 1 + 4 and sum(sizes) > arrays["c"].nbytes
+    for name, value in arrays.items():
+        np.testing.assert_array_equal(got[name], value)
+        assert got[name].dtype == value.dtype and got[name].flags.writeable
+    left.close()
+    right.close()
+    back = workers.map(doubled_in_place, [(arrays,)])[0]
+    expected = doubled_in_place({name: value.copy() for name, value in arrays.items()})
+    for name, (value, _, _) in back.items():
+        np.testing.assert_array_equal(value, expected[name][0])
+    assert back["c"][1:] == (True, False) and back["f"][1:] == (False, True)  # each in its own layout
 
 
 def test_chunks_made_as_the_workers_take_them(workers):
