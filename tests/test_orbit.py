@@ -158,10 +158,10 @@ _ROTATIONS = """
 import sys
 import numpy as np
 from astropy.utils import iers
-from flightsim.platforms.orbit import gcrs_to_itrs
+from flightsim.platforms.orbit import astropy_gcrs_to_itrs
 if sys.argv[2] == "cached":  # the table must come from the cache entry: astropy parsing it fails
     iers.IERS_Auto.read = classmethod(lambda cls, *a, **k: (_ for _ in ()).throw(AssertionError("parsed")))
-np.save(sys.argv[1], gcrs_to_itrs(3.5e8 + np.linspace(0.0, 600.0, 7)))
+np.save(sys.argv[1], astropy_gcrs_to_itrs(3.5e8 + np.linspace(0.0, 600.0, 7)))
 """
 
 
@@ -205,3 +205,40 @@ def test_a_run_without_the_scene_cache_leaves_the_earth_orientation_table_to_ast
     assert iers.IERS_Auto.iers_table is None and not list(tmp_path.iterdir())
     use_cached_table(tmp_path)
     assert iers.IERS_Auto.iers_table is not None and len(list(tmp_path.glob("iers-*.h5"))) == 1
+
+
+def test_a_pass_flown_before_reads_astropys_rotations_from_the_cache(tmp_path, monkeypatch):
+    """The GCRS → ITRS rotations of a set of times are worked out by astropy once and kept in the scene cache: the
+    same times again are read back, astropy's bits, without asking astropy; other times, an entry cut short or of
+    another key (the sources astropy's answer depends on) are worked out again; ``run.scene_cache = false`` neither
+    reads nor writes."""
+    from flightsim.platforms import earth_orientation as eo
+    from flightsim.platforms.orbit import astropy_gcrs_to_itrs
+
+    asked = []
+
+    def rotations(times):
+        asked.append(len(times))
+        return astropy_gcrs_to_itrs(times)
+
+    times = 3.5e8 + np.linspace(0.0, 600.0, 7)
+    first = eo.cached_rotations(times, rotations, tmp_path)
+    (entry,) = tmp_path.glob("rotations-*.npy")
+    again = eo.cached_rotations(times.copy(), rotations, tmp_path)
+    assert asked == [7] and again.dtype == np.float64 and again.shape == (7, 3, 3)
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(again, astropy_gcrs_to_itrs(times))
+    eo.cached_rotations(times[:5], rotations, tmp_path)  # other times: another entry
+    assert asked == [7, 5] and len(list(tmp_path.glob("rotations-*.npy"))) == 2
+    entry.write_bytes(entry.read_bytes()[:300])  # cut short: worked out again, written whole
+    np.testing.assert_array_equal(eo.cached_rotations(times, rotations, tmp_path), first)
+    assert asked == [7, 5, 7] and entry.stat().st_size > 300
+    monkeypatch.setattr(eo, "_sources", lambda: "another astropy")  # the key moved: the entry is not taken
+    eo.cached_rotations(times, rotations, tmp_path)
+    assert asked == [7, 5, 7, 7] and len(list(tmp_path.glob("rotations-*.npy"))) == 3
+    token = eo.USE_CACHE.set(False)
+    try:
+        eo.cached_rotations(times, rotations, tmp_path / "off")
+    finally:
+        eo.USE_CACHE.reset(token)
+    assert asked == [7, 5, 7, 7, 7] and not (tmp_path / "off").exists()

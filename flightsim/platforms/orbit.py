@@ -39,6 +39,7 @@ from flightsim.core.errors import InputError
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.core.transform import transform
+from flightsim.platforms.earth_orientation import cached_rotations
 from flightsim.platforms.flight import check_clearance
 from flightsim.platforms.rotating_body import attitude_angles
 from flightsim.scenes.scene import Scene
@@ -186,6 +187,13 @@ def _check_perigee(body: Body, perigee_m: float, inclination: float, perigee: fl
 
 
 def gcrs_to_itrs(gps_time) -> np.ndarray:
+    """(n, 3, 3) rotations R_GCRS→ITRS at adjusted GPS times [s], from astropy (:func:`astropy_gcrs_to_itrs`), kept
+    in the scene cache for the next run of the same times
+    (:func:`flightsim.platforms.earth_orientation.cached_rotations`)."""
+    return cached_rotations(np.asarray(gps_time, dtype=np.float64), astropy_gcrs_to_itrs)
+
+
+def astropy_gcrs_to_itrs(gps_time) -> np.ndarray:
     """(n, 3, 3) rotations R_GCRS→ITRS at adjusted GPS times [s], from astropy (bundled IERS tables, no
     download; their parsed table kept in the scene cache: :mod:`flightsim.platforms.earth_orientation`): the
     columns are the ITRS images of the GCRS axes."""
