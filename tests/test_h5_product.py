@@ -79,3 +79,29 @@ def test_a_dataset_with_another_fill_value_takes_hdf5s_path(tmp_path, monkeypatc
     product.close()
     with h5py.File(tmp_path / "e.h5") as f:
         np.testing.assert_array_equal(f["g/x"][:], values)
+
+
+def test_appends_of_the_datasets_type_take_the_low_level_write_and_read_back_as_written(tmp_path, monkeypatch):
+    """Values of a dataset's own dtype and row shape (booleans, small ints, floats, fixed strings, rows of two) are
+    written through h5py's low-level write; others (another dtype) through h5py's own assignment: every append reads
+    back as written, as h5py's own writes of the same values in another file."""
+    calls = []
+    original = h5_product._write_rows
+    monkeypatch.setattr(h5_product, "_write_rows", lambda d, n, v: calls.append(d.name) or original(d, n, v))
+    rng = np.random.default_rng(9)
+    parts = [{"flag": rng.random(n) < 0.5, "small": rng.integers(-5, 5, n).astype(np.int8),
+              "x": rng.normal(size=n).astype(np.float32), "name": np.array([b"ab", b"c"] * (n // 2)),
+              "rows": rng.normal(size=(n, 2))} for n in (10, 4, 1000)]
+    parts.append({**parts[-1], "x": rng.normal(size=1000)})  # float64 into the float32 column: h5py's assignment
+    product = H5Product(tmp_path / "f.h5")
+    for part in parts:
+        product.append("g", part)
+    product.close()
+    assert len(calls) == 4 * 5 - 1  # every append but the float64 one
+    with h5py.File(tmp_path / "f.h5") as ours, h5py.File(tmp_path / "h.h5", "w") as theirs:
+        for name in parts[0]:
+            expected = np.concatenate([part[name] for part in parts]).astype(ours[f"g/{name}"].dtype)
+            theirs.create_dataset(name, data=expected)
+            np.testing.assert_array_equal(ours[f"g/{name}"][:], expected)
+            np.testing.assert_array_equal(ours[f"g/{name}"][:], theirs[name][:])
+            assert ours[f"g/{name}"].dtype == theirs[name].dtype

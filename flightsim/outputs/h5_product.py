@@ -9,6 +9,7 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+from h5py import h5s
 
 from flightsim.core.version import __version__
 from flightsim.core.atomic import temporary_name
@@ -37,11 +38,13 @@ class H5Product:
         for name, values in columns.items():
             values = np.asarray(values)
             dataset, by_hand = self.datasets.get(f"{group}/{name}") or self._dataset(group, name, values, compress)
-            n = dataset.shape[0]
+            n = dataset.id.shape[0]
             before = n if before is None else before
-            dataset.resize((n + len(values),) + values.shape[1:])
+            dataset.id.set_extent((n + len(values),) + values.shape[1:])
             if by_hand and len(values) >= PARALLEL_CHUNKS * dataset.chunks[0]:
                 _write_deflated(dataset, n, values)
+            elif values.dtype == dataset.dtype and values.shape[1:] == dataset.shape[1:] and len(values):
+                _write_rows(dataset, n, values)
             else:
                 dataset[n:] = values
         return before or 0
@@ -68,6 +71,16 @@ class H5Product:
     def abort(self) -> None:
         self.file.close()
         self.part.unlink(missing_ok=True)
+
+
+def _write_rows(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
+    """``dataset[n:n + len(values)] = values`` for values of the dataset's dtype and row shape, through h5py's
+    low-level write: its high-level one builds selection objects every call (~0.1 ms of Python's lock an append, a few
+    thousand appends a 30 s ATLAS pass)."""
+    values = np.ascontiguousarray(values)
+    space = dataset.id.get_space()
+    space.select_hyperslab((n,) + (0,) * (values.ndim - 1), values.shape)
+    dataset.id.write(h5s.create_simple(values.shape), space, values)
 
 
 def _deflated_by_hand(dataset: h5py.Dataset) -> bool:
