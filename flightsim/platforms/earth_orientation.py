@@ -11,8 +11,8 @@ missing, stale or unreadable is ignored (astropy parses the files as usual and t
 that cannot be written only costs the saving. Entries are written to a temporary name and renamed. A run with
 ``run.scene_cache = false`` neither reads nor writes the entry (:data:`USE_CACHE`).
 
-The rotations of a pass (astropy's transform graph, its import and its time scales: 1.1-1.6 s of an Earth-orbit
-run's plan on the 2-core CPU, ~0.9 s on a GPU host, before its first ray) are the same for every run of the same
+The rotations of a pass (astropy's transform graph, its import and its time scales: 1.1-2.2 s of an Earth-orbit
+run's plan on the 2-core CPU, ~0.3 s on a GPU host, before its first ray) are the same for every run of the same
 epochs: :func:`cached_rotations` keeps them in an ``.npy`` entry keyed on the times' bytes and on what shapes
 astropy's answer (the versions of astropy, pyerfa and the IERS data package, and the bundled IERS and leap-second
 files' paths, sizes and times), so a run of a pass flown before reads astropy's own bits without importing astropy.
@@ -93,8 +93,11 @@ def _entry(folder: Path | None, kind: str, key: str, suffix: str) -> Path:
 def _sources() -> str:
     """What shapes astropy's Earth orientation, read without importing astropy, as canonical JSON: the versions of
     astropy, pyerfa and the IERS data package and the bundled IERS-A, IERS-B and leap-second files' stamps."""
-    import astropy_iers_data
-
+    try:
+        import astropy_iers_data
+        bundled = (astropy_iers_data.IERS_A_FILE, astropy_iers_data.IERS_B_FILE, astropy_iers_data.IERS_LEAP_SECOND_FILE)
+    except ImportError:  # an astropy that bundles its tables itself: its version keys them
+        bundled = ()
     versions = {}
     for name in ("astropy", "pyerfa", "astropy-iers-data"):
         try:
@@ -102,7 +105,7 @@ def _sources() -> str:
         except metadata.PackageNotFoundError:
             versions[name] = None
     files = {}
-    for name in (astropy_iers_data.IERS_A_FILE, astropy_iers_data.IERS_B_FILE, astropy_iers_data.IERS_LEAP_SECOND_FILE):
+    for name in bundled:
         try:
             stat = os.stat(name)
             files[str(name)] = [stat.st_size, stat.st_mtime_ns]
