@@ -1,5 +1,6 @@
 """H5Product's appends: a compressed 1-D column deflated on threads and stored chunk by chunk reads back as HDF5's
-own filters would have stored it, with the filters declared, whatever the rows before it."""
+own filters would have stored it, with the filters declared, whatever the rows before it; an uncompressed one's whole
+chunks stored as they are hold the bytes HDF5 would have stored."""
 import zlib
 
 import h5py
@@ -24,13 +25,14 @@ def test_compressed_appends_read_back_as_written(tmp_path, dtype, monkeypatch):
     rng = np.random.default_rng(7)
     parts = [(p * 40).clip(-100, 100).astype(dtype) if np.dtype(dtype).kind == "i" else p for p in _appends(rng)]
     by_hand = []
-    original = h5_product._write_deflated
-    monkeypatch.setattr(h5_product, "_write_deflated", lambda d, n, v: by_hand.append(n) or original(d, n, v))
+    original = h5_product._write_chunks
+    monkeypatch.setattr(h5_product, "_write_chunks", lambda d, n, v, deflate: by_hand.append((n, deflate))
+                        or original(d, n, v, deflate))
     product = H5Product(tmp_path / "a.h5")
     for part in parts:
         product.append("g", {"x": part}, compress=True)
     product.close()
-    assert by_hand == [ROWS * 3 // 2, ROWS * 13 // 2 + 17, ROWS * 23 // 2]  # the three long appends, by hand
+    assert by_hand == [(ROWS * 3 // 2, True), (ROWS * 13 // 2 + 17, True), (ROWS * 23 // 2, True)]  # the three long
     with h5py.File(tmp_path / "a.h5") as f:
         x = f["g/x"]
         assert (x.compression, x.shuffle, x.chunks) == ("gzip", True, (ROWS,))
@@ -56,26 +58,56 @@ def test_hand_deflated_chunks_match_hdf5s_filters(tmp_path):
             assert zlib.decompress(chunk_ours) == zlib.decompress(chunk_hdf5)
 
 
-def test_uncompressed_and_two_dimensional_appends_take_hdf5s_path(tmp_path, monkeypatch):
-    monkeypatch.setattr(h5_product, "_write_deflated", lambda *a: pytest.fail("written by hand"))
+@pytest.mark.parametrize("dtype", [np.float64, np.int8, np.uint16])
+def test_uncompressed_appends_store_whole_chunks_as_hdf5_would(tmp_path, dtype, monkeypatch):
+    """An uncompressed 1-D column's long appends store their whole chunks by hand (the rows up to a chunk boundary
+    and the short appends through HDF5): it reads back as written, and every chunk holds HDF5's own bytes."""
+    rng = np.random.default_rng(11)
+    parts = [(p * 40).clip(0, 100).astype(dtype) for p in _appends(rng)]
+    by_hand = []
+    original = h5_product._write_chunks
+    monkeypatch.setattr(h5_product, "_write_chunks", lambda d, n, v, deflate: by_hand.append((n, deflate))
+                        or original(d, n, v, deflate))
+    product = H5Product(tmp_path / "p.h5")
+    for part in parts:
+        product.append("g", {"x": part})
+    product.close()
+    assert by_hand == [(ROWS * 3 // 2, False), (ROWS * 13 // 2 + 17, False), (ROWS * 23 // 2, False)]
+    expected = np.concatenate(parts).astype(dtype)
+    with h5py.File(tmp_path / "q.h5", "w") as f:
+        f.create_dataset("x", data=expected, chunks=(ROWS,), maxshape=(None,))
+    with h5py.File(tmp_path / "p.h5") as ours, h5py.File(tmp_path / "q.h5") as hdf5:
+        x = ours["g/x"]
+        assert (x.compression, x.chunks, x.dtype) == (None, (ROWS,), np.dtype(dtype))
+        np.testing.assert_array_equal(x[:], expected)
+        for k in range(len(expected) // ROWS):  # the whole chunks (the last one's padding is no row)
+            assert x.id.read_direct_chunk((k * ROWS,)) == hdf5["x"].id.read_direct_chunk((k * ROWS,))
+
+
+def test_two_dimensional_and_big_endian_appends_take_hdf5s_path(tmp_path, monkeypatch):
+    monkeypatch.setattr(h5_product, "_write_chunks", lambda *a: pytest.fail("written by hand"))
     product = H5Product(tmp_path / "d.h5")
     rows = np.arange(ROWS * 8 * 2, dtype=np.float32).reshape(-1, 2)
-    product.append("g", {"plain": np.arange(ROWS * 8), "wide": rows}, compress=False)
+    big = np.arange(ROWS * 8, dtype=">f8")
+    product.append("g", {"big": big, "wide": rows}, compress=False)
     product.append("h", {"wide": rows}, compress=True)
     product.close()
     with h5py.File(tmp_path / "d.h5") as f:
         np.testing.assert_array_equal(f["h/wide"][:], rows)
-        np.testing.assert_array_equal(f["g/plain"][:], np.arange(ROWS * 8))
+        np.testing.assert_array_equal(f["g/wide"][:], rows)
+        assert f["g/big"].dtype == np.dtype(">f8")
+        np.testing.assert_array_equal(f["g/big"][:], big)
 
 
-def test_a_dataset_with_another_fill_value_takes_hdf5s_path(tmp_path, monkeypatch):
-    """A chunk stored by hand pads with 0; a dataset whose fill value is not 0 is left to HDF5's filters."""
-    monkeypatch.setattr(h5_product, "_write_deflated", lambda *a: pytest.fail("written by hand"))
+@pytest.mark.parametrize("compress", [True, False])
+def test_a_dataset_with_another_fill_value_takes_hdf5s_path(tmp_path, monkeypatch, compress):
+    """A chunk stored by hand pads with 0; a dataset whose fill value is not 0 is left to HDF5."""
+    monkeypatch.setattr(h5_product, "_write_chunks", lambda *a: pytest.fail("written by hand"))
     product = H5Product(tmp_path / "e.h5")
     product.file.create_dataset("g/x", shape=(0,), maxshape=(None,), dtype=np.float64, chunks=(ROWS,),
-                                compression="gzip", shuffle=True, fillvalue=-9.0)
+                                fillvalue=-9.0, **({"compression": "gzip", "shuffle": True} if compress else {}))
     values = np.arange(ROWS * 5 + 3, dtype=np.float64)
-    product.append("g", {"x": values}, compress=True)
+    product.append("g", {"x": values}, compress=compress)
     product.close()
     with h5py.File(tmp_path / "e.h5") as f:
         np.testing.assert_array_equal(f["g/x"][:], values)

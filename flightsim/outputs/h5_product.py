@@ -18,7 +18,7 @@ from flightsim.core.process_map import thread_count
 ROWS_PER_CHUNK = 1 << 16  # largest HDF5 chunk of a 1-D dataset [rows]
 MIN_ROWS_PER_CHUNK = 1 << 10  # smallest: a one-shot product stays small (a chunk is stored whole)
 GZIP_LEVEL = 4  # h5py's gzip level, which the datasets are made with
-PARALLEL_CHUNKS = 4  # a compressed 1-D append of this many chunks or more is compressed on threads
+PARALLEL_CHUNKS = 4  # a 1-D append of this many chunks or more writes its whole chunks itself (compressed on threads)
 
 
 class H5Product:
@@ -28,7 +28,7 @@ class H5Product:
         self.path, self.part = Path(path), temporary_name(Path(path))
         self.file = h5py.File(self.part, "w")
         self.file.attrs.update(flightsim=__version__, **attrs)
-        self.datasets: dict[str, tuple[h5py.Dataset, bool]] = {}  # "group/name": (dataset, deflated by hand)
+        self.datasets: dict[str, tuple[h5py.Dataset, str | None]] = {}  # "group/name": (dataset, its chunks by hand)
 
     def append(self, group: str, columns: dict, compress: bool = False) -> int:
         """Append rows to the datasets ``group/name`` (created on first use from the values' dtype and row
@@ -42,7 +42,7 @@ class H5Product:
             before = n if before is None else before
             dataset.id.set_extent((n + len(values),) + values.shape[1:])
             if by_hand and len(values) >= PARALLEL_CHUNKS * dataset.chunks[0]:
-                _write_deflated(dataset, n, values)
+                _write_chunks(dataset, n, values, by_hand == "deflate")
             elif values.dtype == dataset.dtype and values.shape[1:] == dataset.shape[1:] and len(values):
                 _write_rows(dataset, n, values)
             else:
@@ -50,8 +50,8 @@ class H5Product:
         return before or 0
 
     def _dataset(self, group: str, name: str, values: np.ndarray, compress: bool) -> tuple[h5py.Dataset, bool]:
-        """``group/name``, made from the first values' dtype and row shape where the file lacks it, and whether its
-        appends may be deflated on threads (:func:`_deflated_by_hand`); kept for the next appends."""
+        """``group/name``, made from the first values' dtype and row shape where the file lacks it, and how its large
+        appends' chunks may be written by hand (:func:`_chunks_by_hand`); kept for the next appends."""
         g = self.file.require_group(group)
         if name not in g:
             rows = min(ROWS_PER_CHUNK, max(MIN_ROWS_PER_CHUNK, len(values)))  # the first rows' count: a hint
@@ -59,7 +59,7 @@ class H5Product:
             g.create_dataset(name, shape=(0,) + values.shape[1:], maxshape=(None,) + values.shape[1:],
                              dtype=values.dtype, chunks=chunks,
                              **({"compression": "gzip", "shuffle": True} if compress else {}))
-        kept = self.datasets[f"{group}/{name}"] = (g[name], _deflated_by_hand(g[name]))
+        kept = self.datasets[f"{group}/{name}"] = (g[name], _chunks_by_hand(g[name]))
         return kept
 
     def close(self) -> str:
@@ -83,33 +83,53 @@ def _write_rows(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
     dataset.id.write(h5s.create_simple(values.shape), space, values)
 
 
-def _deflated_by_hand(dataset: h5py.Dataset) -> bool:
-    """Whether appends to ``dataset`` may be compressed on threads (those of PARALLEL_CHUNKS chunks of rows or more
-    are): a 1-D dataset with exactly the shuffle and gzip filters and the fill value 0."""
-    return (dataset.ndim == 1 and dataset.compression == "gzip" and dataset.shuffle and not dataset.fletcher32
-            and dataset.scaleoffset is None and not dataset.fillvalue)
+def _chunks_by_hand(dataset: h5py.Dataset) -> str | None:
+    """How appends of PARALLEL_CHUNKS chunks of rows or more to ``dataset`` may write their whole chunks themselves:
+    "deflate" (shuffled and deflated on threads) for a 1-D dataset with exactly the shuffle and gzip filters and the
+    fill value 0, "plain" (as they are) for a chunked 1-D dataset without filters, of fill value 0, in this machine's
+    byte order (HDF5 would copy them through its chunk cache first); None otherwise."""
+    if dataset.ndim != 1 or dataset.chunks is None or dataset.fillvalue:
+        return None
+    if dataset.compression == "gzip" and dataset.shuffle and not dataset.fletcher32 and dataset.scaleoffset is None:
+        return "deflate"
+    if dataset.id.get_create_plist().get_nfilters() == 0 and dataset.dtype.isnative:
+        return "plain"
+    return None
 
 
-def _write_deflated(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
-    """``dataset[n:n + len(values)] = values`` for a 1-D dataset with HDF5's shuffle and gzip filters: the rows up to
-    the first chunk boundary through HDF5, every chunk from there shuffled and deflated on threads (zlib lets go of
-    Python's lock, h5py holds it through HDF5's own filters) and stored as it is (a last partial chunk padded with
-    the fill value 0, as HDF5 stores one). The values read back are the same either way."""
+def _write_chunks(dataset: h5py.Dataset, n: int, values: np.ndarray, deflate: bool) -> None:
+    """``dataset[n:n + len(values)] = values`` for a 1-D dataset of :func:`_chunks_by_hand`: the rows up to the first
+    chunk boundary through HDF5, every chunk from there stored as it is, or shuffled and deflated on threads (zlib
+    lets go of Python's lock, h5py holds it through HDF5's own filters) as HDF5's shuffle and gzip filters store it
+    (a last partial chunk padded with the fill value 0, as HDF5 stores one). The values read back are the same either
+    way."""
     rows, values = dataset.chunks[0], values.astype(dataset.dtype, copy=False)
     first = min(-(-n // rows) * rows, n + len(values))
     if first > n:
-        dataset[n:first] = values[:first - n]
+        _write_rows(dataset, n, values[:first - n])
     rest = values[first - n:]
     starts = range(0, len(rest), rows)
+    if not deflate:
+        for start in starts:
+            dataset.id.write_direct_chunk((first + start,), _padded(rest[start:start + rows], rows))
+        return
     with ThreadPoolExecutor(thread_count(len(starts)), thread_name_prefix="deflate") as pool:
         deflated = pool.map(lambda start: _deflated(rest[start:start + rows], rows), starts)
         for start, chunk in zip(starts, deflated):
             dataset.id.write_direct_chunk((first + start,), chunk)
 
 
-def _deflated(values: np.ndarray, rows: int) -> bytes:
-    """One chunk of ``rows`` rows (``values`` then zeros) as HDF5's shuffle and gzip filters store it."""
+def _padded(values: np.ndarray, rows: int) -> np.ndarray:
+    """One chunk of ``rows`` rows: ``values`` (contiguous), then zeros where they are fewer."""
+    if len(values) == rows:
+        return np.ascontiguousarray(values)
     chunk = np.zeros(rows, dtype=values.dtype)
     chunk[:len(values)] = values
+    return chunk
+
+
+def _deflated(values: np.ndarray, rows: int) -> bytes:
+    """One chunk of ``rows`` rows (``values`` then zeros) as HDF5's shuffle and gzip filters store it."""
+    chunk = _padded(values, rows)
     shuffled = np.ascontiguousarray(chunk.view(np.uint8).reshape(rows, chunk.itemsize).T)  # byte k of every row
     return zlib.compress(shuffled.tobytes(), GZIP_LEVEL)

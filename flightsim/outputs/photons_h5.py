@@ -43,12 +43,12 @@ class PhotonWriter:
         n = len(chunk)
         if n == 0:
             return
-        columns = {"line_id": np.full(n, chunk.line_id), "pulse": chunk.pulse, "pixel": chunk.pixel,
-                   "delta_time": chunk.start_time + chunk.pulse / self.prf_hz,
+        columns = {"line_id": np.full(n, chunk.line_id, dtype=FIELDS["line_id"]), "pulse": chunk.pulse,
+                   "pixel": chunk.pixel, "delta_time": chunk.start_time + chunk.pulse / self.prf_hz,
                    "time_of_flight_s": chunk.time_of_flight_s, "range_m": chunk.time_of_flight_s * (C / 2.0),
                    "signal": chunk.kind}
-        world = chunk.points + self.origin
-        columns.update(x=world[:, 0], y=world[:, 1], z=world[:, 2])
+        for axis, name in enumerate("xyz"):  # each world coordinate made contiguous as it is made [m]
+            columns[name] = chunk.points[:, axis] + self.origin[axis]
         self.product.append("photons", {name: np.asarray(v, dtype=FIELDS[name]) for name, v in columns.items()})
         self.count += n
         self.signal += int(np.count_nonzero(chunk.signal))
