@@ -40,18 +40,29 @@ class PhotonWriter:
         self.signal = 0
 
     def __call__(self, chunk) -> None:
+        self.take(self.prepare(chunk))
+
+    def prepare(self, chunk) -> tuple[dict[str, np.ndarray], int]:
+        """The columns of a PhotonChunk and its signal photons (safe on several threads at once; :meth:`take`
+        writes them)."""
         n = len(chunk)
-        if n == 0:
-            return
         columns = {"line_id": np.full(n, chunk.line_id, dtype=FIELDS["line_id"]), "pulse": chunk.pulse,
                    "pixel": chunk.pixel, "delta_time": chunk.start_time + chunk.pulse / self.prf_hz,
                    "time_of_flight_s": chunk.time_of_flight_s, "range_m": chunk.time_of_flight_s * (C / 2.0),
                    "signal": chunk.kind}
         for axis, name in enumerate("xyz"):  # each world coordinate made contiguous as it is made [m]
             columns[name] = chunk.points[:, axis] + self.origin[axis]
-        self.product.append("photons", {name: np.asarray(v, dtype=FIELDS[name]) for name, v in columns.items()})
+        return {name: np.asarray(v, dtype=FIELDS[name]) for name, v in columns.items()}, int(np.count_nonzero(chunk.signal))
+
+    def take(self, prepared: tuple[dict[str, np.ndarray], int]) -> None:
+        """Append the columns :meth:`prepare` made, in the order chunks came."""
+        columns, signal = prepared
+        n = len(columns["pulse"])
+        if n == 0:
+            return
+        self.product.append("photons", columns)
         self.count += n
-        self.signal += int(np.count_nonzero(chunk.signal))
+        self.signal += signal
 
     def close(self) -> str:
         if self.count == 0:

@@ -21,7 +21,9 @@ TWO_CORES_LATER = 8  # on two cores the workers start at 8 × PARALLEL_PHOTONS: 
 MAX_WORKERS = 32  # the most worker processes they start
 BEHIND_PHOTONS = 8 << 20  # photons.h5 and the LAS tiles are handed a part once about this many photons came after
 # it (the parts of run.host_photons that make them up, at least one): atl03.h5 has them first
-LAS_THREADS = 4  # the most threads making the LAS tiles' records side by side (off orbit)
+LAS_THREADS = 12  # the most threads making the LAS tiles' records side by side (off orbit): on a 16-core GPU host the
+# SPAD frame's trace stage 3.16 s on 4, 2.75 on 8, 2.36 on 12 (mean of 3; peak 1.85 -> 2.35 GB; profile-experiments 95)
+H5_THREADS = 2  # photons.h5's columns of the next part made while its writer appends a part's
 ORBIT_LAS_THREADS = 2  # from orbit (the geodetic transform has PROJ's threads, the finder and ATL08 the cores): on one,
 # the tiles held the trace back ~6 s of a 30 s pass on a 16-core GPU host (results/profile-experiments.md section 87)
 ATL03_THREADS = 2  # the most chunks atl03.h5 prepares at once (their geodetic columns) while it appends another
@@ -81,7 +83,8 @@ class PhotonProduct:
         atl03 = [Atl03Writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter),
                              stream=usable_cores() > 1)] if body else []
         las_threads = thread_count(ORBIT_LAS_THREADS if atl03 else LAS_THREADS)
-        self.h5, self.las = Background(h5, "photons-h5"), Background(las, "photon-las", threads=las_threads)
+        self.h5 = Background(h5, "photons-h5", threads=thread_count(H5_THREADS))
+        self.las = Background(las, "photon-las", threads=las_threads)
         self.atl03 = [Background(writer, "atl03", threads=thread_count(ATL03_THREADS)) for writer in atl03]
         self.atl08 = body is not None and cfg.output.atl08
         self.photons, self.workers, self.placed = 0, None, []
