@@ -84,12 +84,13 @@ def test_uncompressed_appends_store_whole_chunks_as_hdf5_would(tmp_path, dtype, 
             assert x.id.read_direct_chunk((k * ROWS,)) == hdf5["x"].id.read_direct_chunk((k * ROWS,))
 
 
-def test_two_dimensional_and_big_endian_appends_take_hdf5s_path(tmp_path, monkeypatch):
+def test_two_dimensional_big_endian_and_string_appends_take_hdf5s_path(tmp_path, monkeypatch):
     monkeypatch.setattr(h5_product, "_write_chunks", lambda *a: pytest.fail("written by hand"))
     product = H5Product(tmp_path / "d.h5")
     rows = np.arange(ROWS * 8 * 2, dtype=np.float32).reshape(-1, 2)
     big = np.arange(ROWS * 8, dtype=">f8")
-    product.append("g", {"big": big, "wide": rows}, compress=False)
+    names = np.array([b"ab", b"c"] * (ROWS * 4))
+    product.append("g", {"big": big, "wide": rows, "name": names}, compress=False)
     product.append("h", {"wide": rows}, compress=True)
     product.close()
     with h5py.File(tmp_path / "d.h5") as f:
@@ -97,6 +98,7 @@ def test_two_dimensional_and_big_endian_appends_take_hdf5s_path(tmp_path, monkey
         np.testing.assert_array_equal(f["g/wide"][:], rows)
         assert f["g/big"].dtype == np.dtype(">f8")
         np.testing.assert_array_equal(f["g/big"][:], big)
+        np.testing.assert_array_equal(f["g/name"][:], names)
 
 
 @pytest.mark.parametrize("compress", [True, False])

@@ -86,13 +86,13 @@ def _write_rows(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
 def _chunks_by_hand(dataset: h5py.Dataset) -> str | None:
     """How appends of PARALLEL_CHUNKS chunks of rows or more to ``dataset`` may write their whole chunks themselves:
     "deflate" (shuffled and deflated on threads) for a 1-D dataset with exactly the shuffle and gzip filters and the
-    fill value 0, "plain" (as they are) for a chunked 1-D dataset without filters, of fill value 0, in this machine's
-    byte order (HDF5 would copy them through its chunk cache first); None otherwise."""
+    fill value 0, "plain" (as they are) for a chunked 1-D dataset of numbers or booleans without filters, of fill value
+    0, in this machine's byte order (HDF5 would copy them through its chunk cache first); None otherwise."""
     if dataset.ndim != 1 or dataset.chunks is None or dataset.fillvalue:
         return None
     if dataset.compression == "gzip" and dataset.shuffle and not dataset.fletcher32 and dataset.scaleoffset is None:
         return "deflate"
-    if dataset.id.get_create_plist().get_nfilters() == 0 and dataset.dtype.isnative:
+    if dataset.id.get_create_plist().get_nfilters() == 0 and dataset.dtype.kind in "biuf" and dataset.dtype.isnative:
         return "plain"
     return None
 
