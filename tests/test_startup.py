@@ -83,6 +83,25 @@ def test_a_risley_run_loads_no_other_parts_kernels(tmp_path):
     assert not set(loaded) & set(UNFLOWN_KERNELS), sorted(set(loaded) & set(UNFLOWN_KERNELS))
 
 
+def test_a_photon_run_off_orbit_imports_neither_atl03_nor_scipy(tmp_path):
+    """A SPAD run (photons, off orbit) in a fresh process: atl03.h5's writer and its signal finder, and with them
+    SciPy (~0.3 s of a run's start), are never imported; an ATLAS run (from orbit) imports the writer."""
+    def loaded(args: list[str], out) -> set[str]:
+        script = ("import json, sys\nfrom flightsim.entry import main\n"
+                  f"code = main(['simulate', '--device', 'cpu', *{args!r}, '--out', {str(out)!r}])\n"
+                  "print(json.dumps([code, sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'flightsim'))]))\n")
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ, check=True)
+        code, modules = json.loads(done.stdout.strip().splitlines()[-1])
+        assert code == 0
+        return set(modules)
+
+    spad = loaded(["--instrument", "spad", "--duration", "0.0005"], tmp_path / "spad")
+    assert "flightsim.outputs.photons_h5" in spad
+    assert not {m for m in spad if m.startswith("scipy") or m == "flightsim.outputs.atl03_h5"}
+    atlas = loaded(["--instrument", "atlas", "--duration", "0.0002"], tmp_path / "atlas")
+    assert "flightsim.outputs.atl03_h5" in atlas
+
+
 def test_warp_names_its_cpu_objects_before_any_parallel_load():
     """init_warp has Warp work out the LLVM version and target of its CPU objects' names on one thread: Warp's native
     call for the version can return an empty string when several module loads ask at once, and a module then

@@ -69,7 +69,6 @@ class PhotonProduct:
         self.cfg, self.scene = cfg, scene
 
     def open(self, tracer, directory: Path, cfg_text: str) -> None:
-        from flightsim.outputs.atl03_h5 import Atl03Writer
         from flightsim.outputs.photon_las import PhotonLas
         from flightsim.outputs.photons_h5 import PhotonWriter
 
@@ -80,8 +79,8 @@ class PhotonProduct:
         body = cfg.flight.body if cfg.flight.platform == "orbit" else None
         las = PhotonLas(directory, cfg.output, scene, tracer.timing, tracer.instrument.emitter.beam_columns, body,
                         cfg.flight.start_gps_time)
-        atl03 = [Atl03Writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter),
-                             stream=usable_cores() > 1)] if body else []
+        atl03 = [_atl03_writer(directory, body, cfg_text, prf, scene, atl03_granule(cfg, tracer.instrument.emitter))
+                 ] if body else []
         las_threads = thread_count(ORBIT_LAS_THREADS if atl03 else LAS_THREADS)
         self.h5 = Background(h5, "photons-h5", threads=thread_count(H5_THREADS))
         self.las = Background(las, "photon-las", threads=las_threads)
@@ -221,3 +220,11 @@ def atl08_from_atl03(directory: Path, cfg_text: str, workers: ProcessMap | None 
         for part in parts.values():
             for name in (part, temporary_name(part)):  # a track's file, or one a failing worker left half-written
                 name.unlink(missing_ok=True)
+
+
+def _atl03_writer(directory: Path, body: str, cfg_text: str, prf_hz: float, scene, granule):
+    """atl03.h5's writer (imported only from orbit: its signal finder brings SciPy's special functions, ~0.3 s at a
+    run's start that a run off orbit does not pay)."""
+    from flightsim.outputs.atl03_h5 import Atl03Writer
+
+    return Atl03Writer(directory, body, cfg_text, prf_hz, scene, granule, stream=usable_cores() > 1)
