@@ -89,8 +89,10 @@ def test_a_photon_run_off_orbit_imports_neither_atl03_nor_scipy(tmp_path):
     def loaded(args: list[str], out) -> set[str]:
         script = ("import json, sys\nfrom flightsim.entry import main\n"
                   f"code = main(['simulate', '--device', 'cpu', *{args!r}, '--out', {str(out)!r}])\n"
-                  "print(json.dumps([code, sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'flightsim'))]))\n")
-        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ, check=True)
+                  "tops = ('scipy', 'flightsim')\n"
+                  "print(json.dumps([code, sorted(m for m in sys.modules if m.split('.')[0] in tops)]))\n")
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ,
+                              check=True)
         code, modules = json.loads(done.stdout.strip().splitlines()[-1])
         assert code == 0
         return set(modules)

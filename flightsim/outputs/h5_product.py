@@ -49,7 +49,7 @@ class H5Product:
                 dataset[n:] = values
         return before or 0
 
-    def _dataset(self, group: str, name: str, values: np.ndarray, compress: bool) -> tuple[h5py.Dataset, bool]:
+    def _dataset(self, group: str, name: str, values: np.ndarray, compress: bool) -> tuple[h5py.Dataset, str | None]:
         """``group/name``, made from the first values' dtype and row shape where the file lacks it, and how its large
         appends' chunks may be written by hand (:func:`_chunks_by_hand`); kept for the next appends."""
         g = self.file.require_group(group)

@@ -52,7 +52,8 @@ class PhotonWriter:
                    "signal": chunk.kind}
         for axis, name in enumerate("xyz"):  # each world coordinate made contiguous as it is made [m]
             columns[name] = chunk.points[:, axis] + self.origin[axis]
-        return {name: np.asarray(v, dtype=FIELDS[name]) for name, v in columns.items()}, int(np.count_nonzero(chunk.signal))
+        signal = int(np.count_nonzero(chunk.signal))
+        return {name: np.asarray(v, dtype=FIELDS[name]) for name, v in columns.items()}, signal
 
     def take(self, prepared: tuple[dict[str, np.ndarray], int]) -> None:
         """Append the columns :meth:`prepare` made, in the order chunks came."""

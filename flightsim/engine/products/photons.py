@@ -22,7 +22,8 @@ MAX_WORKERS = 32  # the most worker processes they start
 BEHIND_PHOTONS = 8 << 20  # photons.h5 and the LAS tiles are handed a part once about this many photons came after
 # it (the parts of run.host_photons that make them up, at least one): atl03.h5 has them first
 LAS_THREADS = 12  # the most threads making the LAS tiles' records side by side (off orbit): on a 16-core GPU host the
-# SPAD frame's trace stage 3.16 s on 4, 2.75 on 8, 2.36 on 12 (mean of 3; peak 1.85 -> 2.35 GB; profile-experiments 95)
+# SPAD frame's trace stage 3.16 s on 4, 2.75 on 8, 2.36 on 12 (mean of 3; the run's peak 1.85 -> 2.35 GB, 2.9-3.3 GB
+# with photons.h5's second thread beside on another host; results/profile-experiments.md section 95)
 H5_THREADS = 2  # photons.h5's columns of the next part made while its writer appends a part's
 ORBIT_LAS_THREADS = 2  # from orbit (the geodetic transform has PROJ's threads, the finder and ATL08 the cores): on one,
 # the tiles held the trace back ~6 s of a 30 s pass on a 16-core GPU host (results/profile-experiments.md section 87)
