@@ -20,14 +20,20 @@ def _appends(rng) -> list[np.ndarray]:
             rng.normal(size=ROWS * 6).astype(np.float32), rng.normal(size=3)]
 
 
+def _chunk_writes(monkeypatch) -> list[tuple[int, bool]]:
+    """The (first row, deflated) of every append that writes its whole chunks by hand, as the appends make them."""
+    calls = []
+    original = h5_product._write_chunks
+    monkeypatch.setattr(h5_product, "_write_chunks", lambda d, n, v, deflate: calls.append((n, deflate))
+                        or original(d, n, v, deflate))
+    return calls
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.int8, np.int32])
 def test_compressed_appends_read_back_as_written(tmp_path, dtype, monkeypatch):
     rng = np.random.default_rng(7)
     parts = [(p * 40).clip(-100, 100).astype(dtype) if np.dtype(dtype).kind == "i" else p for p in _appends(rng)]
-    by_hand = []
-    original = h5_product._write_chunks
-    monkeypatch.setattr(h5_product, "_write_chunks", lambda d, n, v, deflate: by_hand.append((n, deflate))
-                        or original(d, n, v, deflate))
+    by_hand = _chunk_writes(monkeypatch)
     product = H5Product(tmp_path / "a.h5")
     for part in parts:
         product.append("g", {"x": part}, compress=True)
@@ -64,10 +70,7 @@ def test_uncompressed_appends_store_whole_chunks_as_hdf5_would(tmp_path, dtype, 
     and the short appends through HDF5): it reads back as written, and every chunk holds HDF5's own bytes."""
     rng = np.random.default_rng(11)
     parts = [(p * 40).clip(0, 100).astype(dtype) for p in _appends(rng)]
-    by_hand = []
-    original = h5_product._write_chunks
-    monkeypatch.setattr(h5_product, "_write_chunks", lambda d, n, v, deflate: by_hand.append((n, deflate))
-                        or original(d, n, v, deflate))
+    by_hand = _chunk_writes(monkeypatch)
     product = H5Product(tmp_path / "p.h5")
     for part in parts:
         product.append("g", {"x": part})
