@@ -168,6 +168,30 @@ def test_rh_of_windows_apart_equals_a_row_by_row_reference():
         np.testing.assert_allclose(got[i], elevation - ground[i], rtol=0.0, atol=1e-9)
 
 
+def test_a_shots_rh_is_the_same_wherever_it_lies_in_its_batch():
+    """A waveform whose energy share from the bottom comes 3e-12 short of rh50's level, alone and as the last of
+    30,001 rows (the others without a signal): the same heights bit for bit, and rh50 the exact one, 6e-12 of a
+    sample above the middle sample (a search of every row's shares at once, each row's index added to them, lost
+    that difference far down a batch)."""
+    from flightsim.outputs.l2a import _rh
+
+    d = 3e-12
+    y = np.array([0.0, 0.5 + 2.0 * d, 0.5, 0.5 - 2.0 * d, 0.0])  # trapezoids of 0.5 + d and, below, 0.5 - d
+    rows = 30_001
+    batch = np.zeros((rows, len(y)))
+    batch[-1] = y
+    found = np.zeros(rows, dtype=bool)
+    found[-1] = True
+    bin0, lastbin, ground = np.full(rows, 4.0), np.zeros(rows), np.zeros(rows)  # 1 m a sample, sample 4 at 0 m
+    start, end = np.full(rows, 1.0), np.full(rows, 3.0)
+    far = _rh(batch, bin0, lastbin, start, end, ground, found)[-1]
+    alone = _rh(y[None, :], bin0[:1], lastbin[:1], start[:1], end[:1], ground[:1], found[-1:])[0]
+    np.testing.assert_array_equal(far, alone)
+    share = (0.5 - d) / ((0.5 - d) + (0.5 + d))  # at sample 2; 1 at sample 1
+    np.testing.assert_allclose(alone[50], 4.0 - (2.0 - (0.5 - share) / (1.0 - share)), rtol=0.0, atol=1e-14)
+    assert alone[50] - 2.0 > 5e-12
+
+
 def test_truth_rh_of_a_noise_free_profile_is_measured_from_the_true_ground():
     ground = TOP - 710.0 * DZ  # 10 samples below the ground mode's centre
     rh = truth_rh(_wave(GROUND)[None, :], [TOP], [TOP - (N - 1) * DZ], [ground])

@@ -160,8 +160,9 @@ def test_a_worker_that_dies_is_named():
         pool.map(leave, [(1,)])
 
 
-def test_l2a_fits_over_workers_are_the_fits_in_this_process(workers):
-    """Noisy two-mode waveforms (test_l2a's GEDI-like shapes): every metric the same bit for bit."""
+def test_l2a_metrics_over_workers_are_the_metrics_in_this_process(workers):
+    """Noisy two-mode waveforms (test_l2a's GEDI-like shapes) in five chunks of rows: every metric the same bit for
+    bit."""
     dt, n, pulse = 0.5e-9, 1000, 6e-9
     i = np.arange(n, dtype=np.float64)
     rng = np.random.default_rng(9)
@@ -177,6 +178,32 @@ def test_l2a_fits_over_workers_are_the_fits_in_this_process(workers):
     for name in alone:
         np.testing.assert_array_equal(alone[name], spread[name], err_msg=name)
     assert np.isfinite(alone["elev_lowestmode"]).all() and (alone["num_detectedmodes"] >= 2).mean() > 0.9
+
+
+@pytest.mark.parametrize("bad", ["rx", "elevation_lastbin", "noise"])
+def test_l2a_metrics_over_workers_refuse_bad_input_as_this_process_does(workers, bad):
+    """A NaN sample, a short column or a noise of the wrong shape: the same InputError, naming the whole input."""
+    from flightsim.core.errors import InputError
+
+    shots, n = 200, 300
+    rx = np.exp(-0.5 * ((np.arange(n) - 150.0) / 10.0) ** 2)[None, :].repeat(shots, axis=0)
+    z0 = np.full(shots, 100.0)
+    columns = [z0, z0 - 20.0, np.full(shots, 10.0), np.full(shots, 20.0), np.full(shots, 10.001), np.full(shots, 20.0)]
+    noise = None
+    if bad == "rx":
+        rx[150, 7] = np.nan
+    elif bad == "elevation_lastbin":
+        columns[1] = columns[1][:-1]
+    else:
+        noise = (np.zeros(shots + 1), 0.01)
+    messages = []
+    for pool in (None, workers):
+        with pytest.raises(InputError) as caught:
+            l2a_metrics(rx, 1e-9, *columns, 6e-9, noise=noise, workers=pool)
+        messages.append(str(caught.value))
+    field = {"rx": "rx", "elevation_lastbin": "elevation_lastbin", "noise": "noise mean"}[bad]
+    assert messages[0] == messages[1] and messages[0].startswith(f"invalid {field} = ")
+    assert bad == "rx" or f"({shots},)" in messages[0]  # the whole input's rows, not a chunk's
 
 
 def test_maps_asked_for_from_two_threads_at_once_each_get_their_results(workers):

@@ -71,6 +71,10 @@ _MIN_WIDTH = 0.5  # least fitted width [pulse σ]
 _SLAB_VALUES = 1 << 19  # the batched fit takes waveforms in slabs of about this many Jacobian values
 
 
+_GEOLOCATION = ("elevation_bin0", "elevation_lastbin", "latitude_bin0", "longitude_bin0", "latitude_lastbin",
+                "longitude_lastbin")  # l2a_metrics' per-shot positions, in its arguments' order
+
+
 @dataclass
 class L2ASettings(Settings):
     """GEDI L2A waveform interpretation, algorithm setting group a1."""
@@ -120,8 +124,8 @@ def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin
         pulse_sigma_s: σ of the transmitted pulse [s], > 0.
         noise: (mean, σ) of the noise, each a number or (S,) [rx units]; None: from the waveforms' ends.
         settings: :class:`L2ASettings` (GEDI a1 by default).
-        workers: worker processes (:class:`~flightsim.core.process_map.ProcessMap`) to spread the Gaussian fits
-            over (the same results); None: this process.
+        workers: worker processes (:class:`~flightsim.core.process_map.ProcessMap`) to spread the waveforms over,
+            a chunk of rows each (the same results: every metric is a row's own); None: this process.
 
     Returns: GEDI L2A names, (S,) arrays unless stated: ``rh`` (S, 101) [m], ``elev_lowestmode``,
     ``elev_highestreturn`` [m], ``lat_lowestmode``, ``lon_lowestmode``, ``lat_highestreturn``,
@@ -130,6 +134,10 @@ def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin
     """
     s = settings if settings is not None else L2ASettings()
     check_settings("l2a", s)
+    if workers is not None:
+        return _spread(rx, dt_s, pulse_sigma_s, noise, s, workers, elevation_bin0=elevation_bin0,
+                       elevation_lastbin=elevation_lastbin, latitude_bin0=latitude_bin0, longitude_bin0=longitude_bin0,
+                       latitude_lastbin=latitude_lastbin, longitude_lastbin=longitude_lastbin)
     shots, dt = _prepare(rx, dt_s, pulse_sigma_s, noise, s)
     geo = _geometry(len(shots.y), elevation_bin0=elevation_bin0, elevation_lastbin=elevation_lastbin,
                     latitude_bin0=latitude_bin0, longitude_bin0=longitude_bin0, latitude_lastbin=latitude_lastbin,
@@ -139,7 +147,7 @@ def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin
     shot, loc = _modes(shots.smooth, front, start, end)
     count = np.bincount(shot, minlength=len(shots.y))
     found &= count > 0
-    ground = _lowest_modes(shots, shot, loc, start, end, front, found, s.max_modes, workers)
+    ground = _lowest_modes(shots, shot, loc, start, end, front, found, s.max_modes)
     out = _positions(geo, shots.y.shape[1], ground, start, found)
     out["rh"] = _rh(shots.y, geo["elevation_bin0"], geo["elevation_lastbin"], start, end, out["elev_lowestmode"],
                     found)
@@ -149,6 +157,23 @@ def l2a_metrics(rx, dt_s: float, elevation_bin0, elevation_lastbin, latitude_bin
     out["quality_flag"] = (found & (out["sensitivity"] >= s.min_sensitivity)).astype(np.uint8)
     out["energy_total"] = energy * dt
     return out
+
+
+def _spread(rx, dt_s: float, pulse_sigma_s: float, noise, s: L2ASettings, workers: ProcessMap,
+            **geolocation) -> dict[str, np.ndarray]:
+    """:func:`l2a_metrics` of the waveforms cut into chunks of rows, each worked out by a worker (the input checked
+    here first, so that an error names the whole input), the chunks' metrics joined in order."""
+    w = _waveforms(rx, "rx")
+    n = len(w)
+    geo = _geometry(n, **geolocation)
+    if noise is not None:
+        if not isinstance(noise, (tuple, list)) or len(noise) != 2:
+            raise InputError("noise", noise, "(mean, σ): numbers or (S,) arrays")
+        noise = (_column("noise mean", noise[0], n), _column("noise σ", noise[1], n))
+    chunks = [(w[c], dt_s, *(geo[name][c] for name in _GEOLOCATION), pulse_sigma_s,
+               None if noise is None else (noise[0][c], noise[1][c]), s) for c in row_chunks(n, workers)]
+    parts = map_rows(l2a_metrics, chunks, workers)
+    return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
 
 
 def truth_rh(profile, elevation_bin0, elevation_lastbin, ground_elevation) -> np.ndarray:
@@ -280,10 +305,8 @@ def _modes(sm, front, start, end) -> tuple[np.ndarray, np.ndarray]:
     return shot, i + np.clip(offset, -0.5, 0.5)
 
 
-def _lowest_modes(shots: _Shots, shot, loc, start, end, front, found, max_modes: int,
-                  workers: ProcessMap | None = None) -> np.ndarray:
-    """Fractional sample of each waveform's lowest mode after the Gaussian fit (NaN where no signal); the fits
-    spread over ``workers`` when given, each sent only its fit window and modes."""
+def _lowest_modes(shots: _Shots, shot, loc, start, end, front, found, max_modes: int) -> np.ndarray:
+    """Fractional sample of each waveform's lowest mode after the Gaussian fit (NaN where no signal)."""
     ground = np.full(len(shots.y), np.nan)
     rows = np.flatnonzero(found)
     if not len(rows):
@@ -295,9 +318,7 @@ def _lowest_modes(shots: _Shots, shot, loc, start, end, front, found, max_modes:
     samples = first[:, None] + np.arange((stop - first).max())
     inside = samples < stop[:, None]
     windows = np.where(inside, shots.y[rows[:, None], np.minimum(samples, shots.y.shape[1] - 1)], 0.0)
-    chunks = [(windows[c, :(stop[c] - first[c]).max()], first[c], stop[c], modes[c], shots.pulse, shots.kernel,
-               front[rows[c]]) for c in row_chunks(len(rows), workers)]
-    ground[rows] = np.concatenate(map_rows(_fit_rows, chunks, workers))
+    ground[rows] = _fit_rows(windows, first, stop, modes, shots.pulse, shots.kernel, front[rows])
     return ground
 
 
@@ -425,15 +446,25 @@ def _rh(y, elevation_bin0, elevation_lastbin, start, end, ground, found) -> np.n
     share = np.concatenate([np.zeros((s, 1)), share], axis=1)  # column r: sample last-r
     width = share.shape[1]
     levels = np.arange(1, RH_LEVELS - 1) / (RH_LEVELS - 1)
-    offset = 2.0 * np.arange(s)[:, None]
-    r = np.searchsorted((share + offset).ravel(), (levels[None, :] + offset).ravel()).reshape(s, -1)
-    r = np.clip(r - np.arange(s)[:, None] * width, 1, width - 1)
+    r = np.clip(_first_reaching(share, levels), 1, width - 1)
     lo, hi = np.take_along_axis(share, r - 1, axis=1), np.take_along_axis(share, r, axis=1)
     frac = np.where(hi > lo, (levels[None, :] - lo) / np.where(hi > lo, hi - lo, 1.0), 0.0)
     sample = (n - 1) - (r + (n - 1 - last) - 1 + np.clip(frac, 0.0, 1.0))
     edges = np.column_stack([np.where(found, end, 0.0), sample, np.where(found, start, 0.0)])
     heights = _elevation_at(elevation_bin0, elevation_lastbin, n, edges) - ground[:, None]
     return np.where(found[:, None], heights, FILL)
+
+
+def _first_reaching(share: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """(S, L) per row of ``share`` (S, W), non-decreasing along each row, the first column whose value reaches each of
+    the sorted ``levels`` (L,): the count of the row's values below the level (W where none reaches it), exactly, a
+    row's answer whatever rows lie beside it. Each value is placed among the levels (its count of levels at or
+    below it), and a row's counts of values per place, summed, count the values below each level."""
+    s, w = share.shape
+    place = np.searchsorted(levels, share, side="right")  # value j lies below level k exactly where k >= place[j]
+    per_place = np.bincount((place + (len(levels) + 1) * np.arange(s)[:, None]).ravel(),
+                            minlength=s * (len(levels) + 1)).reshape(s, -1)
+    return np.cumsum(per_place, axis=1)[:, :len(levels)]
 
 
 def _elevation_at(bin0: np.ndarray, lastbin: np.ndarray, n: int, sample: np.ndarray) -> np.ndarray:

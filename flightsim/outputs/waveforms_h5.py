@@ -57,7 +57,7 @@ from flightsim.outputs.l2a import L2ASettings, l2a_metrics, truth_rh
 
 MAX_COMPONENTS = 4
 FLUSH_BYTES = 32 << 20  # waveforms [B] the writer gathers from line parts before it processes and writes them
-PARALLEL_ROWS = 512  # a beam's shots in one batch from which the per-shot fits go to worker processes
+PARALLEL_ROWS = 512  # a beam's shots in one batch from which the per-shot work goes to worker processes
 MAX_WORKERS = 32  # the most worker processes a writer starts
 
 
@@ -129,8 +129,8 @@ class L2AProduct:
             ground: np.ndarray, workers: ProcessMap | None = None) -> None:
         """One beam's shots: their waveforms ``rx`` after the receiver and ``clean`` before it (S, N) [W],
         ``columns`` as waveforms.h5 has them, ``ground`` (S,) the true ground elevation [m] (none of them changed
-        afterwards); the fits spread over ``workers`` when given. Their metrics are worked out on the product's
-        thread while the caller goes on, once the batch before is done (its error raised here)."""
+        afterwards), spread over ``workers`` by rows when given. Their metrics are worked out on the product's thread
+        while the caller goes on, once the batch before is done (its error raised here)."""
         self.settle()
         if self._thread is None:
             self._thread = ThreadPoolExecutor(1, thread_name_prefix="l2a")
