@@ -67,3 +67,31 @@ def test_every_lines_windows_planned_together_are_each_line_planned_alone():
     counts = [timing.pulse_count(line.start_time, line.end_time) for line in lines]
     whole = sum(w == [(0, c)] for w, c in zip(together, counts))
     assert sum(w == [] for w in together) > 50 and whole > 5 and len(lines) - whole - sum(w == [] for w in together) > 5
+
+
+def test_the_lines_with_one_segment_near_the_scene_get_the_windows_of_the_loop_over_segments():
+    """_lone_windows (every line with one near segment at once) against _windows (a line's segments in turn), over
+    lines of 2-6 samples, half of them at whole pulse periods (k0, k1 at the floor's edges), with one, none or
+    several segments near."""
+    from flightsim.engine.coverage import _lone_windows, _windows
+    from trajectories import PulseTiming, Trajectory
+
+    rng = np.random.default_rng(13)
+    timing = PulseTiming(prf_hz=50.0)
+    lines, flags = [], []
+    for k in range(600):
+        n = int(rng.integers(2, 7))
+        steps = rng.integers(1, 40, n - 1) / 50.0 if k % 2 else rng.uniform(0.001, 0.8, n - 1)
+        t = 1.0e8 + 3.0 * k + np.concatenate([[0.0], np.cumsum(steps)])
+        lines.append(Trajectory(t, np.zeros((n, 3)), np.zeros((n, 3)), line_id=k))
+        flags.append(np.append(rng.random(n - 1) < rng.choice([0.0, 0.3, 1.0 / (n - 1), 1.0]), False))
+    sizes = np.array([len(line.gps_time) for line in lines])
+    first = np.cumsum(sizes) - sizes
+    near = np.concatenate(flags)[:-1]  # one segment a sample but the last: the segment to the next line is False
+    rel = np.concatenate([line.gps_time - line.start_time for line in lines])
+    counts = [timing.pulse_count(line.start_time, line.end_time) for line in lines]
+    got = _lone_windows(near, first, rel, np.array(counts), timing.prf_hz)
+    lone = [i for i in range(len(lines)) if near[first[i]:first[i] + sizes[i] - 1].sum() == 1]
+    assert len(lone) > 100 and set(got) <= set(lone)
+    for i in lone:
+        assert got.get(i, []) == _windows(lines[i], near[first[i]:first[i] + sizes[i] - 1], counts[i], timing.prf_hz)

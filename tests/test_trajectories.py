@@ -674,3 +674,48 @@ def test_quaternions_primed_together_are_each_trajectorys_own_bit_for_bit():
         assert np.array_equal(a.quaternions(), b.quaternions())
         flips += int(np.any(np.einsum("ij,ij->i", a.quaternions()[1:], a.quaternions()[:-1]) < 0.0))
     assert flips == 0 and sum(np.any(np.diff(np.sign(t.quaternions()[:, 3])) != 0) for t in alone) > 10
+
+
+def _lines_of_three(count: int, seed: int = 4):
+    rng = np.random.default_rng(seed)
+    times = 1.0e8 + np.cumsum(rng.uniform(0.01, 1.0, (count, 3)), axis=1)
+    return times, rng.normal(0.0, 100.0, (count, 3, 3)), rng.uniform(-3.0, 3.0, (count, 3, 3)), np.arange(count) * 7
+
+
+def test_trajectories_made_together_are_each_made_alone():
+    """Trajectory.many: each trajectory's arrays, line id, poses and quaternions those it has made alone, its arrays
+    read-only float64 copies (the caller's arrays changed afterwards change nothing)."""
+    times, position, attitude, ids = _lines_of_three(40)
+    together = Trajectory.many(times, position, attitude, ids)
+    alone = [Trajectory(times[i], position[i], attitude[i], int(ids[i])) for i in range(len(ids))]
+    times += 1.0
+    position[:] = 0.0
+    for a, b in zip(together, alone):
+        for name in ("gps_time", "position", "attitude"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)) and getattr(a, name).dtype == np.float64
+            assert not getattr(a, name).flags.writeable
+        assert a.line_id == b.line_id and type(a.line_id) is int
+        assert np.array_equal(a.quaternions(), b.quaternions())
+        middle = 0.5 * (b.gps_time[0] + b.gps_time[2])
+        for x, y in zip(a.interpolate(middle), b.interpolate(middle)):
+            assert np.array_equal(x, y)
+
+
+@pytest.mark.parametrize("spoil", ["time", "position", "attitude", "line_id"])
+def test_trajectories_made_together_refuse_the_first_bad_one_as_it_alone_is_refused(spoil):
+    times, position, attitude, ids = _lines_of_three(30)
+    if spoil == "time":
+        times[12, 2] = times[12, 1]
+    elif spoil == "position":
+        position[9, 1, 2] = np.nan
+    elif spoil == "attitude":
+        attitude[17, 0, 0] = np.inf
+    else:
+        ids = ids.copy()
+        ids[21] = 65536  # one past the largest LAS point_source_id
+    bad = {"time": 12, "position": 9, "attitude": 17, "line_id": 21}[spoil]
+    with pytest.raises(TrajectoryError) as alone:
+        Trajectory(times[bad], position[bad], attitude[bad], int(ids[bad]))
+    with pytest.raises(TrajectoryError) as together:
+        Trajectory.many(times, position, attitude, ids)
+    assert str(together.value) == str(alone.value) and together.value.field == alone.value.field

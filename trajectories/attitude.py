@@ -61,12 +61,13 @@ def quaternion_from_matrix(rotation: np.ndarray) -> np.ndarray:
 
 
 def make_continuous(quat: np.ndarray) -> np.ndarray:
-    """Copy of a sequence of quaternions (n, 4) with signs flipped so that consecutive ones have
-    a non-negative dot product (q and −q are the same rotation; interpolation between
+    """Copy of a sequence of quaternions (n, 4), or of several of equal length (..., n, 4), with signs flipped so
+    that consecutive ones have a non-negative dot product (q and −q are the same rotation; interpolation between
     sign-continuous neighbours takes the short way round)."""
     quat = np.array(quat, dtype=np.float64)
-    if quat.shape[0] < 2:
+    if quat.shape[-2] < 2:
         return quat
-    step = np.where(np.einsum("ij,ij->i", quat[1:], quat[:-1]) < 0.0, -1.0, 1.0)
-    signs = np.concatenate(([1.0], np.cumprod(step)))
-    return quat * signs[:, None]
+    dots = np.einsum("ij,ij->i", quat[..., 1:, :].reshape(-1, 4), quat[..., :-1, :].reshape(-1, 4))
+    step = np.where(dots < 0.0, -1.0, 1.0).reshape(quat.shape[:-2] + (-1,))
+    signs = np.concatenate((np.ones(quat.shape[:-2] + (1,)), np.cumprod(step, axis=-1)), axis=-1)
+    return quat * signs[..., None]

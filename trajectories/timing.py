@@ -82,8 +82,12 @@ class PulseTiming:
         φ0/2π term is rounded before the reduction.
         """
         t_start = finite_number(t_start, f"{self.field_prefix}.t_start", "a finite GPS time [s]")
-        turns = Fraction(self.rotation_hz) * Fraction(t_start)
-        cycles = float(turns - math.floor(turns)) + self.phase0_rad / TWO_PI
+        if self.rotation_hz == 0.0:  # no turns to reduce (the exact sum's 0.0, without the fractions: a run of the
+            whole = 0.0  # shots platform asks once per footprint)
+        else:
+            turns = Fraction(self.rotation_hz) * Fraction(t_start)
+            whole = float(turns - math.floor(turns))
+        cycles = whole + self.phase0_rad / TWO_PI
         frac = cycles - math.floor(cycles)
         return 0.0 if frac >= 1.0 else frac  # frac(−1e-20) rounds to 1.0
 

@@ -61,6 +61,34 @@ class Trajectory:
             object.__setattr__(self, name, value)
         object.__setattr__(self, "line_id", line_id)
 
+    @classmethod
+    def many(cls, gps_time: np.ndarray, position: np.ndarray, attitude: np.ndarray,
+             line_ids: Sequence[int]) -> list["Trajectory"]:
+        """Trajectories of n samples each at once: ``gps_time`` (L, n), ``position`` and ``attitude`` (L, n, 3),
+        ``line_ids`` (L,); trajectory i is ``Trajectory(gps_time[i], position[i], attitude[i], line_ids[i])``, its
+        arrays rows of three read-only float64 copies. The checks are made on all at once (a run of the shots
+        platform flies one two-sample line per footprint, ~50 µs each one at a time); where one fails, the
+        trajectories are made one by one, so the error is the first bad one's own."""
+        times = _float_array(gps_time, "trajectory.gps_time", "an (L, n) array of times [s]")
+        position = _float_array(position, "trajectory.position", "an (L, n, 3) array [m]")
+        attitude = _float_array(attitude, "trajectory.attitude", "an (L, n, 3) array [rad]")
+        ids = np.asarray(line_ids)
+        fine = (times.ndim == 2 and times.shape[1] >= 2 and position.shape == attitude.shape == times.shape + (3,)
+                and ids.shape == times.shape[:1] and ids.dtype.kind in "iu" and bool(np.isfinite(times).all())
+                and bool((np.diff(times, axis=1) > 0.0).all()) and bool(np.isfinite(position).all())
+                and bool(np.isfinite(attitude).all()) and bool(((ids >= 0) & (ids <= MAX_LINE_ID)).all()))
+        if not fine:
+            return [cls(*row) for row in zip(gps_time, position, attitude, ids.tolist())]
+        for value in (times, position, attitude):
+            value.setflags(write=False)
+        made = []
+        for t, p, a, line_id in zip(times, position, attitude, ids.tolist()):
+            trajectory = object.__new__(cls)
+            for name, value in (("gps_time", t), ("position", p), ("attitude", a), ("line_id", line_id)):
+                object.__setattr__(trajectory, name, value)
+            made.append(trajectory)
+        return made
+
     @property
     def start_time(self) -> float:
         """GPS time of the first sample [s]."""
@@ -176,8 +204,13 @@ def prime_quaternions(trajectories: Sequence[Trajectory]) -> None:
         return
     attitude = np.concatenate([t.attitude for t in todo])
     quat = quaternion_from_matrix(rotation_body_to_enu(attitude[:, 0], attitude[:, 1], attitude[:, 2]))
-    for t, part in zip(todo, np.split(quat, np.cumsum([len(t.attitude) for t in todo])[:-1])):
-        t.__dict__["_quaternions"] = make_continuous(part)
+    sizes = np.array([len(t.attitude) for t in todo])
+    first = np.concatenate(([0], np.cumsum(sizes)[:-1]))
+    for n in np.unique(sizes).tolist():  # the trajectories of n samples together
+        group = np.flatnonzero(sizes == n)
+        rows = make_continuous(quat[first[group][:, None] + np.arange(n)])
+        for k, part in zip(group.tolist(), rows):
+            todo[k].__dict__["_quaternions"] = part
 
 
 def check_times(times: np.ndarray, where: Callable[[int], str]) -> None:

@@ -50,13 +50,15 @@ def miss_distance(trajectory: Trajectory, local_position: np.ndarray, bounds: tu
 
 def pulse_windows(trajectories: list[Trajectory], local_positions: list[np.ndarray],
                   bounds: tuple[np.ndarray, np.ndarray], timing: PulseTiming, cone_rad: float,
-                  boresight: np.ndarray) -> list[list[tuple[int, int]]]:
+                  boresight: np.ndarray, counts: list[int] | None = None) -> list[list[tuple[int, int]]]:
     """For each trajectory, the ranges [k0, k1) of pulse indices (from its first pulse) that can reach the scene.
 
     local_positions: each trajectory's (n, 3) positions in the scene's local frame [m]; bounds: the scene's local
     (lo, hi) corners; cone_rad: the fan's largest off-axis angle [rad]; boresight: (4,) quaternion (x, y, z, w) of
-    the sensor frame in the body frame. The samples of all trajectories are worked out together (a shots run flies
-    a two-sample line per footprint, their quaternions too: :func:`trajectories.trajectory.prime_quaternions`).
+    the sensor frame in the body frame; counts: each trajectory's pulse count (``timing.pulse_count`` over it), when
+    the caller has them. The samples of all trajectories are worked out together (a shots run flies a two-sample
+    line per footprint, their quaternions too: :func:`trajectories.trajectory.prime_quaternions`), and so are the
+    lines with a single segment near the scene.
     """
     sizes = np.array([len(p) for p in local_positions])
     position = np.concatenate(local_positions)
@@ -68,17 +70,40 @@ def pulse_windows(trajectories: list[Trajectory], local_positions: list[np.ndarr
     # a segment may come closer than its ends by up to half its length (segments across two lines left out below)
     near = np.minimum(beyond[:-1], beyond[1:]) - 0.5 * step <= 0.0
     ends = np.cumsum(sizes)
-    return [_windows(t, near[end - size:end - 1], timing) for t, size, end in zip(trajectories, sizes, ends)]
+    near[ends[:-1] - 1] = False
+    if counts is None:
+        counts = [timing.pulse_count(t.start_time, t.end_time) for t in trajectories]
+    first = ends - sizes  # each trajectory's first segment (segment j joins samples j and j + 1)
+    rel = np.concatenate([t.gps_time for t in trajectories]) - np.repeat([t.start_time for t in trajectories], sizes)
+    near_count = np.add.reduceat(near.astype(np.int64), first) if len(near) else np.zeros(len(sizes), np.int64)
+    lone = _lone_windows(near, first, rel, np.array(counts, dtype=np.int64), timing.prf_hz)
+    return [lone.get(i, []) if c <= 1 else _windows(t, near[f:f + size - 1], count, timing.prf_hz)
+            for i, (t, c, f, size, count) in enumerate(zip(trajectories, near_count.tolist(), first.tolist(),
+                                                           sizes.tolist(), counts))]
 
 
-def _windows(trajectory: Trajectory, near: np.ndarray, timing: PulseTiming) -> list[tuple[int, int]]:
-    """Pulse index ranges [k0, k1) of a trajectory's segments ``near`` the scene, those that meet merged."""
-    n_pulses = timing.pulse_count(trajectory.start_time, trajectory.end_time)
+def _lone_windows(near: np.ndarray, first: np.ndarray, rel: np.ndarray, counts: np.ndarray,
+                  prf_hz: float) -> dict[int, list[tuple[int, int]]]:
+    """:func:`_windows` of every trajectory with one near segment at once: {trajectory: [(k0, k1)]} where k1 > k0
+    (``rel``: every sample's time from its line's start [s])."""
+    segment = np.flatnonzero(near)
+    owner = np.searchsorted(first, segment, side="right") - 1
+    alone = np.bincount(owner, minlength=len(first))[owner] == 1
+    segment, owner = segment[alone], owner[alone]
+    k0 = np.maximum(0, np.floor(rel[segment] * prf_hz).astype(np.int64))
+    k1 = np.minimum(counts[owner], np.floor(rel[segment + 1] * prf_hz).astype(np.int64) + 2)
+    keep = k1 > k0
+    return {t: [(a, b)] for t, a, b in zip(owner[keep].tolist(), k0[keep].tolist(), k1[keep].tolist())}
+
+
+def _windows(trajectory: Trajectory, near: np.ndarray, n_pulses: int, prf_hz: float) -> list[tuple[int, int]]:
+    """Pulse index ranges [k0, k1) of a trajectory's segments ``near`` the scene (of its ``n_pulses`` at ``prf_hz``),
+    those that meet merged."""
     rel = trajectory.gps_time - trajectory.start_time
     windows: list[tuple[int, int]] = []
     for i in np.flatnonzero(near):
-        k0 = max(0, math.floor(rel[i] * timing.prf_hz))
-        k1 = min(n_pulses, math.floor(rel[i + 1] * timing.prf_hz) + 2)
+        k0 = max(0, math.floor(rel[i] * prf_hz))
+        k1 = min(n_pulses, math.floor(rel[i + 1] * prf_hz) + 2)
         if windows and k0 <= windows[-1][1]:
             windows[-1] = (windows[-1][0], max(windows[-1][1], k1))
         elif k1 > k0:

@@ -302,8 +302,10 @@ class Tracer:
         if not self.cfg.run.cull:
             reaching = [[(0, self.pulse_count(t))] for t in trajectories]
         else:
-            reaching = pulse_windows(trajectories, [self.scene.world_to_local(t.position) for t in trajectories],
-                                     self.scene.bounds(), self.timing, self.cone_rad, self.boresight_quat)
+            sizes = np.cumsum([len(t.position) for t in trajectories])[:-1]
+            local = np.split(self.scene.world_to_local(np.concatenate([t.position for t in trajectories])), sizes)
+            reaching = pulse_windows(trajectories, local, self.scene.bounds(), self.timing, self.cone_rad,
+                                     self.boresight_quat, [self.pulse_count(t) for t in trajectories])
         planned = {}
         for trajectory, windows in zip(trajectories, reaching):
             lo, hi = self.pulse_limits.get(trajectory.line_id, (0, self.pulse_count(trajectory)))

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -67,8 +66,15 @@ def read_footprints(path: str) -> Footprints:
     if len(rows) > MAX_LINE_ID + 1:
         raise InputError(FIELD, path, f"at most {MAX_LINE_ID + 1} footprints (one flight line each; it has {len(rows)})")
     values = np.full((len(rows), 3), np.nan)
-    for i, (line, row) in enumerate(rows):
-        values[i, :len(wanted)] = [_number(row, names.index(c), i, line, path) for c in wanted]
+    columns = [names.index(c) for c in wanted]
+    try:  # every row at once; a row that fails is found again one at a time, for its message
+        values[:, :len(wanted)] = [[float(row[k]) for k in columns] for _, row in rows]
+        parsed = bool(np.isfinite(values[:, :len(wanted)]).all())
+    except (ValueError, IndexError):
+        parsed = False
+    if not parsed:
+        for i, (line, row) in enumerate(rows):
+            values[i, :len(wanted)] = [_number(row, k, i, line, path) for k in columns]
     return Footprints(values[:, 0], values[:, 1], values[:, 2], np.array([line for line, _ in rows]))
 
 
@@ -142,8 +148,7 @@ class ShotsPlatform:
         heights = ground + f.altitude_m + scene.origin[2]
         t = np.column_stack([times, np.nextafter(times, np.inf)])  # each line's two samples
         position = np.repeat(np.column_stack([shots.x, shots.y, heights])[:, None, :], 2, axis=1)
-        level = np.zeros((2, 3))
-        return [Trajectory(t[i], position[i], level, i) for i in range(len(shots))]
+        return Trajectory.many(t, position, np.zeros_like(position), np.arange(len(shots)))
 
 
 def _surface_under(scene: Scene, shots: Footprints, local: np.ndarray) -> np.ndarray:
