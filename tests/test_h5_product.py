@@ -1,6 +1,6 @@
-"""H5Product's appends: a compressed 1-D column deflated on threads and stored chunk by chunk reads back as HDF5's
-own filters would have stored it, with the filters declared, whatever the rows before it; an uncompressed one's whole
-chunks stored as they are hold the bytes HDF5 would have stored."""
+"""H5Product's appends: a compressed column (of numbers, or of rows of them) deflated on threads and stored chunk by chunk
+reads back as HDF5's own filters would have stored it, with the filters declared, whatever the rows before it; an
+uncompressed one's whole chunks stored as they are hold the bytes HDF5 would have stored."""
 import zlib
 
 import h5py
@@ -87,21 +87,52 @@ def test_uncompressed_appends_store_whole_chunks_as_hdf5_would(tmp_path, dtype, 
             assert x.id.read_direct_chunk((k * ROWS,)) == hdf5["x"].id.read_direct_chunk((k * ROWS,))
 
 
-def test_two_dimensional_big_endian_and_string_appends_take_hdf5s_path(tmp_path, monkeypatch):
+def test_big_endian_string_and_column_chunked_appends_take_hdf5s_path(tmp_path, monkeypatch):
     monkeypatch.setattr(h5_product, "_write_chunks", lambda *a: pytest.fail("written by hand"))
     product = H5Product(tmp_path / "d.h5")
     rows = np.arange(ROWS * 8 * 2, dtype=np.float32).reshape(-1, 2)
     big = np.arange(ROWS * 8, dtype=">f8")
     names = np.array([b"ab", b"c"] * (ROWS * 4))
-    product.append("g", {"big": big, "wide": rows, "name": names}, compress=False)
+    product.file.create_dataset("h/wide", shape=(0, 2), maxshape=(None, 2), dtype=np.float32, chunks=(ROWS, 1),
+                                compression="gzip", shuffle=True)  # a chunk holds a column's part, not whole rows
+    product.append("g", {"big": big, "name": names}, compress=False)
     product.append("h", {"wide": rows}, compress=True)
     product.close()
     with h5py.File(tmp_path / "d.h5") as f:
         np.testing.assert_array_equal(f["h/wide"][:], rows)
-        np.testing.assert_array_equal(f["g/wide"][:], rows)
         assert f["g/big"].dtype == np.dtype(">f8")
         np.testing.assert_array_equal(f["g/big"][:], big)
         np.testing.assert_array_equal(f["g/name"][:], names)
+
+
+@pytest.mark.parametrize("compress", [True, False])
+def test_rows_of_many_values_store_whole_chunks_of_rows_as_hdf5_would(tmp_path, monkeypatch, compress):
+    """Rows of 101 float32 (l2a.h5's rh): chunks of whole rows holding as many values as a 1-D chunk; the long appends
+    store their whole chunks by hand, and every chunk holds the bytes HDF5's own writes (and filters) store."""
+    rng = np.random.default_rng(5)
+    rows = ROWS // 101  # a chunk's rows
+    parts = [rng.normal(size=(n, 101)).astype(np.float32) for n in (rows + 7, rows * 6 + 3, 5, rows * 5)]
+    by_hand = _chunk_writes(monkeypatch)
+    product = H5Product(tmp_path / "r.h5")
+    for part in parts:
+        product.append("g", {"rh": part}, compress=compress)
+    product.close()
+    assert by_hand == [(rows + 7, compress), (rows * 7 + 15, compress)]
+    expected = np.concatenate(parts)
+    with h5py.File(tmp_path / "s.h5", "w") as f:
+        f.create_dataset("rh", data=expected, chunks=(rows, 101), maxshape=(None, 101),
+                         **({"compression": "gzip", "shuffle": True} if compress else {}))
+    with h5py.File(tmp_path / "r.h5") as ours, h5py.File(tmp_path / "s.h5") as hdf5:
+        x = ours["g/rh"]
+        assert x.chunks == (rows, 101) and (x.compression, x.shuffle) == (("gzip", True) if compress else (None, False))
+        np.testing.assert_array_equal(x[:], expected)
+        for k in range(len(expected) // rows):  # the whole chunks (the last one's padding is no row)
+            (mask_ours, ours_bytes), (mask_hdf5, hdf5_bytes) = (d.id.read_direct_chunk((k * rows, 0))
+                                                                for d in (x, hdf5["rh"]))
+            assert mask_ours == mask_hdf5 == 0
+            if compress:
+                ours_bytes, hdf5_bytes = zlib.decompress(ours_bytes), zlib.decompress(hdf5_bytes)
+            assert ours_bytes == hdf5_bytes
 
 
 @pytest.mark.parametrize("compress", [True, False])

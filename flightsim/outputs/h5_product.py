@@ -15,10 +15,11 @@ from flightsim.core.version import __version__
 from flightsim.core.atomic import temporary_name
 from flightsim.core.process_map import thread_count
 
-ROWS_PER_CHUNK = 1 << 16  # largest HDF5 chunk of a 1-D dataset [rows]
-MIN_ROWS_PER_CHUNK = 1 << 10  # smallest: a one-shot product stays small (a chunk is stored whole)
+ROWS_PER_CHUNK = 1 << 16  # largest HDF5 chunk of a 1-D dataset [rows]; of wider rows, as many values
+MIN_ROWS_PER_CHUNK = 1 << 10  # smallest: a one-shot product stays small (a chunk is stored whole); of wider rows, as many
+# values
 GZIP_LEVEL = 4  # h5py's gzip level, which the datasets are made with
-PARALLEL_CHUNKS = 4  # a 1-D append of this many chunks or more writes its whole chunks itself (compressed on threads)
+PARALLEL_CHUNKS = 4  # an append of this many chunks or more writes its whole chunks itself (compressed on threads)
 
 
 class H5Product:
@@ -54,10 +55,11 @@ class H5Product:
         appends' chunks may be written by hand (:func:`_chunks_by_hand`); kept for the next appends."""
         g = self.file.require_group(group)
         if name not in g:
-            rows = min(ROWS_PER_CHUNK, max(MIN_ROWS_PER_CHUNK, len(values)))  # the first rows' count: a hint
-            chunks = (rows,) if values.ndim == 1 else True
+            width = max(1, int(np.prod(values.shape[1:], dtype=np.int64)))  # values a row
+            most, least = max(1, ROWS_PER_CHUNK // width), max(1, MIN_ROWS_PER_CHUNK // width)
+            rows = min(most, max(least, len(values)))  # the first rows' count: a hint
             g.create_dataset(name, shape=(0,) + values.shape[1:], maxshape=(None,) + values.shape[1:],
-                             dtype=values.dtype, chunks=chunks,
+                             dtype=values.dtype, chunks=(rows,) + values.shape[1:],
                              **({"compression": "gzip", "shuffle": True} if compress else {}))
         kept = self.datasets[f"{group}/{name}"] = (g[name], _chunks_by_hand(g[name]))
         return kept
@@ -85,10 +87,10 @@ def _write_rows(dataset: h5py.Dataset, n: int, values: np.ndarray) -> None:
 
 def _chunks_by_hand(dataset: h5py.Dataset) -> str | None:
     """How appends of PARALLEL_CHUNKS chunks of rows or more to ``dataset`` may write their whole chunks themselves:
-    "deflate" (shuffled and deflated on threads) for a 1-D dataset with exactly the shuffle and gzip filters and the
-    fill value 0, "plain" (as they are) for a chunked 1-D dataset of numbers or booleans without filters, of fill value
+    "deflate" (shuffled and deflated on threads) for a dataset chunked by whole rows with exactly the shuffle and gzip
+    filters and the fill value 0, "plain" (as they are) for one of numbers or booleans without filters, of fill value
     0, in this machine's byte order (HDF5 would copy them through its chunk cache first); None otherwise."""
-    if dataset.ndim != 1 or dataset.chunks is None or dataset.fillvalue:
+    if dataset.chunks is None or dataset.chunks[1:] != dataset.shape[1:] or dataset.fillvalue:
         return None
     if dataset.compression == "gzip" and dataset.shuffle and not dataset.fletcher32 and dataset.scaleoffset is None:
         return "deflate"
@@ -98,7 +100,7 @@ def _chunks_by_hand(dataset: h5py.Dataset) -> str | None:
 
 
 def _write_chunks(dataset: h5py.Dataset, n: int, values: np.ndarray, deflate: bool) -> None:
-    """``dataset[n:n + len(values)] = values`` for a 1-D dataset of :func:`_chunks_by_hand`: the rows up to the first
+    """``dataset[n:n + len(values)] = values`` for a dataset of :func:`_chunks_by_hand`: the rows up to the first
     chunk boundary through HDF5, every chunk from there stored as it is, or shuffled and deflated on threads (zlib
     lets go of Python's lock, h5py holds it through HDF5's own filters) as HDF5's shuffle and gzip filters store it
     (a last partial chunk padded with the fill value 0, as HDF5 stores one). The values read back are the same either
@@ -107,23 +109,23 @@ def _write_chunks(dataset: h5py.Dataset, n: int, values: np.ndarray, deflate: bo
     first = min(-(-n // rows) * rows, n + len(values))
     if first > n:
         _write_rows(dataset, n, values[:first - n])
-    rest = values[first - n:]
+    rest, across = values[first - n:], (0,) * (values.ndim - 1)
     starts = range(0, len(rest), rows)
     if not deflate:
         for start in starts:
-            dataset.id.write_direct_chunk((first + start,), _padded(rest[start:start + rows], rows))
+            dataset.id.write_direct_chunk((first + start, *across), _padded(rest[start:start + rows], rows))
         return
     with ThreadPoolExecutor(thread_count(len(starts)), thread_name_prefix="deflate") as pool:
         deflated = pool.map(lambda start: _deflated(rest[start:start + rows], rows), starts)
         for start, chunk in zip(starts, deflated):
-            dataset.id.write_direct_chunk((first + start,), chunk)
+            dataset.id.write_direct_chunk((first + start, *across), chunk)
 
 
 def _padded(values: np.ndarray, rows: int) -> np.ndarray:
     """One chunk of ``rows`` rows: ``values`` (contiguous), then zeros where they are fewer."""
     if len(values) == rows:
         return np.ascontiguousarray(values)
-    chunk = np.zeros(rows, dtype=values.dtype)
+    chunk = np.zeros((rows,) + values.shape[1:], dtype=values.dtype)
     chunk[:len(values)] = values
     return chunk
 
@@ -131,5 +133,5 @@ def _padded(values: np.ndarray, rows: int) -> np.ndarray:
 def _deflated(values: np.ndarray, rows: int) -> bytes:
     """One chunk of ``rows`` rows (``values`` then zeros) as HDF5's shuffle and gzip filters store it."""
     chunk = _padded(values, rows)
-    shuffled = np.ascontiguousarray(chunk.view(np.uint8).reshape(rows, chunk.itemsize).T)  # byte k of every row
+    shuffled = np.ascontiguousarray(chunk.view(np.uint8).reshape(chunk.size, chunk.itemsize).T)  # byte k of each value
     return zlib.compress(shuffled.tobytes(), GZIP_LEVEL)
