@@ -56,6 +56,30 @@ class CloudBeamParams:
     samples: wp.int32
 
 
+@wp.kernel
+def cloud_cells(xyz: wp.array(dtype=wp.vec3d), x0: wp.float64, y0: wp.float64, cell: wp.float64, nx: int, ny: int,
+                keys: wp.array(dtype=wp.int32), order: wp.array(dtype=wp.int32), counts: wp.array(dtype=wp.int32)):
+    """Each point's grid cell (row-major, the last column and row taking the highest edge) as its sort key, its
+    index as the value sorted with it, and each cell's count of points."""
+    i = wp.tid()
+    p = xyz[i]
+    key = wp.min(int((p[1] - y0) / cell), ny - 1) * nx + wp.min(int((p[0] - x0) / cell), nx - 1)
+    keys[i] = key
+    order[i] = i
+    wp.atomic_add(counts, key, 1)
+
+
+@wp.kernel
+def cloud_points(xyz: wp.array(dtype=wp.vec3d), weights: wp.array(dtype=wp.float32), order: wp.array(dtype=wp.int32),
+                 points: wp.array(dtype=wp.vec4f)):
+    """The points in their cells' order (``order``) as CloudGrid holds them: float32 x, y, z and ``weights`` (negative
+    for a ground point)."""
+    i = wp.tid()
+    j = order[i]
+    p = xyz[j]
+    points[i] = wp.vec4f(wp.float32(p[0]), wp.float32(p[1]), wp.float32(p[2]), weights[j])
+
+
 @wp.func
 def _rows(g: CloudGrid, b: CloudBeamParams, c: wp.vec2f):
     """First and last grid row of the search region (last < first: none)."""

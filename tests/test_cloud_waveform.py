@@ -153,12 +153,12 @@ def test_requests_out_of_range_are_refused():
         cloud_waveforms(cloud, [[0.0, 0.0]], 10.0, 0.0, DT, 50, prepared=prepare_cloud(cloud, normalise=True))
 
 
-def test_the_prepared_cloud_lists_each_cells_points_in_file_order():
+def test_the_prepared_cloud_lists_each_cells_points_in_file_order(device):
     """prepare_cloud's grid against a loop over the cells: every point once, in its cell of side cell_m from the
     lowest x, y (the last column and row take the highest edge), in the order the cloud holds them, its weight
     negative for a ground point."""
     cloud = synthetic_forest(30_000, seed=4)
-    prepared = prepare_cloud(cloud, rho_ground=0.3, rho_canopy=0.6, cell_m=3.7)
+    prepared = prepare_cloud(cloud, rho_ground=0.3, rho_canopy=0.6, cell_m=3.7, device=device)
     grid, points = prepared.grid, prepared.grid.points.numpy()
     start = grid.cell_start.numpy()
     lo, hi = cloud.xyz.min(axis=0), cloud.xyz.max(axis=0)

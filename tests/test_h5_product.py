@@ -1,6 +1,6 @@
-"""H5Product's appends: a compressed column (of numbers, or of rows of them) deflated on threads and stored chunk by chunk
-reads back as HDF5's own filters would have stored it, with the filters declared, whatever the rows before it; an
-uncompressed one's whole chunks stored as they are hold the bytes HDF5 would have stored."""
+"""H5Product's appends: a compressed column (of numbers, or of rows of them) deflated on threads and stored chunk by
+chunk reads back as HDF5's own filters would have stored it, with the filters declared, whatever the rows before it;
+an uncompressed one's whole chunks stored as they are hold the bytes HDF5 would have stored."""
 import zlib
 
 import h5py

@@ -1,4 +1,4 @@
-"""Stable orders of large arrays of non-negative integer keys (grid cell ids of point clouds) by radix passes, and
+"""Stable orders of large arrays of non-negative integer keys (an ATLAS beam's photons by pulse) by radix passes, and
 orders by an integer key, then a value (an ATLAS beam's photons by window or segment, then height).
 
 NumPy's stable sort of 16-bit integers is a radix sort; of wider integers a merge sort (~1 s a 1e7 int64 keys, ~3×

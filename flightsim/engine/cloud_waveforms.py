@@ -1,9 +1,8 @@
 """Large-footprint waveforms from an ALS point cloud on a Warp device (:mod:`kernels.cloud_waveform`), the GEDI
 simulator's method as the float64 model states it (:mod:`flightsim.instrument.cloud_waveform_model`).
 
-:func:`prepare_cloud` sorts the points into a horizontal grid of cells (σ_f / 2 by default) on the host,
-once (the cell ids' stable order in 16-bit radix passes, :func:`~flightsim.core.radix.stable_order`), with each
-point's weight, and moves them to the device; :func:`cloud_waveforms` launches one block per footprint, in chunks
+:func:`prepare_cloud` sorts the points into a horizontal grid of cells (σ_f / 2 by default) on the device, once,
+with each point's weight; :func:`cloud_waveforms` launches one block per footprint, in chunks
 that keep the outputs on the device within ~200 MB, and copies each chunk's waveforms back.
 
 The histogram has ``sub`` = ⌈4 Δr / σ_r⌉ bins per sample (a bin ≤ σ_r / 4: the split between bins widens a
@@ -20,11 +19,11 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.errors import InputError
-from flightsim.core.radix import stable_order
 from flightsim.core.warp_runtime import copy_into, resolve_device
 from flightsim.instrument.cloud_waveform_model import C, COVER_SIGMAS, CloudBeam, check_request, point_weights
 from flightsim.scenes.pointcloud import PointCloud
-from kernels.cloud_waveform import PULSE_SIGMAS, CloudBeamParams, CloudGrid, cloud_waveform_kernel
+from kernels.cloud_waveform import (PULSE_SIGMAS, CloudBeamParams, CloudGrid, cloud_cells, cloud_points,
+                                    cloud_waveform_kernel)
 
 MAX_BINS = 5120
 BIN_STEP = 256  # histogram sizes are rounded up to a multiple of this (one compiled kernel per size)
@@ -54,25 +53,30 @@ class DeviceCloud:
 def prepare_cloud(cloud: PointCloud, rho_ground: float = 0.4, rho_canopy: float = 0.57, normalise: bool = False,
                   device: str = "cpu", cell_m: float = 2.75) -> DeviceCloud:
     """``cloud`` sorted into cells of ``cell_m`` [m] on ``device`` with its weights (the model's
-    :func:`~flightsim.instrument.cloud_waveform_model.point_weights`)."""
+    :func:`~flightsim.instrument.cloud_waveform_model.point_weights`): each point's cell found on the device, the
+    points in the cells' order by Warp's stable radix sort (a cell's points in the cloud's order), each cell's first
+    point by a scan of their counts."""
     if not (math.isfinite(cell_m) and cell_m > 0.0):
         raise InputError("cloud_waveform.cell_m", cell_m, "a grid cell > 0 m")
     device = resolve_device(device)
     weights = point_weights(cloud, rho_ground, rho_canopy, normalise)
     lo, hi = cloud.bounds()
     nx, ny = (int((hi[a] - lo[a]) / cell_m) + 1 for a in (0, 1))
-    ix = np.minimum(((cloud.xyz[:, 0] - lo[0]) / cell_m).astype(np.int64), nx - 1)
-    iy = np.minimum(((cloud.xyz[:, 1] - lo[1]) / cell_m).astype(np.int64), ny - 1)
-    cell = iy * nx + ix
-    packed = np.empty((len(cloud), 4), dtype=np.float32)  # x, y, z, weight (negative for a ground point)
-    packed[:, :3] = cloud.xyz
-    packed[:, 3] = np.where(cloud.ground, -weights, weights)
-    packed = np.take(packed, stable_order(cell), axis=0)  # one gather of 16-byte rows (4× faster than packed[order])
-    start = np.zeros(nx * ny + 1, dtype=np.int64)
-    np.cumsum(np.bincount(cell, minlength=nx * ny), out=start[1:])
+    n, cells = len(cloud), nx * ny
+    points = np.ascontiguousarray(cloud.xyz, dtype=np.float64)
+    xyz = wp.array(points, dtype=wp.vec3d, device=device, copy=False)  # on the CPU the host's own, elsewhere a copy
+    keys, order = (wp.empty(2 * n, dtype=wp.int32, device=device) for _ in range(2))  # the sort's room
+    counts = wp.zeros(cells, dtype=wp.int32, device=device)
+    wp.launch(cloud_cells, n, inputs=[xyz, float(lo[0]), float(lo[1]), float(cell_m), nx, ny],
+              outputs=[keys, order, counts], device=device)
+    wp.utils.radix_sort_pairs(keys, order, n, end_bit=max(1, (cells - 1).bit_length()))
+    signed = np.where(cloud.ground, -weights, weights).astype(np.float32)  # negative for a ground point
     grid = CloudGrid()
-    grid.points = wp.array(packed, dtype=wp.vec4f, device=device)
-    grid.cell_start = wp.array(start.astype(np.int32), dtype=wp.int32, device=device)
+    grid.points = wp.empty(n, dtype=wp.vec4f, device=device)
+    wp.launch(cloud_points, n, inputs=[xyz, wp.array(signed, dtype=wp.float32, device=device, copy=False), order],
+              outputs=[grid.points], device=device)
+    grid.cell_start = wp.zeros(cells + 1, dtype=wp.int32, device=device)
+    wp.utils.array_scan(counts, grid.cell_start[1:], inclusive=True)
     grid.x0, grid.y0, grid.cell = float(lo[0]), float(lo[1]), float(cell_m)
     grid.nx, grid.ny = nx, ny
     return DeviceCloud(grid, device, (float(rho_ground), float(rho_canopy), bool(normalise)),

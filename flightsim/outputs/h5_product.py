@@ -16,7 +16,7 @@ from flightsim.core.atomic import temporary_name
 from flightsim.core.process_map import thread_count
 
 ROWS_PER_CHUNK = 1 << 16  # largest HDF5 chunk of a 1-D dataset [rows]; of wider rows, as many values
-MIN_ROWS_PER_CHUNK = 1 << 10  # smallest: a one-shot product stays small (a chunk is stored whole); of wider rows, as many
+MIN_ROWS_PER_CHUNK = 1 << 10  # smallest (a one-shot product stays small: a chunk is stored whole); wider rows: as many
 # values
 GZIP_LEVEL = 4  # h5py's gzip level, which the datasets are made with
 PARALLEL_CHUNKS = 4  # an append of this many chunks or more writes its whole chunks itself (compressed on threads)

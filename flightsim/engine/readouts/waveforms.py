@@ -20,6 +20,7 @@ from flightsim.scenes.canopy import no_canopy
 from kernels import trace
 
 kw = lazy_module("kernels.waveform")
+kc = lazy_module("kernels.cloud_waveform")
 
 WAVEFORM_SAMPLES_PER_CHUNK = {"cpu": 1 << 22, "cuda": 1 << 28}  # waveform samples per launch
 C = 299_792_458.0  # [m/s]
@@ -286,7 +287,7 @@ class CloudWaveforms:
         hand_over(tracer, segments, kept, rows, counts, consume)
 
     def kernels_needed(self, tracer) -> list:
-        return pilot_kernels(tracer)
+        return [*pilot_kernels(tracer), kc.cloud_cells]  # and the module of the cloud's sort (prepare_cloud)
 
     def _waveforms(self, tracer, t0: np.ndarray, start: np.ndarray, direction: np.ndarray):
         """((m, samples) float32 received power [W], (m, 4) received columns as the deposit kernel's: share of the
