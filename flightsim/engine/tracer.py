@@ -395,7 +395,9 @@ class Tracer:
         pulse = slots // self.beams_per_pulse  # within the chunk
         starts = np.cumsum([0] + [s.count for s in chunk])
         bounds = np.searchsorted(pulse, starts)
-        for segment, a, b, offset in zip(chunk, bounds[:-1], bounds[1:], starts[:-1]):
+        first = np.array([s.first for s in chunk], dtype=np.int64) - starts[:-1]  # a segment's pulse 0 in its line
+        line_pulse = pulse + np.repeat(first, np.diff(bounds))  # the whole chunk's at once, each line's part a view
+        beam = (slots % self.beams_per_pulse).astype(np.int32)
+        for segment, a, b in zip(chunk, bounds[:-1].tolist(), bounds[1:].tolist()):
             if b > a:
-                yield (self.trajectories[segment.line], segment.first + pulse[a:b] - offset,
-                       (slots[a:b] % self.beams_per_pulse).astype(np.int32), a, b)
+                yield self.trajectories[segment.line], line_pulse[a:b], beam[a:b], a, b
