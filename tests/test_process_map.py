@@ -180,9 +180,10 @@ def test_l2a_metrics_over_workers_are_the_metrics_in_this_process(workers):
     assert np.isfinite(alone["elev_lowestmode"]).all() and (alone["num_detectedmodes"] >= 2).mean() > 0.9
 
 
-@pytest.mark.parametrize("bad", ["rx", "elevation_lastbin", "noise"])
+@pytest.mark.parametrize("bad", ["rx", "elevation_lastbin", "noise", "short"])
 def test_l2a_metrics_over_workers_refuse_bad_input_as_this_process_does(workers, bad):
-    """A NaN sample, a short column or a noise of the wrong shape: the same InputError, naming the whole input."""
+    """A NaN sample, a short column, a noise of the wrong shape or waveforms too short for their noise: the same
+    InputError, naming the whole input."""
     from flightsim.core.errors import InputError
 
     shots, n = 200, 300
@@ -194,6 +195,8 @@ def test_l2a_metrics_over_workers_refuse_bad_input_as_this_process_does(workers,
         rx[150, 7] = np.nan
     elif bad == "elevation_lastbin":
         columns[1] = columns[1][:-1]
+    elif bad == "short":
+        rx = rx[:, :100]  # fewer than 2 × 64 noise samples and one
     else:
         noise = (np.zeros(shots + 1), 0.01)
     messages = []
@@ -201,9 +204,9 @@ def test_l2a_metrics_over_workers_refuse_bad_input_as_this_process_does(workers,
         with pytest.raises(InputError) as caught:
             l2a_metrics(rx, 1e-9, *columns, 6e-9, noise=noise, workers=pool)
         messages.append(str(caught.value))
-    field = {"rx": "rx", "elevation_lastbin": "elevation_lastbin", "noise": "noise mean"}[bad]
+    field = {"rx": "rx", "elevation_lastbin": "elevation_lastbin", "noise": "noise mean", "short": "rx"}[bad]
     assert messages[0] == messages[1] and messages[0].startswith(f"invalid {field} = ")
-    assert bad == "rx" or f"({shots},)" in messages[0]  # the whole input's rows, not a chunk's
+    assert bad == "rx" or f"({shots}," in messages[0]  # the whole input's rows, not a chunk's
 
 
 def test_maps_asked_for_from_two_threads_at_once_each_get_their_results(workers):

@@ -163,13 +163,9 @@ def _spread(rx, dt_s: float, pulse_sigma_s: float, noise, s: L2ASettings, worker
             **geolocation) -> dict[str, np.ndarray]:
     """:func:`l2a_metrics` of the waveforms cut into chunks of rows, each worked out by a worker (the input checked
     here first, so that an error names the whole input), the chunks' metrics joined in order."""
-    w = _waveforms(rx, "rx")
+    w, _, _, noise = _checked(rx, dt_s, pulse_sigma_s, noise, s)
     n = len(w)
     geo = _geometry(n, **geolocation)
-    if noise is not None:
-        if not isinstance(noise, (tuple, list)) or len(noise) != 2:
-            raise InputError("noise", noise, "(mean, σ): numbers or (S,) arrays")
-        noise = (_column("noise mean", noise[0], n), _column("noise σ", noise[1], n))
     chunks = [(w[c], dt_s, *(geo[name][c] for name in _GEOLOCATION), pulse_sigma_s,
                None if noise is None else (noise[0][c], noise[1][c]), s) for c in row_chunks(n, workers)]
     parts = map_rows(l2a_metrics, chunks, workers)
@@ -241,24 +237,35 @@ def _geometry(n: int, **columns) -> dict[str, np.ndarray]:
 
 def _prepare(rx, dt_s, pulse_sigma_s, noise, s: L2ASettings) -> tuple[_Shots, float]:
     """The waveforms minus their noise mean, the noise σ and the smoothed waveforms; the sample interval."""
-    w = _waveforms(rx, "rx")
-    dt = positive("dt_s", dt_s)
-    pulse = positive("pulse_sigma_s", pulse_sigma_s) / dt
-    n = len(w)
-    if noise is None:
-        k = s.noise_samples
-        if w.shape[1] < 2 * k + 1:
-            raise InputError("rx", f"shape {w.shape}", f"N > 2·l2a.noise_samples = {2 * k} samples, or give noise")
-        mean, sigma = end_noise(w, k)
-    else:
-        if not isinstance(noise, (tuple, list)) or len(noise) != 2:
-            raise InputError("noise", noise, "(mean, σ): numbers or (S,) arrays")
-        mean, sigma = _column("noise mean", noise[0], n), _column("noise σ", noise[1], n)
-        if sigma.min() < 0.0:
-            raise InputError("noise σ", sigma.min(), "σ >= 0")
+    w, dt, pulse, noise = _checked(rx, dt_s, pulse_sigma_s, noise, s)
+    mean, sigma = end_noise(w, s.noise_samples) if noise is None else noise
     y = w - mean[:, None]
     kernel = s.smoothing_sigmas * pulse
     return _Shots(y, sigma, gaussian_filter1d(y, kernel, axis=1, mode="nearest"), pulse, kernel), dt
+
+
+def _checked(rx, dt_s, pulse_sigma_s, noise, s: L2ASettings) -> tuple[np.ndarray, float, float, tuple | None]:
+    """(waveforms (S, N) float64, sample interval [s], pulse σ [samples], the noise given as two (S,) arrays or None),
+    every input checked."""
+    w = _waveforms(rx, "rx")
+    dt = positive("dt_s", dt_s)
+    pulse = positive("pulse_sigma_s", pulse_sigma_s) / dt
+    if noise is not None:
+        return w, dt, pulse, _noise(noise, len(w))
+    if w.shape[1] < 2 * s.noise_samples + 1:
+        raise InputError("rx", f"shape {w.shape}",
+                         f"N > 2·l2a.noise_samples = {2 * s.noise_samples} samples, or give noise")
+    return w, dt, pulse, None
+
+
+def _noise(noise, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The noise (mean, σ) given, each a number or (n,) values, as two (n,) finite float64 arrays, σ >= 0."""
+    if not isinstance(noise, (tuple, list)) or len(noise) != 2:
+        raise InputError("noise", noise, "(mean, σ): numbers or (S,) arrays")
+    mean, sigma = _column("noise mean", noise[0], n), _column("noise σ", noise[1], n)
+    if sigma.min() < 0.0:
+        raise InputError("noise σ", sigma.min(), "σ >= 0")
+    return mean, sigma
 
 
 # --- signal, modes, lowest mode --------------------------------------------------------------------
