@@ -222,11 +222,12 @@ def _read_points(reader, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tup
         keep = ~np.isin(cls, NOISE_CLASSES)
         n = int(keep.sum())
         part = slice(kept, kept + n)
+        rows = slice(None) if n == len(cls) else keep  # no noise point: every row, without gathering the rows first
         for axis, values in enumerate((chunk.x, chunk.y, chunk.z)):
-            world[part, axis] = np.asarray(values, dtype=np.float64)[keep]
-        classes[part] = cls[keep]
-        number[part] = np.asarray(chunk.return_number, dtype=np.uint8)[keep]
-        count[part] = np.asarray(chunk.number_of_returns, dtype=np.uint8)[keep]
+            world[part, axis] = np.asarray(values, dtype=np.float64)[rows]
+        classes[part] = cls[rows]
+        number[part] = np.asarray(chunk.return_number, dtype=np.uint8)[rows]
+        count[part] = np.asarray(chunk.number_of_returns, dtype=np.uint8)[rows]
         kept += n
     number, count = number[:kept], count[:kept]
     number[number == 0] = 1
