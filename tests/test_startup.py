@@ -113,16 +113,3 @@ def test_warp_names_its_cpu_objects_before_any_parallel_load():
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ, check=True)
     cached, version = done.stdout.split()
     assert version not in ("''", "'unknown'") and cached == version
-
-
-def test_modules_imported_ahead_load_past_one_that_fails():
-    """flightsim.core.lazy.import_ahead in a fresh process: the modules load on a thread of their own, one that cannot
-    load is skipped without a word and the ones after it load."""
-    script = ("import sys, threading\nfrom flightsim.core.lazy import import_ahead\n"
-              "before = [m in sys.modules for m in ('fractions', 'tomllib')]\n"
-              "import_ahead('fractions', 'no_such_module_for_this_test', 'tomllib')\n"
-              "for t in threading.enumerate():\n    if t.name == 'import-ahead':\n        t.join(60)\n"
-              "print(repr([before, [m in sys.modules for m in ('fractions', 'tomllib')]]))\n")
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ, check=True)
-    assert done.stdout.strip().splitlines()[-1] == "[[False, False], [True, True]]"
-    assert done.stderr == ""

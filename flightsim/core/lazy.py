@@ -2,8 +2,7 @@
 needs the kernels of the parts it flies only: a kernels module defines its Warp kernels when it is imported (the
 photon, waveform, FSM, galvo, panoramic, fixed and N-prism kernels together ~0.1 s of a 2-core machine's start,
 none of which a Risley run to LAS uses). A part's module names its kernels module with :func:`lazy_module` and
-uses it as usual (``photon.PhotonDetector()``); the module loads at the first such look-up. :func:`import_ahead`
-loads modules a step will need on a thread of their own while the run goes on."""
+uses it as usual (``photon.PhotonDetector()``); the module loads at the first such look-up."""
 from __future__ import annotations
 
 import importlib
@@ -40,19 +39,3 @@ class LazyModule:
 def lazy_module(name: str) -> LazyModule:
     """The module ``name`` (dotted), imported at its first attribute look-up."""
     return LazyModule(name)
-
-
-def import_ahead(*names: str) -> None:
-    """Import the modules ``names`` (dotted), in turn, on a thread of their own under :data:`PARSING`, while the caller
-    goes on with work that lets go of Python's lock (a file read, NumPy): a later import of one finds it loaded, or
-    waits for it (Python's lock per module). A module that fails to load is left to that later import to report."""
-
-    def load() -> None:
-        with PARSING:
-            for name in names:
-                try:
-                    importlib.import_module(name)
-                except ImportError:
-                    continue
-
-    threading.Thread(target=load, name="import-ahead", daemon=True).start()

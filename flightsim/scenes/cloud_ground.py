@@ -26,9 +26,6 @@ if TYPE_CHECKING:  # pointcloud imports this module to build its scene
     from flightsim.scenes.pointcloud import PointCloud
 
 
-GRID_IMPORTS = ("scipy.ndimage", "scipy.interpolate", "scipy.spatial")  # what fill_holes imports
-
-
 def lowest_per_cell(xyz: np.ndarray, cell_m: float) -> np.ndarray:
     """Indices of the lowest point (least z) of each occupied ``cell_m`` [m] cell of the points ``xyz`` (N, 3)."""
     columns = _cells(xyz[:, 0], xyz[:, 1], cell_m, xyz[:, 0].min(), xyz[:, 1].min())

@@ -328,12 +328,9 @@ class CloudScene(ScenePart):
     cacheable = False  # the scene cache keeps meshes, not the points
 
     def build(self, half_extent_m: float, seed: int) -> Scene:
-        from flightsim.core.lazy import import_ahead
-        from flightsim.scenes.cloud_ground import GRID_IMPORTS, ground_scene
+        from flightsim.scenes.cloud_ground import ground_scene
 
         s = self.s
-        if not s.cloud_dem:  # the ground grid's SciPy (~0.8 s) loaded while the points are read
-            import_ahead("laspy", *GRID_IMPORTS)
         crs = s.crs if s.crs != DEFAULT_CRS else None
         origin = s.origin if tuple(s.origin) != tuple(DEFAULT_ORIGIN) else None
         cloud = read_point_cloud(s.name, crs, origin, s.cloud_ground, s.cloud_cell_m)
