@@ -74,6 +74,11 @@ def test_crs_origin_noise_and_returns_from_the_file(tmp_path):
     assert (cloud.return_number == 1).all() and (cloud.number_of_returns == 1).all()  # format 1 left them at 0
     given = read_point_cloud(tmp_path / "plot.las", crs="EPSG:4326", origin=(E0, N0, 0.0))  # the file's CRS wins
     assert given.crs.to_epsg() == 32633 and np.array_equal(given.origin, [E0, N0, 0.0])
+    for read in (cloud, given):  # the bounds found as the chunks are read: the kept points' own extremes
+        lo, hi = read.bounds()
+        assert np.array_equal(lo, read.xyz.min(axis=0)) and np.array_equal(hi, read.xyz.max(axis=0))
+    noise_z = xyz[~kept, 2]
+    assert noise_z.min() < world[:, 2].min() and noise_z.max() > world[:, 2].max()  # noise beyond both ends
 
 
 def test_a_geographic_or_missing_crs_is_refused_with_the_command_that_fixes_it(tmp_path):

@@ -179,7 +179,7 @@ def read_point_cloud(path, crs=None, origin=None, ground: str = "classified", ce
     try:
         with laspy.open(path) as reader:
             file_crs = _file_crs(reader.header, path)
-            world, classes, returns = _read_points(reader, chunk_points)
+            world, classes, returns, (lo, hi) = _read_points(reader, chunk_points)
     except InputError:
         raise
     except Exception as error:  # laspy's, lazrs's (RuntimeError) and laszip's errors of a broken file
@@ -197,9 +197,12 @@ def read_point_cloud(path, crs=None, origin=None, ground: str = "classified", ce
         classes[lowest] = CLASS_GROUND
     elif not np.any(classes == CLASS_GROUND):
         raise InputError("scene.name", path, _CLASSIFY_HINT)
-    local_origin = _origin(world, classes) if origin is None else _finite3(origin)
+    local_origin = _origin(lo, hi, world, classes) if origin is None else _finite3(origin)
     world -= local_origin
-    return PointCloud(world, classes, returns[0], returns[1], cloud_crs, local_origin)
+    cloud = PointCloud(world, classes, returns[0], returns[1], cloud_crs, local_origin)
+    # its bounds from the file's, each point's shift rounded alike (rounding is monotone: the same extremes)
+    cloud._bounds = (cloud.xyz, lo - local_origin, hi - local_origin)
+    return cloud
 
 
 def _check_file(path: str) -> None:
@@ -209,14 +212,16 @@ def _check_file(path: str) -> None:
         raise InputError("scene.name", path, "an existing .las/.laz point cloud")
 
 
-def _read_points(reader, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
-    """(world xyz (N, 3) float64, classes, (return number, number of returns)) of every point that is not noise."""
+def _read_points(reader, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], tuple]:
+    """(world xyz (N, 3) float64, classes, (return number, number of returns), (lowest, highest) world x, y, z) of
+    every point that is not noise (the bounds found chunk by chunk, each column contiguous there)."""
     total = int(reader.header.point_count)
     world = np.empty((total, 3))
     classes = np.empty(total, dtype=np.uint8)
     number = np.empty(total, dtype=np.uint8)
     count = np.empty(total, dtype=np.uint8)
     kept = 0
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     for chunk in reader.chunk_iterator(max(int(chunk_points), 1)):
         cls = np.asarray(chunk.classification, dtype=np.uint8)
         keep = ~np.isin(cls, NOISE_CLASSES)
@@ -224,7 +229,10 @@ def _read_points(reader, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tup
         part = slice(kept, kept + n)
         rows = slice(None) if n == len(cls) else keep  # no noise point: every row, without gathering the rows first
         for axis, values in enumerate((chunk.x, chunk.y, chunk.z)):
-            world[part, axis] = np.asarray(values, dtype=np.float64)[rows]
+            column = np.asarray(values, dtype=np.float64)[rows]
+            world[part, axis] = column
+            if n:
+                lo[axis], hi[axis] = min(lo[axis], column.min()), max(hi[axis], column.max())
         classes[part] = cls[rows]
         number[part] = np.asarray(chunk.return_number, dtype=np.uint8)[rows]
         count[part] = np.asarray(chunk.number_of_returns, dtype=np.uint8)[rows]
@@ -232,7 +240,7 @@ def _read_points(reader, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tup
     number, count = number[:kept], count[:kept]
     number[number == 0] = 1
     count[count == 0] = 1
-    return world[:kept], classes[:kept], (number, count)
+    return world[:kept], classes[:kept], (number, count), (lo, hi)
 
 
 def _file_crs(header, path: str) -> pyproj.CRS | None:
@@ -276,11 +284,10 @@ def _given_crs(crs, path: str) -> pyproj.CRS:
     return parse_crs(crs, "scene.crs")
 
 
-def _origin(world: np.ndarray, classes: np.ndarray) -> np.ndarray:
-    """The bounding box's middle (E, N) at the lowest ground point's height H [m]."""
-    columns = world.T
-    middle = [(c.min() + c.max()) / 2.0 for c in columns[:2]]
-    return np.array([middle[0], middle[1], float(columns[2][classes == CLASS_GROUND].min())])
+def _origin(lo: np.ndarray, hi: np.ndarray, world: np.ndarray, classes: np.ndarray) -> np.ndarray:
+    """The bounding box's (``lo``, ``hi``) middle (E, N) at the lowest ground point's height H [m]."""
+    middle = (lo[:2] + hi[:2]) / 2.0
+    return np.array([middle[0], middle[1], float(world[:, 2][classes == CLASS_GROUND].min())])
 
 
 def _finite3(value) -> np.ndarray:
