@@ -63,8 +63,7 @@ def prepare_cloud(cloud: PointCloud, rho_ground: float = 0.4, rho_canopy: float 
     lo, hi = cloud.bounds()
     nx, ny = (int((hi[a] - lo[a]) / cell_m) + 1 for a in (0, 1))
     n, cells = len(cloud), nx * ny
-    points = np.ascontiguousarray(cloud.xyz, dtype=np.float64)
-    xyz = wp.array(points, dtype=wp.vec3d, device=device, copy=False)  # on the CPU the host's own, elsewhere a copy
+    xyz = wp.array(cloud.xyz, dtype=wp.vec3d, device=device, copy=False)  # on the CPU the host's own, elsewhere a copy
     keys, order = (wp.empty(2 * n, dtype=wp.int32, device=device) for _ in range(2))  # the sort's room
     counts = wp.zeros(cells, dtype=wp.int32, device=device)
     wp.launch(cloud_cells, n, inputs=[xyz, float(lo[0]), float(lo[1]), float(cell_m), nx, ny],
