@@ -113,3 +113,24 @@ def test_warp_names_its_cpu_objects_before_any_parallel_load():
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ, check=True)
     cached, version = done.stdout.split()
     assert version not in ("''", "'unknown'") and cached == version
+
+
+def test_gedi_shots_over_a_cloud_import_no_raster_library(tmp_path):
+    """GEDI shots over an ALS cloud write HDF5 and returns.las, no raster: rasterio (~0.2 s of a run's start, with
+    its cloud sessions) is never imported; writing a GeoTIFF imports it."""
+    from flightsim.studies.bench_shots import write_shots
+
+    cloud, shots, _ = write_shots(tmp_path / "cloud", 100_000, 4)
+    script = ("import json, sys\nfrom flightsim.entry import main\n"
+              f"code = main(['waveform', '--instrument', 'gedi', '--device', 'cpu', '--scene', {str(cloud)!r}, "
+              f"'--footprints', {str(shots)!r}, '--out', {str(tmp_path / 'out')!r}])\n"
+              "print(json.dumps([code, 'rasterio' in sys.modules]))\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ, check=True)
+    assert json.loads(done.stdout.strip().splitlines()[-1]) == [0, False]
+    assert (tmp_path / "out" / "returns.las").is_file()
+    script = ("import sys, numpy as np, pyproj\nfrom flightsim.outputs.grid_products import write_geotiff\n"
+              "assert 'rasterio' not in sys.modules\n"
+              f"write_geotiff({str(tmp_path / 'h.tif')!r}, np.zeros((2, 2)), (0.0, 2.0), 1.0, pyproj.CRS(32633))\n"
+              "print('rasterio' in sys.modules)\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=os.environ, check=True)
+    assert done.stdout.strip().splitlines()[-1] == "True"

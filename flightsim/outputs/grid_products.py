@@ -18,9 +18,6 @@ from typing import TYPE_CHECKING
 import laspy
 import numpy as np
 import pyproj
-import rasterio
-from rasterio.crs import CRS as RasterioCRS
-from rasterio.transform import from_origin
 
 from flightsim.core.version import __version__
 from flightsim.core.atomic import replaced_atomically
@@ -166,6 +163,10 @@ def write_geotiff(
     if not np.isfinite(nodata) or np.any(band == np.float32(nodata)):
         raise InputError("nodata", nodata, "a finite value that no height equals")
     band[np.isnan(band)] = nodata
+    import rasterio  # here, not at the top: a run writing no raster (returns.las alone) skips its ~0.2 s import
+    from rasterio.crs import CRS as RasterioCRS
+    from rasterio.transform import from_origin
+
     profile = dict(
         driver="GTiff", width=band.shape[1], height=band.shape[0], count=1, dtype="float32",
         crs=RasterioCRS.from_wkt(wkt1(crs)), transform=from_origin(west, north, cell_m, cell_m),
