@@ -256,3 +256,39 @@ def test_a_clouds_bounds_are_its_points_extremes_and_follow_new_points():
     assert np.array_equal(cloud.bounds()[0], cloud.xyz.min(axis=0))
     cloud.xyz = cloud.xyz[:10] + 1000.0  # points replaced: bounds of the new ones
     assert np.array_equal(cloud.bounds()[1], cloud.xyz.max(axis=0))
+
+
+@pytest.mark.parametrize("version", ["1.2", "1.4"])
+def test_an_uncompressed_file_read_on_threads_is_what_laspy_reads_whole(tmp_path, monkeypatch, version):
+    """An uncompressed LAS file's chunks, mapped from the file and read on four threads, noise among them so that
+    chunks move down after it: every kept point's coordinates, class and return numbers as ``laspy.read`` of the
+    whole file gives them, in file order (formats 1 and 6 pack the class and returns differently)."""
+    import flightsim.scenes.pointcloud as pointcloud
+
+    xyz, classes, _, _, returns = _forest_plot(seed=8)
+    order = np.random.default_rng(3).permutation(len(xyz))  # noise points spread over the chunks
+    returns = tuple(r[order] for r in returns) if version == "1.4" else None
+    _write_cloud(tmp_path / "plot.las", xyz[order], classes[order], crs="EPSG:32633", version=version,
+                 returns=returns)
+    monkeypatch.setattr(pointcloud, "usable_cores", lambda: 4)
+    monkeypatch.setattr(pointcloud, "READ_PART", 1)
+    cloud = read_point_cloud(tmp_path / "plot.las", chunk_points=997, origin=(E0, N0, 0.0))
+    las = laspy.read(str(tmp_path / "plot.las"))
+    kept = ~np.isin(np.asarray(las.classification), (7, 18))
+    assert np.count_nonzero(~kept) == 40 and len(np.unique(np.flatnonzero(~kept) // 997)) > 5  # in many chunks
+    world = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[kept]
+    assert np.array_equal(cloud.xyz, world - np.array([E0, N0, 0.0]))
+    assert np.array_equal(cloud.classification, np.asarray(las.classification)[kept])
+    for mine, theirs in ((cloud.return_number, las.return_number), (cloud.number_of_returns, las.number_of_returns)):
+        assert np.array_equal(mine, np.maximum(np.asarray(theirs)[kept], 1))
+    lo, hi = cloud.bounds()
+    assert np.array_equal(lo, cloud.xyz.min(axis=0)) and np.array_equal(hi, cloud.xyz.max(axis=0))
+
+
+def test_an_uncompressed_file_cut_short_is_refused(tmp_path):
+    xyz, classes, *_ = _forest_plot()
+    _write_cloud(tmp_path / "plot.las", xyz, classes)
+    data = (tmp_path / "plot.las").read_bytes()
+    (tmp_path / "cut.las").write_bytes(data[:len(data) // 2])
+    with pytest.raises(InputError, match="laspy can read"):
+        read_point_cloud(tmp_path / "cut.las")

@@ -3,9 +3,10 @@
 whose mesh is the ground surface under the points (:mod:`flightsim.scenes.cloud_ground`).
 
 Reading (:func:`read_point_cloud`):
-- The file is read in chunks of ``chunk_points`` (laspy's chunk iterator), so a file larger than the
-  memory laspy would need for all its fields at once still reads; only x, y, z (float64, scaled), the class
-  and the return numbers are kept.
+- The file is read in chunks of at most ``chunk_points``, so a file larger than the memory laspy would need for
+  all its fields at once still reads; only x, y, z (float64, scaled as laspy scales them), the class and the
+  return numbers are kept. An uncompressed (.las) file's point records are mapped from the file and its chunks
+  read on a thread per core; a compressed one's decompressed by laspy's chunk iterator (lazrs on its threads).
 - CRS: the file's (laspy's ``header.parse_crs()``: its WKT or GeoTIFF keys). It must be projected, in metres:
   a geographic CRS (degrees) is refused with the PDAL command that reprojects it to its UTM zone, a CRS in feet
   likewise. A file without a CRS uses ``crs`` only when the caller passes one (the scene kind passes
@@ -25,6 +26,7 @@ Reading (:func:`read_point_cloud`):
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +34,7 @@ import numpy as np
 import pyproj
 
 from flightsim.core.errors import InputError
+from flightsim.core.process_map import usable_cores
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN, Scene, parse_crs
@@ -42,6 +45,7 @@ CLASS_GROUND = 2
 CLASS_UNCLASSIFIED = 1
 NOISE_CLASSES = (7, 18)  # ASPRS low noise, high noise: dropped
 CHUNK_POINTS = 2_000_000
+READ_PART = 250_000  # the fewest points of a chunk an uncompressed file's threads take
 GRID_CELLS = 1 << 27  # the most cells of centres_beyond's occupancy grid (128 MiB of flags)
 GROUND_MODES = ("classified", "lowest")
 _CLASSIFY_HINT = ("a cloud with ground points (class 2): classify it first, e.g. PDAL's filters.smrf (pdal translate "
@@ -179,7 +183,7 @@ def read_point_cloud(path, crs=None, origin=None, ground: str = "classified", ce
     try:
         with laspy.open(path) as reader:
             file_crs = _file_crs(reader.header, path)
-            world, classes, returns, (lo, hi) = _read_points(reader, chunk_points)
+            world, classes, returns, (lo, hi) = _read_points(reader, path, chunk_points)
     except InputError:
         raise
     except Exception as error:  # laspy's, lazrs's (RuntimeError) and laszip's errors of a broken file
@@ -212,35 +216,70 @@ def _check_file(path: str) -> None:
         raise InputError("scene.name", path, "an existing .las/.laz point cloud")
 
 
-def _read_points(reader, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], tuple]:
+def _read_points(reader, path: str, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], tuple]:
     """(world xyz (N, 3) float64, classes, (return number, number of returns), (lowest, highest) world x, y, z) of
-    every point that is not noise (the bounds found chunk by chunk, each column contiguous there)."""
+    every point that is not noise. Each chunk's kept points are written where its first point stands in the file
+    (the chunks of an uncompressed file on a thread per core, :func:`_chunks`), then moved together when any
+    chunk held noise; the bounds found chunk by chunk, each column contiguous there."""
     total = int(reader.header.point_count)
     world = np.empty((total, 3))
-    classes = np.empty(total, dtype=np.uint8)
-    number = np.empty(total, dtype=np.uint8)
-    count = np.empty(total, dtype=np.uint8)
-    kept = 0
+    classes, number, count = (np.empty(total, dtype=np.uint8) for _ in range(3))
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for chunk in reader.chunk_iterator(max(int(chunk_points), 1)):
+
+    def store(at: int, chunk) -> tuple[int, int, np.ndarray, np.ndarray]:
         cls = np.asarray(chunk.classification, dtype=np.uint8)
         keep = ~np.isin(cls, NOISE_CLASSES)
         n = int(keep.sum())
-        part = slice(kept, kept + n)
+        part = slice(at, at + n)
         rows = slice(None) if n == len(cls) else keep  # no noise point: every row, without gathering the rows first
+        low, high = np.full(3, np.inf), np.full(3, -np.inf)
         for axis, values in enumerate((chunk.x, chunk.y, chunk.z)):
             column = np.asarray(values, dtype=np.float64)[rows]
             world[part, axis] = column
             if n:
-                lo[axis], hi[axis] = min(lo[axis], column.min()), max(hi[axis], column.max())
+                low[axis], high[axis] = column.min(), column.max()
         classes[part] = cls[rows]
         number[part] = np.asarray(chunk.return_number, dtype=np.uint8)[rows]
         count[part] = np.asarray(chunk.number_of_returns, dtype=np.uint8)[rows]
+        return at, n, low, high
+
+    kept = 0
+    for at, n, low, high in _chunks(reader, path, max(int(chunk_points), 1), store):
+        if at != kept:  # noise dropped before this chunk: its kept points move down to follow the others'
+            for column in (world, classes, number, count):
+                column[kept:kept + n] = column[at:at + n]
         kept += n
+        lo, hi = np.minimum(lo, low), np.maximum(hi, high)
     number, count = number[:kept], count[:kept]
     number[number == 0] = 1
     count[count == 0] = 1
     return world[:kept], classes[:kept], (number, count), (lo, hi)
+
+
+def _chunks(reader, path: str, chunk_points: int, store) -> list:
+    """``store(first point's index in the file, chunk)`` of each chunk of at most ``chunk_points`` of the file at
+    ``path``, in file order: an uncompressed file's point records mapped from the file and its chunks (of at least
+    READ_PART points, enough that every core takes one) stored on threads; a compressed file's decompressed by laspy
+    in turn."""
+    import laspy
+
+    header = reader.header
+    fmt, total = header.point_format, int(header.point_count)
+    if header.are_points_compressed or fmt.size != fmt.dtype().itemsize:
+        stored, at = [], 0
+        for chunk in reader.chunk_iterator(chunk_points):
+            stored.append(store(at, chunk))
+            at += len(chunk)
+        return stored
+    records = np.memmap(path, dtype=fmt.dtype(), mode="r", offset=header.offset_to_point_data, shape=(total,))
+    size = min(chunk_points, max(READ_PART, -(-total // usable_cores())))
+
+    def part(at: int):
+        return store(at, laspy.ScaleAwarePointRecord(records[at:at + size], fmt, header.scales, header.offsets))
+
+    starts = range(0, total, size)
+    with ThreadPoolExecutor(max(1, min(usable_cores(), len(starts))), thread_name_prefix="cloud-read") as pool:
+        return list(pool.map(part, starts))
 
 
 def _file_crs(header, path: str) -> pyproj.CRS | None:
