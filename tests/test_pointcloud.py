@@ -258,22 +258,24 @@ def test_a_clouds_bounds_are_its_points_extremes_and_follow_new_points():
     assert np.array_equal(cloud.bounds()[1], cloud.xyz.max(axis=0))
 
 
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
 @pytest.mark.parametrize("version", ["1.2", "1.4"])
-def test_an_uncompressed_file_read_on_threads_is_what_laspy_reads_whole(tmp_path, monkeypatch, version):
-    """An uncompressed LAS file's chunks, mapped from the file and read on four threads, noise among them so that
-    chunks move down after it: every kept point's coordinates, class and return numbers as ``laspy.read`` of the
-    whole file gives them, in file order (formats 1 and 6 pack the class and returns differently)."""
+def test_a_file_read_on_threads_is_what_laspy_reads_whole(tmp_path, monkeypatch, version, suffix):
+    """A file's chunks (an uncompressed one's mapped from the file, a compressed one's decompressed in turn) read on
+    four threads, noise among them so that chunks move down after it: every kept point's coordinates, class and
+    return numbers as ``laspy.read`` of the whole file gives them, in file order (formats 1 and 6 pack the class and
+    returns differently)."""
     import flightsim.scenes.pointcloud as pointcloud
 
     xyz, classes, _, _, returns = _forest_plot(seed=8)
     order = np.random.default_rng(3).permutation(len(xyz))  # noise points spread over the chunks
     returns = tuple(r[order] for r in returns) if version == "1.4" else None
-    _write_cloud(tmp_path / "plot.las", xyz[order], classes[order], crs="EPSG:32633", version=version,
+    _write_cloud(tmp_path / f"plot{suffix}", xyz[order], classes[order], crs="EPSG:32633", version=version,
                  returns=returns)
     monkeypatch.setattr(pointcloud, "usable_cores", lambda: 4)
     monkeypatch.setattr(pointcloud, "READ_PART", 1)
-    cloud = read_point_cloud(tmp_path / "plot.las", chunk_points=997, origin=(E0, N0, 0.0))
-    las = laspy.read(str(tmp_path / "plot.las"))
+    cloud = read_point_cloud(tmp_path / f"plot{suffix}", chunk_points=997, origin=(E0, N0, 0.0))
+    las = laspy.read(str(tmp_path / f"plot{suffix}"))
     kept = ~np.isin(np.asarray(las.classification), (7, 18))
     assert np.count_nonzero(~kept) == 40 and len(np.unique(np.flatnonzero(~kept) // 997)) > 5  # in many chunks
     world = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])[kept]

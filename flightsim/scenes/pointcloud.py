@@ -5,8 +5,9 @@ whose mesh is the ground surface under the points (:mod:`flightsim.scenes.cloud_
 Reading (:func:`read_point_cloud`):
 - The file is read in chunks of at most ``chunk_points``, so a file larger than the memory laspy would need for
   all its fields at once still reads; only x, y, z (float64, scaled as laspy scales them), the class and the
-  return numbers are kept. An uncompressed (.las) file's point records are mapped from the file and its chunks
-  read on a thread per core; a compressed one's decompressed by laspy's chunk iterator (lazrs on its threads).
+  return numbers are kept. The chunks are read on a thread per core: an uncompressed (.las) file's point records
+  mapped from the file, a compressed one's decompressed by laspy's chunk iterator (lazrs on its own threads) while
+  the threads read the chunks before.
 - CRS: the file's (laspy's ``header.parse_crs()``: its WKT or GeoTIFF keys). It must be projected, in metres:
   a geographic CRS (degrees) is refused with the PDAL command that reprojects it to its UTM zone, a CRS in feet
   likewise. A file without a CRS uses ``crs`` only when the caller passes one (the scene kind passes
@@ -26,6 +27,7 @@ Reading (:func:`read_point_cloud`):
 from __future__ import annotations
 
 import math
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,7 +47,7 @@ CLASS_GROUND = 2
 CLASS_UNCLASSIFIED = 1
 NOISE_CLASSES = (7, 18)  # ASPRS low noise, high noise: dropped
 CHUNK_POINTS = 2_000_000
-READ_PART = 250_000  # the fewest points of a chunk an uncompressed file's threads take
+READ_PART = 250_000  # the fewest points of a chunk the reading threads take
 GRID_CELLS = 1 << 27  # the most cells of centres_beyond's occupancy grid (128 MiB of flags)
 GROUND_MODES = ("classified", "lowest")
 _CLASSIFY_HINT = ("a cloud with ground points (class 2): classify it first, e.g. PDAL's filters.smrf (pdal translate "
@@ -219,8 +221,7 @@ def _check_file(path: str) -> None:
 def _read_points(reader, path: str, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], tuple]:
     """(world xyz (N, 3) float64, classes, (return number, number of returns), (lowest, highest) world x, y, z) of
     every point that is not noise. Each chunk's kept points are written where its first point stands in the file
-    (the chunks of an uncompressed file on a thread per core, :func:`_chunks`), then moved together when any
-    chunk held noise; the bounds found chunk by chunk, each column contiguous there."""
+    (the chunks on a thread per core, :func:`_chunks`), then moved together when any chunk held noise; the bounds found chunk by chunk, each column contiguous there."""
     total = int(reader.header.point_count)
     world = np.empty((total, 3))
     classes, number, count = (np.empty(total, dtype=np.uint8) for _ in range(3))
@@ -257,29 +258,35 @@ def _read_points(reader, path: str, chunk_points: int) -> tuple[np.ndarray, np.n
 
 
 def _chunks(reader, path: str, chunk_points: int, store) -> list:
-    """``store(first point's index in the file, chunk)`` of each chunk of at most ``chunk_points`` of the file at
-    ``path``, in file order: an uncompressed file's point records mapped from the file and its chunks (of at least
-    READ_PART points, enough that every core takes one) stored on threads; a compressed file's decompressed by laspy
-    in turn."""
+    """``store(first point's index in the file, chunk)`` of each chunk of the file at ``path``, in file order, on a
+    thread per core: chunks of at most ``chunk_points`` and at least READ_PART points (enough for two a core), no
+    more than a chunk a thread held at once."""
+    total, workers = int(reader.header.point_count), usable_cores()
+    size = min(chunk_points, max(READ_PART, -(-total // (2 * workers))))
+    stored, pending, at = [], deque(), 0
+    with ThreadPoolExecutor(workers, thread_name_prefix="cloud-read") as pool:
+        for chunk in _records(reader, path, size):
+            pending.append(pool.submit(store, at, chunk))
+            at += len(chunk)
+            while len(pending) > workers:
+                stored.append(pending.popleft().result())
+        return stored + [done.result() for done in pending]
+
+
+def _records(reader, path: str, size: int):
+    """The file's point records, ``size`` at a time: an uncompressed file's mapped from the file, a compressed one's
+    decompressed by laspy (lazrs on its own threads) as the caller asks for them."""
     import laspy
 
     header = reader.header
-    fmt, total = header.point_format, int(header.point_count)
+    fmt = header.point_format
     if header.are_points_compressed or fmt.size != fmt.dtype().itemsize:
-        stored, at = [], 0
-        for chunk in reader.chunk_iterator(chunk_points):
-            stored.append(store(at, chunk))
-            at += len(chunk)
-        return stored
-    records = np.memmap(path, dtype=fmt.dtype(), mode="r", offset=header.offset_to_point_data, shape=(total,))
-    size = min(chunk_points, max(READ_PART, -(-total // usable_cores())))
-
-    def part(at: int):
-        return store(at, laspy.ScaleAwarePointRecord(records[at:at + size], fmt, header.scales, header.offsets))
-
-    starts = range(0, total, size)
-    with ThreadPoolExecutor(max(1, min(usable_cores(), len(starts))), thread_name_prefix="cloud-read") as pool:
-        return list(pool.map(part, starts))
+        yield from reader.chunk_iterator(size)
+        return
+    records = np.memmap(path, dtype=fmt.dtype(), mode="r", offset=header.offset_to_point_data,
+                        shape=(int(header.point_count),))
+    for at in range(0, len(records), size):
+        yield laspy.ScaleAwarePointRecord(records[at:at + size], fmt, header.scales, header.offsets)
 
 
 def _file_crs(header, path: str) -> pyproj.CRS | None:
