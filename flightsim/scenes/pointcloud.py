@@ -218,10 +218,11 @@ def _check_file(path: str) -> None:
         raise InputError("scene.name", path, "an existing .las/.laz point cloud")
 
 
-def _read_points(reader, path: str, chunk_points: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], tuple]:
+def _read_points(reader, path: str, chunk_points: int) -> tuple:
     """(world xyz (N, 3) float64, classes, (return number, number of returns), (lowest, highest) world x, y, z) of
-    every point that is not noise. Each chunk's kept points are written where its first point stands in the file
-    (the chunks on a thread per core, :func:`_chunks`), then moved together when any chunk held noise; the bounds found chunk by chunk, each column contiguous there."""
+    every point of the file at ``path`` that is not noise. Each chunk's kept points are written where its first
+    point stands in the file (the chunks on a thread per core, :func:`_chunks`), then moved together when any chunk
+    held noise; the bounds found chunk by chunk, each column contiguous there."""
     total = int(reader.header.point_count)
     world = np.empty((total, 3))
     classes, number, count = (np.empty(total, dtype=np.uint8) for _ in range(3))
