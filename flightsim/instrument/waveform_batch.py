@@ -209,14 +209,20 @@ def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> 
     normal, chol = zeros((p, p, n_wave)), zeros((p, p, n_wave))
     free = zeros((p, n_wave), wp.int32)
     wp.launch(kf.start_fits, n_wave, inputs=[count, params, state], outputs=[status], device=device)
+    # a round's two launches, their arguments packed once (every round passes the same): ~20 µs a round on the host
+    # instead of ~85 (two CPU cores; profile-experiments.md section 97)
+    launches = (wp.launch(evaluate, (chunks, n_wave), inputs=[echo, t0, wp.float64(dt), wp.float64(sigma), out, count,
+                                                              params, trial, state, sums], device=device,
+                          record_cmd=True),
+                wp.launch(kf.advance_fits, n_wave, inputs=[echo, t0, wp.float64(dt), step, wp.float64(sigma), count,
+                                                           sums, chunks, state, params, trial, normal, chol, grad,
+                                                           delta, free], outputs=[ssr, status], device=device,
+                          record_cmd=True))
     rounds = 1 + int(km.MAX_ITERATIONS) * (int(km.LAMBDA_TRIES) + 1)  # a fit's evaluations at the most
     for first in range(0, rounds, FIT_ROUNDS):
         for _ in range(min(FIT_ROUNDS, rounds - first)):
-            wp.launch(evaluate, (chunks, n_wave), inputs=[echo, t0, wp.float64(dt), wp.float64(sigma), out, count,
-                                                          params, trial, state, sums], device=device)
-            wp.launch(kf.advance_fits, n_wave, inputs=[echo, t0, wp.float64(dt), step, wp.float64(sigma), count,
-                                                       sums, chunks, state, params, trial, normal, chol, grad, delta,
-                                                       free], outputs=[ssr, status], device=device)
+            for launch in launches:
+                launch.launch()
         if not state.phase.numpy().any():
             break
 
