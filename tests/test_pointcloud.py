@@ -151,6 +151,33 @@ def test_ground_surface_follows_the_synthetic_truth_and_fills_a_hole(tmp_path):
     assert (scene.vertices[:, :2].max(axis=0) >= hi[:2] - 0.5 - 1e-9).all()
 
 
+def test_ground_cells_in_pieces_on_threads_are_the_whole_clouds_means(monkeypatch):
+    """The ground grid's cells worked out in pieces of 997 points on four threads: every cell's mean the one the
+    ground points' heights give when summed in the cloud's order over all of them at once (the same bits)."""
+    from flightsim.core import process_map
+    from flightsim.scenes.cloud_ground import ground_grid
+
+    xyz, classes, *_ = _forest_plot(seed=4)
+    order = np.random.default_rng(5).permutation(len(xyz))  # ground and canopy points mixed in every piece
+    cloud = _cloud_of(xyz[order, :2] - (E0, N0))
+    heights = np.random.default_rng(6).normal(0.0, 100.0, len(xyz)) / 3.0  # sums whose rounding shows the order
+    cloud.xyz[:, 2], cloud.classification = heights, classes[order].astype(np.uint8)
+    monkeypatch.setattr(process_map, "ROWS_PER_PIECE", 997)
+    monkeypatch.setattr(process_map, "usable_cores", lambda: 4)
+    heights, _ = ground_grid(cloud, 1.5)
+    lo, hi = cloud.bounds()
+    cols, rows = (int(np.ceil((hi[a] - lo[a]) / 1.5)) for a in (0, 1))
+    ground = cloud.xyz[cloud.classification == 2]
+    column = np.minimum(((ground[:, 0] - lo[0]) / 1.5).astype(np.int64), cols - 1)
+    row = rows - 1 - np.minimum(((ground[:, 1] - lo[1]) / 1.5).astype(np.int64), rows - 1)
+    sums, counts = np.zeros((rows, cols)), np.zeros((rows, cols), dtype=np.int64)
+    for r, c, z in zip(row.tolist(), column.tolist(), ground[:, 2].tolist()):  # in the cloud's order, one by one
+        sums[r, c] += z
+        counts[r, c] += 1
+    filled = counts > 0
+    assert filled.mean() > 0.9 and np.array_equal(heights[filled], sums[filled] / counts[filled])
+
+
 def test_a_dem_beside_the_cloud_is_its_ground(tmp_path):
     xyz, classes, *_ = _forest_plot()
     _write_cloud(tmp_path / "plot.laz", xyz, classes)
@@ -224,11 +251,16 @@ def _cloud_of(xy):
 
 
 @pytest.mark.parametrize("grid_cells", [None, 16])  # 16: the occupancy grid too large, the tree of every point
-def test_centres_beyond_reach_are_those_whose_nearest_point_is_at_least_reach_away(monkeypatch, grid_cells):
+@pytest.mark.parametrize("piece", [None, 1000])  # 1000: the cells' keys worked out in pieces on threads
+def test_centres_beyond_reach_are_those_whose_nearest_point_is_at_least_reach_away(monkeypatch, grid_cells, piece):
+    from flightsim.core import process_map
     from flightsim.scenes import pointcloud
 
     if grid_cells is not None:
         monkeypatch.setattr(pointcloud, "GRID_CELLS", grid_cells)
+    if piece is not None:
+        monkeypatch.setattr(process_map, "ROWS_PER_PIECE", piece)
+        monkeypatch.setattr(process_map, "usable_cores", lambda: 4)
     rng = np.random.default_rng(11)
     xy = rng.uniform(0.0, 200.0, (20_000, 2))
     xy = xy[np.hypot(xy[:, 0] - 120.0, xy[:, 1] - 70.0) > 40.0]  # a hole of radius 40 m
@@ -272,7 +304,7 @@ def test_a_file_read_on_threads_is_what_laspy_reads_whole(tmp_path, monkeypatch,
     returns = tuple(r[order] for r in returns) if version == "1.4" else None
     _write_cloud(tmp_path / f"plot{suffix}", xyz[order], classes[order], crs="EPSG:32633", version=version,
                  returns=returns)
-    monkeypatch.setattr(pointcloud, "usable_cores", lambda: 4)
+    monkeypatch.setattr(pointcloud, "thread_count", lambda pieces: 4)
     monkeypatch.setattr(pointcloud, "READ_PART", 1)
     cloud = read_point_cloud(tmp_path / f"plot{suffix}", chunk_points=997, origin=(E0, N0, 0.0))
     las = laspy.read(str(tmp_path / f"plot{suffix}"))

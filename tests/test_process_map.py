@@ -259,3 +259,21 @@ def mark_started() -> None:
 
 def started_marks() -> int:
     return len(MARKS)
+
+
+@pytest.mark.parametrize("rows", [0, 1, 999, 1000, 10_001])
+def test_by_pieces_covers_every_row_once_in_order(monkeypatch, rows):
+    """Pieces of at least ``least`` rows (but the last), about two a thread, the results in the rows' order; a single
+    piece worked out in the calling thread."""
+    import threading
+
+    from flightsim.core import process_map
+
+    monkeypatch.setattr(process_map, "usable_cores", lambda: 4)
+    threads = set()
+    pieces = process_map.by_pieces(rows, lambda piece: threads.add(threading.get_ident()) or piece, least=1000)
+    covered = np.concatenate([np.arange(rows)[piece] for piece in pieces] + [np.arange(0)])
+    assert np.array_equal(covered, np.arange(rows))  # every row once, the pieces in order
+    assert all(piece.stop - piece.start >= 1000 for piece in pieces[:-1])
+    assert len(pieces) == (8 if rows == 10_001 else min(rows, 1))  # 10,001 rows: 4 threads, two pieces each
+    assert threads == ({threading.get_ident()} if len(pieces) == 1 else threads - {threading.get_ident()})

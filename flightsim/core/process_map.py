@@ -28,6 +28,7 @@ import sys
 import threading
 import traceback
 import weakref
+from concurrent.futures import ThreadPoolExecutor
 from multiprocessing.connection import Connection, wait
 from typing import Callable, Iterable
 
@@ -40,12 +41,28 @@ _ENTRY = ("import json, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN
 
 
 MAX_THREADS = 16  # the most threads a host step spreads its pieces of work over
+ROWS_PER_PIECE = 1 << 18  # the fewest rows of a piece of an elementwise host step (by_pieces)
 
 
 def thread_count(pieces: int) -> int:
     """Threads for ``pieces`` independent pieces of host work: as many as the pieces, the usable cores and
     MAX_THREADS allow, at least 1."""
     return max(1, min(pieces, usable_cores(), MAX_THREADS))
+
+
+def by_pieces(rows: int, work: Callable[[slice], object], least: int | None = None) -> list:
+    """``work(piece)`` of each slice of ``rows`` rows (pieces of at least ``least`` rows, None: ROWS_PER_PIECE; about
+    two a thread) on :func:`thread_count` threads, NumPy's loops releasing Python's lock; the results in the pieces'
+    order. A piece's temporaries stay small, where one pass over all the rows would allocate (and fault in) arrays of
+    them all."""
+    least = least or ROWS_PER_PIECE
+    threads = thread_count(-(-rows // least))
+    size = max(least, -(-rows // (2 * threads)))
+    pieces = [slice(first, min(first + size, rows)) for first in range(0, rows, size)]
+    if len(pieces) < 2:
+        return [work(piece) for piece in pieces]
+    with ThreadPoolExecutor(threads, thread_name_prefix="pieces") as pool:
+        return list(pool.map(work, pieces))
 
 
 def usable_cores() -> int:

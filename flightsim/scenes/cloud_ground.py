@@ -18,6 +18,7 @@ import numpy as np
 import pyproj
 
 from flightsim.core.errors import InputError
+from flightsim.core.process_map import by_pieces
 from flightsim.scenes.dem import MAX_DEM_NODES, dem_scene, grid_scene
 from flightsim.scenes.lunar import surface_scene
 from flightsim.scenes.scene import Scene
@@ -43,14 +44,35 @@ def ground_grid(cloud: PointCloud, cell_m: float) -> tuple[np.ndarray, np.ndarra
         smallest = float(np.sqrt((hi[0] - lo[0]) * (hi[1] - lo[1]) / MAX_DEM_NODES))
         raise InputError("scene.cloud_cell_m", cell_m, f"a ground cell of at least {smallest:.3g} m for this "
                                                        f"cloud's {hi[0] - lo[0]:.0f} × {hi[1] - lo[1]:.0f} m")
-    ground = cloud.xyz[cloud.ground]
-    ix = np.minimum(((ground[:, 0] - lo[0]) / cell_m).astype(np.int64), cols - 1)
-    iy = np.minimum(((ground[:, 1] - lo[1]) / cell_m).astype(np.int64), rows - 1)
-    cell = (rows - 1 - iy) * cols + ix  # rows from north to south
+    cell, z = _ground_cells(cloud, lo, cell_m, rows, cols)
     counts = np.bincount(cell, minlength=rows * cols).reshape(rows, cols)
-    sums = np.bincount(cell, weights=ground[:, 2], minlength=rows * cols).reshape(rows, cols)
+    sums = np.bincount(cell, weights=z, minlength=rows * cols).reshape(rows, cols)
     heights = np.divide(sums, counts, out=np.full((rows, cols), np.nan), where=counts > 0)
     return fill_holes(heights), lo[:2] + cell_m / 2.0
+
+
+def _ground_cells(cloud: PointCloud, lo: np.ndarray, cell_m: float, rows: int, cols: int):
+    """(cell (G,) int64 row-major from the north-west, local z (G,) [m]) of the cloud's G ground points in their
+    order, worked out in pieces of the points on threads (each piece's ground points written after those of the
+    pieces before it), not over gathered copies of all of them."""
+    def counted(points: slice) -> tuple[int, int]:
+        return points.start, int(np.count_nonzero(cloud.ground_of(points)))
+
+    counts = by_pieces(len(cloud), counted)
+    starts = dict(zip((start for start, _ in counts), np.cumsum([0] + [n for _, n in counts]).tolist()))
+    total = sum(n for _, n in counts)
+    cell, z = np.empty(total, dtype=np.int64), np.empty(total)
+
+    def piece(points: slice) -> None:
+        ground = cloud.xyz[points][cloud.ground_of(points)]
+        at = slice(starts[points.start], starts[points.start] + len(ground))
+        ix = np.minimum(((ground[:, 0] - lo[0]) / cell_m).astype(np.int64), cols - 1)
+        iy = np.minimum(((ground[:, 1] - lo[1]) / cell_m).astype(np.int64), rows - 1)
+        cell[at] = (rows - 1 - iy) * cols + ix  # rows from north to south
+        z[at] = ground[:, 2]
+
+    by_pieces(len(cloud), piece)
+    return cell, z
 
 
 def fill_holes(heights: np.ndarray) -> np.ndarray:

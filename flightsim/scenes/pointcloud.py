@@ -36,7 +36,7 @@ import numpy as np
 import pyproj
 
 from flightsim.core.errors import InputError
-from flightsim.core.process_map import usable_cores
+from flightsim.core.process_map import by_pieces, thread_count
 from flightsim.core.registry import register
 from flightsim.core.settings import Settings, setting
 from flightsim.scenes.scene import DEFAULT_CRS, DEFAULT_ORIGIN, Scene, parse_crs
@@ -93,7 +93,11 @@ class PointCloud:
     @property
     def ground(self) -> np.ndarray:
         """(N,) bool: the ground points (class 2)."""
-        return self.classification == CLASS_GROUND
+        return self.ground_of(slice(None))
+
+    def ground_of(self, points: slice) -> np.ndarray:
+        """bool of each of the points ``points``: whether it is ground (class 2)."""
+        return self.classification[points] == CLASS_GROUND
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper corners (3,) of the local bounding box [m] (column by column, as Scene.bounds); worked out
@@ -144,12 +148,18 @@ def _cell_keys(xy: np.ndarray, lo: np.ndarray, side: float, top: np.ndarray, out
     if top[0] * top[1] > GRID_CELLS:
         return None
     shape = (int(top[0]), int(top[1]))
-    index = np.floor((xy - lo) / side)
-    keys = index[:, 1] * shape[0] + index[:, 0]
-    if outside:
-        inside = (index[:, 0] >= 0) & (index[:, 0] < shape[0]) & (index[:, 1] >= 0) & (index[:, 1] < shape[1])
-        keys = np.where(inside, keys, -1.0)
-    return keys.astype(np.int64), shape
+    keys = np.empty(len(xy), dtype=np.int64)
+
+    def piece(rows: slice) -> None:
+        index = np.floor((xy[rows] - lo) / side)
+        cell = index[:, 1] * shape[0] + index[:, 0]
+        if outside:
+            inside = (index[:, 0] >= 0) & (index[:, 0] < shape[0]) & (index[:, 1] >= 0) & (index[:, 1] < shape[1])
+            cell = np.where(inside, cell, -1.0)
+        keys[rows] = cell
+
+    by_pieces(len(xy), piece)
+    return keys, shape
 
 
 def _beyond(xy: np.ndarray, centres: np.ndarray, reach_m: float) -> np.ndarray:
@@ -262,7 +272,8 @@ def _chunks(reader, path: str, chunk_points: int, store) -> list:
     """``store(first point's index in the file, chunk)`` of each chunk of the file at ``path``, in file order, on a
     thread per core: chunks of at most ``chunk_points`` and at least READ_PART points (enough for two a core), no
     more than a chunk a thread held at once."""
-    total, workers = int(reader.header.point_count), usable_cores()
+    total = int(reader.header.point_count)
+    workers = thread_count(-(-total // READ_PART))
     size = min(chunk_points, max(READ_PART, -(-total // (2 * workers))))
     stored, pending, at = [], deque(), 0
     with ThreadPoolExecutor(workers, thread_name_prefix="cloud-read") as pool:
