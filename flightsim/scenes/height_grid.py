@@ -19,6 +19,8 @@ from functools import cached_property
 
 import numpy as np
 
+from flightsim.core.process_map import by_pieces
+
 TRIANGLES_PER_CELL = 4.0
 """Cell size target: about this many triangles' worth of area per cell."""
 
@@ -130,8 +132,14 @@ class HeightGrid:
 
     @cached_property
     def _terms(self) -> np.ndarray:
-        """(T, 11) :func:`_triangle_terms` of every triangle, worked out once."""
-        return _triangle_terms(self.vertices[self.triangles]).T.copy()
+        """(T, 11) :func:`_triangle_terms` of every triangle, worked out once, in pieces of the triangles on threads."""
+        terms = np.empty((len(self.triangles), 11))
+
+        def piece(rows: slice) -> None:
+            terms[rows] = _triangle_terms(self.vertices[self.triangles[rows]]).T
+
+        by_pieces(len(self.triangles), piece)
+        return terms
 
     def _cells(self, xmin: float, ymin: float, xmax: float, ymax: float) -> tuple[slice, slice] | None:
         """(row, column) slices of the cells that meet the closed rectangle, None if none."""
