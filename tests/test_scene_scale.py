@@ -256,8 +256,14 @@ def test_the_device_builds_the_numpy_grid_bit_for_bit(case, device):
         assert np.diff(in_numpy.start).max() > 4 and np.isinf(in_numpy.top).any()  # crowded and empty cells
 
 
-def test_ground_height_is_the_surface_under_each_point():
+@pytest.mark.parametrize("piece", [None, 50])  # 50: the triangles' terms worked out in pieces on threads
+def test_ground_height_is_the_surface_under_each_point(monkeypatch, piece):
     """A tilted plane z = 0.3x − 0.2y + 5 with a hole: the grid reads the plane, NaN off the mesh."""
+    from flightsim.core import process_map
+
+    if piece is not None:
+        monkeypatch.setattr(process_map, "ROWS_PER_PIECE", piece)
+        monkeypatch.setattr(process_map, "usable_cores", lambda: 4)
     xy = np.arange(21) * 3.0
     x, y = np.meshgrid(xy, xy)
     vertices, triangles = grid_mesh(0.3 * x - 0.2 * y + 5.0, 3.0)
