@@ -12,6 +12,7 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.lazy import lazy_module
+from flightsim.core.process_map import by_pieces
 from flightsim.core.registry import register
 from flightsim.core.warp_runtime import host_array
 from flightsim.engine.chunks import Segment
@@ -24,6 +25,7 @@ kc = lazy_module("kernels.cloud_waveform")
 
 WAVEFORM_SAMPLES_PER_CHUNK = {"cpu": 1 << 22, "cuda": 1 << 28}  # waveform samples per launch
 C = 299_792_458.0  # [m/s]
+POWER_ROWS = 256  # the fewest cloud waveforms of a piece of _to_power's host work
 
 
 @dataclass
@@ -306,8 +308,8 @@ class CloudWaveforms:
             centres = start[rows, :2] + to_axis[:, None] * d[None, :2]
             w = cloud_waveforms(tracer.scene.cloud, centres, beam.centre_z_m, first[rows] - to_axis, params.dt,
                                 params.samples, beam, *self.weights, device=tracer.device, prepared=self.prepared)
-            heights = start[rows, 2, None] + (first[rows, None] + 0.5 * C * params.dt * np.arange(params.samples)) * d[2]
-            power[rows], received[rows] = _to_power(det, w, r[rows], heights, self.weights[:2], params.dt)
+            power[rows], received[rows] = _to_power(det, w, r[rows], (start[rows, 2], first[rows], d[2]),
+                                                    self.weights[:2], params.dt)
         return power, received
 
     def end(self, tracer, counts) -> wp.array:
@@ -338,22 +340,34 @@ def _groups(det, start: np.ndarray, direction: np.ndarray, r: np.ndarray):
                               centre_z_m=float(np.mean(start[rows, 2] + r[rows] * direction[rows, 2])))
 
 
-def _to_power(det, w: dict, r: np.ndarray, heights: np.ndarray, rho: tuple[float, float], dt: float):
+def _to_power(det, w: dict, r: np.ndarray, axis: tuple, rho: tuple[float, float], dt: float):
     """(received power [W] (k, samples) float32, received columns (k, 4)) of normalised cloud waveforms ``w``
-    (rx, ground, canopy [1/m]; outside) at ranges ``r`` [m], their samples at local ``heights`` [m]: P = E_t ρ̄
-    T_A² D² η_t η_r / (4 r²) · w · c/2 with ρ̄ = 1 / (s_g/ρ_g + s_c/ρ_c), s_g, s_c the ground's and the rest's
-    shares of the echo in the window (the Gaussian-weighted mean reflectance of the footprint's points)."""
-    rx = w["rx"].astype(np.float64)
-    e_g, e_c = w["ground"].sum(axis=1, dtype=np.float64), w["canopy"].sum(axis=1, dtype=np.float64)
-    total = e_g + e_c
-    made = (total > 0.0) & ~w["outside"]
-    safe = np.where(made, total, 1.0)
-    rho_mean = np.where(made, 1.0 / (e_g / safe / rho[0] + e_c / safe / rho[1]), 0.0)
-    scale = det.pulse_energy_j() * det.link_m2() * rho_mean / r ** 2 * 0.5 * C
-    inside = np.where(made, rx.sum(axis=1) * 0.5 * C * dt, 0.0)
-    mean_z = np.where(made, (rx * heights).sum(axis=1) / np.where(made, rx.sum(axis=1), 1.0), 0.0)
-    received = np.column_stack([inside, np.where(made, np.maximum(1.0 - inside, 0.0), 0.0), mean_z, made * 1.0])
-    return (rx * scale[:, None]).astype(np.float32), received
+    (rx, ground, canopy [1/m]; outside) at ranges ``r`` [m]: P = E_t ρ̄ T_A² D² η_t η_r / (4 r²) · w · c/2 with
+    ρ̄ = 1 / (s_g/ρ_g + s_c/ρ_c), s_g, s_c the ground's and the rest's shares of the echo in the window (the
+    Gaussian-weighted mean reflectance of the footprint's points). ``axis``: (the beams' local start z [m], the range
+    of their sample 0 [m], the direction's z) placing each sample's height. Worked out in pieces of the waveforms on
+    threads (each row its own: the same numbers)."""
+    power, received = np.empty(w["rx"].shape, dtype=np.float32), np.empty((len(r), 4))
+
+    def piece(rows: slice) -> None:
+        rx = w["rx"][rows].astype(np.float64)
+        e_g = w["ground"][rows].sum(axis=1, dtype=np.float64)
+        e_c = w["canopy"][rows].sum(axis=1, dtype=np.float64)
+        total = e_g + e_c
+        made = (total > 0.0) & ~w["outside"][rows]
+        safe = np.where(made, total, 1.0)
+        rho_mean = np.divide(1.0, e_g / safe / rho[0] + e_c / safe / rho[1], out=np.zeros(len(made)),
+                             where=made)  # 0 without an echo (not 1/0)
+        scale = det.pulse_energy_j() * det.link_m2() * rho_mean / r[rows] ** 2 * 0.5 * C
+        inside = np.where(made, rx.sum(axis=1) * 0.5 * C * dt, 0.0)
+        heights = axis[0][rows, None] + (axis[1][rows, None] + 0.5 * C * dt * np.arange(rx.shape[1])) * axis[2]
+        mean_z = np.where(made, (rx * heights).sum(axis=1) / np.where(made, rx.sum(axis=1), 1.0), 0.0)
+        received[rows] = np.column_stack([inside, np.where(made, np.maximum(1.0 - inside, 0.0), 0.0), mean_z,
+                                          made * 1.0])
+        power[rows] = rx * scale[:, None]
+
+    by_pieces(len(r), piece, least=POWER_ROWS)
+    return power, received
 
 
 def sample_subrays(tracer, max_rays: int) -> tuple[wp.array, wp.array]:
