@@ -153,10 +153,14 @@ def test_requests_out_of_range_are_refused():
         cloud_waveforms(cloud, [[0.0, 0.0]], 10.0, 0.0, DT, 50, prepared=prepare_cloud(cloud, normalise=True))
 
 
-def test_the_prepared_cloud_lists_each_cells_points_in_file_order(device):
+def test_the_prepared_cloud_lists_each_cells_points_in_file_order(device, monkeypatch):
     """prepare_cloud's grid against a loop over the cells: every point once, in its cell of side cell_m from the
     lowest x, y (the last column and row take the highest edge), in the order the cloud holds them, its weight
-    negative for a ground point."""
+    negative for a ground point (the weights signed in pieces of 1000 points on threads)."""
+    from flightsim.core import process_map
+
+    monkeypatch.setattr(process_map, "ROWS_PER_PIECE", 1000)
+    monkeypatch.setattr(process_map, "usable_cores", lambda: 4)
     cloud = synthetic_forest(30_000, seed=4)
     prepared = prepare_cloud(cloud, rho_ground=0.3, rho_canopy=0.6, cell_m=3.7, device=device)
     grid, points = prepared.grid, prepared.grid.points.numpy()

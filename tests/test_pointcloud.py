@@ -317,6 +317,12 @@ def test_a_file_read_on_threads_is_what_laspy_reads_whole(tmp_path, monkeypatch,
         assert np.array_equal(mine, np.maximum(np.asarray(theirs)[kept], 1))
     lo, hi = cloud.bounds()
     assert np.array_equal(lo, cloud.xyz.min(axis=0)) and np.array_equal(hi, cloud.xyz.max(axis=0))
+    from flightsim.core import process_map
+
+    monkeypatch.setattr(process_map, "ROWS_PER_PIECE", 997)  # the lowest ground found in pieces on threads
+    monkeypatch.setattr(process_map, "usable_cores", lambda: 4)
+    own = read_point_cloud(tmp_path / f"plot{suffix}", chunk_points=997)
+    assert own.origin[2] == world[np.asarray(las.classification)[kept] == 2, 2].min()
 
 
 def test_an_uncompressed_file_cut_short_is_refused(tmp_path):

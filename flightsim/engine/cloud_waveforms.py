@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from flightsim.core.errors import InputError
+from flightsim.core.process_map import by_pieces
 from flightsim.core.warp_runtime import copy_into, resolve_device
 from flightsim.instrument.cloud_waveform_model import C, COVER_SIGMAS, CloudBeam, check_request, point_weights
 from flightsim.scenes.pointcloud import PointCloud
@@ -69,7 +70,12 @@ def prepare_cloud(cloud: PointCloud, rho_ground: float = 0.4, rho_canopy: float 
     wp.launch(cloud_cells, n, inputs=[xyz, float(lo[0]), float(lo[1]), float(cell_m), nx, ny],
               outputs=[keys, order, counts], device=device)
     wp.utils.radix_sort_pairs(keys, order, n, end_bit=max(1, (cells - 1).bit_length()))
-    signed = np.where(cloud.ground, -weights, weights).astype(np.float32)  # negative for a ground point
+    signed = np.empty(n, dtype=np.float32)  # negative for a ground point
+
+    def piece(rows: slice) -> None:
+        signed[rows] = np.where(cloud.ground_of(rows), -weights[rows], weights[rows])
+
+    by_pieces(n, piece)
     grid = CloudGrid()
     grid.points = wp.empty(n, dtype=wp.vec4f, device=device)
     wp.launch(cloud_points, n, inputs=[xyz, wp.array(signed, dtype=wp.float32, device=device, copy=False), order],

@@ -345,7 +345,8 @@ def _given_crs(crs, path: str) -> pyproj.CRS:
 def _origin(lo: np.ndarray, hi: np.ndarray, world: np.ndarray, classes: np.ndarray) -> np.ndarray:
     """The bounding box's (``lo``, ``hi``) middle (E, N) at the lowest ground point's height H [m]."""
     middle = (lo[:2] + hi[:2]) / 2.0
-    return np.array([middle[0], middle[1], float(world[:, 2][classes == CLASS_GROUND].min())])
+    lowest = by_pieces(len(world), lambda rows: world[rows, 2][classes[rows] == CLASS_GROUND].min(initial=np.inf))
+    return np.array([middle[0], middle[1], float(min(lowest))])
 
 
 def _finite3(value) -> np.ndarray:
