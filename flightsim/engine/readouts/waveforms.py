@@ -359,9 +359,10 @@ def _to_power(det, w: dict, r: np.ndarray, axis: tuple, rho: tuple[float, float]
         rho_mean = np.divide(1.0, e_g / safe / rho[0] + e_c / safe / rho[1], out=np.zeros(len(made)),
                              where=made)  # 0 without an echo (not 1/0)
         scale = det.pulse_energy_j() * det.link_m2() * rho_mean / r[rows] ** 2 * 0.5 * C
-        inside = np.where(made, rx.sum(axis=1) * 0.5 * C * dt, 0.0)
+        echo = rx.sum(axis=1)
+        inside = np.where(made, echo * 0.5 * C * dt, 0.0)
         heights = axis[0][rows, None] + (axis[1][rows, None] + 0.5 * C * dt * np.arange(rx.shape[1])) * axis[2]
-        mean_z = np.where(made, (rx * heights).sum(axis=1) / np.where(made, rx.sum(axis=1), 1.0), 0.0)
+        mean_z = np.where(made, (rx * heights).sum(axis=1) / np.where(made, echo, 1.0), 0.0)
         received[rows] = np.column_stack([inside, np.where(made, np.maximum(1.0 - inside, 0.0), 0.0), mean_z,
                                           made * 1.0])
         power[rows] = rx * scale[:, None]
