@@ -12,7 +12,8 @@ Each waveform's fit advances one evaluation of the SSR (with JᵀJ and Jᵀr, or
 two launches: ``evaluate_chunks`` (:func:`evaluate_kernel`), one thread per FIT_CHUNK samples of a waveform (a long
 waveform's sums are spread over many threads), then :data:`advance_fits`, one thread per waveform, adding the chunks'
 sums in chunk order (so a fit is the same on every run) and taking the Levenberg–Marquardt decision the sums call
-for. The host launches rounds until no fit is left (:func:`flightsim.instrument.waveform_batch.process`).
+for. Rounds go on until no fit is left, checked every few rounds by :data:`clear_going` and :data:`mark_going`
+(:func:`flightsim.instrument.waveform_batch.process`: on a GPU inside one CUDA graph).
 
 Scratch arrays, parameter first and waveform last: ``normal`` and ``chol`` (3·MAX_PEAKS, 3·MAX_PEAKS, W), ``grad``,
 ``trial``, ``delta`` (3·MAX_PEAKS, W), ``free`` (3·MAX_PEAKS, W); the chunks' sums (:class:`ChunkSums`).
@@ -328,3 +329,19 @@ def advance_fits(echo: wp.array2d(dtype=wp.float64), t0: wp.array(dtype=wp.float
         ssr[w] = state.cost[w]
         status[0, w] = ending
         status[1, w] = state.steps[w]
+
+
+@wp.kernel
+def clear_going(rounds: wp.int32, left: wp.array(dtype=wp.int32), going: wp.array(dtype=wp.int32)):
+    """After ``rounds`` more rounds: ``left`` (1,) rounds a fit may still take counted down, ``going`` (1,) cleared
+    for :data:`mark_going` to set."""
+    left[0] = left[0] - rounds
+    going[0] = 0
+
+
+@wp.kernel
+def mark_going(state: FitState, left: wp.array(dtype=wp.int32), going: wp.array(dtype=wp.int32)):
+    """``going`` (1,) set to 1 where waveform w's fit goes on and rounds are left (such threads all write 1)."""
+    w = wp.tid()
+    if state.phase[w] != PHASE_DONE and left[0] > 0:
+        going[0] = 1

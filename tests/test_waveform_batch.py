@@ -177,10 +177,35 @@ def test_a_batch_in_parts_on_the_cpus_threads_is_the_batch_in_one_part(monkeypat
     parts = process(system, t0, echo, "cpu", noise=(mean, floor))
     assert launched == [15] * 4
     assert whole.count.max() > kf.FEW_GAUSSIANS >= whole.count.min() > 0  # both sizes of the fit's sums
+    _assert_same_batch(parts, whole)
+
+
+def _assert_same_batch(a, b) -> None:
     for name in ("time_s", "amplitude_w", "sigma_s", "count", "ssr", "status", "steps", "peaks"):
-        np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name), err_msg=name)
-    for name, value in whole.measures.items():
-        np.testing.assert_array_equal(parts.measures[name], value, err_msg=name)
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    for name, value in b.measures.items():
+        np.testing.assert_array_equal(a.measures[name], value, err_msg=name)
+
+
+def test_the_fits_checked_every_round_or_seldom_from_the_host_or_in_a_graph_are_the_same(device, monkeypatch):
+    """Whether any fit goes on is checked every waveform_batch.FIT_ROUNDS rounds, on a GPU inside one CUDA graph
+    (a conditional loop on a stream of its own), else from the host: a check every round or every 5, and on a GPU the
+    host's loop instead of the graph, give every number of the default (rounds past a fit's end leave it as it is)."""
+    import flightsim.instrument.waveform_batch as wb
+
+    _, _, t0, echo = study.synthetic("s", GEDI, 40, 1000, 13)
+    graphs = []
+    capture_launch = wp.capture_launch
+    monkeypatch.setattr(wp, "capture_launch", lambda *a, **k: graphs.append(a) or capture_launch(*a, **k))
+    default = process(GEDI, t0, echo, device)
+    assert len(graphs) == (1 if device.startswith("cuda") and wp.is_conditional_graph_supported() else 0)
+    # fits of one to four Gaussians ending after 4 to 18 steps: the early ones go through many rounds after their end
+    assert default.count.max() > 1 and default.steps.min() >= 4 and default.steps.max() >= 3 * default.steps.min()
+    for rounds in (1, 5):
+        monkeypatch.setattr(wb, "FIT_ROUNDS", rounds)
+        _assert_same_batch(process(GEDI, t0, echo, device), default)
+    monkeypatch.setattr(wp, "is_conditional_graph_supported", lambda: False)
+    _assert_same_batch(process(GEDI, t0, echo, device), default)
 
 
 def test_noisy_waveforms_are_decomposed_less_their_noise_mean_as_on_the_host(device):

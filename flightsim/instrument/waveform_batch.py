@@ -42,7 +42,7 @@ MAX_PEAKS = int(km.MAX_PEAKS)
 BATCH_SAMPLES = {"cpu": 1 << 24, "cuda": 1 << 26}  # samples per launch (W·N): the float64 echo and its smoothing
 # take 8 bytes each (128 MiB each on the CPU, 512 MiB on a GPU: 2048 change1 waveforms, 67,108 GEDI ones)
 MEASURES = ("half_power_s", "centroid_s", "peak_s", "fwhm_s", "rms_width_s")
-FIT_ROUNDS = 8  # rounds of the fit launched between two reads of whether any fit goes on
+FIT_ROUNDS = 8  # rounds of the fit between two checks of whether any fit goes on
 CPU_THREADS = 16  # the most threads that launch a batch's parts at once on the CPU
 CPU_PART = 64  # the fewest waveforms in a part when the CPU's threads share a batch
 
@@ -192,7 +192,7 @@ def echo_peaks(start: wp.array, smooth: wp.array, t0: wp.array, dt: float, step:
 
 def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> None:
     """The Gaussians of ``params`` fitted in place (kernels/waveform_fit.py): rounds of one SSR evaluation per going
-    fit, until none goes on (its state read every FIT_ROUNDS rounds) or the most rounds a fit can take."""
+    fit, until none goes on (checked every FIT_ROUNDS rounds) or the most rounds a fit can take have passed."""
     n, n_wave = echo.shape
     p, chunks = 3 * MAX_PEAKS, -(-n // kf.FIT_CHUNK)
     most = min(int(count.numpy().max(initial=0)), MAX_PEAKS)  # the most Gaussians a waveform fits
@@ -209,22 +209,39 @@ def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> 
     normal, chol = zeros((p, p, n_wave)), zeros((p, p, n_wave))
     free = zeros((p, n_wave), wp.int32)
     wp.launch(kf.start_fits, n_wave, inputs=[count, params, state], outputs=[status], device=device)
-    # a round's two launches, their arguments packed once (every round passes the same): ~20 µs a round on the host
-    # instead of ~85 (two CPU cores; profile-experiments.md section 97)
-    launches = (wp.launch(evaluate, (chunks, n_wave), inputs=[echo, t0, wp.float64(dt), wp.float64(sigma), out, count,
-                                                              params, trial, state, sums], device=device,
-                          record_cmd=True),
-                wp.launch(kf.advance_fits, n_wave, inputs=[echo, t0, wp.float64(dt), step, wp.float64(sigma), count,
-                                                           sums, chunks, state, params, trial, normal, chol, grad,
-                                                           delta, free], outputs=[ssr, status], device=device,
-                          record_cmd=True))
     rounds = 1 + int(km.MAX_ITERATIONS) * (int(km.LAMBDA_TRIES) + 1)  # a fit's evaluations at the most
-    for first in range(0, rounds, FIT_ROUNDS):
-        for _ in range(min(FIT_ROUNDS, rounds - first)):
-            for launch in launches:
-                launch.launch()
-        if not state.phase.numpy().any():
-            break
+    left, going = wp.array([rounds], dtype=wp.int32, device=device), wp.ones(1, dtype=wp.int32, device=device)
+    # a round's two launches and the check's two, their arguments packed once (every round passes the same): ~20 µs
+    # a round on the host instead of ~85 where the host launches them (two CPU cores; profile-experiments.md 97)
+    def record(kernel, dim, inputs: list, outputs: tuple = ()) -> wp.Launch:
+        return wp.launch(kernel, dim, inputs=inputs, outputs=list(outputs), device=device, record_cmd=True)
+
+    one_round = (record(evaluate, (chunks, n_wave), [echo, t0, wp.float64(dt), wp.float64(sigma), out, count, params,
+                                                    trial, state, sums]),
+               record(kf.advance_fits, n_wave, [echo, t0, wp.float64(dt), step, wp.float64(sigma), count, sums, chunks,
+                                                state, params, trial, normal, chol, grad, delta, free], [ssr, status]))
+    check = (record(kf.clear_going, 1, [FIT_ROUNDS, left, going]), record(kf.mark_going, n_wave, [state, left, going]))
+    _while_going(going, one_round * FIT_ROUNDS + check, device)
+
+
+def _while_going(going: wp.array, launches: tuple, device) -> None:
+    """``launches`` in turn while ``going`` (1,) holds a nonzero value (their last ones set it). On a GPU with
+    conditional graph nodes (CUDA 12.4+): one CUDA graph on a stream of its own, no host work or wait between the
+    checks, none behind other threads' work on the device's stream; otherwise from the host, which reads ``going``
+    after each pass."""
+    device = wp.get_device(device)
+    if not (device.is_cuda and wp.is_conditional_graph_supported()):
+        wp.capture_while(going, lambda: [launch.launch() for launch in launches])
+        return
+    stream = wp.Stream(device)
+    stream.wait_stream(device.stream)
+    wp.capture_begin(stream=stream)
+    try:
+        wp.capture_while(going, lambda: [launch.launch(stream) for launch in launches], stream=stream)
+    finally:
+        graph = wp.capture_end(stream=stream)
+    wp.capture_launch(graph, stream=stream)
+    device.stream.wait_stream(stream)
 
 
 def _joined(parts: list[dict]) -> dict[str, np.ndarray]:
