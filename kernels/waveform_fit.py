@@ -27,8 +27,10 @@ from kernels.waveform_measures import GAIN_TOLERANCE, LAMBDA_TRIES, MAX_ITERATIO
 
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
-FIT_CHUNK = 256  # samples whose SSR, JᵀJ and Jᵀr one thread of evaluate_chunks sums (an H100: change1's 32,768
-# samples 339 waveforms/s at 1024, 423 at 256; GEDI's 1000: 8.2e3 at 1024, 1.9e4 at 256; profile-experiments.md 29)
+FIT_CHUNK = 64  # samples whose SSR, JᵀJ and Jᵀr one thread of evaluate_chunks sums in turn: a round takes as long as
+# its slowest fit's chunk, so fewer samples a thread shorten the rounds a few fits still go through (an H100, 8,389
+# GEDI waveforms of 1000 samples: the batch 0.454 s at 256, 0.298 at 64, 0.292 at 32, 0.340 at 16; the CPU alike at
+# 64 and 256; profile-experiments.md 29 and 98)
 FEW_GAUSSIANS = 4  # batches fitting at most this many Gaussians per waveform take evaluate_kernel(4): its thread's
 # sums of JᵀJ (78 entries, not MAX_PEAKS' 300) take a quarter of the local memory
 
