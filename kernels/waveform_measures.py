@@ -42,6 +42,13 @@ def echo_columns(rows: wp.array2d(dtype=Any), mean: wp.array(dtype=wp.float64),
     columns[j, w] = wp.float64(rows[w, j]) - mean[w]
 
 
+# Both overloads made with the module, not by a first launch: a batch's parts launch from several threads, and an
+# overload a launch makes changes the module under another thread's launch (Warp reads the new overload's launch
+# metadata before it has hashed it: AttributeError 'tid_extent_limit_candidate')
+wp.overload(echo_columns, {"rows": wp.array2d(dtype=wp.float32)})
+wp.overload(echo_columns, {"rows": wp.array2d(dtype=wp.float64)})
+
+
 @wp.func
 def _reflect(i: int, n: int) -> int:
     """Sample of a line of ``n`` that index ``i`` reads under scipy.ndimage's ``reflect`` (d c b a | a b c d | d c b a)."""

@@ -6,6 +6,9 @@ and synthetic sums of Gaussians with noise, and waveforms.h5 written with wavefo
 "host"."""
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import h5py
 import numpy as np
 import pytest
@@ -178,6 +181,36 @@ def test_a_batch_in_parts_on_the_cpus_threads_is_the_batch_in_one_part(monkeypat
     assert launched == [15] * 4
     assert whole.count.max() > kf.FEW_GAUSSIANS >= whole.count.min() > 0  # both sizes of the fit's sums
     _assert_same_batch(parts, whole)
+
+
+FRESH_PARTS = """
+import numpy as np, warp as wp
+import flightsim.instrument.waveform_batch as wb
+from flightsim.core.warp_runtime import compile_ahead
+from flightsim.studies import waveform_processing as study
+from flightsim.instrument import waveform_model as model
+system = model.WaveformSystem(pulse_fwhm_s=1.5e-8, sample_interval_s=1e-9)
+_, _, t0, echo = study.synthetic("s", system, 16, 1000, 3)
+compile_ahead("cpu", wb.kernels())
+wb.CPU_PART, wb.CPU_THREADS = 4, 4
+wb.usable_cores = lambda: 4
+changed = []
+mark = wp.Module.mark_modified
+wp.Module.mark_modified = lambda self, *a, **k: changed.append(self.name) or mark(self, *a, **k)
+for rows in (echo.astype(np.float32), echo):
+    wb.process(system, t0, rows, "cpu")
+print(sorted(set(changed)))
+"""
+
+
+def test_a_batch_s_parts_on_threads_launch_only_kernels_made_before_them():
+    """The CPU's threads launch a batch's parts at once: a kernel made by a first launch (a generic kernel's
+    overload for float32 or float64 waveforms) would change its module under another thread's launch (Warp then
+    reads the overload's launch metadata before hashing it, and fails now and then). In a fresh process, after
+    compile_ahead of waveform_batch.kernels(), parts of float32 and float64 waveforms on four threads change no
+    module."""
+    out = subprocess.run([sys.executable, "-c", FRESH_PARTS], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout + out.stderr
 
 
 def _assert_same_batch(a, b) -> None:
