@@ -227,14 +227,15 @@ class WaveformWriter:
         ranges = np.full((len(shots), MAX_COMPONENTS), np.nan)
         for beam in np.unique(shots.beam):
             rows = np.flatnonzero(shots.beam == beam)
-            columns = self._columns(shots, rows)
+            head, tail = self._shot_columns(shots, rows)
+            if self.l2a is not None:  # its metrics on its thread while the shots are ranged here
+                clean = shots.power_w if shots.clean_w is None else shots.clean_w
+                self.l2a.add(int(beam), head | tail, shots.power_w[rows], clean[rows],
+                             self._ground(shots, rows, tail), self._workers(len(rows)))
+            columns = self._ranged(shots, rows, head, tail)
             ranges[rows] = columns["ranging/component_range_m"]
             self._append(f"BEAM{int(beam):04d}", columns, shots.power_w[rows].ravel())
             self.shots += len(rows)
-            if self.l2a is not None:
-                clean = shots.power_w if shots.clean_w is None else shots.clean_w
-                self.l2a.add(int(beam), columns, shots.power_w[rows], clean[rows], self._ground(shots, rows, columns),
-                             self._workers(len(rows)))
         self._keep_returns(shots, np.lexsort((shots.beam, shots.part)), ranges)
 
     def _ground(self, shots, rows: np.ndarray, columns: dict[str, np.ndarray]) -> np.ndarray:
@@ -242,29 +243,39 @@ class WaveformWriter:
         local = shots.start[rows] + columns["truth/nadir_range_m"][:, None] * shots.direction[rows]
         return local[:, 2] + self.scene.origin[2]
 
-    def _columns(self, shots, rows: np.ndarray) -> dict[str, np.ndarray]:
+    def _shot_columns(self, shots, rows: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """The columns of the shots ``rows`` that come before the ranging/ ones and after them (ids, times and
+        windows; truth and geolocation): all but the ranging."""
         s, n = self.system, len(rows)
         samples = shots.power_w.shape[1]
         t0 = shots.window_start_s[rows]
-        noise = None if shots.clean_w is None else model.window_noise(shots.power_w[rows])  # the receiver's
-        ranging, comp = (self._ranging_host if self.device is None else self._ranging_device)(shots, rows, t0, noise)
         received = shots.received[rows]
         line = shots.line_id[rows]
-        columns = {
+        head = {
             "shot_number": (line.astype(np.uint64) << np.uint64(32)) + shots.pulse[rows].astype(np.uint64),
             "line_id": line.astype(np.int32), "pulse": shots.pulse[rows],
             "delta_time": shots.start_time[rows] + shots.pulse[rows] / self.prf_hz,
             "rx_window_start_s": t0, "rx_sample_count": np.full(n, samples, np.uint32),
             "tx_window_start_s": np.full(n, self.tx_start), "tx_sample_count": np.full(n, len(self.tx), np.uint32),
-            **ranging, "ranging/component_range_m": comp[:, 0], "ranging/component_amplitude_w": comp[:, 1],
-            "ranging/component_sigma_s": comp[:, 2],
+        }
+        tail = {
             "truth/nadir_range_m": 0.5 * model.C * t0 + 0.5 * samples * s.sample_interval_s * 0.5 * model.C,
             "truth/mean_height_m": received[:, 2] / np.where(received[:, 3] > 0, received[:, 3], np.nan)
                                    + self.scene.origin[2],
             "truth/received_in_window": received[:, 0] / np.maximum(received[:, 0] + received[:, 1], 1e-300),
         }
-        columns.update(self._geolocation(shots, rows, t0, samples))
-        return {name: np.asarray(v) for name, v in columns.items()}
+        tail.update(self._geolocation(shots, rows, t0, samples))
+        as_arrays = lambda columns: {name: np.asarray(v) for name, v in columns.items()}  # noqa: E731
+        return as_arrays(head), as_arrays(tail)
+
+    def _ranged(self, shots, rows: np.ndarray, head: dict, tail: dict) -> dict[str, np.ndarray]:
+        """The shots' columns in the file's order: ``head``, their ranging/ measures and components, ``tail``."""
+        noise = None if shots.clean_w is None else model.window_noise(shots.power_w[rows])  # the receiver's
+        ranging, comp = (self._ranging_host if self.device is None else self._ranging_device)(
+            shots, rows, head["rx_window_start_s"], noise)
+        return {**head, **{name: np.asarray(v) for name, v in ranging.items()},
+                "ranging/component_range_m": comp[:, 0], "ranging/component_amplitude_w": comp[:, 1],
+                "ranging/component_sigma_s": comp[:, 2], **tail}
 
     def _ranging_host(self, shots, rows: np.ndarray, t0: np.ndarray, noise) -> tuple[dict, np.ndarray]:
         """The ranging/ measures of each shot and its components (n, 3, MAX_COMPONENTS: range [m], amplitude [W],
