@@ -217,9 +217,10 @@ def _fit(echo, t0, dt, step, sigma, out, count, params, ssr, status, device) -> 
         return wp.launch(kernel, dim, inputs=inputs, outputs=list(outputs), device=device, record_cmd=True)
 
     one_round = (record(evaluate, (chunks, n_wave), [echo, t0, wp.float64(dt), wp.float64(sigma), out, count, params,
-                                                    trial, state, sums]),
-               record(kf.advance_fits, n_wave, [echo, t0, wp.float64(dt), step, wp.float64(sigma), count, sums, chunks,
-                                                state, params, trial, normal, chol, grad, delta, free], [ssr, status]))
+                                                      trial, state, sums]),
+                 record(kf.advance_fits, n_wave, [echo, t0, wp.float64(dt), step, wp.float64(sigma), count, sums,
+                                                  chunks, state, params, trial, normal, chol, grad, delta, free],
+                        [ssr, status]))
     check = (record(kf.clear_going, 1, [FIT_ROUNDS, left, going]), record(kf.mark_going, n_wave, [state, left, going]))
     _while_going(going, one_round * FIT_ROUNDS + check, device)
 
