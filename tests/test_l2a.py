@@ -201,6 +201,28 @@ def test_truth_rh_of_a_noise_free_profile_is_measured_from_the_true_ground():
     assert (truth_rh(np.zeros((1, N)), [TOP], [TOP - 1], [0.0]) == FILL).all()
 
 
+def test_truth_rh_in_pieces_on_threads_is_each_profile_alone(monkeypatch):
+    """truth_rh works on pieces of TRUTH_PIECE_ROWS profiles on threads: 41 profiles of one or two modes at many
+    depths and widths (windows of every extent, two without energy) in pieces of three rows give each profile's rh
+    alone, bit for bit."""
+    import flightsim.outputs.l2a as l2a
+
+    rng = np.random.default_rng(9)
+    modes = [[(rng.uniform(50.0, 950.0), rng.uniform(0.2, 1.0), rng.uniform(2.0, 40.0))
+              for _ in range(rng.integers(1, 3))] for _ in range(41)]
+    profiles = np.array([_wave(*m) for m in modes])
+    profiles[profiles < 1e-3] = 0.0  # windows ending where the modes fall below a floor, not at the profile's ends
+    profiles[[7, 30]] = 0.0
+    bin0 = TOP + rng.uniform(-20.0, 20.0, 41)
+    lastbin, ground = bin0 - (N - 1) * DZ, bin0 - rng.uniform(50.0, 140.0, 41)
+    alone = np.array([truth_rh(profiles[i:i + 1], bin0[i:i + 1], lastbin[i:i + 1], ground[i:i + 1])[0]
+                      for i in range(41)])
+    monkeypatch.setattr(l2a, "TRUTH_PIECE_ROWS", 3)
+    monkeypatch.setattr("flightsim.core.process_map.usable_cores", lambda: 4)
+    np.testing.assert_array_equal(truth_rh(profiles, bin0, lastbin, ground), alone)
+    assert (alone[[7, 30]] == FILL).all() and (alone[:7] != FILL).all()
+
+
 @pytest.mark.parametrize("change, field", [
     ({"rx": np.zeros(N)}, "rx"),
     ({"rx": np.full((1, N), np.nan)}, "rx"),

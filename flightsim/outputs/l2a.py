@@ -57,7 +57,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.special import ndtri
 
 from flightsim.core.errors import InputError, positive
-from flightsim.core.process_map import ProcessMap, map_rows, row_chunks
+from flightsim.core.process_map import ProcessMap, by_pieces, map_rows, row_chunks
 from flightsim.core.settings import Settings, check_settings, setting
 from flightsim.core.trf_batch import least_squares_batch
 from flightsim.instrument.waveform_model import end_noise
@@ -65,6 +65,7 @@ from flightsim.instrument.waveform_model import end_noise
 C = 299_792_458.0  # speed of light [m/s]
 FILL = -9999.0  # elevations, positions and rh of a shot without a signal
 RH_LEVELS = 101  # rh0 … rh100
+TRUTH_PIECE_ROWS = 256  # the fewest profiles in a piece of truth_rh's work on threads
 _BIN_M, _WINDOW_M = 0.15, 30.0  # the sensitivity's false-alarm window: 30 m of 0.15 m bins (GEDI simulator)
 _FIT_PAD = 3.0  # the fit window reaches this many pulse σ beyond signal start and end
 _MIN_WIDTH = 0.5  # least fitted width [pulse σ]
@@ -189,6 +190,12 @@ def truth_rh(profile, elevation_bin0, elevation_lastbin, ground_elevation) -> np
         raise InputError("profile", f"minimum {p.min():g}", "energies >= 0")
     geo = _geometry(len(p), elevation_bin0=elevation_bin0, elevation_lastbin=elevation_lastbin,
                     ground_elevation=ground_elevation)
+    return np.concatenate(by_pieces(len(p), lambda rows: _truth_rows(p[rows], {k: v[rows] for k, v in geo.items()}),
+                                    least=TRUTH_PIECE_ROWS))
+
+
+def _truth_rows(p: np.ndarray, geo: dict[str, np.ndarray]) -> np.ndarray:
+    """:func:`truth_rh` of some profiles (each row's rh its own, whatever rows lie beside it: :func:`_rh`)."""
     lit = p > 0.0
     found = lit.any(axis=1)
     start = np.argmax(lit, axis=1).astype(np.float64)
