@@ -228,11 +228,15 @@ class WaveformWriter:
         for beam in np.unique(shots.beam):
             rows = np.flatnonzero(shots.beam == beam)
             head, tail = self._shot_columns(shots, rows)
-            if self.l2a is not None:  # its metrics on its thread while the shots are ranged here
+            # l2a.h5's metrics go on on their thread over the worker processes: set going before a ranging on the
+            # device (which needs neither them nor the workers), after one on the host (which maps over the workers)
+            columns = self._ranged(shots, rows, head, tail) if self.device is None else None
+            if self.l2a is not None:
                 clean = shots.power_w if shots.clean_w is None else shots.clean_w
                 self.l2a.add(int(beam), head | tail, shots.power_w[rows], clean[rows],
                              self._ground(shots, rows, tail), self._workers(len(rows)))
-            columns = self._ranged(shots, rows, head, tail)
+            if columns is None:
+                columns = self._ranged(shots, rows, head, tail)
             ranges[rows] = columns["ranging/component_range_m"]
             self._append(f"BEAM{int(beam):04d}", columns, shots.power_w[rows].ravel())
             self.shots += len(rows)
