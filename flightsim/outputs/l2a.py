@@ -197,10 +197,9 @@ def truth_rh(profile, elevation_bin0, elevation_lastbin, ground_elevation) -> np
 def _truth_rows(p: np.ndarray, geo: dict[str, np.ndarray]) -> np.ndarray:
     """:func:`truth_rh` of some profiles (each row's rh its own, whatever rows lie beside it: :func:`_rh`)."""
     lit = p > 0.0
-    found = lit.any(axis=1)
-    start = np.argmax(lit, axis=1).astype(np.float64)
-    end = (p.shape[1] - 1 - np.argmax(lit[:, ::-1], axis=1)).astype(np.float64)
-    return _rh(p, geo["elevation_bin0"], geo["elevation_lastbin"], start, end, geo["ground_elevation"], found)
+    start, end = np.argmax(lit, axis=1), p.shape[1] - 1 - np.argmax(lit[:, ::-1], axis=1)
+    return _rh(p, geo["elevation_bin0"], geo["elevation_lastbin"], start.astype(np.float64), end.astype(np.float64),
+               geo["ground_elevation"], lit.any(axis=1))
 
 
 # --- input -----------------------------------------------------------------------------------------
