@@ -114,20 +114,28 @@ CASES: dict[str, dict] = {
             ["simulate", "--instrument", "change3", "--device", "{device}", "--out", "{work}/run"],
         ],
     },
-    # the waveform altimeter through `simulate` and through `waveform` (slope; bump with the receiver chain)
+    # the waveform altimeter through `simulate` and through `waveform` (slope; bump with the receiver chain), ranged
+    # by the host's reference (pinned before the device's ranging became the default) and by the device (the default)
     "waveform_change1": {
+        "steps": [
+            ["simulate", "--instrument", "change1", "--device", "{device}", "--set", "waveform.processing=host",
+             "--out", "{work}/run"],
+        ],
+    },
+    "waveform_change1_device": {
         "steps": [
             ["simulate", "--instrument", "change1", "--device", "{device}", "--out", "{work}/run"],
         ],
     },
     "waveform_slope": {
         "steps": [
-            ["waveform", "--scene", "slope", "--device", "{device}", "--out", "{work}/run"],
+            ["waveform", "--scene", "slope", "--device", "{device}", "--set", "waveform.processing=host",
+             "--out", "{work}/run"],
         ],
     },
     "waveform_bump_receiver": {
         "steps": [
-            ["waveform", "--scene", "bump", "--device", "{device}",
+            ["waveform", "--scene", "bump", "--device", "{device}", "--set", "waveform.processing=host",
              "--set", "waveform.n_rings=30", "--set", "waveform.n_sectors=60", "--set", "waveform.samples=16384",
              "--set", "waveform.receiver_fwhm_s=2e-9", "--set", "waveform.shot_noise=true",
              "--set", "waveform.peak_power_w=1e5", "--set", "waveform.background_w=1e-8",

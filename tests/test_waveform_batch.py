@@ -280,8 +280,8 @@ def _run(tmp_path, name: str, args: list[str], device: str, *extra: str):
 @pytest.mark.parametrize("case", list(CASES))
 def test_waveforms_h5_with_device_processing_is_the_hosts(tmp_path, device, case):
     args, system = CASES[case]
-    host = _run(tmp_path, "host", args, device)
-    dev = _run(tmp_path, "device", args, device, "--set", "waveform.processing=device")
+    host = _run(tmp_path, "host", args, device, "--set", "waveform.processing=host")
+    dev = _run(tmp_path, "device", args, device)  # the default
     names = []
     host.visit(lambda n: names.append(n) if isinstance(host[n], h5py.Dataset) else None)
     assert names and sorted(names) == sorted(n for n in names if n in dev)

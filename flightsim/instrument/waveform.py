@@ -83,9 +83,10 @@ class WaveformSettings(Settings):
                                "float64 FFTs; an echo narrower than 256 samples still by direct sums) or direct "
                                "sums for every echo; the same float32 waveforms to ~1e-7 of the peak",
                                choices=CONVOLUTIONS)
-    processing: str = setting("host", "where waveforms.h5's ranging (measures, Gaussian decomposition) is computed: "
-                              "host (NumPy/SciPy, one waveform at a time) or device (batched kernels on the run's "
-                              "device; docs/waveform-processing.md)", choices=PROCESSINGS)
+    processing: str = setting("device", "where waveforms.h5's ranging (measures, Gaussian decomposition) is "
+                              "computed: device (batched kernels on the run's device, its fits' sums of squares at "
+                              "most SciPy's) or host (NumPy/SciPy's curve_fit, one waveform at a time: the reference; "
+                              "docs/waveform-processing.md)", choices=PROCESSINGS)
 
     def check(self, context) -> None:
         system(self)

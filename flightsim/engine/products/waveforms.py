@@ -27,6 +27,16 @@ class WaveformProduct:
     files = ("waveforms.h5", "returns.las", "l2a.h5")
     tracer_options: dict = {}
 
+    @staticmethod
+    def setup_kernels(cfg) -> list:
+        """(kernel, device) of waveforms.h5's ranging on the run's device (``waveform.processing = "device"``), for
+        :func:`flightsim.engine.run.compile_setup`: loaded while the run is set up, not at its first batch."""
+        if cfg.waveform.processing != "device":
+            return []
+        from flightsim.instrument.waveform_batch import kernels
+
+        return [(kernel, None) for kernel in kernels()]
+
     def __init__(self, cfg, scene):
         self.cfg, self.scene = cfg, scene
         self.cloud = scene.cloud is not None and cfg.waveform.cloud_method == "gedi"
