@@ -196,20 +196,33 @@ def _ship(args: argparse.Namespace) -> int:
     from flightsim.core.prebuilt import CUDA_ARCHS, ship
 
     started = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as scenes:
         env = dict(os.environ, WARP_CACHE_PATH=tmp, FLIGHTSIM_PREBUILT="0")
         for name, scene, readout in PREBUILT_RUNS:
             command = [sys.executable, "-m", "flightsim", "compile", "--device", "cpu", "--instrument", name,
-                       *(["--scene", scene] if scene else []), *(["--sweep"] if readout == "statistics" else []),
-                       *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
+                       *prebuilt_scene_flags(scene, Path(scenes)),
+                       *(["--sweep"] if readout == "statistics" else []), *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
             subprocess.run(command, env=env, check=True, capture_output=True)
         (cache,) = [p for p in Path(tmp).iterdir() if p.is_dir()]  # Warp's version folder
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
-    print(f"{modules} prebuilt kernel modules of every built-in instrument, three over the forest and a sweep (CPU and "
+    print(f"{modules} prebuilt kernel modules of every built-in instrument, three over the forest, GEDI over a point "
+          f"cloud and a sweep (CPU and "
           f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
+
+
+def prebuilt_scene_flags(scene: str | None, folder: Path) -> list[str]:
+    """The ``--scene`` flags of a run of :data:`~flightsim.engine.config_io.PREBUILT_RUNS`: none for the instrument's
+    own scene, the name of a built-in one, or for "cloud" a small synthetic ALS point cloud written into ``folder``
+    (its kernels are those of any cloud: the points' grid, and the waveforms' histogram sized by the instrument)."""
+    if scene != "cloud":
+        return ["--scene", scene] if scene else []
+    from flightsim.studies.bench_shots import WARM_POINTS, write_shots
+
+    folder.mkdir(parents=True, exist_ok=True)
+    return ["--scene", str(write_shots(folder / "cloud", WARM_POINTS, 1)[0])]
 
 
 def _cluster(args: argparse.Namespace, tasks: int):

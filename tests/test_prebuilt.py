@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from flightsim.cli import prebuilt_scene_flags
 from flightsim.core import prebuilt
 from flightsim.engine.config_io import PREBUILT_RUNS
 
@@ -60,14 +61,14 @@ print(json.dumps({"loaded": len(loaded), "gpu_only": len(gpu_only), "missing": p
 @pytest.mark.parametrize("instrument, scene, readout", PREBUILT_RUNS,
                          ids=[f"{n}-{s or 'own'}{'-sweep' if r == 'statistics' else ''}" for n, s, r in PREBUILT_RUNS])
 def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument, scene, readout):
-    """A run of the instrument (over its own scene, or the procedural forest) in a process of its own (as `flightsim
-    simulate` runs it; the statistics readout as `flightsim sweep` flies a configuration) finds every module it loads
-    prebuilt, for the CPU and for sm_90 (a forest's also the voxel kernel a GPU run builds its scene with), and
-    compiles nothing. A kernel changed without remaking the prebuilt set fails here: run ``flightsim compile --all
+    """A run of the instrument (over its own scene, the procedural forest or a point cloud) in a process of its own
+    (as `flightsim simulate` runs it; the statistics readout as `flightsim sweep` flies a configuration) finds every
+    module it loads prebuilt, for the CPU and for sm_90 (a forest's also the voxel kernel a GPU run builds its scene
+    with), and compiles nothing. A kernel changed without remaking the prebuilt set fails here: run ``flightsim compile --all
     --ship``."""
     env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "kernels"), FLIGHTSIM_CACHE=str(tmp_path / "scenes"),
                FLIGHTSIM_PREBUILT="1")
-    args = [readout, instrument] + (["--scene", scene] if scene else [])
+    args = [readout, instrument, *prebuilt_scene_flags(scene, tmp_path / "cloud")]
     done = subprocess.run([sys.executable, "-c", CHECK, *args], env=env, capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-3000:]
     found = json.loads(done.stdout.strip().splitlines()[-1])

@@ -126,11 +126,8 @@ def cloud_waveforms(cloud: PointCloud, centres_xy, z_top: float, window_start_m,
 
 def _beam_params(prepared: DeviceCloud, beam: CloudBeam, dt_s: float, samples: int):
     """(CloudBeamParams, pulse taps (2 pad + 1,) float32 [1/m], bins per histogram component)."""
-    step, sigma_r = C * dt_s / 2.0, beam.range_sigma_m()
-    sub = max(1, math.ceil(4.0 * step / sigma_r))
-    width = step / sub
-    pad = math.ceil(PULSE_SIGMAS * sigma_r / width)
-    needed = 2 * pad + (samples - 1) * sub + 2
+    sigma_r = beam.range_sigma_m()
+    sub, width, pad, needed = histogram_layout(sigma_r, dt_s, samples)
     if needed > MAX_BINS:
         most = max((MAX_BINS - 2 - 2 * pad) // sub + 1, 0)
         raise InputError("cloud_waveform.samples", samples, f"at most {most} samples of {dt_s:g} s for a pulse of "
@@ -149,6 +146,23 @@ def _beam_params(prepared: DeviceCloud, beam: CloudBeam, dt_s: float, samples: i
     offsets = np.arange(-pad, pad + 1) * width / sigma_r
     pulse = np.exp(-0.5 * offsets ** 2) / (sigma_r * math.sqrt(2.0 * math.pi))
     return p, pulse.astype(np.float32), -(-needed // BIN_STEP) * BIN_STEP
+
+
+def histogram_layout(range_sigma_m: float, dt_s: float, samples: int) -> tuple[int, float, int, int]:
+    """(bins per sample, bin width [m], bins of margin before the first sample, bins needed per component) of the
+    histogram of ``samples`` waveform samples of ``dt_s`` [s] for a pulse of σ_r = ``range_sigma_m`` [m]."""
+    step = C * dt_s / 2.0
+    sub = max(1, math.ceil(4.0 * step / range_sigma_m))
+    width = step / sub
+    pad = math.ceil(PULSE_SIGMAS * range_sigma_m / width)
+    return sub, width, pad, 2 * pad + (samples - 1) * sub + 2
+
+
+def waveform_kernels(pulse_sigma_s: float, dt_s: float, samples: int) -> list:
+    """The kernel :func:`cloud_waveforms` launches for such waveforms and pulses (σ_p = ``pulse_sigma_s`` [s]), none
+    where they need more than MAX_BINS bins (which it refuses), for compiling ahead."""
+    *_, needed = histogram_layout(C * pulse_sigma_s / 2.0, dt_s, samples)
+    return [cloud_waveform_kernel(-(-needed // BIN_STEP) * BIN_STEP)] if needed <= MAX_BINS else []
 
 
 def _launch(kernel, prepared: DeviceCloud, params, pulse_d, centres, origin_bin, out, near, part, block_dim) -> None:

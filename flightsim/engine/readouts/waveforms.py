@@ -289,7 +289,11 @@ class CloudWaveforms:
         hand_over(tracer, segments, kept, rows, counts, consume)
 
     def kernels_needed(self, tracer) -> list:
-        return [*pilot_kernels(tracer), kc.cloud_cells]  # and the module of the cloud's sort (prepare_cloud)
+        from flightsim.engine.cloud_waveforms import waveform_kernels
+
+        det = tracer.instrument.detector  # the cloud's cells and points (prepare_cloud), and its waveforms' kernel
+        return [*pilot_kernels(tracer), kc.cloud_cells,
+                *waveform_kernels(det.pulse_sigma_s(), det.s.sample_interval_s, det.s.samples)]
 
     def _waveforms(self, tracer, t0: np.ndarray, start: np.ndarray, direction: np.ndarray):
         """((m, samples) float32 received power [W], (m, 4) received columns as the deposit kernel's: share of the
