@@ -206,7 +206,7 @@ def _ship(args: argparse.Namespace) -> int:
         (cache,) = [p for p in Path(tmp).iterdir() if p.is_dir()]  # Warp's version folder
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
-    print(f"{modules} prebuilt kernel modules of every built-in instrument, three over the forest, GEDI over a point "
+    print(f"{modules} prebuilt kernel modules of every built-in instrument, four over the forest, GEDI over a point "
           f"cloud and a sweep (CPU and "
           f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
