@@ -24,8 +24,9 @@ PREBUILT_RUNS = (tuple((name, None, "product") for name in PRESETS)
                  + (("gedi", "cloud", "product"), ("risley", None, "statistics")))
 """(instrument, scene, readout) of each run whose kernels ship prebuilt (:mod:`flightsim.core.prebuilt`): every
 built-in instrument over its own scene (None) writing its product, the discrete (airborne and terrestrial), waveform
-and photon detectors over the procedural forest (and so over a point cloud's leaves), GEDI over an ALS point cloud ("cloud": a small synthetic one, :func:`flightsim.cli.
-prebuilt_scene_flags`), and a sweep's configuration (the statistics readout: `flightsim sweep`, `flightsim paper`)."""
+and photon detectors over the procedural forest (and so over a point cloud's leaves), GEDI over an ALS point cloud
+("cloud": a small synthetic one, :func:`flightsim.cli.prebuilt_scene_flags`), and a sweep's configuration (the
+statistics readout: `flightsim sweep`, `flightsim paper`)."""
 SELECTORS = {"scene": ("name",), "flight": ("platform",)}  # applied before the other settings of their table
 
 
