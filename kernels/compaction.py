@@ -47,6 +47,13 @@ def gather_returns(index: wp.array(dtype=wp.int32), src: wp.array(dtype=Any), ds
     dst[j] = src[index[j]]
 
 
+# The overloads a points readout gathers (float32 ranges, angles and cosines; int32 faces and return numbers; vec3f
+# points) made with the module: an overload a first launch makes changes the module, which Warp then hashes, compiles
+# and loads again mid-run (three versions of this module in a fresh kernel cache, none of them the prebuilt one)
+for _dtype in (wp.float32, wp.int32, wp.vec3f):
+    wp.overload(gather_returns, {"src": wp.array(dtype=_dtype), "dst": wp.array(dtype=_dtype)})
+
+
 @wp.func
 def _returns_before(counts: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32), n_beams: int, b: int) -> int:
     """The number of returns of the beams before beam ``b`` (0 ≤ b ≤ n_beams)."""

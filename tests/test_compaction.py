@@ -1,6 +1,9 @@
 """A chunk's returns compacted on the device (``kernels.compaction``, ``PointBuffers.compact_index``): each beam's
 returning slots counted, the returning slots listed in slot order, gathered, and counted per flight line, against
 NumPy's ``flatnonzero`` of the same statuses, with ``per_beam`` slots a beam (1: one return a beam; 3: a canopy's)."""
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import warp as wp
@@ -74,3 +77,31 @@ def test_returns_are_added_to_their_segments_lines(device, per_beam):
     for a, b, line in zip(starts[:-1], starts[1:], lines):
         expected[line] += returned[a:b].sum()
     np.testing.assert_array_equal(per_line.numpy(), expected)
+
+
+FRESH_GATHERS = """
+import numpy as np, warp as wp
+from flightsim.core.warp_runtime import compile_ahead
+from kernels import compaction
+compile_ahead("cpu", [compaction.gather_returns])  # the module loaded as a run loads it, before its first gather
+changed = []
+mark = wp.Module.mark_modified
+wp.Module.mark_modified = lambda self, *a, **k: changed.append(self.name) or mark(self, *a, **k)
+index = wp.array([4, 0, 2], dtype=wp.int32, device="cpu")
+ok = []
+for dtype, values in ((wp.float32, np.arange(5, dtype=np.float32) + 0.5), (wp.int32, np.arange(5, dtype=np.int32) * 3),
+                      (wp.vec3f, np.arange(15, dtype=np.float32).reshape(5, 3))):
+    src, dst = wp.array(values, dtype=dtype, device="cpu"), wp.zeros(3, dtype=dtype, device="cpu")
+    wp.launch(compaction.gather_returns, 3, inputs=[index, src], outputs=[dst], device="cpu")
+    ok.append(bool(np.array_equal(dst.numpy(), values[[4, 0, 2]])))
+print(ok, sorted(set(changed)))
+"""
+
+
+def test_the_gathers_of_a_points_readout_change_no_module():
+    """A points readout gathers float32, int32 and vec3f columns with one generic kernel: its overloads are made with
+    the module, so that the first gather of each kind does not change the module (which Warp would then compile and
+    load again mid-run, and which another thread's launch could find half made). In a fresh process, the module
+    loaded first: the right rows, no module changed."""
+    out = subprocess.run([sys.executable, "-c", FRESH_GATHERS], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "[True, True, True] []", out.stdout + out.stderr
