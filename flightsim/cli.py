@@ -160,12 +160,18 @@ def cmd_compile(args: argparse.Namespace) -> int:
         args.instrument = name
         configs.append(build_config(args))
     from flightsim.engine.run import compile_kernels
+    from flightsim.studies.budget_catalog import compile_budget
     from flightsim.studies.sweep import compile_configuration
 
     if args.cuda_arch and any(cfg.run.device != "cpu" for cfg in configs):
         raise InputError("--cuda-arch", args.cuda_arch, "a compile on the CPU (--device cpu)")
+    if args.sweep and args.budget:
+        raise InputError("--budget", "with --sweep", "one of --sweep, --budget")
     started = time.perf_counter()
-    modules = sum(map(compile_configuration, configs)) if args.sweep else compile_kernels(configs)
+    if args.budget:
+        modules = max(compile_budget(name, cfg.run.device) for name, cfg in zip(names, configs))
+    else:
+        modules = sum(map(compile_configuration, configs)) if args.sweep else compile_kernels(configs)
     import warp as wp
 
     if args.cuda_arch:
@@ -201,16 +207,19 @@ def _ship(args: argparse.Namespace) -> int:
         for name, scene, readout in PREBUILT_RUNS:
             command = [sys.executable, "-m", "flightsim", "compile", "--device", "cpu", "--instrument", name,
                        *prebuilt_scene_flags(scene, Path(scenes)),
-                       *(["--sweep"] if readout == "statistics" else []), *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
+                       *READOUT_FLAGS[readout], *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
             subprocess.run(command, env=env, check=True, capture_output=True)
         (cache,) = [p for p in Path(tmp).iterdir() if p.is_dir()]  # Warp's version folder
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
     print(f"{modules} prebuilt kernel modules of every built-in instrument, four over the forest, GEDI over a point "
-          f"cloud and a sweep (CPU and "
+          f"cloud, a sweep and two budgets (CPU and "
           f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
+
+
+READOUT_FLAGS = {"product": [], "statistics": ["--sweep"], "budget": ["--budget"]}  # `flightsim compile`'s, per readout
 
 
 def prebuilt_scene_flags(scene: str | None, folder: Path) -> list[str]:
@@ -384,6 +393,8 @@ def _add_run_commands(sub) -> None:
                            "cache to copy to a GPU machine; repeatable)")
     comp.add_argument("--sweep", action="store_true", help="the kernels a sweep (statistics mode: `flightsim sweep`, "
                                                            "`flightsim paper`) of the same flags would launch instead")
+    comp.add_argument("--budget", action="store_true", help="the kernels `flightsim budget` of the instrument (change3, "
+                                                            "risley, ...) launches instead (a budget run of two draws)")
     comp.add_argument("--ship", action="store_true", help="with --all: remake flightsim's prebuilt kernels (CPU and "
                                                           "sm_90, on any machine) rather than fill the kernel cache")
     comp.set_defaults(func=cmd_compile)

@@ -49,7 +49,15 @@ if readout == "statistics":  # a sweep as `flightsim sweep` runs it: the first c
     run_configuration(labels, cfg, SceneCache([cfg, *(c for _, c in others)]))
 else:
     cfg = build_config(make_parser().parse_args(["compile", "--device", "cpu", "--instrument", *flags]))
-    compile_kernels([cfg])
+    if readout == "budget":  # `flightsim budget` of the instrument, as it runs (two draws)
+        import tempfile
+        from pathlib import Path
+        from flightsim.studies.budget_catalog import run_any
+
+        with tempfile.TemporaryDirectory() as tmp:
+            run_any(flags[0], Path(tmp), "cpu", draws=2)
+    else:
+        compile_kernels([cfg])
 gpu_only = scene_part(cfg.scene).build_kernels("cuda")  # what the scene builds with on a GPU (a forest's voxels)
 compile_ahead("cpu", gpu_only)
 loaded = prebuilt.loaded_on_cpu()
@@ -59,10 +67,11 @@ print(json.dumps({"loaded": len(loaded), "gpu_only": len(gpu_only), "missing": p
 
 
 @pytest.mark.parametrize("instrument, scene, readout", PREBUILT_RUNS,
-                         ids=[f"{n}-{s or 'own'}{'-sweep' if r == 'statistics' else ''}" for n, s, r in PREBUILT_RUNS])
+                         ids=[f"{n}-{s or 'own'}{'' if r == 'product' else '-' + r}" for n, s, r in PREBUILT_RUNS])
 def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument, scene, readout):
     """A run of the instrument (over its own scene, the procedural forest or a point cloud) in a process of its own
-    (as `flightsim simulate` runs it; the statistics readout as `flightsim sweep` flies a configuration) finds every
+    (as `flightsim simulate` runs it; the statistics readout as `flightsim sweep` flies a configuration; a budget as
+    `flightsim budget` runs it) finds every
     module it loads prebuilt, for the CPU and for sm_90 (a forest's also the voxel kernel a GPU run builds its scene
     with), and compiles nothing. A kernel changed without remaking the prebuilt set fails here: run ``flightsim compile --all
     --ship``."""

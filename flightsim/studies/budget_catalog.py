@@ -59,3 +59,16 @@ def run_any(name: str, out: Path, device: str = "cpu", draws: int | None = None,
     if name == "change3":
         return run_budget(out, device=device, draws=draws or 200, columns=columns, seed=seed)
     raise InputError("--instrument", name, "change3, risley, " + ", ".join(INSTRUMENTS))
+
+
+def compile_budget(name: str, device: str = "cpu") -> int:
+    """Compile into Warp's kernel cache (or load from it) the kernels `flightsim budget --instrument` ``name`` launches
+    (``flightsim compile --budget``): the budget run once with two draws in a scratch directory, whose kernels are a
+    full run's (they depend on its error sources, not on its draws); returns the modules loaded."""
+    import tempfile
+
+    import warp as wp
+
+    with tempfile.TemporaryDirectory() as tmp:
+        run_any(name, Path(tmp), device, draws=2)
+    return sum(1 for module in wp._src.context.user_modules.values() if module.execs)
