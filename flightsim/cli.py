@@ -165,11 +165,17 @@ def cmd_compile(args: argparse.Namespace) -> int:
 
     if args.cuda_arch and any(cfg.run.device != "cpu" for cfg in configs):
         raise InputError("--cuda-arch", args.cuda_arch, "a compile on the CPU (--device cpu)")
-    if args.sweep and args.budget:
-        raise InputError("--budget", "with --sweep", "one of --sweep, --budget")
+    if args.sweep + args.budget + args.study > 1:
+        raise InputError("--sweep/--budget/--study", "more than one", "one of --sweep, --budget, --study")
+    if args.study and names != ["spad"]:
+        raise InputError("--study", f"with --instrument {','.join(names)}",
+                         "--instrument spad (the SPAD paper's study)")
     started = time.perf_counter()
-    if args.budget:
-        modules = max(compile_budget(name, cfg.run.device) for name, cfg in zip(names, configs))
+    if args.budget or args.study:
+        from flightsim.studies.spad import compile_study
+
+        modules = max(compile_budget(name, cfg.run.device) if args.budget else compile_study(cfg.run.device)
+                      for name, cfg in zip(names, configs))
     else:
         modules = sum(map(compile_configuration, configs)) if args.sweep else compile_kernels(configs)
     import warp as wp
@@ -213,13 +219,13 @@ def _ship(args: argparse.Namespace) -> int:
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
     print(f"{modules} prebuilt kernel modules of every built-in instrument, four over the forest, GEDI over a point "
-          f"cloud, a sweep and two budgets (CPU and "
+          f"cloud, a sweep, two budgets and the SPAD study (CPU and "
           f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
 
 
-READOUT_FLAGS = {"product": [], "statistics": ["--sweep"], "budget": ["--budget"]}  # `flightsim compile`'s, per readout
+READOUT_FLAGS = {"product": [], "statistics": ["--sweep"], "budget": ["--budget"], "study": ["--study"]}  # compile's
 
 
 def prebuilt_scene_flags(scene: str | None, folder: Path) -> list[str]:
@@ -395,6 +401,8 @@ def _add_run_commands(sub) -> None:
                                                            "`flightsim paper`) of the same flags would launch instead")
     comp.add_argument("--budget", action="store_true", help="the kernels `flightsim budget` of the instrument (change3, "
                                                             "risley, ...) launches instead (a budget run of two draws)")
+    comp.add_argument("--study", action="store_true", help="with --instrument spad: the kernels `flightsim spad` "
+                                                           "(the SPAD paper's study) launches instead")
     comp.add_argument("--ship", action="store_true", help="with --all: remake flightsim's prebuilt kernels (CPU and "
                                                           "sm_90, on any machine) rather than fill the kernel cache")
     comp.set_defaults(func=cmd_compile)

@@ -91,6 +91,11 @@ def compile_ahead(device: str, kernels) -> None:
 _PINNED: dict[tuple[str, type], wp.array] = {}
 
 
+def loaded_modules() -> int:
+    """How many Warp modules this process has loaded, on any device."""
+    return sum(1 for module in wp._src.context.user_modules.values() if module.execs)
+
+
 def host_array(a: wp.array) -> np.ndarray:
     """``a`` (contiguous) on the host as an array of the caller's own: on the CPU a copy of the device memory
     (which a reused buffer's next use overwrites), from a GPU through :func:`copy_into` (``wp.array.numpy``

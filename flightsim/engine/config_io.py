@@ -22,12 +22,13 @@ PRESETS = ("risley", "change3", "spad", "change1", "atlas", "gedi", "vz2000")
 PREBUILT_RUNS = (tuple((name, None, "product") for name in PRESETS)
                  + tuple((name, "forest", "product") for name in ("risley", "gedi", "atlas", "vz2000"))
                  + (("gedi", "cloud", "product"), ("risley", None, "statistics"), ("change3", None, "budget"),
-                    ("risley", None, "budget")))
+                    ("risley", None, "budget"), ("spad", None, "study")))
 """(instrument, scene, readout) of each run whose kernels ship prebuilt (:mod:`flightsim.core.prebuilt`): every
 built-in instrument over its own scene (None) writing its product, the discrete (airborne and terrestrial), waveform
 and photon detectors over the procedural forest (and so over a point cloud's leaves), GEDI over an ALS point cloud
 ("cloud": a small synthetic one, :func:`flightsim.cli.prebuilt_scene_flags`), a sweep's configuration (the
-statistics readout: `flightsim sweep`, `flightsim paper`), and the seed papers' error budgets (`flightsim budget`)."""
+statistics readout: `flightsim sweep`, `flightsim paper`), the seed papers' error budgets (`flightsim budget`) and the
+SPAD paper's study (`flightsim spad`)."""
 SELECTORS = {"scene": ("name",), "flight": ("platform",)}  # applied before the other settings of their table
 
 

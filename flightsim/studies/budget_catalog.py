@@ -67,8 +67,8 @@ def compile_budget(name: str, device: str = "cpu") -> int:
     full run's (they depend on its error sources, not on its draws); returns the modules loaded."""
     import tempfile
 
-    import warp as wp
+    from flightsim.core.warp_runtime import loaded_modules
 
     with tempfile.TemporaryDirectory() as tmp:
         run_any(name, Path(tmp), device, draws=2)
-    return sum(1 for module in wp._src.context.user_modules.values() if module.execs)
+    return loaded_modules()

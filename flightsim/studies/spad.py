@@ -190,6 +190,19 @@ def energy_for(photons_per_shot: float, cfg: RunConfig) -> float:
     return photons_per_shot / per_joule
 
 
+def compile_study(device: str = "cpu") -> int:
+    """Compile into Warp's kernel cache (or load from it) the kernels `flightsim spad` launches (``flightsim compile
+    --instrument spad --study``): the study run once with 100 pulses a frame in a scratch directory, whose kernels are
+    a full study's; returns the modules loaded."""
+    import tempfile
+
+    from flightsim.core.warp_runtime import loaded_modules
+
+    with tempfile.TemporaryDirectory() as tmp:
+        run_spad(Path(tmp), device, pulses=100)
+    return loaded_modules()
+
+
 def run_spad(out: Path, device: str = "cpu", pulses: int | None = None) -> dict:
     """All experiments into ``out``: spad.json and REPORT.md (``pulses`` limits each frame, for tests)."""
     out.mkdir(parents=True, exist_ok=True)
