@@ -219,7 +219,7 @@ def _ship(args: argparse.Namespace) -> int:
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
     print(f"{modules} prebuilt kernel modules of every built-in instrument, four over the forest, GEDI over a point "
-          f"cloud, a sweep, two budgets and the SPAD study (CPU and "
+          f"cloud, a sweep, the SPAD study and four budgets (CPU and "
           f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
