@@ -64,6 +64,24 @@ def test_first_photon_pile_up_bias_matches_its_integral(n):
     assert (d.counts > 0).mean() == pytest.approx(1 - math.exp(-n), abs=4 * math.sqrt(0.25 / SLOTS))
 
 
+def test_first_photon_bias_is_the_trapezoid_rule_bit_for_bit():
+    """The pile-up bias of an array of strengths at once: each value the bits of NumPy's trapezoid rule over the same
+    nodes, written out here as its formula reads (the calibration's pins and atl03.h5's table rest on them)."""
+    from scipy.special import ndtr
+
+    def plain(n, sigma_s):
+        z = np.linspace(-10.0, 10.0, 200_001)
+        density = n * (np.exp(-z**2 / 2.0) / np.sqrt(2.0 * np.pi)) * np.exp(-n * ndtr(z))
+        return float(np.trapezoid(z * density, z) / np.trapezoid(density, z)) * sigma_s
+
+    n = np.concatenate([np.random.default_rng(5).uniform(0.0, 40.0, 40), [1e-9, 0.1, 16.0, 900.0]]).reshape(4, 11)
+    got = first_photon_bias_s(n, 1.3e-10)
+    assert got.shape == (4, 11)
+    assert np.array_equal(got, [[plain(k, 1.3e-10) for k in row] for row in n])
+    assert isinstance(first_photon_bias_s(2.0, 1.3e-10), float)
+    assert first_photon_bias_s(2.0, 1.3e-10) == plain(2.0, 1.3e-10)
+
+
 def test_dead_time_saturation_matches_the_closed_form():
     """Background only, rate r over a gate T, non-paralyzable dead time τ, live at the gate's opening:
     the k-th detection comes at (k − 1)τ + Gamma(k, r), so E[N] = Σ_k P(k, r (T − (k − 1)τ))."""

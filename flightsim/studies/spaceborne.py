@@ -209,15 +209,16 @@ def pile_up_corrected_range_bias(track: Track, shot, range_m, field: CcrField, i
     from flightsim.instrument.photon import first_photon_bias_s, sigma_t
 
     spread = sigma_t(cfg.photon)
-    residuals = []
+    measured, geometric, n = [], [], []
     for t in identification.tracks:
         shots = np.asarray(shot)[t.photons]
         ccr = np.broadcast_to(field.positions_m[t.ccr], (len(shots), 3))
-        geometric = np.linalg.norm(ccr - track.position(shots), axis=1)
-        n = energy * cfg.scene.ccr_photons * np.exp(-2.0 * footprint_offset(track, shots, ccr, pointing) ** 2 / radius_m ** 2)
-        early = np.array([first_photon_bias_s(float(k), spread) for k in n]) * (299_792_458.0 / 2.0)
-        residuals.append(np.asarray(range_m)[t.photons] - early - geometric)
-    r = np.concatenate(residuals)
+        measured.append(np.asarray(range_m)[t.photons])
+        geometric.append(np.linalg.norm(ccr - track.position(shots), axis=1))
+        n.append(energy * cfg.scene.ccr_photons
+                 * np.exp(-2.0 * footprint_offset(track, shots, ccr, pointing) ** 2 / radius_m ** 2))
+    early = first_photon_bias_s(np.concatenate(n), spread) * (299_792_458.0 / 2.0)  # every track's at once
+    r = np.concatenate(measured) - early - np.concatenate(geometric)
     return float(r.mean()), float(r.std(ddof=1) / math.sqrt(r.size))
 
 

@@ -178,7 +178,7 @@ def atl03_granule(cfg, emitter):
     return Granule(beam_names=getattr(emitter, "beam_names", None), sc_orient=getattr(emitter, "sc_orient", 0),
                    gate_s=2.0 * (p.gate_m[1] - p.gate_m[0]) / 299_792_458.0, sigma_t_s=spread,
                    dead_time_s=p.dead_time_s, fpb_strength=strength,
-                   fpb_bias_s=tuple(first_photon_bias_s(n, spread) for n in strength))
+                   fpb_bias_s=tuple(first_photon_bias_s(strength, spread).tolist()))
 
 
 def ground_tracks(f) -> list[str]:
