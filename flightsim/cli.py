@@ -167,14 +167,12 @@ def cmd_compile(args: argparse.Namespace) -> int:
         raise InputError("--cuda-arch", args.cuda_arch, "a compile on the CPU (--device cpu)")
     if args.sweep + args.budget + args.study > 1:
         raise InputError("--sweep/--budget/--study", "more than one", "one of --sweep, --budget, --study")
-    if args.study and names != ["spad"]:
+    if args.study and (len(names) > 1 or names[0] not in STUDIES):
         raise InputError("--study", f"with --instrument {','.join(names)}",
-                         "--instrument spad (the SPAD paper's study)")
+                         "--instrument spad or atlas (the SPAD paper's study, the corner-cube calibration)")
     started = time.perf_counter()
     if args.budget or args.study:
-        from flightsim.studies.spad import compile_study
-
-        modules = max(compile_budget(name, cfg.run.device) if args.budget else compile_study(cfg.run.device)
+        modules = max(compile_budget(name, cfg.run.device) if args.budget else study_compiler(name)(cfg.run.device)
                       for name, cfg in zip(names, configs))
     else:
         modules = sum(map(compile_configuration, configs)) if args.sweep else compile_kernels(configs)
@@ -219,13 +217,25 @@ def _ship(args: argparse.Namespace) -> int:
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
     print(f"{modules} prebuilt kernel modules of every built-in instrument, four over the forest, GEDI over a point "
-          f"cloud, a sweep, the SPAD study and four budgets (CPU and "
+          f"cloud, a sweep, the SPAD study, the corner-cube calibration and four budgets (CPU and "
           f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
 
 
 READOUT_FLAGS = {"product": [], "statistics": ["--sweep"], "budget": ["--budget"], "study": ["--study"]}  # compile's
+STUDIES = {"spad": "flightsim.studies.spad:compile_study", "atlas": "flightsim.studies.spaceborne:compile_calibration"}
+"""`flightsim compile --study`'s instruments and what compiles their study's kernels: `flightsim spad` (the SPAD
+paper's study), `flightsim calibrate` (the corner-cube patent's calibration of the spaceborne altimeter)."""
+
+
+def study_compiler(instrument: str):
+    """The function of :data:`STUDIES` that runs ``instrument``'s study once, small, on a device; it returns the
+    modules it loaded."""
+    import importlib
+
+    module, name = STUDIES[instrument].split(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def prebuilt_scene_flags(scene: str | None, folder: Path) -> list[str]:
@@ -401,8 +411,8 @@ def _add_run_commands(sub) -> None:
                                                            "`flightsim paper`) of the same flags would launch instead")
     comp.add_argument("--budget", action="store_true", help="the kernels `flightsim budget` of the instrument (change3, "
                                                             "risley, ...) launches instead (a budget run of two draws)")
-    comp.add_argument("--study", action="store_true", help="with --instrument spad: the kernels `flightsim spad` "
-                                                           "(the SPAD paper's study) launches instead")
+    comp.add_argument("--study", action="store_true", help="with --instrument spad or atlas: the kernels of its study "
+                                                           "instead (`flightsim spad`, `flightsim calibrate`)")
     comp.add_argument("--ship", action="store_true", help="with --all: remake flightsim's prebuilt kernels (CPU and "
                                                           "sm_90, on any machine) rather than fill the kernel cache")
     comp.set_defaults(func=cmd_compile)

@@ -49,14 +49,17 @@ if readout == "statistics":  # a sweep as `flightsim sweep` runs it: the first c
     run_configuration(labels, cfg, SceneCache([cfg, *(c for _, c in others)]))
 else:
     cfg = build_config(make_parser().parse_args(["compile", "--device", "cpu", "--instrument", *flags]))
-    if readout in ("budget", "study"):  # `flightsim budget` (two draws), `flightsim spad` (100 pulses a frame)
+    if readout == "budget":  # `flightsim budget` with two draws
         import tempfile
         from pathlib import Path
         from flightsim.studies.budget_catalog import run_any
-        from flightsim.studies.spad import run_spad
 
         with tempfile.TemporaryDirectory() as tmp:
-            run_any(flags[0], Path(tmp), "cpu", draws=2) if readout == "budget" else run_spad(Path(tmp), "cpu", 100)
+            run_any(flags[0], Path(tmp), "cpu", draws=2)
+    elif readout == "study":  # `flightsim spad` (100 pulses a frame), `flightsim calibrate` (a pass on each platform)
+        from flightsim.cli import study_compiler
+
+        study_compiler(flags[0])("cpu")
     else:
         compile_kernels([cfg])
 gpu_only = scene_part(cfg.scene).build_kernels("cuda")  # what the scene builds with on a GPU (a forest's voxels)
@@ -72,7 +75,7 @@ print(json.dumps({"loaded": len(loaded), "gpu_only": len(gpu_only), "missing": p
 def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument, scene, readout):
     """A run of the instrument (over its own scene, the procedural forest or a point cloud) in a process of its own
     (as `flightsim simulate` runs it; the statistics readout as `flightsim sweep` flies a configuration; a budget as
-    `flightsim budget` runs it, the SPAD study as `flightsim spad`) finds every
+    `flightsim budget` runs it, the studies as `flightsim spad` and `flightsim calibrate`) finds every
     module it loads prebuilt, for the CPU and for sm_90 (a forest's also the voxel kernel a GPU run builds its scene
     with), and compiles nothing. A kernel changed without remaking the prebuilt set fails here: run ``flightsim compile --all
     --ship``."""
@@ -113,7 +116,7 @@ def test_seeding_copies_only_what_the_cache_lacks(tmp_path, monkeypatch):
 @pytest.mark.parametrize("flags, field", [(["--instrument", "risley", "--study"], "--study"),
                                           (["--instrument", "change3", "--sweep", "--budget"], "--sweep/--budget")])
 def test_compile_refuses_another_instrument_s_study_or_two_kinds_of_run_at_once(capsys, flags, field):
-    """`flightsim compile --study` is the SPAD paper's study alone; --sweep, --budget and --study exclude each other:
+    """`flightsim compile --study` is SPAD's or ATLAS's study alone; --sweep, --budget and --study exclude each other:
     exit 2 and one line naming the flag, before anything is compiled."""
     assert main(["compile", "--device", "cpu", *flags]) == 2
     line = capsys.readouterr().err.strip().splitlines()

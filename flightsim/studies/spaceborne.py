@@ -262,6 +262,17 @@ def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25
     return numbers
 
 
+def compile_calibration(device: str = "cpu") -> int:
+    """Compile into Warp's kernel cache (or load from it) the kernels `flightsim calibrate` launches (``flightsim
+    compile --instrument atlas --study``): one pass of its sweep on each platform, every beam calibrated, whose kernels
+    are the whole sweep's (its fields and backgrounds are the kernels' inputs); returns the modules loaded."""
+    from flightsim.core.warp_runtime import loaded_modules
+
+    for platform in sorted({platform for _, _, platform in SETTINGS}):
+        simulate_beams(Bias(3.0, -2.0, 0.25), device=device, platform=platform)
+    return loaded_modules()
+
+
 def _row(p: CalibrationPass, triggered: int, background: float, seed: int) -> dict:
     t = p.truth
     lsq, pat = p.least_squares, p.patent.bias
