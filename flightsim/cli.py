@@ -18,6 +18,7 @@ from flightsim.scoring import score
 from flightsim.core.errors import InputError
 from flightsim.core.timeline import mark
 from flightsim.cli_studies import add_study_commands, set_items
+from flightsim.studies.compile_targets import OWN_INSTRUMENT, TARGETS, compile_for
 
 EXIT_INVALID = 2
 
@@ -154,28 +155,20 @@ def cmd_compile(args: argparse.Namespace) -> int:
     ``--ship``, into flightsim's prebuilt kernels instead (:mod:`flightsim.core.prebuilt`)."""
     if args.ship:
         return _ship(args)
-    names = PRESETS if args.all else [args.instrument or "risley"]
-    configs = []
+    target = args.target
+    own = OWN_INSTRUMENT.get(target)
+    if own and (args.all or (args.instrument or own) != own):
+        raise InputError("--instrument", "every built-in one (--all)" if args.all else args.instrument,
+                         f"{own} or nothing with --for {target}")
+    names = PRESETS if args.all else [args.instrument or own or "risley"]
+    configs = {}
     for name in names:
         args.instrument = name
-        configs.append(build_config(args))
-    from flightsim.engine.run import compile_kernels
-    from flightsim.studies.budget_catalog import compile_budget
-    from flightsim.studies.sweep import compile_configuration
-
-    if args.cuda_arch and any(cfg.run.device != "cpu" for cfg in configs):
+        configs[name] = build_config(args)
+    if args.cuda_arch and any(cfg.run.device != "cpu" for cfg in configs.values()):
         raise InputError("--cuda-arch", args.cuda_arch, "a compile on the CPU (--device cpu)")
-    if args.sweep + args.budget + args.study > 1:
-        raise InputError("--sweep/--budget/--study", "more than one", "one of --sweep, --budget, --study")
-    if args.study and (len(names) > 1 or names[0] not in STUDIES):
-        raise InputError("--study", f"with --instrument {','.join(names)}",
-                         "--instrument spad or atlas (the SPAD paper's study, the corner-cube calibration)")
     started = time.perf_counter()
-    if args.budget or args.study:
-        modules = max(compile_budget(name, cfg.run.device) if args.budget else study_compiler(name)(cfg.run.device)
-                      for name, cfg in zip(names, configs))
-    else:
-        modules = sum(map(compile_configuration, configs)) if args.sweep else compile_kernels(configs)
+    modules = compile_for(target, configs)
     import warp as wp
 
     if args.cuda_arch:
@@ -184,7 +177,7 @@ def cmd_compile(args: argparse.Namespace) -> int:
         from flightsim.scenes.build import scene_part
 
         # what the scenes build with on a GPU only (a forest's voxels) joins the modules built for it
-        compile_ahead("cpu", [k for cfg in configs for k in scene_part(cfg.scene).build_kernels("cuda")])
+        compile_ahead("cpu", [k for cfg in configs.values() for k in scene_part(cfg.scene).build_kernels("cuda")])
         for arch in args.cuda_arch:
             build_for_cuda(loaded_on_cpu(), arch)
 
@@ -208,34 +201,19 @@ def _ship(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as scenes:
         env = dict(os.environ, WARP_CACHE_PATH=tmp, FLIGHTSIM_PREBUILT="0")
-        for name, scene, readout in PREBUILT_RUNS:
+        for name, scene, target in PREBUILT_RUNS:
             command = [sys.executable, "-m", "flightsim", "compile", "--device", "cpu", "--instrument", name,
                        *prebuilt_scene_flags(scene, Path(scenes)),
-                       *READOUT_FLAGS[readout], *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
+                       "--for", target, *[f"--cuda-arch={arch}" for arch in CUDA_ARCHS]]
             subprocess.run(command, env=env, check=True, capture_output=True)
         (cache,) = [p for p in Path(tmp).iterdir() if p.is_dir()]  # Warp's version folder
         out = ship(cache)
     modules = sum(1 for p in out.iterdir() if p.is_dir())
     print(f"{modules} prebuilt kernel modules of every built-in instrument, four over the forest, GEDI over a point "
-          f"cloud, a sweep, the SPAD study, the corner-cube calibration and four budgets (CPU and "
+          f"cloud, a sweep, a survey, four budgets and the studies of SPAD, ATLAS and Risley (CPU and "
           f"sm_{', sm_'.join(map(str, CUDA_ARCHS))}) "
           f"in {time.perf_counter() - started:.1f} s: {out}")
     return 0
-
-
-READOUT_FLAGS = {"product": [], "statistics": ["--sweep"], "budget": ["--budget"], "study": ["--study"]}  # compile's
-STUDIES = {"spad": "flightsim.studies.spad:compile_study", "atlas": "flightsim.studies.spaceborne:compile_calibration"}
-"""`flightsim compile --study`'s instruments and what compiles their study's kernels: `flightsim spad` (the SPAD
-paper's study), `flightsim calibrate` (the corner-cube patent's calibration of the spaceborne altimeter)."""
-
-
-def study_compiler(instrument: str):
-    """The function of :data:`STUDIES` that runs ``instrument``'s study once, small, on a device; it returns the
-    modules it loaded."""
-    import importlib
-
-    module, name = STUDIES[instrument].split(":")
-    return getattr(importlib.import_module(module), name)
 
 
 def prebuilt_scene_flags(scene: str | None, folder: Path) -> list[str]:
@@ -407,12 +385,9 @@ def _add_run_commands(sub) -> None:
     comp.add_argument("--cuda-arch", type=int, action="append", metavar="N",
                       help="also build the CPU run's kernels for CUDA sm_N into the kernel cache, without a GPU (a "
                            "cache to copy to a GPU machine; repeatable)")
-    comp.add_argument("--sweep", action="store_true", help="the kernels a sweep (statistics mode: `flightsim sweep`, "
-                                                           "`flightsim paper`) of the same flags would launch instead")
-    comp.add_argument("--budget", action="store_true", help="the kernels `flightsim budget` of the instrument (change3, "
-                                                            "risley, ...) launches instead (a budget run of two draws)")
-    comp.add_argument("--study", action="store_true", help="with --instrument spad or atlas: the kernels of its study "
-                                                           "instead (`flightsim spad`, `flightsim calibrate`)")
+    comp.add_argument("--for", dest="target", choices=TARGETS, default="simulate",
+                      help="the kernels a run of that command with these flags launches: simulate (default; also "
+                           "waveform's), sweep (also paper's), survey, budget, or a study: spad, calibrate, selfcal")
     comp.add_argument("--ship", action="store_true", help="with --all: remake flightsim's prebuilt kernels (CPU and "
                                                           "sm_90, on any machine) rather than fill the kernel cache")
     comp.set_defaults(func=cmd_compile)

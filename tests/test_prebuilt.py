@@ -35,11 +35,10 @@ from flightsim.cli import build_config, make_parser
 
 from flightsim.core import prebuilt
 from flightsim.core.warp_runtime import compile_ahead
-from flightsim.engine.run import compile_kernels
 from flightsim.scenes.build import scene_part
 
-readout, flags = sys.argv[1], sys.argv[2:]
-if readout == "statistics":  # a sweep as `flightsim sweep` runs it: the first configuration of a small grid, flown
+target, flags = sys.argv[1], sys.argv[2:]
+if target == "sweep":  # a sweep as `flightsim sweep` runs it: the first configuration of a small grid, flown
     from flightsim.cli import build_grid
     from flightsim.studies.sweep import SceneCache, run_configuration
 
@@ -47,21 +46,12 @@ if readout == "statistics":  # a sweep as `flightsim sweep` runs it: the first c
                                      "--instrument", *flags, "--out", "-"])
     (labels, cfg), *others = build_grid(args).configurations()
     run_configuration(labels, cfg, SceneCache([cfg, *(c for _, c in others)]))
-else:
+else:  # the rest as the command runs them, small: `flightsim budget` with two draws, a survey of one tile, the
+    # SPAD study with 100 pulses a frame, a calibration pass on each platform, selfcal's quick flight
+    from flightsim.studies.compile_targets import compile_for
+
     cfg = build_config(make_parser().parse_args(["compile", "--device", "cpu", "--instrument", *flags]))
-    if readout == "budget":  # `flightsim budget` with two draws
-        import tempfile
-        from pathlib import Path
-        from flightsim.studies.budget_catalog import run_any
-
-        with tempfile.TemporaryDirectory() as tmp:
-            run_any(flags[0], Path(tmp), "cpu", draws=2)
-    elif readout == "study":  # `flightsim spad` (100 pulses a frame), `flightsim calibrate` (a pass on each platform)
-        from flightsim.cli import study_compiler
-
-        study_compiler(flags[0])("cpu")
-    else:
-        compile_kernels([cfg])
+    compile_for(target, {flags[0]: cfg})
 gpu_only = scene_part(cfg.scene).build_kernels("cuda")  # what the scene builds with on a GPU (a forest's voxels)
 compile_ahead("cpu", gpu_only)
 loaded = prebuilt.loaded_on_cpu()
@@ -70,18 +60,18 @@ print(json.dumps({"loaded": len(loaded), "gpu_only": len(gpu_only), "missing": p
 """
 
 
-@pytest.mark.parametrize("instrument, scene, readout", PREBUILT_RUNS,
-                         ids=[f"{n}-{s or 'own'}{'' if r == 'product' else '-' + r}" for n, s, r in PREBUILT_RUNS])
-def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument, scene, readout):
+@pytest.mark.parametrize("instrument, scene, target", PREBUILT_RUNS,
+                         ids=[f"{n}-{s or 'own'}{'' if t == 'simulate' else '-' + t}" for n, s, t in PREBUILT_RUNS])
+def test_each_built_in_run_is_prebuilt_for_the_cpu_and_sm90(tmp_path, instrument, scene, target):
     """A run of the instrument (over its own scene, the procedural forest or a point cloud) in a process of its own
-    (as `flightsim simulate` runs it; the statistics readout as `flightsim sweep` flies a configuration; a budget as
-    `flightsim budget` runs it, the studies as `flightsim spad` and `flightsim calibrate`) finds every
+    (as `flightsim simulate` runs it; the statistics readout as `flightsim sweep` flies a configuration; a survey, a
+    budget and the studies as `flightsim survey`, `budget`, `spad`, `calibrate` and `selfcal` run them) finds every
     module it loads prebuilt, for the CPU and for sm_90 (a forest's also the voxel kernel a GPU run builds its scene
     with), and compiles nothing. A kernel changed without remaking the prebuilt set fails here: run ``flightsim compile --all
     --ship``."""
     env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "kernels"), FLIGHTSIM_CACHE=str(tmp_path / "scenes"),
                FLIGHTSIM_PREBUILT="1")
-    args = [readout, instrument, *prebuilt_scene_flags(scene, tmp_path / "cloud")]
+    args = [target, instrument, *prebuilt_scene_flags(scene, tmp_path / "cloud")]
     done = subprocess.run([sys.executable, "-c", CHECK, *args], env=env, capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-3000:]
     found = json.loads(done.stdout.strip().splitlines()[-1])
@@ -113,11 +103,11 @@ def test_seeding_copies_only_what_the_cache_lacks(tmp_path, monkeypatch):
     assert prebuilt.seed_kernel_cache(cache) == 0
 
 
-@pytest.mark.parametrize("flags, field", [(["--instrument", "risley", "--study"], "--study"),
-                                          (["--instrument", "change3", "--sweep", "--budget"], "--sweep/--budget")])
-def test_compile_refuses_another_instrument_s_study_or_two_kinds_of_run_at_once(capsys, flags, field):
-    """`flightsim compile --study` is SPAD's or ATLAS's study alone; --sweep, --budget and --study exclude each other:
-    exit 2 and one line naming the flag, before anything is compiled."""
+@pytest.mark.parametrize("flags", [["--instrument", "risley", "--for", "spad"], ["--all", "--for", "calibrate"],
+                                   ["--instrument", "atlas", "--for", "selfcal"]])
+def test_compile_refuses_another_instrument_s_study(capsys, flags):
+    """`flightsim compile --for spad|calibrate|selfcal` compiles that instrument's study alone: another instrument (or
+    every one) exits 2 with one line naming --instrument, before anything is compiled."""
     assert main(["compile", "--device", "cpu", *flags]) == 2
     line = capsys.readouterr().err.strip().splitlines()
-    assert len(line) == 1 and field in line[0] and "expected" in line[0], line
+    assert len(line) == 1 and "--instrument" in line[0] and "expected" in line[0] and "with --for" in line[0], line

@@ -19,18 +19,19 @@ from flightsim.engine.config import RunConfig, copy_config, set_value
 
 PRESET_DIR = Path(__file__).resolve().parent.parent / "instrument" / "presets"
 PRESETS = ("risley", "change3", "spad", "change1", "atlas", "gedi", "vz2000")
-PREBUILT_RUNS = (tuple((name, None, "product") for name in PRESETS)
-                 + tuple((name, "forest", "product") for name in ("risley", "gedi", "atlas", "vz2000"))
-                 + (("gedi", "cloud", "product"), ("risley", None, "statistics"), ("spad", None, "study"),
-                    ("atlas", None, "study"))
+PREBUILT_RUNS = (tuple((name, None, "simulate") for name in PRESETS)
+                 + tuple((name, "forest", "simulate") for name in ("risley", "gedi", "atlas", "vz2000"))
+                 + (("gedi", "cloud", "simulate"), ("risley", None, "sweep"), ("risley", None, "survey"),
+                    ("spad", None, "spad"), ("atlas", None, "calibrate"), ("risley", None, "selfcal"))
                  + tuple((name, None, "budget") for name in ("change3", "risley", "spad", "atlas")))
-"""(instrument, scene, readout) of each run whose kernels ship prebuilt (:mod:`flightsim.core.prebuilt`): every
-built-in instrument over its own scene (None) writing its product, the discrete (airborne and terrestrial), waveform
-and photon detectors over the procedural forest (and so over a point cloud's leaves), GEDI over an ALS point cloud
-("cloud": a small synthetic one, :func:`flightsim.cli.prebuilt_scene_flags`), a sweep's configuration (the
-statistics readout: `flightsim sweep`, `flightsim paper`), the studies of SPAD (`flightsim spad`) and of ATLAS (the
-corner-cube calibration, `flightsim calibrate`) and the error
-budgets that compile kernels of their own (`flightsim budget`; change1's are its product's)."""
+"""(instrument, scene, command) of each run whose kernels ship prebuilt (:mod:`flightsim.core.prebuilt`;
+``flightsim compile --for`` the command, :mod:`flightsim.studies.compile_targets`): every built-in instrument over
+its own scene (None) writing its product, the discrete (airborne and terrestrial), waveform and photon detectors over
+the procedural forest (and so over a point cloud's leaves), GEDI over an ALS point cloud ("cloud": a small synthetic
+one, :func:`flightsim.cli.prebuilt_scene_flags`), a sweep's configuration (`flightsim sweep`, `flightsim paper`), a
+survey's tasks, the studies of SPAD (`flightsim spad`), ATLAS (the corner-cube calibration, `flightsim calibrate`) and
+Risley (its self-calibration, `flightsim selfcal`) and the error budgets that compile kernels of their own (`flightsim
+budget`; change1's are its product's)."""
 SELECTORS = {"scene": ("name",), "flight": ("platform",)}  # applied before the other settings of their table
 
 

@@ -63,7 +63,7 @@ def run_any(name: str, out: Path, device: str = "cpu", draws: int | None = None,
 
 def compile_budget(name: str, device: str = "cpu") -> int:
     """Compile into Warp's kernel cache (or load from it) the kernels `flightsim budget --instrument` ``name`` launches
-    (``flightsim compile --budget``): the budget run once with two draws in a scratch directory, whose kernels are a
+    (``flightsim compile --for budget``): the budget run once with two draws in a scratch directory, whose kernels are a
     full run's (they depend on its error sources, not on its draws); returns the modules loaded."""
     import tempfile
 

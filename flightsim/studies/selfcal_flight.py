@@ -223,3 +223,14 @@ def solver_subset(obs: Observations, max_points: int = 40_000, per_segment: int 
     if len(chosen) > max_points:
         chosen = chosen[np.argsort(priority[chosen], kind="stable")[:max_points]]
     return obs.subset(np.sort(chosen))
+
+
+def compile_selfcal(device: str = "cpu") -> int:
+    """Compile into Warp's kernel cache (or load from it) the kernels `flightsim selfcal` launches (``flightsim compile
+    --for selfcal``): the flight of its quick configuration (3×3 at 1 km) traced once, whose kernels are every
+    configuration's; the calibration's own fan tracing is the Risley instrument's (prebuilt with it); returns the
+    modules loaded."""
+    from flightsim.core.warp_runtime import loaded_modules
+
+    fly(flight_config(1000.0, 3, device))
+    return loaded_modules()

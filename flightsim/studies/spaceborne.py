@@ -264,7 +264,7 @@ def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25
 
 def compile_calibration(device: str = "cpu") -> int:
     """Compile into Warp's kernel cache (or load from it) the kernels `flightsim calibrate` launches (``flightsim
-    compile --instrument atlas --study``): one pass of its sweep on each platform, every beam calibrated, whose kernels
+    compile --for calibrate``): one pass of its sweep on each platform, every beam calibrated, whose kernels
     are the whole sweep's (its fields and backgrounds are the kernels' inputs); returns the modules loaded."""
     from flightsim.core.warp_runtime import loaded_modules
 

@@ -192,7 +192,7 @@ def energy_for(photons_per_shot: float, cfg: RunConfig) -> float:
 
 def compile_study(device: str = "cpu") -> int:
     """Compile into Warp's kernel cache (or load from it) the kernels `flightsim spad` launches (``flightsim compile
-    --instrument spad --study``): the study run once with 100 pulses a frame in a scratch directory, whose kernels are
+    --for spad``): the study run once with 100 pulses a frame in a scratch directory, whose kernels are
     a full study's; returns the modules loaded."""
     import tempfile
 

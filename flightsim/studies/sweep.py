@@ -156,7 +156,7 @@ def configuration_tracer(cfg: RunConfig, scenes: SceneCache):
 
 def compile_configuration(cfg: RunConfig) -> int:
     """Compile into Warp's kernel cache (or load from it) every kernel a sweep configuration of ``cfg`` launches,
-    without flying it (``flightsim compile --sweep``); returns the modules."""
+    without flying it (``flightsim compile --for sweep``); returns the modules."""
     from flightsim.core.warp_runtime import compile_ahead
     from flightsim.engine.readouts.statistics import Statistics
 
