@@ -93,6 +93,22 @@ def simulate_beams(truth: Bias, min_triggered: int = 16, device: str = "cpu", se
     ones' ÷ pairs.energy_ratio, as their ground echoes). Every beam's track takes each shot's believed laser
     position and its axes turned to the beam's nominal direction. {ground track: CalibrationPass, or the
     InputError of a beam whose calibration found too little}."""
+    radius, emitter, tracks, fields, cfg, (shot, range_m, kind, pixel) = _six_beam_pass(
+        truth, min_triggered, device, seed, background_hz, platform)
+    out = {}
+    for b, name in enumerate(emitter.beam_names):
+        mine = pixel == b
+        try:
+            out[name] = _calibrate(truth, tracks[b], fields[b], shot[mine], range_m[mine], kind[mine], radius, cfg,
+                                   float(emitter.energy_scale()[b]))
+        except InputError as exc:  # the calibration found too little to work with
+            out[name] = exc
+    return out
+
+
+def _six_beam_pass(truth: Bias, min_triggered: int, device: str, seed: int, background_hz: float, platform: str):
+    """simulate_beams' pass flown: (footprint radius [m], the emitter, each beam's track and CCR field, the config,
+    the photons' (shot, range [m], kind, beam))."""
     from flightsim.engine.tracer import Tracer
     from flightsim.engine.world import build_scene, flight_trajectories
 
@@ -106,16 +122,7 @@ def simulate_beams(truth: Bias, min_triggered: int = 16, device: str = "cpu", se
     fields = [_field(t, design) for t in tracks]
     every = CcrField(np.concatenate([f.positions_m for f in fields]), np.concatenate([f.heights_m for f in fields]))
     cfg = pass_config(truth, every, shots, device, seed, background_hz, platform, six=True)
-    shot, range_m, kind, pixel = _photons(cfg, scene)
-    out = {}
-    for b, name in enumerate(emitter.beam_names):
-        mine = pixel == b
-        try:
-            out[name] = _calibrate(truth, tracks[b], fields[b], shot[mine], range_m[mine], kind[mine], radius, cfg,
-                                   float(emitter.energy_scale()[b]))
-        except InputError as exc:  # the calibration found too little to work with
-            out[name] = exc
-    return out
+    return radius, emitter, tracks, fields, cfg, _photons(cfg, scene)
 
 
 def _design(min_triggered: int):
@@ -264,12 +271,12 @@ def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25
 
 def compile_calibration(device: str = "cpu") -> int:
     """Compile into Warp's kernel cache (or load from it) the kernels `flightsim calibrate` launches (``flightsim
-    compile --for calibrate``): one pass of its sweep on each platform, every beam calibrated, whose kernels
-    are the whole sweep's (its fields and backgrounds are the kernels' inputs); returns the modules loaded."""
+    compile --for calibrate``): one pass of its sweep flown on each platform, whose kernels are the whole sweep's (its
+    fields and backgrounds are the kernels' inputs; the calibrations run on the host); returns the modules loaded."""
     from flightsim.core.warp_runtime import loaded_modules
 
     for platform in sorted({platform for _, _, platform in SETTINGS}):
-        simulate_beams(Bias(3.0, -2.0, 0.25), device=device, platform=platform)
+        _six_beam_pass(Bias(3.0, -2.0, 0.25), 16, device, 0, 1.0e6, platform)
     return loaded_modules()
 
 
