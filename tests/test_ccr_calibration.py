@@ -25,8 +25,8 @@ import pytest
 from flightsim.calibration import (ARCSEC, Altimeter, Bias, CcrField, Track, calibrate_least_squares,
                                    calibrate_patent, common_tangents, design_field, geolocate, ground_shift_m,
                                    identify_ccr_tracks, measured_range, simulate_pass, theoretical_radius)
-from flightsim.calibration import ccr, ccr_lines, ccr_tracks
-from flightsim.calibration.geolocation import footprint_centre
+from flightsim.calibration import ccr, ccr_likelihood, ccr_lines, ccr_tracks
+from flightsim.calibration.geolocation import footprint_centre, footprint_offset
 from flightsim.core.errors import InputError
 
 C = 299_792_458.0
@@ -179,6 +179,40 @@ def test_identification_finds_each_ccr_track():
     assert np.mean(p.source[labelled] == ident.labels[labelled]) > 0.98
     for t in ident.tracks:
         assert t.height_above_ground_m == pytest.approx(p.field.heights_m[t.ccr], abs=0.1)
+
+
+def test_candidates_are_the_closest_in_height_among_the_matching_ccrs():
+    """Each photon's candidate, by the definition taken photon by photon over every CCR in reach."""
+    p = _pass(16, 1)
+    reach, tol, window = 30.0 + 1.5 * R_TH, 0.4, 150.0
+    height = geolocate(TRACK, p.shot, p.range_m)[:, 2]
+    labels, grounds, _ = ccr_tracks._candidates(TRACK, p.shot, height, p.field, reach, tol, window)
+    along = p.shot * TRACK.spacing_m
+    ccr_along, ccr_across = TRACK.to_track_frame(p.field.positions_m)
+    expected, best = np.full(p.shot.size, -1), np.full(p.shot.size, np.inf)
+    for j in np.flatnonzero(np.abs(ccr_across) <= reach):
+        ground = ccr_tracks._ground_level(height[np.abs(along - ccr_along[j]) <= window])
+        assert grounds[j] == ground
+        for i in np.flatnonzero(np.abs(along - ccr_along[j]) <= reach):
+            m = abs(height[i] - ground - p.field.heights_m[j])
+            if m <= tol and m < best[i]:
+                expected[i], best[i] = j, m
+    assert np.count_nonzero(expected >= 0) > 100
+    np.testing.assert_array_equal(labels, expected)
+
+
+def test_photon_rate_recomputes_the_offsets_when_the_pointing_moves():
+    """The likelihood's rate keeps footprint offsets per pointing: a sequence of parameters that
+    returns to an earlier pointing with another radius gives, every time, the rate of its own x."""
+    p = _pass(16, 0)
+    shots = np.arange(0, 2000, 7)
+    points = p.field.positions_m[np.arange(shots.size) % p.field.positions_m.shape[0]]
+    rate = ccr_likelihood._PhotonRate(TRACK, shots, points)
+    for x in ([0.0, 0.0, 6.5, 2.0, -4.0], [3.0, -2.0, 6.5, 2.0, -4.0], [3.0, -2.0, 7.0, 1.0, -3.0],
+              [0.0, 0.0, 5.0, 2.5, -4.0], [3.0, -2.5, 6.5, 2.0, -4.0], [0.0, 0.0, 6.0, 2.0, -5.0]):
+        r = footprint_offset(TRACK, shots, points, Bias(x[0], x[1]))
+        expected = np.exp(x[3] - 2.0 * (r / x[2]) ** 2) + np.exp(x[4])
+        np.testing.assert_array_equal(rate(np.array(x)), expected)
 
 
 def test_track_length_against_the_footprint_chord():

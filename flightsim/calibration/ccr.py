@@ -46,7 +46,7 @@ from scipy.optimize import least_squares
 from flightsim.calibration.ccr_field import CcrField
 from flightsim.calibration.ccr_lines import Line, Tangents, axial_difference_deg, common_tangents, fit_line
 from flightsim.calibration.ccr_tracks import CcrTrack, Identification, identify_ccr_tracks
-from flightsim.calibration.geolocation import Bias, Track, footprint_centre, geolocate
+from flightsim.calibration.geolocation import Bias, Shots, Track, geolocate, photon_arrays
 from flightsim.core.errors import InputError
 
 RADIUS_STEP_M = 0.1  # step of the footprint radius set [m] (patent ¶9)
@@ -73,16 +73,18 @@ class BiasSolution:
 
 def _gcp_residuals(track, shot, range_m, field, tracks, centroids_en, line, weights):
     """The residual function x ↦ (horizontal (m, 2), vertical (n,)) of :func:`solve_bias`."""
-    mid = np.array([t.mid_shot for t in tracks])
+    mid = Shots(track, [t.mid_shot for t in tracks])
     up = field.positions_m[[t.ccr for t in tracks], 2]
     photons = np.concatenate([t.photons for t in tracks])
+    photon_shot, photon_range = photon_arrays(shot[photons], range_m[photons])
+    photon_shots = Shots(track, photon_shot)
     photon_up = np.concatenate([np.full(t.photons.size, field.positions_m[t.ccr, 2]) for t in tracks])
     axes = np.eye(2) if line is None else np.array([line.direction, line.normal]).T
 
     def residuals(x):
         bias = Bias.from_array(x)
-        en = footprint_centre(track, mid, up, bias)[:, :2] - centroids_en
-        vertical = geolocate(track, shot[photons], range_m[photons], bias)[:, 2] - photon_up
+        en = mid.centre(up, bias)[:, :2] - centroids_en
+        vertical = photon_shots.locate(photon_range, bias)[:, 2] - photon_up
         return (en @ axes) * weights, vertical
 
     return residuals

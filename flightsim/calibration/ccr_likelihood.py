@@ -3,6 +3,7 @@ same CCR photons as the patent's method, by the maximum likelihood of every sear
 photons and of the CCR photons' ranges, with Fisher-information covariances."""
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -11,7 +12,7 @@ from scipy.optimize import least_squares
 
 from flightsim.calibration.ccr_field import CcrField
 from flightsim.calibration.ccr_tracks import Identification
-from flightsim.calibration.geolocation import ARCSEC, Bias, Track, footprint_offset
+from flightsim.calibration.geolocation import ARCSEC, Bias, Shots, Track
 
 
 @dataclass(frozen=True)
@@ -46,10 +47,21 @@ def _detection_trials(shot, identification: Identification):
     return np.concatenate(shots), np.concatenate(ccr), np.concatenate(counts)
 
 
-def _photon_rate(track, shots, points, x):
-    """Mean matching photons per shot λ = N0·exp(−2r²/w²) + λ_b, x = (δa, δc, w, ln N0, ln λ_b)."""
-    r = footprint_offset(track, shots, points, Bias(x[0], x[1]))
-    return np.exp(x[3] - 2.0 * (r / x[2]) ** 2) + np.exp(x[4])
+class _PhotonRate:
+    """Mean matching photons per shot λ = N0·exp(−2r²/w²) + λ_b of x = (δa, δc, w, ln N0, ln λ_b) on fixed
+    (shot, CCR) trials; r, which only (δa, δc) move, kept for the last few pointings (a numerical
+    Jacobian's steps in w, N0 and λ_b reuse the r of its base point)."""
+
+    def __init__(self, track, shots, points):
+        self.shots, self.points = Shots(track, shots), points
+        self._offset = functools.lru_cache(maxsize=4)(self._footprint_offset)
+
+    def _footprint_offset(self, along_arcsec: float, across_arcsec: float) -> np.ndarray:
+        return self.shots.offset(self.points, Bias(along_arcsec, across_arcsec))
+
+    def __call__(self, x) -> np.ndarray:
+        r = self._offset(float(x[0]), float(x[1]))
+        return np.exp(x[3] - 2.0 * (r / x[2]) ** 2) + np.exp(x[4])
 
 
 def _deviance_residuals(lam, counts):
@@ -58,16 +70,16 @@ def _deviance_residuals(lam, counts):
     return np.sign(counts - lam) * np.sqrt(np.maximum(2.0 * (y_log - (counts - lam)), 0.0))
 
 
-def _fisher(track, shots, points, x):
+def _fisher(rate: _PhotonRate, x):
     """Fisher information of x from Poisson counts: Σ (∂λ/∂x)(∂λ/∂x)ᵀ / λ."""
-    jac = np.empty((shots.size, x.size))
+    jac = np.empty((len(rate.points), x.size))
     for i in range(x.size):
         h = 1e-4 * max(1.0, abs(x[i]))
         up, down = x.copy(), x.copy()
         up[i] += h
         down[i] -= h
-        jac[:, i] = (_photon_rate(track, shots, points, up) - _photon_rate(track, shots, points, down)) / (2.0 * h)
-    return jac.T @ (jac / _photon_rate(track, shots, points, x)[:, None])
+        jac[:, i] = (rate(up) - rate(down)) / (2.0 * h)
+    return jac.T @ (jac / rate(x)[:, None])
 
 
 def calibrate_least_squares(track: Track, shot, range_m, field: CcrField, identification: Identification,
@@ -88,10 +100,10 @@ def calibrate_least_squares(track: Track, shot, range_m, field: CcrField, identi
     """
     shot, range_m = np.asarray(shot), np.asarray(range_m, dtype=np.float64)
     shots, ccr, counts = _detection_trials(shot, identification)
-    points = field.positions_m[ccr]
+    rate = _PhotonRate(track, shots, field.positions_m[ccr])
 
     def residuals(x):
-        return _deviance_residuals(_photon_rate(track, shots, points, x), counts)
+        return _deviance_residuals(rate(x), counts)
 
     half = 1.5 * footprint_radius_m / track.altitude_m / ARCSEC
     grid = [np.array([start.along_arcsec, c, footprint_radius_m, 2.0, math.log(0.01)])
@@ -99,7 +111,7 @@ def calibrate_least_squares(track: Track, shot, range_m, field: CcrField, identi
     x0 = min(grid, key=lambda x: float(np.sum(residuals(x) ** 2)))
     fit = least_squares(residuals, x0, bounds=([-np.inf, -np.inf, 0.1 * footprint_radius_m, -5.0, -20.0],
                                                [np.inf, np.inf, 10.0 * footprint_radius_m, 10.0, 2.0]))
-    cov_pointing = np.linalg.inv(_fisher(track, shots, points, fit.x))[:2, :2]
+    cov_pointing = np.linalg.inv(_fisher(rate, fit.x))[:2, :2]
     photons = np.flatnonzero(identification.labels >= 0)
     ccr_points = field.positions_m[identification.labels[photons]]
     dr = range_m[photons] - np.linalg.norm(ccr_points - track.position(shot[photons]), axis=-1)

@@ -63,23 +63,34 @@ def _is_signal(n_run: int, run_shots: int, n_candidates: int, window_shots: int,
     return bool(at_least(n_run, rate * run_shots) < false_alarm)
 
 
+def _near_along(along_sorted, order, centre_m: float, half_m: float) -> np.ndarray:
+    """Indices (ascending) of the photons whose along-track position may lie within half_m of centre_m:
+    a superset (1 m wider) cut from the sorted positions, which the caller tests exactly."""
+    lo, hi = np.searchsorted(along_sorted, [centre_m - half_m - 1.0, centre_m + half_m + 1.0])
+    return np.sort(order[lo:hi])
+
+
 def _candidates(track, shot, height, field, reach, height_tol_m, ground_window_m):
     """Each photon's candidate CCR (closest in height among those matching), each CCR's local
     ground level and searched shot window."""
     along = shot * track.spacing_m
+    order = np.argsort(along, kind="stable")
+    along_sorted = along[order]
     ccr_along, ccr_across = track.to_track_frame(field.positions_m)
     labels, mismatch = np.full(shot.size, -1), np.full(shot.size, np.inf)
     grounds, windows = {}, {}
     for j in np.flatnonzero(np.abs(ccr_across) <= reach):
-        near = np.abs(along - ccr_along[j]) <= ground_window_m
+        idx = _near_along(along_sorted, order, ccr_along[j], max(ground_window_m, reach))
+        distance = np.abs(along[idx] - ccr_along[j])
+        near = distance <= ground_window_m
         if not near.any():
             continue
-        grounds[int(j)] = _ground_level(height[near])
+        grounds[int(j)] = _ground_level(height[idx[near]])
         windows[int(j)] = (math.ceil((ccr_along[j] - reach) / track.spacing_m),
                            math.floor((ccr_along[j] + reach) / track.spacing_m))
-        m = np.abs(height - grounds[j] - field.heights_m[j])
-        take = (np.abs(along - ccr_along[j]) <= reach) & (m <= height_tol_m) & (m < mismatch)
-        labels[take], mismatch[take] = j, m[take]
+        m = np.abs(height[idx] - grounds[j] - field.heights_m[j])
+        hit = (distance <= reach) & (m <= height_tol_m) & (m < mismatch[idx])
+        labels[idx[hit]], mismatch[idx[hit]] = j, m[hit]
     return labels, grounds, windows
 
 

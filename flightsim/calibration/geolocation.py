@@ -137,17 +137,54 @@ def pointing_rotation(bias: Bias) -> np.ndarray:
     return ry @ rx
 
 
+def _shot_axes(track: Track, shot) -> np.ndarray:
+    """Body→ENU rotation of each shot: (3, 3) on a straight track or without shots, (n, 3, 3) the nearest
+    known axes of a curved one."""
+    if track.shot_axes is None or shot is None:
+        return track.axes()
+    k = np.clip(np.rint(np.asarray(shot, dtype=np.float64)).astype(np.int64), 0, len(track.shot_axes) - 1)
+    return track.shot_axes[k]
+
+
 def beam_direction(track: Track, bias: Bias = Bias(), shot=None) -> np.ndarray:
     """Unit pulse vector in ENU: the body-frame nadir +z turned by the pointing bias; (3,) on a straight
     track, (n, 3) for the given shots (nearest) of a curved one."""
-    body = pointing_rotation(bias) @ np.array([0.0, 0.0, 1.0])
-    if track.shot_axes is None or shot is None:
-        return track.axes() @ body
-    k = np.clip(np.rint(np.asarray(shot, dtype=np.float64)).astype(np.int64), 0, len(track.shot_axes) - 1)
-    return track.shot_axes[k] @ body
+    return _shot_axes(track, shot) @ (pointing_rotation(bias) @ np.array([0.0, 0.0, 1.0]))
 
 
-def _photon_arrays(shot, range_m) -> tuple[np.ndarray, np.ndarray]:
+class Shots:
+    """Fixed shots of a track, their laser positions and body axes looked up once: eq. (1) for many
+    biases on the same shots (a least-squares fit's residuals) without repeating the lookups. Each
+    method gives the same bits as the module function of its name."""
+
+    def __init__(self, track: Track, shot):
+        self.shot = np.asarray(shot, dtype=np.float64)
+        self.laser = track.position(self.shot)  # (n, 3) ENU [m]
+        self.axes = _shot_axes(track, self.shot)
+
+    def direction(self, bias: Bias) -> np.ndarray:
+        """Unit pulse vectors in ENU, as :func:`beam_direction`."""
+        return self.axes @ (pointing_rotation(bias) @ np.array([0.0, 0.0, 1.0]))
+
+    def locate(self, range_m, bias: Bias) -> np.ndarray:
+        """Ground positions (n, 3) ENU [m] of one photon per shot, as :func:`geolocate`."""
+        return self.laser + (range_m - bias.range_m)[..., None] * self.direction(bias)
+
+    def centre(self, height_m, bias: Bias) -> np.ndarray:
+        """Footprint centres (n, 3) ENU [m] at the heights [m], as :func:`footprint_centre`."""
+        u = self.direction(bias)
+        t = (np.asarray(height_m, dtype=np.float64) - self.laser[..., 2]) / u[..., 2]
+        return self.laser + t[..., None] * u
+
+    def offset(self, points, bias: Bias) -> np.ndarray:
+        """Horizontal distances [m] of points (n, 3) from the footprint centres, as :func:`footprint_offset`."""
+        p = np.asarray(points, dtype=np.float64)
+        d = p[..., :2] - self.centre(p[..., 2], bias)[..., :2]
+        return np.hypot(d[..., 0], d[..., 1])
+
+
+def photon_arrays(shot, range_m) -> tuple[np.ndarray, np.ndarray]:
+    """Photons' (shot, range [m]) as float64 arrays of one shape, the ranges finite (else InputError)."""
     shot = np.asarray(shot, dtype=np.float64)
     range_m = np.asarray(range_m, dtype=np.float64)
     if shot.shape != range_m.shape:
@@ -166,9 +203,8 @@ def geolocate(track: Track, shot, range_m, bias: Bias = Bias()) -> np.ndarray:
         range_m: measured range of each photon [m].
         bias: the pointing and ranging biases believed (zero: the nominal model).
     """
-    shot, range_m = _photon_arrays(shot, range_m)
-    u = beam_direction(track, bias, shot)
-    return track.position(shot) + (range_m - bias.range_m)[..., None] * u
+    shot, range_m = photon_arrays(shot, range_m)
+    return Shots(track, shot).locate(range_m, bias)
 
 
 def measured_range(track: Track, shot, points, bias: Bias = Bias()) -> np.ndarray:
@@ -180,17 +216,12 @@ def measured_range(track: Track, shot, points, bias: Bias = Bias()) -> np.ndarra
 
 def footprint_centre(track: Track, shot, height_m, bias: Bias = Bias()) -> np.ndarray:
     """Where the beam axis of each shot meets the horizontal plane z = height_m: (n, 3) ENU [m]."""
-    u = beam_direction(track, bias, shot)
-    laser = track.position(shot)
-    t = (np.asarray(height_m, dtype=np.float64) - laser[..., 2]) / u[..., 2]
-    return laser + t[..., None] * u
+    return Shots(track, shot).centre(height_m, bias)
 
 
 def footprint_offset(track: Track, shot, points, bias: Bias = Bias()) -> np.ndarray:
     """Horizontal distance [m] of points (n, 3) ENU from the footprint centre at their height."""
-    p = np.asarray(points, dtype=np.float64)
-    d = p[..., :2] - footprint_centre(track, shot, p[..., 2], bias)[..., :2]
-    return np.hypot(d[..., 0], d[..., 1])
+    return Shots(track, shot).offset(points, bias)
 
 
 def theoretical_radius(range_m: float, divergence_rad: float) -> float:
