@@ -91,6 +91,17 @@ def test_true_parameters_reproduce_the_synthetic_truth():
     assert np.abs(sc.georeference(obs, BELIEVED) - true_points).max() > 0.3  # the errors move points decimetres
 
 
+def test_georeferencer_keeps_the_prism_only_for_its_own_parameters():
+    """One georeferencer over a sequence of parameters (the prism changed, then only the boresight, then back to
+    an earlier prism) gives, each time, what a fresh evaluation of those parameters gives, to the bit."""
+    obs, _ = synthetic(pulses=300)
+    georeferencer = sc.Georeferencer(obs)
+    moved_prism = TRUTH + np.array([1e-3, 2e-4, 0.0, 0.0, 0.0, 0.0])
+    moved_mount = TRUTH + np.array([0.0, 0.0, 0.0, 3e-4, -2e-4, 1e-4])
+    for x in (TRUTH, moved_prism, moved_mount, BELIEVED, TRUTH, moved_prism + moved_mount - TRUTH):
+        np.testing.assert_array_equal(georeferencer(x), sc.georeference(obs, x))
+
+
 def test_noise_free_recovery_is_exact():
     obs, true_points = synthetic()
     cal = sc.calibrate(obs, BELIEVED, loss="linear", stages=1)

@@ -15,6 +15,7 @@ The 1-σ uncertainties come from the Gauss-Newton covariance s² (Jᵀ W J)⁻¹
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -94,17 +95,36 @@ def mount_rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return PoseErrors(PoseSettings(boresight_arcsec=(roll / ARCSEC, pitch / ARCSEC, yaw / ARCSEC))).mount_rotation()
 
 
+class Georeferencer:
+    """The exact model's points of fixed observations for any parameters x = (n, α, δφ, roll, pitch, yaw): the
+    observations' lookups made once, and the fan's rays of each point kept for the last few prisms (n, α, δφ) (a
+    Jacobian's steps in the boresight reuse those of its base point). The same bits as a fresh evaluation."""
+
+    def __init__(self, obs: Observations, device: str = "cpu"):
+        self.obs, self.device = obs, device
+        self.pulses = np.unique(obs.pulse)
+        self.row = np.searchsorted(self.pulses, obs.pulse)
+        self.origin, self.rot = obs.origin[obs.pulse], obs.rot[obs.pulse]
+        self._rays = functools.lru_cache(maxsize=4)(self._trace)
+
+    def _trace(self, n_glass: float, apex: float, encoder: float) -> tuple[np.ndarray, np.ndarray]:
+        """Each point's exit point [m] and unit direction through the prism (n, α, δφ), sensor frame, float64."""
+        obs = self.obs
+        fan = risley_model.trace_fan(obs.phi[self.pulses] + encoder, obs.array, obs.spacing_rad, n_glass, apex,
+                                     obs.thickness_m, precision="float64", device=self.device)
+        return fan.exit_points[self.row, obs.beam], fan.directions[self.row, obs.beam]
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """(m, 3) points [m, local], float64."""
+        exit_points, s3 = self._rays(float(x[0]), float(x[1]), float(x[2]))
+        sensor = exit_points + self.obs.range_m[:, None] * s3
+        sensor = sensor @ mount_rotation(*x[3:6]).T
+        return self.origin + np.einsum("mij,mj->mi", self.rot, sensor)
+
+
 def georeference(obs: Observations, x: np.ndarray, device: str = "cpu") -> np.ndarray:
     """(m, 3) points [m, local] of the exact model with parameters x = (n, α, δφ, roll, pitch, yaw), float64."""
-    n_glass, apex, encoder = float(x[0]), float(x[1]), float(x[2])
-    pulses = np.unique(obs.pulse)
-    fan = risley_model.trace_fan(obs.phi[pulses] + encoder, obs.array, obs.spacing_rad, n_glass, apex,
-                                 obs.thickness_m, precision="float64", device=device)
-    row = np.searchsorted(pulses, obs.pulse)
-    s3 = fan.directions[row, obs.beam]
-    sensor = fan.exit_points[row, obs.beam] + obs.range_m[:, None] * s3
-    sensor = sensor @ mount_rotation(*x[3:6]).T
-    return obs.origin[obs.pulse] + np.einsum("mij,mj->mi", obs.rot[obs.pulse], sensor)
+    return Georeferencer(obs, device)(x)
 
 
 def plane_fits(points: np.ndarray, segment: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -175,6 +195,7 @@ class _Problem:
 
     def __init__(self, obs: Observations, x0: np.ndarray, free: np.ndarray, device: str, step: float = 0.5):
         self.obs, self.x0, self.free, self.device, self.step = obs, np.asarray(x0, float), free, device, step
+        self.georeference = Georeferencer(obs, device)
         self.evaluations = 0
         self._last: tuple[bytes, np.ndarray] | None = None
 
@@ -187,7 +208,7 @@ class _Problem:
         key = np.asarray(u, float).tobytes()
         if self._last is None or self._last[0] != key:
             self.evaluations += 1
-            self._last = (key, plane_residuals(georeference(self.obs, self.x(u), self.device), self.obs.segment))
+            self._last = (key, plane_residuals(self.georeference(self.x(u)), self.obs.segment))
         return self._last[1]
 
     def jac(self, u: np.ndarray) -> np.ndarray:
@@ -197,7 +218,7 @@ class _Problem:
             v = np.array(u, float)
             v[k] += self.step
             self.evaluations += 1
-            f = plane_residuals(georeference(self.obs, self.x(v), self.device), self.obs.segment)
+            f = plane_residuals(self.georeference(self.x(v)), self.obs.segment)
             columns.append((f - f0) / self.step)
         return np.stack(columns, axis=1)
 
