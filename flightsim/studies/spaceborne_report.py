@@ -65,7 +65,7 @@ def report(n: dict) -> str:
     beams = _beam_table(n, default) if default in _settings(n) else "(the default pass was not run)"
     return f"""# Corner-cube calibration of a spaceborne single-photon altimeter, every beam
 
-Regenerate: `{COMMAND}` (device `{n['device']}`; its 30 six-beam passes about a minute on a 2-core CPU).
+Regenerate: `{COMMAND}` (device `{n['device']}`; its 30 six-beam passes about 40 s on a 2-core CPU).
 Seed: `../shared/seeds/corner-cube-single-photon-calibration-patent.txt`. Instrument: the `atlas` preset as ATLAS
 flies it: six beams in three pairs (gt1l … gt3r), 90 m across track within a pair and 3.3 km between pairs, the strong
 beam of each pair (gt1l, gt2l, gt3l: `sc_orient` 0, backward) with 4× the weak one's pulse energy (Neumann et al.
