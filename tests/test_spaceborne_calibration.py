@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 
+import numpy as np
 import pytest
 
 from flightsim.calibration.geolocation import Bias
@@ -76,3 +77,27 @@ def test_every_beam_of_the_six_is_calibrated_strong_and_weak():
     for pair in ("gt1", "gt2", "gt3"):
         strong, weak = ((beams[f"{pair}{side}"].kind == 2).sum() for side in "lr")
         assert weak < 0.7 * strong, (pair, strong, weak)
+
+
+def test_worker_processes_calibrate_the_beams_to_the_same_bits():
+    """The sweep's beams calibrated by worker processes (as `flightsim calibrate` does on more than one core) give
+    what the same calibrations give in this process, bit for bit; a beam whose calibration found too little comes
+    back as its error, whole."""
+    from flightsim.core.errors import InputError
+    from flightsim.core.process_map import ProcessMap, map_rows
+    from flightsim.studies import spaceborne
+
+    names, beams = spaceborne._beam_calibrations(TRUTH, 16, "cpu", 0, 1.0e6, "lines")
+    empty = (*beams[0][:3], beams[0][3][:0], beams[0][4][:0], beams[0][5][:0], *beams[0][6:])  # no photons at all
+    here = map_rows(spaceborne._calibrate_beam, [*beams, empty], None)
+    workers = ProcessMap(2, ("flightsim.studies.spaceborne",))
+    try:
+        there = map_rows(spaceborne._calibrate_beam, [*beams, empty], workers)
+    finally:
+        workers.stop()
+    for name, a, b in zip(names, here, there):
+        assert (a.least_squares.bias, a.patent.bias, a.range_bias_m) == (b.least_squares.bias, b.patent.bias,
+                                                                           b.range_bias_m), name
+        np.testing.assert_array_equal(a.least_squares.covariance, b.least_squares.covariance)
+    assert isinstance(here[-1], InputError) and isinstance(there[-1], InputError)
+    assert (there[-1].field, str(there[-1])) == (here[-1].field, str(here[-1]))

@@ -40,3 +40,7 @@ class TrajectoryError(ValueError):
         self.value = value
         self.allowed = allowed
         super().__init__(f"invalid {field} = {describe_value(value)}: expected {allowed}")
+
+    def __reduce__(self):
+        """Pickled by its three arguments (a worker process's error travels to its parent)."""
+        return type(self), (self.field, self.value, self.allowed)

@@ -20,6 +20,7 @@ from flightsim.calibration.geolocation import Bias, Track, footprint_offset, the
 from flightsim.engine.config import RunConfig, set_value, validate
 from flightsim.engine.config_io import preset_config
 from flightsim.core.errors import InputError
+from flightsim.core.process_map import ProcessMap, map_rows, usable_cores
 from flightsim.instrument.pairs import SINGLE_BEAM
 
 GROUND_SPEED_MPS = 7000.0  # ICESat-2-like
@@ -87,23 +88,34 @@ def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", see
 
 
 def simulate_beams(truth: Bias, min_triggered: int = 16, device: str = "cpu", seed: int = 0,
-                   background_hz: float = 1.0e6, platform: str = "lines") -> dict:
+                   background_hz: float = 1.0e6, platform: str = "lines", workers=None) -> dict:
     """The atlas preset's six beams over six CCR fields, one designed as simulate_pass's under each beam's ground
     track, flown once; each beam calibrated from its own photons (the weak beams' CCR echoes are the strong
     ones' ÷ pairs.energy_ratio, as their ground echoes). Every beam's track takes each shot's believed laser
     position and its axes turned to the beam's nominal direction. {ground track: CalibrationPass, or the
-    InputError of a beam whose calibration found too little}."""
+    InputError of a beam whose calibration found too little}; the beams calibrated by ``workers`` (a
+    :class:`~flightsim.core.process_map.ProcessMap`) where given."""
+    names, beams = _beam_calibrations(truth, min_triggered, device, seed, background_hz, platform)
+    return dict(zip(names, map_rows(_calibrate_beam, beams, workers)))
+
+
+def _beam_calibrations(truth: Bias, min_triggered: int, device: str, seed: int, background_hz: float,
+                       platform: str) -> tuple[tuple[str, ...], list[tuple]]:
+    """simulate_beams' pass flown: its beams' names and each beam's arguments of :func:`_calibrate_beam`."""
     radius, emitter, tracks, fields, cfg, (shot, range_m, kind, pixel) = _six_beam_pass(
         truth, min_triggered, device, seed, background_hz, platform)
-    out = {}
-    for b, name in enumerate(emitter.beam_names):
-        mine = pixel == b
-        try:
-            out[name] = _calibrate(truth, tracks[b], fields[b], shot[mine], range_m[mine], kind[mine], radius, cfg,
-                                   float(emitter.energy_scale()[b]))
-        except InputError as exc:  # the calibration found too little to work with
-            out[name] = exc
-    return out
+    energy = emitter.energy_scale()
+    beams = [(truth, tracks[b], fields[b], shot[pixel == b], range_m[pixel == b], kind[pixel == b], radius, cfg,
+              float(energy[b])) for b in range(len(emitter.beam_names))]
+    return tuple(emitter.beam_names), beams
+
+
+def _calibrate_beam(*arguments) -> "CalibrationPass | InputError":
+    """:func:`_calibrate`, or the InputError of a beam whose calibration found too little (recorded, not fatal)."""
+    try:
+        return _calibrate(*arguments)
+    except InputError as exc:
+        return exc
 
 
 def _six_beam_pass(truth: Bias, min_triggered: int, device: str, seed: int, background_hz: float, platform: str):
@@ -249,24 +261,41 @@ def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     sc_orient = preset_config("atlas").pairs.sc_orient
+    runs = [(triggered, background, platform, seed) for triggered, background, platform in SETTINGS for seed in SEEDS]
+    workers = _calibration_workers()  # they start while the passes are flown
+    try:
+        flown = [_beam_calibrations(truth, t, device, seed, background, platform)
+                 for t, background, platform, seed in runs]
+        calibrated = iter(map_rows(_calibrate_beam, [beam for _, beams in flown for beam in beams], workers))
+    finally:
+        if workers is not None:
+            workers.stop()
     rows = []
-    for triggered, background, platform in SETTINGS:
-        for seed in SEEDS:
-            beams = simulate_beams(truth, triggered, device, seed, background, platform)
-            for beam, p in beams.items():
-                about = {"min_triggered": triggered, "background_hz": background, "platform": platform, "seed": seed,
-                         "beam": beam, "strong": is_strong(beam, sc_orient)}
-                if isinstance(p, InputError):  # recorded, not fatal
-                    rows.append({**about, "failed": str(p)})
-                    continue
-                rows.append({**_row(p, triggered, background, seed), **about})
-                if (triggered, background, seed, platform, beam) == (16, 1.0e6, 0, "lines", "gt2l"):
-                    _figures(p, out)
+    for (triggered, background, platform, seed), (names, _) in zip(runs, flown):
+        for beam, p in zip(names, calibrated):
+            about = {"min_triggered": triggered, "background_hz": background, "platform": platform, "seed": seed,
+                     "beam": beam, "strong": is_strong(beam, sc_orient)}
+            if isinstance(p, InputError):  # recorded, not fatal
+                rows.append({**about, "failed": str(p)})
+                continue
+            rows.append({**_row(p, triggered, background, seed), **about})
+            if (triggered, background, seed, platform, beam) == (16, 1.0e6, 0, "lines", "gt2l"):
+                _figures(p, out)
     numbers = {"device": device, "truth": [truth.along_arcsec, truth.across_arcsec, truth.range_m],
                "one_arcsec_at_500km_m": ground_shift_m(500e3, 1.0), "passes": rows}
     write_atomic(out / "calibration.json", json.dumps(numbers, indent=2) + "\n")
     write_atomic(out / "REPORT.md", report(numbers))
     return numbers
+
+
+CALIBRATION_WORKERS = 16  # the most worker processes calibrating the sweep's beams
+
+
+def _calibration_workers():
+    """Worker processes for the sweep's beam calibrations (host work: its least squares and pile-up integrals), one
+    a core up to CALIBRATION_WORKERS; None on one core."""
+    count = min(usable_cores(), CALIBRATION_WORKERS)
+    return ProcessMap(count, ("flightsim.studies.spaceborne",)) if count > 1 else None
 
 
 def compile_calibration(device: str = "cpu") -> int:
