@@ -87,15 +87,18 @@ def test_worker_processes_calibrate_the_beams_to_the_same_bits():
     from flightsim.core.process_map import ProcessMap, map_rows
     from flightsim.studies import spaceborne
 
-    names, beams = spaceborne._beam_calibrations(TRUTH, 16, "cpu", 0, 1.0e6, "lines")
-    empty = (*beams[0][:3], beams[0][3][:0], beams[0][4][:0], beams[0][5][:0], *beams[0][6:])  # no photons at all
-    here = map_rows(spaceborne._calibrate_beam, [*beams, empty], None)
+    names, beams = spaceborne._fly_beams(TRUTH, 16, "cpu", 0, 1.0e6, "lines")
+    track, field, shot, range_m, *rest = beams[0].arguments()
+    empty = (track, field, shot[:0], range_m[:0], *rest)  # no photons at all
+    chunks = [*(beam.arguments() for beam in beams), empty]
+    here = map_rows(spaceborne._calibrate_beam, chunks, None)
     workers = ProcessMap(2, ("flightsim.studies.spaceborne",))
     try:
-        there = map_rows(spaceborne._calibrate_beam, [*beams, empty], workers)
+        there = map_rows(spaceborne._calibrate_beam, iter(chunks), workers)
     finally:
         workers.stop()
-    for name, a, b in zip(names, here, there):
+    for name, beam, a, b in zip(names, beams, here, there):
+        a, b = beam.calibrated(a), beam.calibrated(b)
         assert (a.least_squares.bias, a.patent.bias, a.range_bias_m) == (b.least_squares.bias, b.patent.bias,
                                                                            b.range_bias_m), name
         np.testing.assert_array_equal(a.least_squares.covariance, b.least_squares.covariance)

@@ -95,25 +95,52 @@ def simulate_beams(truth: Bias, min_triggered: int = 16, device: str = "cpu", se
     position and its axes turned to the beam's nominal direction. {ground track: CalibrationPass, or the
     InputError of a beam whose calibration found too little}; the beams calibrated by ``workers`` (a
     :class:`~flightsim.core.process_map.ProcessMap`) where given."""
-    names, beams = _beam_calibrations(truth, min_triggered, device, seed, background_hz, platform)
-    return dict(zip(names, map_rows(_calibrate_beam, beams, workers)))
+    names, beams = _fly_beams(truth, min_triggered, device, seed, background_hz, platform)
+    results = map_rows(_calibrate_beam, [beam.arguments() for beam in beams], workers)
+    return {name: beam.calibrated(result) for name, beam, result in zip(names, beams, results)}
 
 
-def _beam_calibrations(truth: Bias, min_triggered: int, device: str, seed: int, background_hz: float,
-                       platform: str) -> tuple[tuple[str, ...], list[tuple]]:
-    """simulate_beams' pass flown: its beams' names and each beam's arguments of :func:`_calibrate_beam`."""
+@dataclass
+class _BeamPhotons:
+    """One beam's photons of a flown pass and what its calibration needs."""
+
+    truth: Bias
+    track: Track
+    field: CcrField
+    shot: np.ndarray
+    range_m: np.ndarray  # [m]
+    kind: np.ndarray
+    radius_m: float
+    cfg: RunConfig
+    energy: float
+
+    def arguments(self) -> tuple:
+        """:func:`_calibrate_beam`'s arguments (what a worker process needs: no truth)."""
+        return self.track, self.field, self.shot, self.range_m, self.radius_m, self.cfg, self.energy
+
+    def calibrated(self, result) -> "CalibrationPass | InputError":
+        """The pass of :func:`_calibrate_beam`'s result, or its error."""
+        if isinstance(result, InputError):
+            return result
+        return CalibrationPass(self.truth, self.track, self.field, self.shot, self.range_m, self.kind, *result)
+
+
+def _fly_beams(truth: Bias, min_triggered: int, device: str, seed: int, background_hz: float,
+               platform: str) -> tuple[tuple[str, ...], list[_BeamPhotons]]:
+    """simulate_beams' pass flown: its beams' names and photons."""
     radius, emitter, tracks, fields, cfg, (shot, range_m, kind, pixel) = _six_beam_pass(
         truth, min_triggered, device, seed, background_hz, platform)
     energy = emitter.energy_scale()
-    beams = [(truth, tracks[b], fields[b], shot[pixel == b], range_m[pixel == b], kind[pixel == b], radius, cfg,
-              float(energy[b])) for b in range(len(emitter.beam_names))]
+    beams = [_BeamPhotons(truth, tracks[b], fields[b], shot[pixel == b], range_m[pixel == b], kind[pixel == b], radius,
+                          cfg, float(energy[b])) for b in range(len(emitter.beam_names))]
     return tuple(emitter.beam_names), beams
 
 
-def _calibrate_beam(*arguments) -> "CalibrationPass | InputError":
-    """:func:`_calibrate`, or the InputError of a beam whose calibration found too little (recorded, not fatal)."""
+def _calibrate_beam(*arguments) -> "tuple | InputError":
+    """:func:`_calibrations`, or the InputError of a beam whose calibration found too little (recorded, not
+    fatal): what a worker process sends back, without the photons its parent holds."""
     try:
-        return _calibrate(*arguments)
+        return _calibrations(*arguments)
     except InputError as exc:
         return exc
 
@@ -167,14 +194,20 @@ def _photons(cfg, scene) -> tuple:
 
 def _calibrate(truth: Bias, track: Track, field: CcrField, shot, range_m, kind, radius: float, cfg,
                energy: float) -> CalibrationPass:
+    """The pass of one beam's photons with its calibrations (:func:`_calibrations`)."""
+    return CalibrationPass(truth, track, field, shot, range_m, kind,
+                           *_calibrations(track, field, shot, range_m, radius, cfg, energy))
+
+
+def _calibrations(track: Track, field: CcrField, shot, range_m, radius: float, cfg, energy: float) -> tuple:
     """Both calibrations and the pile-up-corrected ranging bias of one beam's photons (``energy``: the beam's share
-    of the strong beam's pulse energy, scaling its CCR return)."""
+    of the strong beam's pulse energy, scaling its CCR return): (patent, least squares, (bias [m], σ [m]))."""
     patent = calibrate_patent(track, shot, range_m, field, footprint_radius_m=radius)
     lsq = calibrate_least_squares(track, shot, range_m, field, patent.identification, footprint_radius_m=radius,
                                   start=patent.coarse.solution.bias)
     pile_up = pile_up_corrected_range_bias(track, shot, range_m, field, patent.identification, lsq.bias, radius, cfg,
                                            energy)
-    return CalibrationPass(truth, track, field, shot, range_m, kind, patent, lsq, pile_up)
+    return patent, lsq, pile_up
 
 
 def _beam_tracks(sim, shots: int, angles_rad) -> list[Track]:
@@ -262,17 +295,24 @@ def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25
     out.mkdir(parents=True, exist_ok=True)
     sc_orient = preset_config("atlas").pairs.sc_orient
     runs = [(triggered, background, platform, seed) for triggered, background, platform in SETTINGS for seed in SEEDS]
-    workers = _calibration_workers()  # they start while the passes are flown
+    flown = []  # (run, beam names, beams) as the passes are flown: while the workers calibrate the earlier ones
+    workers = _calibration_workers()  # they start while the first passes are flown
+
+    def beams():
+        for run in runs:
+            names, mine = _fly_beams(truth, run[0], device, run[3], run[1], run[2])
+            flown.append((run, names, mine))
+            yield from (beam.arguments() for beam in mine)
+
     try:
-        flown = [_beam_calibrations(truth, t, device, seed, background, platform)
-                 for t, background, platform, seed in runs]
-        calibrated = iter(map_rows(_calibrate_beam, [beam for _, beams in flown for beam in beams], workers))
+        results = iter(map_rows(_calibrate_beam, beams(), workers))
     finally:
         if workers is not None:
             workers.stop()
     rows = []
-    for (triggered, background, platform, seed), (names, _) in zip(runs, flown):
-        for beam, p in zip(names, calibrated):
+    for (triggered, background, platform, seed), names, mine in flown:
+        for beam, photons in zip(names, mine):
+            p = photons.calibrated(next(results))
             about = {"min_triggered": triggered, "background_hz": background, "platform": platform, "seed": seed,
                      "beam": beam, "strong": is_strong(beam, sc_orient)}
             if isinstance(p, InputError):  # recorded, not fatal
