@@ -88,16 +88,14 @@ def simulate_pass(truth: Bias, min_triggered: int = 16, device: str = "cpu", see
 
 
 def simulate_beams(truth: Bias, min_triggered: int = 16, device: str = "cpu", seed: int = 0,
-                   background_hz: float = 1.0e6, platform: str = "lines", workers=None) -> dict:
+                   background_hz: float = 1.0e6, platform: str = "lines") -> dict:
     """The atlas preset's six beams over six CCR fields, one designed as simulate_pass's under each beam's ground
     track, flown once; each beam calibrated from its own photons (the weak beams' CCR echoes are the strong
     ones' ÷ pairs.energy_ratio, as their ground echoes). Every beam's track takes each shot's believed laser
     position and its axes turned to the beam's nominal direction. {ground track: CalibrationPass, or the
-    InputError of a beam whose calibration found too little}; the beams calibrated by ``workers`` (a
-    :class:`~flightsim.core.process_map.ProcessMap`) where given."""
+    InputError of a beam whose calibration found too little}."""
     names, beams = _fly_beams(truth, min_triggered, device, seed, background_hz, platform)
-    results = map_rows(_calibrate_beam, [beam.arguments() for beam in beams], workers)
-    return {name: beam.calibrated(result) for name, beam, result in zip(names, beams, results)}
+    return {name: beam.calibrated(_calibrate_beam(*beam.arguments())) for name, beam in zip(names, beams)}
 
 
 @dataclass
@@ -299,9 +297,9 @@ def run_calibration(out, device: str = "cpu", truth: Bias = Bias(3.0, -2.0, 0.25
     workers = _calibration_workers()  # they start while the first passes are flown
 
     def beams():
-        for run in runs:
-            names, mine = _fly_beams(truth, run[0], device, run[3], run[1], run[2])
-            flown.append((run, names, mine))
+        for triggered, background, platform, seed in runs:
+            names, mine = _fly_beams(truth, triggered, device, seed, background, platform)
+            flown.append(((triggered, background, platform, seed), names, mine))
             yield from (beam.arguments() for beam in mine)
 
     try:
