@@ -112,6 +112,13 @@ def _shown(folder: Path) -> str:
     return str(folder.relative_to(ROOT)) if folder.is_relative_to(ROOT) else str(folder)
 
 
+def _first_difference(rel: str, then: list[str], now: list[str]) -> str:
+    """The report's name, its count of differing lines and the first of them, as committed and as written now."""
+    pairs = [(a, b) for a, b in zip(then, now) if a != b] + [("", b) for b in now[len(then):]]
+    pairs += [(a, "") for a in then[len(now):]]
+    return f"{rel}: {len(pairs)} lines, the first `{pairs[0][0][:80]}` -> `{pairs[0][1][:80]}`"
+
+
 def compare(committed: Path, written: Path) -> dict:
     """Differences of the files the command wrote that are committed too."""
     out = {"files": 0, "numbers": 0, "max_rel": 0.0, "worst": "", "other": [], "reports": []}
@@ -122,8 +129,9 @@ def compare(committed: Path, written: Path) -> dict:
             continue
         out["files"] += 1
         if path.suffix == ".md":
-            if _report_text(path).replace(str(written), _shown(committed)) != _report_text(mine):
-                out["reports"].append(rel)
+            now, then = _report_text(path).replace(str(written), _shown(committed)), _report_text(mine)
+            if now != then:
+                out["reports"].append(_first_difference(rel, then.splitlines(), now.splitlines()))
             continue
         _numbers(pin_products.digest_file(mine, rel, committed), pin_products.digest_file(path, rel, written),
                  rel, out)
@@ -157,7 +165,7 @@ def check(report: Path, command: str, rel_tol: float, gpu: bool) -> str:
         state = f"**differs**: {d['numbers']} numbers (largest relative {d['max_rel']:.1e}, {d['worst']})"
         state += "".join(f"; {line}" for line in d["other"][:3])
         state += f"; {len(d['other'])} other values" if len(d["other"]) > 3 else ""
-        state += "".join(f"; report {r} differs" for r in d["reports"])
+        state += "".join(f"; report {r}" for r in d["reports"])
     elif d["numbers"]:
         state = f"round-off: {d['numbers']} numbers within {d['max_rel']:.1e}"
     else:

@@ -39,7 +39,7 @@ def test_round_off_and_differences_are_told_apart(tmp_path):
     _write(written, {"t.csv": "k,v\na,0.75\n", "REPORT.md": report.format("/tmp/w").replace("1.0 m", "1.1 m")})
     d = check_results.compare(committed, written)
     assert d["max_rel"] == 0.25 / 0.75 and d["worst"].startswith("t.csv")
-    assert d["reports"] == ["REPORT.md"]
+    assert d["reports"] == ["REPORT.md: 1 lines, the first `σ = 1.0 m` -> `σ = 1.1 m`"]
 
     _write(written, {"a.json": json.dumps({"x": 1.0, "rows": [1.0]})})
     d = check_results.compare(committed, written)
