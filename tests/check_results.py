@@ -3,15 +3,16 @@
 that regenerates it (its line ``Regenerate: `flightsim ...```); this script runs those commands into a temporary
 folder and compares what they write with the committed files, the way ``pin_products.py`` compares products
 (JSON without its volatile keys, CSV rows, HDF5 datasets, LAS bytes; figures not compared). Markdown reports are
-compared without their ``Regenerate:`` line and with their timings masked (``TIMING``). The commands run in this process's environment as it
-was before ``pin_products`` imported ``same_bits`` (whose NumPy and OpenBLAS kernels round differently from a
-user's run, which wrote the results).
+compared without their ``Regenerate:`` line and with their timings masked (``TIMING``). Run as a script, the commands
+run in this process's environment as it was before ``pin_products`` imported ``same_bits`` (whose NumPy and OpenBLAS
+kernels round differently from a user's run, which wrote the results); under the test suite, whose conftest sets
+them first, in the suite's.
 
 Each command's numbers are summed up as: equal; differing only in round-off (every differing number within
 ``--rel`` of the committed one); or differing (the first lines of the differences). Commands for a GPU
 (``--device cuda``, unless ``--gpu``) and the benchmark (its timings) are listed, not run.
 
-    python3 tests/check_results.py                      # every report (the self-calibration's takes ~6 min)
+    python3 tests/check_results.py                      # every report (~50 min on 2 cores: spad's 16, tls 22)
     python3 tests/check_results.py --only spaceborne    # reports whose path holds the text
     python3 tests/check_results.py --out results/freshness.md
 """
