@@ -149,7 +149,12 @@ def _shot_axes(track: Track, shot) -> np.ndarray:
 def beam_direction(track: Track, bias: Bias = Bias(), shot=None) -> np.ndarray:
     """Unit pulse vector in ENU: the body-frame nadir +z turned by the pointing bias; (3,) on a straight
     track, (n, 3) for the given shots (nearest) of a curved one."""
-    return _shot_axes(track, shot) @ (pointing_rotation(bias) @ np.array([0.0, 0.0, 1.0]))
+    return _shot_axes(track, shot) @ _body_direction(bias)
+
+
+def _body_direction(bias: Bias) -> np.ndarray:
+    """The body-frame nadir +z turned by the pointing bias (3,)."""
+    return pointing_rotation(bias) @ np.array([0.0, 0.0, 1.0])
 
 
 class Shots:
@@ -164,7 +169,7 @@ class Shots:
 
     def direction(self, bias: Bias) -> np.ndarray:
         """Unit pulse vectors in ENU, as :func:`beam_direction`."""
-        return self.axes @ (pointing_rotation(bias) @ np.array([0.0, 0.0, 1.0]))
+        return self.axes @ _body_direction(bias)
 
     def locate(self, range_m, bias: Bias) -> np.ndarray:
         """Ground positions (n, 3) ENU [m] of one photon per shot, as :func:`geolocate`."""

@@ -194,7 +194,7 @@ class _Problem:
     """Residuals and forward-difference Jacobian in the solver's variables u = (x − x0) / UNITS (free ones)."""
 
     def __init__(self, obs: Observations, x0: np.ndarray, free: np.ndarray, device: str, step: float = 0.5):
-        self.obs, self.x0, self.free, self.device, self.step = obs, np.asarray(x0, float), free, device, step
+        self.obs, self.x0, self.free, self.step = obs, np.asarray(x0, float), free, step
         self.georeference = Georeferencer(obs, device)
         self.evaluations = 0
         self._last: tuple[bytes, np.ndarray] | None = None
