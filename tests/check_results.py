@@ -120,9 +120,22 @@ def _first_difference(rel: str, then: list[str], now: list[str]) -> str:
     return f"{rel}: {len(pairs)} lines, the first `{pairs[0][0][:80]}` -> `{pairs[0][1][:80]}`"
 
 
+TIME_KEYS = frozenset(k for k in pin_products.VOLATILE_KEYS if k.endswith("_s"))  # "wall_s", "scan_s", …
+
+
+def _seconds(value, timed: bool = False) -> float:
+    """The sum of the numbers under a JSON value's timing keys (``TIME_KEYS``, at any depth) [s]."""
+    if isinstance(value, dict):
+        return sum(_seconds(v, timed or k in TIME_KEYS) for k, v in value.items())
+    if isinstance(value, list):
+        return sum(_seconds(v, timed) for v in value)
+    return float(value) if timed and isinstance(value, (int, float)) and not isinstance(value, bool) else 0.0
+
+
 def compare(committed: Path, written: Path) -> dict:
-    """Differences of the files the command wrote that are committed too."""
-    out = {"files": 0, "numbers": 0, "max_rel": 0.0, "worst": "", "other": [], "reports": []}
+    """Differences of the files the command wrote that are committed too, and the JSON files' timings summed
+    (``seconds``: committed, now)."""
+    out = {"files": 0, "numbers": 0, "max_rel": 0.0, "worst": "", "other": [], "reports": [], "seconds": [0.0, 0.0]}
     for path in sorted(p for p in written.rglob("*") if p.is_file()):
         rel = str(path.relative_to(written))
         mine = committed / rel
@@ -134,6 +147,9 @@ def compare(committed: Path, written: Path) -> dict:
             if now != then:
                 out["reports"].append(_first_difference(rel, then.splitlines(), now.splitlines()))
             continue
+        if path.suffix == ".json":
+            for i, file in enumerate((mine, path)):
+                out["seconds"][i] += _seconds(json.loads(file.read_text(encoding="utf-8")))
         _numbers(pin_products.digest_file(mine, rel, committed), pin_products.digest_file(path, rel, written),
                  rel, out)
     return out
@@ -149,17 +165,19 @@ def rerun(command: str) -> dict:
                              env=USER_ENV)
         seconds = time.perf_counter() - start
         d = compare(committed, Path(tmp) / "out") if run.returncode == 0 else {}
-    return {"seconds": seconds, "returncode": run.returncode, "stderr": run.stderr, **d}
+    return {"run_s": seconds, "returncode": run.returncode, "stderr": run.stderr, **d}
 
 
 def check(report: Path, command: str, rel_tol: float, gpu: bool) -> str:
-    """One table row: the report, its command, the run's time and what differs."""
+    """One table row: the report, its command, the run's time, its timings against the committed ones and what
+    differs."""
     name = str(report.relative_to(ROOT))
     reason = next((why for text, why in NOT_RUN.items() if text in command and not (gpu and text == GPU)), None)
     if reason:
-        return f"| {name} | `{command}` | - | not run: {reason} |"
+        return f"| {name} | `{command}` | - | - | not run: {reason} |"
     d = rerun(command)
-    head = f"| {name} | `{command}` | {d['seconds']:.0f} |"
+    then, now = d.get("seconds", (0.0, 0.0))
+    head = f"| {name} | `{command}` | {d['run_s']:.0f} | {f'{now / then:.2f}' if then > 0 else '-'} |"
     if d["returncode"] != 0:
         return f"{head} failed (exit {d['returncode']}): {d['stderr'][-200:]} |"
     if d["other"] or d["reports"] or d["max_rel"] > rel_tol:
@@ -181,7 +199,8 @@ def main(argv=None) -> int:
     parser.add_argument("--gpu", action="store_true", help="run the commands for a GPU too")
     parser.add_argument("--out", type=Path, help="also write the table to this Markdown file")
     a = parser.parse_args(argv)
-    rows = ["| report | command | run [s] | against the committed files |", "| --- | --- | --- | --- |"]
+    rows = ["| report | command | run [s] | its timings ÷ the committed | against the committed files |",
+            "| --- | --- | --- | --- | --- |"]
     for report, command in commands(a.only):
         rows.append(check(report, command, a.rel, a.gpu))
         print(rows[-1], flush=True)

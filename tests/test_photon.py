@@ -99,6 +99,18 @@ def test_dead_time_saturation_matches_the_closed_form():
     assert gaps.min() >= tau * (1 - 1e-12)
 
 
+def test_the_bound_of_detections_per_pulse_holds_at_saturation_and_is_tight():
+    """A saturated echo (30 photo-electrons) behind a 50 ns dead time longer than the echo, and 5e4 Hz of
+    background over the 2 µs gate: the mean detections stay below one plus the gate's mean background
+    counts, within a few of its hundredths; with no dead time the bound is the kept detections."""
+    s = _settings(noise_hz=5e4, dead_time_s=5e-8, max_events=8)
+    bound = 1.0 + 5e4 * 2.0 * (GATE[1] - GATE[0]) / C
+    assert s.detections_per_pulse() == pytest.approx(bound, rel=1e-12)
+    mean = detect(s, np.full(SLOTS, 30.0), np.full(SLOTS, T0), seed=4).counts.mean()
+    assert bound - 0.02 < mean <= bound
+    assert _settings(dead_time_s=0.0, max_events=8).detections_per_pulse() == 8.0
+
+
 def test_background_only_histogram_is_flat():
     s = _settings(noise_hz=2e6)
     d = detect(s, np.zeros(SLOTS), np.full(SLOTS, T0), seed=3)

@@ -12,7 +12,7 @@ import warp as wp
 from flightsim.engine.config import validate
 from flightsim.engine.readouts.photons import Photons
 from flightsim.scoring.photon_grid import PhotonFrame
-from flightsim.studies.spad import HALF_FIELD_DEG, frame_config, frame_simulator, simulate_frame
+from flightsim.studies.spad import HALF_FIELD_DEG, frame_config, frame_simulator, photon_frame, simulate_frame
 from flightsim.studies.spad_traffic import frame_traffic, key_bits
 from test_photon_grid import _reference_grid  # the gridding rule cell by cell in plain Python
 
@@ -96,6 +96,17 @@ def test_simulate_frame_grows_a_small_frame_and_grids_the_same_points(device):
         assert np.array_equal(a[1].points, b[1].points)
     else:  # a GPU's atomic sums add in any order
         np.testing.assert_allclose(a[1].points, b[1].points, rtol=0.0, atol=1e-9)
+
+
+def test_a_study_frame_holds_a_saturated_frame_at_its_first_fill():
+    """MODE-B at 34 m: every shot detects its echo and the background adds ~0.2 a pulse, more photons than
+    beams; the study's frame is sized for them, so the frame is not run twice."""
+    sim = frame_simulator(frame_config(34.0, "B", "cpu", pulses=40))[1]
+    frame = photon_frame(sim, GRID)
+    counts, held = _filled(sim, frame)
+    beams = sim.planned_pulses() * sim.beams_per_pulse
+    assert held and counts.returns == frame.count > 1.1 * beams
+    assert len(frame.xyz) <= 1.25 * beams  # sized by the bound, not by the largest case
 
 
 def _photons(n: int, seed: int):

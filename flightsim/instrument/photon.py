@@ -49,6 +49,15 @@ class PhotonSettings(Settings):
         if context is not None and context.optics == "lut":
             raise InputError("run.optics", "lut", "float32 or float64 with the photon detector")
 
+    def detections_per_pulse(self) -> float:
+        """Upper bound of the mean detections of one pixel per pulse over one surface echo: one signal
+        detection where the dead time outlasts the echo (6σ), ``max_events`` where it does not, plus the
+        mean background counts over the gate (the dead time only takes counts away); at most ``max_events``.
+        Sizes a frame's photon arrays (a CCR's second echo or a canopy's leaves can add to it)."""
+        gate_s = 2.0 * (self.gate_m[1] - self.gate_m[0]) / C
+        signal = 1.0 if self.dead_time_s > 6.0 * sigma_t(self) else float(self.max_events)
+        return min(float(self.max_events), signal + self.noise_hz * gate_s)
+
 
 @register("detector", "photon")
 class PhotonDetector:

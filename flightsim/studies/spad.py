@@ -27,6 +27,7 @@ MODE_B_STEPS = 5  # 32 × 5 = 160 ≈ 1100 / 7 (MODE-B: about a seventh of MODE-
 BODY_DISTANCE_M = 200.0  # above the rotating ellipsoid's pole: clear of its spinning 250 m a-axis
 BODY_PERIOD_S = 43668.0  # 12.13 h, Itokawa's period (a body of this size; the paper gives none)
 POWER_PHOTONS = (0.1, 0.3, 1.0, 3.0)  # mean signal photo-electrons per shot at 100 m, the power sweep
+FRAME_MARGIN = 1.02  # a frame's photon arrays over the bound of its mean detections (its fluctuations ~1e-4)
 COMMAND = "flightsim spad --device {device} --out results/spad"
 
 
@@ -132,11 +133,13 @@ class FramePoints:
 
 
 def photon_frame(sim, grid: int):
-    """A PhotonFrame for ``sim``'s frames gridded at ``grid`` angle cells per side."""
+    """A PhotonFrame for ``sim``'s frames gridded at ``grid`` angle cells per side, its arrays sized for the
+    bound of the detections per pulse (a frame run again only beyond it, e.g. a canopy's many echoes)."""
     from flightsim.scoring.photon_grid import PhotonFrame
 
+    per_pulse = sim.instrument.detector.s.detections_per_pulse() * FRAME_MARGIN
     return PhotonFrame(math.radians(HALF_FIELD_DEG), grid, sim.cfg.run.device,
-                       capacity=sim.planned_pulses() * sim.beams_per_pulse)  # about one photon per beam
+                       capacity=math.ceil(sim.planned_pulses() * sim.beams_per_pulse * per_pulse))
 
 
 def simulate_frame(sim, frame) -> tuple:
