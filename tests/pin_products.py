@@ -243,7 +243,8 @@ SKIP = {  # files never pinned (relative paths, fnmatch; `*` crosses folders), w
 COUNT_ONLY = ("*rows/*.json",)  # listed in _files by pattern and count, not by name
 PIXEL_PNGS = ("*_range.png",)  # PNG images of values (grid_products.write_png): their pixels are pinned
 VOLATILE_KEYS = frozenset({
-    "wall_s", "stages_s", "score_s", "scan_s", "tls_scan_s", "deterministic_wall_s", "draws_per_s", "slot_draws_per_s", "points_per_s",
+    "wall_s", "stages_s", "writers_s", "score_s", "scan_s", "tls_scan_s", "deterministic_wall_s", "draws_per_s",
+    "slot_draws_per_s", "points_per_s",
     "workers", "device", "host", "flightsim", "version", "versions", "commit", "date", "created", "python",
 })
 VOLATILE_COLUMNS = frozenset({"wall_s"})
