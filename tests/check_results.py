@@ -120,7 +120,8 @@ def _first_difference(rel: str, then: list[str], now: list[str]) -> str:
     return f"{rel}: {len(pairs)} lines, the first `{pairs[0][0][:80]}` -> `{pairs[0][1][:80]}`"
 
 
-TIME_KEYS = frozenset(k for k in pin_products.VOLATILE_KEYS if k.endswith("_s"))  # "wall_s", "scan_s", …
+TIME_KEYS = frozenset(k for k in pin_products.VOLATILE_KEYS  # durations: "wall_s", "scan_s", … (not "draws_per_s")
+                      if k.endswith("_s") and not k.endswith("per_s"))
 
 
 def _seconds(value, timed: bool = False) -> float:

@@ -36,7 +36,8 @@ def test_round_off_and_differences_are_told_apart(tmp_path):
     assert (d["files"], d["numbers"], d["other"], d["reports"]) == (3, 1, [], [])
     assert 1e-16 < d["max_rel"] < 1e-14
     assert d["seconds"] == [3.0, 9.0]  # the timings compared apart: 3× slower
-    assert check_results._seconds({"wall_s": 1.5, "rows": [{"scan_s": 2.0, "n": 7}], "stages_s": {"a": 0.5}}) == 4.0
+    assert check_results._seconds({"wall_s": 1.5, "rows": [{"scan_s": 2.0, "n": 7}], "stages_s": {"a": 0.5},
+                                   "draws_per_s": 1e4}) == 4.0  # durations only, not rates
 
     _write(written, {"t.csv": "k,v\na,0.75\n", "REPORT.md": report.format("/tmp/w").replace("1.0 m", "1.1 m")})
     d = check_results.compare(committed, written)
